@@ -1,0 +1,43 @@
+"""Offline analysis: a recorded log + its sidecar + overrides → the method's result."""
+from __future__ import annotations
+
+from typing import Any, Iterable, Mapping
+
+from .logio import LogError, read_log
+from .method.core import Result, analyze_slots, to_slots
+from .method.params import PARAM_NAMES, MethodParams, ParamError, build_params
+
+
+class AnalysisError(ValueError):
+    pass
+
+
+def parse_overrides(items: Iterable[str]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for it in items:
+        name, sep, value = it.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise AnalysisError(f"--set {it!r}: expected NAME=VALUE")
+        if name not in PARAM_NAMES:
+            raise AnalysisError(f"--set {name}: unknown parameter; valid names: {', '.join(PARAM_NAMES)}")
+        out[name] = value
+    return out
+
+
+def params_for(meta: Mapping[str, Any], overrides: Mapping[str, Any], source: str) -> MethodParams:
+    values = dict(meta.get("method") or {})
+    values.update(overrides)
+    try:
+        return build_params(values, source)
+    except ParamError as e:
+        raise AnalysisError(str(e)) from None
+
+
+def analyze_file(path: str, overrides: Mapping[str, Any] | None = None) -> Result:
+    try:
+        log = read_log(path)
+    except LogError as e:
+        raise AnalysisError(str(e)) from None
+    p = params_for(log.meta, overrides or {}, path)
+    return analyze_slots(to_slots(log.t, log.t1, log.t2, p), p)

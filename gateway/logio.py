@@ -1,0 +1,150 @@
+"""Reading the log interchange format (METHOD.md §9) and its metadata sidecar.
+
+A log is ``NAME.csv`` or ``NAME.csv.gz`` with a header line and columns ``t``, ``T1``, ``T2``
+(further columns are ignored); its metadata is ``NAME.meta.yaml`` beside it.
+"""
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import math
+import os
+import zlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+REQUIRED_COLUMNS = ("t", "T1", "T2")
+
+
+class LogError(ValueError):
+    """Bad log input; the message names the file and the problem."""
+
+
+@dataclass
+class Log:
+    path: str
+    t: np.ndarray
+    t1: np.ndarray
+    t2: np.ndarray
+    meta: dict[str, Any]
+    columns: list[str]
+
+
+def log_stem(path: str) -> str:
+    for ext in (".csv.gz", ".csv"):
+        if path.endswith(ext):
+            return path[: -len(ext)]
+    return path
+
+
+def sidecar_path(path: str) -> str:
+    return log_stem(path) + ".meta.yaml"
+
+
+def _read_bytes(path: str) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except FileNotFoundError:
+        raise LogError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise LogError(f"{path}: is a directory, not a log file") from None
+    except OSError as e:
+        raise LogError(f"{path}: cannot read: {e.strerror or e}") from None
+    if raw[:2] == b"\x1f\x8b":
+        try:
+            # a log cut off by kill -9 has no gzip trailer: keep what decompresses
+            d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+            raw = d.decompress(raw)
+        except zlib.error as e:
+            raise LogError(f"{path}: corrupt gzip data: {e}") from None
+    return raw
+
+
+def read_meta(path: str) -> dict[str, Any]:
+    """The sidecar of a log, or {} when there is none."""
+    import yaml
+
+    sp = sidecar_path(path)
+    if not os.path.exists(sp):
+        return {}
+    try:
+        with open(sp, encoding="utf-8") as f:
+            meta = yaml.safe_load(f)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise LogError(f"{sp}:{where} not valid YAML: {getattr(e, 'problem', e)}") from None
+    except OSError as e:
+        raise LogError(f"{sp}: cannot read: {e.strerror or e}") from None
+    if meta is None:
+        return {}
+    if not isinstance(meta, dict):
+        raise LogError(f"{sp}: expected a mapping of metadata keys, got {type(meta).__name__}")
+    method = meta.get("method")
+    if method is not None and not isinstance(method, dict):
+        raise LogError(f"{sp}: method: expected a mapping of parameter names, got {method!r}")
+    return meta
+
+
+def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:
+    """Slow path for a clear message: the first row (file line number) that does not parse."""
+    rd = csv.reader(io.StringIO(text))
+    for lineno, row in enumerate(rd, start=1):
+        if lineno == 1:
+            continue
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) < max(cols) + 1:
+            return f"{path}: line {lineno}: expected at least {max(cols) + 1} columns, got {len(row)}: {','.join(row)[:80]!r}"
+        for c in cols:
+            try:
+                float(row[c])
+            except ValueError:
+                return f"{path}: line {lineno}: column {c + 1} value {row[c][:40]!r} is not a number"
+    return f"{path}: unparsable data"
+
+
+def read_log(path: str, with_meta: bool = True) -> Log:
+    raw = _read_bytes(path)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise LogError(f"{path}: not a text CSV file (byte {e.start} is not UTF-8)") from None
+    nl = text.find("\n")
+    header_line = (text if nl < 0 else text[:nl]).strip().lstrip("\ufeff")
+    if not header_line:
+        raise LogError(f"{path}: empty file; expected a header line with columns t,T1,T2")
+    columns = [c.strip() for c in header_line.split(",")]
+    missing = [c for c in REQUIRED_COLUMNS if c not in columns]
+    if missing:
+        raise LogError(f"{path}: missing column {missing[0]!r} in header {header_line[:80]!r}; "
+                       f"required: t,T1,T2")
+    cols = [columns.index(c) for c in REQUIRED_COLUMNS]
+    body = "" if nl < 0 else text[nl + 1:]
+    # a file cut off mid-row (kill -9 during a write) keeps every complete row
+    if body and not body.endswith("\n"):
+        cut = body.rfind("\n")
+        last = body[cut + 1:]
+        if len(last.split(",")) < len(columns):
+            body = body[: cut + 1]
+    if not body.strip():
+        data = np.empty((0, 3))
+    else:
+        try:
+            data = np.loadtxt(io.StringIO(body), delimiter=",", usecols=cols, ndmin=2,
+                              dtype=np.float64, comments=None)
+        except ValueError:
+            raise LogError(_locate_bad_row(path, text, cols, len(columns))) from None
+    meta = read_meta(path) if with_meta else {}
+    return Log(path=path, t=data[:, 0].copy(), t1=data[:, 1].copy(), t2=data[:, 2].copy(),
+               meta=meta, columns=columns)
+
+
+def finite_or_none(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

@@ -1,0 +1,10 @@
+"""The wear-life method (METHOD.md): pure, no I/O, no clock."""
+from .core import (Result, SlotArrays, SlotOut, StreamingMonitor, analyze_readings, analyze_slots,
+                   gate_arrays, run_streaming, to_slots)
+from .params import PARAM_NAMES, PARAMS, RESULT_KEYS, MethodParams, ParamError, build_params
+
+__all__ = [
+    "MethodParams", "ParamError", "PARAMS", "PARAM_NAMES", "RESULT_KEYS", "build_params",
+    "Result", "SlotArrays", "SlotOut", "StreamingMonitor", "analyze_readings", "analyze_slots",
+    "gate_arrays", "run_streaming", "to_slots",
+]

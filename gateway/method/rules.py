@@ -1,0 +1,78 @@
+"""The rules of METHOD.md, each defined once and used by both the streaming and the batch form.
+
+Pure: numbers in, numbers out. Functions here accept numpy scalars or arrays alike, so that the
+per-slot path and the vectorised path evaluate the very same floating-point expressions.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .params import MethodParams
+
+# ---- reason bits (METHOD.md §2) ----
+MISSING = 0x01
+SATURATED = 0x02
+LOW_TENSION = 0x04
+JUMP = 0x08
+RATIO_LOW = 0x10
+RATIO_HIGH = 0x20
+
+REASONS: tuple[tuple[int, str], ...] = (
+    (MISSING, "MISSING"),
+    (SATURATED, "SATURATED"),
+    (LOW_TENSION, "LOW_TENSION"),
+    (JUMP, "JUMP"),
+    (RATIO_LOW, "RATIO_LOW"),
+    (RATIO_HIGH, "RATIO_HIGH"),
+)
+REASON_NAMES = tuple(n for _, n in REASONS)
+#: reasons that make a slot unsafe for the protection stop (§3)
+UNSAFE = MISSING | LOW_TENSION | SATURATED
+
+MAD_SCALE = 1.4826
+
+
+def reason_names(mask: int) -> list[str]:
+    return [name for bit, name in REASONS if mask & bit]
+
+
+def slot_index(t, ts: float):
+    """Slot of a reading at time t (s from test start): round(t / Ts), halves rounded up.
+    Works on floats and arrays."""
+    return np.floor(np.asarray(t, dtype=np.float64) / ts + 0.5).astype(np.int64)
+
+
+def log_ratio_mu(r, theta: float):
+    """μ = ln(R) / θ. Always evaluated through numpy's log so that the scalar and the
+    vectorised paths give bit-identical values."""
+    return np.log(r) / theta
+
+
+def window_steady(mu_valid: np.ndarray, p: MethodParams) -> bool:
+    """§4: is a complete window with these valid μ values steady?"""
+    n = mu_valid.size
+    if n < n_eff_required(p):
+        return False
+    med = np.median(mu_valid)
+    sigma = MAD_SCALE * np.median(np.abs(mu_valid - med))
+    if not sigma < p.sigma_max:
+        return False
+    g = mu_valid.max() - mu_valid.min()
+    return bool(g <= p.g_max)
+
+
+def n_eff_required(p: MethodParams) -> int:
+    """Smallest whole number of valid slots with N_eff ≥ valid_ratio_min · N_ss
+    (computed so that float noise in 0.9 · N_ss cannot move it)."""
+    return int(math.ceil(p.valid_ratio_min * p.n_ss - 1e-9))
+
+
+def baseline_value(mu_valid_all: np.ndarray) -> float:
+    """μ_ss = median of all valid μ of the stable segment (even count: mean of the middle two)."""
+    return float(np.median(mu_valid_all))
+
+
+def threshold(mu_ss: float, p: MethodParams) -> float:
+    return (1.0 + p.delta) * mu_ss
