@@ -1,0 +1,117 @@
+"""Data that flows one way through a station: slot records, events, station state, commands.
+
+The station runtime produces one :class:`SlotRecord` per 20 ms slot and :class:`Event` objects
+when something happens; outputs (recorder, MQTT, Modbus TCP) consume them. Commands from the CLI,
+MQTT or a PLC come back as :class:`Command` and go through one validation path.
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+
+class TestState(enum.IntEnum):
+    """Test lifecycle (also the enum served in the PLC register map)."""
+    IDLE = 0
+    BASELINE_SEARCH = 1   # running, no baseline yet
+    MONITORING = 2        # baseline established, watching for persistent exceedance
+    END_OF_LIFE = 3       # t_life found; the test runs on to its planned t_end
+    COMPLETED = 4
+    ABORTED = 5
+
+
+@dataclass(slots=True)
+class SlotRecord:
+    """Everything known about one slot k (t = k · Ts from test start)."""
+    k: int
+    t: float
+    present: bool
+    t1: float            # N, NaN when MISSING
+    t2: float
+    q: int               # 1 valid, 0 invalid
+    mask: int            # reason bits (gateway.method.rules)
+    ratio: float | None
+    mu: float | None     # only when q = 1
+    mean_filt: float     # pre-filtered mean tension fed to the controller, N
+    speed_cmd: float     # rpm commanded this slot
+    speed_act: float     # rpm reported by the STM32 (NaN if unknown)
+    saturated: bool      # control output clamped this slot
+    lateness_s: float = 0.0   # how late the poll for this slot started vs. its deadline
+    rtt_s: float = math.nan   # meter round-trip time
+
+
+class EventType(str, enum.Enum):
+    TEST_STARTED = "test_started"
+    BASELINE = "baseline_established"
+    END_OF_LIFE = "end_of_life"
+    PROTECTION_STOP = "protection_stop"
+    TEST_ENDED = "test_ended"
+    PORT_LOST = "port_lost"
+    PORT_BACK = "port_back"
+    ALARM_ACK = "alarm_acknowledged"
+    ALARM_CLEARED = "alarm_cleared"
+    COMMAND_REJECTED = "command_rejected"
+    CONFIG_RELOADED = "config_reloaded"
+
+
+@dataclass
+class Event:
+    type: EventType
+    station: str
+    wall_time: float                   # UTC epoch seconds
+    test_id: str | None = None
+    k: int | None = None               # slot, when the event belongs to one
+    data: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"type": self.type.value, "station": self.station, "time": self.wall_time,
+                "test_id": self.test_id, "k": self.k, **self.data}
+
+
+@dataclass
+class StationState:
+    """Slowly changing state of a station (retained MQTT `state`, PLC registers)."""
+    station: str
+    state: TestState = TestState.IDLE
+    test_id: str | None = None
+    sample_id: str | None = None
+    grade: str | None = None
+    t_set: float | None = None
+    t_end: float | None = None
+    mu_ss: float | None = None
+    mu_th: float | None = None
+    k_b: int | None = None
+    t_life: float | None = None
+    elapsed_s: float = 0.0
+    status: str | None = None          # the method's status once the test has ended
+    end_reason: str | None = None      # why a test ended (completed, protection stop, command, restart)
+    alarm: str = "none"                # none | active | acknowledged (end-of-life alarm lifecycle)
+    protection_stop: bool = False
+    meter_ok: bool = False
+    stm32_ok: bool = False
+    mqtt_ok: bool = False
+    saturation: bool = False
+
+
+class CommandKind(str, enum.Enum):
+    START = "start"
+    STOP = "stop"
+    ACK = "ack"
+    SETPOINT = "setpoint"
+
+
+@dataclass
+class Command:
+    kind: CommandKind
+    source: str                          # "cli", "mqtt", "plc:<addr>"
+    args: dict[str, Any] = field(default_factory=dict)
+    request_id: str | None = None
+
+
+@dataclass
+class CommandReply:
+    ok: bool
+    reason: str = ""
+    request_id: str | None = None
