@@ -1,0 +1,16 @@
+"""Generated docs are current (one definition → docs)."""
+import importlib
+import os
+
+import pytest
+
+from conftest import ROOT
+
+GENERATED = [("gateway.method.docs", "docs/method.md")]
+
+
+@pytest.mark.parametrize("module,path", GENERATED)
+def test_generated_doc_is_current(module, path):
+    mod = importlib.import_module(module)
+    with open(os.path.join(ROOT, path), encoding="utf-8") as f:
+        assert f.read() == mod.render(), f"regenerate: python -m {module} > {path}"
