@@ -45,6 +45,8 @@ def _f(x: float | None) -> str:
 class TestRecorder:
     """Writes one test. Not thread-safe; called from the station's loop only."""
 
+    __test__ = False  # not a pytest test class
+
     def __init__(self, test_dir: str, meta: dict[str, Any], flush_interval_s: float = 1.0,
                  fsync_interval_s: float = 10.0, clock=time.monotonic):
         self.dir = test_dir

@@ -58,6 +58,7 @@ class Stm32Port(Protocol):
 
 @dataclass
 class TestPlan:
+    __test__ = False  # not a pytest test class
     sample_id: str
     grade: str | None
     t_set: float
