@@ -1,0 +1,116 @@
+"""End-to-end helpers: a virtual station (`hookwatch sim`) and the gateway (`hookwatch run`) as
+separate processes talking over pseudo-terminals."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import yaml
+
+from conftest import ROOT, hookwatch_cmd
+
+
+class Proc:
+    def __init__(self, argv, log_path, env=None):
+        self.log_path = log_path
+        self._log = open(log_path, "w")
+        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, text=True,
+                                  env=env, cwd=ROOT)
+
+    def readline_until(self, prefix: str, timeout: float = 20.0) -> str:
+        import selectors
+
+        sel = selectors.DefaultSelector()
+        sel.register(self.p.stdout, selectors.EVENT_READ)
+        t_end = time.monotonic() + timeout
+        try:
+            while time.monotonic() < t_end:
+                if not sel.select(max(0.0, t_end - time.monotonic())):
+                    break
+                line = self.p.stdout.readline()
+                if not line:
+                    break
+                if line.startswith(prefix):
+                    return line[len(prefix):].strip()
+        finally:
+            sel.close()
+        raise AssertionError(f"no '{prefix}' line from {self.p.args}; log:\n{self.log()}")
+
+    def log(self) -> str:
+        try:
+            with open(self.log_path) as f:
+                return f.read()[-4000:]
+        except OSError:
+            return ""
+
+    def stop(self, sig=signal.SIGTERM, timeout: float = 15.0) -> int:
+        if self.p.poll() is None:
+            self.p.send_signal(sig)
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        out = self.p.stdout.read() if self.p.stdout else ""
+        if self.p.stdout:
+            self.p.stdout.close()
+        self._log.close()
+        self.stdout_rest = out
+        return self.p.returncode
+
+
+@contextlib.contextmanager
+def virtual_station(tmp_path, scenario: str, seed: int = 1, extra: list[str] | None = None):
+    """Start `hookwatch sim SCENARIO` with its links under tmp_path/links; yields (proc, links)."""
+    link_dir = tmp_path / "links"
+    link_dir.mkdir(exist_ok=True)
+    sc = scenario if os.path.isabs(scenario) else os.path.join(ROOT, scenario)
+    truth = tmp_path / "truth.json"
+    proc = Proc(hookwatch_cmd() + ["sim", sc, "--link-dir", str(link_dir), "--seed", str(seed),
+                                   "--truth", str(truth), *(extra or [])],
+                str(tmp_path / "sim.log"))
+    try:
+        proc.readline_until("meter:")
+        proc.readline_until("stm32:")
+        yield proc, {"meter": str(link_dir / "meter"), "stm32": str(link_dir / "stm32"),
+                     "truth": str(truth)}
+    finally:
+        proc.stop()
+
+
+def station_yaml(tmp_path, links, *, name="e2e", method=None, control=None, test=None,
+                 mqtt=None, modbus_tcp=None, meter=None) -> str:
+    cfg = {
+        "station": {"id": name, "site": "lab", "area": "test", "line": "l1"},
+        "meter": {"port": links["meter"], "map": os.path.join(ROOT, "config", "meters", "zn-s.yaml"),
+                  **(meter or {})},
+        "stm32": {"port": links["stm32"]},
+        "method": method or {},
+        "control": control or {},
+        "test": {"sample_id": "S-1", "grade": "I", "t_set_n": 0.5, "t_end_s": 60, **(test or {})},
+        "recorder": {"dir": str(tmp_path / "records")},
+        "mqtt": {"enabled": False, **(mqtt or {})},
+        "modbus_tcp": {"enabled": False, **(modbus_tcp or {})},
+    }
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return str(path)
+
+
+def run_gateway(tmp_path, station_path, *args, name="gw") -> Proc:
+    return Proc(hookwatch_cmd() + ["run", station_path, *args], str(tmp_path / f"{name}.log"))
+
+
+def test_dirs(tmp_path, station="e2e"):
+    d = tmp_path / "records" / station
+    return sorted(str(d / x) for x in os.listdir(d)) if d.exists() else []
+
+
+def read_json(path):
+    with open(path) as f:
+        return json.load(f)
