@@ -1,0 +1,1 @@
+"""Virtual twins of the station's devices (plant, ZN-S meter, STM32), for tests and commissioning."""
