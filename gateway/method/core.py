@@ -411,29 +411,57 @@ def _persistence(b: np.ndarray, n_tau: int, n_g: int) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
-def analyze_slots(s: SlotArrays, p: MethodParams) -> Result:
-    """The batch form over a log on the slot grid."""
-    mask, _ratio, mu = gate_arrays(s.present, s.t1, s.t2, p)
+@dataclass
+class GatedSlots:
+    """The part of the batch form that does not depend on δ (§2–§4): gating, protection stop and
+    baseline. :func:`life_result` finishes it for any δ, so a sensitivity study gates once."""
+    p: MethodParams
+    mask: np.ndarray          # uint8 reason mask per analysed slot (cut at a protection stop)
+    ratio: np.ndarray         # R = T2/T1, NaN where undefined (diagnostic)
+    mu: np.ndarray            # μ, NaN where invalid
+    stop_slot: int | None
+    stop_mask: int
+    stable_first: int | None
+    k_b: int | None
+    mu_ss: float | None
+
+
+def gate_and_baseline(s: SlotArrays, p: MethodParams) -> GatedSlots:
+    mask, ratio, mu = gate_arrays(s.present, s.t1, s.t2, p)
     stop_slot, stop_mask = _protection_stop(mask, p)
     n_slots = mask.size if stop_slot is None else stop_slot + 1
     mask = mask[:n_slots]
     mu = mu[:n_slots]
+    ratio = ratio[:n_slots]
     valid = mask == 0
     # windows must be complete and end before a protection stop
     n_usable = n_slots if stop_slot is None else stop_slot
     stable_first, k_b, mu_ss = _baseline(mu, valid, n_usable, p)
+    return GatedSlots(p, mask, ratio, mu, stop_slot, stop_mask, stable_first, k_b, mu_ss)
+
+
+def life_result(g: GatedSlots, delta: float | None = None) -> Result:
+    """§5–§6 over gated slots, with the δ of the gating parameters or the one given."""
+    p = g.p if delta is None else g.p.with_delta(delta)
+    mask, mu, k_b = g.mask, g.mu, g.k_b
+    valid = mask == 0
     k_life = None
     if k_b is not None:
-        mu_th = R.threshold(mu_ss, p)
+        mu_th = R.threshold(g.mu_ss, p)
         with np.errstate(invalid="ignore"):
             bb = valid[k_b + 1:] & (mu[k_b + 1:] > mu_th)
         i = _persistence(bb, p.n_tau, p.n_g)
         if i is not None:
             k_life = k_b + 1 + i - p.n_tau + 1
     counts = {name: int(np.count_nonzero(mask & bit)) for bit, name in R.REASONS}
-    return _finish(p, n_slots=n_slots, n_valid=int(np.count_nonzero(valid)),
-                   reason_counts=counts, stable_first=stable_first, k_b=k_b, mu_ss=mu_ss,
-                   k_life=k_life, stop_slot=stop_slot, stop_mask=stop_mask)
+    return _finish(p, n_slots=mask.size, n_valid=int(np.count_nonzero(valid)),
+                   reason_counts=counts, stable_first=g.stable_first, k_b=k_b, mu_ss=g.mu_ss,
+                   k_life=k_life, stop_slot=g.stop_slot, stop_mask=g.stop_mask)
+
+
+def analyze_slots(s: SlotArrays, p: MethodParams) -> Result:
+    """The batch form over a log on the slot grid."""
+    return life_result(gate_and_baseline(s, p))
 
 
 def analyze_readings(t: np.ndarray, t1: np.ndarray, t2: np.ndarray, p: MethodParams) -> Result:
