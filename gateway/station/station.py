@@ -188,39 +188,9 @@ class Station:
         return CommandReply(True, "", cmd.request_id)
 
     def validate(self, cmd: Command) -> CommandReply | None:
-        try:
-            from .commands import validate as shared_validate
-        except ImportError:
-            shared_validate = None
-        if shared_validate is not None:
-            r = shared_validate(cmd, self)
-            if r is not None:
-                return r
-        running = self.monitor is not None
-        if cmd.kind == CommandKind.START:
-            if running:
-                return CommandReply(False, "a test is already running; stop it first", cmd.request_id)
-            a = cmd.args
-            if not a.get("sample_id") or len(str(a["sample_id"])) > 32:
-                return CommandReply(False, "sample_id: required, at most 32 characters", cmd.request_id)
-            try:
-                t_set = float(a.get("t_set"))
-            except (TypeError, ValueError):
-                return CommandReply(False, f"t_set: {a.get('t_set')!r} is not a number (N)", cmd.request_id)
-            if not 0 < t_set < 0.98 * self.full_scale:
-                return CommandReply(False, f"t_set: {t_set} N out of range (0, {0.98 * self.full_scale:g})", cmd.request_id)
-            if a.get("grade") is not None and str(a["grade"]) not in self.grades:
-                return CommandReply(False, f"grade: {a['grade']!r} unknown; allowed: {', '.join(self.grades)}", cmd.request_id)
-        elif cmd.kind == CommandKind.STOP:
-            if not running:
-                return CommandReply(False, "no test is running", cmd.request_id)
-        elif cmd.kind == CommandKind.ACK:
-            if self.state.alarm != "active":
-                return CommandReply(False, "no unacknowledged end-of-life alarm", cmd.request_id)
-        elif cmd.kind == CommandKind.SETPOINT:
-            if running:
-                return CommandReply(False, "the setpoint of a running test cannot change (it is in its sidecar)", cmd.request_id)
-        return None
+        """The one validation shared by CLI, MQTT and PLC (gateway/station/commands.py)."""
+        from .commands import validate as shared_validate
+        return shared_validate(cmd, self)
 
     # ---------------------------------------------------------------- test lifecycle
     def start_test(self, plan: TestPlan) -> None:

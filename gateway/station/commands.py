@@ -1,0 +1,170 @@
+"""The one validation of commands, shared by every source (CLI, MQTT, PLC over Modbus TCP).
+
+``validate(cmd, station)`` returns ``None`` when the command may be carried out, else a
+:class:`Rejection` (a :class:`CommandReply` with ``ok=False``, a human reason naming the field,
+the value and what is allowed, and a numeric ``code`` for PLCs). The same bad request gets the
+same reason and code whichever door it came through; ``Station.submit`` emits the same
+``command_rejected`` event for all of them.
+
+Value rules (``t_set_range``, ``check_sample_id``, ``check_grade``, ``check_t_end``) are also used
+on their own by the Modbus TCP server to refuse an out-of-range register write with exception 03
+before anything changes.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from ..records import Command, CommandKind, CommandReply
+
+#: longest sample ID (also the size of the PLC's sample ID registers: 16 registers × 2 chars)
+SAMPLE_ID_MAX = 32
+#: longest planned test duration a command may ask for, s (30 days)
+T_END_MAX_S = 30 * 24 * 3600
+#: the setpoint must stay below this fraction of the meter's full scale
+T_SET_FULL_SCALE_FRACTION = 0.98
+
+#: rejection codes (served to PLCs in the "last command result" input register)
+REJECT_CODES: tuple[tuple[int, str, str], ...] = (
+    (0, "OK", "accepted"),
+    (1, "BUSY", "a test is already running; stop it first"),
+    (2, "NOT_RUNNING", "no test is running"),
+    (3, "NO_ALARM", "no unacknowledged end-of-life alarm"),
+    (4, "SAMPLE_ID", f"sample_id missing, too long (> {SAMPLE_ID_MAX}) or not printable ASCII"),
+    (5, "T_SET", "t_set not a number or out of range"),
+    (6, "GRADE", "grade not one of the station's grades"),
+    (7, "T_END", f"t_end not a number or out of range (0, {T_END_MAX_S}] s"),
+    (8, "SETPOINT_LOCKED", "the setpoint of a running test cannot change"),
+    (9, "BAD_REQUEST", "malformed request (unknown command, unknown key, not JSON)"),
+    (10, "NO_STATION", "the station did not answer (not running or busy)"),
+)
+CODE = {name: code for code, name, _ in REJECT_CODES}
+
+#: keys each command accepts (MQTT JSON payloads; the PLC fills them from holding registers)
+COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
+    CommandKind.START: ("sample_id", "grade", "t_set", "t_end"),
+    CommandKind.STOP: (),
+    CommandKind.ACK: (),
+    CommandKind.SETPOINT: ("t_set",),
+}
+
+
+@dataclass
+class Rejection(CommandReply):
+    """A refused command: ``reason`` for people, ``code`` (see REJECT_CODES) for PLCs."""
+    code: int = 0
+
+
+def reject(cmd: Command | None, name: str, reason: str) -> Rejection:
+    return Rejection(False, reason, cmd.request_id if cmd is not None else None, CODE[name])
+
+
+# ----------------------------------------------------------------------------- value rules
+def t_set_range(station) -> tuple[float, float]:
+    """Open interval of allowed setpoints, N."""
+    fs = float(getattr(station, "full_scale", 5.0))
+    return 0.0, T_SET_FULL_SCALE_FRACTION * fs
+
+
+def check_t_set(value: Any, station) -> str | None:
+    lo, hi = t_set_range(station)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return f"t_set: {value!r} is not a number (N); allowed: ({lo:g}, {hi:g}) N"
+    if isinstance(value, bool) or not math.isfinite(v) or not lo < v < hi:
+        return f"t_set: {value!r} N out of range; allowed: ({lo:g}, {hi:g}) N"
+    return None
+
+
+def check_sample_id(value: Any) -> str | None:
+    if value is None or not isinstance(value, str) or not value.strip():
+        return f"sample_id: {value!r}: required, 1 to {SAMPLE_ID_MAX} printable ASCII characters"
+    if len(value) > SAMPLE_ID_MAX:
+        return f"sample_id: {value!r} has {len(value)} characters; at most {SAMPLE_ID_MAX}"
+    if not all(0x20 <= ord(c) <= 0x7E for c in value):
+        return f"sample_id: {value!r}: only printable ASCII characters (0x20–0x7E) are allowed"
+    return None
+
+
+def check_grade(value: Any, grades) -> str | None:
+    if value is None:
+        return None
+    if not isinstance(value, str) or value not in tuple(grades):
+        return f"grade: {value!r} unknown; allowed: {', '.join(grades)}"
+    return None
+
+
+def check_t_end(value: Any) -> str | None:
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return f"t_end: {value!r} is not a number (s); allowed: (0, {T_END_MAX_S}] s"
+    if isinstance(value, bool) or not math.isfinite(v) or not 0 < v <= T_END_MAX_S:
+        return f"t_end: {value!r} s out of range; allowed: (0, {T_END_MAX_S}] s"
+    return None
+
+
+# ----------------------------------------------------------------------------- requests
+def command_from_mapping(kind: str, payload: Any, source: str) -> Command | Rejection:
+    """Build a Command from a JSON-like request (MQTT); unknown commands or keys are refused."""
+    try:
+        ck = CommandKind(kind)
+    except ValueError:
+        allowed = ", ".join(k.value for k in CommandKind)
+        return Rejection(False, f"command {kind!r} unknown; allowed: {allowed}", None,
+                         CODE["BAD_REQUEST"])
+    if payload is None:
+        payload = {}
+    if not isinstance(payload, Mapping):
+        return Rejection(False, f"{ck.value}: payload must be a JSON object, got {type(payload).__name__}",
+                         None, CODE["BAD_REQUEST"])
+    rid = payload.get("request_id")
+    rid = None if rid is None else str(rid)[:64]
+    allowed = COMMAND_KEYS[ck]
+    unknown = sorted(k for k in payload if k not in allowed and k != "request_id")
+    if unknown:
+        return Rejection(False, f"{ck.value}: unknown key(s) {', '.join(map(repr, unknown))}; allowed: "
+                         f"{', '.join(allowed + ('request_id',))}", rid, CODE["BAD_REQUEST"])
+    args = {k: payload[k] for k in allowed if k in payload}
+    return Command(ck, source, args, rid)
+
+
+def validate(cmd: Command, station) -> Rejection | None:
+    """Can ``station`` carry out ``cmd`` now? None if yes, else the reason (and code)."""
+    running = getattr(station, "monitor", None) is not None
+    a = cmd.args or {}
+    if cmd.kind == CommandKind.START:
+        if running:
+            return reject(cmd, "BUSY", "a test is already running; stop it first")
+        err = check_sample_id(a.get("sample_id"))
+        if err:
+            return reject(cmd, "SAMPLE_ID", err)
+        err = check_t_set(a.get("t_set"), station)
+        if err:
+            return reject(cmd, "T_SET", err)
+        err = check_grade(a.get("grade"), getattr(station, "grades", ()))
+        if err:
+            return reject(cmd, "GRADE", err)
+        err = check_t_end(a.get("t_end"))
+        if err:
+            return reject(cmd, "T_END", err)
+    elif cmd.kind == CommandKind.STOP:
+        if not running:
+            return reject(cmd, "NOT_RUNNING", "no test is running")
+    elif cmd.kind == CommandKind.ACK:
+        if getattr(getattr(station, "state", None), "alarm", "none") != "active":
+            return reject(cmd, "NO_ALARM", "no unacknowledged end-of-life alarm")
+    elif cmd.kind == CommandKind.SETPOINT:
+        if running:
+            return reject(cmd, "SETPOINT_LOCKED",
+                          "the setpoint of a running test cannot change (it is in its sidecar)")
+        err = check_t_set(a.get("t_set"), station)
+        if err:
+            return reject(cmd, "T_SET", err)
+    else:  # pragma: no cover - CommandKind is closed
+        return reject(cmd, "BAD_REQUEST", f"command {cmd.kind!r} unknown")
+    return None
