@@ -348,3 +348,32 @@ def test_simple_motor_first_order():
 
 def test_status_struct_layout():
     assert p.STATUS_LEN == 15 and struct.calcsize("<iiHBHH") == 15
+
+
+def test_doc_example_exchange_replays():
+    """The hex example in docs/protocols/stm32.md is what the firmware really answers."""
+    import os
+    import re
+
+    from conftest import ROOT
+    with open(os.path.join(ROOT, "docs", "protocols", "stm32.md"), encoding="utf-8") as f:
+        text = f.read()
+    block = text.split("## Example exchange")[1].split("```")[1]
+    fw = Stm32Firmware()
+    t, expect, n = 0.0, None, 0
+    for line in block.strip().splitlines():
+        if line.startswith("#"):
+            m = re.match(r"# t=([\d.]+)", line)
+            t = float(m.group(1)) if m else t
+            m = re.search(r"the drive measures ([\d.]+) rpm", line)
+            if m:
+                fw.measure(float(m.group(1)), False, t)
+            continue
+        raw = bytes.fromhex(line[3:])
+        if line.startswith("->"):
+            expect = fw.handle(raw, t)
+        else:
+            assert raw == expect, line
+            p.decode_reply(p.decode_frame(raw))
+            n += 1
+    assert n == 8
