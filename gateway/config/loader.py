@@ -1,0 +1,601 @@
+"""Read, merge and validate station files against the schema (:mod:`gateway.config.schema`).
+
+The merge rule
+--------------
+A fleet folder holds ``fleet.yaml`` and ``stations/<id>.yaml``. ``fleet.yaml`` has one section,
+``defaults:``, written like a station file; each station file is deep-merged over it (mappings
+merge key by key, anything else — numbers, strings, lists — is replaced as a whole; a section left
+empty in the station file keeps the defaults). A station file given on its own takes its defaults
+from ``../fleet.yaml`` when it lies in a folder named ``stations``, and stands alone otherwise.
+
+Every value remembers the file and line it came from: errors point there, and relative paths are
+resolved against the folder of that file.
+"""
+from __future__ import annotations
+
+import difflib
+import glob
+import os
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..method.params import SPEC as METHOD_SPEC
+from ..method.params import ParamError, build_params
+from . import schema as S
+from .yamlpos import Pos, YamlError
+from .yamlpos import load as load_yaml
+
+AUTO: Any = object()  # fleet_file: find it by the rule above
+
+#: the keys of fleet.yaml
+FLEET_KEYS = ("defaults",)
+
+
+@dataclass(frozen=True)
+class Issue:
+    severity: str              # "error" | "warning"
+    key: str                   # dotted key path, "" for the file as a whole
+    message: str
+    file: str | None = None
+    line: int | None = None
+
+    @property
+    def where(self) -> str:
+        if self.file and self.line:
+            return f"{self.file}:{self.line}"
+        return self.file or ""
+
+    def __str__(self) -> str:
+        parts = [p for p in (self.where, self.key) if p]
+        return ": ".join(parts + [self.message])
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run. ``issues`` lists every error; ``str()`` is one line each."""
+
+    def __init__(self, issues: list[Issue]):
+        self.issues = list(issues)
+        super().__init__("\n".join(str(i) for i in self.issues))
+
+
+@dataclass
+class Loaded:
+    """One station file after validation: the config (None when it has errors) and its issues."""
+    path: str
+    cfg: Any
+    issues: list[Issue] = field(default_factory=list)
+    fleet_file: str | None = None
+    pos: dict = field(default_factory=dict)
+    name: str | None = None       # station.id as written (also when the file has errors)
+
+    @property
+    def errors(self) -> list[Issue]:
+        return [i for i in self.issues if i.severity == "error"]
+
+    @property
+    def warnings(self) -> list[Issue]:
+        return [i for i in self.issues if i.severity == "warning"]
+
+    def locate(self, path: tuple) -> Pos | None:
+        return _locate(self.pos, path)
+
+    def issue(self, severity: str, path: tuple, message: str, anchor: tuple | None = None) -> Issue:
+        p = self.locate(path) or (self.locate(anchor) if anchor else None)
+        if p is None:
+            return Issue(severity, _dotted(path), message, self.path, None)
+        return Issue(severity, _dotted(path), message, p.file, p.line)
+
+
+def _dotted(path: tuple) -> str:
+    return ".".join(str(p) for p in path)
+
+
+def _locate(pos: dict, path: tuple) -> Pos | None:
+    path = tuple(path)
+    while path:
+        if path in pos:
+            return pos[path]
+        path = path[:-1]
+    return None
+
+
+class _Report:
+    def __init__(self, loaded: Loaded):
+        self.loaded = loaded
+
+    def error(self, path: tuple, message: str, anchor: tuple | None = None) -> None:
+        self.loaded.issues.append(self.loaded.issue("error", path, message, anchor))
+
+    def warning(self, path: tuple, message: str, anchor: tuple | None = None) -> None:
+        self.loaded.issues.append(self.loaded.issue("warning", path, message, anchor))
+
+    def file_of(self, path: tuple) -> str:
+        p = _locate(self.loaded.pos, path)
+        return p.file if p else self.loaded.path
+
+
+# ---------------------------------------------------------------------------------------------
+# public API
+
+
+def fleet_file_for(path: str) -> str | None:
+    """The fleet.yaml a lone station file takes its defaults from, or None."""
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.basename(folder) != "stations":
+        return None
+    candidate = os.path.normpath(os.path.join(os.path.dirname(path) or ".", "..", "fleet.yaml"))
+    return candidate if os.path.isfile(candidate) else None
+
+
+def station_files(folder: str) -> list[str]:
+    sdir = os.path.join(folder, "stations")
+    return sorted(glob.glob(os.path.join(sdir, "*.yaml")) + glob.glob(os.path.join(sdir, "*.yml")))
+
+
+def validate_station(path: str, fleet_file: Any = AUTO) -> Loaded:
+    """Read and validate one station file; never raises for bad content (see ``Loaded.issues``).
+    A missing station file raises FileNotFoundError."""
+    if not os.path.isfile(path):
+        raise FileNotFoundError(path)
+    if fleet_file is AUTO:
+        fleet_file = fleet_file_for(path)
+    loaded = Loaded(path=path, cfg=None, fleet_file=fleet_file)
+    tree: dict = {}
+    pos: dict = {}
+    if fleet_file:
+        ftree, fpos, fissues = _read_fleet(fleet_file)
+        loaded.issues.extend(fissues)
+        if ftree is None:
+            return loaded
+        tree, pos = ftree, fpos
+    try:
+        doc = load_yaml(path)
+    except YamlError as e:
+        loaded.issues.append(Issue("error", "", e.msg, e.file, e.line))
+        return loaded
+    except (OSError, UnicodeDecodeError) as e:
+        loaded.issues.append(Issue("error", "", f"cannot read: {getattr(e, 'strerror', None) or e}", path))
+        return loaded
+    tree = _merge(tree, doc.data)
+    pos = {**pos, **doc.pos}
+    loaded.pos = pos
+    st = tree.get("station")
+    if isinstance(st, dict) and isinstance(st.get("id"), str):
+        loaded.name = st["id"]
+    loaded.cfg = _build(tree, loaded)
+    if loaded.errors:
+        loaded.cfg = None
+    return loaded
+
+
+def validate_fleet(folder: str) -> list[Loaded]:
+    """Validate every station of a fleet folder (``fleet.yaml`` + ``stations/*.yaml``)."""
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(folder)
+    ff = os.path.join(folder, "fleet.yaml")
+    ff = ff if os.path.isfile(ff) else None
+    return [validate_station(p, fleet_file=ff) for p in station_files(folder)]
+
+
+def load_station(path: str, fleet_file: Any = AUTO):
+    """The StationConfig of one station file; ConfigError lists every problem."""
+    loaded = validate_station(path, fleet_file)
+    if loaded.errors:
+        raise ConfigError(_dedupe(loaded.errors))
+    return loaded.cfg
+
+
+def load_fleet(folder: str) -> list:
+    """The StationConfigs of a fleet folder, in file-name order. ConfigError lists every problem,
+    including clashes between stations (ids, serial ports, Modbus TCP units, MQTT client ids)."""
+    loaded = validate_fleet(folder)
+    errors = [i for ld in loaded for i in ld.errors]
+    if not errors:
+        errors = [i for _, i in cross_issues(loaded) if i.severity == "error"]
+    if errors:
+        raise ConfigError(_dedupe(errors))
+    return [ld.cfg for ld in loaded]
+
+
+def _dedupe(issues: list[Issue]) -> list[Issue]:
+    seen, out = set(), []
+    for i in issues:
+        if i not in seen:
+            seen.add(i)
+            out.append(i)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# fleet.yaml and the merge
+
+
+def _read_fleet(file: str) -> tuple[dict | None, dict, list[Issue]]:
+    try:
+        doc = load_yaml(file)
+    except YamlError as e:
+        return None, {}, [Issue("error", "", e.msg, e.file, e.line)]
+    except (OSError, UnicodeDecodeError) as e:
+        return None, {}, [Issue("error", "", f"cannot read: {getattr(e, 'strerror', None) or e}", file)]
+    issues = []
+    for k in doc.data:
+        if k in FLEET_KEYS:
+            continue
+        p = doc.pos[(k,)]
+        if S.lookup((k,)) is not None:
+            msg = f"station settings in fleet.yaml go under `defaults:` (defaults:\\n  {k}: …)"
+        else:
+            msg = "unknown key" + _did_you_mean(k, FLEET_KEYS) + f"; fleet.yaml has: {', '.join(FLEET_KEYS)}"
+        issues.append(Issue("error", k, msg, file, p.line))
+    defaults = doc.data.get("defaults")
+    if defaults is None:
+        defaults = {}
+    if not isinstance(defaults, dict):
+        issues.append(Issue("error", "defaults", f"{S.show_value(defaults)} is not a mapping; allowed: "
+                            "a station file's sections (meter:, method:, mqtt:, …)", file,
+                            doc.pos[("defaults",)].line))
+        return None, {}, issues
+    st = defaults.get("station")
+    if isinstance(st, dict) and "id" in st:
+        issues.append(Issue("error", "station.id", "cannot be a fleet default: each station file "
+                            "names its own station", file, doc.pos[("defaults", "station", "id")].line))
+    if issues:
+        return None, {}, issues
+    pos = {p[1:]: v for p, v in doc.pos.items() if p[:1] == ("defaults",) and len(p) > 1}
+    return defaults, pos, []
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(out.get(k), dict) and (isinstance(v, dict) or v is None):
+            out[k] = _merge(out[k], v or {})
+        else:
+            out[k] = v
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# validation against the schema
+
+_SPECIAL_UNKNOWN = {
+    ("mqtt", "password"): "a password is never written into a configuration file: name an "
+                          "environment variable in mqtt.password_env (e.g. set by the unit's "
+                          "EnvironmentFile=) or a file (mode 0600) in mqtt.password_file",
+    ("method", "t_set"): "not set in method: — the tension setpoint of a test is test.t_set_n "
+                         "(or `hookwatch run --t-set`)",
+    ("method", "t_end"): "not set in method: — the planned duration of a test is test.t_end_s "
+                         "(or `hookwatch run --t-end`)",
+    ("control", "ts"): "the sampling period is a method parameter: method.ts",
+}
+
+
+def _did_you_mean(name: str, options) -> str:
+    m = difflib.get_close_matches(name, list(options), n=1, cutoff=0.6)
+    return f"; did you mean {m[0]!r}?" if m else ""
+
+
+def _unknown(path: tuple, options, rep: _Report) -> None:
+    special = _SPECIAL_UNKNOWN.get(path)
+    if special:
+        rep.error(path, special)
+        return
+    name = path[-1]
+    hint = _did_you_mean(name, options)
+    if not hint:
+        elsewhere = [_dotted(p) for p, e in S.walk() if p[-1] == name and p[:-1] != path[:-1]]
+        if elsewhere:
+            hint = f"; it is a key of {' / '.join(e.rsplit('.', 1)[0] + ':' for e in elsewhere)}"
+    where = f"keys of {_dotted(path[:-1])}:" if len(path) > 1 else "sections:"
+    rep.error(path, f"unknown key{hint} ({where} {', '.join(options)})")
+
+
+_WRONG_TYPE = {"int": "an integer", "float": "a number", "bool": "true or false",
+               "str_list": "a list", "ip_list": "a list"}
+
+
+def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
+    """(True, value) or (False, message) for one key's value."""
+    allowed = k.allowed()
+    if v is None:
+        if k.nullable:
+            return True, None
+        d = "" if k.required else f"; leave the key out for the default ({S._show(k.default)})"
+        return False, f"null is not allowed; allowed: {allowed}{d}"
+    if isinstance(v, dict):
+        return False, f"a mapping is not allowed here; allowed: {allowed}"
+    kind = k.kind
+    if kind in ("int", "float"):
+        bad = isinstance(v, bool) or not isinstance(v, (int, float)) or (kind == "int" and isinstance(v, float))
+        if bad:
+            return False, f"{S.show_value(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}"
+        if kind == "float":
+            v = float(v)
+            if not S.finite(v):
+                return False, f"{S.show_value(v)} is not a finite number; allowed: {allowed}"
+        if k.choices is not None:
+            if v not in k.choices:
+                return False, f"{S.show_value(v)} is not allowed; allowed: {allowed}"
+            return True, v
+        if ((k.lo is not None and (v <= k.lo if k.lo_open else v < k.lo))
+                or (k.hi is not None and (v >= k.hi if k.hi_open else v > k.hi))):
+            return False, f"{S.show_value(v)} is out of range; allowed: {allowed}"
+        return True, v
+    if kind == "bool":
+        if not isinstance(v, bool):
+            return False, f"{S.show_value(v)} is not true or false; allowed: {allowed}"
+        return True, v
+    if kind in ("str_list", "ip_list"):
+        if not isinstance(v, list):
+            return False, f"{S.show_value(v)} is not a list; allowed: {allowed}"
+        out = []
+        for i, item in enumerate(v):
+            if not isinstance(item, str) or not item.strip():
+                return False, f"item {i + 1} ({S.show_value(item)}) is not a string; allowed: {allowed}"
+            if kind == "ip_list" and not S.check_ip(item.strip()):
+                return False, f"item {i + 1} ({item!r}) is not an IP address or network; allowed: {allowed}"
+            out.append(item.strip())
+        return True, tuple(out)
+    # string kinds
+    if not isinstance(v, str):
+        hint = ""
+        if isinstance(v, bool):
+            hint = " (YAML reads yes/no/on/off/true/false as a boolean: put the value in quotes)"
+        elif isinstance(v, (int, float)):
+            hint = f" (put it in quotes: '{v}')"
+        elif isinstance(v, list):
+            hint = ""
+        return False, f"{S.show_value(v)} is not a string{hint}; allowed: {allowed}"
+    if kind == "enum":
+        for c in k.choices:
+            if v.strip().lower() == str(c).lower():
+                return True, c
+        return False, f"{v!r} is not allowed; allowed: {allowed}"
+    if kind == "str":
+        return True, v
+    s = v.strip()
+    if not s:
+        return False, f"{v!r} is empty; allowed: {allowed}"
+    if kind == "ident" and not S.check_ident(s):
+        return False, f"{v!r} is not a valid name; allowed: {allowed}"
+    if kind == "topic" and not S.TOPIC_RE.match(s):
+        return False, f"{v!r} is not a valid topic prefix; allowed: {allowed}"
+    if kind == "envvar" and not S.ENV_RE.match(s):
+        return False, f"{v!r} is not a valid variable name; allowed: {allowed}"
+    return True, s
+
+
+def _resolve(value: str, origin: str) -> str:
+    if "://" in value:
+        return value                      # pyserial URL (socket://, rfc2217://)
+    value = os.path.expanduser(value) if value.startswith("~/") else value
+    if os.path.isabs(value):
+        return os.path.normpath(value)
+    return os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(origin)), value))
+
+
+def _section(sec: S.Section, tree: Any, path: tuple, rep: _Report, ctx: dict):
+    if tree is None:
+        tree = {}
+    if not isinstance(tree, dict):
+        rep.error(path, f"{S.show_value(tree)} is not a mapping; allowed: a section with the keys "
+                  f"{', '.join(e.name for e in sec.entries)}")
+        return None
+    names = [e.name for e in sec.entries]
+    for k in tree:
+        if k not in names:
+            _unknown(path + (k,), names, rep)
+    kw: dict[str, Any] = {}
+    ok = True
+    for e in sec.entries:
+        p = path + (e.name,)
+        if isinstance(e, S.Key):
+            if e.name in tree:
+                good, val = convert(e, tree[e.name])
+                if not good:
+                    rep.error(p, val)
+                    ok = False
+                    continue
+                if e.kind in ("path", "port") and val is not None:
+                    val = _resolve(val, rep.file_of(p))
+            elif e.required:
+                ex = f" (e.g. {e.example})" if e.example is not None else ""
+                rep.error(p, f"missing; required: {e.doc}{ex}", anchor=path)
+                ok = False
+                continue
+            else:
+                val = e.default
+            kw[e.name] = val
+        elif isinstance(e, S.Section):
+            val = _section(e, tree.get(e.name), p, rep, ctx)
+            if val is None:
+                ok = False
+                continue
+            kw[e.name] = val
+        elif isinstance(e, S.MethodSection):
+            ctx["method_tree"] = (tree.get(e.name), p)
+    if sec is S.ROOT:
+        mt, mp = ctx["method_tree"]
+        m = _method(mt, mp, rep, kw.get("test") or S.TestConfig())
+        if m is None:
+            return None
+        kw["method"] = m
+    if not ok:
+        return None
+    try:
+        return sec.cls(**kw)
+    except TypeError as e:  # pragma: no cover - a schema bug
+        rep.error(path, f"internal: {e}")
+        return None
+
+
+def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
+    if tree is None:
+        tree = {}
+    if not isinstance(tree, dict):
+        rep.error(path, f"{S.show_value(tree)} is not a mapping; allowed: method parameters "
+                  f"({', '.join(S.METHOD_KEYS)})")
+        return None
+    values: dict[str, Any] = {}
+    ok = True
+    for k, v in tree.items():
+        if k in S.METHOD_KEYS:
+            values[k] = v
+        else:
+            _unknown(path + (k,), S.METHOD_KEYS, rep)
+            ok = False
+    base = {"t_set": test.t_set_n, "t_end": test.t_end_s}
+    bad: set[str] = set()
+    params = None
+    for _ in range(len(values) + 2):
+        try:
+            params = build_params({**{k: v for k, v in values.items() if k not in bad}, **base})
+            break
+        except ParamError as e:
+            msg = str(e)
+            head = msg.split(";")[0]
+            names = [n for n in re.findall(r"[a-z_]+", head) if n in METHOD_SPEC]
+            name = next((n for n in names if n in values and n not in bad), None)
+            ok = False
+            if name is None:
+                target = {"t_set": ("test", "t_set_n"), "t_end": ("test", "t_end_s")}.get(names[0] if names else "")
+                rep.error(target or path, _strip_name(msg, names[0] if names else ""))
+                break
+            bad.add(name)
+            rep.error(path + (name,), _strip_name(msg, name))
+    if not ok or params is None:
+        return None
+    return {k: getattr(params, k) for k in S.METHOD_KEYS}
+
+
+def _strip_name(msg: str, name: str) -> str:
+    return msg[len(name) + 2:] if name and msg.startswith(name + ": ") else msg
+
+
+def default_meter_map() -> str:
+    """The packaged ZN-S register map."""
+    try:
+        from drivers import zns_map  # type: ignore
+        for attr in ("DEFAULT_MAP_PATH", "DEFAULT_MAP"):
+            p = getattr(zns_map, attr, None)
+            if isinstance(p, (str, os.PathLike)) and os.path.isfile(p):
+                return os.fspath(p)
+    except ImportError:
+        pass
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return os.path.join(root, "config", "meters", "zn-s.yaml")
+
+
+def load_meter_map(cfg):
+    """The MeterMap of a station with its overrides applied; MapError/ValueError on a bad map."""
+    from drivers.zns_map import load_map  # type: ignore
+
+    m = load_map(cfg.meter.map)
+    return m.with_overrides(baud=cfg.meter.baud, unit_id=cfg.meter.unit_id, parity=cfg.meter.parity)
+
+
+def _build(tree: dict, loaded: Loaded):
+    import dataclasses
+
+    rep = _Report(loaded)
+    cfg = _section(S.ROOT, tree, (), rep, {})
+    if cfg is None:
+        return None
+    # defaults that depend on other keys
+    meter = cfg.meter
+    if meter.map is None:
+        meter = dataclasses.replace(meter, map=default_meter_map())
+    outbox = cfg.mqtt.outbox
+    if outbox.path is None:
+        outbox = dataclasses.replace(outbox, path=os.path.join(cfg.recorder.dir, cfg.station.id,
+                                                               "outbox.sqlite"))
+    cfg = dataclasses.replace(cfg, meter=meter, mqtt=dataclasses.replace(cfg.mqtt, outbox=outbox),
+                              source=os.path.abspath(loaded.path), fleet_file=(
+                                  os.path.abspath(loaded.fleet_file) if loaded.fleet_file else None))
+    for rule in S.RULES:
+        rule.fn(cfg, rep)
+    _check_map(cfg, rep)
+    return cfg
+
+
+def _check_map(cfg, rep: _Report) -> None:
+    path = cfg.meter.map
+    where = ("meter", "map")
+    if not os.path.isfile(path):
+        given = _locate(rep.loaded.pos, where) is not None and where in rep.loaded.pos
+        rep.error(where, f"{path!r}: no such file" + ("" if given else
+                  " (the packaged default map; set meter.map to a register map file)"),
+                  anchor=("meter",))
+        return
+    try:
+        load_meter_map(cfg)
+    except ImportError:
+        return                            # drivers not installed: the driver checks it at start
+    except Exception as e:                # MapError (a ValueError) or a bad override
+        rep.error(where, f"{path}: {e}", anchor=("meter",))
+
+
+# ---------------------------------------------------------------------------------------------
+# clashes between stations
+
+
+def cross_issues(loaded: list[Loaded]) -> list[tuple[int, Issue]]:
+    """Clashes between the stations that run on one box: (index of the station, issue)."""
+    out: list[tuple[int, Issue]] = []
+
+    def clash(kind: str, items):
+        first: dict = {}
+        for idx, path, value, text in items:
+            ld = loaded[idx]
+            if value in first:
+                j, jp = first[value]
+                other = loaded[j]
+                loc = other.locate(jp)
+                ref = f" ({loc})" if loc else ""
+                out.append((idx, ld.issue("error", path, f"{text} is also the {_dotted(jp)} of station "
+                                          f"{other.cfg.station.id}{ref}; {kind}")))
+            else:
+                first[value] = (idx, path)
+
+    ok = [(i, ld.cfg) for i, ld in enumerate(loaded) if ld.cfg is not None]
+    clash("every station needs its own name",
+          [(i, ("station", "id"), c.station.id, repr(c.station.id)) for i, c in ok])
+    ports = []
+    for i, c in ok:
+        for sec in ("meter", "stm32"):
+            p = getattr(c, sec).port
+            ports.append((i, (sec, "port"), os.path.realpath(p) if os.path.exists(p) else p, repr(p)))
+    clash("a serial port can be opened by one station only", ports)
+    units = []
+    for i, c in ok:
+        m = c.modbus_tcp
+        if m.enabled:
+            host = "*" if m.host in ("0.0.0.0", "::", "") else m.host
+            units.append((i, ("modbus_tcp", "unit_id"), (m.port, m.unit_id, host),
+                          f"unit {m.unit_id} on {m.host}:{m.port}"))
+    # a wildcard listener clashes with every host on that port
+    expanded = []
+    hosts_by_port: dict[int, set] = {}
+    for _, _, (port, _, host), _ in units:
+        hosts_by_port.setdefault(port, set()).add(host)
+    for i, path, (port, unit, host), text in units:
+        hs = hosts_by_port[port]
+        if host == "*" or "*" in hs:
+            expanded.append((i, path, (port, unit, "*"), text))
+        else:
+            expanded.append((i, path, (port, unit, host), text))
+    clash("one unit ID per station on a shared port", expanded)
+    for port, hs in hosts_by_port.items():
+        if "*" in hs and len(hs) > 1:
+            i = next(i for i, _, (p, _, h), _ in units if p == port and h != "*")
+            out.append((i, loaded[i].issue("error", ("modbus_tcp", "host"),
+                                           f"port {port} is also served on every interface (0.0.0.0) "
+                                           f"by another station; stations sharing a port need the same host")))
+    clash("MQTT client IDs must be unique on the broker",
+          [(i, ("mqtt", "client_id"), c.mqtt.client_id, repr(c.mqtt.client_id))
+           for i, c in ok if c.mqtt.enabled and c.mqtt.client_id])
+    clash("each station needs its own outbox file",
+          [(i, ("mqtt", "outbox", "path"), os.path.normpath(c.mqtt.outbox.path), repr(c.mqtt.outbox.path))
+           for i, c in ok if c.mqtt.enabled])
+    return out

@@ -1,0 +1,558 @@
+"""The station configuration: ONE declarative definition of every key.
+
+Each section is a frozen dataclass; each key is a field whose metadata (:func:`key`) holds its
+kind, default, unit, allowed values and one line of documentation. The loader
+(:mod:`gateway.config.loader`) validates and fills defaults from these definitions, and
+``docs/configuration.md`` is generated from them (:mod:`gateway.config.docs`). Two sections come
+from definitions that live elsewhere and are not repeated here:
+
+- ``method:`` — the method's parameters, :data:`gateway.method.params.PARAMS` (names, defaults,
+  units, ranges, checked by ``build_params``), except ``t_set``/``t_end`` which come from ``test:``;
+- ``control:`` — the fields of :class:`gateway.control.ControlParams` (except ``ts``, which is the
+  method's) and ``control.notch:`` those of :class:`gateway.control.NotchParams`; their types
+  come from the dataclass defaults, their units, ranges and docs from :data:`CONTROL_KEYS`.
+
+Rules that relate several keys are :data:`RULES` (each with the sentence the docs print).
+"""
+from __future__ import annotations
+
+import dataclasses
+import ipaddress
+import math
+import re
+from dataclasses import dataclass, field, fields
+from typing import Any, Callable
+
+from ..control import ControlParams, NotchParams
+from ..method.params import PARAMS as METHOD_PARAMS
+
+# ---------------------------------------------------------------------------------------------
+# key kinds
+
+
+class _Required:
+    def __repr__(self) -> str:
+        return "REQUIRED"
+
+
+REQUIRED: Any = _Required()
+
+#: serial line rates a USB–RS-485 adapter and the ZN-S / STM32 accept
+BAUDS: tuple[int, ...] = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+#: the ZN-S meter's rates (drivers/zns_map.py accepts these)
+METER_BAUDS: tuple[int, ...] = BAUDS[:9]
+
+IDENT_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+ENV_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+TOPIC_RE = re.compile(r"^[^/+#\s]+(/[^/+#\s]+)*$")
+
+KINDS = ("str", "ident", "topic", "envvar", "path", "port", "int", "float", "bool", "enum",
+         "str_list", "ip_list")
+
+
+@dataclass(frozen=True)
+class Key:
+    """One configuration key: how it is checked, its default and its documentation."""
+    name: str
+    kind: str
+    default: Any = REQUIRED
+    doc: str = ""
+    unit: str = ""
+    lo: float | None = None           # lower bound (inclusive unless lo_open)
+    hi: float | None = None           # upper bound (inclusive unless hi_open)
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple | None = None
+    nullable: bool = False
+    null_means: str = ""              # what null (the default None) stands for
+    example: Any = None
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+    def allowed(self) -> str:
+        """What the key accepts, as the docs and the error messages say it."""
+        k = self.kind
+        if self.choices is not None:
+            s = "one of " + ", ".join(_show(c) for c in self.choices)
+        elif k in ("int", "float"):
+            s = ("an integer" if k == "int" else "a number") + _range_text(self)
+        elif k == "bool":
+            s = "true or false"
+        elif k == "ident":
+            s = "a name of letters, digits, '-', '_' and '.' (at most 64, not starting with '-', '_' or '.')"
+        elif k == "topic":
+            s = "an MQTT topic prefix without '+', '#', spaces or empty levels"
+        elif k == "envvar":
+            s = "the name of an environment variable"
+        elif k == "path":
+            s = "a file path (relative paths are relative to the folder of the file that sets it)"
+        elif k == "port":
+            s = "a serial device path, e.g. /dev/hookwatch/loom-01-meter or /dev/ttyUSB0"
+        elif k == "str_list":
+            s = "a list of strings"
+        elif k == "ip_list":
+            s = "a list of IP addresses or networks, e.g. [10.10.4.20, 10.10.5.0/24]"
+        else:
+            s = "a string"
+        if self.nullable:
+            s += ", or null"
+        return s
+
+
+def _range_text(k: Key) -> str:
+    if k.lo is not None and k.hi is not None:
+        if not k.lo_open and not k.hi_open:
+            return f" from {_num(k.lo)} to {_num(k.hi)}"
+        return f" {'>' if k.lo_open else '≥'} {_num(k.lo)} and {'<' if k.hi_open else '≤'} {_num(k.hi)}"
+    if k.lo is not None:
+        return f" {'>' if k.lo_open else '≥'} {_num(k.lo)}"
+    if k.hi is not None:
+        return f" {'<' if k.hi_open else '≤'} {_num(k.hi)}"
+    return ""
+
+
+def _num(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def _show(v: Any) -> str:
+    """A value as it would be written in YAML."""
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return f"{v:g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_show(x) for x in v) + "]"
+    return str(v)
+
+
+def show_value(v: Any) -> str:
+    """A bad value in an error message (strings quoted so that '' and ' 9600' are visible)."""
+    if isinstance(v, str):
+        return repr(v)
+    if isinstance(v, dict):
+        return "a mapping"
+    return _show(v)
+
+
+def key(default: Any = REQUIRED, doc: str = "", *, kind: str, **kw: Any):
+    """A dataclass field that is a configuration key (the name is the field's name)."""
+    assert kind in KINDS, kind
+    spec = dict(kind=kind, default=default, doc=doc, **kw)
+    if default is REQUIRED:
+        return field(metadata={"key": spec})
+    return field(default=default, metadata={"key": spec})
+
+
+def section(cls: type, doc: str, *, default: bool = True):
+    """A dataclass field that is a nested section."""
+    meta = {"section": cls, "doc": doc}
+    if default:
+        return field(default_factory=cls, metadata=meta)
+    return field(metadata=meta)
+
+
+# ---------------------------------------------------------------------------------------------
+# the sections
+
+
+@dataclass(frozen=True, kw_only=True)
+class StationInfo:
+    id: str = key(doc="the station's name: unique in the fleet; it names the records folder, "
+                  "the MQTT topics and the systemd instance (`hookwatch@<id>`); by convention the "
+                  "station file is `stations/<id>.yaml`", kind="ident", example="loom-01")
+    site: str = key("", "plant or site, reported north with every result", kind="str", example="plant-a")
+    area: str = key("", "hall or area within the site", kind="str", example="hall-2")
+    line: str = key("", "production line or machine", kind="str", example="line-3")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeterConfig:
+    port: str = key(doc="serial port of the USB–RS-485 adapter on the ZN-S tension meter's bus",
+                    kind="port", example="/dev/hookwatch/loom-01-meter")
+    map: str | None = key(None, "register map of the meter (`config/meters/*.yaml`)", kind="path",
+                          nullable=True, null_means="the packaged ZN-S map, config/meters/zn-s.yaml")
+    baud: int | None = key(None, "line rate of the meter's bus; it sets the wire time of every poll "
+                           "(`hookwatch check` says whether 50 Hz fits)", kind="int", unit="bit/s",
+                           choices=METER_BAUDS, nullable=True, null_means="the map's baud")
+    unit_id: int | None = key(None, "Modbus RTU address of the meter", kind="int", lo=1, hi=247,
+                              nullable=True, null_means="the map's unit ID")
+    parity: str | None = key(None, "parity of the meter's bus (N none, E even, O odd)", kind="enum",
+                             choices=("N", "E", "O"), nullable=True, null_means="the map's parity")
+    timeout_s: float = key(0.015, "a poll without a complete reply after this long counts as a "
+                           "missing reading (the slot goes on without it)", kind="float", unit="s",
+                           lo=0.0, hi=1.0, lo_open=True)
+    swap_channels: bool = key(False, "true when the meter's channel 1 is the outgoing (T2) side, "
+                              "i.e. the yarn runs through the meter the other way round", kind="bool")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Stm32Config:
+    port: str = key(doc="serial port of the STM32 take-up motor controller", kind="port",
+                    example="/dev/hookwatch/loom-01-stm32")
+    baud: int = key(115200, "line rate of the STM32 link", kind="int", unit="bit/s", choices=BAUDS)
+    timeout_s: float = key(0.01, "a request without a reply after this long is retried or given up "
+                           "for this slot", kind="float", unit="s", lo=0.0, hi=1.0, lo_open=True)
+    retries: int = key(1, "retries of a request that got no valid reply, within one slot",
+                       kind="int", lo=0, hi=5)
+    watchdog_s: float = key(0.2, "the STM32 stops the motor when it hears nothing for this long "
+                            "(sent to the controller with the enable command)", kind="float",
+                            unit="s", lo=0.02, hi=60.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TestConfig:
+    sample_id: str | None = key(None, "sample ID of a test started without one (by `--start`, "
+                                "autostart, or a start command that names none)", kind="str",
+                                nullable=True, null_means="`<station id>-sample`")
+    grade: str | None = key(None, "needle grade of that sample; one of `grades`", kind="str",
+                            nullable=True, null_means="not given")
+    t_set_n: float = key(0.5, "tension setpoint T_set of a test (the method's `t_set`)", kind="float",
+                         unit="N", lo=0.0, lo_open=True, hi=1000.0)
+    t_end_s: float = key(36000.0, "planned test duration (the method's `t_end`); the test ends as "
+                         "completed after this long", kind="float", unit="s", lo=0.0, lo_open=True)
+    autostart: bool = key(False, "start a test with these values as soon as the station runs",
+                          kind="bool")
+
+
+@dataclass(frozen=True, kw_only=True)
+class RecorderConfig:
+    dir: str = key("/var/lib/hookwatch/records", "where tests are recorded: "
+                   "`<dir>/<station>/<test_id>/` (log.csv.gz, log.meta.yaml, events.jsonl, result.json)",
+                   kind="path")
+    flush_interval_s: float = key(1.0, "the log is flushed to disk this often; a power cut loses at "
+                                  "most this much", kind="float", unit="s", lo=0.05, hi=60.0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MqttTlsConfig:
+    enabled: bool = key(False, "connect with TLS", kind="bool")
+    ca_file: str | None = key(None, "CA certificate(s) that sign the broker's certificate",
+                              kind="path", nullable=True, null_means="the system's CA store")
+    cert_file: str | None = key(None, "client certificate (with key_file: mutual TLS)", kind="path",
+                                nullable=True, null_means="no client certificate")
+    key_file: str | None = key(None, "private key of cert_file", kind="path", nullable=True,
+                               null_means="no client certificate")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MqttOutboxConfig:
+    path: str | None = key(None, "the on-disk outbox (SQLite): messages wait here until the broker "
+                           "confirms them, across link drops and restarts", kind="path",
+                           nullable=True, null_means="`<recorder.dir>/<station id>/outbox.sqlite`")
+    telemetry_budget_mb: float = key(50.0, "telemetry kept while the broker is unreachable; the "
+                                     "oldest telemetry is dropped (counted) beyond it — events and "
+                                     "results are never dropped", kind="float", unit="MB", lo=0.1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MqttConfig:
+    enabled: bool = key(False, "report telemetry, events and results over MQTT and accept commands",
+                        kind="bool")
+    host: str = key("127.0.0.1", "broker host (normally the edge broker on this box, which bridges "
+                    "to the plant's central broker)", kind="str")
+    port: int = key(1883, "broker port", kind="int", lo=1, hi=65535)
+    prefix: str = key("hookwatch", "first level(s) of every topic", kind="topic")
+    client_id: str | None = key(None, "MQTT client ID; must be unique on the broker", kind="str",
+                                nullable=True, null_means="`hookwatch-<station id>`")
+    keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
+    username: str | None = key(None, "broker user", kind="str", nullable=True,
+                               null_means="anonymous")
+    password_env: str | None = key(None, "name of the environment variable that holds the broker "
+                                   "password (e.g. set by the unit's `EnvironmentFile=`)",
+                                   kind="envvar", nullable=True, null_means="no password")
+    password_file: str | None = key(None, "file whose first line is the broker password (mode "
+                                    "0600, owned by the hookwatch user)", kind="path",
+                                    nullable=True, null_means="no password")
+    tls: MqttTlsConfig = section(MqttTlsConfig, "TLS to the broker")
+    telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
+                                      kind="float", unit="s", lo=0.1, hi=3600.0)
+    outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModbusWritesConfig:
+    enabled: bool = key(False, "accept writes (commands) from a PLC; reads are always allowed",
+                        kind="bool")
+    allowed_clients: tuple[str, ...] = key((), "client addresses that may write; required when "
+                                           "writes are enabled", kind="ip_list")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModbusTcpConfig:
+    enabled: bool = key(False, "serve the station's register map to a PLC over Modbus TCP",
+                        kind="bool")
+    host: str = key("127.0.0.1", "address to listen on (0.0.0.0: every interface)", kind="str")
+    port: int = key(5020, "TCP port; stations of one fleet may share a port with distinct "
+                    "unit_id (one server, one unit per station)", kind="int", lo=1, hi=65535)
+    unit_id: int = key(1, "the station's Modbus unit ID on that port", kind="int", lo=1, hi=247)
+    word_order: str = key("big", "order of the two registers of a 32-bit value (big: high word "
+                          "first)", kind="enum", choices=("big", "little"))
+    writes: ModbusWritesConfig = section(ModbusWritesConfig, "commands from the PLC")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoggingConfig:
+    level: str = key("info", "log level of the station (journal / stderr)", kind="enum",
+                     choices=("debug", "info", "warning", "error"))
+
+
+# ---------------------------------------------------------------------------------------------
+# control: names and types from gateway.control; units, ranges and docs here
+
+#: per ControlParams / NotchParams field: the Key arguments other than name, kind and default
+CONTROL_KEYS: dict[str, dict[str, Any]] = {
+    "mode": dict(doc="closed: PID on the tension; open: a fixed speed command (open_loop_rpm)",
+                 choices=("closed", "open")),
+    "open_loop_rpm": dict(unit="rpm", doc="speed command in open-loop mode", lo=0.0),
+    "kp": dict(unit="rpm/N", doc="proportional gain", lo=0.0),
+    "ki": dict(unit="rpm/(N·s)", doc="integral gain", lo=0.0),
+    "kd": dict(unit="rpm·s/N", doc="derivative gain (on the low-passed derivative)", lo=0.0),
+    "plant_sign": dict(doc="+1: more take-up speed gives more tension; -1: the other way round",
+                       choices=(1, -1)),
+    "n_max_rpm": dict(unit="rpm", doc="upper clamp of the speed command (the lower one is 0); the "
+                      "clamp is the anti-windup", lo=0.0, lo_open=True, hi=20000.0),
+    "slew_rpm_per_slot": dict(unit="rpm per slot", doc="largest change of the command from one slot "
+                              "to the next", lo=0.0, lo_open=True),
+    "dead_band_n": dict(unit="N", doc="tension errors smaller than this count as zero", lo=0.0),
+    "prefilter_fc_hz": dict(unit="Hz", doc="cut-off of the first-order pre-filter on the feedback; "
+                            "below the Nyquist frequency 1/(2·ts)", lo=0.0, lo_open=True),
+    "deriv_fc_hz": dict(unit="Hz", doc="cut-off of the derivative's low-pass; below 1/(2·ts)",
+                        lo=0.0, lo_open=True),
+    "hold_missing_s": dict(unit="s", doc="a missing reading is replaced by the last one for at most "
+                           "this long; then the command is held", lo=0.0, hi=60.0),
+    # notch
+    "enabled": dict(doc="speed-adaptive notch on the feedback (removes the ripple at the shaft "
+                    "frequency)"),
+    "bw_hz": dict(unit="Hz", doc="notch bandwidth B_w: Q = f0 / B_w, clamped to [q_min, q_max]",
+                  lo=0.0, lo_open=True),
+    "q_min": dict(doc="lower clamp of the notch quality factor", lo=0.0, lo_open=True),
+    "q_max": dict(doc="upper clamp of the notch quality factor (≥ q_min)", lo=0.0, lo_open=True),
+    "alpha_f": dict(doc="smoothing factor of the notch frequency update", lo=0.0, hi=1.0, lo_open=True),
+    "alpha_q": dict(doc="smoothing factor of the Q update", lo=0.0, hi=1.0, lo_open=True),
+    "n_min_rpm": dict(unit="rpm", doc="the notch is bypassed below this speed", lo=0.0),
+    "f_update_hz": dict(unit="Hz", doc="coefficients are recomputed when f0 moved more than this",
+                        lo=0.0),
+    "q_update": dict(doc="… or when Q moved more than this", lo=0.0),
+    "ratio_i": dict(doc="transmission ratio i: disturbance frequency f0 = speed/60 · i · h",
+                    lo=0.0, lo_open=True),
+    "harmonic_h": dict(doc="harmonic order h of the disturbance", lo=1, hi=20),
+}
+
+#: ControlParams fields that are not keys of `control:` (ts is the method's sampling period)
+CONTROL_EXCLUDED = ("ts",)
+
+
+def _kind_of(value: Any) -> str:
+    if isinstance(value, bool):
+        return "bool"
+    if isinstance(value, int):
+        return "int"
+    if isinstance(value, float):
+        return "float"
+    return "enum" if isinstance(value, str) else "str"
+
+
+def _control_field(f: dataclasses.Field) -> tuple[str, Any, Any]:
+    extra = dict(CONTROL_KEYS.get(f.name, {"doc": "(undocumented)"}))
+    kind = _kind_of(f.default)
+    if kind == "enum" and "choices" not in extra:
+        kind = "str"
+    return f.name, f.type, key(f.default, kind=kind, **extra)
+
+
+NotchConfig = dataclasses.make_dataclass(
+    "NotchConfig", [_control_field(f) for f in fields(NotchParams)],
+    frozen=True, kw_only=True)
+NotchConfig.__doc__ = "control.notch: the fields of gateway.control.NotchParams"
+NotchConfig.__module__ = __name__
+
+ControlConfig = dataclasses.make_dataclass(
+    "ControlConfig",
+    [_control_field(f) for f in fields(ControlParams) if f.name not in CONTROL_EXCLUDED + ("notch",)]
+    + [("notch", NotchConfig, section(NotchConfig, "speed-adaptive notch filter (METHOD.md §8.1)"))],
+    frozen=True, kw_only=True)
+ControlConfig.__doc__ = "control: the fields of gateway.control.ControlParams except ts"
+ControlConfig.__module__ = __name__
+
+#: method parameters a station file may set in `method:` (t_set/t_end come from `test:`)
+METHOD_EXCLUDED = {"t_set": "test.t_set_n", "t_end": "test.t_end_s"}
+METHOD_KEYS = tuple(p.name for p in METHOD_PARAMS if p.name not in METHOD_EXCLUDED)
+
+
+def method_defaults() -> dict[str, float]:
+    return {p.name: p.default for p in METHOD_PARAMS if p.name in METHOD_KEYS}
+
+
+@dataclass(frozen=True, kw_only=True)
+class StationConfig:
+    station: StationInfo = section(StationInfo, "who the station is", default=False)
+    meter: MeterConfig = section(MeterConfig, "the ZN-S tension meter (Modbus RTU over RS-485)",
+                                 default=False)
+    stm32: Stm32Config = section(Stm32Config, "the STM32 take-up motor controller (serial link)",
+                                 default=False)
+    method: dict = field(default_factory=method_defaults, metadata={
+        "method": True, "doc": "the method's parameters (METHOD.md §10, docs/method.md)"})
+    control: ControlConfig = section(ControlConfig, "tension control (METHOD.md §8)")
+    test: TestConfig = section(TestConfig, "the test a station starts without further instructions")
+    grades: tuple[str, ...] = key(("I", "II"), "needle grades a test may name", kind="str_list")
+    recorder: RecorderConfig = section(RecorderConfig, "recording of every test")
+    mqtt: MqttConfig = section(MqttConfig, "northbound MQTT (to the MES)")
+    modbus_tcp: ModbusTcpConfig = section(ModbusTcpConfig, "northbound Modbus TCP server (to the PLC)")
+    logging: LoggingConfig = section(LoggingConfig, "logging")
+    #: not a key: the station file this configuration was read from, and its fleet file
+    source: str = field(default="", metadata={"internal": True})
+    fleet_file: str | None = field(default=None, metadata={"internal": True})
+
+
+# ---------------------------------------------------------------------------------------------
+# the tree of specs the loader and the docs walk
+
+
+@dataclass(frozen=True)
+class Section:
+    name: str
+    cls: type
+    doc: str
+    entries: tuple  # Key | Section | MethodSection
+
+
+@dataclass(frozen=True)
+class MethodSection:
+    name: str
+    doc: str
+
+
+def _section(name: str, cls: type, doc: str) -> Section:
+    entries = []
+    for f in fields(cls):
+        m = f.metadata
+        if "key" in m:
+            entries.append(Key(name=f.name, **m["key"]))
+        elif "section" in m:
+            entries.append(_section(f.name, m["section"], m["doc"]))
+        elif m.get("method"):
+            entries.append(MethodSection(f.name, m["doc"]))
+    return Section(name, cls, doc, tuple(entries))
+
+
+ROOT = _section("", StationConfig, "a station")
+
+
+def walk(sec: Section = ROOT, prefix: tuple = ()):
+    """Every (path, Key|Section|MethodSection) in definition order."""
+    for e in sec.entries:
+        p = prefix + (e.name,)
+        yield p, e
+        if isinstance(e, Section):
+            yield from walk(e, p)
+
+
+def lookup(path: tuple):
+    node: Any = ROOT
+    for name in path:
+        if not isinstance(node, Section):
+            return None
+        node = next((e for e in node.entries if e.name == name), None)
+        if node is None:
+            return None
+    return node
+
+
+# ---------------------------------------------------------------------------------------------
+# rules across keys: each with the sentence the docs print; fn(cfg, report)
+
+
+@dataclass(frozen=True)
+class Rule:
+    doc: str
+    fn: Callable
+
+
+def _writes(cfg, r):
+    w = cfg.modbus_tcp.writes
+    if w.enabled and not w.allowed_clients:
+        r.error(("modbus_tcp", "writes", "allowed_clients"),
+                "writes are enabled but no client may write; list the PLC's address(es) in "
+                "modbus_tcp.writes.allowed_clients (writes open to anyone are not allowed)",
+                anchor=("modbus_tcp", "writes", "enabled"))
+
+
+def _password(cfg, r):
+    m = cfg.mqtt
+    if m.password_env and m.password_file:
+        r.error(("mqtt", "password_file"), "password_env and password_file are both set; give one")
+    if (m.password_env or m.password_file) and not m.username:
+        r.warning(("mqtt", "username"), "a password is configured but no username")
+
+
+def _tls(cfg, r):
+    t = cfg.mqtt.tls
+    if bool(t.cert_file) != bool(t.key_file):
+        r.error(("mqtt", "tls", "cert_file" if not t.cert_file else "key_file"),
+                "cert_file and key_file go together (mutual TLS needs both)")
+
+
+def _grade(cfg, r):
+    g = cfg.test.grade
+    if g is not None and g not in cfg.grades:
+        r.error(("test", "grade"), f"{g!r} is not one of the grades; allowed: "
+                f"{', '.join(cfg.grades) or '(grades is empty)'}")
+    if len(set(cfg.grades)) != len(cfg.grades):
+        r.error(("grades",), "a grade is listed twice")
+
+
+def _ports(cfg, r):
+    if cfg.meter.port == cfg.stm32.port:
+        r.error(("stm32", "port"), f"{cfg.stm32.port!r} is also meter.port; the meter and the "
+                "STM32 need one serial port each")
+
+
+def _control(cfg, r):
+    c = cfg.control
+    if c.open_loop_rpm > c.n_max_rpm:
+        r.error(("control", "open_loop_rpm"), f"{c.open_loop_rpm:g} rpm is above control.n_max_rpm "
+                f"({c.n_max_rpm:g} rpm); allowed: 0 … n_max_rpm")
+    if c.notch.q_min > c.notch.q_max:
+        r.error(("control", "notch", "q_min"), f"{c.notch.q_min:g} is above q_max ({c.notch.q_max:g})")
+    ts = cfg.method.get("ts")
+    if ts:
+        nyq = 0.5 / ts
+        for name in ("prefilter_fc_hz", "deriv_fc_hz"):
+            v = getattr(c, name)
+            if v >= nyq:
+                r.error(("control", name), f"{v:g} Hz is not below the Nyquist frequency "
+                        f"{nyq:g} Hz of ts = {ts:g} s; allowed: < {nyq:g}")
+
+
+RULES: tuple[Rule, ...] = (
+    Rule("`modbus_tcp.writes.enabled: true` needs a non-empty `allowed_clients`.", _writes),
+    Rule("`mqtt.password` is never accepted inline: use `password_env` or `password_file` (one of them).",
+         _password),
+    Rule("`mqtt.tls.cert_file` and `key_file` go together.", _tls),
+    Rule("`test.grade` is one of `grades`; `grades` has no duplicates.", _grade),
+    Rule("`meter.port` and `stm32.port` differ.", _ports),
+    Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
+         "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
+         _control),
+)
+
+
+def check_ident(v: str) -> bool:
+    return bool(IDENT_RE.match(v))
+
+
+def check_ip(v: str) -> bool:
+    try:
+        ipaddress.ip_network(v, strict=False)
+        return True
+    except ValueError:
+        return False
+
+
+def finite(x: float) -> bool:
+    return math.isfinite(x)
