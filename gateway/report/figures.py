@@ -1,0 +1,372 @@
+"""The report's figures (PNG, matplotlib Agg, no pyplot state): the paper's Fig. 7 per sample,
+Fig. 8 (open vs closed loop), Fig. 9 (t_life by grade and setpoint).
+
+Every figure is :data:`WIDTH_PX` × :data:`HEIGHT_PX` pixels. Long logs are decimated for plotting
+with a min/max envelope per pixel column (:func:`minmax_columns`): a single-slot spike in a 10-hour
+log stays visible.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+WIDTH_PX = 1600
+HEIGHT_PX = 1000
+DPI = 100
+#: envelope columns per plot (≥ the axes' width in pixels)
+COLUMNS = 1600
+
+GRADE_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f")
+
+
+# ---------------------------------------------------------------------------------------------
+# Decimation (pure numpy)
+# ---------------------------------------------------------------------------------------------
+
+def minmax_columns(x: np.ndarray, y: np.ndarray, x0: float, x1: float, ncols: int = COLUMNS
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Min and max of the finite ``y`` in each of ``ncols`` equal columns of [x0, x1].
+    ``x`` must be non-decreasing. Returns (column centre, min, max) for the non-empty columns."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    ok = np.isfinite(y) & np.isfinite(x)
+    if not ok.all():
+        x, y = x[ok], y[ok]
+    if x.size == 0 or not x1 > x0:
+        return np.empty(0), np.empty(0), np.empty(0)
+    w = (x1 - x0) / ncols
+    col = np.clip(((x - x0) / w).astype(np.int64), 0, ncols - 1)
+    starts = np.flatnonzero(np.r_[True, col[1:] != col[:-1]])
+    lo = np.minimum.reduceat(y, starts)
+    hi = np.maximum.reduceat(y, starts)
+    xc = x0 + (col[starts] + 0.5) * w
+    return xc, lo, hi
+
+
+def envelope_xy(xc: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_gap: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A polyline that draws each column as a vertical stroke from min to max and joins
+    neighbouring columns; it breaks (NaN) where columns are more than ``max_gap`` apart."""
+    n = xc.size
+    if n == 0:
+        return np.empty(0), np.empty(0)
+    x = np.repeat(xc, 2)
+    y = np.empty(2 * n)
+    y[0::2] = lo
+    y[1::2] = hi
+    gaps = np.flatnonzero(np.diff(xc) > max_gap)
+    if gaps.size:
+        ins = 2 * (gaps + 1)
+        x = np.insert(x, ins, np.nan)
+        y = np.insert(y, ins, np.nan)
+    return x, y
+
+
+def column_hits(x: np.ndarray, x0: float, x1: float, ncols: int = COLUMNS) -> np.ndarray:
+    """Centres of the columns that hold at least one of the positions ``x``."""
+    if x.size == 0 or not x1 > x0:
+        return np.empty(0)
+    w = (x1 - x0) / ncols
+    col = np.unique(np.clip(((x - x0) / w).astype(np.int64), 0, ncols - 1))
+    return x0 + (col + 0.5) * w
+
+
+def time_unit(span_s: float) -> tuple[str, float]:
+    if span_s > 3 * 3600:
+        return "h", 3600.0
+    if span_s > 300:
+        return "min", 60.0
+    return "s", 1.0
+
+
+def fmt_s(x: float | None, nd: int = 1) -> str:
+    return "—" if x is None else f"{x:,.{nd}f}"
+
+
+# ---------------------------------------------------------------------------------------------
+# matplotlib plumbing
+# ---------------------------------------------------------------------------------------------
+
+def _figure(nrows: int = 1, height_ratios: Sequence[float] | None = None, sharex: bool = False):
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(WIDTH_PX / DPI, HEIGHT_PX / DPI), dpi=DPI)
+    FigureCanvasAgg(fig)
+    kw = {"height_ratios": height_ratios} if height_ratios else {}
+    axes = fig.subplots(nrows, 1, sharex=sharex, gridspec_kw=kw, squeeze=False)[:, 0]
+    return fig, list(axes)
+
+
+def _save(fig, path: str) -> None:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = path + ".tmp.png"
+    fig.savefig(tmp, dpi=DPI, format="png")
+    os.replace(tmp, path)
+
+
+def _style(ax) -> None:
+    ax.grid(True, alpha=0.3, lw=0.6)
+    ax.tick_params(labelsize=12)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fig. 7: μ(t) of one sample, tensions below
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class Fig7Data:
+    """Everything Fig. 7 draws, already decimated (small: safe to send between processes)."""
+    title: str
+    unit: str
+    scale: float
+    x_end: float
+    mu: tuple                # (xc, lo, hi) valid μ
+    bad: tuple               # (xc, lo, hi) ln(R)/θ of gated-out slots where R is defined
+    missing: np.ndarray      # column centres holding MISSING slots
+    t1: tuple
+    t2: tuple
+    tm: tuple                # (T1 + T2) / 2
+    t_set: float
+    mu_ss: float | None
+    mu_th: float | None
+    delta: float
+    stable: tuple | None     # (start, end) in plot units
+    t_life: float | None     # in s
+    stop: float | None       # protection stop, in s
+    status: str
+    valid_pct: float
+    reasons: str
+
+
+def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio: np.ndarray,
+              t1: np.ndarray, t2: np.ndarray, p, result: dict) -> Fig7Data:
+    """Decimate one analysed test for Fig. 7. ``mask``/``mu``/``ratio`` from the method core's
+    gating (cut at a protection stop), ``t1``/``t2`` on the slot grid (NaN where absent)."""
+    n_grid = max(t1.size, mask.size, p.end_slot or 0)
+    span = max(n_grid * ts, ts)
+    unit, scale = time_unit(span)
+    x_end = span / scale
+    n = mask.size
+    x = np.arange(n) * (ts / scale)
+    mu_env = minmax_columns(x, mu, 0.0, x_end)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        diag = np.where((mask != 0) & (ratio > 0), np.log(ratio) / p.theta, np.nan)
+    bad_env = minmax_columns(x, diag, 0.0, x_end)
+    from ..method import rules as R
+    missing = column_hits(x[(mask & R.MISSING) != 0], 0.0, x_end)
+    xg = np.arange(t1.size) * (ts / scale)
+    with np.errstate(invalid="ignore"):
+        tm = (t1 + t2) / 2.0
+    stable = None
+    if result.get("k_b") is not None and result.get("stable_first") is not None:
+        stable = (result["stable_first"] * ts / scale, (result["k_b"] + 1) * ts / scale)
+    reasons = ", ".join(f"{k} {v:,}" for k, v in (result.get("reasons") or {}).items() if v)
+    n_slots = result.get("n_slots") or 0
+    return Fig7Data(
+        title=title, unit=unit, scale=scale, x_end=x_end, mu=mu_env, bad=bad_env, missing=missing,
+        t1=minmax_columns(xg, t1, 0.0, x_end), t2=minmax_columns(xg, t2, 0.0, x_end),
+        tm=minmax_columns(xg, tm, 0.0, x_end), t_set=p.t_set, mu_ss=result.get("mu_ss"),
+        mu_th=result.get("mu_th"), delta=p.delta, stable=stable, t_life=result.get("t_life"),
+        stop=None if result.get("stop_slot") is None else result["stop_slot"] * ts,
+        status=result.get("status", "?"),
+        valid_pct=100.0 * (result.get("n_valid") or 0) / n_slots if n_slots else 0.0,
+        reasons=reasons or "none")
+
+
+def render_fig7(d: Fig7Data, path: str) -> None:
+    fig, (ax, axt) = _figure(2, (2.2, 1.0), sharex=True)
+    col_w = d.x_end / COLUMNS
+    gap = 3 * col_w
+    # --- μ
+    x, y = envelope_xy(*d.mu, gap)
+    ax.plot(x, y, color="#1f77b4", lw=0.8, label="μ (valid slots)")
+    lo_parts = [d.mu[1]] if d.mu[1].size else []
+    hi_parts = [d.mu[2]] if d.mu[2].size else []
+    for v in (d.mu_ss, d.mu_th):
+        if v is not None:
+            lo_parts.append(np.array([v]))
+            hi_parts.append(np.array([v]))
+    if lo_parts:
+        ylo = float(min(a.min() for a in lo_parts))
+        yhi = float(max(a.max() for a in hi_parts))
+    else:
+        ylo, yhi = 0.0, 1.0
+    pad = 0.06 * max(yhi - ylo, 0.02)
+    ylo, yhi = ylo - pad, yhi + pad
+    if d.bad[0].size:
+        bl = np.clip(d.bad[1], ylo, yhi)
+        bh = np.clip(d.bad[2], ylo, yhi)
+        ax.scatter(np.r_[d.bad[0], d.bad[0]], np.r_[bl, bh], s=6, color="#d62728", alpha=0.6,
+                   lw=0, label="gated out (invalid, shown as ln(R)/θ, clipped)", zorder=3)
+    if d.missing.size:
+        ax.vlines(d.missing, 0.0, 0.035, transform=ax.get_xaxis_transform(), color="#7f0000",
+                  lw=1.0, label="missing slots")
+    if d.stable is not None:
+        a, b = (x * d.scale for x in d.stable)
+        span = (f"{a / 3600:,.2f}–{b / 3600:,.2f} h" if d.unit == "h" else f"{a:,.1f}–{b:,.1f} s")
+        ax.axvspan(d.stable[0], d.stable[1], color="#2ca02c", alpha=0.15,
+                   label=f"stable segment ({span})")
+    if d.mu_ss is not None and d.stable is not None:
+        ax.hlines(d.mu_ss, d.stable[0], d.x_end, color="#2ca02c", lw=2.0,
+                  label=f"baseline μ_ss = {d.mu_ss:.4f}")
+    if d.mu_th is not None and d.stable is not None:
+        ax.hlines(d.mu_th, d.stable[1], d.x_end, color="#ff7f0e", lw=2.0, ls="--",
+                  label=f"threshold μ_th = (1 + {d.delta:g})·μ_ss = {d.mu_th:.4f}")
+    for a in (ax, axt):
+        if d.t_life is not None:
+            a.axvline(d.t_life / d.scale, color="#d62728", lw=2.0,
+                      label=f"t_life = {d.t_life:,.1f} s" if a is ax else None)
+        if d.stop is not None:
+            a.axvline(d.stop / d.scale, color="black", lw=1.5, ls=":",
+                      label=f"protection stop at {d.stop:,.1f} s" if a is ax else None)
+    ax.set_ylim(ylo, yhi)
+    ax.set_xlim(0.0, d.x_end)
+    ax.set_ylabel("equivalent friction coefficient μ", fontsize=14)
+    ax.set_title(d.title, fontsize=17)
+    ax.text(0.005, 0.97, f"status: {d.status}    valid slots: {d.valid_pct:.1f} %\n"
+            f"invalid by reason: {d.reasons}", transform=ax.transAxes, va="top", ha="left",
+            fontsize=11, bbox={"boxstyle": "round", "fc": "white", "ec": "#999999", "alpha": 0.85})
+    ax.legend(loc="upper left", bbox_to_anchor=(0.0, 0.86), fontsize=11, framealpha=0.85)
+    _style(ax)
+    # --- tensions
+    for env, color, label in ((d.t1, "#17becf", "T1 (slack side)"), (d.t2, "#9467bd", "T2 (tight side)"),
+                              (d.tm, "black", "(T1 + T2)/2")):
+        x, y = envelope_xy(*env, gap)
+        axt.plot(x, y, color=color, lw=0.7, label=label)
+    axt.axhline(d.t_set, color="#7f7f7f", ls="--", lw=1.2, label=f"T_set = {d.t_set:g} N")
+    axt.set_ylabel("tension (N)", fontsize=14)
+    axt.set_xlabel(f"time ({d.unit})", fontsize=14)
+    axt.legend(loc="upper right", fontsize=11, ncol=4, framealpha=0.85)
+    _style(axt)
+    fig.subplots_adjust(left=0.07, right=0.985, top=0.95, bottom=0.07, hspace=0.08)
+    _save(fig, path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fig. 8: open loop vs closed loop
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class LoopSeries:
+    label: str
+    x: tuple          # envelope of (T1 + T2)/2 over time (plot units)
+    smooth: tuple     # (x, 1 s mean) for a line
+    hist: tuple       # (bin edges, counts) of the deviation from T_set
+    mean: float
+    sd: float
+    drift_per_h: float
+    within_pct: float  # share of readings within ±5 % of T_set
+
+
+def loop_series(label: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray, t_set: float,
+                scale: float, x_end: float, edges: np.ndarray) -> LoopSeries:
+    ok = np.isfinite(t) & np.isfinite(t1) & np.isfinite(t2)
+    t, tm = t[ok], (t1[ok] + t2[ok]) / 2.0
+    order = np.argsort(t, kind="stable")
+    t, tm = t[order], tm[order]
+    env = minmax_columns(t / scale, tm, 0.0, x_end)
+    if t.size:
+        sec = np.floor(t).astype(np.int64)
+        starts = np.flatnonzero(np.r_[True, sec[1:] != sec[:-1]])
+        counts = np.diff(np.r_[starts, t.size])
+        sm = np.add.reduceat(tm, starts) / counts
+        smooth = ((sec[starts] + 0.5) / scale, sm)
+        mean = float(tm.mean())
+        sd = float(tm.std(ddof=1)) if t.size > 1 else 0.0
+        drift = float(np.polyfit(t / 3600.0, tm, 1)[0]) if t.size > 2 and t[-1] > t[0] else 0.0
+        within = float(np.mean(np.abs(tm - t_set) <= 0.05 * t_set) * 100.0)
+    else:
+        smooth, mean, sd, drift, within = (np.empty(0), np.empty(0)), math.nan, math.nan, math.nan, math.nan
+    hist = (edges, np.histogram(tm - t_set, bins=edges)[0])
+    return LoopSeries(label, env, smooth, hist, mean, sd, drift, within)
+
+
+def render_fig8(open_s: LoopSeries, closed_s: LoopSeries, t_set: float, unit: str, x_end: float,
+                path: str, title: str) -> None:
+    fig, (ax, axh) = _figure(2, (1.6, 1.0))
+    gap = 3 * x_end / COLUMNS
+    for s, color in ((open_s, "#ff7f0e"), (closed_s, "#1f77b4")):
+        x, y = envelope_xy(*s.x, gap)
+        ax.plot(x, y, color=color, lw=0.5, alpha=0.35)
+        ax.plot(s.smooth[0], s.smooth[1], color=color, lw=2.0,
+                label=f"{s.label}: mean {s.mean:.3f} N, SD {s.sd:.3f} N, drift {s.drift_per_h:+.3f} N/h, "
+                      f"{s.within_pct:.1f} % within ±5 %")
+    ax.axhline(t_set, color="#7f7f7f", ls="--", lw=1.2, label=f"T_set = {t_set:g} N")
+    ax.set_xlim(0.0, x_end)
+    ax.set_xlabel(f"time ({unit})", fontsize=14)
+    ax.set_ylabel("mean tension (T1 + T2)/2 (N)", fontsize=14)
+    ax.set_title(title, fontsize=17)
+    ax.legend(loc="upper right", fontsize=12, framealpha=0.85)
+    _style(ax)
+    for s, color in ((open_s, "#ff7f0e"), (closed_s, "#1f77b4")):
+        edges, counts = s.hist
+        tot = counts.sum()
+        frac = counts / tot * 100.0 if tot else counts.astype(float)
+        axh.stairs(frac, edges, color=color, lw=2.0, fill=False, label=s.label)
+    axh.axvline(0.0, color="#7f7f7f", ls="--", lw=1.2)
+    axh.set_xlabel("deviation from T_set (N)", fontsize=14)
+    axh.set_ylabel("share of readings (%)", fontsize=14)
+    axh.legend(loc="upper right", fontsize=12)
+    _style(axh)
+    fig.subplots_adjust(left=0.07, right=0.985, top=0.95, bottom=0.07, hspace=0.28)
+    _save(fig, path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fig. 9: t_life by grade and setpoint
+# ---------------------------------------------------------------------------------------------
+
+def render_fig9(points: dict[tuple[float, str], list[float]], grades: list[str],
+                setpoints: list[float], rankings: dict[float, str], path: str, title: str) -> None:
+    """Bars: mean t_life per (setpoint, grade) with ± one sample SD; dots: the samples."""
+    from .stats import group_stats
+
+    fig, (ax,) = _figure(1)
+    ng = max(1, len(grades))
+    width = 0.8 / ng
+    ymax = 0.0
+    rng = np.random.default_rng(0)
+    for gi, g in enumerate(grades):
+        color = GRADE_COLORS[gi % len(GRADE_COLORS)]
+        xs, means, sds = [], [], []
+        for si, sp in enumerate(setpoints):
+            vals = points.get((sp, g), [])
+            if not vals:
+                continue
+            st = group_stats(vals)
+            x = si - 0.4 + width * (gi + 0.5)
+            xs.append(x)
+            means.append(st.mean)
+            sds.append(st.sd or 0.0)
+            jit = (rng.random(len(vals)) - 0.5) * width * 0.5
+            ax.scatter(x + jit, vals, s=60, color="white", edgecolor="black", zorder=4, lw=1.2)
+            ymax = max(ymax, max(vals), st.mean + (st.sd or 0.0))
+            top = max(st.mean + (st.sd or 0.0), max(vals))
+            ax.text(x, top + 0.01 * top, f"{st.mean:,.0f} s\n(n = {st.n})", ha="center",
+                    va="bottom", fontsize=12)
+        if xs:
+            ax.bar(xs, means, width * 0.92, yerr=sds, capsize=8, color=color, alpha=0.75,
+                   label=f"Grade {g}", error_kw={"lw": 1.8, "ecolor": "black"})
+    for si, sp in enumerate(setpoints):
+        r = rankings.get(sp)
+        if r:
+            ax.text(si, ymax * 1.16, r, ha="center", va="bottom", fontsize=14, fontweight="bold")
+    ax.set_xticks(range(len(setpoints)))
+    ax.set_xticklabels([f"T_set = {sp:g} N" for sp in setpoints], fontsize=14)
+    ax.set_xlim(-0.6, len(setpoints) - 0.4)
+    ax.set_ylim(0.0, ymax * 1.28 if ymax > 0 else 1.0)
+    ax.set_ylabel("online wear life t_life (s)", fontsize=14)
+    ax.set_title(title, fontsize=17)
+    ax.scatter([], [], s=60, color="white", edgecolor="black", label="samples")
+    ax.legend(loc="upper right", fontsize=13)
+    _style(ax)
+    ax.grid(False, axis="x")
+    fig.subplots_adjust(left=0.07, right=0.985, top=0.94, bottom=0.07)
+    _save(fig, path)

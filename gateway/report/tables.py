@@ -1,0 +1,341 @@
+"""The paper's Tables 3–6 for a campaign, from the per-test results (pure: no I/O).
+
+A sample enters the statistics only when its status is ``failure``, it has a grade, and its
+sample ID is not a duplicate; every other sample is listed apart with the reason.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+from . import stats as S
+
+STATUS_ERROR = "error"          # the log could not be read or the method not set up
+
+
+@dataclass
+class Column:
+    key: str
+    label: str               # for Markdown / HTML
+    fmt: str = "text"        # text | int | f0…f6 (decimals) | pct1 | g | yesno
+    csv_nd: int | None = None  # decimals written to CSV (None: as is)
+    show: bool = True        # False: CSV only
+
+
+@dataclass
+class Table:
+    name: str                # CSV file stem
+    title: str
+    columns: list[Column]
+    rows: list[dict[str, Any]]
+    notes: list[str] = field(default_factory=list)
+    intro: str = ""
+
+
+@dataclass
+class Sample:
+    """One test of the campaign after analysis."""
+    sample_id: str
+    grade: str | None
+    t_set: float | None
+    t_end_s: float | None
+    rel: str
+    status: str
+    results: dict[float, dict] | None     # δ factor -> method result keys (None: not analysed)
+    note: str = ""
+    apart: str | None = None              # why it is not in the statistics (None: it is)
+    fig: str | None = None                # Fig. 7 path relative to the report folder
+    delta0: float | None = None
+
+    @property
+    def in_stats(self) -> bool:
+        return self.apart is None
+
+    def result(self, factor: float = 1.0) -> dict:
+        return (self.results or {}).get(factor) or {}
+
+    @property
+    def t_life(self) -> float | None:
+        return self.result().get("t_life")
+
+    @property
+    def mu_ss(self) -> float | None:
+        return self.result().get("mu_ss")
+
+
+def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
+    """Combine a test's sidecar description (campaign.TestSpec) and its worker outcome."""
+    p = spec.params
+    notes = list(spec.notes)
+    results = None
+    if p is None:
+        status, apart = STATUS_ERROR, "method parameters unusable (see problems)"
+    elif outcome is None or outcome.get("error"):
+        status = STATUS_ERROR
+        apart = "log unreadable (see problems)"
+    else:
+        results = outcome["results"]
+        method_status = results[1.0]["status"]
+        status = method_status
+        r = results[1.0]
+        if spec.gateway_status == "aborted":
+            status = "aborted"
+            why = spec.gateway_reason or "no reason given"
+            notes.append(f"gateway: test aborted ({why}); method: {method_status}"
+                         + (f", t_life {r['t_life']:,.2f} s" if r.get("t_life") is not None else ""))
+        elif method_status == "failure" and r.get("interrupted"):
+            notes.append("protection stop after t_life (interrupted); t_life stands (METHOD.md §3)")
+        if method_status == "aborted" and r.get("stop_reasons"):
+            notes.append(f"protection stop at {r['stop_slot'] * p.ts:,.2f} s "
+                         f"({', '.join(r['stop_reasons'])})")
+        apart = None if status == "failure" else status
+    if spec.duplicate_of is not None:
+        notes.append(f"duplicate sample_id (first: {spec.duplicate_of})")
+        apart = apart or "duplicate sample_id"
+    if spec.grade is None and apart is None:
+        apart = "no grade in the sidecar"
+    return Sample(spec.sample_id, spec.grade, None if p is None else p.t_set,
+                  None if p is None else p.t_end, spec.rel, status, results,
+                  note="; ".join(notes), apart=apart, delta0=None if p is None else p.delta)
+
+
+def _sort_key(s: Sample):
+    return (s.t_set if s.t_set is not None else float("inf"),
+            (1, ("",)) if s.grade is None else (0, S.grade_sort_key(s.grade)), s.sample_id)
+
+
+def sort_samples(samples: Sequence[Sample]) -> list[Sample]:
+    return sorted(samples, key=_sort_key)
+
+
+def _grades(samples: Sequence[Sample]) -> list[str]:
+    return sorted({s.grade for s in samples if s.grade is not None}, key=S.grade_sort_key)
+
+
+def _setpoints(samples: Sequence[Sample]) -> list[float]:
+    return sorted({s.t_set for s in samples if s.t_set is not None})
+
+
+# ---------------------------------------------------------------------------------------------
+# Table 3 and the samples listed apart
+# ---------------------------------------------------------------------------------------------
+
+def table3(samples: Sequence[Sample]) -> Table:
+    rows = []
+    for s in sort_samples(samples):
+        r = s.result()
+        rows.append({"sample_id": s.sample_id, "grade": s.grade or "—", "t_set_N": s.t_set,
+                     "t_end_h": None if s.t_end_s is None else s.t_end_s / 3600.0,
+                     "t_life_s": s.t_life, "mu_ss": s.mu_ss, "status": s.status,
+                     "valid_pct": (100.0 * r["n_valid"] / r["n_slots"]) if r.get("n_slots") else None,
+                     "note": s.note, "log": s.rel})
+    return Table("table3_samples", "Table 3 — online wear life per sample", [
+        Column("sample_id", "Sample ID"), Column("grade", "Grade"),
+        Column("t_set_N", "T_set (N)", "g"), Column("t_end_h", "t_end (h)", "g", 4),
+        Column("t_life_s", "t_life (s)", "f1", 2), Column("mu_ss", "μ_ss", "f4", 6),
+        Column("status", "status"), Column("valid_pct", "valid slots (%)", "pct1", 2),
+        Column("note", "note"), Column("log", "log"),
+    ], rows, intro="Every test of the campaign at δ0 (the sidecar's δ). t_life and μ_ss exist only "
+                   "for status failure.")
+
+
+def table_apart(samples: Sequence[Sample]) -> Table:
+    rows = [{"sample_id": s.sample_id, "grade": s.grade or "—", "t_set_N": s.t_set,
+             "status": s.status, "reason": s.apart, "note": s.note, "log": s.rel}
+            for s in sort_samples(samples) if not s.in_stats]
+    return Table("samples_apart", "Samples listed apart (not in any mean, SD or correlation)", [
+        Column("sample_id", "Sample ID"), Column("grade", "Grade"), Column("t_set_N", "T_set (N)", "g"),
+        Column("status", "status"), Column("reason", "why apart"), Column("note", "note"),
+        Column("log", "log"),
+    ], rows, intro="Tests that ended no_failure, no_baseline or aborted, tests that could not be "
+                   "analysed, tests without a grade and repeated sample IDs.")
+
+
+# ---------------------------------------------------------------------------------------------
+# Table 4
+# ---------------------------------------------------------------------------------------------
+
+def life_groups(samples: Sequence[Sample], factor: float = 1.0, only: set[str] | None = None
+                ) -> dict[tuple[float, str], list[float]]:
+    """t_life per (setpoint, grade) over the samples in the statistics (at δ = factor·δ0)."""
+    g: dict[tuple[float, str], list[float]] = {}
+    for s in sort_samples(samples):
+        if not s.in_stats or (only is not None and s.sample_id not in only):
+            continue
+        t = s.result(factor).get("t_life")
+        if t is not None:
+            g.setdefault((s.t_set, s.grade), []).append(t)
+    return g
+
+
+def rankings_by_setpoint(groups: dict[tuple[float, str], list[float]], setpoints: Sequence[float],
+                         grades: Sequence[str]) -> dict[float, str]:
+    out = {}
+    for sp in setpoints:
+        means = {g: S.mean(groups[(sp, g)]) for g in grades if groups.get((sp, g))}
+        out[sp] = S.ranking(means)
+    return out
+
+
+def table4(samples: Sequence[Sample]) -> Table:
+    grades = _grades(samples)
+    setpoints = _setpoints(samples)
+    groups = life_groups(samples)
+    ranks = rankings_by_setpoint(groups, setpoints, grades)
+    rows, notes = [], []
+    for sp in setpoints:
+        for g in grades:
+            vals = groups.get((sp, g), [])
+            st = S.group_stats(vals).rounded()
+            rows.append({"t_set_N": sp, "grade": g, "n": st.n, "t_life_avg_s": st.mean,
+                         "sd_s": st.sd, "cv_pct": st.cv, "ranking": ranks.get(sp, "")})
+            if not vals:
+                n_all = sum(1 for s in samples if s.t_set == sp and s.grade == g)
+                notes.append(f"T_set {sp:g} N, grade {g}: " + (
+                    "no test in the campaign" if n_all == 0 else
+                    f"none of its {n_all} test(s) gave a t_life (see samples listed apart)")
+                    + "; the ranking at this setpoint leaves the grade out")
+            elif len(vals) == 1:
+                notes.append(f"T_set {sp:g} N, grade {g}: one sample only, no SD")
+    return Table("table4_summary", "Table 4 — summary per setpoint and grade", [
+        Column("t_set_N", "T_set (N)", "g"), Column("grade", "Grade"), Column("n", "n", "int"),
+        Column("t_life_avg_s", "mean t_life (s)", "f1", 1), Column("sd_s", "SD (s)", "f1", 1),
+        Column("cv_pct", "CV (%)", "f2", 2), Column("ranking", "grade ranking"),
+    ], rows, notes, intro="Mean t_life over the samples with status failure, sample standard "
+                          "deviation (n − 1), CV = SD / mean; ranking by mean t_life, longest first.")
+
+
+# ---------------------------------------------------------------------------------------------
+# Table 5
+# ---------------------------------------------------------------------------------------------
+
+def delta_label(f: float) -> str:
+    return "delta0" if f == 1.0 else f"{f:g}*delta0"
+
+
+def table5(samples: Sequence[Sample], factors: Sequence[float]) -> tuple[Table, Table]:
+    """(the summary as the paper prints it, the per-sample t_life at every δ)."""
+    grades = _grades(samples)
+    setpoints = _setpoints(samples)
+    notes = []
+    keep = set()
+    for s in sort_samples(samples):
+        if not s.in_stats:
+            continue
+        bad = [f for f in factors if s.result(f).get("t_life") is None]
+        if bad:
+            notes.append(f"{s.sample_id}: " + ", ".join(
+                f"{s.result(f).get('status', '?')} at δ = {delta_label(f)}" for f in bad)
+                + " — left out of the sensitivity means at every δ")
+        else:
+            keep.add(s.sample_id)
+    deltas0 = {s.delta0 for s in samples if s.in_stats}
+    ref = life_groups(samples, 1.0, keep)
+    ref_rank = rankings_by_setpoint(ref, setpoints, grades)
+    rows = []
+    for sp in setpoints:
+        for f in factors:
+            gr = life_groups(samples, f, keep)
+            rank = rankings_by_setpoint(gr, setpoints, grades)[sp]
+            for g in grades:
+                vals = gr.get((sp, g), [])
+                m = S.mean(vals)
+                ch = S.change_pct(m, S.mean(ref.get((sp, g), [])))
+                rows.append({"t_set_N": sp, "delta": delta_label(f), "factor": f, "grade": g,
+                             "n": len(vals), "t_life_avg_s": S.round_half_up(m, S.DIGITS["t_life"]),
+                             "change_vs_delta0_pct": 0.0 if f == 1.0 and m is not None else
+                             S.round_half_up(ch, S.DIGITS["change"]),
+                             "ranking": rank,
+                             "ranking_kept": None if not rank else rank == ref_rank.get(sp)})
+    intro = ("t_life recomputed with δ = 0.9 δ0, δ0 and 1.1 δ0 from the same gated slots and "
+             "baseline; change of the mean relative to δ0; whether the grade ranking stays as at δ0.")
+    if len(deltas0) == 1 and None not in deltas0:
+        intro += f" δ0 = {deltas0.pop():g}."
+    summary = Table("table5_sensitivity", "Table 5 — sensitivity to the threshold increment δ", [
+        Column("t_set_N", "T_set (N)", "g"), Column("delta", "δ"), Column("grade", "Grade"),
+        Column("n", "n", "int"), Column("t_life_avg_s", "mean t_life (s)", "f1", 1),
+        Column("change_vs_delta0_pct", "change vs δ0 (%)", "f2", 2),
+        Column("ranking", "grade ranking"), Column("ranking_kept", "ranking kept", "yesno"),
+    ], rows, notes, intro)
+    prow = []
+    for s in sort_samples(samples):
+        if s.results is None:
+            continue
+        row = {"sample_id": s.sample_id, "grade": s.grade or "—", "t_set_N": s.t_set}
+        for f in factors:
+            r = s.result(f)
+            row[f"t_life_{delta_label(f)}"] = r.get("t_life")
+            row[f"status_{delta_label(f)}"] = r.get("status")
+        prow.append(row)
+    cols = [Column("sample_id", "Sample ID"), Column("grade", "Grade"), Column("t_set_N", "T_set (N)", "g")]
+    for f in factors:
+        cols.append(Column(f"t_life_{delta_label(f)}", f"t_life at {delta_label(f)} (s)", "f1", 2))
+    for f in factors:
+        cols.append(Column(f"status_{delta_label(f)}", f"status at {delta_label(f)}"))
+    per_sample = Table("table5_samples", "t_life per sample at each δ", cols, prow)
+    return summary, per_sample
+
+
+# ---------------------------------------------------------------------------------------------
+# Table 6
+# ---------------------------------------------------------------------------------------------
+
+def pretty_indicator(name: str) -> str:
+    """``dw1_um`` → ``Δw1 (µm)``; other names as they are."""
+    import re
+
+    m = re.fullmatch(r"(?i)d(?:elta)?_?w_?(\w+?)(?:_(um|µm|mm))?", name.strip())
+    if not m:
+        return name
+    unit = {"um": "µm", "µm": "µm", "mm": "mm"}.get((m.group(2) or "").lower())
+    return f"Δw{m.group(1)}" + (f" ({unit})" if unit else "")
+
+
+def table6(samples: Sequence[Sample], wear) -> tuple[Table, Table]:
+    """(wear joined with t_life, ρ(t_life, indicator) with the expected sign)."""
+    by_id = {}
+    for s in sort_samples(samples):
+        by_id.setdefault(s.sample_id, s)
+    rows = []
+    for sid in wear.order:
+        s = by_id.get(sid)
+        if s is None:
+            continue
+        row = {"sample_id": sid, "grade": s.grade or "—", "t_set_N": s.t_set,
+               "t_life_s": s.t_life if s.in_stats else None, "status": s.status}
+        row.update(wear.rows[sid])
+        rows.append(row)
+    rows.sort(key=lambda r: _sort_key(by_id[r["sample_id"]]))
+    cols = [Column("sample_id", "Sample ID"), Column("grade", "Grade"), Column("t_set_N", "T_set (N)", "g"),
+            Column("t_life_s", "t_life (s)", "f1", 2), Column("status", "status")]
+    cols += [Column(ind, pretty_indicator(ind), f"f{wear.decimals.get(ind, 1)}") for ind in wear.indicators]
+    joined = Table("table6_wear", "Table 6 — offline wear with the online wear life", cols, rows,
+                   intro=f"Offline wear measurements ({len(wear.order)} rows) joined with t_life at δ0.")
+    notes = []
+    scopes: list[tuple[str, list[dict]]] = [("all samples", [r for r in rows if r["t_life_s"] is not None])]
+    sps = sorted({r["t_set_N"] for r in scopes[0][1]})
+    if len(sps) > 1:
+        scopes += [(f"T_set {sp:g} N", [r for r in scopes[0][1] if r["t_set_N"] == sp]) for sp in sps]
+    corr_rows = []
+    for scope, rs in scopes:
+        cs = S.wear_correlations([r["t_life_s"] for r in rs], {i: [r[i] for r in rs] for i in wear.indicators})
+        for c in cs:
+            corr_rows.append({"scope": scope, "indicator": c.indicator,
+                              "indicator_label": pretty_indicator(c.indicator), "n": c.n,
+                              "rho": c.rho, "expected": "negative",
+                              "agrees": c.agrees})
+            if c.rho is None:
+                notes.append(f"{scope}, {pretty_indicator(c.indicator)}: ρ undefined "
+                             f"({'fewer than 3 samples' if c.n < 3 else 'constant values'})")
+    n_apart = sum(1 for r in rows if r["t_life_s"] is None)
+    if n_apart:
+        notes.append(f"{n_apart} wear row(s) belong to samples listed apart; not in the correlation")
+    corr = Table("table6_correlation", "Rank correlation of t_life with each wear indicator", [
+        Column("scope", "samples"), Column("indicator", "indicator", show=False),
+        Column("indicator_label", "indicator"), Column("n", "n", "int"),
+        Column("rho", "Spearman ρ", "f3", 6), Column("expected", "expected sign"),
+        Column("agrees", "agrees", "yesno"),
+    ], corr_rows, notes, intro="Spearman's ρ between t_life and each wear indicator (average ranks "
+                               "for ties). The method expects a negative ρ: shorter life goes with "
+                               "larger wear.")
+    return joined, corr
