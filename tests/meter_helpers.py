@@ -3,6 +3,7 @@ fault switches, vanish/restore, counters."""
 from __future__ import annotations
 
 import json
+import os
 import selectors
 import subprocess
 import sys
@@ -19,8 +20,9 @@ class MeterProcess:
         self.log_path = str(log_path)
         self._log = open(self.log_path, "w")
         self.p = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                  stderr=self._log, text=True, cwd=ROOT)
+                                  stderr=self._log, cwd=ROOT)
         self.link = link
+        self._buf = b""
         try:
             self.device = self.expect("meter: ")
         except BaseException:
@@ -32,26 +34,31 @@ class MeterProcess:
         return self.link or self.device
 
     def expect(self, prefix: str, timeout: float = 20.0) -> str:
-        sel = selectors.DefaultSelector()
-        sel.register(self.p.stdout, selectors.EVENT_READ)
+        """The rest of the next stdout line starting with prefix (own line buffer: a buffered
+        readline() would hide lines from select())."""
+        fd = self.p.stdout.fileno()
         t_end = time.monotonic() + timeout
-        try:
-            while time.monotonic() < t_end:
-                if not sel.select(max(0.0, t_end - time.monotonic())):
+        with selectors.DefaultSelector() as sel:
+            sel.register(fd, selectors.EVENT_READ)
+            while True:
+                while b"\n" in self._buf:
+                    raw, self._buf = self._buf.split(b"\n", 1)
+                    line = raw.decode()
+                    if line.startswith(prefix):
+                        return line[len(prefix):].strip()
+                    if line.startswith("error:"):
+                        raise AssertionError(f"virtual meter: {line.strip()}")
+                left = t_end - time.monotonic()
+                if left <= 0 or not sel.select(left):
                     break
-                line = self.p.stdout.readline()
-                if not line:
+                chunk = os.read(fd, 4096)
+                if not chunk:
                     break
-                if line.startswith(prefix):
-                    return line[len(prefix):].strip()
-                if line.startswith("error:"):
-                    raise AssertionError(f"virtual meter: {line.strip()}")
-        finally:
-            sel.close()
+                self._buf += chunk
         raise AssertionError(f"no '{prefix}' line from the virtual meter; log:\n{self.log()}")
 
     def command(self, line: str, reply: str = "ok: ") -> str:
-        self.p.stdin.write(line + "\n")
+        self.p.stdin.write((line + "\n").encode())
         self.p.stdin.flush()
         return self.expect(reply)
 
