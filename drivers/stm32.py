@@ -25,7 +25,6 @@ import math
 import os
 import random
 import statistics
-import time
 from collections import deque
 from typing import Any
 
@@ -90,6 +89,7 @@ class Stm32Link:
         self._closed = False
         self._last_tx = 0.0
         self._was_enabled = False
+        self._want_enabled = False
         self._open_error_logged = False
 
     @classmethod
@@ -279,12 +279,19 @@ class Stm32Link:
         if not fut.done():
             fut.set_result(_TIMEOUT)
 
-    async def _status(self, cmd: Cmd, payload: bytes = b"") -> Status | None:
-        try:
-            rep = await self._exchange(cmd, payload)
-        except Exception:   # never raise into the station
-            log.exception("stm32 %s: %s failed", self.port, cmd.name)
-            return None
+    async def _status(self, cmd: Cmd, payload: bytes = b"", attempts: int = 1) -> Status | None:
+        """The status from the ACK, or None. ``attempts`` > 1 repeats the call (a new SEQ each
+        time) when it got no answer at all — for ENABLE and STOP, whose effect matters."""
+        for _ in range(max(1, attempts)):
+            try:
+                rep = await self._exchange(cmd, payload)
+            except Exception:   # never raise into the station
+                log.exception("stm32 %s: %s failed", self.port, cmd.name)
+                return None
+            if rep is not None:
+                break
+            if not self.connected:
+                return None
         if rep is None or not rep.ok:
             return None
         if self._wake is not None and rep.status.enabled != self._was_enabled:
@@ -294,14 +301,17 @@ class Stm32Link:
 
     # ------------------------------------------------------------------ API
     async def enable(self) -> Status | None:
-        """Set the firmware watchdog to the configured period, then ENABLE (command 0 rpm)."""
+        """Set the firmware watchdog to the configured period (unless it already has it), then
+        ENABLE (speed command 0). Up to 3 calls if there is no answer at all."""
+        self._want_enabled = True
         st = self.last_status
         if st is None or st.watchdog_ms != int(round(self.watchdog_s * 1000)):
-            await self._status(Cmd.SET_WATCHDOG, watchdog_payload(self.watchdog_s))
-        return await self._status(Cmd.ENABLE)
+            await self._status(Cmd.SET_WATCHDOG, watchdog_payload(self.watchdog_s), attempts=2)
+        return await self._status(Cmd.ENABLE, attempts=3)
 
     async def disable(self) -> Status | None:
-        return await self._status(Cmd.DISABLE)
+        self._want_enabled = False          # no keep-alive from now on, whatever the answer
+        return await self._status(Cmd.DISABLE, attempts=3)
 
     async def set_speed(self, rpm: float) -> Status | None:
         try:
@@ -313,7 +323,10 @@ class Stm32Link:
         return await self._status(Cmd.SET_SPEED, payload)
 
     async def stop(self, reason: str | int = "") -> Status | None:
-        return await self._status(Cmd.STOP, bytes((int(stop_reason_code(reason)),)))
+        """STOP with the reason code (up to 3 calls if unanswered). The keep-alive ends at once,
+        so even a STOP that never arrives stops the motor by the firmware watchdog."""
+        self._want_enabled = False
+        return await self._status(Cmd.STOP, bytes((int(stop_reason_code(reason)),)), attempts=3)
 
     async def read_status(self) -> Status | None:
         return await self._status(Cmd.READ_STATUS)
@@ -335,8 +348,10 @@ class Stm32Link:
 
     @property
     def armed(self) -> bool:
-        """The firmware's watchdog is running (the last status said enabled)."""
-        return self.connected and self.last_status is not None and self.last_status.enabled
+        """Keep-alive wanted: enable() was called (no stop()/disable() since) and the firmware
+        last reported the drive enabled."""
+        return (self._want_enabled and self.connected and self.last_status is not None
+                and self.last_status.enabled)
 
     async def keepalive(self) -> Status | None:
         """PING if the firmware is enabled and nothing went out for half the watchdog period."""

@@ -188,6 +188,13 @@ def test_silent_device_times_out_then_watchdog_stop_is_visible(tmp_path):
                 assert c["failed"] - before["failed"] == 5
                 assert statistics.median(durations) < 0.030     # budget 18 ms + scheduling
                 assert link.connected                           # silent is not a lost port
+                # a STOP that gets no answer: tried 3 times, and the keep-alive ends at once
+                sent = link.counters["sent"]
+                assert await link.stop("protection stop") is None
+                assert link.counters["sent"] - sent >= 3 and not link.armed
+                ka = link.counters["keepalives"]
+                await asyncio.sleep(0.3)
+                assert link.counters["keepalives"] == ka
                 # the firmware's watchdog stops the motor meanwhile
                 snap = await poll(_watchdog_tripped(sim), timeout=5.0)
                 assert snap["status"]["stop_reason"] == "WATCHDOG"
