@@ -1,0 +1,537 @@
+"""Modbus TCP server for PLCs: live values in input registers, commands in holding registers.
+
+One server per (host, port) in the process, shared by the stations configured on it; each station
+answers on its own unit ID. The server runs pymodbus' ``ModbusTcpServer`` on its own thread and
+event loop, so PLC traffic never runs on a station's loop.
+
+- Live values: each station's :class:`ModbusOutput` (a station output) encodes a complete input
+  register image on the station's loop (about 10 times a second from slot records, and on every
+  state change) and swaps it in with one reference assignment; a read returns a consistent
+  snapshot. The heartbeat is advanced by that same loop: it stops when the station is stuck.
+- Writes: refused with exception 01 unless the station's YAML enables them and the client's
+  address is listed; every value is checked against the register map and the shared command
+  rules (gateway/station/commands.py) before anything changes (exception 03 when out of range);
+  commands go to ``station.submit`` on the station's own loop (source ``plc:<address>``), a
+  refused command answers exception 04 with its reason code in ``last_result``.
+- The client address of a request is taken from the connection's transport by a request
+  handler subclass and handed to the datastore through a context variable.
+"""
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import NoSuchIdException
+from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from .. import __version__
+from ..method.rules import REASONS
+from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
+from ..station.commands import CODE, check_sample_id, check_t_end, check_t_set
+from . import registers as R
+
+log = logging.getLogger("hookwatch.modbus")
+
+_PEER: contextvars.ContextVar[str | None] = contextvars.ContextVar("hookwatch_modbus_peer", default=None)
+
+#: input registers served from the command status (not from the station's image)
+CMD_BASE = R.IR["last_command"].address
+CMD_REGS = 3
+STATUS_ADDR = R.IR["status"].address
+WRITES_BIT = 1 << R.STATUS_BIT["writes_enabled"]
+LIVE_UPDATE_S = 0.1
+COMMAND_TIMEOUT_S = 5.0
+
+_CMD_KIND = {R.COMMAND_CODE["start"]: CommandKind.START, R.COMMAND_CODE["stop"]: CommandKind.STOP,
+             R.COMMAND_CODE["ack"]: CommandKind.ACK}
+
+
+def tame_pymodbus_logging() -> None:
+    """pymodbus logs an error with frame dumps for every bad request: keep it quiet."""
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    logging.getLogger("pymodbus.logging").setLevel(logging.CRITICAL)
+
+
+# ============================================================================ the datastore
+class Unit:
+    """One station's registers on a shared server."""
+
+    def __init__(self, unit_id: int, owner: "ModbusOutput"):
+        self.unit_id = unit_id
+        self.owner = owner
+        self.ir: list[int] = [0] * CMD_BASE
+        self.hr: list[int] = [0] * R.HOLDING_SIZE
+        self.cmd_regs: list[int] = [0] * CMD_REGS
+        self.lock = asyncio.Lock()      # writes of one unit are applied one at a time
+
+    def may_write(self, peer: str | None) -> bool:
+        o = self.owner
+        return bool(o.writes_enabled and peer is not None and peer in o.allowed_clients)
+
+
+class Store:
+    """Duck-typed replacement of pymodbus' SimCore: what ``ModbusPDU.datastore_update`` calls."""
+
+    def __init__(self):
+        self.units: dict[int, Unit] = {}
+        self.counters: dict[str, int] = {"reads": 0, "writes": 0, "refused": 0, "bad_value": 0,
+                                         "unknown_unit": 0}
+
+    def device_ids(self) -> list[int]:
+        return list(self.units)
+
+    def _unit(self, device_id: int) -> Unit:
+        u = self.units.get(device_id)
+        if u is None:
+            self.counters["unknown_unit"] += 1
+            raise NoSuchIdException(f"unit {device_id}")
+        return u
+
+    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
+        u = self._unit(device_id)
+        self.counters["reads"] += 1
+        if func_code == 4:
+            if not 1 <= count <= 125:
+                return ExcCodes.ILLEGAL_VALUE
+            if address < 0 or address + count > R.INPUT_SIZE:
+                return ExcCodes.ILLEGAL_ADDRESS
+            img = u.ir + u.cmd_regs
+            out = img[address:address + count]
+            if address <= STATUS_ADDR < address + count and u.may_write(_PEER.get()):
+                out[STATUS_ADDR - address] |= WRITES_BIT
+            return out
+        if func_code in (3, 6, 16, 23):
+            if not 1 <= count <= 125:
+                return ExcCodes.ILLEGAL_VALUE
+            if address < 0 or address + count > R.HOLDING_SIZE:
+                return ExcCodes.ILLEGAL_ADDRESS
+            return u.hr[address:address + count]
+        return ExcCodes.ILLEGAL_FUNCTION
+
+    async def async_setValues(self, device_id: int, func_code: int, address: int, values):
+        u = self._unit(device_id)
+        if func_code not in (6, 16, 23):
+            return ExcCodes.ILLEGAL_FUNCTION
+        peer = _PEER.get()
+        if not u.may_write(peer):
+            self.counters["refused"] += 1
+            log.info("unit %d: write from %s refused (writes %s)", device_id, peer,
+                     "allowed only from " + ", ".join(sorted(u.owner.allowed_clients))
+                     if u.owner.writes_enabled else "disabled")
+            return ExcCodes.ILLEGAL_FUNCTION
+        values = [int(v) for v in values]
+        async with u.lock:
+            rc = await u.owner.handle_write(u, address, values, peer)
+        if rc is None:
+            self.counters["writes"] += 1
+        elif rc == ExcCodes.ILLEGAL_VALUE:
+            self.counters["bad_value"] += 1
+        return rc
+
+
+class _Handler(ServerRequestHandler):
+    """Request handler that makes the client's address visible to the datastore."""
+
+    async def handle_request(self):
+        peer = None
+        try:
+            if self.transport is not None:
+                pn = self.transport.get_extra_info("peername")
+                peer = pn[0] if pn else None
+        except Exception:
+            peer = None
+        _PEER.set(peer)
+        await super().handle_request()
+
+
+class _TcpServer(ModbusTcpServer):
+    def callback_new_connection(self):
+        return _Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
+# ============================================================================ shared servers
+class SharedServer:
+    """A Modbus TCP server on (host, port) in its own thread and loop, shared by stations."""
+
+    RETRY_S = 5.0
+    LINGER_S = 3.0
+
+    def __init__(self, host: str, port: int):
+        self.host, self.port = host, port
+        self.store = Store()
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.server: _TcpServer | None = None
+        self.listening = threading.Event()
+        self.error: str | None = None
+        self._stop: asyncio.Event | None = None
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._main, name=f"modbus-{host}:{port}", daemon=True)
+        self._linger: threading.Timer | None = None
+        self._thread.start()
+        self._ready.wait(10)
+
+    def _main(self) -> None:
+        asyncio.run(self._serve())
+
+    async def _serve(self) -> None:
+        tame_pymodbus_logging()
+        self.loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        self._ready.set()
+        dummy = SimDevice(0, simdata=[SimData(0, values=0, datatype=DataType.REGISTERS)])
+        logged = False
+        while not self._stop.is_set():
+            server = _TcpServer(dummy, address=(self.host, self.port))
+            server.context = self.store
+            try:
+                await server.serve_forever(background=True)
+            except Exception as e:  # address in use, permission
+                server.close()
+                self.error = f"modbus_tcp {self.host}:{self.port}: cannot listen: {e}"
+                if not logged:
+                    log.error("%s; retrying every %.0f s", self.error, self.RETRY_S)
+                    logged = True
+                try:
+                    await asyncio.wait_for(self._stop.wait(), self.RETRY_S)
+                except asyncio.TimeoutError:
+                    pass
+                continue
+            self.server = server
+            self.error = None
+            self.listening.set()
+            log.info("Modbus TCP server listening on %s:%d", self.host, self.port)
+            await self._stop.wait()
+        if self.server is not None:
+            await self.server.shutdown()
+            self.server = None
+        self.listening.clear()
+
+    def register(self, unit: Unit) -> bool:
+        if self._linger is not None:
+            self._linger.cancel()
+            self._linger = None
+        other = self.store.units.get(unit.unit_id)
+        if other is not None and other.owner is not unit.owner:
+            log.error("modbus_tcp %s:%d: unit_id %d is already used by station %s; station %s is not "
+                      "served", self.host, self.port, unit.unit_id, other.owner.station_id,
+                      unit.owner.station_id)
+            return False
+        self.store.units = {**self.store.units, unit.unit_id: unit}
+        return True
+
+    def unregister(self, unit: Unit) -> None:
+        if self.store.units.get(unit.unit_id) is unit:
+            units = dict(self.store.units)
+            del units[unit.unit_id]
+            self.store.units = units
+        if not self.store.units:
+            self._linger = threading.Timer(self.LINGER_S, self._linger_done)
+            self._linger.daemon = True
+            self._linger.start()
+
+    def _linger_done(self) -> None:
+        with _REG_LOCK:
+            if self.store.units:
+                return
+            if _SERVERS.get((self.host, self.port)) is self:
+                del _SERVERS[(self.host, self.port)]
+        self.shutdown()
+
+    def shutdown(self, timeout: float = 5.0) -> None:
+        if self.loop is not None and self._stop is not None:
+            try:
+                self.loop.call_soon_threadsafe(self._stop.set)
+            except RuntimeError:
+                pass
+        self._thread.join(timeout)
+
+
+_SERVERS: dict[tuple[str, int], SharedServer] = {}
+_REG_LOCK = threading.Lock()
+
+
+def shared_server(host: str, port: int) -> SharedServer:
+    with _REG_LOCK:
+        s = _SERVERS.get((host, port))
+        if s is None or not s._thread.is_alive():
+            s = _SERVERS[(host, port)] = SharedServer(host, port)
+        if s._linger is not None:
+            s._linger.cancel()
+            s._linger = None
+        return s
+
+
+def shutdown_all() -> None:
+    """Stop every server of this process (tests)."""
+    with _REG_LOCK:
+        servers = list(_SERVERS.values())
+        _SERVERS.clear()
+    for s in servers:
+        if s._linger is not None:
+            s._linger.cancel()
+        s.shutdown()
+
+
+# ============================================================================ the station output
+@dataclass
+class ModbusSettings:
+    station_id: str
+    host: str = "127.0.0.1"
+    port: int = 5020
+    unit_id: int = 1
+    word_order: str = "big"
+    writes_enabled: bool = False
+    allowed_clients: tuple[str, ...] = ()
+    grades: tuple[str, ...] = ("I", "II")
+    live_update_s: float = LIVE_UPDATE_S
+
+
+class ModbusOutput:
+    """Station output serving one station on a shared Modbus TCP server."""
+
+    def __init__(self, settings: ModbusSettings, station=None,
+                 mqtt_connected: Callable[[], bool] | None = None):
+        self.s = settings
+        self.station_id = settings.station_id
+        self.station = station
+        self.writes_enabled = bool(settings.writes_enabled)
+        self.allowed_clients = frozenset(str(a) for a in settings.allowed_clients)
+        self.word_order = settings.word_order
+        self.grades = tuple(getattr(station, "grades", None) or settings.grades)
+        self.mqtt_connected = mqtt_connected or (lambda: False)
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.server: SharedServer | None = None
+        self.unit: Unit | None = None
+        self._t0 = time.monotonic()
+        self._last_update = 0.0
+        self._state = StationState(station=settings.station_id)
+        self._sw = R.software_version(__version__)
+        # live values (station loop)
+        self._t1 = self._t2 = self._tension = math.nan
+        self._mu = math.nan
+        self._mu_t = -1e9
+        self._sat_t = -1e9
+        self._speed_cmd = 0.0
+        self._speed_act = math.nan
+        self._in_test = False
+        self._elapsed = 0.0
+        self._slots = self._valid = 0
+        self._counts = [0] * len(REASONS)
+
+    # -- output protocol (station loop)
+    async def start(self) -> None:
+        tame_pymodbus_logging()
+        self.loop = asyncio.get_running_loop()
+        self.server = await self.loop.run_in_executor(None, shared_server, self.s.host, int(self.s.port))
+        unit = Unit(int(self.s.unit_id), self)
+        unit.hr = self._initial_holding()
+        self.unit = unit
+        self._update(force=True)
+        if not self.server.register(unit):
+            self.unit = None
+
+    async def stop(self) -> None:
+        if self.server is not None and self.unit is not None:
+            self.server.unregister(self.unit)
+        self.unit = None
+
+    def on_record(self, rec: SlotRecord) -> None:
+        now = time.monotonic()
+        if rec.present:
+            self._t1, self._t2 = rec.t1, rec.t2
+            self._tension = (rec.t1 + rec.t2) * 0.5
+        else:
+            self._t1 = self._t2 = self._tension = math.nan
+        if rec.q and rec.mu is not None:
+            self._mu, self._mu_t = rec.mu, now
+        if rec.saturated:
+            self._sat_t = now
+        self._speed_cmd, self._speed_act = rec.speed_cmd, rec.speed_act
+        if self._in_test:
+            self._slots += 1
+            self._elapsed = rec.t
+            if rec.q:
+                self._valid += 1
+            m = rec.mask
+            if m:
+                for i, (bit, _) in enumerate(REASONS):
+                    if m & bit:
+                        self._counts[i] += 1
+        if now - self._last_update >= self.s.live_update_s:
+            self._update(now=now)
+
+    def on_event(self, ev: Event) -> None:
+        if ev.type == EventType.TEST_STARTED:
+            self._in_test = True
+            self._slots = self._valid = 0
+            self._counts = [0] * len(REASONS)
+            self._elapsed = 0.0
+        elif ev.type == EventType.TEST_ENDED and ev.test_id is not None:
+            self._in_test = False
+
+    def on_state(self, st: StationState) -> None:
+        self._state = st
+        if st.state in (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE):
+            self._elapsed = max(self._elapsed, float(st.elapsed_s))
+        self._update(force=True)
+
+    # -- register image
+    def values(self, now: float | None = None) -> dict[str, Any]:
+        now = time.monotonic() if now is None else now
+        st = self._state
+        running = st.state in (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE)
+        flags = {
+            "running": running, "baseline_found": st.mu_ss is not None,
+            "end_of_life": st.t_life is not None, "alarm_unacknowledged": st.alarm == "active",
+            "protection_stop": bool(st.protection_stop), "meter_ok": bool(st.meter_ok),
+            "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(self.mqtt_connected()),
+            "saturation": now - self._sat_t <= 1.0,
+        }
+        v = {
+            "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION,
+            "sw_major": self._sw[0], "sw_minor": self._sw[1], "sw_patch": self._sw[2],
+            "test_state": int(st.state), "status": R.status_word(flags),
+            "alarm": R.ALARM_STATES.index(st.alarm) if st.alarm in R.ALARM_STATES else 0,
+            "t1": self._t1, "t2": self._t2, "tension": self._tension,
+            "mu": self._mu if now - self._mu_t <= 1.0 else math.nan,
+            "mu_ss": st.mu_ss, "mu_th": st.mu_th, "t_set": st.t_set,
+            "valid_ratio": self._valid / self._slots if self._slots else math.nan,
+            "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
+            "t_life": st.t_life, "elapsed": self._elapsed, "slots": self._slots,
+            "valid_slots": self._valid,
+        }
+        for (_, name), c in zip(REASONS, self._counts):
+            v[f"count_{name.lower()}"] = c
+        return v
+
+    def _update(self, now: float | None = None, force: bool = False) -> None:
+        now = time.monotonic() if now is None else now
+        self._last_update = now
+        u = self.unit
+        if u is None:
+            return
+        img = R.encode_table(R.INPUT_REGS, R.INPUT_SIZE, self.values(now), self.word_order)
+        u.ir = img[:CMD_BASE]
+
+    def _initial_holding(self) -> list[int]:
+        plan = getattr(self.station, "default_plan", None)
+        v: dict[str, Any] = {"command": 0, "t_end": 0}
+        if plan is not None:
+            v["t_set"] = plan.t_set
+            v["sample_id"] = plan.sample_id if plan.sample_id and not check_sample_id(plan.sample_id) else ""
+            v["grade"] = self.grades.index(plan.grade) + 1 if plan.grade in self.grades else 0
+        else:
+            v["t_set"] = math.nan
+        return R.encode_table(R.HOLDING_REGS, R.HOLDING_SIZE, v, self.word_order)
+
+    # -- writes (server loop)
+    async def handle_write(self, u: Unit, address: int, values: list[int], peer: str) -> ExcCodes | None:
+        end = address + len(values)
+        if address < 0 or end > R.HOLDING_SIZE or not values:
+            return ExcCodes.ILLEGAL_ADDRESS
+        if any(not 0 <= v <= 0xFFFF for v in values):
+            return ExcCodes.ILLEGAL_VALUE
+        new = list(u.hr)
+        new[address:end] = values
+        touched = [r for r in R.HOLDING_REGS if r.address < end and address < r.address + r.count]
+        for r in touched:
+            if r.count == 2 and not (address <= r.address and r.address + r.count <= end):
+                return ExcCodes.ILLEGAL_ADDRESS
+        decoded: dict[str, Any] = {}
+        for r in touched:
+            val = R.decode_value(r, new[r.address:r.address + r.count], self.word_order)
+            err = self._check(r.name, val)
+            if err:
+                log.info("%s: PLC %s wrote %s=%r: %s", self.station_id, peer, r.name, val, err)
+                return ExcCodes.ILLEGAL_VALUE
+            decoded[r.name] = val
+        # staging values first, then the setpoint, then the command
+        keep = {n: (R.HR[n].address, R.HR[n].count) for n in ("t_set", "command")}
+        staged = list(new)
+        for n, (a, c) in keep.items():
+            staged[a:a + c] = u.hr[a:a + c]
+        u.hr = staged
+        if "t_set" in decoded:
+            t_set = float(f"{decoded['t_set']:.7g}")
+            reply = await self._submit(Command(CommandKind.SETPOINT, f"plc:{peer}", {"t_set": t_set}),
+                                       R.COMMAND_CODE["setpoint"], u)
+            if not reply:
+                return ExcCodes.DEVICE_FAILURE
+            a, c = keep["t_set"]
+            hr = list(u.hr)
+            hr[a:a + c] = new[a:a + c]
+            u.hr = hr
+        if "command" in decoded:
+            code = int(decoded["command"])
+            a, c = keep["command"]
+            hr = list(u.hr)
+            hr[a:a + c] = new[a:a + c]
+            u.hr = hr
+            kind = _CMD_KIND[code]
+            args: dict[str, Any] = {}
+            if kind == CommandKind.START:
+                args = self._start_args(u)
+            if not await self._submit(Command(kind, f"plc:{peer}", args), code, u):
+                return ExcCodes.DEVICE_FAILURE
+        return None
+
+    def _check(self, name: str, val: Any) -> str | None:
+        if name == "command":
+            return None if val in _CMD_KIND else f"command code {val}; allowed: 1 start, 2 stop, 3 ack"
+        if name == "t_set":
+            return check_t_set(val, self.station)
+        if name == "grade":
+            return None if 0 <= val <= len(self.grades) else f"grade {val}; allowed: 0 … {len(self.grades)}"
+        if name == "t_end":
+            return None if val == 0 else check_t_end(val)
+        if name == "sample_id":
+            text = R.decode_sample_id(val)
+            if text is None:
+                return "sample_id: not 0-padded printable ASCII"
+            return None if text == "" else check_sample_id(text)
+        return f"{name} is not writable"
+
+    def _start_args(self, u: Unit) -> dict[str, Any]:
+        hr = u.hr
+        def get(n):
+            r = R.HR[n]
+            return R.decode_value(r, hr[r.address:r.address + r.count], self.word_order)
+        sid = R.decode_sample_id(get("sample_id")) or ""
+        g = int(get("grade"))
+        t_set = float(get("t_set"))
+        t_end = int(get("t_end"))
+        args: dict[str, Any] = {"sample_id": sid, "t_set": float(f"{t_set:.7g}") if math.isfinite(t_set) else t_set}
+        if 1 <= g <= len(self.grades):
+            args["grade"] = self.grades[g - 1]
+        if t_end:
+            args["t_end"] = float(t_end)
+        return args
+
+    async def _submit(self, cmd: Command, code: int, u: Unit) -> bool:
+        st, loop = self.station, self.loop
+        result = CODE["NO_STATION"]
+        ok = False
+        if st is not None and loop is not None and not loop.is_closed():
+            try:
+                fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
+                reply = await asyncio.wait_for(asyncio.wrap_future(fut), COMMAND_TIMEOUT_S)
+                ok = bool(reply.ok)
+                result = 0 if ok else int(getattr(reply, "code", 0) or CODE["BAD_REQUEST"])
+                if not ok:
+                    log.info("%s: PLC command %s from %s refused: %s", self.station_id, cmd.kind.value,
+                             cmd.source, reply.reason)
+            except (asyncio.TimeoutError, RuntimeError, Exception) as e:
+                log.error("%s: PLC command %s: station did not answer (%s)", self.station_id,
+                          cmd.kind.value, type(e).__name__)
+        n = (u.cmd_regs[2] + 1) & 0xFFFF
+        u.cmd_regs = [code, result, n]
+        return ok

@@ -1,0 +1,357 @@
+"""The one definition of the PLC register map (Modbus TCP): addresses, types, units, meaning.
+
+The Modbus TCP server (``gateway/northbound/modbus_server.py``) encodes and decodes registers
+with the functions here, ``docs/registers.md`` is generated from the same tables (``python -m
+gateway.northbound.registers > docs/registers.md``; a test checks it is current) and
+``hookwatch regmap STATION.yaml`` prints them for one station. Bump :data:`MAP_VERSION` when an
+address, a type or a meaning changes (the version is served in input register 1).
+"""
+from __future__ import annotations
+
+import math
+import re
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+from ..method.rules import REASONS
+from ..records import TestState
+from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX
+
+#: version of the register map (input register 1)
+MAP_VERSION = 1
+
+INPUT = "input"
+HOLDING = "holding"
+
+#: register counts of each type
+SIZES = {"uint16": 1, "enum": 1, "bits": 1, "uint32": 2, "float32": 2, "string": SAMPLE_ID_MAX // 2}
+
+
+@dataclass(frozen=True)
+class Reg:
+    name: str
+    table: str          # input | holding
+    address: int        # 0-based PDU address
+    type: str           # uint16 | enum | bits | uint32 | float32 | string
+    unit: str
+    doc: str
+    allowed: str = ""   # holding registers: values a write may carry
+
+    @property
+    def count(self) -> int:
+        return SIZES[self.type]
+
+    @property
+    def reference(self) -> int:
+        """Traditional 1-based reference (3xxxx input, 4xxxx holding)."""
+        return (30001 if self.table == INPUT else 40001) + self.address
+
+
+def _layout(table: str, specs: list[tuple]) -> tuple[Reg, ...]:
+    regs, addr = [], 0
+    for spec in specs:
+        name, typ, unit, doc, *rest = spec
+        regs.append(Reg(name, table, addr, typ, unit, doc, *(rest or [])))
+        addr += SIZES[typ]
+    return tuple(regs)
+
+
+#: status bits (input register `status`)
+STATUS_BITS: tuple[tuple[int, str, str], ...] = (
+    (0, "running", "a test is running (baseline search, monitoring or end of life)"),
+    (1, "baseline_found", "the baseline μ_ss of the current test is established"),
+    (2, "end_of_life", "end of life latched for the current / last test (until a new test starts)"),
+    (3, "alarm_unacknowledged", "the end-of-life alarm is active and not acknowledged"),
+    (4, "protection_stop", "the last test was stopped by the protection rule"),
+    (5, "meter_ok", "the tension meter answers"),
+    (6, "stm32_ok", "the motor controller answers"),
+    (7, "mqtt_connected", "the gateway is connected to the MQTT broker"),
+    (8, "saturation", "the control output was clamped during the last second"),
+    (9, "writes_enabled", "this client may write the holding registers"),
+)
+STATUS_BIT = {name: bit for bit, name, _ in STATUS_BITS}
+
+ALARM_STATES = ("none", "active", "acknowledged")
+
+#: command codes (holding register `command`, input register `last_command`)
+COMMAND_CODES: tuple[tuple[int, str, str], ...] = (
+    (0, "none", "no command yet"),
+    (1, "start", "start a test with `sample_id`, `grade`, `t_set`, `t_end` from the holding registers"),
+    (2, "stop", "stop the running test (it ends as aborted)"),
+    (3, "ack", "acknowledge the end-of-life alarm"),
+    (4, "setpoint", "(input register only) the last command was a write of `t_set`"),
+)
+COMMAND_CODE = {name: code for code, name, _ in COMMAND_CODES}
+
+_reason_regs = [(f"count_{name.lower()}", "uint32", "slots",
+                 f"slots of the current / last test with reason {name}") for _, name in REASONS]
+
+INPUT_REGS = _layout(INPUT, [
+    ("heartbeat", "uint16", "s", "seconds since the station started, wrapping at 65535; updated "
+     "by the station's own loop: a value that stops changing means the station is stuck"),
+    ("map_version", "uint16", "", f"version of this register map ({MAP_VERSION})"),
+    ("sw_major", "uint16", "", "gateway software version, major"),
+    ("sw_minor", "uint16", "", "gateway software version, minor"),
+    ("sw_patch", "uint16", "", "gateway software version, patch"),
+    ("test_state", "enum", "", "test state: " + ", ".join(f"{s.value} {s.name.lower()}" for s in TestState)),
+    ("status", "bits", "", "status bits, see the table below"),
+    ("alarm", "enum", "", "end-of-life alarm: " + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
+    ("t1", "float32", "N", "inlet tension T1 of the latest slot (NaN without a reading)"),
+    ("t2", "float32", "N", "outlet tension T2 of the latest slot"),
+    ("tension", "float32", "N", "mean tension (T1+T2)/2 of the latest slot"),
+    ("mu", "float32", "", "μ of the latest valid slot within the last second (NaN if none)"),
+    ("mu_ss", "float32", "", "baseline μ_ss of the current / last test (NaN before the baseline)"),
+    ("mu_th", "float32", "", "end-of-life threshold μ_th (NaN before the baseline)"),
+    ("t_set", "float32", "N", "setpoint of the current / last test (NaN before the first test)"),
+    ("valid_ratio", "float32", "", "valid slots / slots of the current / last test (NaN outside)"),
+    ("speed_cmd", "float32", "rpm", "speed command of the latest slot"),
+    ("speed_act", "float32", "rpm", "actual speed reported by the STM32 (NaN if unknown)"),
+    ("t_life", "uint32", "s", "wear life found, s from test start, rounded (0 until end of life)"),
+    ("elapsed", "uint32", "s", "time since the start of the current / last test"),
+    ("slots", "uint32", "slots", "slots of the current / last test"),
+    ("valid_slots", "uint32", "slots", "valid slots of the current / last test"),
+    *_reason_regs,
+    ("last_command", "enum", "", "last command carried out or refused: "
+     + ", ".join(f"{c} {n}" for c, n, _ in COMMAND_CODES)),
+    ("last_result", "uint16", "", "result of the last command: 0 ok, else the rejection code (table below)"),
+    ("command_count", "uint16", "", "commands processed (accepted or refused), wrapping at 65535"),
+])
+
+HOLDING_REGS = _layout(HOLDING, [
+    ("command", "uint16", "", "write a command code to execute it: 1 start, 2 stop, 3 ack; reads 0",
+     "1, 2, 3"),
+    ("t_set", "float32", "N", "tension setpoint of the next test; writing it is the `setpoint` command "
+     "(refused while a test runs); `start` uses it", "(0, 0.98 · meter full scale) N"),
+    ("grade", "uint16", "", "needle grade of the next test: 0 none, i = the station's i-th grade "
+     "(see `hookwatch regmap STATION.yaml`)", "0 … number of grades"),
+    ("t_end", "uint32", "s", "planned duration of the next test; 0 = the station's default",
+     "0 … 2592000"),
+    ("sample_id", "string", "", f"sample ID of the next test, up to {SAMPLE_ID_MAX} ASCII characters, "
+     "two per register (first character in the high byte), padded with 0", "printable ASCII, 0-padded"),
+])
+
+INPUT_SIZE = INPUT_REGS[-1].address + INPUT_REGS[-1].count
+HOLDING_SIZE = HOLDING_REGS[-1].address + HOLDING_REGS[-1].count
+REG = {(r.table, r.name): r for r in INPUT_REGS + HOLDING_REGS}
+IR = {r.name: r for r in INPUT_REGS}
+HR = {r.name: r for r in HOLDING_REGS}
+
+
+# ----------------------------------------------------------------------------- encoding
+def software_version(v: str) -> tuple[int, int, int]:
+    m = re.match(r"(\d+)(?:\.(\d+))?(?:\.(\d+))?", v or "")
+    if not m:
+        return 0, 0, 0
+    return tuple(min(65535, int(x or 0)) for x in m.groups())  # type: ignore[return-value]
+
+
+def _words32(b: bytes, word_order: str) -> tuple[int, int]:
+    hi, lo = struct.unpack(">HH", b)
+    return (hi, lo) if word_order == "big" else (lo, hi)
+
+
+def encode_value(reg: Reg, value: Any, word_order: str = "big") -> list[int]:
+    """Registers of one value (None → NaN for floats, 0 otherwise; integers clamped)."""
+    t = reg.type
+    if t == "float32":
+        v = math.nan if value is None else float(value)
+        if not math.isfinite(v) or abs(v) > 3.4028234e38:
+            v = math.nan
+        return list(_words32(struct.pack(">f", v), word_order))
+    if t == "uint32":
+        v = 0 if value is None or (isinstance(value, float) and not math.isfinite(value)) else int(round(value))
+        return list(_words32(struct.pack(">I", min(max(v, 0), 0xFFFFFFFF)), word_order))
+    if t == "string":
+        raw = ("" if value is None else str(value)).encode("ascii", "replace")[:SAMPLE_ID_MAX]
+        raw = raw.ljust(SAMPLE_ID_MAX, b"\0")
+        return list(struct.unpack(f">{SAMPLE_ID_MAX // 2}H", raw))
+    v = 0 if value is None else int(value)
+    return [min(max(v, 0), 0xFFFF)]
+
+
+def decode_value(reg: Reg, regs: list[int], word_order: str = "big") -> Any:
+    t = reg.type
+    if t in ("float32", "uint32"):
+        a, b = regs[0], regs[1]
+        hi, lo = (a, b) if word_order == "big" else (b, a)
+        raw = struct.pack(">HH", hi, lo)
+        return struct.unpack(">f" if t == "float32" else ">I", raw)[0]
+    if t == "string":
+        raw = struct.pack(f">{len(regs)}H", *regs)
+        return raw
+    return regs[0]
+
+
+def decode_sample_id(raw: bytes) -> str | None:
+    """The sample ID in its registers: ASCII, 0-padded; None if malformed (a 0 inside, not ASCII)."""
+    s = raw.rstrip(b"\0")
+    if b"\0" in s:
+        return None
+    try:
+        text = s.decode("ascii")
+    except UnicodeDecodeError:
+        return None
+    return text
+
+
+def encode_table(regs: tuple[Reg, ...], size: int, values: dict[str, Any], word_order: str) -> list[int]:
+    out = [0] * size
+    for r in regs:
+        if r.name in values:
+            out[r.address:r.address + r.count] = encode_value(r, values[r.name], word_order)
+    return out
+
+
+def status_word(flags: dict[str, bool]) -> int:
+    w = 0
+    for name, on in flags.items():
+        if on:
+            w |= 1 << STATUS_BIT[name]
+    return w
+
+
+# ----------------------------------------------------------------------------- docs
+EXCEPTIONS = (
+    (1, "ILLEGAL FUNCTION", "a write when the station's YAML does not allow writes "
+     "(`modbus_tcp.writes.enabled: false`, the default) or from a client address not in "
+     "`modbus_tcp.writes.allowed_clients`; also coils / discrete inputs (not served)"),
+    (2, "ILLEGAL DATA ADDRESS", "a register outside the map, or a write covering only part of a "
+     "32-bit value"),
+    (3, "ILLEGAL DATA VALUE", "a write of a value out of its allowed range (nothing changes)"),
+    (4, "SERVER DEVICE FAILURE", "a valid command the station refused now (e.g. start while a test "
+     "runs, stop without a test): the reason code is in `last_result`"),
+    (11, "GATEWAY TARGET FAILED TO RESPOND", "a unit ID no station on this port has"),
+)
+
+
+def _type_doc(r: Reg) -> str:
+    return {"string": f"string ({r.count} registers)", "enum": "uint16 (enum)", "bits": "uint16 (bits)"}.get(r.type, r.type)
+
+
+def rows(station: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """The map as rows (csv / md), for one station if given."""
+    out = []
+    for r in INPUT_REGS + HOLDING_REGS:
+        out.append({"table": r.table, "address": r.address, "reference": r.reference, "count": r.count,
+                    "name": r.name, "type": r.type, "unit": r.unit, "allowed": r.allowed, "meaning": r.doc})
+    return out
+
+
+def render(station: dict[str, Any] | None = None) -> str:
+    """Markdown of the register map; with ``station`` (unit id, host, port, word order, writes,
+    grades) the header describes that station."""
+    out = ["# PLC register map (Modbus TCP)", ""]
+    if station is None:
+        out += ["Generated from `gateway/northbound/registers.py` (`python -m "
+                "gateway.northbound.registers > docs/registers.md`); do not edit by hand. "
+                "`hookwatch regmap STATION.yaml [--format md|csv]` prints it for one station.", ""]
+    out += [f"Register map version **{MAP_VERSION}** (input register 1).", ""]
+    if station is not None:
+        out += [f"Station **{station['id']}**: Modbus TCP server {station['host']}:{station['port']}, "
+                f"unit ID **{station['unit_id']}**, {station['word_order']}-endian word order, writes "
+                + (f"allowed from {', '.join(station['allowed_clients']) or 'no client'}"
+                   if station['writes'] else "disabled") + ".", ""]
+        grades = station.get("grades") or []
+        if grades:
+            out += ["Grades (holding register `grade`): 0 none, " +
+                    ", ".join(f"{i} {g}" for i, g in enumerate(grades, 1)) + ".", ""]
+    out += [
+        "## Conventions",
+        "",
+        "- Addresses are 0-based PDU addresses (mbpoll `-0`); the reference column is the "
+        "traditional 1-based number (3xxxx input, 4xxxx holding; mbpoll without `-0` uses "
+        "address + 1).",
+        "- 32-bit values (float32 IEEE 754, uint32) take two registers. Word order is configurable "
+        "per station (`modbus_tcp.word_order`): `big` (default) puts the high word first "
+        "(mbpoll `-B`), `little` the low word first. Bytes within a register are always "
+        "big-endian.",
+        "- A value that is not known is NaN (float32) or 0 (integers).",
+        "- Several stations on one box share a server (one host:port) and each answers on its own "
+        "unit ID (`modbus_tcp.unit_id`).",
+        "- Live values are refreshed by the station's loop about 10 times a second and on every "
+        "state change; the heartbeat counts seconds.",
+        "",
+        "## Input registers (function 04, read only)",
+        "",
+        "| address | reference | name | type | unit | meaning |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in INPUT_REGS:
+        addr = f"{r.address}" if r.count == 1 else f"{r.address}–{r.address + r.count - 1}"
+        out.append(f"| {addr} | {r.reference} | `{r.name}` | {_type_doc(r)} | {r.unit} | {r.doc} |")
+    out += ["", "### Status bits (`status`)", "", "| bit | name | meaning |", "|---|---|---|"]
+    for bit, name, doc in STATUS_BITS:
+        out.append(f"| {bit} | `{name}` | {doc} |")
+    out += [
+        "",
+        "## Holding registers (functions 03 read, 06 / 16 / 23 write)",
+        "",
+        "| address | reference | name | type | unit | allowed on write | meaning |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in HOLDING_REGS:
+        addr = f"{r.address}" if r.count == 1 else f"{r.address}–{r.address + r.count - 1}"
+        out.append(f"| {addr} | {r.reference} | `{r.name}` | {_type_doc(r)} | {r.unit} | {r.allowed} | {r.doc} |")
+    out += [
+        "",
+        "Writes are off unless the station's YAML allows them (`modbus_tcp.writes.enabled: true`) "
+        "and then only from the client addresses in `modbus_tcp.writes.allowed_clients`. Every "
+        "value of a write is checked before anything changes; a multi-register write is applied "
+        "in address order with the `command` register last. Commands from a PLC go through the "
+        "same validation and the same command path as MQTT commands (source `plc:<address>`), "
+        "with the same events.",
+        "",
+        "To start a test: write `sample_id`, `grade`, `t_end` (optional) and `t_set`, then 1 to "
+        "`command`. Read `last_command`, `last_result` and `command_count` to see the outcome.",
+        "",
+        "## Command codes",
+        "",
+        "| code | command | meaning |",
+        "|---|---|---|",
+    ]
+    for code, name, doc in COMMAND_CODES:
+        out.append(f"| {code} | {name} | {doc} |")
+    out += ["", "## Rejection codes (`last_result`)", "", "| code | name | meaning |", "|---|---|---|"]
+    for code, name, doc in REJECT_CODES:
+        out.append(f"| {code} | {name} | {doc} |")
+    out += ["", "## Exception responses", "", "| code | name | when |", "|---|---|---|"]
+    for code, name, doc in EXCEPTIONS:
+        out.append(f"| {code:02d} | {name} | {doc} |")
+    out += [
+        "",
+        "## Examples (mbpoll)",
+        "",
+        "```sh",
+        "# heartbeat, map version, software version, test state, status, alarm",
+        "mbpoll -m tcp -p 5020 -a 1 -0 -t 3 -r 0 -c 8 -1 127.0.0.1",
+        "# T1, T2, tension, mu, mu_ss, mu_th as float32 (big-endian words)",
+        f"mbpoll -m tcp -p 5020 -a 1 -0 -t 3:float -B -r {IR['t1'].address} -c 6 -1 127.0.0.1",
+        "# set the setpoint of the next test to 0.5 N, then start it",
+        f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4:float -B -r {HR['t_set'].address} 127.0.0.1 0.5",
+        f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4 -r {HR['command'].address} 127.0.0.1 1",
+        "```",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def render_csv(station: dict[str, Any] | None = None) -> str:
+    import csv
+    import io
+
+    buf = io.StringIO()
+    rs = rows(station)
+    w = csv.DictWriter(buf, fieldnames=list(rs[0].keys()), lineterminator="\n")
+    w.writeheader()
+    for r in rs:
+        w.writerow(r)
+    for bit, name, doc in STATUS_BITS:
+        w.writerow({"table": "input.status", "address": IR["status"].address, "reference": IR["status"].reference,
+                    "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "", "allowed": "",
+                    "meaning": doc})
+    return buf.getvalue()
+
+
+if __name__ == "__main__":
+    print(render(), end="")

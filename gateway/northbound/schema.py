@@ -1,0 +1,449 @@
+"""The one definition of hookwatch's MQTT interface: topic tree, QoS/retain, payload fields.
+
+The runtime (``gateway/northbound/mqtt.py``) builds every payload with the functions here and
+``docs/mqtt.md`` is generated from the same tables (``python -m gateway.northbound.schema >
+docs/mqtt.md``; a test checks it is current). Bump :data:`SCHEMA_VERSION` when a field changes
+meaning or disappears (adding a field is compatible).
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import re
+from dataclasses import dataclass
+from typing import Any
+
+from ..method.rules import REASON_NAMES
+from ..records import Event, EventType, StationState, TestState
+
+#: version of the topic tree and payloads (every payload carries it as "schema")
+SCHEMA_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    type: str
+    doc: str
+
+
+@dataclass(frozen=True)
+class Topic:
+    key: str               # internal name
+    path: str              # below the station's base topic
+    direction: str         # "publish" (gateway → broker) or "subscribe" (broker → gateway)
+    qos: int
+    retain: bool
+    durable: bool          # goes through the on-disk outbox
+    doc: str
+    fields: tuple[Field, ...] = ()
+
+
+ENVELOPE = (
+    Field("schema", "int", f"payload schema version ({SCHEMA_VERSION})"),
+    Field("seq", "int", "per-station sequence number: one counter for every message of the station "
+          "that goes through the outbox, strictly increasing across gateway restarts; consumers "
+          "drop a message whose seq they have already seen (see Delivery)"),
+    Field("time", "str", "UTC time of what the message reports, ISO 8601 with milliseconds "
+          "(`2026-03-01T08:00:00.020Z`)"),
+    Field("station", "str", "station id"),
+)
+
+STATUS_FIELDS = ENVELOPE + (
+    Field("status", "str", "`online` (published on every connect) or `offline` (the Last Will, "
+          "published by the broker when the gateway vanishes, or by the gateway on a clean stop)"),
+    Field("software", "str", "gateway software version"),
+    Field("map_version", "int", "version of the PLC register map served alongside"),
+)
+
+STATE_FIELDS = ENVELOPE + (
+    Field("test_state", "str", "idle, baseline_search, monitoring, end_of_life, completed, aborted"),
+    Field("test_id", "str|null", "id of the current (or last) test"),
+    Field("sample_id", "str|null", "sample under test"),
+    Field("grade", "str|null", "needle grade of the sample"),
+    Field("t_set", "float|null", "tension setpoint of the test, N"),
+    Field("t_end", "float|null", "planned test duration, s"),
+    Field("mu_ss", "float|null", "baseline friction coefficient μ_ss (null before the baseline)"),
+    Field("mu_th", "float|null", "end-of-life threshold μ_th = (1+δ)·μ_ss"),
+    Field("k_b", "int|null", "slot at which the baseline was established"),
+    Field("t_life", "float|null", "wear life found, s from test start (null until end of life)"),
+    Field("elapsed_s", "float", "time since test start, s"),
+    Field("status", "str|null", "the method's status once the test has ended"),
+    Field("end_reason", "str|null", "why the test ended (completed, protection stop, …)"),
+    Field("alarm", "str", "end-of-life alarm: none, active, acknowledged"),
+    Field("protection_stop", "bool", "the test was stopped by the protection rule (§3)"),
+    Field("meter_ok", "bool", "the tension meter answers"),
+    Field("stm32_ok", "bool", "the motor controller answers"),
+)
+
+TELEMETRY_FIELDS = ENVELOPE + (
+    Field("test_id", "str|null", "test running during this interval"),
+    Field("interval_s", "float", "length of the interval the figures cover, s"),
+    Field("slots", "int", "slots in the interval"),
+    Field("t1", "float|null", "mean T1 (inlet tension), N, over slots with a reading"),
+    Field("t2", "float|null", "mean T2 (outlet tension), N"),
+    Field("tension", "object", "mean tension (T1+T2)/2 per slot: {mean, min, max}, N (null without readings)"),
+    Field("mu", "float|null", "mean μ of the valid slots of the interval (null if none)"),
+    Field("valid_ratio", "float|null", "valid slots / slots in the interval (null outside a test)"),
+    Field("counts", "object", "slots per reason in the interval: {" + ", ".join(REASON_NAMES) + "}"),
+    Field("speed_cmd", "float", "speed command at the end of the interval, rpm"),
+    Field("speed_act", "float|null", "actual speed reported by the STM32, rpm"),
+    Field("saturated_slots", "int", "slots in which the control output was clamped"),
+    Field("saturation", "bool", "the control output was clamped at least once in the interval"),
+)
+
+EVENT_FIELDS = ENVELOPE + (
+    Field("type", "str", "event type (the last topic level)"),
+    Field("test_id", "str|null", "test the event belongs to"),
+    Field("k", "int|null", "slot of the test at which it happened"),
+    Field("data", "object", "event-specific values, see the table of events"),
+)
+
+ALARM_FIELDS = ENVELOPE + (
+    Field("alarm", "str", "`end_of_life`"),
+    Field("state", "str", "`active` (raised, not acknowledged) → `acknowledged` → `cleared` "
+          "(the hook was replaced and a new test started)"),
+    Field("active", "bool", "true while the alarm is raised (active or acknowledged)"),
+    Field("acknowledged", "bool", "true once someone acknowledged it"),
+    Field("test_id", "str|null", "the test that reached its end of life"),
+    Field("sample_id", "str|null", "its sample"),
+    Field("t_life", "float|null", "wear life, s from test start"),
+    Field("k_life", "int|null", "slot of the end of life"),
+    Field("mu_ss", "float|null", "baseline μ_ss"),
+    Field("mu_th", "float|null", "threshold μ_th"),
+    Field("raised_at", "str|null", "UTC time the alarm was raised"),
+    Field("acknowledged_at", "str|null", "UTC time of the acknowledgement"),
+    Field("acknowledged_by", "str|null", "source of the acknowledgement (mqtt, plc:ADDR, cli)"),
+    Field("cleared_at", "str|null", "UTC time the alarm was cleared"),
+)
+
+RESULT_FIELDS = ENVELOPE + (
+    Field("test_id", "str|null", "the test"),
+    Field("sample_id", "str|null", "its sample"),
+    Field("grade", "str|null", "its grade"),
+    Field("t_set", "float|null", "its setpoint, N"),
+    Field("test_status", "str", "completed or aborted"),
+    Field("end_reason", "str", "completed, protection stop, stopped by command, gateway restart, …"),
+    Field("result", "object|null", "the method's result (status, t_life, mu_ss, mu_th, k_b, … — "
+          "the keys of `hookwatch analyze --json`)"),
+)
+
+REPLY_FIELDS = ENVELOPE + (
+    Field("command", "str", "the command answered (start, stop, ack, setpoint, or the unknown name)"),
+    Field("request_id", "str|null", "the request_id of the command, if it had one"),
+    Field("source", "str", "`mqtt`"),
+    Field("ok", "bool", "true: carried out; false: refused, nothing was done"),
+    Field("code", "int", "0 when ok, else the rejection code (table below; the same codes a PLC reads)"),
+    Field("reason", "str", "why it was refused (field, value, what is allowed); empty when ok"),
+)
+
+CMD_START_FIELDS = (
+    Field("sample_id", "str", "required: 1–32 printable ASCII characters"),
+    Field("grade", "str", "optional: one of the station's grades"),
+    Field("t_set", "float", "required: tension setpoint, N, in (0, 0.98 · meter full scale)"),
+    Field("t_end", "float", "optional: planned duration, s (default: the station's test.t_end_s)"),
+    Field("request_id", "str", "optional: echoed in the reply"),
+)
+CMD_SIMPLE_FIELDS = (Field("request_id", "str", "optional: echoed in the reply"),)
+CMD_SETPOINT_FIELDS = (
+    Field("t_set", "float", "required: setpoint of the next test, N (refused while a test runs)"),
+    Field("request_id", "str", "optional: echoed in the reply"),
+)
+
+TOPICS: tuple[Topic, ...] = (
+    Topic("status", "status", "publish", 1, True, False,
+          "gateway connection status; `offline` is the Last Will", STATUS_FIELDS),
+    Topic("state", "state", "publish", 1, True, True,
+          "station and test state; on every change of the test state and at least every 10 s",
+          STATE_FIELDS),
+    Topic("telemetry", "telemetry", "publish", 1, False, True,
+          "figures aggregated over `mqtt.telemetry_interval_s` (1 s by default)", TELEMETRY_FIELDS),
+    Topic("event", "event/{type}", "publish", 1, False, True,
+          "one message per event, each exactly once (types below)", EVENT_FIELDS),
+    Topic("alarm", "alarm/end_of_life", "publish", 1, True, True,
+          "the end-of-life alarm and its lifecycle", ALARM_FIELDS),
+    Topic("result", "result", "publish", 1, True, True,
+          "the result of the last test that ended", RESULT_FIELDS),
+    Topic("reply", "reply", "publish", 1, False, True,
+          "the answer to every command received on cmd/…", REPLY_FIELDS),
+    Topic("cmd_start", "cmd/start", "subscribe", 1, False, False,
+          "start a test", CMD_START_FIELDS),
+    Topic("cmd_stop", "cmd/stop", "subscribe", 1, False, False,
+          "stop the running test (it ends as aborted)", CMD_SIMPLE_FIELDS),
+    Topic("cmd_ack", "cmd/ack", "subscribe", 1, False, False,
+          "acknowledge the active end-of-life alarm", CMD_SIMPLE_FIELDS),
+    Topic("cmd_setpoint", "cmd/setpoint", "subscribe", 1, False, False,
+          "set the tension setpoint of the next test", CMD_SETPOINT_FIELDS),
+)
+TOPIC = {t.key: t for t in TOPICS}
+
+#: data keys of each event type (the `data` object of event/… messages)
+EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
+    EventType.TEST_STARTED: (("sample_id", "sample"), ("grade", "grade"), ("t_set", "setpoint, N"),
+                             ("t_end", "planned duration, s")),
+    EventType.BASELINE: (("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
+                         ("k_b", "slot of the baseline"), ("stable_first", "first slot of the stable segment")),
+    EventType.END_OF_LIFE: (("k_life", "slot of the end of life"), ("t_life", "wear life, s"),
+                            ("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
+                            ("sample_id", "sample")),
+    EventType.PROTECTION_STOP: (("stop_reasons", "unsafe reasons of the run that stopped the test"),),
+    EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
+                           ("source", "who ended it"), ("result", "the method's result")),
+    EventType.PORT_LOST: (("port", "meter or stm32"),),
+    EventType.PORT_BACK: (("port", "meter or stm32"),),
+    EventType.ALARM_ACK: (("source", "who acknowledged (mqtt, plc:ADDR, cli)"),),
+    EventType.ALARM_CLEARED: (("reason", "why (new test started)"),),
+    EventType.COMMAND_REJECTED: (("command", "the command"), ("source", "where it came from"),
+                                 ("reason", "why it was refused")),
+    EventType.CONFIG_RELOADED: (),
+}
+
+_LEVEL_BAD = re.compile(r"[+#/\x00]")
+
+
+def topic_level(s: Any) -> str:
+    """A string made safe as one MQTT topic level (no /, +, #, NUL; never empty)."""
+    s = "" if s is None else str(s).strip()
+    return _LEVEL_BAD.sub("_", s) or "_"
+
+
+def base_topic(prefix: str, site: Any, area: Any, line: Any, station: str) -> str:
+    """<prefix>/<site>/<area>/<line>/<station> — a missing level is written as `_`."""
+    pre = "/".join(topic_level(p) for p in str(prefix or "hookwatch").strip("/").split("/"))
+    return "/".join([pre, topic_level(site), topic_level(area), topic_level(line), topic_level(station)])
+
+
+def topic_for(base: str, key: str, **kw) -> str:
+    return f"{base}/{TOPIC[key].path.format(**kw)}"
+
+
+# ----------------------------------------------------------------------------- payloads
+def iso_ms(t: float) -> str:
+    """UTC ISO 8601 with milliseconds and Z."""
+    d = _dt.datetime.fromtimestamp(round(float(t), 3), tz=_dt.timezone.utc)
+    return d.strftime("%Y-%m-%dT%H:%M:%S.") + f"{d.microsecond // 1000:03d}Z"
+
+
+def json_safe(v: Any) -> Any:
+    """Plain JSON values: NaN/inf → null, numpy scalars → Python, tuples → lists, enums → value."""
+    if v is None or isinstance(v, (bool, str)):
+        return v
+    if isinstance(v, int):
+        return int(v)
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, dict):
+        return {str(k): json_safe(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, set)):
+        return [json_safe(x) for x in v]
+    if hasattr(v, "value") and isinstance(getattr(v, "value"), (str, int)):
+        return v.value
+    if hasattr(v, "item"):                     # numpy scalar
+        try:
+            return json_safe(v.item())
+        except Exception:
+            pass
+    if hasattr(v, "tolist"):
+        return json_safe(v.tolist())
+    return str(v)
+
+
+def encode(payload: dict[str, Any]) -> bytes:
+    return json.dumps(json_safe(payload), separators=(",", ":"), allow_nan=False,
+                      ensure_ascii=False).encode("utf-8")
+
+
+def _env(seq: int, t: float, station: str) -> dict[str, Any]:
+    return {"schema": SCHEMA_VERSION, "seq": int(seq), "time": iso_ms(t), "station": station}
+
+
+def status_payload(seq: int, t: float, station: str, status: str, software: str,
+                   map_version: int) -> dict[str, Any]:
+    return {**_env(seq, t, station), "status": status, "software": software, "map_version": map_version}
+
+
+def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
+    ts = st.state.name.lower() if isinstance(st.state, TestState) else str(st.state)
+    return {**_env(seq, t, st.station), "test_state": ts, "test_id": st.test_id,
+            "sample_id": st.sample_id, "grade": st.grade, "t_set": st.t_set, "t_end": st.t_end,
+            "mu_ss": st.mu_ss, "mu_th": st.mu_th, "k_b": st.k_b, "t_life": st.t_life,
+            "elapsed_s": round(float(st.elapsed_s), 3), "status": st.status,
+            "end_reason": st.end_reason, "alarm": st.alarm, "protection_stop": bool(st.protection_stop),
+            "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok)}
+
+
+def telemetry_payload(seq: int, t: float, station: str, agg: dict[str, Any]) -> dict[str, Any]:
+    return {**_env(seq, t, station), **{f.name: agg.get(f.name) for f in TELEMETRY_FIELDS[len(ENVELOPE):]}}
+
+
+def event_payload(seq: int, ev: Event) -> dict[str, Any]:
+    return {**_env(seq, ev.wall_time, ev.station), "type": ev.type.value, "test_id": ev.test_id,
+            "k": ev.k, "data": dict(ev.data)}
+
+
+def alarm_payload(seq: int, t: float, station: str, alarm: dict[str, Any]) -> dict[str, Any]:
+    return {**_env(seq, t, station), "alarm": "end_of_life",
+            **{f.name: alarm.get(f.name) for f in ALARM_FIELDS[len(ENVELOPE) + 1:]}}
+
+
+def result_payload(seq: int, ev: Event, st: StationState | None) -> dict[str, Any]:
+    d = ev.data
+    same = st is not None and ev.test_id is not None and st.test_id == ev.test_id
+    return {**_env(seq, ev.wall_time, ev.station), "test_id": ev.test_id or d.get("test_dir"),
+            "sample_id": st.sample_id if same else None, "grade": st.grade if same else None,
+            "t_set": st.t_set if same else None, "test_status": d.get("test_status", "aborted"),
+            "end_reason": d.get("reason", ""), "result": d.get("result")}
+
+
+def reply_payload(seq: int, t: float, station: str, command: str, request_id: str | None, ok: bool,
+                  code: int, reason: str, source: str = "mqtt") -> dict[str, Any]:
+    return {**_env(seq, t, station), "command": command, "request_id": request_id, "source": source,
+            "ok": bool(ok), "code": int(code), "reason": reason}
+
+
+def field_names(key: str) -> list[str]:
+    return [f.name for f in TOPIC[key].fields]
+
+
+# ----------------------------------------------------------------------------- docs
+def _examples() -> dict[str, dict[str, Any]]:
+    t = 1772352000.02     # 2026-03-01T08:00:00.020Z
+    st = StationState(station="st1", state=TestState.END_OF_LIFE, test_id="20260301T060000Z-S-0042",
+                      sample_id="S-0042", grade="I", t_set=0.5, t_end=36000.0, mu_ss=0.2213,
+                      mu_th=0.2545, k_b=1500, t_life=6930.5, elapsed_s=7200.0, alarm="active",
+                      meter_ok=True, stm32_ok=True)
+    ev = Event(EventType.END_OF_LIFE, "st1", t, st.test_id, 346525,
+               {"k_life": 346525, "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545, "sample_id": "S-0042"})
+    return {
+        "status": status_payload(1041, t, "st1", "online", "hookwatch 0.1.0", 1),
+        "state": state_payload(1042, t, st),
+        "telemetry": telemetry_payload(1043, t, "st1", {
+            "test_id": st.test_id, "interval_s": 1.0, "slots": 50, "t1": 0.4313, "t2": 0.5712,
+            "tension": {"mean": 0.5012, "min": 0.4981, "max": 0.5047}, "mu": 0.2561,
+            "valid_ratio": 0.98, "counts": {n: (1 if n == "JUMP" else 0) for n in REASON_NAMES},
+            "speed_cmd": 120.4, "speed_act": 120.1, "saturated_slots": 0, "saturation": False}),
+        "event": event_payload(1044, ev),
+        "alarm": alarm_payload(1045, t, "st1", {
+            "state": "active", "active": True, "acknowledged": False, "test_id": st.test_id,
+            "sample_id": "S-0042", "t_life": 6930.5, "k_life": 346525, "mu_ss": 0.2213,
+            "mu_th": 0.2545, "raised_at": iso_ms(t)}),
+        "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
+                   "t_set": 0.5, "test_status": "completed", "end_reason": "completed",
+                   "result": {"status": "failure", "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545}},
+        "reply": reply_payload(1047, t, "st1", "start", "r-17", False, 1,
+                               "a test is already running; stop it first"),
+        "cmd_start": {"sample_id": "S-0043", "grade": "I", "t_set": 0.5, "request_id": "r-17"},
+        "cmd_stop": {"request_id": "r-18"},
+        "cmd_ack": {"request_id": "r-19"},
+        "cmd_setpoint": {"t_set": 0.6},
+    }
+
+
+def render() -> str:
+    from ..station.commands import REJECT_CODES
+    from .registers import MAP_VERSION
+
+    ex = _examples()
+    out = [
+        "# MQTT interface",
+        "",
+        "Generated from `gateway/northbound/schema.py` (`python -m gateway.northbound.schema > "
+        "docs/mqtt.md`); do not edit by hand.",
+        "",
+        f"Schema version **{SCHEMA_VERSION}** (every payload carries it as `schema`). "
+        f"Register map version {MAP_VERSION} (see registers.md).",
+        "",
+        "## Topic tree",
+        "",
+        "Each station publishes under its base topic "
+        "`<prefix>/<site>/<area>/<line>/<station>` built from its YAML (`mqtt.prefix`, "
+        "`station.site`, `station.area`, `station.line`, `station.id`); a missing level is written "
+        "`_`, and `/ + #` inside a name become `_`. Example: `hookwatch/plant1/knitting/l3/st1`.",
+        "",
+        "| topic (below the base) | direction | QoS | retained | through the outbox | content |",
+        "|---|---|---|---|---|---|",
+    ]
+    for t in TOPICS:
+        out.append(f"| `{t.path}` | {t.direction} | {t.qos} | {'yes' if t.retain else 'no'} | "
+                   f"{'yes' if t.durable else 'no'} | {t.doc} |")
+    out += [
+        "",
+        "All payloads are UTF-8 JSON objects. Numbers that are not finite (NaN) are sent as `null`. "
+        "Times are UTC, ISO 8601 with milliseconds.",
+        "",
+        "## Delivery",
+        "",
+        "- Every message marked *through the outbox* is first written to an on-disk SQLite outbox "
+        "(WAL) and deleted only when the broker confirms it (PUBACK, paho `on_publish`). After a "
+        "broker or network outage, and after a gateway restart, the outbox is delivered **in seq "
+        "order** before anything newer, with a bounded number of messages in flight.",
+        "- `seq` is one per-station counter over all outbox messages, persisted in the outbox, so "
+        "it keeps increasing across restarts. A message is durable about 20 ms after it was "
+        "produced (the outbox writer commits in batches).",
+        "- A message confirmed by the broker is never sent again. A message that was *in flight* "
+        "(sent, not yet confirmed) when the connection broke is sent again, with the MQTT DUP flag "
+        "inside one gateway run and as a plain resend after a gateway restart; the broker may then "
+        "forward it twice. It carries the same `seq` both times: **consumers drop a message whose "
+        "`seq` (per station) they have already processed**. The same holds for the few "
+        "milliseconds between a broker confirmation and its deletion from the outbox if the "
+        "gateway is killed exactly then.",
+        "- Telemetry is buffered too, within `mqtt.outbox.telemetry_budget_mb` on disk; when the "
+        "budget is exceeded the oldest buffered telemetry is dropped first (visible as a gap in "
+        "`seq`). Events, alarms, results and replies are never dropped.",
+        "- `state` is retained and only its latest value matters: a buffered `state` that was "
+        "superseded before it could be sent is dropped (a gap in `seq`).",
+        "- `status` is not in the outbox: `online` is published (retained) on every connect, "
+        "`offline` is the retained Last Will, also published on a clean stop. Its `seq` is the "
+        "last seq assigned when the session started (it does not consume a number).",
+        "- The end-of-life alarm lifecycle: `active` (raised, unacknowledged) → `acknowledged` "
+        "(cmd/ack, a PLC write or the CLI) → `cleared` (the hook was replaced and a new test "
+        "started). Every transition is one retained message on `alarm/end_of_life`, so a MES "
+        "that connects late sees the current state.",
+        "",
+        "## Payloads",
+        "",
+    ]
+    for t in TOPICS:
+        out += [f"### `{t.path}`", "", t.doc + ".", "", "| field | type | meaning |", "|---|---|---|"]
+        for f in t.fields:
+            out.append(f"| `{f.name}` | {f.type} | {f.doc} |")
+        out += ["", "Example:", "", "```json", json.dumps(json_safe(ex[t.key]), ensure_ascii=False),
+                "```", ""]
+    out += ["## Events", "", "`event/<type>`; the `data` object holds:", "",
+            "| type | data keys |", "|---|---|"]
+    for et, keys in EVENT_DATA.items():
+        ks = "; ".join(f"`{k}` ({d})" for k, d in keys) or "—"
+        out.append(f"| `{et.value}` | {ks} |")
+    out += [
+        "",
+        "## Commands",
+        "",
+        "A command is a JSON object published to `cmd/<name>` (an empty payload counts as `{}`). "
+        "MQTT and PLC commands go through the same validation (`gateway/station/commands.py`) and "
+        "the same station command path; every command is answered on `reply`, and a refused one "
+        "is never acted on (it also produces a `command_rejected` event). Unknown keys, unknown "
+        "commands and payloads that are not JSON objects are refused.",
+        "",
+        "| code | name | meaning |",
+        "|---|---|---|",
+    ]
+    for code, name, doc in REJECT_CODES:
+        out.append(f"| {code} | {name} | {doc} |")
+    out += [
+        "",
+        "## Connection",
+        "",
+        "From the station YAML `mqtt:` section: `host`, `port`, `client_id` (default "
+        "`hookwatch-<station>`), `keepalive_s`, `username`, the password from the environment "
+        "variable named by `password_env` or the file named by `password_file` (never inline), "
+        "`tls: {enabled, ca_file, cert_file, key_file}`, `telemetry_interval_s`, `outbox: {path, "
+        "telemetry_budget_mb}`. One MQTT connection per station (its own Last Will). The client "
+        "reconnects by itself (1 s, doubling up to 30 s).",
+        "",
+    ]
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    print(render(), end="")
