@@ -86,6 +86,10 @@ class MqttSettings:
         return None
 
 
+def _r(x: float) -> float:
+    return round(x, 6)
+
+
 class _Telemetry:
     """Per-interval aggregation of slot records (O(1) per record)."""
     __slots__ = ("n", "n_read", "s1", "s2", "sm", "mn", "mx", "n_valid", "smu", "nmu", "counts",
@@ -134,10 +138,10 @@ class _Telemetry:
         nr = self.n_read
         return {
             "test_id": test_id, "interval_s": round(now - self.t0, 3), "slots": self.n,
-            "t1": self.s1 / nr if nr else None, "t2": self.s2 / nr if nr else None,
-            "tension": {"mean": self.sm / nr if nr else None, "min": self.mn if nr else None,
-                        "max": self.mx if nr else None},
-            "mu": self.smu / self.nmu if self.nmu else None,
+            "t1": _r(self.s1 / nr) if nr else None, "t2": _r(self.s2 / nr) if nr else None,
+            "tension": {"mean": _r(self.sm / nr) if nr else None, "min": _r(self.mn) if nr else None,
+                        "max": _r(self.mx) if nr else None},
+            "mu": _r(self.smu / self.nmu) if self.nmu else None,
             "valid_ratio": (self.n_valid / self.n if self.n else None) if test_id else None,
             "counts": {name: c for (_, name), c in zip(REASONS, self.counts)},
             "speed_cmd": self.speed_cmd, "speed_act": self.speed_act,
@@ -401,8 +405,9 @@ class MqttOutput:
         c = self._client
         if c is None:
             return
+        was_connected, self.connected = self.connected, False
         try:
-            if self.connected:
+            if was_connected:
                 info = c.publish(self._topic("status"), schema.encode(schema.status_payload(
                     self.outbox.last_seq, time.time(), self.s.station_id, "offline", SOFTWARE, MAP_VERSION)),
                     qos=1, retain=True)

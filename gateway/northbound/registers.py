@@ -232,8 +232,10 @@ def _type_doc(r: Reg) -> str:
 def rows(station: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """The map as rows (csv / md), for one station if given."""
     out = []
+    pre = ({"station": station["id"], "unit_id": station["unit_id"], "word_order": station["word_order"]}
+           if station else {})
     for r in INPUT_REGS + HOLDING_REGS:
-        out.append({"table": r.table, "address": r.address, "reference": r.reference, "count": r.count,
+        out.append({**pre, "table": r.table, "address": r.address, "reference": r.reference, "count": r.count,
                     "name": r.name, "type": r.type, "unit": r.unit, "allowed": r.allowed, "meaning": r.doc})
     return out
 
@@ -347,7 +349,9 @@ def render_csv(station: dict[str, Any] | None = None) -> str:
     for r in rs:
         w.writerow(r)
     for bit, name, doc in STATUS_BITS:
-        w.writerow({"table": "input.status", "address": IR["status"].address, "reference": IR["status"].reference,
+        w.writerow({**({"station": station["id"], "unit_id": station["unit_id"],
+                        "word_order": station["word_order"]} if station else {}),
+                    "table": "input.status", "address": IR["status"].address, "reference": IR["status"].reference,
                     "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "", "allowed": "",
                     "meaning": doc})
     return buf.getvalue()

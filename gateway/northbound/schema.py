@@ -439,7 +439,7 @@ def render() -> str:
         "variable named by `password_env` or the file named by `password_file` (never inline), "
         "`tls: {enabled, ca_file, cert_file, key_file}`, `telemetry_interval_s`, `outbox: {path, "
         "telemetry_budget_mb}`. One MQTT connection per station (its own Last Will). The client "
-        "reconnects by itself (1 s, doubling up to 30 s).",
+        "reconnects by itself (after 1 s, doubling up to 10 s).",
         "",
     ]
     return "\n".join(out)

@@ -1,0 +1,59 @@
+"""Build a station's northbound outputs from its configuration (``cfg.mqtt``, ``cfg.modbus_tcp``)."""
+from __future__ import annotations
+
+import logging
+import os
+
+from . import schema
+
+log = logging.getLogger("hookwatch.northbound")
+
+
+def mqtt_settings(cfg):
+    from .mqtt import MqttSettings
+
+    m = cfg.mqtt
+    sid = cfg.station.id
+    st = cfg.station
+    tls = m.tls
+    ob = m.outbox
+    path = ob.path or os.path.join(cfg.recorder.dir, sid, "outbox.sqlite")
+    return MqttSettings(
+        station_id=sid,
+        base_topic=schema.base_topic(m.prefix, getattr(st, "site", ""), getattr(st, "area", ""),
+                                     getattr(st, "line", ""), sid),
+        host=m.host, port=int(m.port), client_id=m.client_id, keepalive_s=int(m.keepalive_s),
+        username=m.username, password_env=m.password_env, password_file=m.password_file,
+        tls_enabled=bool(tls.enabled), ca_file=tls.ca_file, cert_file=tls.cert_file, key_file=tls.key_file,
+        telemetry_interval_s=float(m.telemetry_interval_s), outbox_path=path,
+        telemetry_budget_bytes=int(float(ob.telemetry_budget_mb) * 1024 * 1024),
+    )
+
+
+def modbus_settings(cfg):
+    from .modbus_server import ModbusSettings
+
+    mb = cfg.modbus_tcp
+    return ModbusSettings(
+        station_id=cfg.station.id, host=mb.host, port=int(mb.port), unit_id=int(mb.unit_id),
+        word_order=mb.word_order, writes_enabled=bool(mb.writes.enabled),
+        allowed_clients=tuple(str(a) for a in (mb.writes.allowed_clients or ())),
+        grades=tuple(getattr(cfg, "grades", ("I", "II"))),
+    )
+
+
+def outputs_for(cfg, station) -> list:
+    """The northbound outputs of one station (MQTT first, so Modbus can show its link status)."""
+    outs: list = []
+    mqtt_out = None
+    if getattr(cfg, "mqtt", None) is not None and cfg.mqtt.enabled:
+        from .mqtt import MqttOutput
+
+        mqtt_out = MqttOutput(mqtt_settings(cfg), station)
+        outs.append(mqtt_out)
+    if getattr(cfg, "modbus_tcp", None) is not None and cfg.modbus_tcp.enabled:
+        from .modbus_server import ModbusOutput
+
+        connected = (lambda: mqtt_out.connected) if mqtt_out is not None else None
+        outs.append(ModbusOutput(modbus_settings(cfg), station, mqtt_connected=connected))
+    return outs
