@@ -34,13 +34,14 @@ FAULT_KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "saturation": ((), ()),              # both readings at full scale
     "swap_channels": ((), ()),           # ch1 and ch2 swapped on the wire
     "stm32_silent": ((), ()),            # the STM32 stops answering (keeps its watchdog)
+    "stm32_port_vanish": ((), ()),       # the STM32's device disappears, returns after duration
     "motor_stall": ((), ()),             # the take-up motor stalls: speed → 0
 }
 FAULT_KEYS = ("at_s", "duration_s", "fault", "note")
 TOP_KEYS = ("description", "seed", "duration_s", "meter", "stm32", "plant", "method", "control",
             "faults")
 METER_KEYS = ("map", "baud", "unit_id")
-STM32_KEYS = ("watchdog_s",)
+STM32_KEYS = ("watchdog_s", "baud")
 PLANT_TOP = ("grade", "t_set", "time_scale", "step_s", "theta_deg", "trace_every_s")
 
 #: (section, key) -> (lower bound, lower inclusive, upper bound or None); default for numbers: ≥ 0
@@ -115,6 +116,7 @@ class Scenario:
     baud: int | None = None
     unit_id: int | None = None
     watchdog_s: float = 0.2
+    stm32_baud: int = 115200
     plant: PlantParams = field(default_factory=PlantParams)
     faults: tuple[FaultSpec, ...] = ()
     method: dict[str, Any] = field(default_factory=dict)    # informational (not used by the sim)
@@ -305,13 +307,17 @@ def scenario_from_dict(data: Any, path: str = "<scenario>") -> Scenario:
         unit = _number(where, "meter.unit_id", unit, 1.0, True, 247.0, integer=True)
     stm = _mapping(where, "stm32", data.get("stm32"))
     _unknown(where, "stm32.", stm, STM32_KEYS)
-    wd = _number(where, "stm32.watchdog_s", stm.get("watchdog_s", 0.2), 0.0, False, 60.0)
+    from ..stm32_protocol import WATCHDOG_MS_MAX, WATCHDOG_MS_MIN
+    wd = _number(where, "stm32.watchdog_s", stm.get("watchdog_s", 0.2), WATCHDOG_MS_MIN / 1000.0,
+                 True, WATCHDOG_MS_MAX / 1000.0)
+    sbaud = _number(where, "stm32.baud", stm.get("baud", 115200), 1200.0, True, 4000000.0,
+                    integer=True)
     plant = _plant(where, _mapping(where, "plant", data.get("plant")))
     method = _method(where, _mapping(where, "method", data.get("method")), plant.t_set)
     control = _control(where, _mapping(where, "control", data.get("control")))
     faults = _faults(where, data.get("faults"))
     return Scenario(path=path, seed=seed, description=desc, duration_s=duration, meter_map=mpath,
-                    baud=baud, unit_id=unit, watchdog_s=wd, plant=plant, faults=faults,
+                    baud=baud, unit_id=unit, watchdog_s=wd, stm32_baud=sbaud, plant=plant, faults=faults,
                     method=method, control=control)
 
 
