@@ -64,6 +64,7 @@ def run(args) -> int:
     for i, issue in cross_issues(loaded):
         per[i].append(issue)
 
+    had_errors = [any(x.severity == "error" for x in lst) for lst in per]
     # an issue that every station of a fleet file has, located in that file, is shown once
     by_fleet: dict[str, list[int]] = {}
     for i, ld in enumerate(loaded):
@@ -92,6 +93,8 @@ def run(args) -> int:
                 uniq.append(x)
         per[i] = uniq
 
+    fleet_bad = {j for ff, idx in by_fleet.items() for j in idx
+                 if any(x.severity == "error" for x in shared.get(ff, ()))}
     out = sys.stdout
     n_err = n_warn = 0
     bad_stations = 0
@@ -107,14 +110,15 @@ def run(args) -> int:
         e = sum(1 for x in issues if x.severity == "error")
         w = len(issues) - e
         n_err, n_warn = n_err + e, n_warn + w
-        station_bad = e > 0 or ld.cfg is None
+        station_bad = had_errors[i] or ld.cfg is None
         bad_stations += station_bad
         name = f"station {ld.name}" if ld.name else "station"
         if args.quiet and not issues and not station_bad:
             continue
         head = f"{ld.path} ({name}): "
         if station_bad:
-            head += _counts(e, w) if e else "errors in the fleet defaults"
+            head += (_counts(e, w) + (" (and the fleet defaults' errors above)" if i in fleet_bad else "")
+                     if e else "errors in the fleet defaults (above)")
         else:
             b = bus_budget(ld.cfg)
             head += "OK" + (f", {w} warning{'s' * (w != 1)}" if w else "")

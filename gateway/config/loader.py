@@ -81,7 +81,7 @@ class Loaded:
         return _locate(self.pos, path)
 
     def issue(self, severity: str, path: tuple, message: str, anchor: tuple | None = None) -> Issue:
-        p = self.locate(path) or (self.locate(anchor) if anchor else None)
+        p = self.pos.get(tuple(path)) or (self.locate(anchor) if anchor else None) or self.locate(path)
         if p is None:
             return Issue(severity, _dotted(path), message, self.path, None)
         return Issue(severity, _dotted(path), message, p.file, p.line)
@@ -456,7 +456,9 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
             msg = str(e)
             head = msg.split(";")[0]
             names = [n for n in re.findall(r"[a-z_]+", head) if n in METHOD_SPEC]
-            name = next((n for n in names if n in values and n not in bad), None)
+            mine = [n for n in dict.fromkeys(names) if n in values and n not in bad]
+            name = mine[-1] if mine else None
+            bad.update(mine[:-1])          # a rule between two keys the file sets: report it once
             ok = False
             if name is None:
                 target = {"t_set": ("test", "t_set_n"), "t_end": ("test", "t_end_s")}.get(names[0] if names else "")
