@@ -223,6 +223,8 @@ class ZnsMeter:
     # ------------------------------------------------------------------ reading
     async def read(self) -> Reading | None:
         """One poll. Reading or None (counted); never raises, never takes longer than timeout_s."""
+        if self.connected and self._client is not None and not self._client.connected:
+            self._trace_connect(False)       # pymodbus dropped the transport without telling us
         if not self.connected or self._client is None:
             self.counters["not_connected"] += 1
             self._start_reopen()
@@ -252,6 +254,8 @@ class ZnsMeter:
                 return self._result(task, rtt)
             why = self._fail.result() if self._fail.done() else "timeout"   # nothing, or too little
             self._count_failure(why)
+            if why != "port_lost":
+                self._flush_input()
             return None
         except Exception as e:            # never raise into the slot loop
             self.counters["errors"] += 1
@@ -269,6 +273,11 @@ class ZnsMeter:
             ctx = getattr(self._client, "ctx", None)
             if ctx is not None:
                 ctx.recv_buffer = b""
+
+    def _flush_input(self) -> None:
+        """Discard what the OS holds for us, so a late reply cannot be read as the next answer."""
+        with contextlib.suppress(Exception):
+            self._client.ctx.transport.sync_serial.reset_input_buffer()
 
     def _count_failure(self, why: str) -> None:
         if why == "timeout":
