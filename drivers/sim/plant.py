@@ -50,7 +50,7 @@ TABLE3_MU: dict[tuple[str, float], tuple[float, float]] = {
 }
 GRADES = ("I", "II")
 TABLE_T_SET = (0.5, 0.7, 0.9)
-MU_SS_RANGE = (0.22, 0.42)          # drawn μ_ss is clipped to this (Table 3 spans 0.24–0.40)
+MU_SS_RANGE = (0.24, 0.40)          # drawn μ_ss is clipped to Table 3's span
 CV_FLOOR = 0.005                    # drawn t_life spread is at least 0.5 %
 
 
