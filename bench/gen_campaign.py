@@ -12,6 +12,7 @@ each, target lives and μ_ss from Table 3, lives compressed by ``--compress`` (t
 ``--compress 1`` gives the paper's full ten-hour tests at the default method parameters.
 
     python bench/gen_campaign.py DIR [--compress 100] [--layout flat|gateway] [--hours 10]
+    python bench/gen_campaign.py DIR --source plant --compress 100   # the shipped example
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import gzip
 import json
 import math
 import os
+import sys
 import zlib
 from dataclasses import dataclass, field
 
@@ -251,6 +253,114 @@ def make_campaign(root: str, *, compress: float = 100.0, hours: float = 10.0, la
     return logs
 
 
+# ---------------------------------------------------------------------------------------------
+# From the virtual bench: drivers/sim/plant.py under gateway.control.Controller, offline
+# ---------------------------------------------------------------------------------------------
+
+PLANT_STATION = "virtual-bench"
+
+
+def plant_run(grade: str, t_set: float, seed: int, duration: float, time_scale: float = 100.0,
+              mode: str = "closed", drop: float = 0.002):
+    """Sample the plant at 50 Hz for ``duration`` s with the gateway's controller closing the
+    loop (or holding the open-loop speed): a pure loop, no I/O. A share ``drop`` of the slots,
+    and a few short bursts, lose their reading (meter timeouts). Returns (t, T1, T2, truth)."""
+    from drivers.sim.plant import Plant, PlantParams
+    from gateway.control import ControlParams, Controller
+
+    plant = Plant(PlantParams(grade=grade, t_set=t_set, time_scale=time_scale), seed)
+    tp = plant.p.tension
+    cp = ControlParams(mode=mode, open_loop_rpm=tp.offset_rpm + (t_set - tp.pretension_n) / tp.gain_n_per_rpm)
+    ctl = Controller(cp, t_set)
+    plant.enable(True)
+    n = int(round(duration / TS))
+    t1 = np.empty(n)
+    t2 = np.empty(n)
+    for k in range(n):
+        plant.advance_to(k * TS)
+        c1, c2 = plant.tensions()
+        t1[k], t2[k] = c1, c2
+        plant.set_command(ctl.step((c1 + c2) / 2.0, plant.speed_rpm).u)
+    rng = np.random.default_rng(seed + 1)
+    keep = rng.random(n) > drop
+    for _ in range(3):
+        i = int(rng.integers(0, max(1, n - 40)))
+        keep[i:i + int(rng.integers(5, 30))] = False      # < 0.6 s: no protection stop
+    t = np.arange(n) * TS
+    return t[keep], t1[keep], t2[keep], plant.truth()
+
+
+def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 360.0,
+                        grades=("I", "II"), setpoints=(0.5, 0.7, 0.9), reps: int = 3,
+                        control_s: float = 7200.0, control_every: int = 10, seed0: int = 100) -> list[str]:
+    """The example campaign: 2 grades × 3 setpoints × 3 samples from the virtual bench, lives
+    compressed ``time_scale``× (method windows w_ss 10 s, w_hold 60 s, tau 10 s), in the
+    gateway's folder layout; a wear table; an open-loop and a closed-loop log for Fig. 8 (two
+    hours each, long enough for the drift to leave the controller's dead band; every 10th slot
+    written)."""
+    import yaml
+
+    from gateway.method.core import analyze_readings
+    from gateway.method.params import build_params
+
+    logs, tests = [], []
+    i = 0
+    for sp in setpoints:
+        for g in grades:
+            for r in range(1, reps + 1):
+                i += 1
+                sid = f"{g}-{int(round(sp * 10)):02d}-{r:02d}"
+                seed = seed0 + i
+                t, a, b, truth = plant_run(g, sp, seed, t_end, time_scale)
+                method = {"t_set": sp, "t_end": t_end, "w_ss": 10, "w_hold": 60, "tau": 10}
+                test_id = f"20260105T{8 + (i * 7) // 60:02d}{(i * 7) % 60:02d}00Z-{sid}"
+                d = os.path.join(root, PLANT_STATION, test_id)
+                log = os.path.join(d, "log.csv.gz")
+                write_log_plain(log, t, a, b)
+                meta = {"station": PLANT_STATION, "test_id": test_id, "sample_id": sid, "grade": g,
+                        "t_set": sp, "software": "bench/gen_campaign.py (virtual bench, offline)",
+                        "method": method, "control": {"mode": "closed"},
+                        "sim": {"seed": seed, "time_scale": time_scale,
+                                "table_life_s": round(truth["table_life_s"], 1),
+                                "true_crossing_s": round(truth["cross_run_s"], 2),
+                                "true_mu_ss": round(truth["mu_ss"], 4)}}
+                with open(os.path.join(d, "log.meta.yaml"), "w", encoding="utf-8") as f:
+                    yaml.safe_dump(meta, f, sort_keys=False)
+                res = analyze_readings(t, a, b, build_params(method)).as_dict()
+                with open(os.path.join(d, "result.json"), "w", encoding="utf-8") as f:
+                    json.dump({"test_id": test_id, "station": PLANT_STATION, "test_status": "completed",
+                               "end_reason": "completed", "method": res}, f, indent=1)
+                with open(os.path.join(d, "events.jsonl"), "w", encoding="utf-8") as f:
+                    f.write(json.dumps({"type": "test_started", "k": 0, "sample_id": sid, "grade": g}) + "\n")
+                    if res["k_b"] is not None:
+                        f.write(json.dumps({"type": "baseline", "k": res["k_b"], "mu_ss": res["mu_ss"]}) + "\n")
+                    if res["k_life"] is not None:
+                        f.write(json.dumps({"type": "end_of_life", "k": res["k_life"], "t_life": res["t_life"]}) + "\n")
+                    f.write(json.dumps({"type": "test_ended", "reason": "completed", "status": res["status"]}) + "\n")
+                logs.append(log)
+                tests.append(TestDef(sid, g, sp, t_end, truth["cross_run_s"]))
+    write_wear(os.path.join(root, "wear.csv"), wear_rows(tests))
+    for k, mode in enumerate(("open", "closed")):
+        t, a, b, _ = plant_run("I", 0.5, seed0 + 50, control_s, time_scale, mode=mode, drop=0.0)
+        log = os.path.join(root, "control", f"{mode}_loop.csv.gz")
+        sl = slice(None, None, control_every)     # the drift is slow: every 10th slot is enough
+        write_log_plain(log, t[sl], a[sl], b[sl])
+        with open(log[:-7] + ".meta.yaml", "w", encoding="utf-8") as f:
+            yaml.safe_dump({"role": f"{mode}_loop", "station": PLANT_STATION, "sample_id": None,
+                            "grade": "I", "t_set": 0.5, "method": {"t_set": 0.5},
+                            "control": {"mode": mode}, "sim": {"seed": seed0 + 50}}, f, sort_keys=False)
+        logs.append(log)
+    return logs
+
+
+def write_log_plain(path: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> None:
+    """Like :func:`write_log` with times on the slot grid (2 decimals) — smaller files."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with gzip.open(path, "wt", compresslevel=9) as f:
+        f.write("t,T1,T2\n")
+        np.savetxt(f, np.column_stack([t, t1, t2]), fmt=("%.2f", "%.3f", "%.3f"), delimiter=",")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", help="campaign folder to write")
@@ -259,9 +369,17 @@ def main() -> None:
     ap.add_argument("--layout", choices=("flat", "gateway"), default="flat")
     ap.add_argument("--no-wear", action="store_true")
     ap.add_argument("--no-control", action="store_true")
+    ap.add_argument("--source", choices=("synth", "plant"), default="synth",
+                    help="synth: this file's curves (fast, any size); plant: the virtual bench "
+                         "(drivers/sim/plant.py) under the gateway's controller, lives compressed "
+                         "--compress× (the shipped example: --source plant --compress 100)")
     a = ap.parse_args()
-    logs = make_campaign(a.out, compress=a.compress, hours=a.hours, layout=a.layout,
-                         wear=not a.no_wear, control=not a.no_control)
+    if a.source == "plant":
+        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        logs = make_plant_campaign(a.out, time_scale=a.compress, t_end=a.hours * 3600.0 / a.compress)
+    else:
+        logs = make_campaign(a.out, compress=a.compress, hours=a.hours, layout=a.layout,
+                             wear=not a.no_wear, control=not a.no_control)
     print(f"{len(logs)} logs in {a.out}")
 
 

@@ -139,3 +139,19 @@ def test_progress_bar():
     quiet = io.StringIO()
     Progress(3, "x", stream=quiet).advance()          # StringIO is not a terminal: silent
     assert quiet.getvalue() == ""
+
+
+def test_shipped_example_campaign_gives_a_full_report(tmp_path):
+    example = os.path.join(ROOT, "docs", "example-campaign")
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(example) for f in fs)
+    assert size < 4 << 20                              # a few MB at most
+    out = tmp_path / "example-report"
+    p = subprocess.run(hookwatch_cmd() + ["report", example, "--out", str(out)],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "18 tests, 18 analysed, 18 in the statistics, 0 problem(s); 20 figures" in p.stdout
+    t4 = read_csv(out / "table4_summary.csv")
+    assert len(t4) == 6 and {r["ranking"] for r in t4} == {"I > II"}
+    assert len(read_csv(out / "table6_wear.csv")) == 18
+    assert (out / "figures" / "fig8_open_vs_closed_loop.png").is_file()
+    assert not [f for f in os.listdir(example) if f.startswith(".hookwatch")]   # nothing written there

@@ -241,6 +241,11 @@ def render_fig7(d: Fig7Data, path: str) -> None:
         x, y = envelope_xy(*env, gap)
         axt.plot(x, y, color=color, lw=0.7, label=label)
     axt.axhline(d.t_set, color="#7f7f7f", ls="--", lw=1.2, label=f"T_set = {d.t_set:g} N")
+    tops = [e[2].max() for e in (d.t1, d.t2, d.tm) if e[2].size]
+    bots = [e[1].min() for e in (d.t1, d.t2, d.tm) if e[1].size]
+    if tops:   # headroom for the legend above the curves
+        lo, hi = min(min(bots), 0.0), max(max(tops), d.t_set)
+        axt.set_ylim(lo, hi + 0.3 * (hi - lo))
     axt.set_ylabel("tension (N)", fontsize=14)
     axt.set_xlabel(f"time ({d.unit})", fontsize=14)
     axt.legend(loc="upper right", fontsize=11, ncol=4, framealpha=0.85)
@@ -257,7 +262,7 @@ def render_fig7(d: Fig7Data, path: str) -> None:
 class LoopSeries:
     label: str
     x: tuple          # envelope of (T1 + T2)/2 over time (plot units)
-    smooth: tuple     # (x, 1 s mean) for a line
+    smooth: tuple     # (x, running mean over ≥ 1 s) for a line
     hist: tuple       # (bin edges, counts) of the deviation from T_set
     mean: float
     sd: float
@@ -266,18 +271,23 @@ class LoopSeries:
 
 
 def loop_series(label: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray, t_set: float,
-                scale: float, x_end: float, edges: np.ndarray) -> LoopSeries:
+                scale: float, x_end: float, edges: np.ndarray, settled: float = -math.inf) -> LoopSeries:
+    """The mean tension of one log for Fig. 8; statistics over the readings from ``settled`` on
+    (after the start-up)."""
     ok = np.isfinite(t) & np.isfinite(t1) & np.isfinite(t2)
     t, tm = t[ok], (t1[ok] + t2[ok]) / 2.0
     order = np.argsort(t, kind="stable")
     t, tm = t[order], tm[order]
     env = minmax_columns(t / scale, tm, 0.0, x_end)
+    keep = t >= settled
+    t, tm = t[keep], tm[keep]
     if t.size:
-        sec = np.floor(t).astype(np.int64)
+        win = max(1.0, (t[-1] - t[0]) / 600.0)      # ~600 points of running mean per plot
+        sec = np.floor(t / win).astype(np.int64)
         starts = np.flatnonzero(np.r_[True, sec[1:] != sec[:-1]])
         counts = np.diff(np.r_[starts, t.size])
         sm = np.add.reduceat(tm, starts) / counts
-        smooth = ((sec[starts] + 0.5) / scale, sm)
+        smooth = ((sec[starts] + 0.5) * win / scale, sm)
         mean = float(tm.mean())
         sd = float(tm.std(ddof=1)) if t.size > 1 else 0.0
         drift = float(np.polyfit(t / 3600.0, tm, 1)[0]) if t.size > 2 and t[-1] > t[0] else 0.0
@@ -299,6 +309,9 @@ def render_fig8(open_s: LoopSeries, closed_s: LoopSeries, t_set: float, unit: st
                 label=f"{s.label}: mean {s.mean:.3f} N, SD {s.sd:.3f} N, drift {s.drift_per_h:+.3f} N/h, "
                       f"{s.within_pct:.1f} % within ±5 %")
     ax.axhline(t_set, color="#7f7f7f", ls="--", lw=1.2, label=f"T_set = {t_set:g} N")
+    edges = open_s.hist[0]
+    if edges.size >= 2:   # the settled range (start-up clipped), with headroom for the legend
+        ax.set_ylim(t_set + 1.3 * edges[0], t_set + 2.2 * edges[-1])
     ax.set_xlim(0.0, x_end)
     ax.set_xlabel(f"time ({unit})", fontsize=14)
     ax.set_ylabel("mean tension (T1 + T2)/2 (N)", fontsize=14)

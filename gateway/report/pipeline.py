@@ -236,8 +236,10 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
         figs.append(Figure(os.path.relpath(fig8["fig"], out_dir),
                            f"Fig. 8 — open loop ({ctl['rels'][0]}) vs closed loop ({ctl['rels'][1]}): "
                            f"mean tension SD {st['open']['sd_N']:.3f} N vs {st['closed']['sd_N']:.3f} N, "
-                           f"drift {st['open']['drift_N_per_h']:+.3f} vs "
-                           f"{st['closed']['drift_N_per_h']:+.3f} N/h."))
+                           f"mean {st['open']['mean_N']:.3f} vs {st['closed']['mean_N']:.3f} N "
+                           f"(T_set {ctl['t_set']:g} N), readings within ±5 % of T_set "
+                           f"{st['open']['within_5pct']:.1f} % vs {st['closed']['within_5pct']:.1f} % "
+                           "(statistics after the start-up)."))
     for s in T.sort_samples(samples):
         if s.fig:
             tl = f"t_life {s.t_life:,.1f} s" if s.t_life is not None else s.status

@@ -65,24 +65,35 @@ def control_figure(task: dict[str, Any]) -> dict[str, Any]:
         span = max(float(np.nanmax(lg.t)) if lg.t.size else 0.0 for lg in logs.values()) or 1.0
         unit, scale = time_unit(span)
         x_end = span / scale
-        dev = np.concatenate([(lg.t1 + lg.t2) / 2.0 - t_set for lg in logs.values()])
+        settled = {k: settle_time(lg.t, lg.t1, lg.t2, t_set) for k, lg in logs.items()}
+        dev = np.concatenate([((lg.t1 + lg.t2) / 2.0 - t_set)[lg.t >= settled[k]] for k, lg in logs.items()])
         dev = dev[np.isfinite(dev)]
         lim = float(np.percentile(np.abs(dev), 99.5)) if dev.size else 0.1
         lim = max(lim, 0.02 * t_set)
-        # bins on the grid of the mean of two 0.001 N readings, so quantisation makes no comb
+        # bins a whole number of 0.0005 N wide (the mean of two 0.001 N readings), edges between
+        # those values: quantisation makes no comb
         q = 0.0005
         w = max(q, math.ceil(2 * lim / 80 / q) * q)
         nb = int(math.ceil(lim / w))
-        edges = (np.arange(-nb, nb + 2) - 0.5) * w
-        series = {k: loop_series(task["labels"][k], lg.t, lg.t1, lg.t2, t_set, scale, x_end, edges)
-                  for k, lg in logs.items()}
+        edges = np.arange(-nb, nb + 1) * w + q / 2
+        series = {k: loop_series(task["labels"][k], lg.t, lg.t1, lg.t2, t_set, scale, x_end, edges,
+                                 settled[k]) for k, lg in logs.items()}
         render_fig8(series["open"], series["closed"], t_set, unit, x_end, task["fig"], task["title"])
         return {"fig": task["fig"], "stats": {
             k: {"mean_N": s.mean, "sd_N": s.sd, "drift_N_per_h": s.drift_per_h,
-                "within_5pct": s.within_pct, "n_rows": int(logs[k].t.size)}
+                "within_5pct": s.within_pct, "n_rows": int(logs[k].t.size), "settled_s": settled[k]}
             for k, s in series.items()}}
     except Exception as e:  # noqa: BLE001
         return {"error": f"Fig. 8 not drawn: {type(e).__name__}: {e}"}
+
+
+def settle_time(t: np.ndarray, t1: np.ndarray, t2: np.ndarray, t_set: float) -> float:
+    """When the mean tension first comes within ±5 % of T_set (the start-up is left out of the
+    statistics of Fig. 8); the log's start if it never does."""
+    with np.errstate(invalid="ignore"):
+        ok = np.abs((t1 + t2) / 2.0 - t_set) <= 0.05 * t_set
+    i = np.flatnonzero(ok & np.isfinite(t))
+    return float(t[i].min()) if i.size else (float(np.nanmin(t)) if t.size else 0.0)
 
 
 def run_task(task: dict[str, Any]) -> dict[str, Any]:
