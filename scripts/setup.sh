@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up a development/runtime environment in ./.venv (idempotent).
 #   scripts/setup.sh           Python environment only
-#   scripts/setup.sh --tools   also the system tools the tests use (mosquitto, mbpoll, socat, systemd)
+#   scripts/setup.sh --tools   also the system tools the tests use (mosquitto, mbpoll, socat, systemd,
+#                              logrotate, openssl)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -13,6 +14,8 @@ if [ "${1:-}" = "--tools" ]; then
   command -v mbpoll >/dev/null 2>&1 || need+=(mbpoll)
   command -v socat >/dev/null 2>&1 || need+=(socat)
   command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
+  command -v logrotate >/dev/null 2>&1 || [ -x /usr/sbin/logrotate ] || need+=(logrotate)
+  command -v openssl >/dev/null 2>&1 || need+=(openssl)
   if [ ${#need[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ]; then
       echo "setup: installing ${need[*]}" >&2
