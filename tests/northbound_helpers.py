@@ -43,7 +43,10 @@ class Broker:
         self.dir = tmp_path / f"broker-{self.port}"
         self.dir.mkdir(exist_ok=True)
         self.conf = self.dir / "mosquitto.conf"
-        lines = [f"listener {self.port} 127.0.0.1", "allow_anonymous true",
+        import getpass
+
+        # as root, mosquitto would drop to user `mosquitto`, who may not write to the test folder
+        lines = [f"user {getpass.getuser()}", f"listener {self.port} 127.0.0.1", "allow_anonymous true",
                  f"persistence {'true' if persistent else 'false'}",
                  f"persistence_location {self.dir}/", "autosave_interval 1",
                  "max_queued_messages 100000", "log_type error", "log_type warning",
@@ -143,3 +146,96 @@ def env_with_root() -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = ROOT + os.pathsep + env.get("PYTHONPATH", "")
     return env
+
+
+# ------------------------------------------------------------------ an in-process station
+class Reading:
+    def __init__(self, ch1, ch2, rtt_s=0.004):
+        self.ch1, self.ch2, self.rtt_s = ch1, ch2, rtt_s
+
+
+class FakeMeter:
+    """The smallest meter port: constant tensions (None → no reply). For tests of the command path
+    that do not need a plant; end-to-end tests use `hookwatch sim` instead."""
+
+    def __init__(self, ch1=0.40, ch2=0.60):
+        self.connected = True
+        self.counters = {}
+        self.value = (ch1, ch2)
+
+    async def open(self):
+        pass
+
+    async def read(self):
+        await __import__("asyncio").sleep(0.002)
+        return Reading(*self.value) if self.value else None
+
+    async def close(self):
+        pass
+
+
+class FakeStm32:
+    def __init__(self):
+        self.connected = True
+        self.counters = {}
+        self.calls = []
+
+    async def open(self):
+        pass
+
+    async def enable(self):
+        self.calls.append("enable")
+
+    async def set_speed(self, rpm):
+        return None
+
+    async def stop(self, reason=""):
+        self.calls.append(f"stop:{reason}")
+
+    async def read_status(self):
+        return None
+
+    async def close(self):
+        pass
+
+
+class LoopThread:
+    """An asyncio loop in its own thread, like a StationRunner's."""
+
+    def __init__(self):
+        import asyncio
+
+        self.loop = asyncio.new_event_loop()
+        self.t = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.t.start()
+
+    def call(self, coro, timeout: float = 20.0):
+        import asyncio
+
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def close(self):
+        import asyncio
+
+        async def _cancel_all():
+            for t in asyncio.all_tasks():
+                if t is not asyncio.current_task():
+                    t.cancel()
+
+        try:
+            self.call(_cancel_all(), 5)
+        except Exception:
+            pass
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.t.join(5)
+        self.loop.run_until_complete(self.loop.shutdown_default_executor())
+        self.loop.close()
+
+
+def make_station(tmp_path, outputs, station_id="st1", **kw):
+    from gateway.control import ControlParams
+    from gateway.station.station import Station, TestPlan
+
+    return Station(station_id=station_id, method={}, control=ControlParams(), meter=FakeMeter(),
+                   stm32=FakeStm32(), records_dir=str(tmp_path / "records"), outputs=outputs,
+                   default_plan=TestPlan("S-0", "I", 0.5, 600.0), **kw)

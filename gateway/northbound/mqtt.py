@@ -472,6 +472,8 @@ class MqttOutput:
             self._mid2seq[info.mid] = row.seq
             self._sent_upto = row.seq
             self.counters["sent"] += 1
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s: sent seq %d (%s)", self.s.station_id, row.seq, row.kind)
 
     def _on_message(self, client, userdata, msg) -> None:
         name = msg.topic.rsplit("/", 1)[-1]

@@ -387,7 +387,10 @@ def render() -> str:
         "forward it twice. It carries the same `seq` both times: **consumers drop a message whose "
         "`seq` (per station) they have already processed**. The same holds for the few "
         "milliseconds between a broker confirmation and its deletion from the outbox if the "
-        "gateway is killed exactly then.",
+        "gateway is killed exactly then. The broker's own leg to the MES is at-least-once too: a "
+        "message it had forwarded but whose PUBACK it had not read when it stopped is redelivered "
+        "when the MES's persistent session resumes, and every (re)subscription replays the "
+        "retained topics (retain flag set) — always with the original `seq`.",
         "- Telemetry is buffered too, within `mqtt.outbox.telemetry_budget_mb` on disk; when the "
         "budget is exceeded the oldest buffered telemetry is dropped first (visible as a gap in "
         "`seq`). Events, alarms, results and replies are never dropped.",
