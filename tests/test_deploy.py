@@ -98,8 +98,7 @@ def test_unit_contract(unit):
     assert f"{INSTALLED} check --quiet {target}" in s["ExecStartPre"][0]
     for key, value in (("Type", "notify"), ("Restart", "on-failure"), ("User", "hookwatch"),
                        ("SupplementaryGroups", "dialout"), ("NoNewPrivileges", "yes"),
-                       ("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("ProtectHome", "yes"),
-                       ("DevicePolicy", "closed")):
+                       ("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("ProtectHome", "yes")):
         assert s[key] == [value], key
     assert s["WatchdogSec"] and s["StateDirectory"] and s["ExecReload"] == ["/bin/kill -HUP $MAINPID"]
     # the gateway notifies the watchdog every 2 s (gateway/commands/run.py): keep a margin
@@ -579,3 +578,81 @@ def test_lab_entrypoint_runs_sim_and_station_and_stops_cleanly(tmp_path):
     assert res["test_status"] == "aborted" and res["end_reason"] == "gateway shutdown", res
     assert "test" in (tmp_path / "out").read_text()
     assert os.path.exists(records / "truth.json")
+
+
+def test_units_hardening_exposure_is_low(tmp_path):
+    tool = require_tool("systemd-analyze")
+    if run([tool, "security", "--help"]).returncode != 0 or "--offline" not in run([tool, "--help"]).stdout:
+        pytest.skip("systemd-analyze security --offline needs systemd ≥ 250")
+    d = _render_units(tmp_path)
+    for u in ("hookwatch@loom-01.service", "hookwatch-fleet.service"):
+        # exposure 0.0 (locked down) … 10.0 (unprotected); --threshold is in tenths
+        r = run([tool, "security", "--offline=yes", "--threshold=35", str(d / u)])
+        assert r.returncode == 0, r.stdout[-1500:] + r.stderr
+    bare = tmp_path / "bare.service"
+    bare.write_text(f"[Service]\nExecStart={VENV_HOOKWATCH} run /etc/hookwatch\n")
+    assert run([tool, "security", "--offline=yes", "--threshold=35", str(bare)]).returncode != 0
+
+
+@pytest.mark.timeout(180)
+def test_gateway_speaks_the_units_notify_protocol(tmp_path):
+    """What Type=notify + WatchdogSec expect from `hookwatch run`: READY=1 once it runs, WATCHDOG=1
+    well within WatchdogSec/2 while the stations make progress, STOPPING=1 on SIGTERM — over a
+    real unix datagram socket, against a virtual station."""
+    from conftest import hookwatch_cmd
+    from e2e import Proc, station_yaml
+
+    unit = _unit_settings(read("systemd", "hookwatch-fleet.service"))
+    watchdog_s = float(unit["WatchdogSec"][0].rstrip("s"))
+    sock_path = str(tmp_path / "notify.sock")
+    rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx.bind(sock_path)
+    rx.settimeout(1.0)
+    got: list[tuple[float, str]] = []
+
+    def collect(until, timeout):
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:
+            try:
+                msg = rx.recv(4096).decode()
+            except socket.timeout:
+                continue
+            got.append((time.monotonic(), msg))
+            if until(msg):
+                return
+        raise AssertionError(f"timed out; got {got}")
+
+    links = {"meter": str(tmp_path / "links" / "meter"), "stm32": str(tmp_path / "links" / "stm32")}
+    sim = Proc(hookwatch_cmd() + ["sim", "config/scenarios/demo.yaml", "--link-dir", str(tmp_path / "links")],
+               str(tmp_path / "sim.log"))
+    try:
+        t_end = time.monotonic() + 60
+        while not all(os.path.exists(p) for p in links.values()):
+            assert sim.p.poll() is None and time.monotonic() < t_end, sim.log()
+            time.sleep(0.1)
+        path = station_yaml(tmp_path, links, name="notify")
+        env = {**os.environ, "NOTIFY_SOCKET": sock_path, "WATCHDOG_USEC": str(int(watchdog_s * 1e6))}
+        gw = Proc(hookwatch_cmd() + ["run", path, "--no-northbound"], str(tmp_path / "gw.log"), env=env)
+        try:
+            collect(lambda m: "READY=1" in m, 60)
+            n0 = len(got)
+            t_end = time.monotonic() + 1.5 * watchdog_s
+            while time.monotonic() < t_end:
+                try:
+                    got.append((time.monotonic(), rx.recv(4096).decode()))
+                except socket.timeout:
+                    pass
+            beats = [t for t, m in got[n0:] if m == "WATCHDOG=1"]
+            assert len(beats) >= 2, got
+            gaps = [b - a for a, b in zip(beats, beats[1:])]
+            assert max(gaps) < watchdog_s / 2, gaps
+            gw.p.send_signal(signal.SIGTERM)
+            collect(lambda m: "STOPPING=1" in m, 30)
+        finally:
+            rc = gw.stop()
+        assert rc == 0, gw.log()
+    finally:
+        sim.stop()
+        rx.close()
+    ready = next(m for _, m in got if "READY=1" in m)
+    assert f"MAINPID={gw.p.pid}" in ready
