@@ -147,6 +147,11 @@ def validate_station(path: str, fleet_file: Any = AUTO) -> Loaded:
         ftree, fpos, fissues = _read_fleet(fleet_file)
         loaded.issues.extend(fissues)
         if ftree is None:
+            try:                      # still name the station in reports
+                st = load_yaml(path).data.get("station")
+                loaded.name = st.get("id") if isinstance(st, dict) and isinstance(st.get("id"), str) else None
+            except (YamlError, OSError, UnicodeDecodeError):
+                pass
             return loaded
         tree, pos = ftree, fpos
     try:
@@ -556,7 +561,8 @@ def cross_issues(loaded: list[Loaded]) -> list[tuple[int, Issue]]:
                 loc = other.locate(jp)
                 ref = f" ({loc})" if loc else ""
                 out.append((idx, ld.issue("error", path, f"{text} is also the {_dotted(jp)} of station "
-                                          f"{other.cfg.station.id}{ref}; {kind}")))
+                                          f"{other.cfg.station.id}{ref}; {kind}",
+                                          anchor=("station", "id"))))
             else:
                 first[value] = (idx, path)
 
@@ -594,9 +600,11 @@ def cross_issues(loaded: list[Loaded]) -> list[tuple[int, Issue]]:
             out.append((i, loaded[i].issue("error", ("modbus_tcp", "host"),
                                            f"port {port} is also served on every interface (0.0.0.0) "
                                            f"by another station; stations sharing a port need the same host")))
+    # the gateway's default client ID is hookwatch-<station id> (gateway/northbound/mqtt.py)
     clash("MQTT client IDs must be unique on the broker",
-          [(i, ("mqtt", "client_id"), c.mqtt.client_id, repr(c.mqtt.client_id))
-           for i, c in ok if c.mqtt.enabled and c.mqtt.client_id])
+          [(i, ("mqtt", "client_id"), (c.mqtt.host, c.mqtt.port, c.mqtt.client_id or f"hookwatch-{c.station.id}"),
+            repr(c.mqtt.client_id or f"hookwatch-{c.station.id}"))
+           for i, c in ok if c.mqtt.enabled])
     clash("each station needs its own outbox file",
           [(i, ("mqtt", "outbox", "path"), os.path.normpath(c.mqtt.outbox.path), repr(c.mqtt.outbox.path))
            for i, c in ok if c.mqtt.enabled])
