@@ -130,7 +130,8 @@ def fleet_file_for(path: str) -> str | None:
 
 def station_files(folder: str) -> list[str]:
     sdir = os.path.join(folder, "stations")
-    return sorted(glob.glob(os.path.join(sdir, "*.yaml")) + glob.glob(os.path.join(sdir, "*.yml")))
+    return sorted(p for p in glob.glob(os.path.join(sdir, "*.yaml")) + glob.glob(os.path.join(sdir, "*.yml"))
+                  if os.path.isfile(p))
 
 
 def validate_station(path: str, fleet_file: Any = AUTO) -> Loaded:
@@ -406,7 +407,8 @@ def _section(sec: S.Section, tree: Any, path: tuple, rep: _Report, ctx: dict):
                     val = _resolve(val, rep.file_of(p))
             elif e.required:
                 ex = f" (e.g. {e.example})" if e.example is not None else ""
-                rep.error(p, f"missing; required: {e.doc}{ex}", anchor=path)
+                where = "" if (not path or path in rep.loaded.pos) else f" (there is no {_dotted(path)}: section)"
+                rep.error(p, f"missing{where}; required: {e.doc}{ex}", anchor=path)
                 ok = False
                 continue
             else:
