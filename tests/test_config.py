@@ -257,7 +257,7 @@ def test_shipped_configs_load():
     demo = load_station(os.path.join(ROOT, "config", "demo", "station.yaml"))
     assert demo.meter.port == "/tmp/hookwatch-sim/meter" and demo.stm32.port == "/tmp/hookwatch-sim/stm32"
     assert (demo.method["w_ss"], demo.method["w_hold"], demo.method["tau"]) == (10.0, 60.0, 10.0)
-    assert demo.test.t_end_s == 360.0 and demo.fleet_file is None
+    assert demo.test.t_end_s == 300.0 and demo.fleet_file is None
 
 
 def test_validate_station_keeps_going(tmp_path):
