@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import yaml
@@ -21,25 +22,42 @@ class Proc:
         self._log = open(log_path, "w")
         self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, text=True,
                                   env=env, cwd=ROOT)
+        # stdout is read by a thread: a select() on the pipe would miss lines already buffered
+        self._lines: list[str] = []
+        self._next = 0
+        self._eof = False
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._pump, daemon=True)
+        self._reader.start()
+
+    def _pump(self) -> None:
+        for line in self.p.stdout:
+            with self._cond:
+                self._lines.append(line)
+                self._cond.notify_all()
+        with self._cond:
+            self._eof = True
+            self._cond.notify_all()
 
     def readline_until(self, prefix: str, timeout: float = 20.0) -> str:
-        import selectors
-
-        sel = selectors.DefaultSelector()
-        sel.register(self.p.stdout, selectors.EVENT_READ)
+        """The rest of the first stdout line (not yet consumed) that starts with ``prefix``."""
         t_end = time.monotonic() + timeout
-        try:
-            while time.monotonic() < t_end:
-                if not sel.select(max(0.0, t_end - time.monotonic())):
+        with self._cond:
+            while True:
+                while self._next < len(self._lines):
+                    line = self._lines[self._next]
+                    self._next += 1
+                    if line.startswith(prefix):
+                        return line[len(prefix):].strip()
+                left = t_end - time.monotonic()
+                if self._eof or left <= 0:
                     break
-                line = self.p.stdout.readline()
-                if not line:
-                    break
-                if line.startswith(prefix):
-                    return line[len(prefix):].strip()
-        finally:
-            sel.close()
+                self._cond.wait(left)
         raise AssertionError(f"no '{prefix}' line from {self.p.args}; log:\n{self.log()}")
+
+    def stdout_lines(self) -> list[str]:
+        with self._cond:
+            return list(self._lines)
 
     def log(self) -> str:
         try:
@@ -56,7 +74,9 @@ class Proc:
             except subprocess.TimeoutExpired:
                 self.p.kill()
                 self.p.wait()
-        out = self.p.stdout.read() if self.p.stdout else ""
+        self._reader.join(5)
+        with self._cond:
+            out = "".join(self._lines[self._next:])
         if self.p.stdout:
             self.p.stdout.close()
         self._log.close()
@@ -114,3 +134,6 @@ def test_dirs(tmp_path, station="e2e"):
 def read_json(path):
     with open(path) as f:
         return json.load(f)
+
+
+test_dirs.__test__ = False  # a helper, not a test (pytest collects it where it is imported)
