@@ -140,6 +140,8 @@ class Station:
         self._pending: list[Command] = []
         self._done = None
         self.clock: SlotClock | None = None
+        #: makes the slot clock (a benchmark replaces it with a virtual clock that runs flat out)
+        self.clock_factory = SlotClock
 
     # ---------------------------------------------------------------- outputs
     def _emit_event(self, etype: EventType, k: int | None = None, **data) -> Event:
@@ -374,7 +376,7 @@ class Station:
         await self.stm32.open()
         # make sure the motor is stopped when the gateway starts
         await self._safe_stm32(self.stm32.stop("gateway start"))
-        self.clock = SlotClock(self.ts)
+        self.clock = self.clock_factory(self.ts)
         if self.default_plan is not None and self.autostart:
             self.start_test(self.default_plan)
         self._link_health()
