@@ -37,6 +37,10 @@ def test_minmax_columns_keeps_a_single_spike_in_a_ten_hour_series():
     col = int(1_234_567 * 0.02 / (n * 0.02 / 1600))
     assert hi[col] == 0.9
     assert np.nanmin(y) == lo.min()
+    # the grid form gives the same envelope
+    g = F.grid_minmax(y, 0.02, n * 0.02, 1600)
+    for a, b in zip(g, (xc, lo, hi)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
 
 
 def test_minmax_columns_equals_brute_force():

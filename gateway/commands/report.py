@@ -59,7 +59,8 @@ def run(args) -> int:
             print(f"hookwatch report: warning: {p}", file=sys.stderr)
     n_stats = sum(1 for s in out.samples if s.in_stats)
     print(f"{len(out.samples)} tests, {out.n_analysed} analysed, {n_stats} in the statistics, "
-          f"{len(out.problems)} problem(s); {len(out.figures)} figures; {out.seconds:.1f} s")
+          f"{len(out.problems)} problem(s); {len(out.figures)} figures; {out.seconds:.1f} s "
+          f"on {out.workers} process(es), analysis CPU {out.analysis_cpu_s:.1f} s")
     print(f"report: {os.path.join(out.out_dir, 'report.html')}")
     if out.n_analysed == 0:
         print("hookwatch report: no test could be analysed", file=sys.stderr)

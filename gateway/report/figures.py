@@ -47,6 +47,26 @@ def minmax_columns(x: np.ndarray, y: np.ndarray, x0: float, x1: float, ncols: in
     return xc, lo, hi
 
 
+def grid_minmax(y: np.ndarray, dx: float, x_end: float, ncols: int = COLUMNS
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`minmax_columns` for samples on a uniform grid x = i·dx (slot arrays, NaN where
+    there is no value): the column bounds are computed, not searched, and NaN is skipped by
+    fmin/fmax without copying the finite values out first."""
+    y = np.asarray(y, dtype=np.float64)
+    n = y.size
+    if n == 0 or not x_end > 0:
+        return np.empty(0), np.empty(0), np.empty(0)
+    w = x_end / ncols
+    col = np.clip((np.arange(n) * dx / w).astype(np.int64), 0, ncols - 1)
+    starts = np.flatnonzero(np.r_[True, col[1:] != col[:-1]])
+    with np.errstate(invalid="ignore"):
+        lo = np.fmin.reduceat(y, starts)
+        hi = np.fmax.reduceat(y, starts)
+    ok = np.isfinite(lo) & np.isfinite(hi)
+    xc = (col[starts] + 0.5) * w
+    return xc[ok], lo[ok], hi[ok]
+
+
 def envelope_xy(xc: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_gap: float
                 ) -> tuple[np.ndarray, np.ndarray]:
     """A polyline that draws each column as a vertical stroke from min to max and joins
@@ -107,7 +127,8 @@ def _figure(nrows: int = 1, height_ratios: Sequence[float] | None = None, sharex
 def _save(fig, path: str) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".tmp.png"
-    fig.savefig(tmp, dpi=DPI, format="png")
+    # zlib level 3: a tenth of the time of the default 6 for ~10 % larger files
+    fig.savefig(tmp, dpi=DPI, format="png", pil_kwargs={"compress_level": 3})
     os.replace(tmp, path)
 
 
@@ -153,15 +174,13 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
     span = max(n_grid * ts, ts)
     unit, scale = time_unit(span)
     x_end = span / scale
-    n = mask.size
-    x = np.arange(n) * (ts / scale)
-    mu_env = minmax_columns(x, mu, 0.0, x_end)
+    dx = ts / scale
+    mu_env = grid_minmax(mu, dx, x_end)
     with np.errstate(invalid="ignore", divide="ignore"):
         diag = np.where((mask != 0) & (ratio > 0), np.log(ratio) / p.theta, np.nan)
-    bad_env = minmax_columns(x, diag, 0.0, x_end)
+    bad_env = grid_minmax(diag, dx, x_end)
     from ..method import rules as R
-    missing = column_hits(x[(mask & R.MISSING) != 0], 0.0, x_end)
-    xg = np.arange(t1.size) * (ts / scale)
+    missing = column_hits(np.flatnonzero((mask & R.MISSING) != 0) * dx, 0.0, x_end)
     with np.errstate(invalid="ignore"):
         tm = (t1 + t2) / 2.0
     stable = None
@@ -171,8 +190,7 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
     n_slots = result.get("n_slots") or 0
     return Fig7Data(
         title=title, unit=unit, scale=scale, x_end=x_end, mu=mu_env, bad=bad_env, missing=missing,
-        t1=minmax_columns(xg, t1, 0.0, x_end), t2=minmax_columns(xg, t2, 0.0, x_end),
-        tm=minmax_columns(xg, tm, 0.0, x_end), t_set=p.t_set, mu_ss=result.get("mu_ss"),
+        t1=grid_minmax(t1, dx, x_end), t2=grid_minmax(t2, dx, x_end), tm=grid_minmax(tm, dx, x_end), t_set=p.t_set, mu_ss=result.get("mu_ss"),
         mu_th=result.get("mu_th"), delta=p.delta, stable=stable, t_life=result.get("t_life"),
         stop=None if result.get("stop_slot") is None else result["stop_slot"] * ts,
         status=result.get("status", "?"),

@@ -26,6 +26,8 @@ class ReportOutcome:
     seconds: float
     n_analysed: int
     files: list[str] = field(default_factory=list)
+    analysis_cpu_s: float = 0.0      # CPU time the workers spent on the logs (all processes)
+    workers: int = 1
 
 
 def _safe(name: str) -> str:
@@ -133,6 +135,7 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
         owners.append(None)
     # largest logs first: the pool ends with the short ones and no core idles long
     order = sorted(range(len(tasks)), key=lambda i: -tasks[i]["size"])
+    n_workers = max(1, min(jobs, len(tasks)))
     bar = Progress(len(tasks), "analysing", enabled=progress)
     try:
         res_sorted = run_parallel(run_task, [tasks[i] for i in order], jobs, bar.advance)
@@ -255,8 +258,7 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
             ("wear table", os.path.relpath(camp.wear.path, campaign_dir) if camp.wear else "none"),
             ("problems", str(len(problems))),
             ("generated", time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
-             + f" by hookwatch {__version__} in {elapsed:.1f} s on {max(1, min(jobs, max(1, len(tasks))))} "
-               f"process(es)")]
+             + f" by hookwatch {__version__} in {elapsed:.1f} s on {n_workers} process(es)")]
     doc = Document(f"Campaign report — {os.path.basename(os.path.abspath(campaign_dir))}", info, doc_sections)
     files = write_csvs(tables, out_dir)
     prob_path = os.path.join(out_dir, "problems.txt")
@@ -264,5 +266,6 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
         f.write("".join(p + "\n" for p in prob_lines))
     files += [prob_path, *write_document(doc, out_dir)]
     all_figs = [os.path.join(out_dir, f.path) for f in figs]
+    cpu = sum((r or {}).get("cpu_s", 0.0) for r in results)
     return ReportOutcome(out_dir, samples, problems, {t.name: t for t in tables}, all_figs,
-                         time.perf_counter() - t0, n_analysed, files)
+                         time.perf_counter() - t0, n_analysed, files, cpu, n_workers)

@@ -17,6 +17,7 @@ from ..method.core import gate_and_baseline, life_result, to_slots
 def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
     """task: log, params (MethodParams), factors (δ multipliers), fig (PNG path or None), title."""
     t0 = time.perf_counter()
+    c0 = time.process_time()
     path, p = task["log"], task["params"]
     try:
         lg = read_log(path, with_meta=False)
@@ -47,6 +48,7 @@ def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
         except Exception as e:  # noqa: BLE001
             out["fig_error"] = f"Fig. 7 not drawn: {type(e).__name__}: {e}"
     out["seconds"] = time.perf_counter() - t0
+    out["cpu_s"] = time.process_time() - c0
     return out
 
 
