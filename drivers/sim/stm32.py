@@ -383,6 +383,10 @@ class VirtualStm32:
         loop = self._loop
         while True:
             await asyncio.sleep(self.tick_s)
+            # a real MCU takes each byte in its UART interrupt as it arrives: credit the frames
+            # already waiting in the pty before judging the watchdog (a busy host can delay this
+            # process; that must not look like a silent gateway)
+            self._on_readable()
             now = loop.time()
             self._measure(now)
             self.firmware.tick(now)

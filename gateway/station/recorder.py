@@ -14,6 +14,7 @@ import json
 import logging
 import math
 import os
+import threading
 import time
 from typing import Any
 
@@ -40,6 +41,28 @@ def _f(x: float | None) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "nan"
     return repr(float(x))
+
+
+_fsync_pool = None
+_fsync_lock = threading.Lock()
+
+
+def _fsync_dup(fd: int) -> None:
+    try:
+        os.fsync(fd)
+    except OSError as e:
+        log.warning("background fsync failed: %s", e)
+    finally:
+        os.close(fd)
+
+
+def _fsync_in_background(fd: int) -> None:
+    global _fsync_pool
+    with _fsync_lock:
+        if _fsync_pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            _fsync_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fsync")
+    _fsync_pool.submit(_fsync_dup, os.dup(fd))
 
 
 class TestRecorder:
@@ -108,8 +131,13 @@ class TestRecorder:
             self._raw.flush()
             now = self._clock()
             self._last_flush = now
-            if force or now - self._last_fsync >= self._fsync_every:
+            if force:
                 os.fsync(self._raw.fileno())
+                self._last_fsync = now
+            elif now - self._last_fsync >= self._fsync_every:
+                # never on the slot loop: an fsync on a busy disk can take longer than the STM32
+                # watchdog; a background thread syncs a duplicate of the descriptor
+                _fsync_in_background(self._raw.fileno())
                 self._last_fsync = now
         except OSError as e:
             self.write_errors += 1

@@ -376,11 +376,12 @@ class Station:
         await self.stm32.open()
         # make sure the motor is stopped when the gateway starts
         await self._safe_stm32(self.stm32.stop("gateway start"))
-        self.clock = self.clock_factory(self.ts)
         if self.default_plan is not None and self.autostart:
             self.start_test(self.default_plan)
         self._link_health()
         self._push_state()
+        # the grid starts after the start-up work (files, fsync), so slot 0 is not already late
+        self.clock = self.clock_factory(self.ts)
         k = 0
         last_idle_status = 0.0
         try:
@@ -389,6 +390,8 @@ class Station:
                 if lateness > self.ts / 2:
                     # overrun: the slots whose window has passed are MISSING; never shift the grid
                     k_now = self.clock.slot_at(self.clock.clock())
+                    log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
+                                self.id, k, lateness * 1e3, max(0, k_now - k))
                     for kk in range(k, k_now):
                         self.stats.slots += 1
                         self.stats.overrun_slots += 1
