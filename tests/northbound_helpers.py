@@ -102,7 +102,7 @@ class Sub:
             parts = line.split("\t", 2)
             if len(parts) == 3:
                 with self._lock:
-                    self.lines.append((parts[0] == "1", parts[1], parts[2], time.monotonic()))
+                    self.lines.append((parts[0] == "1", parts[1], parts[2], time.time()))
 
     def messages(self, suffix: str | None = None) -> list[tuple[bool, str, dict, float]]:
         with self._lock:

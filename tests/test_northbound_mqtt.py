@@ -68,7 +68,7 @@ def test_alarm_lifecycle_and_payloads_as_documented(tmp_path):
                     out.on_record(SlotRecord(k, k * 0.02, True, 0.4, 0.6, 1, 0, 1.5, 0.25, 0.5, 120.0,
                                              119.0, False))
                     await asyncio.sleep(0.02)
-                t_eol = time.monotonic()
+                t_eol = time.time()
                 out.on_event(Event(EventType.END_OF_LIFE, "st1", time.time(), "T-1", 29,
                                    {"k_life": 20, "t_life": 0.4, "mu_ss": 0.2, "mu_th": 0.23,
                                     "sample_id": "S-1"}))
