@@ -143,6 +143,7 @@ def test_usage_errors_exit_2(tmp_path):
         ([str(camp), "--out", str(tmp_path / "o"), "--wear", str(tmp_path / "w.csv")], "no such file"),
         ([str(camp), "--out", str(tmp_path / "o"), "--set", "bogus=1"], "unknown parameter"),
         ([str(camp)], "--out"),
+        ([str(camp), "--out", str(camp)], "is the campaign folder itself"),
     ]
     for args, msg in cases:
         p = subprocess.run(hookwatch_cmd() + ["report", *args], capture_output=True, text=True, timeout=60)

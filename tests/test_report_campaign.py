@@ -155,3 +155,17 @@ def test_shipped_example_campaign_gives_a_full_report(tmp_path):
     assert len(read_csv(out / "table6_wear.csv")) == 18
     assert (out / "figures" / "fig8_open_vs_closed_loop.png").is_file()
     assert not [f for f in os.listdir(example) if f.startswith(".hookwatch")]   # nothing written there
+
+
+def test_example_generator_samples_the_virtual_bench():
+    """The shipped example's source: the plant under the gateway's controller, offline."""
+    from gateway.method.core import analyze_readings
+    from gateway.method.params import build_params
+
+    t, t1, t2, truth = G.plant_run("II", 0.9, 7, 220.0, time_scale=100.0)
+    assert 0.99 * 11000 < t.size < 11000                # ~0.2 % of the slots lost
+    p = build_params({"t_set": 0.9, "t_end": 220.0, "w_ss": 10, "w_hold": 60, "tau": 10})
+    r = analyze_readings(t, t1, t2, p)
+    assert r.status == "failure"
+    assert abs(r.t_life - truth["cross_run_s"]) < 5.0
+    assert abs(((t1 + t2) / 2)[t > 10].mean() - 0.9) < 0.01    # the loop holds T_set

@@ -42,6 +42,9 @@ def run(args) -> int:
         raise CliError(f"{args.campaign}: not a folder (CAMPAIGN is a folder of recorded tests)")
     if os.path.exists(args.out) and not os.path.isdir(args.out):
         raise CliError(f"--out {args.out}: exists and is not a folder")
+    if os.path.realpath(args.out) == os.path.realpath(args.campaign):
+        raise CliError(f"--out {args.out}: is the campaign folder itself; give a new folder "
+                       "(a subfolder of the campaign is fine)")
     if args.wear is not None and not os.path.isfile(args.wear):
         raise CliError(f"--wear {args.wear}: no such file")
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
