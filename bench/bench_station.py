@@ -81,7 +81,10 @@ def wire(args) -> dict:
     while gw.poll() is None:
         time.sleep(1.0)
         try:
-            cpu, r = proc_cpu_rss(gw.pid)
+            c, r = proc_cpu_rss(gw.pid)
+            if r <= 0:          # the process has exited (a zombie has no resident pages)
+                break
+            cpu = c
             rss.append(r)
             wall = time.monotonic() - t0
         except (OSError, IndexError):
