@@ -106,24 +106,32 @@ def test_gateway_layout_and_gateway_aborted_tests(tmp_path):
              G.TestDef("B-3", "II", 0.5, life=70.0, abort_at=40.0, **kw)]
     logs = [G.write_test(str(camp), d, layout="gateway") for d in tests]
     assert all(lg.endswith(os.path.join("", "log.csv.gz")) for lg in logs)
-    # the operator stopped A-2 after its end of life: the gateway closed it as aborted
+    # the operator stopped A-2 after its end of life: the gateway closed it as aborted, but the
+    # t_life found before stands (METHOD.md §3) and is averaged in
     res = os.path.join(os.path.dirname(logs[1]), "result.json")
     with open(res, "w") as f:
         f.write('{"test_status": "aborted", "end_reason": "stop command"}')
+    # and B-4 was cut off by a gateway restart before its end of life: aborted, listed apart
+    cut = G.TestDef("B-4", "II", 0.5, life=65.0, abort_at=30.0, **kw)
+    logs.append(G.write_test(str(camp), cut, layout="gateway"))
+    with open(os.path.join(os.path.dirname(logs[-1]), "result.json"), "w") as f:
+        f.write('{"test_status": "aborted", "end_reason": "gateway restart"}')
     out = tmp_path / "rep"
     p = subprocess.run(hookwatch_cmd() + ["report", str(camp), "--out", str(out), "--quiet"],
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     rows = {r["sample_id"]: r for r in read_csv(out / "table3_samples.csv")}
-    assert set(rows) == {"A-1", "A-2", "B-1", "B-2", "B-3"}
+    assert set(rows) == {"A-1", "A-2", "B-1", "B-2", "B-3", "B-4"}
     assert rows["B-3"]["status"] == "aborted" and "protection stop" in rows["B-3"]["note"]
-    assert rows["A-2"]["status"] == "aborted"
-    assert "stop command" in rows["A-2"]["note"] and "method: failure" in rows["A-2"]["note"]
+    assert rows["A-2"]["status"] == "failure"
+    assert "stop command" in rows["A-2"]["note"] and "t_life stands" in rows["A-2"]["note"]
     apart = {r["sample_id"]: r for r in read_csv(out / "samples_apart.csv")}
-    assert set(apart) == {"A-2", "B-3"}
+    assert set(apart) == {"B-3", "B-4"} and rows["B-4"]["status"] == "aborted"
+    assert "gateway restart" in rows["B-4"]["note"]
     t4 = {r["grade"]: r for r in read_csv(out / "table4_summary.csv")}
-    assert t4["I"]["n"] == "1" and t4["II"]["n"] == "2" and t4["I"]["ranking"] == "I > II"
-    assert t4["I"]["t_life_avg_s"] == f"{float(rows['A-1']['t_life_s']):.1f}"
+    assert t4["I"]["n"] == "2" and t4["I"]["ranking"] == "I > II"
+    a = [float(rows[s]["t_life_s"]) for s in ("A-1", "A-2")]
+    assert t4["I"]["t_life_avg_s"] == f"{sum(a) / 2:.1f}"
 
 
 def test_progress_bar():

@@ -78,11 +78,14 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
         method_status = results[1.0]["status"]
         status = method_status
         r = results[1.0]
-        if spec.gateway_status == "aborted":
+        if spec.gateway_status == "aborted" and method_status == "failure":
+            # METHOD.md §3: t_life found before the test was cut short stands
+            why = spec.gateway_reason or "no reason given"
+            notes.append(f"gateway: test aborted after t_life ({why}); t_life stands (METHOD.md §3)")
+        elif spec.gateway_status == "aborted":
             status = "aborted"
             why = spec.gateway_reason or "no reason given"
-            notes.append(f"gateway: test aborted ({why}); method: {method_status}"
-                         + (f", t_life {r['t_life']:,.2f} s" if r.get("t_life") is not None else ""))
+            notes.append(f"gateway: test aborted ({why}); method: {method_status}")
         elif method_status == "failure" and r.get("interrupted"):
             notes.append("protection stop after t_life (interrupted); t_life stands (METHOD.md §3)")
         if method_status == "aborted" and r.get("stop_reasons"):
