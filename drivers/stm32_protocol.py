@@ -86,27 +86,7 @@ class ProtocolError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------- CRC
-def _crc_table() -> list[int]:
-    table = []
-    for i in range(256):
-        c = i
-        for _ in range(8):
-            c = (c >> 1) ^ 0xA001 if c & 1 else c >> 1
-        table.append(c)
-    return table
-
-
-_TABLE = _crc_table()
-
-
-def crc16(data: bytes | bytearray | memoryview) -> int:
-    """CRC-16/MODBUS: poly 0x8005 (reflected 0xA001), init 0xFFFF, no final xor.
-    crc16(b"123456789") == 0x4B37."""
-    crc = 0xFFFF
-    tbl = _TABLE
-    for b in data:
-        crc = (crc >> 8) ^ tbl[(crc ^ b) & 0xFF]
-    return crc
+from .crc import crc16_modbus as crc16  # noqa: E402  (one CRC for both links)
 
 
 # ---------------------------------------------------------------------------------------- frames

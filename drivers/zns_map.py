@@ -64,25 +64,7 @@ class DecodeError(ValueError):
     holding 9)."""
 
 
-def crc16_modbus(data: bytes) -> int:
-    """CRC-16/Modbus (poly 0xA001 reflected, init 0xFFFF); sent low byte first."""
-    crc = 0xFFFF
-    for b in data:
-        crc = _CRC_TABLE[(crc ^ b) & 0xFF] ^ (crc >> 8)
-    return crc
-
-
-def _crc_table() -> list[int]:
-    table = []
-    for i in range(256):
-        c = i
-        for _ in range(8):
-            c = (c >> 1) ^ 0xA001 if c & 1 else c >> 1
-        table.append(c)
-    return table
-
-
-_CRC_TABLE = _crc_table()
+from .crc import crc16_modbus  # noqa: E402,F401  (re-exported: the meter's frames use it)
 
 
 def with_crc(frame: bytes) -> bytes:

@@ -7,7 +7,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 
@@ -58,6 +57,13 @@ class Proc:
     def stdout_lines(self) -> list[str]:
         with self._cond:
             return list(self._lines)
+
+    def log_all(self) -> str:
+        try:
+            with open(self.log_path) as f:
+                return f.read()
+        except OSError:
+            return ""
 
     def log(self) -> str:
         try:
@@ -137,3 +143,42 @@ def read_json(path):
 
 
 test_dirs.__test__ = False  # a helper, not a test (pytest collects it where it is imported)
+
+
+def analyze_cli(log_path) -> dict:
+    """`hookwatch analyze LOG --json` as a user runs it: the result keys (without `log`)."""
+    p = subprocess.run(hookwatch_cmd() + ["analyze", str(log_path), "--json"], capture_output=True,
+                       text=True, cwd=ROOT, timeout=60)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    out.pop("log")
+    return out
+
+
+def wait_log(proc: Proc, text: str, timeout: float = 20.0) -> None:
+    """Wait until ``text`` appears in a process' log (stderr)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if text in proc.log_all():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"{text!r} not in the log of {proc.p.args}:\n{proc.log()}")
+
+
+def fleet_dir(tmp_path, **defaults):
+    """A fleet folder (fleet.yaml + stations/) for test stations on the virtual bench: short
+    method windows, records under tmp_path, no northbound; ``defaults`` are merged in by section."""
+    base = {
+        "station": {"site": "lab", "area": "hall", "line": "l1"},
+        "meter": {"map": os.path.join(ROOT, "config", "meters", "zn-s.yaml")},
+        "method": {"w_ss": 5, "w_hold": 20, "tau": 5},
+        "test": {"t_set_n": 0.5, "t_end_s": 70},
+        "recorder": {"dir": str(tmp_path / "records")},
+        "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
+    }
+    for k, v in defaults.items():
+        base[k] = {**base.get(k, {}), **v}
+    fleet = tmp_path / "fleet"
+    (fleet / "stations").mkdir(parents=True)
+    (fleet / "fleet.yaml").write_text(yaml.safe_dump({"defaults": base}))
+    return fleet

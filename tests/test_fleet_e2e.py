@@ -2,7 +2,6 @@
 `hookwatch sim` processes) and one `hookwatch run FLEET_DIR`; one meter dies mid-test, the other
 three keep their slots and finish their lives with results identical to offline analysis."""
 import contextlib
-import json
 import os
 import signal
 import subprocess
@@ -11,7 +10,7 @@ import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from e2e import read_json, run_gateway, test_dirs, virtual_station
+from e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station
 
 pytestmark = pytest.mark.slow
 
@@ -29,27 +28,9 @@ def _scenario(path, seed):
     return str(path)
 
 
-def _analyze(log_path):
-    p = subprocess.run(hookwatch_cmd() + ["analyze", log_path, "--json"], capture_output=True,
-                       text=True, cwd=ROOT, timeout=60)
-    assert p.returncode == 0, p.stderr
-    out = json.loads(p.stdout)
-    out.pop("log")
-    return out
-
-
 def test_four_stations_one_process_one_meter_killed(tmp_path):
-    fleet = tmp_path / "fleet"
-    (fleet / "stations").mkdir(parents=True)
-    (fleet / "fleet.yaml").write_text(yaml.safe_dump({"defaults": {
-        "station": {"site": "lab", "area": "hall", "line": "l1"},
-        "meter": {"map": METER_MAP},
-        "method": {"w_ss": 5, "w_hold": 20, "tau": 5},
-        "control": {"dead_band_n": 0.01},
-        "test": {"t_set_n": 0.5, "t_end_s": 70, "autostart": True},
-        "recorder": {"dir": str(tmp_path / "records")},
-        "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
-    }}))
+    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01},
+                      test={"t_end_s": 70, "autostart": True})
     with contextlib.ExitStack() as stack:
         sims = {}
         for i, name in enumerate(STATIONS):
@@ -82,7 +63,7 @@ def test_four_stations_one_process_one_meter_killed(tmp_path):
         assert len(dirs) == 1, (name, dirs)
         res = read_json(os.path.join(dirs[0], "result.json"))
         online = res["method"]
-        assert _analyze(os.path.join(dirs[0], "log.csv.gz")) == online, name
+        assert analyze_cli(os.path.join(dirs[0], "log.csv.gz")) == online, name
         if name == VICTIM:
             assert res["test_status"] == "aborted" and online["stop_reasons"] == ["MISSING"], res
             continue

@@ -4,39 +4,17 @@ running configuration kept."""
 import contextlib
 import os
 import signal
-import time
 
 import pytest
 import yaml
 
 from conftest import ROOT
-from e2e import run_gateway, test_dirs, virtual_station
+from e2e import fleet_dir, run_gateway, test_dirs, virtual_station, wait_log
 
 pytestmark = pytest.mark.slow
 
-METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
-
-
-def _wait_log(gw, text, timeout=20.0, count=1):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if gw.log().count(text) >= count:
-            return
-        time.sleep(0.2)
-    raise AssertionError(f"{text!r} not in the gateway log:\n{gw.log()}")
-
-
 def test_sighup_reloads_idle_stations_and_keeps_a_running_test(tmp_path):
-    fleet = tmp_path / "fleet"
-    (fleet / "stations").mkdir(parents=True)
-    (fleet / "fleet.yaml").write_text(yaml.safe_dump({"defaults": {
-        "station": {"site": "lab", "area": "hall", "line": "l1"},
-        "meter": {"map": METER_MAP},
-        "method": {"w_ss": 5, "w_hold": 20, "tau": 5},
-        "test": {"t_set_n": 0.5, "t_end_s": 30},
-        "recorder": {"dir": str(tmp_path / "records")},
-        "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
-    }}))
+    fleet = fleet_dir(tmp_path, test={"t_end_s": 30})
     sc = os.path.join(ROOT, "config", "scenarios", "quick.yaml")
     with contextlib.ExitStack() as stack:
         files = {}
@@ -51,21 +29,21 @@ def test_sighup_reloads_idle_stations_and_keeps_a_running_test(tmp_path):
                 "test": {"sample_id": f"S-{name}", "autostart": autostart}}))
         gw = run_gateway(tmp_path, str(fleet))
         try:
-            _wait_log(gw, "busy: test_started")
+            wait_log(gw, "busy: test_started")
             # change both stations' parameters, then SIGHUP
             for name in ("busy", "idle"):
                 d = yaml.safe_load(files[name].read_text())
                 d["method"] = {"delta": 0.5}
                 files[name].write_text(yaml.safe_dump(d))
             gw.p.send_signal(signal.SIGHUP)
-            _wait_log(gw, "idle: configuration reloaded")
-            _wait_log(gw, "busy: in a test; keeps the parameters it started with")
+            wait_log(gw, "idle: configuration reloaded")
+            wait_log(gw, "busy: in a test; keeps the parameters it started with")
             # a broken file: refused, named, and the stations run on
             files["idle"].write_text("station: {id: idle\nmeter: [")
             gw.p.send_signal(signal.SIGHUP)
-            _wait_log(gw, "reload refused, configuration kept")
+            wait_log(gw, "reload refused, configuration kept")
             assert "idle.yaml" in gw.log().split("reload refused", 1)[1].splitlines()[0]
-            _wait_log(gw, "busy: test_ended", timeout=60)
+            wait_log(gw, "busy: test_ended", timeout=60)
         finally:
             assert gw.stop() == 0, gw.log()
     d = test_dirs(tmp_path, "busy")[0]

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from conftest import ROOT, hookwatch_cmd
-from e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from conftest import ROOT
+from e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
 from gateway.logio import read_log
 
 pytestmark = pytest.mark.slow
@@ -47,15 +47,6 @@ def only_test(tmp_path, station):
     dirs = test_dirs(tmp_path, station)
     assert len(dirs) == 1, dirs
     return dirs[0]
-
-
-def analyze_cli(log_path):
-    p = subprocess.run(hookwatch_cmd() + ["analyze", log_path, "--json"], capture_output=True,
-                       text=True, cwd=ROOT, timeout=60)
-    assert p.returncode == 0, p.stderr
-    out = json.loads(p.stdout)
-    out.pop("log")
-    return out
 
 
 def events(test_dir):
