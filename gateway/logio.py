@@ -6,7 +6,6 @@ A log is ``NAME.csv`` or ``NAME.csv.gz`` with a header line and columns ``t``, `
 from __future__ import annotations
 
 import csv
-import gzip
 import io
 import math
 import os

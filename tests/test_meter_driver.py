@@ -12,7 +12,7 @@ import yaml
 
 from conftest import ROOT
 from drivers.zns import Reading, ZnsMeter
-from drivers.zns_map import DEFAULT_MAP_PATH, load_map
+
 from meter_helpers import MeterProcess
 
 MAPS = os.path.join(ROOT, "config", "meters")

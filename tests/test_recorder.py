@@ -1,7 +1,6 @@
 """The recorder: exact round trip of the values the method used, flushed each second, kill -9 safe."""
 import json
 import math
-import os
 import signal
 import subprocess
 import sys

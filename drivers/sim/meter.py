@@ -23,7 +23,6 @@ import asyncio
 import json
 import logging
 import math
-import os
 import time
 from collections import deque
 from dataclasses import dataclass

@@ -85,7 +85,7 @@ def render() -> str:
                     f"| `{sec.name}` | {_esc(sec.allowed())} | {_default(sec)} | {sec.unit} |", ""]
             continue
         if isinstance(sec, S.MethodSection):
-            out += [f"### `method:`", "",
+            out += ["### `method:`", "",
                     "The method's parameters (METHOD.md §10; the one definition is "
                     "`gateway/method/params.py`, which also checks their ranges — see "
                     "docs/method.md). `t_set` and `t_end` are not set here: they are "

@@ -192,7 +192,6 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
             problems.append(Problem("campaign", n))
 
     # ---- Fig. 9 (needs the statistics)
-    fig_paths = []
     fig9 = None
     if figures and n_analysed:
         groups = T.life_groups(samples)
