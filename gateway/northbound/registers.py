@@ -273,6 +273,9 @@ def render(station: dict[str, Any] | None = None) -> str:
         "unit ID (`modbus_tcp.unit_id`).",
         "- Live values are refreshed by the station's loop about 10 times a second and on every "
         "state change; the heartbeat counts seconds.",
+        "- The server answers at most 4000 requests per second in total (all clients and units "
+        "together); requests beyond that wait a few milliseconds. It runs in its own thread at a "
+        "lower OS priority than the stations: PLC polling never delays a slot.",
         "",
         "## Input registers (function 04, read only)",
         "",
