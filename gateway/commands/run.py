@@ -78,6 +78,9 @@ def run(args) -> int:
     from ..station.fleet import Fleet, StationRunner
 
     cfgs = [_override(c, args) for c in _load(args.path)]
+    # each station is a thread with its own loop; a thread woken by its slot deadline must not
+    # wait the default 5 ms for the GIL while another station (or paho, or the PLC server) runs
+    sys.setswitchinterval(0.0005)
     level = (args.log_level or getattr(getattr(cfgs[0], "logging", None), "level", "info") or "info").upper()
     logging.basicConfig(level=getattr(logging, level, logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
