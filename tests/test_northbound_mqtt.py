@@ -374,3 +374,110 @@ def test_password_from_file_and_env(tmp_path, monkeypatch):
 
     with pytest.raises(SecretError, match="nope"):
         MqttSettings("s", "b", password_file=str(tmp_path / "nope")).password()
+
+
+def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
+    """The alarm lifecycle survives a gateway restart: it is kept with the outbox, and a new test
+    (a new hook) clears it even though the restarted station no longer knows about it."""
+    from tools import free_port
+
+    from gateway.northbound.outbox import Outbox
+
+    port = free_port()
+
+    async def first():
+        out = MqttOutput(settings(tmp_path, port))
+        await out.start()
+        out.on_event(Event(EventType.END_OF_LIFE, "st1", time.time(), "T-1", 9,
+                           {"k_life": 9, "t_life": 0.18, "mu_ss": 0.2, "mu_th": 0.25, "sample_id": "S-1"}))
+        await out.stop()
+
+    async def second():
+        out = MqttOutput(settings(tmp_path, port))
+        await out.start()
+        out.on_event(Event(EventType.TEST_STARTED, "st1", time.time(), "T-2", 0, {"sample_id": "S-2"}))
+        await out.stop()
+
+    asyncio.run(first())
+    asyncio.run(second())
+    ob = Outbox(str(tmp_path / "outbox.sqlite"))
+    try:
+        alarms = [json.loads(r.payload) for r in ob.pending(0, 100) if r.kind == "alarm"]
+    finally:
+        ob.close()
+    assert [a["state"] for a in alarms] == ["active", "cleared"]
+    assert alarms[1]["test_id"] == "T-1" and alarms[1]["t_life"] == 0.18 and alarms[1]["cleared_at"]
+
+
+def _certs(d):
+    """A CA, a server certificate for 127.0.0.1 and a client certificate (openssl)."""
+    from tools import require_tool
+
+    ossl = require_tool("openssl")
+
+    def run(*a):
+        subprocess.run([ossl, *a], check=True, capture_output=True, cwd=d, timeout=60)
+
+    run("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", "ca.key", "-out", "ca.crt", "-days", "2",
+        "-subj", "/CN=hookwatch test CA")
+    for name, ext in (("server", "subjectAltName=IP:127.0.0.1"), ("client", "extendedKeyUsage=clientAuth")):
+        run("req", "-newkey", "rsa:2048", "-nodes", "-keyout", f"{name}.key", "-out", f"{name}.csr",
+            "-subj", f"/CN={name}")
+        (d / f"{name}.ext").write_text(ext + "\n")
+        run("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", f"{name}.crt", "-days", "2", "-extfile", f"{name}.ext")
+    return {k: str(d / f"{k}") for k in ("ca.crt", "server.crt", "server.key", "client.crt", "client.key")}
+
+
+def test_tls_with_client_certificate_and_password_from_a_file(tmp_path):
+    from tools import require_tool
+
+    c = _certs(tmp_path)
+    passwd = tmp_path / "passwd"
+    subprocess.run([require_tool("mosquitto_passwd"), "-b", "-c", str(passwd), "hw", "s3cret"], check=True,
+                   capture_output=True, timeout=60)
+    secret = tmp_path / "mqtt.secret"
+    secret.write_text("s3cret\n")
+    b = Broker(tmp_path)
+    b.conf.write_text(b.conf.read_text().replace("allow_anonymous true", "allow_anonymous false") +
+                      f"password_file {passwd}\ncafile {c['ca.crt']}\ncertfile {c['server.crt']}\n"
+                      f"keyfile {c['server.key']}\nrequire_certificate true\n")
+    with b:
+        sub = Sub(b.port, BASE + "/#", extra=["--cafile", c["ca.crt"], "--cert", c["client.crt"], "--key",
+                                              c["client.key"], "-u", "hw", "-P", "s3cret"])
+        try:
+            out = MqttOutput(settings(tmp_path, b.port, username="hw", password_file=str(secret),
+                                      tls_enabled=True, ca_file=c["ca.crt"], cert_file=c["client.crt"],
+                                      key_file=c["client.key"]))
+
+            async def scenario():
+                await out.start()
+                await asyncio.to_thread(wait_for, lambda: out.connected, 30, what="a TLS connection")
+                out.on_event(Event(EventType.PORT_LOST, "st1", time.time(), "T", 1, {"port": "meter"}))
+                await asyncio.to_thread(sub.wait, lambda s: s.messages("event/port_lost"), 30)
+                await out.stop()
+
+            asyncio.run(scenario())
+        finally:
+            sub.stop()
+        # a wrong password: refused, reported, the message stays in the outbox
+        bad = tmp_path / "bad.secret"
+        bad.write_text("nope\n")
+        out = MqttOutput(settings(tmp_path, b.port, username="hw", password_file=str(bad), tls_enabled=True,
+                                  ca_file=c["ca.crt"], cert_file=c["client.crt"], key_file=c["client.key"]))
+
+        async def refused():
+            await out.start()
+            out.on_event(Event(EventType.PORT_BACK, "st1", time.time(), "T", 2, {"port": "meter"}))
+            await asyncio.sleep(1.5)
+            assert not out.connected
+            await out.stop()
+
+        asyncio.run(refused())
+    from gateway.northbound.outbox import Outbox
+
+    ob = Outbox(str(tmp_path / "outbox.sqlite"))
+    try:
+        assert [json.loads(r.payload)["type"] for r in ob.pending(0, 100) if r.kind == "event"] == ["port_back"]
+    finally:
+        ob.close()

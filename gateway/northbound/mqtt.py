@@ -181,6 +181,7 @@ class MqttOutput:
         self._backoff = settings.reconnect_min_s
         self._setup_error: str | None = None
         self._connect_error_logged = False
+        self._refused: str | None = None
 
     # ================================================================ station side
     def _put(self, kind: str, topic: str, build: Callable[[int], dict], *, retain: bool = False,
@@ -236,6 +237,12 @@ class MqttOutput:
         et = ev.type
         if et == EventType.TEST_STARTED:
             self._test_id = ev.test_id
+            if self._alarm and self._alarm.get("state") in ("active", "acknowledged"):
+                # an alarm raised before a gateway restart (the station no longer knows it): a new
+                # test means the hook was replaced, so its lifecycle ends here as well
+                a = dict(self._alarm)
+                a.update(state="cleared", active=False, cleared_at=schema.iso_ms(ev.wall_time))
+                self._set_alarm(ev.wall_time, a)
         self._put("event", self._topic("event", type=et.value), lambda seq: schema.event_payload(seq, ev))
         if et == EventType.END_OF_LIFE:
             d = ev.data
@@ -432,7 +439,11 @@ class MqttOutput:
     # -- paho callbacks (run inside client.loop, on the pump thread)
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
         if reason_code.is_failure:
-            log.error("%s: MQTT broker refused the connection: %s", self.s.station_id, reason_code)
+            why = str(reason_code)
+            (log.error if why != self._refused else log.debug)(
+                "%s: MQTT broker refused the connection: %s (retrying every %.0f s; messages are kept "
+                "in the outbox)", self.s.station_id, why, self.s.reconnect_max_s)
+            self._refused = why
             self.connected = False
             client.disconnect()
             self._sock_open = False
@@ -441,6 +452,7 @@ class MqttOutput:
         log.info("%s: MQTT connected to %s:%s", self.s.station_id, self.s.host, self.s.port)
         self.connected = True
         self._connect_error_logged = False
+        self._refused = None
         self._backoff = self.s.reconnect_min_s
         self.counters["connects"] += 1
         client.subscribe(self._topic("cmd_start").rsplit("/", 1)[0] + "/+", qos=1)
