@@ -1,10 +1,8 @@
 """Modbus TCP server: mbpoll reads the documented registers with live values from a running
 station, validated writes (exception 03 for out-of-range, 01 for clients not allowed, 04 for a
 command the station refuses), several stations on one port, and fuzzed frames never stop it."""
-import math
 import socket
 import struct
-import time
 
 import pytest
 from hypothesis import HealthCheck, given, settings

@@ -22,7 +22,7 @@ import math
 import os
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import paho.mqtt.client as paho
@@ -30,7 +30,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..records import Command, Event, EventType, SlotRecord, StationState
+from ..records import Event, EventType, SlotRecord, StationState
 from ..station.commands import CODE, Rejection, command_from_mapping
 from . import schema
 from .outbox import Outbox, Row
