@@ -47,10 +47,19 @@ def outputs_for(cfg, station) -> list:
     outs: list = []
     mqtt_out = None
     if getattr(cfg, "mqtt", None) is not None and cfg.mqtt.enabled:
+        import sqlite3
+
         from .mqtt import MqttOutput
 
-        mqtt_out = MqttOutput(mqtt_settings(cfg), station)
-        outs.append(mqtt_out)
+        ms = mqtt_settings(cfg)
+        try:
+            mqtt_out = MqttOutput(ms, station)
+        except (OSError, sqlite3.Error) as e:
+            # the measurement goes on (it is recorded on disk); the PLC sees mqtt_connected = 0
+            log.error("station %s: MQTT disabled: cannot open the outbox mqtt.outbox.path %r: %s",
+                      cfg.station.id, ms.outbox_path, e)
+        else:
+            outs.append(mqtt_out)
     if getattr(cfg, "modbus_tcp", None) is not None and cfg.modbus_tcp.enabled:
         from .modbus_server import ModbusOutput
 
