@@ -50,7 +50,7 @@ def build_station(cfg, *, outputs: list | None = None, with_northbound: bool = T
         station_id=cfg.station.id, method=mv, control=control_params(cfg, ts), meter=meter,
         stm32=stm32, records_dir=cfg.recorder.dir, swap_channels=bool(cfg.meter.swap_channels),
         outputs=outs, flush_interval_s=float(cfg.recorder.flush_interval_s), default_plan=plan,
-        autostart=bool(t.autostart),
+        autostart=bool(t.autostart), grades=tuple(getattr(cfg, "grades", ("I", "II"))),
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
     )
     if with_northbound:
