@@ -74,7 +74,7 @@ def _override(cfg, args):
 
 def run(args) -> int:
     from .. import sdnotify
-    from ..station.build import build_station, records_dir_ok
+    from ..station.build import records_dir_ok
     from ..station.fleet import Fleet, StationRunner
 
     cfgs = [_override(c, args) for c in _load(args.path)]
@@ -91,10 +91,8 @@ def run(args) -> int:
             raise CliError(f"station {c.station.id}: {err}", 1)
 
     runners = []
-    for c in cfgs:
-        def factory(c=c):
-            return build_station(c, with_northbound=not args.no_northbound)
-        runners.append(StationRunner(c.station.id, factory))
+    for i, c in enumerate(cfgs):
+        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs))))
     fleet = Fleet(runners)
     stop = threading.Event()
     reload_req = threading.Event()
@@ -151,6 +149,17 @@ def run(args) -> int:
     return 0
 
 
+def _factory(cfg, args, phase: float):
+    """Builds the station of ``cfg``; ``phase`` spreads the stations of one process over the slot."""
+    def make():
+        from ..station.build import build_station
+
+        st = build_station(cfg, with_northbound=not args.no_northbound)
+        st.slot_phase = phase
+        return st
+    return make
+
+
 def _reload(args, fleet) -> None:
     log = logging.getLogger("hookwatch.run")
     try:
@@ -158,7 +167,6 @@ def _reload(args, fleet) -> None:
     except CliError as e:
         log.error("reload refused, configuration kept: %s", e)
         return
-    from ..station.build import build_station
 
     for r in fleet.runners:
         st = r.station
@@ -168,7 +176,7 @@ def _reload(args, fleet) -> None:
         c = cfgs.get(r.name)
         if c is None:
             continue
-        r.factory = (lambda c=c: build_station(c, with_northbound=not args.no_northbound))
+        r.factory = _factory(c, args, getattr(st, "slot_phase", 0.0))
         log.info("%s: configuration reloaded; station restarts", r.name)
         r.restart_requested = True
         if r.loop is not None and r._stop is not None:

@@ -142,6 +142,8 @@ class Station:
         self.clock: SlotClock | None = None
         #: makes the slot clock (a benchmark replaces it with a virtual clock that runs flat out)
         self.clock_factory = SlotClock
+        #: where in the 20 ms slot this station's deadlines fall (0 … 1), on a process-wide grid
+        self.slot_phase = 0.0
 
     # ---------------------------------------------------------------- outputs
     def _emit_event(self, etype: EventType, k: int | None = None, **data) -> Event:
@@ -380,8 +382,14 @@ class Station:
             self.start_test(self.default_plan)
         self._link_health()
         self._push_state()
-        # the grid starts after the start-up work (files, fsync), so slot 0 is not already late
-        self.clock = self.clock_factory(self.ts)
+        # the grid starts after the start-up work (files, fsync), so slot 0 is not already late;
+        # stations of one process are spread over the slot (slot_phase) so their deadlines do
+        # not all fall at the same instant and queue behind each other
+        if self.clock_factory is SlotClock:
+            now = time.monotonic()
+            self.clock = SlotClock(self.ts, t0=now + (self.slot_phase * self.ts - now) % self.ts)
+        else:
+            self.clock = self.clock_factory(self.ts)
         k = 0
         last_idle_status = 0.0
         try:
