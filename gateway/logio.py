@@ -110,12 +110,17 @@ def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:
 
 
 def _fromstring(chunk: str) -> np.ndarray | None:
+    """All numbers of a block of complete CSV rows, row by row, flat; None if any field is not a
+    number or the rows do not all have the same number of fields. (numpy's C loadtxt parser: a
+    third faster than np.fromstring, and correctly rounded like float().)"""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         try:
-            return np.fromstring(chunk.replace("\n", ","), dtype=np.float64, sep=",")
-        except (ValueError, DeprecationWarning):
+            a = np.loadtxt(io.StringIO(chunk), delimiter=",", dtype=np.float64, ndmin=2,
+                           comments=None, encoding=None)
+        except (ValueError, UserWarning):
             return None
+    return a.ravel()
 
 
 def _parse_forked(body: str, n_values: int) -> np.ndarray | None:
