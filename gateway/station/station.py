@@ -13,6 +13,7 @@ completed | aborted (protection stop, operator stop, gateway restart).
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import math
 import os
@@ -167,6 +168,44 @@ class Station:
             except Exception:
                 log.exception("%s: output %r failed on state", self.id, o)
 
+    # ---------------------------------------------------------------- alarm (kept across restarts)
+    @property
+    def _alarm_path(self) -> str:
+        return os.path.join(self.station_dir, "alarm.json")
+
+    def _set_alarm(self, value: str, **info) -> None:
+        """Change the end-of-life alarm state and keep it on disk, so that after a gateway restart
+        the PLC and the MES still see an active (or acknowledged) alarm until a new test starts."""
+        self.state.alarm = value
+        rec = {"alarm": value, "test_id": self.test_id, "sample_id": self.state.sample_id,
+               "utc": utc_iso(), **info}
+        try:
+            os.makedirs(self.station_dir, exist_ok=True)
+            tmp = self._alarm_path + ".tmp"
+            with open(tmp, "w", encoding="utf-8") as f:
+                json.dump(rec, f)
+            os.replace(tmp, self._alarm_path)
+        except OSError as e:
+            log.error("%s: cannot keep the alarm state in %s: %s", self.id, self._alarm_path, e)
+
+    def _restore_alarm(self) -> None:
+        try:
+            with open(self._alarm_path, encoding="utf-8") as f:
+                rec = json.load(f)
+        except FileNotFoundError:
+            return
+        except (OSError, ValueError) as e:
+            log.error("%s: alarm state %s unreadable (%s); starting with none", self.id,
+                      self._alarm_path, e)
+            return
+        if rec.get("alarm") in ("active", "acknowledged"):
+            st = self.state
+            st.alarm = rec["alarm"]
+            st.test_id = rec.get("test_id")
+            st.sample_id = rec.get("sample_id")
+            st.t_life = rec.get("t_life")
+            log.info("%s: end-of-life alarm of test %s restored: %s", self.id, st.test_id, st.alarm)
+
     # ---------------------------------------------------------------- commands
     async def submit(self, cmd: Command) -> CommandReply:
         """One command path for CLI, MQTT and PLC: validate, then act, with the same events."""
@@ -183,7 +222,7 @@ class Station:
         elif cmd.kind == CommandKind.STOP:
             await self.end_test("stopped by command", source=cmd.source)
         elif cmd.kind == CommandKind.ACK:
-            self.state.alarm = "acknowledged"
+            self._set_alarm("acknowledged")
             self._emit_event(EventType.ALARM_ACK, source=cmd.source)
             self._push_state()
         elif cmd.kind == CommandKind.SETPOINT:
@@ -221,7 +260,7 @@ class Station:
                                      self.flush_interval_s)
         st = self.state
         if st.alarm != "none":
-            st.alarm = "none"
+            self._set_alarm("none")
             self._emit_event(EventType.ALARM_CLEARED, reason="new test started")
         st.state = TestState.BASELINE_SEARCH
         st.test_id, st.sample_id, st.grade = self.test_id, plan.sample_id, plan.grade
@@ -329,7 +368,7 @@ class Station:
             elif e == "end_of_life":
                 st.state = TestState.END_OF_LIFE
                 st.t_life = mon.k_life * self.ts
-                st.alarm = "active"
+                self._set_alarm("active", t_life=st.t_life)
                 self._emit_event(EventType.END_OF_LIFE, k=kt, k_life=mon.k_life, t_life=st.t_life,
                                  mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=self.plan.sample_id)
                 self._push_state()
@@ -372,6 +411,7 @@ class Station:
         for d, res in recover_incomplete(self.station_dir):
             self._emit_event(EventType.TEST_ENDED, reason="gateway restart", test_status="aborted",
                              test_dir=d, result=res.get("method"))
+        self._restore_alarm()
         for o in self.outputs:
             await o.start()
         await self.meter.open()
