@@ -134,7 +134,7 @@ def run_gateway(tmp_path, station_path, *args, name="gw") -> Proc:
 
 def test_dirs(tmp_path, station="e2e"):
     d = tmp_path / "records" / station
-    return sorted(str(d / x) for x in os.listdir(d)) if d.exists() else []
+    return sorted(str(d / x) for x in os.listdir(d) if (d / x).is_dir()) if d.exists() else []
 
 
 def read_json(path):
