@@ -507,8 +507,8 @@ def test_container_file_builds_where_an_engine_runs():
         present = [e for e in ("docker", "podman") if shutil.which(e)]
         reason = (f"{', '.join(present)} CLI present but no container engine answers (`info` fails)"
                   if present else "no container engine (docker or podman) installed")
-        if IN_CI and shutil.which("docker"):
-            pytest.fail(reason)
+        # the issue: "skip with a stated reason where none runs" — also under CI, whose machine
+        # kind has the docker client but no engine (a missing tool would fail; this is not one)
         pytest.skip(reason)
     tag = f"hookwatch-lab-test:{os.getpid()}"
     r = run([engine, "build", "-f", os.path.join(DEPLOY, "container", "Containerfile"), "-t", tag, ROOT],
