@@ -28,7 +28,7 @@ import tomllib
 import pytest
 
 from conftest import ROOT
-from tools import IN_CI, free_port, require_tool
+from tools import free_port, require_tool
 
 DEPLOY = os.path.join(ROOT, "deploy")
 VENV_HOOKWATCH = os.path.join(os.path.dirname(sys.executable), "hookwatch")
