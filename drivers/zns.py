@@ -30,8 +30,9 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass
 from typing import Any
+
+from gateway.ports import MeterReading
 
 from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, crc_ok, load_map
 
@@ -54,11 +55,9 @@ def _is_pty(path: str) -> bool:
     return os.path.realpath(path).startswith("/dev/pts/")
 
 
-@dataclass(frozen=True, slots=True)
-class Reading:
-    ch1: float      # N
-    ch2: float      # N
-    rtt_s: float    # request handed to the port → reply decoded
+#: one poll: ch1, ch2 (N) and rtt_s (request handed to the port → reply decoded); the type of the
+#: MeterPort contract (gateway/ports.py)
+Reading = MeterReading
 
 
 class ZnsMeter:

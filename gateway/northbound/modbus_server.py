@@ -38,6 +38,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from .. import __version__
 from ..method.rules import REASONS
+from ..ports import StationLimits
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
 from ..station.commands import CODE, check_sample_id, check_t_end, check_t_set
 from . import registers as R
@@ -382,7 +383,9 @@ class ModbusOutput:
         self.writes_enabled = bool(settings.writes_enabled)
         self.allowed_clients = frozenset(str(a) for a in settings.allowed_clients)
         self.word_order = settings.word_order
-        self.grades = tuple(getattr(station, "grades", None) or settings.grades)
+        self.limits: StationLimits = (station.limits if station is not None
+                                      else StationLimits(grades=tuple(settings.grades)))
+        self.grades = self.limits.grades
         self.mqtt_connected = mqtt_connected or (lambda: False)
         self.loop: asyncio.AbstractEventLoop | None = None
         self.server: SharedServer | None = None
@@ -564,7 +567,7 @@ class ModbusOutput:
         if name == "command":
             return None if val in _CMD_KIND else f"command code {val}; allowed: 1 start, 2 stop, 3 ack"
         if name == "t_set":
-            return check_t_set(val, self.station)
+            return check_t_set(val, self.limits)
         if name == "grade":
             return None if 0 <= val <= len(self.grades) else f"grade {val}; allowed: 0 … {len(self.grades)}"
         if name == "t_end":

@@ -7,6 +7,7 @@ from dataclasses import fields
 from typing import Any
 
 from ..control import ControlParams, NotchParams
+from ..ports import StationLimits
 from .station import Station, TestPlan
 
 log = logging.getLogger("hookwatch.build")
@@ -34,6 +35,12 @@ def method_values(cfg) -> dict[str, Any]:
     return {k: v for k, v in values.items() if k not in PLAN_KEYS and v is not None}
 
 
+def station_limits(cfg, values: dict[str, Any]) -> StationLimits:
+    """What commands to this station are checked against: built once, from its configuration."""
+    return StationLimits.from_values(values, grades=tuple(cfg.grades),
+                                     t_end_default_s=float(cfg.test.t_end_s))
+
+
 def build_station(cfg, *, outputs: list | None = None, with_northbound: bool = True) -> Station:
     from drivers.stm32 import Stm32Link
     from drivers.zns import ZnsMeter
@@ -50,7 +57,7 @@ def build_station(cfg, *, outputs: list | None = None, with_northbound: bool = T
         station_id=cfg.station.id, method=mv, control=control_params(cfg, ts), meter=meter,
         stm32=stm32, records_dir=cfg.recorder.dir, swap_channels=bool(cfg.meter.swap_channels),
         outputs=outs, flush_interval_s=float(cfg.recorder.flush_interval_s), default_plan=plan,
-        autostart=bool(t.autostart), grades=tuple(getattr(cfg, "grades", ("I", "II"))),
+        autostart=bool(t.autostart), limits=station_limits(cfg, mv),
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
     )
     if with_northbound:

@@ -1,14 +1,15 @@
 """The one validation of commands, shared by every source (CLI, MQTT, PLC over Modbus TCP).
 
-``validate(cmd, station)`` returns ``None`` when the command may be carried out, else a
+``validate(cmd, limits, state)`` returns ``None`` when the command may be carried out, else a
 :class:`Rejection` (a :class:`CommandReply` with ``ok=False``, a human reason naming the field,
 the value and what is allowed, and a numeric ``code`` for PLCs). The same bad request gets the
 same reason and code whichever door it came through; ``Station.submit`` emits the same
 ``command_rejected`` event for all of them.
 
-Value rules (``t_set_range``, ``check_sample_id``, ``check_grade``, ``check_t_end``) are also used
-on their own by the Modbus TCP server to refuse an out-of-range register write with exception 03
-before anything changes.
+The limits are a :class:`gateway.ports.StationLimits`, built once from the station's configuration
+(full scale, saturation ratio, grades). Value rules (``check_t_set``, ``check_sample_id``,
+``check_grade``, ``check_t_end``) are also used on their own by the Modbus TCP server to refuse an
+out-of-range register write with exception 03 before anything changes.
 """
 from __future__ import annotations
 
@@ -16,14 +17,15 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from ..records import Command, CommandKind, CommandReply
+from ..ports import SAMPLE_ID_MAX, T_END_MAX_S, StationLimits
+from ..records import Command, CommandKind, CommandReply, StationState, TestState
 
-#: longest sample ID (also the size of the PLC's sample ID registers: 16 registers × 2 chars)
-SAMPLE_ID_MAX = 32
-#: longest planned test duration a command may ask for, s (30 days)
-T_END_MAX_S = 30 * 24 * 3600
-#: the setpoint must stay below this fraction of the meter's full scale
-T_SET_FULL_SCALE_FRACTION = 0.98
+__all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "Rejection",
+           "reject", "check_t_set", "check_sample_id", "check_grade", "check_t_end",
+           "command_from_mapping", "validate", "StationLimits"]
+
+#: test states in which a test is running
+RUNNING = frozenset({TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE})
 
 #: rejection codes (served to PLCs in the "last command result" input register)
 REJECT_CODES: tuple[tuple[int, str, str], ...] = (
@@ -61,14 +63,8 @@ def reject(cmd: Command | None, name: str, reason: str) -> Rejection:
 
 
 # ----------------------------------------------------------------------------- value rules
-def t_set_range(station) -> tuple[float, float]:
-    """Open interval of allowed setpoints, N."""
-    fs = float(getattr(station, "full_scale", 5.0))
-    return 0.0, T_SET_FULL_SCALE_FRACTION * fs
-
-
-def check_t_set(value: Any, station) -> str | None:
-    lo, hi = t_set_range(station)
+def check_t_set(value: Any, limits: StationLimits) -> str | None:
+    lo, hi = limits.t_set_range
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -78,17 +74,17 @@ def check_t_set(value: Any, station) -> str | None:
     return None
 
 
-def check_sample_id(value: Any) -> str | None:
+def check_sample_id(value: Any, limit: int = SAMPLE_ID_MAX) -> str | None:
     if value is None or not isinstance(value, str) or not value.strip():
         return f"sample_id: {value!r}: required, 1 to {SAMPLE_ID_MAX} printable ASCII characters"
-    if len(value) > SAMPLE_ID_MAX:
-        return f"sample_id: {value!r} has {len(value)} characters; at most {SAMPLE_ID_MAX}"
+    if len(value) > limit:
+        return f"sample_id: {value!r} has {len(value)} characters; at most {limit}"
     if not all(0x20 <= ord(c) <= 0x7E for c in value):
         return f"sample_id: {value!r}: only printable ASCII characters (0x20–0x7E) are allowed"
     return None
 
 
-def check_grade(value: Any, grades) -> str | None:
+def check_grade(value: Any, grades: tuple[str, ...]) -> str | None:
     if value is None:
         return None
     if not isinstance(value, str) or value not in tuple(grades):
@@ -96,15 +92,15 @@ def check_grade(value: Any, grades) -> str | None:
     return None
 
 
-def check_t_end(value: Any) -> str | None:
+def check_t_end(value: Any, t_end_max: int = T_END_MAX_S) -> str | None:
     if value is None:
         return None
     try:
         v = float(value)
     except (TypeError, ValueError):
-        return f"t_end: {value!r} is not a number (s); allowed: (0, {T_END_MAX_S}] s"
-    if isinstance(value, bool) or not math.isfinite(v) or not 0 < v <= T_END_MAX_S:
-        return f"t_end: {value!r} s out of range; allowed: (0, {T_END_MAX_S}] s"
+        return f"t_end: {value!r} is not a number (s); allowed: (0, {t_end_max}] s"
+    if isinstance(value, bool) or not math.isfinite(v) or not 0 < v <= t_end_max:
+        return f"t_end: {value!r} s out of range; allowed: (0, {t_end_max}] s"
     return None
 
 
@@ -133,36 +129,37 @@ def command_from_mapping(kind: str, payload: Any, source: str) -> Command | Reje
     return Command(ck, source, args, rid)
 
 
-def validate(cmd: Command, station) -> Rejection | None:
-    """Can ``station`` carry out ``cmd`` now? None if yes, else the reason (and code)."""
-    running = getattr(station, "monitor", None) is not None
+def validate(cmd: Command, limits: StationLimits, state: StationState) -> Rejection | None:
+    """Can a station with these ``limits``, now in ``state``, carry out ``cmd``? None if yes, else
+    the reason (and code)."""
+    running = state.state in RUNNING
     a = cmd.args or {}
     if cmd.kind == CommandKind.START:
         if running:
             return reject(cmd, "BUSY", "a test is already running; stop it first")
-        err = check_sample_id(a.get("sample_id"))
+        err = check_sample_id(a.get("sample_id"), limits.sample_id_max)
         if err:
             return reject(cmd, "SAMPLE_ID", err)
-        err = check_t_set(a.get("t_set"), station)
+        err = check_t_set(a.get("t_set"), limits)
         if err:
             return reject(cmd, "T_SET", err)
-        err = check_grade(a.get("grade"), getattr(station, "grades", ()))
+        err = check_grade(a.get("grade"), limits.grades)
         if err:
             return reject(cmd, "GRADE", err)
-        err = check_t_end(a.get("t_end"))
+        err = check_t_end(a.get("t_end"), limits.t_end_max_s)
         if err:
             return reject(cmd, "T_END", err)
     elif cmd.kind == CommandKind.STOP:
         if not running:
             return reject(cmd, "NOT_RUNNING", "no test is running")
     elif cmd.kind == CommandKind.ACK:
-        if getattr(getattr(station, "state", None), "alarm", "none") != "active":
+        if state.alarm != "active":
             return reject(cmd, "NO_ALARM", "no unacknowledged end-of-life alarm")
     elif cmd.kind == CommandKind.SETPOINT:
         if running:
             return reject(cmd, "SETPOINT_LOCKED",
                           "the setpoint of a running test cannot change (it is in its sidecar)")
-        err = check_t_set(a.get("t_set"), station)
+        err = check_t_set(a.get("t_set"), limits)
         if err:
             return reject(cmd, "T_SET", err)
     else:  # pragma: no cover - CommandKind is closed

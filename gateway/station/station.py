@@ -30,7 +30,9 @@ from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
 from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
+from ..ports import StationLimits
 from .clock import SlotClock
+from .commands import Rejection, validate
 from .recorder import TestRecorder, recover_incomplete, utc_iso
 
 log = logging.getLogger("hookwatch.station")
@@ -100,8 +102,7 @@ class Station:
                  meter: MeterPort, stm32: Stm32Port, records_dir: str,
                  swap_channels: bool = False, outputs: list | None = None,
                  flush_interval_s: float = 1.0, default_plan: TestPlan | None = None,
-                 grades: tuple[str, ...] = ("I", "II"), full_scale: float = 5.0,
-                 identity: dict[str, Any] | None = None, idle_status_interval_s: float = 0.5,
+                 limits: StationLimits | None = None, identity: dict[str, Any] | None = None, idle_status_interval_s: float = 0.5,
                  autostart: bool = False):
         self.id = station_id
         self.method_values = dict(method)          # §10 values without t_set / t_end
@@ -115,8 +116,9 @@ class Station:
         self.outputs = list(outputs or [])
         self.flush_interval_s = flush_interval_s
         self.default_plan = default_plan
-        self.grades = grades
-        self.full_scale = full_scale
+        #: what commands are checked against (built once from the configuration)
+        self.limits = limits if limits is not None else StationLimits.from_values(
+            method, t_end_default_s=default_plan.t_end if default_plan else 36000.0)
         self.identity = identity or {}
         self.idle_status_interval_s = idle_status_interval_s
         self.autostart = autostart
@@ -218,7 +220,8 @@ class Station:
             a = cmd.args
             self.start_test(TestPlan(sample_id=str(a["sample_id"]), grade=a.get("grade"),
                                      t_set=float(a["t_set"]),
-                                     t_end=float(a.get("t_end") or (self.default_plan.t_end if self.default_plan else 36000.0))))
+                                     t_end=float(a.get("t_end") or (self.default_plan.t_end if self.default_plan
+                                                                 else self.limits.t_end_default_s))))
         elif cmd.kind == CommandKind.STOP:
             await self.end_test("stopped by command", source=cmd.source)
         elif cmd.kind == CommandKind.ACK:
@@ -230,10 +233,9 @@ class Station:
                 self.default_plan = replace(self.default_plan, t_set=float(cmd.args["t_set"]))
         return CommandReply(True, "", cmd.request_id)
 
-    def validate(self, cmd: Command) -> CommandReply | None:
+    def validate(self, cmd: Command) -> Rejection | None:
         """The one validation shared by CLI, MQTT and PLC (gateway/station/commands.py)."""
-        from .commands import validate as shared_validate
-        return shared_validate(cmd, self)
+        return validate(cmd, self.limits, self.state)
 
     # ---------------------------------------------------------------- test lifecycle
     def start_test(self, plan: TestPlan) -> None:

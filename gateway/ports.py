@@ -1,0 +1,125 @@
+"""The contracts between a station and the parts plugged into it, in code.
+
+- :class:`MeterPort` — a tension meter (``drivers/zns.py`` is one); ``read()`` gives one
+  :class:`MeterReading` per slot, or ``None`` (the slot is MISSING).
+- :class:`Stm32Port` — a take-up motor controller (``drivers/stm32.py``); replies are a
+  :class:`Stm32Status`.
+- :class:`Output` — anything fed by the slot loop (recorder, MQTT, Modbus TCP, console). Called on
+  the station's loop; each call must be O(1) and never block (an output that runs on another
+  thread hands over through :class:`gateway.threadloop.Mailbox`).
+- :class:`CommandSink` — what a command source calls (a station's ``submit``);
+  :class:`CommandSource` — a door commands come in by (MQTT, PLC), bound to a sink.
+- :class:`StationLimits` — what commands are checked against, built once from the station's
+  configuration (``StationLimits.from_config``); ``gateway.station.commands.validate`` uses it.
+
+This module is pure (no I/O, no asyncio objects created) and is checked with ``mypy --strict``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+from .records import Command, CommandReply, Event, SlotRecord, StationState
+
+#: longest sample ID (also the size of the PLC's sample ID registers: 16 registers × 2 chars)
+SAMPLE_ID_MAX = 32
+#: longest planned test duration a command may ask for, s (30 days)
+T_END_MAX_S = 30 * 24 * 3600
+#: T_sat = sat_ratio · full_scale when the method section does not set sat_ratio
+DEFAULT_SAT_RATIO = 0.98
+DEFAULT_FULL_SCALE = 5.0
+DEFAULT_GRADES: tuple[str, ...] = ("I", "II")
+
+
+# ----------------------------------------------------------------------------- southbound
+@dataclass(frozen=True, slots=True)
+class MeterReading:
+    """One poll of the meter: both channels, N, and the request → reply time."""
+    ch1: float
+    ch2: float
+    rtt_s: float
+
+
+@runtime_checkable
+class Stm32Status(Protocol):
+    """What the STM32 reports (``drivers.stm32_protocol.Status`` is one)."""
+    actual_rpm: float
+    command_rpm: float
+    enabled: bool
+
+
+class MeterPort(Protocol):
+    """A tension meter. ``read`` never raises: a lost port is ``connected = False`` and None."""
+    connected: bool
+    counters: dict[str, int]
+
+    async def open(self) -> None: ...
+    async def read(self) -> MeterReading | None: ...
+    async def close(self) -> None: ...
+
+
+class Stm32Port(Protocol):
+    """The take-up motor controller. Calls never raise; None when there was no valid reply."""
+    connected: bool
+    counters: dict[str, int]
+
+    async def open(self) -> None: ...
+    async def enable(self) -> Stm32Status | None: ...
+    async def set_speed(self, rpm: float) -> Stm32Status | None: ...
+    async def stop(self, reason: str = "") -> Stm32Status | None: ...
+    async def read_status(self) -> Stm32Status | None: ...
+    async def close(self) -> None: ...
+
+
+# ----------------------------------------------------------------------------- outputs
+class Output(Protocol):
+    """Fed by the slot loop, on the station's loop. ``on_*`` are O(1) and never block; an
+    exception is caught and counted by the station (an output never stops the station)."""
+
+    async def start(self) -> None: ...
+    def on_record(self, rec: SlotRecord) -> None: ...
+    def on_event(self, ev: Event) -> None: ...
+    def on_state(self, st: StationState) -> None: ...
+    async def stop(self) -> None: ...
+
+
+# ----------------------------------------------------------------------------- commands
+class CommandSink(Protocol):
+    """Where commands go: one validation, one set of events, whichever door they came in by.
+    Must be awaited on the sink's own loop (from another thread: ``ThreadLoop``/``submit_to``)."""
+
+    async def submit(self, cmd: Command) -> CommandReply: ...
+
+
+class CommandSource(Protocol):
+    """A door for commands (MQTT ``cmd/…`` topics, PLC holding registers). It builds
+    :class:`Command` objects with its ``source`` name and hands them to its sink."""
+    source: str
+
+    def bind(self, sink: CommandSink) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class StationLimits:
+    """What a command may ask of one station (built once, from its configuration)."""
+    full_scale: float = DEFAULT_FULL_SCALE       # N, the meter's full scale (method.full_scale)
+    sat_ratio: float = DEFAULT_SAT_RATIO         # method.sat_ratio: T_sat = sat_ratio · full_scale
+    grades: tuple[str, ...] = DEFAULT_GRADES
+    sample_id_max: int = SAMPLE_ID_MAX
+    t_end_max_s: int = T_END_MAX_S
+    t_end_default_s: float = 36000.0             # test.t_end_s: a start without t_end
+
+    @property
+    def t_set_range(self) -> tuple[float, float]:
+        """Open interval of allowed setpoints, N: (0, T_sat)."""
+        return 0.0, self.sat_ratio * self.full_scale
+
+    @classmethod
+    def from_values(cls, method: dict[str, Any], grades: tuple[str, ...] = DEFAULT_GRADES,
+                    t_end_default_s: float = 36000.0) -> StationLimits:
+        """From the method values (``full_scale``, ``sat_ratio``; defaults for missing ones)."""
+        fs = method.get("full_scale")
+        sr = method.get("sat_ratio")
+        return cls(full_scale=DEFAULT_FULL_SCALE if fs is None else float(fs),
+                   sat_ratio=DEFAULT_SAT_RATIO if sr is None else float(sr),
+                   grades=tuple(grades), t_end_default_s=float(t_end_default_s))

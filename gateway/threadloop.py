@@ -1,0 +1,152 @@
+"""The one thread → loop hand-over, and the one bounded loop → thread stream.
+
+Every boundary between an asyncio loop and another thread in hookwatch goes through this module:
+
+- :class:`ThreadLoop` is an asyncio loop on its own daemon thread (the MQTT pump calls a
+  station's loop with :meth:`ThreadLoop.submit`; the Modbus TCP server runs on one). From any
+  thread, :meth:`submit` runs a coroutine on the loop (``run_coroutine_threadsafe``) and
+  :meth:`call_soon` schedules a plain call (``call_soon_threadsafe``).
+- :func:`submit_to` is the same hand-over onto any running loop (a station's own loop), returning
+  ``None`` instead of raising when the loop is gone.
+- :class:`Mailbox` carries a stream from a slot loop to another thread: bounded, never blocking the
+  producer; when full, the oldest item is dropped and counted.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import threading
+from typing import Any, Callable, Coroutine, Generic, TypeVar
+
+T = TypeVar("T")
+I = TypeVar("I")
+
+
+def submit_to(loop: asyncio.AbstractEventLoop | None,
+              coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T] | None:
+    """Run ``coro`` on ``loop`` (owned by another thread); None if that loop is not running."""
+    if loop is None or loop.is_closed():
+        coro.close()
+        return None
+    try:
+        return asyncio.run_coroutine_threadsafe(coro, loop)
+    except RuntimeError:        # closed between the check and the call
+        coro.close()
+        return None
+
+
+class ThreadLoop:
+    """An asyncio loop on its own daemon thread: the one thread→loop hand-over."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+
+    def start(self) -> None:
+        """Start the thread and its loop; returns once the loop runs."""
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._main, name=self.name, daemon=True)
+        self._thread.start()
+        self._ready.wait()
+
+    def _main(self) -> None:
+        loop = asyncio.new_event_loop()
+        asyncio.set_event_loop(loop)
+        self._loop = loop
+        loop.call_soon(self._ready.set)
+        try:
+            loop.run_forever()
+        finally:
+            try:
+                pending = [t for t in asyncio.all_tasks(loop) if not t.done()]
+                for t in pending:
+                    t.cancel()
+                if pending:
+                    loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
+                loop.run_until_complete(loop.shutdown_asyncgens())
+                loop.run_until_complete(loop.shutdown_default_executor())
+            finally:
+                loop.close()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the loop (its pending tasks are cancelled) and join the thread."""
+        loop, th = self._loop, self._thread
+        if loop is None or th is None:
+            return
+        try:
+            loop.call_soon_threadsafe(loop.stop)
+        except RuntimeError:
+            pass
+        if th is not threading.current_thread():
+            th.join(timeout)
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        if self._loop is None:
+            raise RuntimeError(f"ThreadLoop {self.name} is not started")
+        return self._loop
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
+        """Run ``coro`` on the loop from any thread (``run_coroutine_threadsafe``)."""
+        return asyncio.run_coroutine_threadsafe(coro, self.loop)
+
+    def call_soon(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Call ``fn(*args)`` on the loop from any thread (``call_soon_threadsafe``)."""
+        self.loop.call_soon_threadsafe(fn, *args)
+
+
+class Mailbox(Generic[I]):
+    """A bounded, non-blocking stream from a slot loop to another thread.
+
+    :meth:`put_nowait` never blocks and never fails: when ``maxlen`` items wait, the oldest is
+    dropped and counted in :attr:`dropped`. The consumer takes everything with :meth:`drain`
+    (optionally after :meth:`wait`)."""
+
+    def __init__(self, maxlen: int) -> None:
+        if maxlen < 1:
+            raise ValueError("Mailbox maxlen must be at least 1")
+        self.maxlen = maxlen
+        self._q: collections.deque[I] = collections.deque()
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self.dropped = 0
+
+    def put_nowait(self, item: I) -> bool:
+        """Queue ``item``; False when an older item had to be dropped to make room."""
+        with self._lock:
+            full = len(self._q) >= self.maxlen
+            if full:
+                self._q.popleft()
+                self.dropped += 1
+            self._q.append(item)
+        self._wake.set()
+        return not full
+
+    def drain(self) -> list[I]:
+        """Everything queued, oldest first (empties the mailbox)."""
+        with self._lock:
+            items = list(self._q)
+            self._q.clear()
+            self._wake.clear()
+        return items
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block the consumer until something is queued (or :meth:`wake` is called)."""
+        return self._wake.wait(timeout)
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def clear_wake(self) -> None:
+        self._wake.clear()
+
+    def __len__(self) -> int:
+        return len(self._q)
