@@ -42,6 +42,14 @@ class SlotRecord:
     rtt_s: float = math.nan   # meter round-trip time
 
 
+class AlarmState(str, enum.Enum):
+    """The end-of-life alarm's states, the one definition (PLC enum register, MQTT, alarm store).
+    A later ISA-18.2 model replaces this enum and :mod:`gateway.station.alarms`."""
+    NONE = "none"                  # no alarm (or cleared: a new test started, the hook was replaced)
+    ACTIVE = "active"              # raised, not acknowledged
+    ACKNOWLEDGED = "acknowledged"  # acknowledged, still standing until a new test starts
+
+
 class EventType(str, enum.Enum):
     TEST_STARTED = "test_started"
     BASELINE = "baseline_established"
@@ -87,7 +95,7 @@ class StationState:
     elapsed_s: float = 0.0
     status: str | None = None          # the method's status once the test has ended
     end_reason: str | None = None      # why a test ended (completed, protection stop, command, restart)
-    alarm: str = "none"                # none | active | acknowledged (end-of-life alarm lifecycle)
+    alarm: str = AlarmState.NONE.value  # an AlarmState value (gateway.station.alarms keeps it)
     protection_stop: bool = False
     meter_ok: bool = False
     stm32_ok: bool = False

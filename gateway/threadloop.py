@@ -6,8 +6,8 @@ Every boundary between an asyncio loop and another thread in hookwatch goes thro
   station's loop with :meth:`ThreadLoop.submit`; the Modbus TCP server runs on one). From any
   thread, :meth:`submit` runs a coroutine on the loop (``run_coroutine_threadsafe``) and
   :meth:`call_soon` schedules a plain call (``call_soon_threadsafe``).
-- :func:`submit_to` is the same hand-over onto any running loop (a station's own loop), returning
-  ``None`` instead of raising when the loop is gone.
+- :func:`submit_to` / :func:`call_soon_on` are the same hand-over onto any running loop (a
+  station's own loop), returning ``None`` / ``False`` instead of raising when the loop is gone.
 - :class:`Mailbox` carries a stream from a slot loop to another thread: bounded, never blocking the
   producer; when full, the oldest item is dropped and counted.
 """
@@ -34,6 +34,17 @@ def submit_to(loop: asyncio.AbstractEventLoop | None,
     except RuntimeError:        # closed between the check and the call
         coro.close()
         return None
+
+
+def call_soon_on(loop: asyncio.AbstractEventLoop | None, fn: Callable[..., Any], *args: Any) -> bool:
+    """Call ``fn(*args)`` on ``loop`` (owned by another thread); False if that loop is gone."""
+    if loop is None or loop.is_closed():
+        return False
+    try:
+        loop.call_soon_threadsafe(fn, *args)
+    except RuntimeError:
+        return False
+    return True
 
 
 class ThreadLoop:
@@ -93,6 +104,10 @@ class ThreadLoop:
     @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def thread(self) -> threading.Thread | None:
+        return self._thread
 
     def submit(self, coro: Coroutine[Any, Any, T]) -> concurrent.futures.Future[T]:
         """Run ``coro`` on the loop from any thread (``run_coroutine_threadsafe``)."""

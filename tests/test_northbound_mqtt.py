@@ -377,25 +377,37 @@ def test_password_from_file_and_env(tmp_path, monkeypatch):
 
 
 def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
-    """The alarm lifecycle survives a gateway restart: it is kept with the outbox, and a new test
-    (a new hook) clears it even though the restarted station no longer knows about it."""
+    """The alarm lifecycle survives a gateway restart: it is kept in the station's one alarm store
+    (alarm.json), and a new test (a new hook) clears it with what it was about. The test plays the
+    station: it feeds each event to the store first, then to the output."""
     from tools import free_port
 
     from gateway.northbound.outbox import Outbox
+    from gateway.station.alarms import AlarmStore
 
     port = free_port()
+    path = str(tmp_path / "alarm.json")
+
+    def emit(store, out, ev):
+        store.on_event(ev)
+        out.on_event(ev)
 
     async def first():
-        out = MqttOutput(settings(tmp_path, port))
+        store = AlarmStore(path, "st1")
+        out = MqttOutput(settings(tmp_path, port), alarms=store)
         await out.start()
-        out.on_event(Event(EventType.END_OF_LIFE, "st1", time.time(), "T-1", 9,
-                           {"k_life": 9, "t_life": 0.18, "mu_ss": 0.2, "mu_th": 0.25, "sample_id": "S-1"}))
+        emit(store, out, Event(EventType.END_OF_LIFE, "st1", time.time(), "T-1", 9,
+                               {"k_life": 9, "t_life": 0.18, "mu_ss": 0.2, "mu_th": 0.25, "sample_id": "S-1"}))
         await out.stop()
 
     async def second():
-        out = MqttOutput(settings(tmp_path, port))
+        store = AlarmStore(path, "st1")
+        assert store.restore().state.value == "active"
+        out = MqttOutput(settings(tmp_path, port), alarms=store)
         await out.start()
-        out.on_event(Event(EventType.TEST_STARTED, "st1", time.time(), "T-2", 0, {"sample_id": "S-2"}))
+        emit(store, out, Event(EventType.ALARM_CLEARED, "st1", time.time(), None, None,
+                               {"reason": "new test started"}))
+        emit(store, out, Event(EventType.TEST_STARTED, "st1", time.time(), "T-2", 0, {"sample_id": "S-2"}))
         await out.stop()
 
     asyncio.run(first())

@@ -6,6 +6,7 @@ import yaml
 from gateway.config import load_station
 from gateway.northbound.modbus_server import ModbusOutput
 from gateway.northbound.mqtt import MqttOutput
+from gateway.northbound import registers as R
 from gateway.northbound.wiring import outputs_for
 from northbound_helpers import make_station
 
@@ -41,7 +42,12 @@ def test_mqtt_and_modbus_from_the_station_file(tmp_path):
         assert (mb.s.port, mb.s.unit_id, mb.word_order) == (1502, 9, "little")
         assert mb.writes_enabled and mb.allowed_clients == frozenset({"10.1.2.3"})
         assert mb.station is st and m.station is st
-        assert mb.mqtt_connected() is False          # follows the MQTT output's link
+        # the MQTT link reaches the PLC through the station's state, not through the MQTT output
+        assert not hasattr(mb, "mqtt_connected") and st.state.mqtt_ok is False
+        assert not mb.values()["status"] & (1 << R.STATUS_BIT["mqtt_connected"])
+        st.outputs.extend(outs)
+        st.set_uplink("mqtt", True)
+        assert mb.values()["status"] & (1 << R.STATUS_BIT["mqtt_connected"])
     finally:
         for o in outs:
             if isinstance(o, MqttOutput):

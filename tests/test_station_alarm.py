@@ -2,9 +2,10 @@
 starts, so the PLC and the MES see the same alarm after the restart, and an ACK is accepted."""
 import asyncio
 import json
+import time
 
 from gateway.control import ControlParams
-from gateway.records import Command, CommandKind
+from gateway.records import Command, CommandKind, Event, EventType
 from gateway.station.station import Station, TestPlan
 from test_slot_clock import QuietStm32, TimedMeter
 
@@ -30,9 +31,9 @@ def _run(st, n=20, before=None):
 
 def test_alarm_restored_after_restart_then_acknowledged_then_cleared_by_a_new_test(tmp_path):
     first = _station(tmp_path)
-    first.test_id = "T-1"
-    first.state.sample_id = "S-1"
-    first._set_alarm("active", t_life=123.4)          # what the end of life does
+    # what the end of life does: the event goes to the station's one alarm store
+    first.alarms.on_event(Event(EventType.END_OF_LIFE, "al", time.time(), "T-1", 6170,
+                                {"k_life": 6170, "t_life": 123.4, "sample_id": "S-1"}))
     # a new gateway process: the alarm is still active, for the PLC registers and MQTT state
     second = _station(tmp_path)
 

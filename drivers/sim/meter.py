@@ -28,7 +28,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
-from ..zns_map import MeterMap, crc_ok, with_crc
+from ..zns_map import DEFAULT_MAP_PATH, MapError, MeterMap, crc_ok, load_map, with_crc
 from .pty import PtyLink
 
 log = logging.getLogger("hookwatch.sim.meter")
@@ -259,7 +259,6 @@ async def _serve(args) -> int:
     import signal
     import sys
 
-    from ..zns_map import load_map
 
     m = load_map(args.map).with_overrides(baud=args.baud, unit_id=args.unit, parity=args.parity)
     value = list(_parse_pair(args.value))
@@ -336,7 +335,6 @@ async def _serve(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    from ..zns_map import DEFAULT_MAP_PATH, MapError
 
     ap = argparse.ArgumentParser(prog="python -m drivers.sim.meter",
                                  description="Virtual ZN-S meter (Modbus RTU slave) on a pty")

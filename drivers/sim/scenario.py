@@ -22,6 +22,13 @@ from typing import Any
 
 import yaml
 
+# the scenario's method and control sections are checked by gateway's pure core (the layer under
+# the drivers: numbers in, numbers out, no I/O)
+from gateway.control import ControlParams, NotchParams
+from gateway.method.params import ParamError, build_params
+
+from ..stm32_protocol import WATCHDOG_MS_MAX, WATCHDOG_MS_MIN
+from ..zns_map import BAUDS, DEFAULT_MAP_PATH, MapError, load_map
 from .plant import GRADES, SECTIONS, PlantParams, params_from_dict
 
 #: fault kind -> (extra keys allowed, extra keys required)
@@ -124,7 +131,6 @@ class Scenario:
 
     def load_meter_map(self, baud: int | None = None):
         """The meter's register map with this scenario's (or the caller's) overrides."""
-        from ..zns_map import DEFAULT_MAP_PATH, MapError, load_map
 
         path = self.meter_map or DEFAULT_MAP_PATH
         try:
@@ -251,7 +257,6 @@ def _faults(where: str, v: Any) -> tuple[FaultSpec, ...]:
 
 
 def _method(where: str, d: dict, t_set: float) -> dict[str, Any]:
-    from gateway.method.params import ParamError, build_params
 
     if "t_set" in d:
         raise ScenarioError(f"{where}: method.t_set: set the tension in plant.t_set")
@@ -263,7 +268,6 @@ def _method(where: str, d: dict, t_set: float) -> dict[str, Any]:
 
 
 def _control(where: str, d: dict) -> dict[str, Any]:
-    from gateway.control import ControlParams, NotchParams
 
     names = tuple(f.name for f in fields(ControlParams) if f.name != "ts")
     _unknown(where, "control.", d, names)
@@ -299,7 +303,6 @@ def scenario_from_dict(data: Any, path: str = "<scenario>") -> Scenario:
             raise ScenarioError(f"{where}: meter.map: {meter['map']!r}: no such file ({mpath})")
     baud = meter.get("baud")
     if baud is not None:
-        from ..zns_map import BAUDS
         if isinstance(baud, bool) or baud not in BAUDS:
             raise _bad(where, "meter.baud", baud, ", ".join(map(str, BAUDS)) + ", or null")
     unit = meter.get("unit_id")
@@ -307,7 +310,6 @@ def scenario_from_dict(data: Any, path: str = "<scenario>") -> Scenario:
         unit = _number(where, "meter.unit_id", unit, 1.0, True, 247.0, integer=True)
     stm = _mapping(where, "stm32", data.get("stm32"))
     _unknown(where, "stm32.", stm, STM32_KEYS)
-    from ..stm32_protocol import WATCHDOG_MS_MAX, WATCHDOG_MS_MIN
     wd = _number(where, "stm32.watchdog_s", stm.get("watchdog_s", 0.2), WATCHDOG_MS_MIN / 1000.0,
                  True, WATCHDOG_MS_MAX / 1000.0)
     sbaud = _number(where, "stm32.baud", stm.get("baud", 115200), 1200.0, True, 4000000.0,

@@ -21,6 +21,8 @@ from typing import Any, Callable, TextIO
 
 from .plant import Plant
 from .scenario import FaultSpec, Scenario
+from .meter import VirtualMeter
+from .stm32 import Stm32Firmware, VirtualStm32
 
 log = logging.getLogger("hookwatch.sim")
 
@@ -132,8 +134,6 @@ class SimStation:
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self) -> None:
-        from .meter import VirtualMeter
-        from .stm32 import Stm32Firmware, VirtualStm32
 
         os.makedirs(self.link_dir, exist_ok=True)
         if self.trace_path:

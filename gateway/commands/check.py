@@ -7,6 +7,8 @@ import os
 import sys
 
 from ..cli import CliError
+from ..config import cross_issues, station_files, validate_fleet, validate_station
+from ..config.checks import budget_text, bus_budget, feasibility
 
 HELP = "validate station files / fleet folders and check their feasibility (exit 0 ok, 1 errors)"
 DESCRIPTION = (HELP + ". Everything named in one call is checked as one box: station IDs, serial "
@@ -25,7 +27,6 @@ def add_arguments(ap):
 
 
 def _collect(paths):
-    from ..config import station_files, validate_fleet, validate_station
 
     loaded, seen, fleets = [], set(), []
     for p in paths:
@@ -53,8 +54,6 @@ def _sorted(issues):
 
 
 def run(args) -> int:
-    from ..config import cross_issues
-    from ..config.checks import budget_text, bus_budget, feasibility
 
     loaded = _collect(args.paths)
     per: list[list] = [list(ld.issues) for ld in loaded]

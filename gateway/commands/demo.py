@@ -17,7 +17,12 @@ import sys
 import tempfile
 import time
 
+from ..analysis import analyze_file
 from ..cli import CliError
+from ..compose import build_station
+from ..config import ConfigError, load_station
+from ..records import EventType
+from ..station.console import ConsoleOutput
 
 HELP = "run hookwatch on its built-in default: a simulated loom station through a compressed needle life"
 DESCRIPTION = HELP + (". Starts `hookwatch sim` on the demo scenario, runs the station against its "
@@ -57,7 +62,6 @@ class _EndWatcher:
         pass
 
     def on_event(self, ev):
-        from ..records import EventType
         if ev.type == EventType.TEST_ENDED and ev.test_id:
             self.stop_ev.set()
 
@@ -91,11 +95,6 @@ def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
 
 def run(args) -> int:
     import dataclasses
-
-    from ..analysis import analyze_file
-    from ..config import ConfigError, load_station
-    from ..station.build import build_station
-    from ..station.console import ConsoleOutput
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)

@@ -5,6 +5,8 @@ import os
 import sys
 
 from ..cli import CliError
+from ..config import ConfigError, load_station
+from ..northbound import registers
 
 HELP = "print the PLC register map (Modbus TCP) of a station, as Markdown or CSV"
 DESCRIPTION = (HELP + ". With a station file the header names its server, unit ID, word order, "
@@ -18,7 +20,6 @@ def add_arguments(ap):
 
 
 def station_info(path: str) -> dict:
-    from ..config import ConfigError, load_station
 
     if os.path.isdir(path):
         raise CliError(f"{path}: a folder; give one station file (stations/<id>.yaml)", 2)
@@ -36,7 +37,6 @@ def station_info(path: str) -> dict:
 
 
 def run(args) -> int:
-    from ..northbound import registers
 
     info = station_info(args.station) if args.station else None
     text = registers.render_csv(info) if args.format == "csv" else registers.render(info)

@@ -6,6 +6,7 @@ import sys
 
 from ..analysis import AnalysisError, parse_overrides
 from ..cli import CliError
+from ..report.pipeline import build_report
 
 HELP = "tables (CSV), figures (PNG) and a Markdown/HTML report for a campaign of recorded tests"
 DESCRIPTION = (
@@ -36,7 +37,6 @@ def add_arguments(ap):
 
 
 def run(args) -> int:
-    from ..report.pipeline import build_report
 
     if not os.path.isdir(args.campaign):
         raise CliError(f"{args.campaign}: not a folder (CAMPAIGN is a folder of recorded tests)")

@@ -9,7 +9,11 @@ import sys
 import threading
 import time
 
+from .. import sdnotify
 from ..cli import CliError
+from ..compose import build_station, records_dir_ok
+from ..config import ConfigError, load_fleet, load_station
+from ..station.fleet import Fleet, StationRunner
 
 HELP = "run one station (a YAML file) or a whole fleet (a config folder)"
 DESCRIPTION = (HELP + ". Polls the meter at 50 Hz, closes the tension loop through the STM32, "
@@ -34,8 +38,6 @@ def add_arguments(ap):
 
 
 def _load(path: str):
-    from ..config import ConfigError, load_fleet, load_station
-
     try:
         if os.path.isdir(path):
             cfgs = load_fleet(path)
@@ -73,10 +75,6 @@ def _override(cfg, args):
 
 
 def run(args) -> int:
-    from .. import sdnotify
-    from ..station.build import records_dir_ok
-    from ..station.fleet import Fleet, StationRunner
-
     cfgs = [_override(c, args) for c in _load(args.path)]
     # each station is a thread with its own loop; a thread woken by its slot deadline must not
     # wait the default 5 ms for the GIL while another station (or paho, or the PLC server) runs
@@ -152,8 +150,6 @@ def run(args) -> int:
 def _factory(cfg, args, phase: float):
     """Builds the station of ``cfg``; ``phase`` spreads the stations of one process over the slot."""
     def make():
-        from ..station.build import build_station
-
         st = build_station(cfg, with_northbound=not args.no_northbound)
         st.slot_phase = phase
         return st
@@ -161,23 +157,16 @@ def _factory(cfg, args, phase: float):
 
 
 def _reload(args, fleet) -> None:
+    """SIGHUP: load the configuration again; each station decides on its own loop whether it
+    restarts with it (idle) or keeps the parameters of its running test."""
     log = logging.getLogger("hookwatch.run")
     try:
         cfgs = {c.station.id: _override(c, args) for c in _load(args.path)}
     except CliError as e:
         log.error("reload refused, configuration kept: %s", e)
         return
-
-    for r in fleet.runners:
-        st = r.station
-        if st is not None and st.monitor is not None:
-            log.info("%s: in a test; keeps the parameters it started with", r.name)
-            continue
+    n = len(fleet.runners)
+    for i, r in enumerate(fleet.runners):
         c = cfgs.get(r.name)
-        if c is None:
-            continue
-        r.factory = _factory(c, args, getattr(st, "slot_phase", 0.0))
-        log.info("%s: configuration reloaded; station restarts", r.name)
-        r.restart_requested = True
-        if r.loop is not None and r._stop is not None:
-            r.loop.call_soon_threadsafe(r._stop.set)
+        if c is not None:
+            r.request_reload(_factory(c, args, i / n))

@@ -8,6 +8,8 @@ import signal
 import sys
 
 from ..cli import CliError
+from drivers.sim.scenario import ScenarioError, load_scenario
+from drivers.sim.station import EventLog, SimStation, run_station
 
 HELP = "run a virtual station (plant, ZN-S meter, STM32) on pseudo-terminals"
 DESCRIPTION = (HELP + ". Prints 'meter: DEVICE' and 'stm32: DEVICE' on stdout when ready and keeps "
@@ -37,8 +39,6 @@ def add_arguments(ap):
 
 
 def run(args) -> int:
-    from drivers.sim.scenario import ScenarioError, load_scenario
-    from drivers.sim.station import EventLog, SimStation
 
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
@@ -90,7 +90,6 @@ def run(args) -> int:
 
 
 async def _main(station, duration) -> None:
-    from drivers.sim.station import run_station
 
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()

@@ -21,6 +21,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..method.params import SPEC as METHOD_SPEC
+from drivers.zns_map import DEFAULT_MAP_PATH, load_map
+
 from ..method.params import ParamError, build_params
 from . import schema as S
 from .yamlpos import Pos, YamlError
@@ -484,22 +486,11 @@ def _strip_name(msg: str, name: str) -> str:
 
 def default_meter_map() -> str:
     """The packaged ZN-S register map."""
-    try:
-        from drivers import zns_map  # type: ignore
-        for attr in ("DEFAULT_MAP_PATH", "DEFAULT_MAP"):
-            p = getattr(zns_map, attr, None)
-            if isinstance(p, (str, os.PathLike)) and os.path.isfile(p):
-                return os.fspath(p)
-    except ImportError:
-        pass
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    return os.path.join(root, "config", "meters", "zn-s.yaml")
+    return os.fspath(DEFAULT_MAP_PATH)
 
 
 def load_meter_map(cfg):
     """The MeterMap of a station with its overrides applied; MapError/ValueError on a bad map."""
-    from drivers.zns_map import load_map  # type: ignore
-
     m = load_map(cfg.meter.map)
     return m.with_overrides(baud=cfg.meter.baud, unit_id=cfg.meter.unit_id, parity=cfg.meter.parity)
 

@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import NoSuchIdException
@@ -40,6 +40,7 @@ from .. import __version__
 from ..method.rules import REASONS
 from ..ports import StationLimits
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
+from ..threadloop import submit_to
 from ..station.commands import CODE, check_sample_id, check_t_end, check_t_set
 from . import registers as R
 
@@ -375,8 +376,7 @@ class ModbusSettings:
 class ModbusOutput:
     """Station output serving one station on a shared Modbus TCP server."""
 
-    def __init__(self, settings: ModbusSettings, station=None,
-                 mqtt_connected: Callable[[], bool] | None = None):
+    def __init__(self, settings: ModbusSettings, station=None):
         self.s = settings
         self.station_id = settings.station_id
         self.station = station
@@ -386,7 +386,6 @@ class ModbusOutput:
         self.limits: StationLimits = (station.limits if station is not None
                                       else StationLimits(grades=tuple(settings.grades)))
         self.grades = self.limits.grades
-        self.mqtt_connected = mqtt_connected or (lambda: False)
         self.loop: asyncio.AbstractEventLoop | None = None
         self.server: SharedServer | None = None
         self.unit: Unit | None = None
@@ -472,7 +471,7 @@ class ModbusOutput:
             "running": running, "baseline_found": st.mu_ss is not None,
             "end_of_life": st.t_life is not None, "alarm_unacknowledged": st.alarm == "active",
             "protection_stop": bool(st.protection_stop), "meter_ok": bool(st.meter_ok),
-            "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(self.mqtt_connected()),
+            "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(st.mqtt_ok),
             "saturation": now - self._sat_t <= 1.0,
         }
         v = {
@@ -599,9 +598,9 @@ class ModbusOutput:
         st, loop = self.station, self.loop
         result = CODE["NO_STATION"]
         ok = False
-        if st is not None and loop is not None and not loop.is_closed():
+        fut = submit_to(loop, st.submit(cmd)) if st is not None else None
+        if fut is not None:
             try:
-                fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
                 reply = await asyncio.wait_for(asyncio.wrap_future(fut), COMMAND_TIMEOUT_S)
                 ok = bool(reply.ok)
                 result = 0 if ok else int(getattr(reply, "code", 0) or CODE["BAD_REQUEST"])

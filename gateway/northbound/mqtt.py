@@ -9,8 +9,13 @@ Threads:
   runs paho's network loop (``client.loop``) and reconnects with back-off. Because one thread
   does all of this, paho's own resend of in-flight messages after a reconnect always happens
   before anything newer is published: the order on the wire is the seq order.
-- commands received on ``cmd/…`` are handed to the station's loop
-  (``run_coroutine_threadsafe(station.submit(cmd))``); the answer goes out on ``reply``.
+- commands received on ``cmd/…`` are handed to the station's loop (``threadloop.submit_to``, the
+  one thread → loop hand-over); the answer goes out on ``reply``;
+- the broker connection reaches the station as ``station.set_uplink("mqtt", ok)`` through the same
+  hand-over (so the PLC sees it in ``StationState.mqtt_ok``);
+- messages go from the station's loop to the pump through a bounded :class:`Mailbox`;
+- the end-of-life alarm is read from the station's alarm store (``gateway/station/alarms.py``);
+  the output keeps no alarm of its own on disk.
 """
 from __future__ import annotations
 
@@ -31,7 +36,10 @@ from paho.mqtt.enums import CallbackAPIVersion
 from .. import __version__
 from ..method.rules import REASONS
 from ..records import Event, EventType, SlotRecord, StationState
+from ..records import AlarmState
+from ..station.alarms import AlarmRecord, AlarmStore
 from ..station.commands import CODE, Rejection, command_from_mapping
+from ..threadloop import Mailbox, call_soon_on, submit_to
 from . import schema
 from .outbox import Outbox, Row
 from .registers import MAP_VERSION
@@ -40,6 +48,18 @@ log = logging.getLogger("hookwatch.mqtt")
 
 SOFTWARE = f"hookwatch {__version__}"
 STATE_REFRESH_S = 10.0
+#: messages waiting for the pump at most (a dead pump: the oldest are dropped and counted)
+QUEUE_MAX = 100_000
+
+
+def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
+    """The alarm store's record as the fields of the ``alarm/end_of_life`` message."""
+    return {"state": "cleared" if rec.state == AlarmState.NONE else rec.state.value,
+            "active": rec.active, "acknowledged": rec.acknowledged, "test_id": rec.test_id,
+            "sample_id": rec.sample_id, "t_life": rec.t_life, "k_life": rec.k_life,
+            "mu_ss": rec.mu_ss, "mu_th": rec.mu_th, "raised_at": rec.raised_at,
+            "acknowledged_at": rec.acknowledged_at, "acknowledged_by": rec.acknowledged_by,
+            "cleared_at": rec.cleared_at}
 
 
 class SecretError(Exception):
@@ -152,14 +172,18 @@ class _Telemetry:
 class MqttOutput:
     """Station output (see docs/architecture.md) publishing the station over MQTT."""
 
-    def __init__(self, settings: MqttSettings, station=None):
+    def __init__(self, settings: MqttSettings, station=None, alarms: AlarmStore | None = None):
         self.s = settings
         self.station = station
         self.loop: asyncio.AbstractEventLoop | None = None
+        #: the one alarm store: the station's; an output on its own keeps one in memory and feeds it
+        self._own_alarms = alarms is None and station is None
+        self.alarms: AlarmStore = (alarms if alarms is not None else station.alarms if station is not None
+                                   else AlarmStore(None, settings.station_id))
         self.outbox = Outbox(settings.outbox_path, settings.telemetry_budget_bytes)
-        self._queue: collections.deque = collections.deque()
+        self._queue: Mailbox[Row] = Mailbox(QUEUE_MAX)
+        self._dropped_logged = 0
         self._lock = threading.Lock()
-        self._wake = threading.Event()
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self.connected = False
@@ -170,7 +194,6 @@ class MqttOutput:
         self._last_state: StationState | None = None
         self._last_state_key: tuple | None = None
         self._last_state_pub = 0.0
-        self._alarm: dict[str, Any] | None = self.outbox.meta_get("alarm")
         # pump-thread state
         self._client: paho.Client | None = None
         self._sock_open = False
@@ -184,13 +207,11 @@ class MqttOutput:
         self._refused: str | None = None
 
     # ================================================================ station side
-    def _put(self, kind: str, topic: str, build: Callable[[int], dict], *, retain: bool = False,
-             meta: dict | None = None) -> int:
+    def _put(self, kind: str, topic: str, build: Callable[[int], dict], *, retain: bool = False) -> int:
         with self._lock:
             seq = self.outbox.next_seq()
             payload = schema.encode(build(seq))
-            self._queue.append((Row(seq, kind, topic, payload, 1, retain, time.time()), meta))
-        self._wake.set()
+            self._queue.put_nowait(Row(seq, kind, topic, payload, 1, retain, time.time()))
         return seq
 
     def _topic(self, key: str, **kw) -> str:
@@ -206,7 +227,7 @@ class MqttOutput:
     async def stop(self) -> None:
         self._flush_telemetry(time.monotonic(), force=True)
         self._stop_evt.set()
-        self._wake.set()
+        self._queue.wake()
         if self._thread is not None:
             await asyncio.get_running_loop().run_in_executor(
                 None, self._thread.join, self.s.drain_on_stop_s + 5.0)
@@ -237,29 +258,11 @@ class MqttOutput:
         et = ev.type
         if et == EventType.TEST_STARTED:
             self._test_id = ev.test_id
-            if self._alarm and self._alarm.get("state") in ("active", "acknowledged"):
-                # an alarm raised before a gateway restart (the station no longer knows it): a new
-                # test means the hook was replaced, so its lifecycle ends here as well
-                a = dict(self._alarm)
-                a.update(state="cleared", active=False, cleared_at=schema.iso_ms(ev.wall_time))
-                self._set_alarm(ev.wall_time, a)
         self._put("event", self._topic("event", type=et.value), lambda seq: schema.event_payload(seq, ev))
-        if et == EventType.END_OF_LIFE:
-            d = ev.data
-            self._set_alarm(ev.wall_time, {
-                "state": "active", "active": True, "acknowledged": False, "test_id": ev.test_id,
-                "sample_id": d.get("sample_id"), "t_life": d.get("t_life"), "k_life": d.get("k_life"),
-                "mu_ss": d.get("mu_ss"), "mu_th": d.get("mu_th"), "raised_at": schema.iso_ms(ev.wall_time),
-                "acknowledged_at": None, "acknowledged_by": None, "cleared_at": None})
-        elif et == EventType.ALARM_ACK:
-            a = dict(self._alarm or {"active": True})
-            a.update(state="acknowledged", active=True, acknowledged=True,
-                     acknowledged_at=schema.iso_ms(ev.wall_time), acknowledged_by=ev.data.get("source"))
-            self._set_alarm(ev.wall_time, a)
-        elif et == EventType.ALARM_CLEARED:
-            a = dict(self._alarm or {})
-            a.update(state="cleared", active=False, cleared_at=schema.iso_ms(ev.wall_time))
-            self._set_alarm(ev.wall_time, a)
+        if et in (EventType.END_OF_LIFE, EventType.ALARM_ACK, EventType.ALARM_CLEARED):
+            if self._own_alarms:
+                self.alarms.on_event(ev)
+            self._publish_alarm(ev.wall_time)
         elif et == EventType.TEST_ENDED:
             st = self._last_state
             self._put("result", self._topic("result"), lambda seq: schema.result_payload(seq, ev, st),
@@ -267,11 +270,10 @@ class MqttOutput:
             if ev.test_id is not None and ev.test_id == self._test_id:
                 self._test_id = None
 
-    def _set_alarm(self, t: float, alarm: dict[str, Any]) -> None:
-        self._alarm = alarm
+    def _publish_alarm(self, t: float) -> None:
+        alarm = alarm_fields(self.alarms.record)
         self._put("alarm", self._topic("alarm"),
-                  lambda seq: schema.alarm_payload(seq, t, self.s.station_id, alarm), retain=True,
-                  meta={"alarm": alarm})
+                  lambda seq: schema.alarm_payload(seq, t, self.s.station_id, alarm), retain=True)
 
     def on_state(self, st: StationState) -> None:
         self._last_state = st
@@ -301,17 +303,13 @@ class MqttOutput:
             self.outbox.close()
 
     def _drain_queue(self) -> None:
-        rows, meta = [], {}
-        while True:
-            try:
-                row, m = self._queue.popleft()
-            except IndexError:
-                break
-            rows.append(row)
-            if m:
-                meta.update(m)
-        if rows or meta:
-            self.outbox.add(rows, self._sent_upto, meta)
+        rows = self._queue.drain()
+        if self._queue.dropped != self._dropped_logged:
+            log.error("%s: MQTT pump behind: %d message(s) dropped before reaching the outbox",
+                      self.s.station_id, self._queue.dropped - self._dropped_logged)
+            self._dropped_logged = self._queue.dropped
+        if rows:
+            self.outbox.add(rows, self._sent_upto)
         acked = []
         while True:
             try:
@@ -324,7 +322,7 @@ class MqttOutput:
     def _pump(self) -> None:
         stop_deadline = None
         while True:
-            self._wake.clear()
+            self._queue.clear_wake()
             self._drain_queue()
             if self.connected:
                 self._send_more()
@@ -344,7 +342,7 @@ class MqttOutput:
                 if now >= self._next_attempt:
                     self._connect()
                 else:
-                    self._wake.wait(min(0.1, self._next_attempt - now))
+                    self._queue.wait(min(0.1, self._next_attempt - now))
 
     def _make_client(self) -> paho.Client:
         s = self.s
@@ -403,7 +401,7 @@ class MqttOutput:
     def _lost(self, why: str) -> None:
         if self.connected:
             log.warning("%s: MQTT connection lost (%s)", self.s.station_id, why)
-        self.connected = False
+        self._set_connected(False)
         self._sock_open = False
         self.counters["disconnects"] += 1
         self._schedule_retry()
@@ -412,7 +410,8 @@ class MqttOutput:
         c = self._client
         if c is None:
             return
-        was_connected, self.connected = self.connected, False
+        was_connected = self.connected
+        self._set_connected(False)
         try:
             if was_connected:
                 info = c.publish(self._topic("status"), schema.encode(schema.status_payload(
@@ -427,7 +426,7 @@ class MqttOutput:
         except Exception:
             log.debug("%s: error while disconnecting", self.s.station_id, exc_info=True)
         finally:
-            self.connected = False
+            self._set_connected(False)
             self._sock_open = False
             try:
                 if c.socket() is not None:
@@ -435,6 +434,12 @@ class MqttOutput:
             except Exception:
                 pass
             self._client = None
+
+    def _set_connected(self, ok: bool) -> None:
+        """The broker link changed (pump thread): tell the station on its own loop."""
+        was, self.connected = self.connected, ok
+        if was != ok and self.station is not None:
+            call_soon_on(self.loop, self.station.set_uplink, "mqtt", ok)
 
     # -- paho callbacks (run inside client.loop, on the pump thread)
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
@@ -444,13 +449,13 @@ class MqttOutput:
                 "%s: MQTT broker refused the connection: %s (retrying every %.0f s; messages are kept "
                 "in the outbox)", self.s.station_id, why, self.s.reconnect_max_s)
             self._refused = why
-            self.connected = False
+            self._set_connected(False)
             client.disconnect()
             self._sock_open = False
             self._schedule_retry(max_delay=True)
             return
         log.info("%s: MQTT connected to %s:%s", self.s.station_id, self.s.host, self.s.port)
-        self.connected = True
+        self._set_connected(True)
         self._connect_error_logged = False
         self._refused = None
         self._backoff = self.s.reconnect_min_s
@@ -463,7 +468,7 @@ class MqttOutput:
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
         if self.connected:
             log.warning("%s: MQTT disconnected (%s)", self.s.station_id, reason_code)
-        self.connected = False
+        self._set_connected(False)
 
     def _on_publish(self, client, userdata, mid, reason_code, properties) -> None:
         seq = self._mid2seq.pop(mid, None)
@@ -506,9 +511,8 @@ class MqttOutput:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
                                                         CODE["NO_STATION"]))
             return
-        try:
-            fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
-        except RuntimeError:
+        fut = submit_to(loop, st.submit(cmd))
+        if fut is None:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
                                                         CODE["NO_STATION"]))
             return

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..method.rules import REASONS
-from ..records import TestState
+from ..records import AlarmState, TestState
 from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX
 
 #: version of the register map (input register 1)
@@ -72,7 +72,7 @@ STATUS_BITS: tuple[tuple[int, str, str], ...] = (
 )
 STATUS_BIT = {name: bit for bit, name, _ in STATUS_BITS}
 
-ALARM_STATES = ("none", "active", "acknowledged")
+ALARM_STATES = tuple(a.value for a in AlarmState)
 
 #: command codes (holding register `command`, input register `last_command`)
 COMMAND_CODES: tuple[tuple[int, str, str], ...] = (

@@ -16,6 +16,8 @@ from typing import Any
 
 from ..method.rules import REASON_NAMES
 from ..records import Event, EventType, StationState, TestState
+from ..station.commands import REJECT_CODES
+from .registers import MAP_VERSION
 
 #: version of the topic tree and payloads (every payload carries it as "schema")
 SCHEMA_VERSION = 1
@@ -341,8 +343,6 @@ def _examples() -> dict[str, dict[str, Any]]:
 
 
 def render() -> str:
-    from ..station.commands import REJECT_CODES
-    from .registers import MAP_VERSION
 
     ex = _examples()
     out = [

@@ -5,12 +5,13 @@ import logging
 import os
 
 from . import schema
+from .modbus_server import ModbusOutput, ModbusSettings
+from .mqtt import MqttOutput, MqttSettings
 
 log = logging.getLogger("hookwatch.northbound")
 
 
 def mqtt_settings(cfg):
-    from .mqtt import MqttSettings
 
     m = cfg.mqtt
     sid = cfg.station.id
@@ -31,7 +32,6 @@ def mqtt_settings(cfg):
 
 
 def modbus_settings(cfg):
-    from .modbus_server import ModbusSettings
 
     mb = cfg.modbus_tcp
     return ModbusSettings(
@@ -43,13 +43,12 @@ def modbus_settings(cfg):
 
 
 def outputs_for(cfg, station) -> list:
-    """The northbound outputs of one station (MQTT first, so Modbus can show its link status)."""
+    """The northbound outputs of one station (MQTT, then Modbus TCP)."""
     outs: list = []
     mqtt_out = None
     if getattr(cfg, "mqtt", None) is not None and cfg.mqtt.enabled:
         import sqlite3
 
-        from .mqtt import MqttOutput
 
         ms = mqtt_settings(cfg)
         try:
@@ -61,8 +60,7 @@ def outputs_for(cfg, station) -> list:
         else:
             outs.append(mqtt_out)
     if getattr(cfg, "modbus_tcp", None) is not None and cfg.modbus_tcp.enabled:
-        from .modbus_server import ModbusOutput
 
-        connected = (lambda: mqtt_out.connected) if mqtt_out is not None else None
-        outs.append(ModbusOutput(modbus_settings(cfg), station, mqtt_connected=connected))
+        # the MQTT link reaches the PLC through the station's state (StationState.mqtt_ok)
+        outs.append(ModbusOutput(modbus_settings(cfg), station))
     return outs

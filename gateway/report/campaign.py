@@ -24,6 +24,7 @@ from typing import Any, Callable
 from ..analysis import AnalysisError, params_for
 from ..logio import LogError, read_meta, sidecar_path
 from ..method.params import MethodParams
+from .. import logio
 
 #: written into a report folder so that a report inside the campaign folder is never mistaken
 #: for recorded tests on the next run
@@ -384,7 +385,6 @@ def run_parallel(fn: Callable, tasks: list, jobs: int, on_done: Callable[[], Non
     must not raise (it reports errors in its result). With one job, or one task, it runs in this
     process. The log reader's own two-core parsing is left on only when it has the cores to
     itself (a single task with jobs ≥ 2)."""
-    from .. import logio
 
     results: list = [None] * len(tasks)
     workers = max(1, min(jobs, len(tasks)))
@@ -426,7 +426,6 @@ def run_parallel(fn: Callable, tasks: list, jobs: int, on_done: Callable[[], Non
 
 
 def _init_worker() -> None:
-    from .. import logio
 
     # one log per core already: the reader must not fork a second parser per worker
     logio.PARALLEL_PARSE_BYTES = 1 << 62

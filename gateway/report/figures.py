@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from ..method import rules as R
+from .stats import group_stats
 
 WIDTH_PX = 1600
 HEIGHT_PX = 1000
@@ -179,7 +181,6 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
     with np.errstate(invalid="ignore", divide="ignore"):
         diag = np.where((mask != 0) & (ratio > 0), np.log(ratio) / p.theta, np.nan)
     bad_env = grid_minmax(diag, dx, x_end)
-    from ..method import rules as R
     missing = column_hits(np.flatnonzero((mask & R.MISSING) != 0) * dx, 0.0, x_end)
     with np.errstate(invalid="ignore"):
         tm = (t1 + t2) / 2.0
@@ -357,7 +358,6 @@ def render_fig8(open_s: LoopSeries, closed_s: LoopSeries, t_set: float, unit: st
 def render_fig9(points: dict[tuple[float, str], list[float]], grades: list[str],
                 setpoints: list[float], rankings: dict[float, str], path: str, title: str) -> None:
     """Bars: mean t_life per (setpoint, grade) with ± one sample SD; dots: the samples."""
-    from .stats import group_stats
 
     fig, (ax,) = _figure(1)
     ng = max(1, len(grades))

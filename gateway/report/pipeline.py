@@ -14,6 +14,8 @@ from .campaign import (DELTA_FACTORS, REPORT_MARKER, ROLE_CLOSED, ROLE_OPEN, Cam
                        Problem, Progress, discover, run_parallel)
 from .render import Document, Figure, Section, write_csvs, write_document
 from .worker import run_task
+from ..logio import read_meta, LogError
+from .figures import render_fig9
 
 
 @dataclass
@@ -42,7 +44,6 @@ def _sample_title(spec) -> str:
 def _control_pair(camp: Campaign, open_loop: str | None, closed_loop: str | None,
                   problems: list[Problem], notes: list[str]) -> dict[str, Any] | None:
     """The two logs of Fig. 8: given on the command line, or marked in their sidecars."""
-    from ..logio import read_meta, LogError
 
     def from_cli(path: str, role: str) -> ControlLog | None:
         if not os.path.isfile(path):
@@ -199,7 +200,6 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
             grades = T._grades(samples)
             sps = T._setpoints(samples)
             try:
-                from .figures import render_fig9
                 fig9 = os.path.join(fig_dir, "fig9_life_by_grade.png")
                 render_fig9(groups, grades, sps, T.rankings_by_setpoint(groups, sps, grades), fig9,
                             "Fig. 9 — online wear life by grade and tension setpoint")

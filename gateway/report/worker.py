@@ -12,6 +12,7 @@ import numpy as np
 
 from ..logio import LogError, read_log
 from ..method.core import gate_and_baseline, life_result, to_slots
+from .figures import fig7_data, loop_series, render_fig7, render_fig8, time_unit
 
 
 def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
@@ -39,7 +40,6 @@ def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
     }
     if task.get("fig"):
         try:
-            from .figures import fig7_data, render_fig7
 
             d = fig7_data(title=task["title"], ts=p.ts, mask=g.mask, mu=g.mu, ratio=g.ratio,
                           t1=s.t1, t2=s.t2, p=p, result=results[1.0])
@@ -55,7 +55,6 @@ def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
 def control_figure(task: dict[str, Any]) -> dict[str, Any]:
     """task: open, closed (log paths), t_set, fig, title, labels. Fig. 8 and its figures."""
     try:
-        from .figures import loop_series, render_fig8, time_unit
 
         logs = {}
         for key in ("open", "closed"):

@@ -1,4 +1,7 @@
-"""Build a running station from its configuration: drivers, control, method, outputs."""
+"""A station's parameters from its configuration: control, method values, limits, default plan.
+
+Pure translation of the configuration; the drivers and outputs are built by the composition root
+(``gateway/compose.py``)."""
 from __future__ import annotations
 
 import logging
@@ -8,7 +11,7 @@ from typing import Any
 
 from ..control import ControlParams, NotchParams
 from ..ports import StationLimits
-from .station import Station, TestPlan
+from .session import TestPlan
 
 log = logging.getLogger("hookwatch.build")
 
@@ -41,38 +44,11 @@ def station_limits(cfg, values: dict[str, Any]) -> StationLimits:
                                      t_end_default_s=float(cfg.test.t_end_s))
 
 
-def build_station(cfg, *, outputs: list | None = None, with_northbound: bool = True) -> Station:
-    from drivers.stm32 import Stm32Link
-    from drivers.zns import ZnsMeter
-
-    mv = method_values(cfg)
-    ts = float(mv.get("ts", 0.02))
-    meter = ZnsMeter.from_config(cfg.meter)
-    stm32 = Stm32Link.from_config(cfg.stm32)
+def default_plan(cfg) -> TestPlan:
+    """The test a start without arguments runs (the ``test:`` section)."""
     t = cfg.test
-    plan = TestPlan(sample_id=t.sample_id or f"{cfg.station.id}-sample", grade=t.grade,
+    return TestPlan(sample_id=t.sample_id or f"{cfg.station.id}-sample", grade=t.grade,
                     t_set=float(t.t_set_n), t_end=float(t.t_end_s))
-    outs = list(outputs or [])
-    st = Station(
-        station_id=cfg.station.id, method=mv, control=control_params(cfg, ts), meter=meter,
-        stm32=stm32, records_dir=cfg.recorder.dir, swap_channels=bool(cfg.meter.swap_channels),
-        outputs=outs, flush_interval_s=float(cfg.recorder.flush_interval_s), default_plan=plan,
-        autostart=bool(t.autostart), limits=station_limits(cfg, mv),
-        identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
-    )
-    if with_northbound:
-        st.outputs.extend(northbound_outputs(cfg, st))
-    return st
-
-
-def northbound_outputs(cfg, station: Station) -> list:
-    outs = []
-    try:
-        from ..northbound.wiring import outputs_for
-    except ImportError:
-        return outs
-    outs.extend(outputs_for(cfg, station))
-    return outs
 
 
 def records_dir_ok(path: str) -> str | None:

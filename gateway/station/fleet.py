@@ -7,18 +7,22 @@ by its supervisor after a back-off while the others run on.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable, Coroutine, TypeVar
 
+from ..threadloop import ThreadLoop
 from .station import Station
+
+T = TypeVar("T")
 
 log = logging.getLogger("hookwatch.fleet")
 
 
 class StationRunner:
-    """A station in its own thread with its own asyncio loop, restarted when it crashes."""
+    """A station on its own :class:`ThreadLoop`, restarted when it crashes."""
 
     def __init__(self, name: str, factory: Callable[[], Station], restart_backoff_s: float = 5.0,
                  max_slots: int | None = None, on_started: Callable[[Station], None] | None = None):
@@ -28,37 +32,49 @@ class StationRunner:
         self.max_slots = max_slots
         self.on_started = on_started
         self.station: Station | None = None
-        self.loop: asyncio.AbstractEventLoop | None = None
+        self.tl = ThreadLoop(f"station-{name}")
         self._stop: asyncio.Event | None = None
         self._stopping = threading.Event()
-        self.thread = threading.Thread(target=self._main, name=f"station-{name}", daemon=True)
         self.crashes = 0
         self.restart_requested = False
         self.last_error: str | None = None
         self.finished = threading.Event()
 
-    def start(self) -> None:
-        self.thread.start()
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop | None:
+        return self.tl.loop if self.tl.running else None
 
-    def _main(self) -> None:
-        try:
-            asyncio.run(self._supervise())
-        finally:
-            self.finished.set()
+    @property
+    def thread(self) -> threading.Thread:
+        th = self.tl.thread
+        if th is None:
+            raise RuntimeError(f"station {self.name} was never started")
+        return th
+
+    def start(self) -> None:
+        self.tl.start()
+        fut = self.tl.submit(self._supervise())
+        fut.add_done_callback(self._done)
+
+    def _done(self, fut: concurrent.futures.Future[None]) -> None:
+        self.finished.set()
+        self.tl.stop()              # from the loop's own thread: stops it without waiting
 
     async def _supervise(self) -> None:
-        self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         if self._stopping.is_set():
             return
+        reloaded = False
         while not self._stopping.is_set():
             try:
                 self.station = self.factory()
+                self.station.reloaded = reloaded
                 if self.on_started:
                     self.on_started(self.station)
                 await self.station.run(self._stop, max_slots=self.max_slots)
                 if self.restart_requested and not self._stopping.is_set():
                     self.restart_requested = False      # SIGHUP reload: rebuild from new config
+                    reloaded = True
                     self._stop = asyncio.Event()
                     continue
                 return
@@ -72,20 +88,37 @@ class StationRunner:
                 except asyncio.TimeoutError:
                     pass
 
+    def request_reload(self, factory: Callable[[], Station]) -> None:
+        """A new configuration (any thread). The decision is taken on the station's own loop, so
+        a test start cannot slip in between the check and the restart: an idle station restarts
+        with ``factory`` (and emits ``config_reloaded``), one in a test keeps its parameters."""
+        def on_loop() -> None:
+            st = self.station
+
+            def apply() -> None:
+                self.factory = factory
+                self.restart_requested = True
+                log.info("%s: configuration reloaded; station restarts", self.name)
+            if st is None:
+                self.factory = factory
+            else:
+                st.reload_requested(apply)
+        if self.tl.running:
+            self.tl.call_soon(on_loop)
+
     def request_stop(self) -> None:
         self._stopping.set()
-        if self.loop is not None and self._stop is not None:
+        if self.tl.running and self._stop is not None:
             try:
-                self.loop.call_soon_threadsafe(self._stop.set)
+                self.tl.call_soon(self._stop.set)
             except RuntimeError:
                 pass
 
-    def call(self, coro_factory, timeout: float = 5.0):
+    def call(self, coro_factory: Callable[[], Coroutine[Any, Any, T]], timeout: float = 5.0) -> T:
         """Run a coroutine on this station's loop from another thread and wait for its result."""
-        if self.loop is None:
+        if not self.tl.running:
             raise RuntimeError(f"station {self.name} is not running")
-        fut = asyncio.run_coroutine_threadsafe(coro_factory(), self.loop)
-        return fut.result(timeout)
+        return self.tl.submit(coro_factory()).result(timeout)
 
     def progress(self) -> int:
         st = self.station
@@ -105,17 +138,18 @@ class Fleet:
             r.request_stop()
         t_end = time.monotonic() + timeout
         for r in self.runners:
-            r.thread.join(max(0.1, t_end - time.monotonic()))
+            if r.tl.thread is not None:
+                r.tl.thread.join(max(0.1, t_end - time.monotonic()))
 
     def alive(self) -> bool:
-        return any(r.thread.is_alive() for r in self.runners)
+        return any(r.tl.running for r in self.runners)
 
     def healthy(self, last: dict[str, int]) -> bool:
         """True when every running station made progress since the last call (watchdog)."""
         ok = True
         for r in self.runners:
             p = r.progress()
-            if r.thread.is_alive() and p <= last.get(r.name, -1) and p >= 0:
+            if r.tl.running and p <= last.get(r.name, -1) and p >= 0:
                 ok = False
             last[r.name] = p
         return ok

@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from ..records import Event, SlotRecord
+from ..analysis import AnalysisError, analyze_file
 
 log = logging.getLogger("hookwatch.recorder")
 
@@ -183,7 +184,6 @@ def incomplete_tests(station_dir: str) -> list[str]:
 def recover_incomplete(station_dir: str, reason: str = "gateway restart") -> list[tuple[str, dict]]:
     """Close every cut-off test as ``aborted`` with its partial result (offline analysis of what
     was recorded). Returns [(test_dir, result)]."""
-    from ..analysis import AnalysisError, analyze_file
 
     closed = []
     for d in incomplete_tests(station_dir):

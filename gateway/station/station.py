@@ -5,67 +5,42 @@ Per slot k (deadline t0 + k·Ts on a monotonic clock):
   2. the controller computes the speed command; it is sent to the STM32 in the background
      (a separate serial port: it overlaps with the next poll, so both fit in the slot);
   3. during a test, the streaming method core gates the slot and updates baseline/life;
-  4. the slot record goes to every output (recorder, MQTT, Modbus TCP).
+  4. the slot record goes to the fan-out (recorder first, then MQTT, Modbus TCP, …).
 
-Test lifecycle: idle → baseline search → monitoring → end of life (runs on to t_end) →
-completed | aborted (protection stop, operator stop, gateway restart).
+Test lifecycle (a :class:`TestSession`): idle → baseline search → monitoring → end of life (runs on
+to t_end) → completed | aborted (protection stop, operator stop, gateway restart). The end-of-life
+alarm lives in the station's :class:`AlarmStore`. Everything here runs on the station's own loop;
+other threads reach it only through ``gateway.threadloop`` (commands: :meth:`Station.submit`;
+uplink changes: :meth:`Station.set_uplink`; reloads: :meth:`Station.reload_requested`).
 """
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import math
 import os
-import re
 import statistics
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from typing import Any, Callable, Coroutine
 
-from .. import __version__
 from ..control import ControlParams, Controller
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
-from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
+from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
+from ..records import (AlarmState, Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
-from ..ports import StationLimits
+from .alarms import AlarmStore
 from .clock import SlotClock
 from .commands import Rejection, validate
+from .fanout import Fanout
 from .recorder import TestRecorder, recover_incomplete, utc_iso
+from .session import RecorderOutput, TestPlan, TestSession
+
+__all__ = ["Station", "TestPlan", "TestSession", "SlotStats"]
 
 log = logging.getLogger("hookwatch.station")
-
-
-class MeterPort(Protocol):
-    connected: bool
-    counters: dict
-
-    async def open(self) -> None: ...
-    async def read(self) -> Any: ...      # object with .ch1, .ch2 (N) and .rtt_s, or None
-    async def close(self) -> None: ...
-
-
-class Stm32Port(Protocol):
-    connected: bool
-    counters: dict
-
-    async def open(self) -> None: ...
-    async def enable(self) -> Any: ...
-    async def set_speed(self, rpm: float) -> Any: ...   # status with .actual_rpm, or None
-    async def stop(self, reason: str = "") -> Any: ...
-    async def read_status(self) -> Any: ...
-    async def close(self) -> None: ...
-
-
-@dataclass
-class TestPlan:
-    __test__ = False  # not a pytest test class
-    sample_id: str
-    grade: str | None
-    t_set: float
-    t_end: float
 
 
 @dataclass
@@ -93,17 +68,13 @@ class SlotStats:
                 "stm32_busy_skips": self.stm32_busy_skips}
 
 
-def _safe_name(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)[:48] or "test"
-
-
 class Station:
     def __init__(self, *, station_id: str, method: dict[str, Any], control: ControlParams,
                  meter: MeterPort, stm32: Stm32Port, records_dir: str,
-                 swap_channels: bool = False, outputs: list | None = None,
+                 swap_channels: bool = False, outputs: list[Output] | None = None,
                  flush_interval_s: float = 1.0, default_plan: TestPlan | None = None,
-                 limits: StationLimits | None = None, identity: dict[str, Any] | None = None, idle_status_interval_s: float = 0.5,
-                 autostart: bool = False):
+                 limits: StationLimits | None = None, identity: dict[str, Any] | None = None,
+                 idle_status_interval_s: float = 0.5, autostart: bool = False) -> None:
         self.id = station_id
         self.method_values = dict(method)          # §10 values without t_set / t_end
         self.control_params = control
@@ -113,7 +84,7 @@ class Station:
         self.records_dir = records_dir
         self.station_dir = os.path.join(records_dir, station_id)
         self.swap = swap_channels
-        self.outputs = list(outputs or [])
+        self.outputs: list[Output] = list(outputs or [])
         self.flush_interval_s = flush_interval_s
         self.default_plan = default_plan
         #: what commands are checked against (built once from the configuration)
@@ -125,88 +96,88 @@ class Station:
         self.state = StationState(station=station_id)
         self.stats = SlotStats()
         self.results: list[dict[str, Any]] = []
-        # test
-        self.monitor: StreamingMonitor | None = None
-        self.controller: Controller | None = None
-        self.recorder: TestRecorder | None = None
-        self.plan: TestPlan | None = None
-        self.params: MethodParams | None = None
-        self.k_start: int | None = None
-        self.test_id: str | None = None
-        self._stm32_task: asyncio.Task | None = None
+        #: the one alarm store (alarm.json in the station's folder)
+        self.alarms = AlarmStore(os.path.join(self.station_dir, "alarm.json"), station_id)
+        #: the running test, if any
+        self.session: TestSession | None = None
+        self._recorder_out = RecorderOutput()
+        self.fanout = Fanout(station_id, self.outputs, head=(self._recorder_out,))
+        self._stm32_task: asyncio.Task[Any] | None = None
         self._speed_act = math.nan
         self._speed_cmd = 0.0
-        self._running = False
         self._last_state_push = 0.0
         self._meter_was_ok: bool | None = None
         self._stm32_was_ok: bool | None = None
-        self._pending: list[Command] = []
-        self._done = None
+        self._uplinks: dict[str, bool] = {}
+        self._stop_evt: asyncio.Event | None = None
         self.clock: SlotClock | None = None
         #: makes the slot clock (a benchmark replaces it with a virtual clock that runs flat out)
-        self.clock_factory = SlotClock
+        self.clock_factory: Callable[..., Any] = SlotClock
         #: where in the 20 ms slot this station's deadlines fall (0 … 1), on a process-wide grid
         self.slot_phase = 0.0
+        #: set by the runner when this station replaces one whose configuration was reloaded
+        self.reloaded = False
+
+    # ---------------------------------------------------------------- the running test
+    @property
+    def monitor(self) -> StreamingMonitor | None:
+        return self.session.monitor if self.session is not None else None
+
+    @property
+    def controller(self) -> Controller | None:
+        return self.session.controller if self.session is not None else None
+
+    @property
+    def recorder(self) -> TestRecorder | None:
+        return self.session.recorder if self.session is not None else None
+
+    @property
+    def plan(self) -> TestPlan | None:
+        return self.session.plan if self.session is not None else None
+
+    @property
+    def params(self) -> MethodParams | None:
+        return self.session.params if self.session is not None else None
+
+    @property
+    def test_id(self) -> str | None:
+        return self.session.test_id if self.session is not None else None
+
+    @property
+    def in_test(self) -> bool:
+        return self.session is not None
 
     # ---------------------------------------------------------------- outputs
-    def _emit_event(self, etype: EventType, k: int | None = None, **data) -> Event:
+    def _emit_event(self, etype: EventType, k: int | None = None, **data: Any) -> Event:
         ev = Event(type=etype, station=self.id, wall_time=time.time(), test_id=self.test_id, k=k,
                    data=data)
         log.info("%s: %s %s", self.id, etype.value, data or "")
-        if self.recorder is not None:
-            self.recorder.on_event(ev)
-        for o in self.outputs:
-            try:
-                o.on_event(ev)
-            except Exception:  # an output must never stop the station
-                log.exception("%s: output %r failed on event", self.id, o)
+        self.alarms.on_event(ev)              # the alarm store first: outputs read it
+        self.state.alarm = self.alarms.state.value
+        self.fanout.event(ev)
         return ev
 
     def _push_state(self) -> None:
         self._last_state_push = time.monotonic()
-        for o in self.outputs:
-            try:
-                o.on_state(replace(self.state))
-            except Exception:
-                log.exception("%s: output %r failed on state", self.id, o)
+        self.fanout.state(replace(self.state))
 
-    # ---------------------------------------------------------------- alarm (kept across restarts)
-    @property
-    def _alarm_path(self) -> str:
-        return os.path.join(self.station_dir, "alarm.json")
-
-    def _set_alarm(self, value: str, **info) -> None:
-        """Change the end-of-life alarm state and keep it on disk, so that after a gateway restart
-        the PLC and the MES still see an active (or acknowledged) alarm until a new test starts."""
-        self.state.alarm = value
-        rec = {"alarm": value, "test_id": self.test_id, "sample_id": self.state.sample_id,
-               "utc": utc_iso(), **info}
-        try:
-            os.makedirs(self.station_dir, exist_ok=True)
-            tmp = self._alarm_path + ".tmp"
-            with open(tmp, "w", encoding="utf-8") as f:
-                json.dump(rec, f)
-            os.replace(tmp, self._alarm_path)
-        except OSError as e:
-            log.error("%s: cannot keep the alarm state in %s: %s", self.id, self._alarm_path, e)
+    def set_uplink(self, name: str, ok: bool) -> None:
+        """An uplink (MQTT) reports its connection (on this loop, via the thread hand-over); it
+        reaches every output through the state (``StationState.mqtt_ok``), e.g. the PLC's status."""
+        if self._uplinks.get(name) == ok:
+            return
+        self._uplinks[name] = ok
+        self.state.mqtt_ok = bool(self._uplinks.get("mqtt", False))
+        self._push_state()
 
     def _restore_alarm(self) -> None:
-        try:
-            with open(self._alarm_path, encoding="utf-8") as f:
-                rec = json.load(f)
-        except FileNotFoundError:
-            return
-        except (OSError, ValueError) as e:
-            log.error("%s: alarm state %s unreadable (%s); starting with none", self.id,
-                      self._alarm_path, e)
-            return
-        if rec.get("alarm") in ("active", "acknowledged"):
+        rec = self.alarms.restore()
+        if rec.active:
             st = self.state
-            st.alarm = rec["alarm"]
-            st.test_id = rec.get("test_id")
-            st.sample_id = rec.get("sample_id")
-            st.t_life = rec.get("t_life")
-            log.info("%s: end-of-life alarm of test %s restored: %s", self.id, st.test_id, st.alarm)
+            st.alarm = rec.state.value
+            st.test_id = rec.test_id
+            st.sample_id = rec.sample_id
+            st.t_life = rec.t_life
 
     # ---------------------------------------------------------------- commands
     async def submit(self, cmd: Command) -> CommandReply:
@@ -221,11 +192,10 @@ class Station:
             self.start_test(TestPlan(sample_id=str(a["sample_id"]), grade=a.get("grade"),
                                      t_set=float(a["t_set"]),
                                      t_end=float(a.get("t_end") or (self.default_plan.t_end if self.default_plan
-                                                                 else self.limits.t_end_default_s))))
+                                                                    else self.limits.t_end_default_s))))
         elif cmd.kind == CommandKind.STOP:
             await self.end_test("stopped by command", source=cmd.source)
         elif cmd.kind == CommandKind.ACK:
-            self._set_alarm("acknowledged")
             self._emit_event(EventType.ALARM_ACK, source=cmd.source)
             self._push_state()
         elif cmd.kind == CommandKind.SETPOINT:
@@ -237,35 +207,31 @@ class Station:
         """The one validation shared by CLI, MQTT and PLC (gateway/station/commands.py)."""
         return validate(cmd, self.limits, self.state)
 
+    # ---------------------------------------------------------------- reload
+    def reload_requested(self, apply: Callable[[], None]) -> bool:
+        """A new configuration is ready (called on this station's loop, so no start can slip in
+        between the check and the decision). Idle: ``apply()`` is called and the station stops
+        (its runner rebuilds it from the new configuration); in a test: kept, False."""
+        if self.session is not None:
+            log.info("%s: in a test; keeps the parameters it started with", self.id)
+            return False
+        apply()
+        if self._stop_evt is not None:
+            self._stop_evt.set()
+        return True
+
     # ---------------------------------------------------------------- test lifecycle
     def start_test(self, plan: TestPlan) -> None:
-        values = dict(self.method_values)
-        values["t_set"] = plan.t_set
-        values["t_end"] = plan.t_end
-        from ..method.params import build_params
-        p = build_params(values, f"station {self.id}")
-        self.k_start = None            # the test's slot 0 is the next slot the loop processes
-        start_wall = time.time()
-        self.test_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(start_wall)) + "-" + _safe_name(plan.sample_id)
-        self.plan, self.params = plan, p
-        self.monitor = StreamingMonitor(p)
-        self.controller = Controller(self.control_params, plan.t_set)
-        meta = {
-            "station": self.id, **{k: v for k, v in self.identity.items() if k != "id"},
-            "test_id": self.test_id, "sample_id": plan.sample_id, "grade": plan.grade,
-            "t_set": plan.t_set, "start_time": utc_iso(start_wall),
-            "software": f"hookwatch {__version__}",
-            "method": {k: v for k, v in p.as_dict().items()},
-            "control": self.control_params.as_dict(),
-        }
-        self.recorder = TestRecorder(os.path.join(self.station_dir, self.test_id), meta,
-                                     self.flush_interval_s)
+        sess = TestSession.begin(station_id=self.id, station_dir=self.station_dir, plan=plan,
+                                 method_values=self.method_values, control=self.control_params,
+                                 identity=self.identity, flush_interval_s=self.flush_interval_s)
+        self.session = sess            # the test's slot 0 is the next slot the loop processes
+        self._recorder_out.recorder = sess.recorder
         st = self.state
-        if st.alarm != "none":
-            self._set_alarm("none")
+        if self.alarms.state != AlarmState.NONE:
             self._emit_event(EventType.ALARM_CLEARED, reason="new test started")
         st.state = TestState.BASELINE_SEARCH
-        st.test_id, st.sample_id, st.grade = self.test_id, plan.sample_id, plan.grade
+        st.test_id, st.sample_id, st.grade = sess.test_id, plan.sample_id, plan.grade
         st.t_set, st.t_end = plan.t_set, plan.t_end
         st.mu_ss = st.mu_th = st.t_life = None
         st.k_b = None
@@ -279,33 +245,32 @@ class Station:
 
     async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
         """End the running test (completed at t_end, or aborted) and write its result."""
-        if self.monitor is None:
+        sess = self.session
+        if sess is None:
             return None
-        mon = self.monitor
+        mon = sess.monitor
         await self._safe_stm32(self.stm32.stop(reason))
         res = mon.close()              # slots up to the planned end that never came: MISSING
         test_status = "completed" if reason == "completed" else "aborted"
-        out = {"test_id": self.test_id, "station": self.id, "test_status": test_status,
+        out = {"test_id": sess.test_id, "station": self.id, "test_status": test_status,
                "end_reason": reason, "closed_utc": utc_iso(), "method": res.as_dict(),
-               "sample_id": self.plan.sample_id, "grade": self.plan.grade, "t_set": self.plan.t_set}
+               "sample_id": sess.plan.sample_id, "grade": sess.plan.grade, "t_set": sess.plan.t_set}
         st = self.state
         st.state = TestState.COMPLETED if test_status == "completed" else TestState.ABORTED
         st.status = res.status
         st.end_reason = reason
         self._emit_event(EventType.TEST_ENDED, k=mon.k - 1, reason=reason, source=source,
                          test_status=test_status, result=res.as_dict())
-        if self.recorder is not None:
-            self.recorder.close(out)
+        sess.recorder.close(out)
         self.results.append(out)
-        self.monitor = None
-        self.controller = None
-        self.recorder = None
+        self.session = None
+        self._recorder_out.recorder = None
         self._speed_cmd = 0.0
         self._push_state()
         return out
 
     # ---------------------------------------------------------------- the slot loop
-    async def _safe_stm32(self, coro):
+    async def _safe_stm32(self, coro: Coroutine[Any, Any, Stm32Status | None]) -> Stm32Status | None:
         try:
             return await coro
         except Exception as e:  # a driver must not raise, but never let it kill the loop
@@ -315,49 +280,43 @@ class Station:
     async def _send_speed(self, rpm: float) -> None:
         st = await self._safe_stm32(self.stm32.set_speed(rpm))
         if st is not None:
-            self._speed_act = float(getattr(st, "actual_rpm", math.nan))
+            self._speed_act = float(st.actual_rpm)
 
-    def _process(self, k: int, reading, lateness: float) -> SlotRecord:
+    def _process(self, k: int, reading: MeterReading | None, lateness: float) -> SlotRecord:
         """Everything after the poll of slot k (pure computation plus buffered output)."""
         present = reading is not None
-        if present:
+        if reading is not None:
             t1, t2 = (reading.ch2, reading.ch1) if self.swap else (reading.ch1, reading.ch2)
             t1, t2 = float(t1), float(t2)
         else:
             t1 = t2 = math.nan
-        mon = self.monitor
-        ctl = self.controller
+        sess = self.session
         q, mask, ratio, mu = 0, 0, None, None
         y, sat = math.nan, False
-        if mon is not None and self.k_start is None:
-            self.k_start = k
-        kt = k - self.k_start if mon is not None else k
-        if mon is not None:
-            out = mon.push(present, t1, t2)
+        if sess is not None and sess.k_start is None:
+            sess.k_start = k
+        kt = k - sess.k_start if sess is not None and sess.k_start is not None else k
+        if sess is not None:
+            out = sess.monitor.push(present, t1, t2)
             q, mask, ratio, mu = out.q, out.mask, out.ratio, out.mu
             tm = (t1 + t2) / 2.0 if present else None
             speed = self._speed_act if math.isfinite(self._speed_act) else self._speed_cmd
-            c = ctl.step(tm, speed)
+            c = sess.controller.step(tm, speed)
             y, sat = c.y, c.saturated
             self._speed_cmd = c.u
-            self._handle_method_events(out.events, kt)
+            self._handle_method_events(sess, out.events, kt)
+        self.state.saturation = sat
         rec = SlotRecord(k=kt, t=round(kt * self.ts + min(lateness, self.ts / 2 - 1e-4), 4)
-                         if mon is not None else k * self.ts,
+                         if sess is not None else k * self.ts,
                          present=present, t1=t1, t2=t2, q=q, mask=mask, ratio=ratio, mu=mu,
                          mean_filt=y, speed_cmd=self._speed_cmd, speed_act=self._speed_act,
                          saturated=sat, lateness_s=lateness,
-                         rtt_s=getattr(reading, "rtt_s", math.nan) if present else math.nan)
-        if self.recorder is not None:
-            self.recorder.on_record(rec)
-        for o in self.outputs:
-            try:
-                o.on_record(rec)
-            except Exception:
-                log.exception("%s: output %r failed on record", self.id, o)
+                         rtt_s=reading.rtt_s if reading is not None else math.nan)
+        self.fanout.record(rec)
         return rec
 
-    def _handle_method_events(self, events: list[str], kt: int) -> None:
-        mon = self.monitor
+    def _handle_method_events(self, sess: TestSession, events: list[str], kt: int) -> None:
+        mon = sess.monitor
         st = self.state
         st.elapsed_s = (kt + 1) * self.ts
         for e in events:
@@ -370,9 +329,8 @@ class Station:
             elif e == "end_of_life":
                 st.state = TestState.END_OF_LIFE
                 st.t_life = mon.k_life * self.ts
-                self._set_alarm("active", t_life=st.t_life)
                 self._emit_event(EventType.END_OF_LIFE, k=kt, k_life=mon.k_life, t_life=st.t_life,
-                                 mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=self.plan.sample_id)
+                                 mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=sess.plan.sample_id)
                 self._push_state()
             elif e == "protection_stop":
                 st.protection_stop = True
@@ -391,8 +349,8 @@ class Station:
             await self.end_test("completed")
 
     def _link_health(self) -> None:
-        m_ok = bool(getattr(self.meter, "connected", False))
-        s_ok = bool(getattr(self.stm32, "connected", False))
+        m_ok = bool(self.meter.connected)
+        s_ok = bool(self.stm32.connected)
         changed = False
         if m_ok != self._meter_was_ok:
             if self._meter_was_ok is not None:
@@ -410,12 +368,14 @@ class Station:
 
     async def run(self, stop: asyncio.Event, max_slots: int | None = None) -> None:
         """Run the slot loop until ``stop`` is set (or ``max_slots`` have passed)."""
+        self._stop_evt = stop
         for d, res in recover_incomplete(self.station_dir):
             self._emit_event(EventType.TEST_ENDED, reason="gateway restart", test_status="aborted",
                              test_dir=d, result=res.get("method"))
         self._restore_alarm()
-        for o in self.outputs:
-            await o.start()
+        await self.fanout.start()
+        if self.reloaded:
+            self._emit_event(EventType.CONFIG_RELOADED)
         await self.meter.open()
         await self.stm32.open()
         # make sure the motor is stopped when the gateway starts
@@ -432,14 +392,15 @@ class Station:
             self.clock = SlotClock(self.ts, t0=now + (self.slot_phase * self.ts - now) % self.ts)
         else:
             self.clock = self.clock_factory(self.ts)
+        clock = self.clock
         k = 0
         last_idle_status = 0.0
         try:
             while not stop.is_set() and (max_slots is None or k < max_slots):
-                lateness = await self.clock.wait_for(k)
+                lateness = await clock.wait_for(k)
                 if lateness > self.ts / 2:
                     # overrun: the slots whose window has passed are MISSING; never shift the grid
-                    k_now = self.clock.slot_at(self.clock.clock())
+                    k_now = clock.slot_at(clock.clock())
                     log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
                                 self.id, k, lateness * 1e3, max(0, k_now - k))
                     for kk in range(k, k_now):
@@ -454,10 +415,11 @@ class Station:
                 self.stats.slots += 1
                 if reading is not None:
                     self.stats.filled += 1
-                    if getattr(reading, "rtt_s", None) is not None:
+                    if reading.rtt_s is not None:
                         self.stats.rtt.append(reading.rtt_s)
                 self._process(k, reading, lateness)
-                if self.monitor is not None and self.monitor.stop_slot is None and not self.monitor.finished:
+                mon = self.monitor
+                if mon is not None and mon.stop_slot is None and not mon.finished:
                     if self._stm32_task is None or self._stm32_task.done():
                         self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
                     else:
@@ -474,7 +436,7 @@ class Station:
                     self._push_state()
                 k += 1
         finally:
-            if self.monitor is not None:
+            if self.session is not None:
                 await self.end_test("gateway shutdown")
             if self._stm32_task is not None:
                 try:
@@ -484,9 +446,5 @@ class Station:
             await self._safe_stm32(self.stm32.stop("gateway shutdown"))
             await self.meter.close()
             await self.stm32.close()
-            for o in self.outputs:
-                try:
-                    await o.stop()
-                except Exception:
-                    log.exception("%s: output %r failed to stop", self.id, o)
+            await self.fanout.stop()
             log.info("%s: slot stats %s", self.id, self.stats.summary())

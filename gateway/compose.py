@@ -1,0 +1,51 @@
+"""The composition root: drivers, stations and outputs built from configuration, in one place.
+
+Nothing else in hookwatch wires parts together: the station knows its ports and outputs only by
+their contracts (``gateway/ports.py``), the drivers know nothing of the station, the northbound
+outputs know the station only as a command sink and a state source. ``hookwatch run`` and
+``hookwatch demo`` call :func:`build_station`; a new output or meter type is added here.
+"""
+from __future__ import annotations
+
+from drivers.stm32 import Stm32Link
+from drivers.zns import ZnsMeter
+
+from .northbound.wiring import outputs_for
+from .ports import MeterPort, Output, Stm32Port
+from .station.build import (control_params, default_plan, method_values, records_dir_ok,
+                            station_limits)
+from .station.station import Station
+
+__all__ = ["build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok"]
+
+
+def build_meter(cfg) -> MeterPort:
+    """The tension meter of the ``meter:`` section (a ZN-S over Modbus RTU)."""
+    return ZnsMeter.from_config(cfg.meter)
+
+
+def build_stm32(cfg) -> Stm32Port:
+    """The take-up motor controller of the ``stm32:`` section."""
+    return Stm32Link.from_config(cfg.stm32)
+
+
+def northbound_outputs(cfg, station: Station) -> list[Output]:
+    """MQTT and Modbus TCP, as the ``mqtt:`` and ``modbus_tcp:`` sections enable them."""
+    return list(outputs_for(cfg, station))
+
+
+def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: bool = True) -> Station:
+    """One station from its configuration: drivers, method, control, limits and outputs."""
+    mv = method_values(cfg)
+    ts = float(mv.get("ts", 0.02))
+    st = Station(
+        station_id=cfg.station.id, method=mv, control=control_params(cfg, ts),
+        meter=build_meter(cfg), stm32=build_stm32(cfg), records_dir=cfg.recorder.dir,
+        swap_channels=bool(cfg.meter.swap_channels), outputs=list(outputs or []),
+        flush_interval_s=float(cfg.recorder.flush_interval_s), default_plan=default_plan(cfg),
+        autostart=bool(cfg.test.autostart), limits=station_limits(cfg, mv),
+        identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
+    )
+    if with_northbound:
+        st.outputs.extend(northbound_outputs(cfg, st))
+    return st

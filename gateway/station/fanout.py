@@ -1,0 +1,81 @@
+"""The station's fan-out: every slot record, event and state change goes to every output, in order.
+
+Like python-can's ``Notifier`` with its ``Listener`` objects: the slot loop hands each item to
+:class:`Fanout` once, and the fan-out calls each output (:class:`gateway.ports.Output`). One
+failing output never stops the station or the other outputs: its first failure is logged with
+its traceback, later ones are only counted (:attr:`Fanout.failures`), and the count is logged
+when the station stops.
+"""
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from typing import Sequence
+
+from ..ports import Output
+from ..records import Event, SlotRecord, StationState
+
+log = logging.getLogger("hookwatch.station")
+
+
+class Fanout:
+    """Calls ``head`` (the station's own listeners, e.g. its recorder) then ``outputs`` (a list
+    that may grow until the station starts)."""
+
+    def __init__(self, station_id: str, outputs: list[Output], head: Sequence[Output] = ()) -> None:
+        self.station_id = station_id
+        self.outputs = outputs
+        self.head = tuple(head)
+        self.failures: Counter[str] = Counter()
+
+    def all(self) -> list[Output]:
+        return [*self.head, *self.outputs]
+
+    def _failed(self, o: Output, what: str) -> None:
+        key = f"{type(o).__name__}.{what}"
+        self.failures[key] += 1
+        if self.failures[key] == 1:
+            log.exception("%s: output %r failed on %s (an output never stops the station; further "
+                          "failures are counted)", self.station_id, o, what)
+
+    def record(self, rec: SlotRecord) -> None:
+        for o in self.head:
+            try:
+                o.on_record(rec)
+            except Exception:
+                self._failed(o, "record")
+        for o in self.outputs:
+            try:
+                o.on_record(rec)
+            except Exception:
+                self._failed(o, "record")
+
+    def event(self, ev: Event) -> None:
+        for o in self.all():
+            try:
+                o.on_event(ev)
+            except Exception:
+                self._failed(o, "event")
+
+    def state(self, st: StationState) -> None:
+        for o in self.all():
+            try:
+                o.on_state(st)
+            except Exception:
+                self._failed(o, "state")
+
+    async def start(self) -> None:
+        """Start every output. An output that cannot start raises: the station does not run
+        half-wired (its supervisor logs it and restarts the station after a back-off)."""
+        for o in self.all():
+            await o.start()
+
+    async def stop(self) -> None:
+        for o in self.all():
+            try:
+                await o.stop()
+            except Exception:
+                self._failed(o, "stop")
+        if self.failures:
+            log.error("%s: output failures: %s", self.station_id,
+                      ", ".join(f"{k} ×{n}" for k, n in sorted(self.failures.items())))

@@ -1,0 +1,217 @@
+"""The import graph of gateway/ and drivers/, read from the source (AST): no package cycles, no
+hidden imports.
+
+- Every import of the project's own modules is at module level (the one exception: gateway/cli.py
+  loads the subcommand asked for with ``importlib``, which is not an ``import`` statement).
+- No ``try: import … except ImportError`` around the project's own modules.
+- The packages form no cycle. A node is a subpackage (``gateway.station``, ``drivers.sim``) or a
+  module directly in ``gateway/`` or ``drivers/`` (``gateway.records``, ``drivers.zns``).
+- Layers: ``drivers`` sit on gateway's pure core only (``gateway.ports``, ``gateway.records``,
+  ``gateway.method``, ``gateway.control``), and that core imports nothing else of the project, so
+  gateway's runtime → drivers → pure core never closes a cycle.
+"""
+from __future__ import annotations
+
+import ast
+import os
+from collections import defaultdict
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PACKAGES = ("gateway", "drivers")
+PURE_CORE = ("gateway.ports", "gateway.records", "gateway.method", "gateway.control")
+
+
+def _modules() -> dict[str, str]:
+    out = {}
+    for pkg in PACKAGES:
+        for d, _, files in os.walk(os.path.join(ROOT, pkg)):
+            for f in files:
+                if f.endswith(".py"):
+                    path = os.path.join(d, f)
+                    rel = os.path.relpath(path, ROOT)[:-3].replace(os.sep, ".")
+                    out[rel[:-len(".__init__")] if rel.endswith(".__init__") else rel] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _is_pkg(mod: str) -> bool:
+    return MODULES.get(mod, "").endswith("__init__.py")
+
+
+def _resolve(mod: str, node: ast.ImportFrom | ast.Import) -> list[str]:
+    """The project modules an import statement names (empty for third-party ones)."""
+    names: list[str] = []
+    if isinstance(node, ast.Import):
+        names = [a.name for a in node.names]
+    else:
+        if node.level:
+            base = mod.split(".") if _is_pkg(mod) else mod.split(".")[:-1]
+            base = base[:len(base) - (node.level - 1)]
+            prefix = ".".join(base + ([node.module] if node.module else []))
+        else:
+            prefix = node.module or ""
+        names = [prefix]
+        for a in node.names:          # `from . import schema` imports a module
+            if f"{prefix}.{a.name}" in MODULES:
+                names.append(f"{prefix}.{a.name}")
+    return [n for n in names if n.split(".")[0] in PACKAGES]
+
+
+def _node(mod: str) -> str:
+    """The graph node of a module: its subpackage, or itself when it sits in a top package."""
+    parts = mod.split(".")
+    if len(parts) >= 2 and _is_pkg(".".join(parts[:2])):
+        return ".".join(parts[:2])
+    return mod
+
+
+class _Scan(ast.NodeVisitor):
+    def __init__(self, mod: str):
+        self.mod = mod
+        self.depth = 0
+        self.edges: set[str] = set()
+        self.hidden: list[str] = []
+        self.guarded: list[str] = []
+
+    def _imp(self, node: ast.Import | ast.ImportFrom) -> None:
+        targets = _resolve(self.mod, node)
+        self.edges.update(targets)
+        if targets and self.depth:
+            self.hidden.append(f"{self.mod}:{node.lineno} imports {', '.join(targets)} inside a function")
+
+    visit_Import = visit_ImportFrom = _imp
+
+    def _scope(self, node: ast.AST) -> None:
+        self.depth += 1
+        self.generic_visit(node)
+        self.depth -= 1
+
+    visit_FunctionDef = visit_AsyncFunctionDef = visit_Lambda = _scope
+
+    def visit_Try(self, node: ast.Try) -> None:
+        catches = set()
+        for h in node.handlers:
+            for n in ([h.type] if not isinstance(h.type, ast.Tuple) else h.type.elts) if h.type else []:
+                if isinstance(n, ast.Name):
+                    catches.add(n.id)
+        if catches & {"ImportError", "ModuleNotFoundError"}:
+            for stmt in node.body:
+                for sub in ast.walk(stmt):
+                    if isinstance(sub, (ast.Import, ast.ImportFrom)) and _resolve(self.mod, sub):
+                        self.guarded.append(f"{self.mod}:{sub.lineno}")
+        self.generic_visit(node)
+
+
+def _scan() -> dict[str, _Scan]:
+    out = {}
+    for mod, path in sorted(MODULES.items()):
+        with open(path, encoding="utf-8") as f:
+            tree = ast.parse(f.read(), path)
+        s = _Scan(mod)
+        s.visit(tree)
+        out[mod] = s
+    return out
+
+
+SCANS = _scan()
+
+
+def _graph() -> dict[str, set[str]]:
+    g: dict[str, set[str]] = defaultdict(set)
+    for mod, s in SCANS.items():
+        a = _node(mod)
+        for t in s.edges:
+            # a name imported from a package may be one of its modules: resolve to a known module
+            while t not in MODULES and "." in t:
+                t = t.rsplit(".", 1)[0]
+            b = _node(t)
+            if a != b and t in MODULES:
+                g[a].add(b)
+    return g
+
+
+def _cycles(g: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one node (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+    counter = [0]
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in g.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(set(g) | {w for ws in g.values() for w in ws}):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def _in(mod: str, prefixes: tuple[str, ...]) -> bool:
+    return any(mod == p or mod.startswith(p + ".") for p in prefixes)
+
+
+def test_the_scan_sees_the_project():
+    g = _graph()
+    assert "gateway.station" in g and "gateway.northbound" in g and len(MODULES) > 50
+    assert "gateway.records" in g["gateway.station"]
+
+
+def test_no_package_cycles():
+    assert _cycles(_graph()) == []
+
+
+def test_no_function_level_imports_of_project_modules():
+    hidden = [h for s in SCANS.values() for h in s.hidden]
+    assert hidden == []
+
+
+def test_no_import_error_guards_around_project_modules():
+    assert [g for s in SCANS.values() for g in s.guarded] == []
+
+
+def test_drivers_sit_on_the_pure_core_only():
+    bad = [f"{m} → {t}" for m, s in SCANS.items() if m.startswith("drivers")
+           for t in s.edges if t.startswith("gateway") and not _in(t, PURE_CORE)]
+    assert bad == []
+
+
+def test_the_pure_core_imports_nothing_else_of_the_project():
+    bad = [f"{m} → {t}" for m, s in SCANS.items() if _in(m, PURE_CORE)
+           for t in s.edges if not _in(t, PURE_CORE) and t != "gateway"]
+    assert bad == []
+
+
+def test_the_scanner_flags_what_it_should(tmp_path):
+    """The rules themselves, on a small synthetic module."""
+    src = ("import os\nfrom gateway import records\n"
+           "try:\n    from gateway.northbound import wiring\nexcept ImportError:\n    wiring = None\n"
+           "def f():\n    from .station import build\n    import json\n    return build, json\n")
+    s = _Scan("gateway.fake")
+    s.visit(ast.parse(src))
+    assert "gateway.records" in s.edges and "gateway.northbound.wiring" in s.edges
+    assert s.hidden == ["gateway.fake:8 imports gateway.station, gateway.station.build inside a function"]
+    assert s.guarded == ["gateway.fake:4"]
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
