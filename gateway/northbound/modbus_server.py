@@ -38,7 +38,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..ports import StationLimits
+from ..ports import CommandSink, StationLimits
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
 from ..threadloop import submit_to
 from ..station.commands import CODE, check_sample_id
@@ -378,6 +378,8 @@ class ModbusOutput:
         self.s = settings
         self.station_id = settings.station_id
         self.station = station
+        #: where commands go (a CommandSource bound to its CommandSink: the station)
+        self.sink: CommandSink | None = station
         self.writes_enabled = bool(settings.writes_enabled)
         self.allowed_clients = frozenset(str(a) for a in settings.allowed_clients)
         self.word_order = settings.word_order
@@ -402,6 +404,12 @@ class ModbusOutput:
         self._elapsed = 0.0
         self._slots = self._valid = 0
         self._counts = [0] * len(REASONS)
+
+    source = "plc"
+
+    def bind(self, sink: CommandSink) -> None:
+        """Send the PLC's commands to ``sink`` (gateway.ports.CommandSource)."""
+        self.sink = sink
 
     # -- output protocol (station loop)
     async def start(self) -> None:
@@ -538,7 +546,7 @@ class ModbusOutput:
         return None
 
     async def _submit(self, cmd: Command, code: int, u: Unit) -> bool:
-        st, loop = self.station, self.loop
+        st, loop = self.sink, self.loop
         result = CODE["NO_STATION"]
         ok = False
         fut = submit_to(loop, st.submit(cmd)) if st is not None else None

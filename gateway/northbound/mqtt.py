@@ -23,6 +23,7 @@ import logging
 import time
 from typing import Any
 
+from ..ports import CommandSink
 from ..records import Event, EventType, SlotRecord, StationState
 from ..station.alarms import AlarmStore
 from ..station.commands import CODE, Rejection, command_from_mapping
@@ -49,6 +50,8 @@ class MqttOutput:
                  alarms: AlarmStore | None = None) -> None:
         self.s = settings
         self.station = station
+        #: where commands go (a CommandSource bound to its CommandSink: the station)
+        self.sink: CommandSink | None = station
         self.loop: asyncio.AbstractEventLoop | None = None
         #: the one alarm store: the station's; an output on its own keeps one in memory and feeds it
         self._own_alarms = alarms is None and station is None
@@ -62,6 +65,12 @@ class MqttOutput:
         self._last_state: StationState | None = None
         self._last_state_key: tuple[Any, ...] | None = None
         self._last_state_pub = 0.0
+
+    source = "mqtt"
+
+    def bind(self, sink: CommandSink) -> None:
+        """Send the commands received on ``cmd/…`` to ``sink`` (gateway.ports.CommandSource)."""
+        self.sink = sink
 
     @property
     def outbox(self) -> Outbox:
@@ -145,8 +154,8 @@ class MqttOutput:
         if isinstance(cmd, Rejection):
             self._reply(name, cmd.request_id, cmd)
             return
-        st = self.station
-        fut = submit_to(self.loop, st.submit(cmd)) if st is not None else None
+        sink = self.sink
+        fut = submit_to(self.loop, sink.submit(cmd)) if sink is not None else None
         if fut is None:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
                                                         CODE["NO_STATION"]))
