@@ -507,7 +507,7 @@ class ModbusOutput:
         u.ir = img[:CMD_BASE]
 
     def _initial_holding(self) -> list[int]:
-        plan = getattr(self.station, "default_plan", None)
+        plan = self.station.default_plan if self.station is not None else None
         v: dict[str, Any] = {"command": 0, "t_end": 0}
         if plan is not None:
             v["t_set"] = plan.t_set
