@@ -57,9 +57,9 @@ def random_log(draw):
             t1[sl] = draw(st.sampled_from([math.nan, math.inf]))
     t1[~present] = np.nan
     t2[~present] = np.nan
-    if p.end_slot is not None:
+    if p.n_grid is not None:
         # a planned end: the log may stop early (the rest is MISSING) or run past it (ignored)
-        m = p.end_slot
+        m = p.n_grid
         if n >= m:
             present, t1, t2 = present[:m], t1[:m], t2[:m]
         else:

@@ -170,7 +170,7 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
               t1: np.ndarray, t2: np.ndarray, p, result: dict) -> Fig7Data:
     """Decimate one analysed test for Fig. 7. ``mask``/``mu``/``ratio`` from the method core's
     gating (cut at a protection stop), ``t1``/``t2`` on the slot grid (NaN where absent)."""
-    n_grid = max(t1.size, mask.size, p.end_slot or 0)
+    n_grid = max(t1.size, mask.size, p.n_grid or 0)
     span = max(n_grid * ts, ts)
     unit, scale = time_unit(span)
     x_end = span / scale
