@@ -82,3 +82,44 @@ def test_set_overrides_sidecar():
     exp = expected("v1_failure")
     assert got["mu_ss"] == pytest.approx(exp["mu_ss"], abs=1e-12)
     assert got["mu_th"] == pytest.approx(1.5 * exp["mu_ss"], abs=1e-12)
+
+
+def test_streamed_windows_match_the_vector_figures():
+    """What the runtime publishes per window (SlotOut.window) ends at the result's figures."""
+    log = read_log(os.path.join(VECTORS, "v1_failure.csv.gz"))
+    p = params_for(log.meta, {}, "v1")
+    s = to_slots(log.t, log.t1, log.t2, p)
+    from gateway.method import StreamingMonitor
+    mon = StreamingMonitor(p)
+    wins, warned = [], []
+    for k in range(s.present.size):
+        out = mon.push(bool(s.present[k]), float(s.t1[k]), float(s.t2[k]))
+        if out.window is not None:
+            wins.append(out.window)
+        if "wear_warning" in out.events:
+            warned.append(k)
+    exp = expected("v1_failure")
+    assert warned == [exp["warn_slot"]]
+    assert wins[0].j == (exp["k_b"] + 1) // p.n_ss
+    assert abs(wins[-1].headroom - exp["headroom"]) <= 1e-9
+    assert any(w.t_cross is not None for w in wins) and wins[-1].t_cross is None
+
+
+def test_set_end_slot_and_warning_parameters_on_the_command_line():
+    log = os.path.join(VECTORS, "v1_failure.csv.gz")
+    exp = expected("v1_failure")
+    runs = {}
+    for end in (100000, 170000):
+        p = subprocess.run(hookwatch_cmd() + ["analyze", log, "--json", "--set", f"end_slot={end}",
+                                              "--set", "h_warn=0.9", "--set", "n_warn=2"],
+                           capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stderr
+        runs[end] = json.loads(p.stdout)
+    got = runs[100000]       # stopped before the end of life
+    assert (got["status"], got["stop_slot"], got["stop_reasons"], got["n_slots"], got["interrupted"]) == \
+        ("aborted", 100000, ["STOPPED"], 100000, False)
+    got = runs[170000]       # stopped after t_life: stays a failure, interrupted
+    assert (got["status"], got["stop_slot"], got["stop_reasons"], got["interrupted"], got["k_life"]) == \
+        ("failure", 170000, ["STOPPED"], True, exp["k_life"])
+    # a higher h_warn and a shorter run warn earlier than the vector's defaults
+    assert got["warn_slot"] is not None and got["warn_slot"] < exp["warn_slot"]
