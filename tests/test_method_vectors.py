@@ -123,3 +123,19 @@ def test_set_end_slot_and_warning_parameters_on_the_command_line():
         ("failure", 170000, ["STOPPED"], True, exp["k_life"])
     # a higher h_warn and a shorter run warn earlier than the vector's defaults
     assert got["warn_slot"] is not None and got["warn_slot"] < exp["warn_slot"]
+
+
+def test_cli_table_shows_headroom_warning_projection_and_stopped():
+    logs = [os.path.join(VECTORS, n + ".csv.gz") for n in ("v1_failure", "v3_no_failure", "v5_stopped")]
+    p = subprocess.run(hookwatch_cmd() + ["analyze", *logs], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    head = p.stdout.splitlines()[0].split()
+    assert head[-3:] == ["headroom", "warn_s", "t_cross_s"]
+    rows = {ln.split()[0]: ln.split() for ln in p.stdout.splitlines()[1:4]}
+    v1, v3, v5 = (rows[x] for x in logs)
+    assert v1[-3:] == ["-0.496", "3120.00", "-"]          # warning at the end of slot 155999
+    assert v3[-3:] == ["1.001", "-", "80836"]
+    assert v5[-3:] == ["0.986", "-", "-"] and v5[1] == "aborted"
+    assert "early warning at 3120.00 s (slot 155999)" in p.stdout
+    assert "reaches mu_th at 80836 s (22.5 h" in p.stdout
+    assert "ended on purpose at slot 125000 (STOPPED)" in p.stdout
