@@ -138,7 +138,7 @@ class StartSequence:
             t = f"{p.start_timeout:g} s"
             if not self._recent:
                 return self._fail(f"no tension after {t}: no readings from the meter")
-            mean = sum(self._recent) / len(self._recent)
+            mean = round(sum(self._recent) / len(self._recent), 2) + 0.0    # never "-0.00"
             what = "no tension" if mean < self._lo else "tension not settled"
             return self._fail(f"{what} after {t}: T̄ {mean:.2f} N (T_set {p.t_set:g} N "
                               f"± {p.settle_band * p.t_set:g} N)")
