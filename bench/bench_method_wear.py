@@ -9,25 +9,31 @@ import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.dirname(HERE))
 
-from gen_long_log import generate  # noqa: E402
+
+def long_log_slots():
+    """The 10-hour log on its slot grid, with its parameters (written once by gen_long_log)."""
+    sys.path[:0] = [os.path.dirname(HERE), HERE]
+    from gateway.analysis import params_for
+    from gateway.logio import read_log
+    from gateway.method import to_slots
+    from gen_long_log import generate
+
+    path = os.path.join(HERE, "data", "long10h.csv.gz")
+    if not os.path.exists(path):
+        generate(path)
+    lg = read_log(path)
+    prm = params_for(lg.meta, {}, path)
+    return prm, to_slots(lg.t, lg.t1, lg.t2, prm)
 
 
 def main(runs: int = 3) -> None:
+    prm, s = long_log_slots()
     import numpy as np
 
-    from gateway.analysis import params_for
-    from gateway.logio import read_log
-    from gateway.method import StreamingMonitor, analyze_slots, to_slots
+    from gateway.method import StreamingMonitor, analyze_slots
     from gateway.method.wear import WearTracker
 
-    log = os.path.join(HERE, "data", "long10h.csv.gz")
-    if not os.path.exists(log):
-        generate(log)
-    lg = read_log(log)
-    prm = params_for(lg.meta, {}, log)
-    s = to_slots(lg.t, lg.t1, lg.t2, prm)
     pr, a, b = s.present.tolist(), s.t1.tolist(), s.t2.tolist()
     n = len(pr)
     per, worst, window_slot = [], [], []
