@@ -213,3 +213,20 @@ def test_new_parameters_parse_from_strings_yaml_and_reject_nonsense():
                        ({"zero_tol": 0}, "zero_tol")):
         with pytest.raises(ParamError, match=words):
             build_params({"t_set": 0.5, **bad})
+
+
+def test_streaming_stop_matches_the_batch_form_before_and_after_t_end():
+    present, a, b = steady(400)
+    for end in (120, 250, 300):     # t_end is 200 slots: before, after, and past the log
+        p_on = MethodParams(**P, t_end=4.0)
+        p_off = MethodParams(**P, t_end=4.0, end_slot=end)
+        mon = StreamingMonitor(p_on)
+        for k in range(min(end, 200)):
+            mon.push(True, float(a[k]), float(b[k]))
+        s = to_slots(np.arange(400) * 0.02, a, b, p_off)
+        # the stop may come after t_end only if the runtime kept the test going; then the slots
+        # between t_end and end_slot are MISSING online (nothing was pushed) and offline alike
+        offline = analyze_slots(SlotArrays(s.present & (np.arange(s.present.size) < min(end, 200)),
+                                           s.t1, s.t2), p_off)
+        assert mon.stop(end).as_dict() == offline.as_dict()
+        assert offline.n_slots == end and offline.stop_reasons == ["STOPPED"]

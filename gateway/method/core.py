@@ -301,8 +301,8 @@ class StreamingMonitor:
             end_slot = self.k
         if end_slot < self.k:
             raise ValueError(f"end_slot {end_slot} < {self.k} slots already analysed")
-        if self._end is None or end_slot < self._end:
-            self._end = end_slot
+        if self.stop_slot is None:
+            self._end = end_slot          # exactly end_slot slots; t_end adds nothing (§3)
         self._end_slot = end_slot
         return self.close()
 
