@@ -136,8 +136,9 @@ def run(args) -> int:
                     name=e.name if multi else None))
         except ScenarioError as e:
             raise CliError(str(e)) from None
+        # one scenario (also --count): its duration_s; a fleet file of several: until stopped
         duration = args.duration if args.duration is not None else (
-            entries[0].scenario.duration_s if not multi else None)
+            entries[0].scenario.duration_s if fleet_data is None else None)
         try:
             asyncio.run(_main(stations, duration, multi))
         except OSError as e:
