@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Issue 16: a virtual fleet that fits on the box. ``hookwatch sim --count N`` (one process, N
 virtual stations: plant, meter, STM32) polled like N gateways would: every 20 ms one 4-register
-read from each meter and one STM32 frame (READ_STATUS) on each STM32 link, all stations in the same
-slot (the worst case for the meters' reply writer: every reply due at about the same moment).
+read from each meter and one STM32 frame (READ_STATUS) on each STM32 link; station i polls at
+i·20 ms/N into the slot, as a fleet gateway spreads its stations' deadlines (``--same-instant``:
+all at the slot start, the worst case: every reply due at about the same moment).
 
 Prints per N: the simulator's CPU (utime + stime from /proc over the window) per station, the
 meters' own reply lateness (write time − due time, from the sim's stop events: p50 / p99 / max over
@@ -41,7 +42,7 @@ def cpu_s(pid: int) -> float:
     return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_one(n: int, duration: float, baud: int) -> dict:
+def run_one(n: int, duration: float, baud: int, same_instant: bool = False) -> dict:
     exe = os.path.join(os.path.dirname(sys.executable), "hookwatch")
     with tempfile.TemporaryDirectory(prefix="bench-sim-") as tmp:
         ev = os.path.join(tmp, "events.jsonl")
@@ -68,22 +69,21 @@ def run_one(n: int, duration: float, baud: int) -> dict:
         seq = 0
         time.sleep(0.5)
         c0, w0 = cpu_s(p.pid), time.monotonic()
-        t_next = time.monotonic()
-        end = t_next + duration
-        while t_next < end:
-            t_next += 0.02
-            seq = (seq + 1) & 0xFF
-            t0 = {}
-            bufs = {}
-            for nm in names:
-                meters[nm].reset_input_buffer()        # a reply that missed its slot is dropped
-                t0[nm] = time.perf_counter()
-                os.write(meters[nm].fileno(), REQ)
-                os.write(stms[nm].fileno(), sp.req_read_status(seq))
-                bufs[nm] = b""
-            pending = set(names)
-            while pending and time.monotonic() < t_next:
-                for key, _ in sel.select(max(0.0, t_next - time.monotonic())):
+        t_slot = time.monotonic()
+        end = t_slot + duration
+        # station i polls at offset i·Ts/N in the slot (as a fleet gateway spreads its stations'
+        # deadlines), or all at the slot start with --same-instant
+        offs = [0.0 if same_instant else 0.02 * i / len(names) for i in range(len(names))]
+        t0: dict[str, float] = {}
+        bufs: dict[str, bytes] = {}
+        pending: set[str] = set()
+
+        def collect(until: float) -> None:
+            while True:
+                rem = until - time.monotonic()
+                if rem <= 0:
+                    return
+                for key, _ in sel.select(rem):
                     kind, nm = key.data
                     data = os.read(key.fd, 256)
                     if kind == "m" and nm in pending:
@@ -91,7 +91,20 @@ def run_one(n: int, duration: float, baud: int) -> dict:
                         if len(bufs[nm]) >= REPLY_LEN:
                             rtimes.append(time.perf_counter() - t0[nm])
                             pending.discard(nm)
-            time.sleep(max(0.0, t_next - time.monotonic()))
+
+        while t_slot < end:
+            seq = (seq + 1) & 0xFF
+            for i, nm in enumerate(names):
+                collect(t_slot + offs[i])
+                pending.discard(nm)                    # a reply that missed its slot is dropped
+                meters[nm].reset_input_buffer()
+                bufs[nm] = b""
+                pending.add(nm)
+                t0[nm] = time.perf_counter()
+                os.write(meters[nm].fileno(), REQ)
+                os.write(stms[nm].fileno(), sp.req_read_status(seq))
+            t_slot += 0.02
+        collect(t_slot + 0.02)
         c1, w1 = cpu_s(p.pid), time.monotonic()
         sel.close()
         for s in list(meters.values()) + list(stms.values()):
@@ -128,10 +141,12 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--runs", type=int, default=1)
     ap.add_argument("--baud", type=int, default=115200)
+    ap.add_argument("--same-instant", action="store_true",
+                    help="poll every station at the slot start (worst case) instead of spread")
     a = ap.parse_args()
     print(f"load average before: {os.getloadavg()[0]:.2f}")
     for n in a.counts:
-        rs = [run_one(n, a.duration, a.baud) for _ in range(a.runs)]
+        rs = [run_one(n, a.duration, a.baud, a.same_instant) for _ in range(a.runs)]
         med = {k: statistics.median(r[k] for r in rs) for k in rs[0]}
         print(f"N={n:2d}: sim CPU {med['cpu_per_station_pct']:.2f} % of a core per station "
               f"({med['cpu_total_pct']:.1f} % total) [goal ≤ 2 %]; meter reply lateness p50 "

@@ -8,7 +8,8 @@ virtual meter in it: it sleeps in the kernel (a monotonic timed wait with 1 µs 
 ``WAKE_EARLY_S`` before the due time and spins only that last bit, so a reply lands within a
 fraction of a millisecond without burning a core (the asyncio loop's timers are 1 ms coarse; a
 busy-wait of 1.5 ms per reply cost 7–10 % of a core per meter). The tensions are sampled from ``source()`` at the moment
-the request has completed on the simulated wire.
+the request has completed on the simulated wire, or up to ``SAMPLE_EARLY_S`` (1 ms) before it
+(the plant steps 2 ms; this keeps the event loop's timer granularity out of the reply timing).
 
 Framing: function codes 3, 4 and 6 are 8 bytes, 16 is 9 + byte count; anything else is framed by
 the 3.5-character silence (1.75 ms above 19200 baud). Frames with a bad CRC or for another unit are
@@ -42,7 +43,8 @@ from .pty import PtyLink
 
 log = logging.getLogger("hookwatch.sim.meter")
 
-WAKE_EARLY_S = 0.00015  # the writer thread wakes this early from its kernel sleep and spins the rest
+WAKE_EARLY_S = 0.00002  # the writer thread wakes this early from its kernel sleep and spins the rest
+SAMPLE_EARLY_S = 0.001   # the values may be sampled this much before the request's end on the wire
 ON_TIME_S = 0.0003       # a reply later than this counts as late
 REALTIME_PRIORITY = 10      # SCHED_FIFO priority of the reply writer where permitted
 SWITCH_INTERVAL_S = 0.0002  # GIL hand-over bound in a process that hosts virtual meters
@@ -326,7 +328,14 @@ class VirtualMeter:
         if self.faults.drop_replies:
             self.counters["dropped"] += 1
             return
-        self._call_at(t_req_end, self._sample, t_req_end, what)
+        # sampled up to SAMPLE_EARLY_S before the request completes on the simulated wire (at
+        # 115200 baud at once): the loop's timers are ~1 ms coarse and a busy loop may be later
+        # still, and the reply is due only turnaround + reply wire time after this moment
+        when = t_req_end - SAMPLE_EARLY_S
+        if when <= time.monotonic():
+            self._sample(t_req_end, what)
+        else:
+            self._call_at(when, self._sample, t_req_end, what)
 
     def _call_at(self, when: float, fn, *args) -> None:
         h: asyncio.TimerHandle
