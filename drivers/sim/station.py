@@ -137,7 +137,10 @@ class SimStation:
         return self.plant.tensions()
 
     # ------------------------------------------------------------------ lifecycle
-    async def start(self) -> None:
+    async def start(self, shared_tick: bool = False) -> None:
+        """Start the devices and the background tasks. ``shared_tick``: no tasks of its own for
+        the plant stepping and the STM32 firmware tick; the caller calls :meth:`tick` every
+        ``TICK_S`` (run_fleet: one task for all stations, not 2 wake-ups per station)."""
         from .meter import VirtualMeter
         from .stm32 import Stm32Firmware, VirtualStm32
 
@@ -154,13 +157,14 @@ class SimStation:
                                   os.path.join(self.link_dir, "stm32"),
                                   baud=self.scenario.stm32_baud, tick_s=STM32_TICK_S)
         await self.meter.start()
-        await self.stm32.start()
+        await self.stm32.start(own_ticker=not shared_tick)
         self._write_truth()
         self._event("start", meter=self.meter.device, stm32=self.stm32.device,
                      link_dir=self.link_dir, seed=self.seed, scenario=self.scenario.path,
                      baud=self.meter_map.baud, t0_monotonic=self.t0)
         loop = asyncio.get_running_loop()
-        self._tasks.append(loop.create_task(self._stepper()))
+        if not shared_tick:
+            self._tasks.append(loop.create_task(self._stepper()))
         if self.scenario.faults:
             self._tasks.append(loop.create_task(self._timeline()))
 
@@ -196,18 +200,27 @@ class SimStation:
     # ------------------------------------------------------------------ background
     async def _stepper(self) -> None:
         while True:
-            self.plant.advance_to(self.now())
-            p = self.plant
-            if not self._seen_first_run and p.first_run_t is not None:
-                self._seen_first_run = True
-                self._event("yarn_running", at=p.first_run_t)
-                self._write_truth()
-            if not self._seen_onset and p.onset_t is not None:
-                self._seen_onset = True
-                self._event("wear_onset", at=p.onset_t, wear_s=p.profile.onset_s)
-                self._write_truth()
-            self._flush_trace()
+            self._step()
             await asyncio.sleep(TICK_S)
+
+    def tick(self) -> None:
+        """The shared-tick form of the background work (see :meth:`start`)."""
+        self._step()
+        if self.stm32 is not None:
+            self.stm32.tick()
+
+    def _step(self) -> None:
+        self.plant.advance_to(self.now())
+        p = self.plant
+        if not self._seen_first_run and p.first_run_t is not None:
+            self._seen_first_run = True
+            self._event("yarn_running", at=p.first_run_t)
+            self._write_truth()
+        if not self._seen_onset and p.onset_t is not None:
+            self._seen_onset = True
+            self._event("wear_onset", at=p.onset_t, wear_s=p.profile.onset_s)
+            self._write_truth()
+        self._flush_trace()
 
     def _flush_trace(self, force: bool = False) -> None:
         if self._trace_w is None:
@@ -327,10 +340,14 @@ async def run_fleet(stations: list[SimStation], stop: asyncio.Event, duration_s:
     run until ``stop`` is set or ``duration_s`` passed, stop them all (also after a failed start).
     The meters share one reply-writer thread (drivers/sim/meter.py)."""
     started: list[SimStation] = []
+    shared = len(stations) > 1
+    ticker = None
     try:
         for st in stations:
-            await st.start()
+            await st.start(shared_tick=shared)
             started.append(st)
+        if shared:
+            ticker = asyncio.get_running_loop().create_task(_tick_all(stations))
         if on_ready is not None:
             on_ready(stations)
         if duration_s is not None:
@@ -341,8 +358,30 @@ async def run_fleet(stations: list[SimStation], stop: asyncio.Event, duration_s:
         else:
             await stop.wait()
     finally:
+        if ticker is not None:
+            ticker.cancel()
+            try:
+                await ticker
+            except asyncio.CancelledError:
+                pass
         for st in reversed(started):
             await st.stop()
+
+
+async def _tick_all(stations: list[SimStation]) -> None:
+    """One task ticks every station of a fleet each TICK_S (plant stepping, STM32 firmware)."""
+    loop = asyncio.get_running_loop()
+    t = loop.time()
+    while True:
+        t += TICK_S
+        await asyncio.sleep(max(0.0, t - loop.time()))
+        for st in stations:
+            try:
+                st.tick()
+            except Exception:                       # noqa: BLE001 — one station, not the fleet
+                log.exception("sim station %s: tick failed", st.name)
+        if loop.time() - t > 10 * TICK_S:
+            t = loop.time()                         # fell far behind (host stalled): no burst
 
 
 # ---------------------------------------------------------------------------------- fleets
