@@ -213,19 +213,27 @@ class ZnsMeter:
         self._start_reopen()
 
     # ------------------------------------------------------------------ receiving
-    def _on_readable(self) -> None:
+    def _read_chunk(self, readable: bool) -> bytes:
+        """What the OS holds for us now (b'' if nothing); a read error is the port going away,
+        and so is an empty read when the loop said the port is readable (hang-up). (With VMIN 0,
+        as pyserial sets it, an empty read otherwise just means no data.)"""
         fd = self._fd
         if fd is None:
-            return
+            return b""
         try:
             data = os.read(fd, 256)
         except BlockingIOError:
-            return
+            return b""
         except OSError as e:
             self._port_lost(e)
-            return
-        if not data:
+            return b""
+        if not data and readable:
             self._port_lost("end of file")
+        return data
+
+    def _on_readable(self) -> None:
+        data = self._read_chunk(True)
+        if not data:
             return
         if not self._pending:
             self.counters["late_bytes"] += 1
@@ -250,17 +258,7 @@ class ZnsMeter:
 
     def _drain(self) -> None:
         """Discard what the OS holds for us (a late reply), counting it as late bytes."""
-        fd = self._fd
-        while fd is not None:
-            try:
-                data = os.read(fd, 256)
-            except BlockingIOError:
-                return
-            except OSError as e:
-                self._port_lost(e)
-                return
-            if not data:
-                return
+        while self._read_chunk(False):
             self.counters["late_bytes"] += 1
 
     # ------------------------------------------------------------------ reading

@@ -82,6 +82,15 @@ def poll_all(ports, cycles):
     return out
 
 
+def poll_links(sim, names, cycles):
+    ports = {n: serial.Serial(sim.link(n, "meter"), 115200, timeout=0.2) for n in names}
+    try:
+        return poll_all(ports, cycles)
+    finally:
+        for s in ports.values():
+            s.close()
+
+
 def _scenario(tmp_path, name, faults):
     data = {"description": name, "seed": 1, "meter": {"map": DEFAULT_MAP_PATH},
             "stm32": {"watchdog_s": 0.2}, "plant": {"grade": "I", "t_set": 0.5, "time_scale": 150},
@@ -109,12 +118,7 @@ def test_fleet_file_three_stations_own_readings_and_timing(tmp_path):
             for kind in ("meter", "stm32"):
                 assert os.path.realpath(sim.link(n, kind)) == sim.devices[(n, kind)]
         time.sleep(0.3)                                  # the faults at 0 s have fired
-        ports = {n: serial.Serial(sim.link(n, "meter"), 115200, timeout=0.2) for n in names}
-        try:
-            res = poll_all(ports, 60)
-        finally:
-            for s in ports.values():
-                s.close()
+        res = poll_links(sim, names, 60)
         # each STM32 of the fleet answers on its own link
         with serial.Serial(sim.link("loom-b", "stm32"), 115200, timeout=2.0) as s:
             s.write(sp.req_ping(5))
@@ -160,12 +164,7 @@ def test_count_n_stations_with_own_links_and_samples(tmp_path):
     try:
         names = [f"sim0{i}" for i in range(1, 5)]
         assert sorted({n for n, _ in sim.devices}) == names
-        ports = {n: serial.Serial(sim.link(n, "meter"), 115200, timeout=0.2) for n in names}
-        try:
-            res = poll_all(ports, 20)
-        finally:
-            for s in ports.values():
-                s.close()
+        res = poll_links(sim, names, 20)
     finally:
         rc, events = sim.stop()
     assert rc == 0
