@@ -21,7 +21,8 @@ bit-identical to a parse of the text.
 Trade-off (bench/README.md): 24 bytes per row on disk (≈ 43 MB beside a 9.4 MB 10-hour
 ``.csv.gz``), written once per log (≈ 50 ms), for an analysis that skips gunzip and the parse.
 A cache that cannot be written (read-only folder, full disk) is simply not written: the read
-still succeeds from the text. ``HOOKWATCH_LOG_CACHE=0`` switches the cache off entirely.
+still succeeds from the text; nor is one written that would leave less than 1 GiB or 10 % of the
+file system free (the records folder of a gateway must not fill up with derived files). ``HOOKWATCH_LOG_CACHE=0`` switches the cache off entirely.
 """
 from __future__ import annotations
 
@@ -40,6 +41,9 @@ MAGIC = b"HWCOLS1\n"
 #: logs with fewer rows are parsed every time (small logs parse in milliseconds; no clutter)
 MIN_ROWS = 100_000
 _ALIGN = 64
+#: free space a cache write must leave on the file system
+RESERVE_BYTES = 1 << 30
+RESERVE_FRACTION = 0.10
 
 
 def enabled() -> bool:
@@ -91,11 +95,27 @@ def _data_offset(hlen: int) -> int:
     return -(-(12 + hlen) // _ALIGN) * _ALIGN
 
 
+def _room_for(folder: str, nbytes: int) -> bool:
+    """True if writing nbytes leaves at least ``RESERVE_BYTES`` and ``RESERVE_FRACTION`` of the
+    file system free (a cache must never be what fills a gateway's disk)."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    free = st.f_bavail * st.f_frsize
+    total = st.f_blocks * st.f_frsize
+    return free - nbytes >= max(RESERVE_BYTES, RESERVE_FRACTION * total)
+
+
 def store(path: str, key: dict, t: np.ndarray, t1: np.ndarray, t2: np.ndarray,
           columns: list[str]) -> bool:
     """Write the cache beside ``path`` atomically (temp file + rename). False if it could not be
     written; never raises for an I/O problem."""
     cp = cache_path(path)
+    need = 3 * 8 * int(t.size) + 4096
+    if not _room_for(os.path.dirname(cp) or ".", need):
+        log.debug("%s: column cache not written: the disk would fall below its reserve", cp)
+        return False
     hdr = json.dumps({**key, "rows": int(t.size), "columns": list(columns)}).encode("utf-8")
     pad = _data_offset(len(hdr)) - 12 - len(hdr)
     tmp = None

@@ -143,3 +143,13 @@ def test_analyze_cli_same_result_cold_and_warm(tmp_path):
                          env={**env, "HOOKWATCH_LOG_CACHE": "0"})
     assert warm.returncode == 0 and off.returncode == 0
     assert json.loads(cold.stdout) == json.loads(warm.stdout) == json.loads(off.stdout)
+
+
+def test_no_cache_when_the_disk_would_fall_below_its_reserve(tmp_path, small_cache, monkeypatch):
+    st = os.statvfs(tmp_path)
+    # a reserve larger than what is free now: the cache is skipped, the read still succeeds
+    monkeypatch.setattr(logcache, "RESERVE_BYTES", st.f_bavail * st.f_frsize + 1)
+    p = str(tmp_path / "a.csv.gz")
+    t, _, _ = _write_log(p)
+    assert logio.read_log(p, with_meta=False).t.tobytes() == t.tobytes()
+    assert not os.path.exists(logcache.cache_path(p))
