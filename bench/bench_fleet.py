@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""Issue 6 benchmark: stations per box. N virtual stations (`hookwatch sim`, one process each,
-115200 baud) and ONE `hookwatch run FLEET_DIR` carrying all N stations, for DURATION seconds each;
+"""Issue 6 benchmark: stations per box. N virtual stations (one `hookwatch sim --count N`
+process, or with --sim-per-station one process each; 115200 baud) and ONE `hookwatch run FLEET_DIR` carrying all N stations, for DURATION seconds each;
 per N: the worst station's share of slots filled and slot-lateness p99, the gateway's CPU and the
 simulators' CPU (they count against the same two cores).
 
@@ -24,7 +24,7 @@ sys.path.insert(0, HERE)
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
 
 
-def run_fleet(n: int, duration: float) -> dict:
+def run_fleet(n: int, duration: float, one_sim: bool = True) -> dict:
     import yaml
 
     work = tempfile.mkdtemp(prefix=f"hw-bench-fleet{n}-")
@@ -41,14 +41,27 @@ def run_fleet(n: int, duration: float) -> dict:
             "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
             "logging": {"level": "warning"}}}, f)
     sims = []
-    for i in range(n):
-        links = os.path.join(work, f"links{i}")
-        os.makedirs(links)
-        p = subprocess.Popen([EXE, "sim", scen, "--link-dir", links, "--seed", str(i + 1)],
-                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        p.stdout.readline()
-        p.stdout.readline()
+    if one_sim:
+        # one `hookwatch sim --count N` process hosts all N virtual stations (issue 16)
+        links_root = os.path.join(work, "links")
+        p = subprocess.Popen([EXE, "sim", scen, "--count", str(n), "--seed", "1", "--link-dir",
+                              links_root], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        while True:
+            line = p.stdout.readline()
+            if not line or line.startswith("ready:"):
+                break
         sims.append(p)
+    for i in range(n):
+        if one_sim:
+            links = os.path.join(work, "links", f"sim{i + 1:02d}")
+        else:
+            links = os.path.join(work, f"links{i}")
+            os.makedirs(links)
+            p = subprocess.Popen([EXE, "sim", scen, "--link-dir", links, "--seed", str(i + 1)],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            p.stdout.readline()
+            p.stdout.readline()
+            sims.append(p)
         with open(os.path.join(fleet, "stations", f"s{i:02d}.yaml"), "w") as f:
             yaml.safe_dump({"station": {"id": f"s{i:02d}"},
                             "meter": {"port": os.path.join(links, "meter")},
@@ -100,10 +113,13 @@ def main():
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 2, 4, 6, 8])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--json", help="append the figures to this JSON-lines file")
+    ap.add_argument("--sim-per-station", action="store_true",
+                    help="one `hookwatch sim` process per station (before issue 16) instead of one "
+                         "`hookwatch sim --count N` for all")
     args = ap.parse_args()
     best = 0
     for n in args.counts:
-        out = run_fleet(n, args.duration)
+        out = run_fleet(n, args.duration, not args.sim_per_station)
         if out["ok"]:
             best = max(best, n)
         if args.json:

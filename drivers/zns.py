@@ -1,23 +1,29 @@
-"""Gateway-side driver of the ZN-S tension meter: a Modbus RTU master on pymodbus'
-``AsyncModbusSerialClient``.
+"""Gateway-side driver of the ZN-S tension meter: a lean Modbus RTU master (one request shape, one
+reply shape) straight on the serial port's file descriptor, driven by the event loop.
 
 One read per 20 ms slot, never longer than ``timeout_s``, never raising:
 
-* ``read()`` sends one FC 3/4 request for the map's whole block and returns
-  ``Reading(ch1, ch2, rtt_s)`` or ``None``. Every failure is counted by kind (``counters``):
-  ``timeouts`` (no byte came back), ``crc_errors`` (a reply of the right shape with a bad CRC),
-  ``garbage`` (bytes that are not a reply from our unit), ``modbus_exceptions`` (the meter answered
-  with an exception code; the last code is in ``last_exception_code``), ``decode_errors`` (registers
-  that make no tension, e.g. NaN or a bad decimal-point register), ``stale_replies`` (a complete
-  reply sooner than the wire can carry it: a late answer to an earlier request), ``port_lost``,
-  ``reopened``, ``not_connected`` (reads skipped while the port is gone), ``late_bytes`` (bytes that
-  arrived while no request was open; pymodbus discards them).
+* ``read()`` writes the one FC 3/4 request for the map's whole block (built once, CRC from
+  ``drivers/crc.py``) and returns ``Reading(ch1, ch2, rtt_s)`` or ``None``. Every failure is
+  counted by kind (``counters``): ``timeouts`` (no complete reply in time), ``crc_errors`` (a reply
+  of the right shape with a bad CRC), ``garbage`` (bytes that are not a reply from our unit),
+  ``modbus_exceptions`` (the meter answered with an exception code; the last code is in
+  ``last_exception_code``), ``decode_errors`` (registers that make no tension, e.g. NaN or a bad
+  decimal-point register), ``stale_replies`` (a complete reply sooner than the wire can carry it:
+  a late answer to an earlier request), ``port_lost``, ``reopened``, ``not_connected`` (reads
+  skipped while the port is gone), ``late_bytes`` (chunks of bytes that arrived while no request
+  was open; discarded).
 * A bad CRC or garbage ends the read at once (the bytes are inspected as they arrive), it does not
   wait for the timeout.
-* The port vanishing (USB adapter pulled) is seen by pymodbus' transport (``ConnectionException``,
-  OSError): ``connected`` becomes False, ``read()`` returns None at once, and a background task
-  tries to reopen the path every ``REOPEN_INTERVAL_S`` until it exists again. Use a stable path
-  (``/dev/serial/by-id/...`` or the simulator's symlink): a re-plugged adapter gets a new node.
+* The port vanishing (USB adapter pulled) shows as an error on read or write: ``connected``
+  becomes False, ``read()`` returns None at once, and a background task tries to reopen the path
+  every ``REOPEN_INTERVAL_S`` until it exists again. Use a stable path (``/dev/serial/by-id/...``
+  or the simulator's symlink): a re-plugged adapter gets a new node.
+
+Why not pymodbus' client (it was used until issue 16): its transaction layer (a task, a framer, a
+PDU object and a transaction record per request) cost ≈ 0.4 ms of CPU per read, a large part of
+a station's slot budget (bench/bench_slot_cpu.py); the one exchange this driver needs is ~150
+lines. pyserial opens and configures the port (baud, parity, stop bits).
 
 Channel swapping is the station's business (``meter.swap_channels``), not the driver's.
 Details and timings: ``docs/protocols/zn-s.md``.
@@ -32,17 +38,14 @@ import os
 import time
 from typing import Any
 
+import serial
+
 from gateway.ports import MeterReading
 
-from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, crc_ok, load_map
+from .crc import crc16_modbus
+from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, load_map
 
 log = logging.getLogger("hookwatch.meter")
-
-# Unconfigured, pymodbus logs an error with frame dumps for every failure: at 50 Hz that floods the
-# journal. Quiet it unless someone has set a level on purpose.
-_pm_log = logging.getLogger("pymodbus")
-if _pm_log.level == logging.NOTSET:
-    _pm_log.setLevel(logging.CRITICAL)
 
 DEFAULT_TIMEOUT_S = 0.015
 REOPEN_INTERVAL_S = 0.5
@@ -60,6 +63,18 @@ def _is_pty(path: str) -> bool:
 Reading = MeterReading
 
 
+def _crc_ok(frame: bytes | bytearray, n: int) -> bool:
+    """The first n bytes end with their CRC-16/MODBUS (low byte first)."""
+    c = crc16_modbus(memoryview(frame)[:n - 2])
+    return frame[n - 2] == (c & 0xFF) and frame[n - 1] == (c >> 8)
+
+
+def build_request(unit: int, fc: int, address: int, count: int) -> bytes:
+    body = bytes((unit, fc, address >> 8, address & 0xFF, count >> 8, count & 0xFF))
+    c = crc16_modbus(body)
+    return body + bytes((c & 0xFF, c >> 8))
+
+
 class ZnsMeter:
     def __init__(self, port: str, meter_map: MeterMap, *, timeout_s: float = DEFAULT_TIMEOUT_S,
                  swap_channels: bool = False, reopen_interval_s: float = REOPEN_INTERVAL_S):
@@ -72,17 +87,20 @@ class ZnsMeter:
         self.counters: dict[str, int] = {k: 0 for k in COUNTER_NAMES}
         self.last_exception_code: int | None = None
         self.last_rtt_s = math.nan
-        self._client: Any = None
+        self._ser: Any = None                # pyserial port (opens and configures the device)
+        self._fd: int | None = None
         self._parity_used = meter_map.parity
         self._loop: asyncio.AbstractEventLoop | None = None
         self._reopen_task: asyncio.Task | None = None
         self._closed = False
         # the open transaction
         self._pending = False
-        self._rx_any = False
+        self._rx = bytearray()
         self._fail: asyncio.Future | None = None
         fc, self._address, self._count = meter_map.read_block
         self._fc = fc
+        self._unit = meter_map.unit_id
+        self._request = build_request(self._unit, fc, self._address, self._count)
         self._resp_len = meter_map.response_bytes
         self._min_reply_s = 0.9 * meter_map.wire_time_s(meter_map.request_bytes + meter_map.response_bytes)
         if self.timeout_s < meter_map.poll_time_s():
@@ -108,26 +126,10 @@ class ZnsMeter:
         """Open the port; if it is not there, keep trying in the background (never raises)."""
         self._loop = asyncio.get_running_loop()
         self._closed = False
-        if self._client is None:
-            self._client = self._make_client(self.map.parity)
         if not await self._try_connect():
             log.warning("meter %s: cannot open the port; retrying every %.1f s", self.port,
                         self.reopen_interval_s)
             self._start_reopen()
-
-    def _make_client(self, parity: str):
-        from pymodbus.client import AsyncModbusSerialClient
-        from pymodbus.framer import FramerType
-
-        m = self.map
-        self._parity_used = parity
-        return AsyncModbusSerialClient(
-            self.port, framer=FramerType.RTU, baudrate=m.baud, bytesize=m.bytesize,
-            parity=parity, stopbits=m.stopbits, name=f"meter {self.port}",
-            # our own deadline (timeout_s) ends a read first; pymodbus' is only a backstop
-            timeout=self.timeout_s + 1.0, retries=0,
-            reconnect_delay=0,                 # we reopen ourselves, on our schedule
-            trace_packet=self._trace_packet, trace_connect=self._trace_connect)
 
     async def close(self) -> None:
         self._closed = True
@@ -136,10 +138,19 @@ class ZnsMeter:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._reopen_task
             self._reopen_task = None
-        if self._client is not None:
-            with contextlib.suppress(Exception):
-                self._client.close()
+        self._release()
         self.connected = False
+
+    def _release(self) -> None:
+        """Stop watching and close the port (idempotent)."""
+        if self._fd is not None and self._loop is not None:
+            with contextlib.suppress(Exception):
+                self._loop.remove_reader(self._fd)
+        self._fd = None
+        if self._ser is not None:
+            with contextlib.suppress(Exception):
+                self._ser.close()
+        self._ser = None
 
     async def _try_connect(self) -> bool:
         if not os.path.exists(self.port):
@@ -152,21 +163,28 @@ class ZnsMeter:
             if self._parity_used != "N":
                 log.info("meter %s: %s is a pseudo-terminal; parity %s not set there", self.port,
                          os.path.realpath(self.port), self.map.parity)
-        if parity != self._parity_used:
-            with contextlib.suppress(Exception):
-                self._client.close()
-            self._client = self._make_client(parity)
-        ok = await self._connect_once()
-        if ok:
-            self.connected = True
-        return ok
-
-    async def _connect_once(self) -> bool:
+        self._parity_used = parity
+        self._release()
+        m = self.map
         try:
-            return bool(await asyncio.wait_for(self._client.connect(), 2.0))
-        except Exception as e:      # SerialException (an OSError), termios.error, timeout
+            ser = serial.Serial(self.port, baudrate=m.baud, bytesize=m.bytesize, parity=parity,
+                                stopbits=m.stopbits, timeout=0, write_timeout=0)
+        except (OSError, ValueError, serial.SerialException) as e:
             log.debug("meter %s: open failed: %r", self.port, e)
             return False
+        loop = self._loop or asyncio.get_running_loop()
+        try:
+            fd = ser.fileno()
+            os.set_blocking(fd, False)
+            loop.add_reader(fd, self._on_readable)
+        except (OSError, ValueError) as e:
+            log.debug("meter %s: cannot watch the port: %r", self.port, e)
+            with contextlib.suppress(Exception):
+                ser.close()
+            return False
+        self._ser, self._fd = ser, fd
+        self.connected = True
+        return True
 
     def _start_reopen(self) -> None:
         if self._closed or self._loop is None:
@@ -184,47 +202,68 @@ class ZnsMeter:
                 log.warning("meter %s: port reopened", self.port)
                 return
 
-    # ------------------------------------------------------------------ pymodbus hooks
-    def _trace_connect(self, connected: bool) -> None:
-        if connected:
-            return
+    def _port_lost(self, why: Any) -> None:
         if self.connected:
             self.connected = False
             self.counters["port_lost"] += 1
-            log.warning("meter %s: port lost", self.port)
+            log.warning("meter %s: port lost (%s)", self.port, why)
+        self._release()
         self._fail_now("port_lost")
         self._start_reopen()
 
-    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
-        if sending:
-            return data
+    # ------------------------------------------------------------------ receiving
+    def _read_chunk(self, readable: bool) -> bytes:
+        """What the OS holds for us now (b'' if nothing); a read error is the port going away,
+        and so is an empty read when the loop said the port is readable (hang-up). (With VMIN 0,
+        as pyserial sets it, an empty read otherwise just means no data.)"""
+        fd = self._fd
+        if fd is None:
+            return b""
+        try:
+            data = os.read(fd, 256)
+        except BlockingIOError:
+            return b""
+        except OSError as e:
+            self._port_lost(e)
+            return b""
+        if not data and readable:
+            self._port_lost("end of file")
+        return data
+
+    def _on_readable(self) -> None:
+        data = self._read_chunk(True)
+        if not data:
+            return
         if not self._pending:
             self.counters["late_bytes"] += 1
-            return data
-        self._rx_any = True
-        unit = self.map.unit_id
-        if data[0] != unit or (len(data) >= 2 and data[1] not in (self._fc, self._fc | 0x80)):
+            return
+        rx = self._rx
+        rx += data
+        fc = self._fc
+        if rx[0] != self._unit or (len(rx) >= 2 and rx[1] != fc and rx[1] != (fc | 0x80)):
             self._fail_now("garbage")
-        elif len(data) >= 2 and data[1] == (self._fc | 0x80):
-            if len(data) >= 5 and not crc_ok(data[:5]):
-                self._fail_now("crc")
-        elif len(data) >= 3 and data[2] != 2 * self._count:
+        elif len(rx) >= 2 and rx[1] == (fc | 0x80):
+            if len(rx) >= 5:
+                self._fail_now("exception" if _crc_ok(rx, 5) else "crc")
+        elif len(rx) >= 3 and rx[2] != 2 * self._count:
             self._fail_now("garbage")
-        elif len(data) >= self._resp_len and not crc_ok(data[:self._resp_len]):
-            self._fail_now("crc")
-        return data
+        elif len(rx) >= self._resp_len:
+            self._fail_now("ok" if _crc_ok(rx, self._resp_len) else "crc")
 
     def _fail_now(self, why: str) -> None:
         f = self._fail
         if f is not None and not f.done():
             f.set_result(why)
 
+    def _drain(self) -> None:
+        """Discard what the OS holds for us (a late reply), counting it as late bytes."""
+        while self._read_chunk(False):
+            self.counters["late_bytes"] += 1
+
     # ------------------------------------------------------------------ reading
     async def read(self) -> Reading | None:
         """One poll. Reading or None (counted); never raises, never takes longer than timeout_s."""
-        if self.connected and self._client is not None and not self._client.connected:
-            self._trace_connect(False)       # pymodbus dropped the transport without telling us
-        if not self.connected or self._client is None:
+        if not self.connected or self._fd is None:
             self.counters["not_connected"] += 1
             self._start_reopen()
             return None
@@ -233,25 +272,34 @@ class ZnsMeter:
             return None
         self.counters["reads"] += 1
         loop = self._loop or asyncio.get_running_loop()
-        self._rx_any = False
-        self._fail = loop.create_future()
+        self._drain()
+        if self._fd is None:             # lost while draining
+            return None
+        self._rx.clear()
+        fut = self._fail = loop.create_future()
         self._pending = True
-        t0 = time.monotonic()
-        task = None
+        timer = None
         try:
-            if self._fc == 3:
-                coro = self._client.read_holding_registers(self._address, count=self._count,
-                                                           device_id=self.map.unit_id)
-            else:
-                coro = self._client.read_input_registers(self._address, count=self._count,
-                                                         device_id=self.map.unit_id)
-            task = loop.create_task(coro)
-            done, _ = await asyncio.wait((task, self._fail), timeout=self.timeout_s,
-                                         return_when=asyncio.FIRST_COMPLETED)
+            t0 = time.monotonic()
+            try:
+                n = os.write(self._fd, self._request)
+            except BlockingIOError:
+                n = 0
+            except OSError as e:
+                self._port_lost(e)
+                return None
+            if n != len(self._request):
+                self.counters["errors"] += 1
+                return None
+            timer = loop.call_at(loop.time() + self.timeout_s, self._fail_now, "timeout")
+            why = await fut
             rtt = time.monotonic() - t0
-            if task in done:
-                return self._result(task, rtt)
-            why = self._fail.result() if self._fail.done() else "timeout"   # nothing, or too little
+            if why == "ok":
+                return self._result(rtt)
+            if why == "exception":
+                self.counters["modbus_exceptions"] += 1
+                self.last_exception_code = self._rx[2]
+                return None
             self._count_failure(why)
             if why != "port_lost":
                 self._flush_input()
@@ -261,22 +309,15 @@ class ZnsMeter:
             log.debug("meter %s: read failed: %r", self.port, e)
             return None
         finally:
+            if timer is not None:
+                timer.cancel()
             self._pending = False
             self._fail = None
-            if task is not None and not task.done():
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
-            # a late or partial reply must not poison the next read: drop whatever is buffered
-            # (pymodbus also clears its buffer when it sends the next request)
-            ctx = getattr(self._client, "ctx", None)
-            if ctx is not None:
-                ctx.recv_buffer = b""
 
     def _flush_input(self) -> None:
         """Discard what the OS holds for us, so a late reply cannot be read as the next answer."""
         with contextlib.suppress(Exception):
-            self._client.ctx.transport.sync_serial.reset_input_buffer()
+            self._ser.reset_input_buffer()
 
     def _count_failure(self, why: str) -> None:
         if why == "timeout":
@@ -286,37 +327,19 @@ class ZnsMeter:
         elif why == "garbage":
             self.counters["garbage"] += 1
         elif why == "port_lost":
-            pass                              # counted once in _trace_connect
+            pass                              # counted once in _port_lost
         else:
             self.counters["errors"] += 1
 
-    def _result(self, task: asyncio.Task, rtt: float) -> Reading | None:
-        from pymodbus.exceptions import ConnectionException, ModbusIOException
-
-        exc = task.exception()
-        if exc is not None:
-            if isinstance(exc, ConnectionException):
-                if self.connected:
-                    self.connected = False
-                    self.counters["port_lost"] += 1
-                self._start_reopen()
-            elif isinstance(exc, ModbusIOException):
-                self.counters["timeouts"] += 1
-            else:
-                self.counters["errors"] += 1
-                log.debug("meter %s: %r", self.port, exc)
-            return None
-        resp = task.result()
-        if resp is None or resp.isError():
-            self.counters["modbus_exceptions"] += 1
-            self.last_exception_code = getattr(resp, "exception_code", None)
-            return None
+    def _result(self, rtt: float) -> Reading | None:
         if rtt < self._min_reply_s:
             # faster than the wire can carry request and reply: the late answer to an earlier read
             self.counters["stale_replies"] += 1
             return None
+        rx = self._rx
+        regs = [(rx[i] << 8) | rx[i + 1] for i in range(3, 3 + 2 * self._count, 2)]
         try:
-            ch1, ch2 = self.map.decode(resp.registers)
+            ch1, ch2 = self.map.decode(regs)
         except DecodeError as e:
             self.counters["decode_errors"] += 1
             log.debug("meter %s: %s", self.port, e)

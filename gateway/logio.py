@@ -17,6 +17,11 @@ from typing import Any
 
 import numpy as np
 
+from . import logcache
+
+#: a log file smaller than this is never looked up in the cache (cannot hold MIN_ROWS rows)
+_CACHE_MIN_BYTES = 256 << 10
+
 REQUIRED_COLUMNS = ("t", "T1", "T2")
 
 
@@ -45,7 +50,7 @@ def sidecar_path(path: str) -> str:
     return log_stem(path) + ".meta.yaml"
 
 
-def _read_bytes(path: str) -> bytes:
+def _read_raw(path: str) -> bytes:
     try:
         with open(path, "rb") as f:
             raw = f.read()
@@ -55,6 +60,10 @@ def _read_bytes(path: str) -> bytes:
         raise LogError(f"{path}: is a directory, not a log file") from None
     except OSError as e:
         raise LogError(f"{path}: cannot read: {e.strerror or e}") from None
+    return raw
+
+
+def _decompress(path: str, raw: bytes) -> bytes:
     if raw[:2] == b"\x1f\x8b":
         try:
             # a log cut off by kill -9 has no gzip trailer: keep what decompresses
@@ -181,8 +190,26 @@ def _parse_fast(body: str, ncols: int, cols: list[int]) -> np.ndarray | None:
     return flat.reshape(nrows, ncols)[:, cols]
 
 
+def _read_bytes(path: str) -> bytes:
+    return _decompress(path, _read_raw(path))
+
+
 def read_log(path: str, with_meta: bool = True) -> Log:
-    raw = _read_bytes(path)
+    """The log at ``path``: columns t, T1, T2 as float64 arrays (every complete row; see
+    :mod:`gateway.logcache` for the validated binary cache used for large logs)."""
+    raw = _read_raw(path)
+    key = None
+    if logcache.enabled() and len(raw) >= _CACHE_MIN_BYTES:
+        try:
+            key = logcache.source_key(path, raw)
+        except OSError:
+            key = None
+        hit = logcache.load(path, key) if key is not None else None
+        if hit is not None:
+            t, t1, t2, columns = hit
+            meta = read_meta(path) if with_meta else {}
+            return Log(path=path, t=t, t1=t1, t2=t2, meta=meta, columns=columns)
+    raw = _decompress(path, raw)
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
@@ -215,8 +242,11 @@ def read_log(path: str, with_meta: bool = True) -> Log:
             except ValueError:
                 raise LogError(_locate_bad_row(path, text, cols, len(columns))) from None
     meta = read_meta(path) if with_meta else {}
-    return Log(path=path, t=data[:, 0].copy(), t1=data[:, 1].copy(), t2=data[:, 2].copy(),
-               meta=meta, columns=columns)
+    lg = Log(path=path, t=data[:, 0].copy(), t1=data[:, 1].copy(), t2=data[:, 2].copy(),
+             meta=meta, columns=columns)
+    if key is not None and lg.t.size >= logcache.MIN_ROWS:
+        logcache.store(path, key, lg.t, lg.t1, lg.t2, columns)
+    return lg
 
 
 def finite_or_none(x: Any) -> Any:

@@ -3,9 +3,13 @@
 A pty moves bytes instantly, so this slave delays every reply by the real wire time: the reply's
 last byte is due ``request wire time + turnaround + response wire time (+ faults.extra_delay_s)``
 after the request's first bytes arrived (11 bits a character at the map's baud). The reply is
-written in one piece at that moment (``loop.call_at`` a little early, then a short busy-wait, so it
-lands within a fraction of a millisecond). The tensions are sampled from ``source()`` at the moment
-the request has completed on the simulated wire.
+written in one piece at that moment by :class:`ReplyWriter`, one thread per process shared by every
+virtual meter in it: it sleeps in the kernel (a monotonic timed wait with 1 µs timer slack) until
+``WAKE_EARLY_S`` before the due time and spins only that last bit, so a reply lands within a
+fraction of a millisecond without burning a core (the asyncio loop's timers are 1 ms coarse; a
+busy-wait of 1.5 ms per reply cost 7–10 % of a core per meter). The tensions are sampled from ``source()`` at the moment
+the request has completed on the simulated wire, or up to ``SAMPLE_EARLY_S`` (1 ms) before it
+(the plant steps 2 ms; this keeps the event loop's timer granularity out of the reply timing).
 
 Framing: function codes 3, 4 and 6 are 8 bytes, 16 is 9 + byte count; anything else is framed by
 the 3.5-character silence (1.75 ms above 19200 baud). Frames with a bad CRC or for another unit are
@@ -20,9 +24,15 @@ Run alone (prints ``meter: /dev/pts/N``; commands on stdin: ``drop on|off``, ``c
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import heapq
+import itertools
 import json
 import logging
 import math
+import os
+import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -33,8 +43,111 @@ from .pty import PtyLink
 
 log = logging.getLogger("hookwatch.sim.meter")
 
-SPIN_S = 0.0015          # wake this early and busy-wait the rest (asyncio timers are ~1 ms coarse)
+WAKE_EARLY_S = 0.00002  # the writer thread wakes this early from its kernel sleep and spins the rest
+SAMPLE_EARLY_S = 0.001   # the values may be sampled this much before the request's end on the wire
 ON_TIME_S = 0.0003       # a reply later than this counts as late
+REALTIME_PRIORITY = 10      # SCHED_FIFO priority of the reply writer where permitted
+SWITCH_INTERVAL_S = 0.0002  # GIL hand-over bound in a process that hosts virtual meters
+
+
+def _set_timer_slack(ns: int) -> None:
+    """Linux: this thread's timer slack (default 50 µs) — how late the kernel may wake a sleep."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(29, ctypes.c_ulong(ns), 0, 0, 0)     # PR_SET_TIMERSLACK
+    except (OSError, AttributeError):
+        pass
+
+
+def _ask_realtime() -> bool:
+    """Ask for SCHED_FIFO for this thread (Linux, root or CAP_SYS_NICE): on a loaded machine an
+    ordinary thread can wait milliseconds for a CPU after its sleep ends; a real-time one is
+    woken at once. Safe because the thread sleeps between replies and spins at most
+    ``WAKE_EARLY_S`` per reply. Without the permission it stays an ordinary thread."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+        return True
+    except (AttributeError, OSError):
+        return False
+
+
+class ReplyWriter:
+    """Writes timed replies: ``submit(due, fn)`` runs ``fn()`` on the writer thread as close to
+    ``due`` (time.monotonic) as the machine allows: a timed wait in the kernel until
+    ``WAKE_EARLY_S`` before, then a short spin. One thread per process (``shared()``) serves every
+    virtual meter in it, in due order; ``fn`` must be short (a pty write and counters).
+
+    ``lock`` serialises the writes with a meter detaching its pty (so a reply is never written to
+    a descriptor that was closed and reused)."""
+
+    _instance: "ReplyWriter | None" = None
+    _instance_lock = threading.Lock()
+
+    def __init__(self, wake_early_s: float = WAKE_EARLY_S):
+        self.wake_early_s = wake_early_s
+        self.lock = threading.Lock()
+        self._cond = threading.Condition(threading.Lock())
+        self._heap: list[tuple[float, int, Callable[[], None]]] = []
+        self._seq = itertools.count()
+        self._thread: threading.Thread | None = None
+        self.realtime = False
+        self.oversleep: deque[float] = deque(maxlen=10_000)   # wake time − planned wake time, s
+
+    @classmethod
+    def shared(cls) -> "ReplyWriter":
+        with cls._instance_lock:
+            if cls._instance is None:
+                cls._instance = cls()
+            return cls._instance
+
+    def start(self) -> None:
+        """Start the thread (idempotent; ``submit`` starts it too)."""
+        with self._cond:
+            self._start_locked()
+
+    def _start_locked(self) -> None:
+        if self._thread is None or not self._thread.is_alive():
+            if sys.getswitchinterval() > SWITCH_INTERVAL_S:
+                # the writer must get the GIL within a fraction of the 0.3 ms budget
+                sys.setswitchinterval(SWITCH_INTERVAL_S)
+            self._thread = threading.Thread(target=self._run, name="sim-reply-writer", daemon=True)
+            self._thread.start()
+
+    def submit(self, due: float, fn: Callable[[], None]) -> None:
+        with self._cond:
+            self._start_locked()
+            item = (due, next(self._seq), fn)
+            heapq.heappush(self._heap, item)
+            if self._heap[0] is item:
+                self._cond.notify()
+
+    def _run(self) -> None:
+        _set_timer_slack(1000)
+        self.realtime = _ask_realtime()
+        mono = time.monotonic
+        heap = self._heap
+        while True:
+            with self._cond:
+                while True:
+                    if not heap:
+                        self._cond.wait()
+                        continue
+                    due = heap[0][0]
+                    wake = due - self.wake_early_s
+                    now = mono()
+                    if now < wake:
+                        self._cond.wait(wake - now)
+                        if heap and heap[0][0] == due and mono() >= wake:
+                            self.oversleep.append(mono() - wake)
+                        continue
+                    fn = heapq.heappop(heap)[2]
+                    break
+            while mono() < due:
+                pass
+            try:
+                fn()
+            except Exception:                           # noqa: BLE001 — never kill the writer
+                log.exception("virtual meter: reply writer")
 
 
 @dataclass
@@ -51,12 +164,13 @@ def silence_s(baud: int) -> float:
 
 class VirtualMeter:
     def __init__(self, meter_map: MeterMap, source: Callable[[], tuple[float, float]],
-                 link_path: str | None = None, *, spin_s: float = SPIN_S):
+                 link_path: str | None = None, *, writer: ReplyWriter | None = None):
         self.map = meter_map
         self.source = source
         self.link = PtyLink(link_path)
         self.faults = MeterFaults()
-        self.spin_s = spin_s
+        self.writer = writer or ReplyWriter.shared()
+        self._gen = 0                      # bumped on detach: replies of an older pty are dropped
         self.counters = {"requests": 0, "replies": 0, "exceptions": 0, "bad_crc": 0,
                          "other_unit": 0, "dropped": 0, "garbage": 0, "late_replies": 0,
                          "value_errors": 0}
@@ -78,6 +192,7 @@ class VirtualMeter:
 
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
+        self.writer.start()
         if not self.link.is_open:
             self.link.open()
         self._attach()
@@ -104,6 +219,8 @@ class VirtualMeter:
             self._loop.add_reader(self._reading_fd, self._on_readable)
 
     def _detach(self) -> None:
+        with self.writer.lock:
+            self._gen += 1
         if self._reading_fd is not None and self._loop is not None:
             self._loop.remove_reader(self._reading_fd)
         self._reading_fd = None
@@ -114,6 +231,14 @@ class VirtualMeter:
             self._silence.cancel()
             self._silence = None
         self._buf.clear()
+
+    def lateness_summary_ms(self) -> dict[str, float]:
+        """Reply write time − due time over the last 10 000 replies: p50, p99, max in ms."""
+        lat = sorted(self.reply_lateness)
+        if not lat:
+            return {}
+        return {"n": len(lat), "p50": lat[len(lat) // 2] * 1e3,
+                "p99": lat[min(len(lat) - 1, int(len(lat) * 0.99))] * 1e3, "max": lat[-1] * 1e3}
 
     # ------------------------------------------------------------------ receiving
     def _on_readable(self) -> None:
@@ -203,7 +328,14 @@ class VirtualMeter:
         if self.faults.drop_replies:
             self.counters["dropped"] += 1
             return
-        self._call_at(t_req_end, self._sample, t_req_end, what)
+        # sampled up to SAMPLE_EARLY_S before the request completes on the simulated wire (at
+        # 115200 baud at once): the loop's timers are ~1 ms coarse and a busy loop may be later
+        # still, and the reply is due only turnaround + reply wire time after this moment
+        when = t_req_end - SAMPLE_EARLY_S
+        if when <= time.monotonic():
+            self._sample(t_req_end, what)
+        else:
+            self._call_at(when, self._sample, t_req_end, what)
 
     def _call_at(self, when: float, fn, *args) -> None:
         h: asyncio.TimerHandle
@@ -234,14 +366,18 @@ class VirtualMeter:
                 reply = with_crc(bytes(body))
         due = (t_req_end + self.map.turnaround_s + self.map.wire_time_s(len(reply))
                + max(0.0, float(self.faults.extra_delay_s)))
-        self._call_at(due - self.spin_s, self._send, reply, due)
+        gen = self._gen
+        self.writer.submit(due, lambda: self._send(reply, due, gen))
 
-    def _send(self, reply: bytes, due: float) -> None:
-        while time.monotonic() < due:
-            pass
+    def _send(self, reply: bytes, due: float, gen: int) -> None:
+        """On the writer thread, at ``due``."""
         if self.faults.corrupt_crc:
             reply = reply[:-2] + bytes([reply[-2] ^ 0xFF, reply[-1] ^ 0x5A])
-        if self.link.write(reply) == len(reply):
+        with self.writer.lock:
+            if gen != self._gen:
+                return                    # the pty was closed (vanish/stop) since it was scheduled
+            n = self.link.write(reply)
+        if n == len(reply):
             late = time.monotonic() - due
             self.reply_lateness.append(late)
             self.counters["replies"] += 1

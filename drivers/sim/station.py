@@ -16,17 +16,22 @@ import json
 import logging
 import math
 import os
+import re
 import time
+from dataclasses import dataclass
 from typing import Any, Callable, TextIO
 
 from .plant import Plant
-from .scenario import FaultSpec, Scenario
 from .meter import VirtualMeter
+from .scenario import DEFAULT_SCENARIO, FaultSpec, Scenario, ScenarioError, load_scenario
 from .stm32 import Stm32Firmware, VirtualStm32
 
 log = logging.getLogger("hookwatch.sim")
 
 TICK_S = 0.01
+#: the virtual STM32's firmware tick (watchdog, trips, idle-gap framing): 10 ms is 1/20 of the
+#: shortest watchdog of the shipped scenarios and halves the simulator's wake-ups per station
+STM32_TICK_S = 0.01
 
 
 class LiveMotor:
@@ -101,8 +106,9 @@ class SimStation:
     def __init__(self, scenario: Scenario, *, link_dir: str, seed: int | None = None,
                  baud: int | None = None, truth_path: str | None = None,
                  trace_path: str | None = None, events: EventLog | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, name: str | None = None):
         self.scenario = scenario
+        self.name = name                  # set when one process hosts several stations
         self.seed = scenario.seed if seed is None else int(seed)
         self.link_dir = link_dir
         self.meter_map = scenario.load_meter_map(baud)
@@ -133,7 +139,10 @@ class SimStation:
         return self.plant.tensions()
 
     # ------------------------------------------------------------------ lifecycle
-    async def start(self) -> None:
+    async def start(self, shared_tick: bool = False) -> None:
+        """Start the devices and the background tasks. ``shared_tick``: no tasks of its own for
+        the plant stepping and the STM32 firmware tick; the caller calls :meth:`tick` every
+        ``TICK_S`` (run_fleet: one task for all stations, not 2 wake-ups per station)."""
 
         os.makedirs(self.link_dir, exist_ok=True)
         if self.trace_path:
@@ -146,15 +155,16 @@ class SimStation:
         self.stm32 = VirtualStm32(Stm32Firmware(self.scenario.watchdog_s),
                                   LiveMotor(self.plant, self.now),
                                   os.path.join(self.link_dir, "stm32"),
-                                  baud=self.scenario.stm32_baud)
+                                  baud=self.scenario.stm32_baud, tick_s=STM32_TICK_S)
         await self.meter.start()
-        await self.stm32.start()
+        await self.stm32.start(own_ticker=not shared_tick)
         self._write_truth()
         self._event("start", meter=self.meter.device, stm32=self.stm32.device,
                      link_dir=self.link_dir, seed=self.seed, scenario=self.scenario.path,
                      baud=self.meter_map.baud, t0_monotonic=self.t0)
         loop = asyncio.get_running_loop()
-        self._tasks.append(loop.create_task(self._stepper()))
+        if not shared_tick:
+            self._tasks.append(loop.create_task(self._stepper()))
         if self.scenario.faults:
             self._tasks.append(loop.create_task(self._timeline()))
 
@@ -183,24 +193,34 @@ class SimStation:
             self._trace_f = None
         if self.t0 is not None:
             self._event("stop", counters={"meter": dict(self.meter.counters) if self.meter else {},
-                                          "stm32": dict(self.stm32.counters) if self.stm32 else {}})
+                                          "stm32": dict(self.stm32.counters) if self.stm32 else {}},
+                        meter_reply_lateness_ms=self.meter.lateness_summary_ms() if self.meter else {})
             self._write_truth()
 
     # ------------------------------------------------------------------ background
     async def _stepper(self) -> None:
         while True:
-            self.plant.advance_to(self.now())
-            p = self.plant
-            if not self._seen_first_run and p.first_run_t is not None:
-                self._seen_first_run = True
-                self._event("yarn_running", at=p.first_run_t)
-                self._write_truth()
-            if not self._seen_onset and p.onset_t is not None:
-                self._seen_onset = True
-                self._event("wear_onset", at=p.onset_t, wear_s=p.profile.onset_s)
-                self._write_truth()
-            self._flush_trace()
+            self._step()
             await asyncio.sleep(TICK_S)
+
+    def tick(self) -> None:
+        """The shared-tick form of the background work (see :meth:`start`)."""
+        self._step()
+        if self.stm32 is not None:
+            self.stm32.tick()
+
+    def _step(self) -> None:
+        self.plant.advance_to(self.now())
+        p = self.plant
+        if not self._seen_first_run and p.first_run_t is not None:
+            self._seen_first_run = True
+            self._event("yarn_running", at=p.first_run_t)
+            self._write_truth()
+        if not self._seen_onset and p.onset_t is not None:
+            self._seen_onset = True
+            self._event("wear_onset", at=p.onset_t, wear_s=p.profile.onset_s)
+            self._write_truth()
+        self._flush_trace()
 
     def _flush_trace(self, force: bool = False) -> None:
         if self._trace_w is None:
@@ -287,6 +307,8 @@ class SimStation:
     # ------------------------------------------------------------------ output
     def _event(self, event: str, **kw: Any) -> None:
         if self.events is not None:
+            if self.name is not None:
+                kw = {"station": self.name, **kw}
             self.events.write(self.now(), event, **kw)
 
     def truth(self) -> dict[str, Any]:
@@ -308,10 +330,26 @@ class SimStation:
 async def run_station(station: SimStation, stop: asyncio.Event, duration_s: float | None,
                       on_ready: Callable[[SimStation], None] | None = None) -> None:
     """Start, call on_ready, run until ``stop`` is set or ``duration_s`` passed, stop."""
-    await station.start()
+    await run_fleet([station], stop, duration_s,
+                    (lambda sts: on_ready(sts[0])) if on_ready is not None else None)
+
+
+async def run_fleet(stations: list[SimStation], stop: asyncio.Event, duration_s: float | None,
+                    on_ready: Callable[[list[SimStation]], None] | None = None) -> None:
+    """Several virtual stations on one event loop (one process): start them all, call on_ready,
+    run until ``stop`` is set or ``duration_s`` passed, stop them all (also after a failed start).
+    The meters share one reply-writer thread (drivers/sim/meter.py)."""
+    started: list[SimStation] = []
+    shared = len(stations) > 1
+    ticker = None
     try:
+        for st in stations:
+            await st.start(shared_tick=shared)
+            started.append(st)
+        if shared:
+            ticker = asyncio.get_running_loop().create_task(_tick_all(stations))
         if on_ready is not None:
-            on_ready(station)
+            on_ready(stations)
         if duration_s is not None:
             try:
                 await asyncio.wait_for(stop.wait(), timeout=duration_s)
@@ -320,4 +358,98 @@ async def run_station(station: SimStation, stop: asyncio.Event, duration_s: floa
         else:
             await stop.wait()
     finally:
-        await station.stop()
+        if ticker is not None:
+            ticker.cancel()
+            try:
+                await ticker
+            except asyncio.CancelledError:
+                pass
+        for st in reversed(started):
+            await st.stop()
+
+
+async def _tick_all(stations: list[SimStation]) -> None:
+    """One task ticks every station of a fleet each TICK_S (plant stepping, STM32 firmware)."""
+    loop = asyncio.get_running_loop()
+    t = loop.time()
+    while True:
+        t += TICK_S
+        await asyncio.sleep(max(0.0, t - loop.time()))
+        for st in stations:
+            try:
+                st.tick()
+            except Exception:                       # noqa: BLE001 — one station, not the fleet
+                log.exception("sim station %s: tick failed", st.name)
+        if loop.time() - t > 10 * TICK_S:
+            t = loop.time()                         # fell far behind (host stalled): no burst
+
+
+# ---------------------------------------------------------------------------------- fleets
+@dataclass(frozen=True)
+class FleetEntry:
+    """One virtual station of a fleet file (or of ``--count N``)."""
+    name: str
+    scenario: Scenario
+    seed: int | None = None
+    baud: int | None = None
+
+
+MAX_FLEET = 64
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def is_fleet_file(data: Any) -> bool:
+    return isinstance(data, dict) and "stations" in data
+
+
+def fleet_from_dict(data: dict, path: str) -> list[FleetEntry]:
+    """A fleet file: ``stations:`` a list of ``{name, scenario, seed, baud}`` (scenario relative to
+    the file; default the packaged demo). Errors name the file, the entry and the key."""
+    unknown = sorted(set(data) - {"stations", "description"})
+    if unknown:
+        raise ScenarioError(f"{path}: {unknown[0]}: unknown key; allowed: stations, description")
+    items = data["stations"]
+    if not isinstance(items, list) or not items:
+        raise ScenarioError(f"{path}: stations: expected a list of 1 to {MAX_FLEET} stations")
+    if len(items) > MAX_FLEET:
+        raise ScenarioError(f"{path}: stations: {len(items)} stations; allowed: at most {MAX_FLEET}")
+    base = os.path.dirname(os.path.abspath(path))
+    out: list[FleetEntry] = []
+    seen: set[str] = set()
+    for i, it in enumerate(items):
+        where = f"{path}: stations[{i}]"
+        if not isinstance(it, dict):
+            raise ScenarioError(f"{where}: expected a mapping with name, scenario, seed, baud")
+        bad = sorted(set(it) - {"name", "scenario", "seed", "baud"})
+        if bad:
+            raise ScenarioError(f"{where}: {bad[0]}: unknown key; allowed: name, scenario, seed, baud")
+        name = it.get("name", f"sim{i + 1:02d}")
+        if not isinstance(name, str) or not _NAME_RE.match(name):
+            raise ScenarioError(f"{where}: name: {name!r} is not allowed; allowed: letters, digits, "
+                                f"_ . - (a folder name, at most 64 characters)")
+        if name in seen:
+            raise ScenarioError(f"{where}: name: {name!r} is used twice")
+        seen.add(name)
+        sp = it.get("scenario")
+        if sp is None:
+            sp = DEFAULT_SCENARIO
+        elif not isinstance(sp, str) or not sp:
+            raise ScenarioError(f"{where}: scenario: {sp!r} is not allowed; allowed: a path")
+        elif not os.path.isabs(sp):
+            sp = os.path.normpath(os.path.join(base, sp))
+        for key in ("seed", "baud"):
+            v = it.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+                raise ScenarioError(f"{where}: {key}: {v!r} is not allowed; allowed: an integer ≥ 0")
+        sc = load_scenario(sp)
+        if it.get("baud") is not None:
+            sc.load_meter_map(it["baud"])        # checks the override
+        out.append(FleetEntry(name, sc, it.get("seed"), it.get("baud")))
+    return out
+
+
+def fleet_of_count(scenario: Scenario, count: int, seed: int | None = None) -> list[FleetEntry]:
+    """``--count N``: N copies of one scenario named sim01…simNN, seeds seed, seed+1, … (so the
+    first station is the one a single-station run with that seed gives)."""
+    s0 = scenario.seed if seed is None else seed
+    return [FleetEntry(f"sim{i + 1:02d}", scenario, s0 + i) for i in range(count)]

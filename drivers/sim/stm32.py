@@ -320,12 +320,15 @@ class VirtualStm32:
     def device(self) -> str | None:
         return self.link.device
 
-    async def start(self) -> str:
+    async def start(self, own_ticker: bool = True) -> str:
+        """Open the pty and start. ``own_ticker=False``: the caller calls :meth:`tick` every
+        ``tick_s`` itself (a simulator hosting many devices ticks them all from one task)."""
         self._loop = asyncio.get_running_loop()
         self._apply()
         dev = self.link.open()
         self._attach()
-        self._tick_task = self._loop.create_task(self._ticker())
+        if own_ticker:
+            self._tick_task = self._loop.create_task(self._ticker())
         return dev
 
     async def stop(self) -> None:
@@ -380,9 +383,14 @@ class VirtualStm32:
             pass
 
     async def _ticker(self) -> None:
-        loop = self._loop
         while True:
             await asyncio.sleep(self.tick_s)
+            self.tick()
+
+    def tick(self) -> None:
+        """One firmware tick: watchdog, trips, the motor, idle-gap framing."""
+        loop = self._loop
+        if loop is not None:
             # a real MCU takes each byte in its UART interrupt as it arrives: credit the frames
             # already waiting in the pty before judging the watchdog (a busy host can delay this
             # process; that must not look like a silent gateway)
