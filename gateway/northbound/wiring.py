@@ -65,4 +65,8 @@ def outputs_for(cfg, station) -> list:
 
         connected = (lambda: mqtt_out.connected) if mqtt_out is not None else None
         outs.append(ModbusOutput(modbus_settings(cfg), station, mqtt_connected=connected))
+    if getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
+        from .sparkplug.output import SparkplugOutput, settings_from_config
+
+        outs.append(SparkplugOutput(settings_from_config(cfg), station))
     return outs
