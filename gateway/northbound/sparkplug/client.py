@@ -107,6 +107,8 @@ class NodeRuntime:
         self._server = 0
         self._next_attempt = 0.0
         self._backoff = s.reconnect_min_s
+        self._disconnect: Disconnect | None = None
+        self._qos1: list = []              # QoS 1 publishes (NDEATH) not yet acknowledged
         self.counters: dict[str, int] = collections.Counter()
 
     # ------------------------------------------------------------------ any thread
@@ -161,7 +163,9 @@ class NodeRuntime:
                     self._act(pubs)
                     self.node.buffer.remove(keys)
                 rc = self._client.loop(timeout=self.s.poll_s)
-                if rc != paho.MQTT_ERR_SUCCESS:
+                if self._disconnect is not None:
+                    self._planned_disconnect(self._disconnect)
+                elif rc != paho.MQTT_ERR_SUCCESS:
                     self._lost(f"network loop: {paho.error_string(rc)}")
             else:
                 now = time.monotonic()
@@ -194,15 +198,15 @@ class NodeRuntime:
                 if self._client is None or not self._sock:
                     continue
                 info = self._client.publish(o.topic, o.payload, qos=o.qos, retain=o.retain)
+                if o.qos:
+                    self._qos1.append(info)
                 self.counters["published"] += 1
                 if info.rc != paho.MQTT_ERR_SUCCESS:
                     log.warning("sparkplug: publish on %s failed: %s", o.topic, paho.error_string(info.rc))
             elif isinstance(o, Disconnect):
-                log.info("sparkplug %s: disconnecting: %s", self.s.edge_node_id, o.reason)
-                if o.next_server:
-                    self._server = (self._server + 1) % len(self.s.servers)
-                self._close(clean=False)
-                self._next_attempt = time.monotonic() + 0.2
+                # carried out after the network loop returns (we may be inside a paho callback),
+                # once the NDEATH queued before it is on the wire
+                self._disconnect = o
             elif isinstance(o, Submit):
                 self._submit(o)
 
@@ -274,24 +278,39 @@ class NodeRuntime:
         self._close(clean=False)
         self._retry()
 
+    def _planned_disconnect(self, d: Disconnect) -> None:
+        self._disconnect = None
+        log.info("sparkplug %s: disconnecting: %s", self.s.edge_node_id, d.reason)
+        if d.next_server:
+            self._server = (self._server + 1) % len(self.s.servers)
+        self._close(clean=False)
+        self._next_attempt = time.monotonic() + 0.2
+
     def _close(self, clean: bool) -> None:
         c = self._client
         if c is None:
             return
         if clean and self._sock and self.node.connected:
             # a deliberate end: the NDEATH ourselves (the broker only sends the Will on a failure)
-            info = c.publish(*_pub_args(self.node._ndeath()))
-            t_end = time.monotonic() + 2.0
-            while not info.is_published() and time.monotonic() < t_end:
-                c.loop(timeout=0.05)
+            self._qos1.append(c.publish(*_pub_args(self.node.ndeath())))
+        # what is queued (DDEATH, NDEATH) goes out before the DISCONNECT: wait for the QoS 1 ones
+        t_end = time.monotonic() + 2.0
+        while self._sock and time.monotonic() < t_end and (c.want_write() or self._unacked(c)):
+            if c.loop(timeout=0.05) != paho.MQTT_ERR_SUCCESS:
+                break
+        self._sock = False
         try:
             c.disconnect()
             c.loop(timeout=0.05)
         except Exception:  # noqa: BLE001 - closing a broken socket
             pass
         self._client = None
-        self._sock = False
+        self._qos1 = []
         self.node.disconnected()
+
+    def _unacked(self, c: paho.Client) -> bool:
+        self._qos1 = [i for i in self._qos1 if not i.is_published()]
+        return bool(self._qos1)
 
     # paho callbacks (this thread, from client.loop)
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:

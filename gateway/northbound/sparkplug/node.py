@@ -210,9 +210,9 @@ class EdgeNode:
             self._fresh = False
         else:
             self.bdseq = (self.bdseq + 1) % 256
-        return self._ndeath()
+        return self.ndeath()
 
-    def _ndeath(self) -> Publish:
+    def ndeath(self) -> Publish:
         p = Payload()
         m = p.metrics.add()
         m.name = M.BDSEQ
@@ -258,7 +258,7 @@ class EdgeNode:
             self.host_online = False
             if self.connected and self.node_born:
                 # the host is gone: end this session cleanly and wait (reconnected) for it
-                out: list[Publish | Disconnect] = [self._ndeath()]
+                out: list[Publish | Disconnect] = [self.ndeath()]
                 self.node_born = False
                 for d in self.devices.values():
                     d.born = False
@@ -491,7 +491,7 @@ class EdgeNode:
                     out.extend(self.rebirth(now_ms))
                 elif name in (M.NEXT_SERVER, M.REBOOT):
                     if self.connected:
-                        out.append(self._ndeath())
+                        out.append(self.ndeath())
                     self.node_born = False
                     out.append(Disconnect(name, next_server=name == M.NEXT_SERVER))
                 else:
