@@ -47,6 +47,7 @@ COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
     CommandKind.STOP: (),
     CommandKind.ACK: (),
     CommandKind.SETPOINT: ("t_set",),
+    CommandKind.HOOK_REPLACED: (),
 }
 
 
@@ -165,6 +166,9 @@ def validate(cmd: Command, station) -> Rejection | None:
         err = check_t_set(a.get("t_set"), station)
         if err:
             return reject(cmd, "T_SET", err)
+    elif cmd.kind == CommandKind.HOOK_REPLACED:
+        if getattr(getattr(station, "state", None), "alarm", "none") not in ("active", "acknowledged"):
+            return reject(cmd, "NO_ALARM", "no end-of-life alarm to close")
     else:  # pragma: no cover - CommandKind is closed
         return reject(cmd, "BAD_REQUEST", f"command {cmd.kind!r} unknown")
     return None
