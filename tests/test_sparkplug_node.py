@@ -40,6 +40,8 @@ def test_will_and_bdseq_sequence():
     birth = n.connected_ok(5)[0]
     b = dec(birth)
     assert b.seq == 0 and [m.long_value for m in b.metrics if m.name == "bdSeq"] == [0]
+    rebirth = [m for m in b.metrics if m.name == M.REBIRTH][0]
+    assert not rebirth.HasField("alias") and rebirth.datatype == 11 and rebirth.boolean_value is False
     n.disconnected()
     assert dec(n.connecting()).metrics[0].long_value == 1
     # a restart continues after the persisted value, wrapping at 256
@@ -52,7 +54,7 @@ def test_dbirth_has_every_metric_and_ddata_uses_aliases_only():
     outs = n.device_update("loom-01", {"Test/State": "monitoring", "Tension/T1": 0.5}, 4)
     assert kinds(outs) == ["DDATA"]
     d = dec(outs[0])
-    assert all(not m.name and m.alias for m in d.metrics)
+    assert all(not m.name and m.alias and not m.HasField("datatype") and m.timestamp for m in d.metrics)
     n2 = online_node()
     birth = [o for o in n2.rebirth(9) if "DBIRTH" in o.topic][0]
     b = dec(birth)

@@ -126,8 +126,9 @@ DEVICE_BY_NAME = {m.name: m for m in DEVICE_METRICS}
 
 
 def node_aliases() -> dict[str, int]:
-    """Node metrics: aliases 1 … n (bdSeq has none: the Will carries it by name)."""
-    return {m.name: i for i, m in enumerate(NODE_METRICS) if m.name != BDSEQ}
+    """Node metrics: aliases 1 … n, except bdSeq (the Will carries it by name) and
+    Node Control/Rebirth (tck-id-operational-behavior-data-commands-rebirth-name-aliases)."""
+    return {m.name: i for i, m in enumerate(NODE_METRICS) if m.name not in (BDSEQ, REBIRTH)}
 
 
 def device_alias_base(device_id: str) -> int:

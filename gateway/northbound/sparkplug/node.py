@@ -285,7 +285,7 @@ class EdgeNode:
         for i, d in enumerate(M.NODE_METRICS):
             m = p.metrics.add()
             m.name = d.name
-            if d.name != M.BDSEQ:
+            if d.name in self._node_alias:
                 m.alias = self._node_alias[d.name]
             m.timestamp = int(now_ms)
             m.datatype = d.datatype
@@ -415,9 +415,8 @@ class EdgeNode:
         for k, v in values.items():
             d = M.DEVICE_BY_NAME[k]
             m = p.metrics.add()
-            m.alias = dev.alias_base + index[k]
+            m.alias = dev.alias_base + index[k]      # by alias only, no name, no datatype
             m.timestamp = int(now_ms)
-            m.datatype = d.datatype
             if historical:
                 m.is_historical = True
             set_value(m, d.datatype, v)
