@@ -147,3 +147,20 @@ def test_station_stopped_while_offline_is_born_replayed_then_buried():
     assert kinds(outs) == ["NBIRTH", "DBIRTH"]
     pubs, keys = n.drain(41)
     assert kinds(pubs) == ["DDATA", "DDEATH"] and "loom-01" not in n.devices
+
+
+def test_alias_blocks_of_two_devices_never_overlap(monkeypatch):
+    monkeypatch.setattr(M, "device_alias_base", lambda device_id: 7 << 12)   # a forced CRC clash
+    n = online_node()
+    n.device_up("loom-02", {}, 5)
+    a, b = n.devices["loom-01"].alias_base, n.devices["loom-02"].alias_base
+    assert a != b and abs(a - b) >= len(M.DEVICE_METRICS)
+
+
+def test_bad_state_and_commands_are_counted_not_fatal():
+    n = online_node()
+    for bad in (b"", b"online", b'{"online": "yes", "timestamp": 1}', b'{"online": true}', b"\xff"):
+        assert n.host_state(bad, 5) == []
+    assert n.publishing
+    assert n.command("spBv1.0/plant-a/DCMD/hall-2-line-3/loom-01", b"\x0a\xff", 6) == []
+    assert n.counters["ignored_commands"] >= 6
