@@ -88,8 +88,11 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef("Method/mu_ss", DataType.Double, "", "steady-state friction coefficient μ_ss"),
     MetricDef("Method/mu_th", DataType.Double, "", "end-of-life threshold (1+δ)·μ_ss"),
     MetricDef("Method/t_life", DataType.Double, "s", "wear life: start of the persistent exceedance"),
-    MetricDef("Alarm/End Of Life/State", DataType.String, description="none | active | acknowledged"),
-    MetricDef("Alarm/End Of Life/Priority", DataType.Int32, description="1 high … 4 low (ISA-18.2)"),
+    MetricDef("Alarm/End Of Life/State", DataType.String, description="ISA-18.2: normal | unacknowledged | "
+              "acknowledged | rtn_unacknowledged | shelved | out_of_service (gateway/alarms.py)"),
+    MetricDef("Alarm/End Of Life/Active", DataType.Boolean, description="the alarm is standing (annunciated)"),
+    MetricDef("Alarm/End Of Life/Priority", DataType.Int32, description="ISA-18.2 priority, 1 critical … "
+              "4 low"),
     MetricDef("Status/Protection Stop", DataType.Boolean),
     MetricDef("Status/Meter OK", DataType.Boolean, description="Modbus RTU link to the tension meter"),
     MetricDef("Status/STM32 OK", DataType.Boolean, description="serial link to the motor controller"),

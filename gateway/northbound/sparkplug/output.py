@@ -13,12 +13,22 @@ import math
 import time
 from typing import Any
 
+from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...records import Event, EventType, SlotRecord, StationState
 from . import client as _client
 from .client import SparkplugSettings
 
-#: ISA-18.2 priority of the end-of-life alarm (1 high … 4 low)
-EOL_PRIORITY = 1
+#: ISA-18.2 priority of the end-of-life alarm
+EOL_PRIORITY = int(ALARMS["end_of_life"].priority)
+
+
+def _alarm_values(value: str) -> dict[str, Any]:
+    try:
+        s = from_station(value)
+    except ValueError:
+        s = AlarmState.NORMAL
+    return {"Alarm/End Of Life/State": s.value, "Alarm/End Of Life/Active": s in ANNUNCIATED,
+            "Alarm/End Of Life/Priority": EOL_PRIORITY}
 
 
 def state_values(st: StationState) -> dict[str, Any]:
@@ -28,8 +38,7 @@ def state_values(st: StationState) -> dict[str, Any]:
         "Test/Grade": st.grade, "Test/Setpoint": st.t_set, "Test/Planned End": st.t_end,
         "Test/Status": st.status, "Test/End Reason": st.end_reason,
         "Method/mu_ss": st.mu_ss, "Method/mu_th": st.mu_th, "Method/t_life": st.t_life,
-        "Alarm/End Of Life/State": st.alarm,
-        "Alarm/End Of Life/Priority": EOL_PRIORITY if st.alarm in ("active", "acknowledged") else None,
+        **_alarm_values(st.alarm),
         "Status/Protection Stop": st.protection_stop, "Status/Meter OK": st.meter_ok,
         "Status/STM32 OK": st.stm32_ok,
     }
@@ -129,7 +138,7 @@ class SparkplugOutput:
         if ev.type == EventType.END_OF_LIFE and self.rt is not None:
             d = ev.data
             self.rt.post(("update", self.s.device_id, {
-                "Alarm/End Of Life/State": "active", "Alarm/End Of Life/Priority": EOL_PRIORITY,
+                **_alarm_values("active"),
                 "Method/t_life": d.get("t_life"), "Method/mu_ss": d.get("mu_ss"),
                 "Method/mu_th": d.get("mu_th")}, False))
 
