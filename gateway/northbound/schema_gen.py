@@ -27,18 +27,6 @@ _TYPES = {"str": "string", "int": "integer", "float": "number", "bool": "boolean
 TIME = {"type": "string", "pattern": r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}\.\d{3}Z$"}
 TIME_OR_NULL = {"anyOf": [TIME, {"type": "null"}]}
 
-#: result.status values of the method and what each means for the MES (also docs/mqtt.md)
-RESULT_STATUS: tuple[tuple[str, str], ...] = (
-    ("failure", "the hook reached its end of life: `t_life` is its wear life (s); replace the hook, "
-     "count the life in the grade's statistics"),
-    ("no_failure", "the test ran to its planned end without an end of life: the life is longer "
-     "than `t_end` (a censored observation, not a failure)"),
-    ("no_baseline", "no steady baseline μ_ss was found: no life can be judged; check the set-up "
-     "(threading, tension) and repeat the test"),
-    ("aborted", "the test was stopped early (command, protection stop, gateway restart) before a "
-     "judgement: no life; the reason is in `end_reason`"),
-)
-
 #: fields whose values are a closed set, per topic key (None: every topic)
 ENUMS: dict[tuple[str | None, str], list[Any]] = {
     ("status", "status"): ["online", "offline"],
@@ -60,8 +48,8 @@ NESTED: dict[tuple[str, str], dict[str, Any]] = {
         "properties": {k: {"type": "integer", "minimum": 0} for k in REASON_NAMES}},
     ("result", "result"): {
         "type": ["object", "null"],
-        "properties": {"status": {"enum": [s for s, _ in RESULT_STATUS],
-                                  "description": "; ".join(f"{s}: {d}" for s, d in RESULT_STATUS)},
+        "properties": {"status": {"enum": [s for s, _ in S.RESULT_STATUS],
+                                  "description": "; ".join(f"{s}: {d}" for s, d in S.RESULT_STATUS)},
                        "t_life": {"type": ["number", "null"]}, "mu_ss": {"type": ["number", "null"]},
                        "mu_th": {"type": ["number", "null"]}}},
 }
