@@ -62,6 +62,7 @@ class PrimaryHost:
         self.c = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"host-{host_id}")
         self.c.will_set(f"spBv1.0/STATE/{host_id}", self._state(False), qos=1, retain=True)
         self.c.on_message = self._on_message
+        self.c.reconnect_delay_set(0.05, 0.2)    # back before the edge node after a broker restart
         self.c.on_connect = lambda c, u, f, rc, p: c.subscribe(f"spBv1.0/{group}/#", qos=1)
         self.c.connect("127.0.0.1", port)
         self.c.loop_start()

@@ -44,6 +44,10 @@ def test_will_and_bdseq_sequence():
     assert not rebirth.HasField("alias") and rebirth.datatype == 11 and rebirth.boolean_value is False
     n.disconnected()
     assert dec(n.connecting()).metrics[0].long_value == 1
+    # a refused TCP connection sent no CONNECT: its bdSeq is not used up
+    n.connecting()
+    n.connect_failed()
+    assert dec(n.connecting()).metrics[0].long_value == 2
     # a restart continues after the persisted value, wrapping at 256
     n2 = EdgeNode("g", "e", last_bdseq=255)
     assert dec(n2.connecting()).metrics[0].long_value == 0

@@ -140,11 +140,25 @@ class NodeRuntime:
         return int(time.time() * 1000)
 
     def _main(self) -> None:
+        """Supervised: a failure is logged and counted, the session restarts after a pause."""
         try:
-            self._run()
-        except Exception:
-            log.exception("sparkplug %s: node thread crashed; stored data stays in %s", self.s.edge_node_id,
-                          self.s.store_path)
+            while True:
+                try:
+                    self._run()
+                    break
+                except Exception:
+                    self.counters["crashes"] += 1
+                    log.exception("sparkplug %s: node thread failed (%d so far); restarting the session, "
+                                  "stored data stays in %s", self.s.edge_node_id, self.counters["crashes"],
+                                  self.s.store_path)
+                    try:
+                        self._close(clean=False)
+                    except Exception:  # noqa: BLE001 - the client may be half built
+                        self._client = None
+                        self._sock = False
+                        self.node.disconnected()
+                    if self._stop.wait(min(self.s.reconnect_max_s, 5.0)):
+                        break
         finally:
             self._close(clean=True)
             if self.outbox is not None:
@@ -241,11 +255,7 @@ class NodeRuntime:
     def _connect(self) -> None:
         s = self.s
         will = self.node.connecting()
-        if self.outbox is not None:
-            try:
-                self.outbox.add([], meta={"bdseq": self.node.bdseq})
-            except sqlite3.Error as e:
-                log.error("sparkplug: cannot persist bdSeq %d: %s", self.node.bdseq, e)
+        self._persist_bdseq()
         host, port = s.servers[self._server % len(s.servers)]
         c = paho.Client(CallbackAPIVersion.VERSION2,
                         client_id=s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}",
@@ -265,9 +275,22 @@ class NodeRuntime:
                 log.warning("sparkplug %s: cannot connect to %s:%s: %s", s.edge_node_id, host, port, e)
             self.counters["connect_errors"] += 1
             self._client = None
+            self.node.connect_failed()          # no CONNECT packet was sent: bdSeq not used
+            self._persist_bdseq()
             self._retry()
             return
         self._sock = True
+
+    def _persist_bdseq(self) -> None:
+        """The bdSeq of the coming CONNECT, or the last one used, kept for the next process."""
+        if self.outbox is None:
+            return
+        last = self.node.bdseq if not self.node.fresh else None
+        try:
+            self.outbox.add([], meta={"bdseq": last})
+        except sqlite3.Error as e:
+            self.counters["bdseq_store_errors"] += 1
+            log.error("sparkplug: cannot persist bdSeq %s: %s", last, e)
 
     def _retry(self) -> None:
         self._next_attempt = time.monotonic() + self._backoff

@@ -169,6 +169,7 @@ class EdgeNode:
         #: the caller persists it after connecting() and before it connects
         self.bdseq = 0 if last_bdseq is None else int(last_bdseq) % 256
         self._fresh = last_bdseq is None
+        self._before_connect = (self.bdseq, self._fresh)
         self.seq = 0
         self.connected = False
         self.node_born = False
@@ -206,11 +207,21 @@ class EdgeNode:
     def connecting(self) -> Publish:
         """Before each CONNECT: the next bdSeq and the Will (NDEATH, QoS 1, not retained). The caller
         persists :attr:`bdseq` before connecting, so a restart after kill -9 continues from it."""
+        self._before_connect = (self.bdseq, self._fresh)
         if self._fresh:
             self._fresh = False
         else:
             self.bdseq = (self.bdseq + 1) % 256
         return self.ndeath()
+
+    @property
+    def fresh(self) -> bool:
+        """No bdSeq used yet (the first CONNECT will carry 0)."""
+        return self._fresh
+
+    def connect_failed(self) -> None:
+        """No CONNECT packet went out (the TCP connection failed): the bdSeq is not used up."""
+        self.bdseq, self._fresh = self._before_connect
 
     def ndeath(self) -> Publish:
         p = Payload()
