@@ -168,3 +168,31 @@ def test_bad_state_and_commands_are_counted_not_fatal():
     assert n.publishing
     assert n.command("spBv1.0/plant-a/DCMD/hall-2-line-3/loom-01", b"\x0a\xff", 6) == []
     assert n.counters["ignored_commands"] >= 6
+
+
+def test_store_not_writable_holds_rows_in_memory_then_writes_them(tmp_path):
+    import sqlite3
+
+    from gateway.northbound.outbox import Outbox
+    from gateway.northbound.sparkplug.client import OutboxBuffer
+
+    ob = Outbox(str(tmp_path / "s.sqlite"))
+    buf = OutboxBuffer(ob, memory_max=5)
+    buf.put("t/a", b"1", True)
+    real_add = ob.add
+
+    def full(*a, **k):
+        raise sqlite3.OperationalError("database or disk is full")
+    ob.add = full
+    for i in range(2, 9):
+        buf.put("t/a", str(i).encode(), i != 4)      # 4 is a state change: never dropped first
+    assert buf.store_errors >= 1 and len(buf.memory) == 5 and buf.dropped == 2
+    assert [p for _k, _t, p in buf.peek(10)] == [b"1", b"4", b"5", b"6", b"7", b"8"]
+    ob.add = real_add
+    buf.put("t/a", b"9", True)
+    assert not buf.memory and ob.count() == 7
+    got = buf.peek(10)
+    assert [p for _k, _t, p in got] == [b"1", b"4", b"5", b"6", b"7", b"8", b"9"]
+    buf.remove([k for k, _t, _p in got])
+    assert len(buf) == 0
+    ob.close()

@@ -60,24 +60,81 @@ class SparkplugSettings:
 
 
 class OutboxBuffer:
-    """The node's store-and-forward buffer on the SQLite outbox (its public API only)."""
+    """The node's store-and-forward buffer on the SQLite outbox (its public API only).
 
-    def __init__(self, outbox: Outbox):
+    A store that cannot be written (disk full, I/O error) is a state, not a crash: rows wait in
+    memory (at most ``memory_max``; beyond, the oldest measured values are dropped, counted) and
+    are written to disk as soon as it accepts them again; the replay takes disk rows, then these.
+    """
+
+    def __init__(self, outbox: Outbox, memory_max: int = 20_000):
         self.ob = outbox
+        self.memory: collections.deque = collections.deque()    # (key, Row, telemetry)
+        self.memory_max = memory_max
+        self.store_errors = 0
+        self.dropped = 0
+
+    def _flush_memory(self) -> bool:
+        if not self.memory:
+            return True
+        try:
+            self.ob.add([r for _k, r, _t in self.memory])
+        except sqlite3.Error:
+            return False
+        self.memory.clear()
+        log.warning("sparkplug store %s writable again; held rows written", self.ob.path)
+        return True
 
     def put(self, topic: str, payload: bytes, telemetry: bool) -> None:
         row = Row(self.ob.next_seq(), "telemetry" if telemetry else "event", topic, payload, 0, False,
                   time.time())
-        self.ob.add([row])
+        if self._flush_memory():
+            try:
+                self.ob.add([row])
+                return
+            except sqlite3.Error as e:
+                self.store_errors += 1
+                if self.store_errors == 1 or self.store_errors % 1000 == 0:
+                    log.error("sparkplug store %s not writable (%s): data held in memory (%d errors so "
+                              "far)", self.ob.path, e, self.store_errors)
+        self.memory.append((row.seq, row, telemetry))
+        if len(self.memory) > self.memory_max:
+            for i, (_k, _r, tel) in enumerate(self.memory):
+                if tel:
+                    del self.memory[i]
+                    break
+            else:
+                self.memory.popleft()
+            self.dropped += 1
 
     def peek(self, n: int) -> list[tuple[int, str, bytes]]:
-        return [(r.seq, r.topic, r.payload) for r in self.ob.pending(0, n)]
+        self._flush_memory()
+        try:
+            rows = [(r.seq, r.topic, r.payload) for r in self.ob.pending(0, n)]
+        except sqlite3.Error:
+            rows = []
+        for k, r, _t in self.memory:
+            if len(rows) >= n:
+                break
+            rows.append((k, r.topic, r.payload))
+        return rows
 
     def remove(self, keys: list[int]) -> None:
-        self.ob.confirm(keys)
+        ks = set(keys)
+        if self.memory:
+            self.memory = collections.deque(x for x in self.memory if x[0] not in ks)
+        try:
+            self.ob.confirm(keys)
+        except sqlite3.Error as e:
+            # they were published: a resend after a restart is flagged historical, harmless
+            log.error("sparkplug store %s: cannot delete replayed rows: %s", self.ob.path, e)
 
     def __len__(self) -> int:
-        return self.ob.count()
+        try:
+            n = self.ob.count()
+        except sqlite3.Error:
+            n = 0
+        return n + len(self.memory)
 
 
 class NodeRuntime:
