@@ -7,24 +7,15 @@ from gateway.control import ControlParams
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.commands import CODE
 from gateway.station.station import Station
-from test_slot_clock import QuietStm32, TimedMeter
+from test_slot_clock import Capture, QuietStm32, TimedMeter
 
 
-class Events:
+class Events(Capture):
+    """Capture (records) plus the events."""
+
     def __init__(self):
+        super().__init__()
         self.events = []
-
-    async def start(self):
-        pass
-
-    async def stop(self):
-        pass
-
-    def on_record(self, rec):
-        pass
-
-    def on_state(self, st):
-        pass
 
     def on_event(self, ev):
         self.events.append(ev)
