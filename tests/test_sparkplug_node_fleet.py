@@ -55,6 +55,19 @@ def test_two_stations_one_node_outage_reboot_and_stops(tmp_path):
             {"alias": alias["Device Control/Setpoint"], "float_value": 0.5}])
         host.wait(lambda: stations[1].monitor is not None, 20, "loom-02 running")
         assert stations[0].monitor is None
+        # Hook Replaced without an alarm: refused through the one command path (NO_ALARM = 3)
+        a1n = {m.name: m.alias for m in births["loom-01"].p.metrics}
+        a1r = {v: k for k, v in a1n.items()}
+        mark = host.mark()
+        host.command(f"spBv1.0/{GROUP}/DCMD/{NODE}/loom-01",
+                     [{"name": "Device Control/Hook Replaced", "boolean_value": True}])
+
+        def result_code():
+            for m in host.all("DDATA", since=mark):
+                for x in m.p.metrics:
+                    if m.device == "loom-01" and a1r.get(x.alias) == "Device Control/Last Result Code":
+                        return metric_value(x)
+        assert host.wait(result_code, 20, "the Hook Replaced refusal") == 3
 
         # broker outage: data held in the store, replayed as historical after the births
         b.stop()

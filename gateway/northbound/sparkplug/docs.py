@@ -132,8 +132,8 @@ node (one MQTT session, one bdSeq, one seq counter); each is a device of it.
 
 ## Session
 
-1. Before each MQTT CONNECT the node takes the next **bdSeq** (0 … 255, +1 per CONNECT) and
-   stores it (`sparkplug.store_path`, SQLite WAL: a `kill -9` does not lose it), then connects
+1. Before each MQTT CONNECT the node takes the next **bdSeq** (0 … 255, +1 per CONNECT packet
+   sent; a refused TCP connection sends none and uses none) and stores it (`sparkplug.store_path`, SQLite WAL: a `kill -9` does not lose it), then connects
    with the **NDEATH as the MQTT Will** (QoS 1, not retained, the bdSeq metric only) and Clean
    Session.
 2. It subscribes to `spBv1.0/<group>/NCMD/<node>`, `spBv1.0/<group>/DCMD/<node>/+` and, with a
@@ -155,7 +155,9 @@ publishes NBIRTH and the DBIRTHs (current values), then the stored DDATA **in or
 at sending), then, once the store is empty, a live DDATA with the latest value of every metric
 that changed during the replay, and live data after it. Measured values (tension, μ, speed)
 beyond `sparkplug.history_budget_mb` are dropped oldest first (counted); state, test and alarm
-changes are never dropped. Replayed data goes at QoS 0 like all Sparkplug data: a connection lost
+changes are never dropped. A store that cannot be written (disk full) is a state: rows wait in
+memory (bounded, measured values dropped first, counted, one log line) until the disk accepts
+them again. Replayed data goes at QoS 0 like all Sparkplug data: a connection lost
 during the replay loses the batch in flight (at most 50 payloads), not the rest of the store.
 
 ## Node controls (NCMD)

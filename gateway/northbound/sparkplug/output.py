@@ -8,8 +8,9 @@ to its node (DBIRTH), ``stop`` detaches it (DDEATH; the last station ends the no
 from __future__ import annotations
 
 import asyncio
-import os
+import logging
 import math
+import os
 import time
 from typing import Any
 
@@ -17,6 +18,8 @@ from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...records import Event, EventType, SlotRecord, StationState
 from . import client as _client
 from .client import SparkplugSettings
+
+log = logging.getLogger("hookwatch.sparkplug")
 
 #: ISA-18.2 priority of the end-of-life alarm
 EOL_PRIORITY = int(ALARMS["end_of_life"].priority)
@@ -154,6 +157,9 @@ def settings_from_config(cfg) -> SparkplugSettings:
     password = None
     if sp.password_env:
         password = os.environ.get(sp.password_env)
+        if password is None:
+            log.error("station %s: sparkplug.password_env: environment variable %s is not set; "
+                      "connecting without a password", st.id, sp.password_env)
     return SparkplugSettings(
         group_id=group, edge_node_id=node, device_id=sp.device_id or st.id,
         servers=[(sp.host, int(sp.port))], client_id=sp.client_id, keepalive_s=int(sp.keepalive_s),
