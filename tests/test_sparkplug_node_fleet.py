@@ -39,7 +39,8 @@ def test_two_stations_one_node_outage_reboot_and_stops(tmp_path):
             runs.append(RunningStation(lts[i], st))
         host.wait(lambda: len(host.all("DBIRTH")) >= 2, 30, "two DBIRTHs")
         node = [m for m in host.all() if m.kind in NODE_KINDS]
-        assert [m.kind for m in node].count("NBIRTH") == 1 and node[0].kind == "NBIRTH"
+        assert [m.kind for m in node].count("NBIRTH") == 1
+        assert [m.kind for m in node[:3]] == ["NBIRTH", "DBIRTH", "DBIRTH"], node[:4]   # gathered
         births = {m.device: m for m in host.all("DBIRTH")}
         assert set(births) == {"loom-01", "loom-02"}
         a1 = {m.alias for m in births["loom-01"].p.metrics}

@@ -54,6 +54,9 @@ class SparkplugSettings:
     reconnect_min_s: float = 1.0
     reconnect_max_s: float = 10.0
     poll_s: float = 0.02
+    #: the first CONNECT waits this long after the first station attached, so that the stations of
+    #: a fleet starting together get their DBIRTHs right after the NBIRTH
+    gather_s: float = 0.5
 
     def node_key(self) -> tuple:
         return (tuple(self.servers), self.group_id, self.edge_node_id)
@@ -182,6 +185,7 @@ class NodeRuntime:
 
     def start(self) -> None:
         if self._thread is None:
+            self._next_attempt = time.monotonic() + self.s.gather_s
             self._thread = threading.Thread(target=self._main, daemon=True,
                                             name=f"sparkplug-{self.s.edge_node_id}")
             self._thread.start()

@@ -83,7 +83,8 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "e2e: a DCMD start starts a test, `Device Control/Last Result Code` 0"),
     ("tck-id-payloads-dbirth-order, tck-id-message-flow-device-birth-publish-nbirth-wait",
      "DBIRTHs right after the NBIRTH, before any data", "partial",
-     "so at every (re)birth; a station that starts later in a running node gets its DBIRTH then "
+     "so at every (re)birth (the first CONNECT waits 0.5 s for the stations of a fleet starting "
+     "together); a station that starts later in a running node gets its DBIRTH then "
      "(after data of others), as do stations whose stored history is replayed after a restart "
      "before they run again"),
     ("tck-id-operational-behavior-device-ddeath", "DDEATH when a device is lost", "yes",
