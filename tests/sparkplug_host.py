@@ -53,7 +53,7 @@ class Msg:
 class PrimaryHost:
     """Subscribes to a group's messages, keeps them decoded, publishes STATE, NCMD and DCMD."""
 
-    def __init__(self, port: int, host_id: str, group: str, tmp_dir):
+    def __init__(self, port: int, host_id: str, group: str, tmp_dir, tls: dict | None = None):
         self.Payload = payload_class(tmp_dir)
         self.host_id = host_id
         self.group = group
@@ -64,6 +64,8 @@ class PrimaryHost:
         self.c.on_message = self._on_message
         self.c.reconnect_delay_set(0.05, 0.2)    # back before the edge node after a broker restart
         self.c.on_connect = lambda c, u, f, rc, p: c.subscribe(f"spBv1.0/{group}/#", qos=1)
+        if tls:
+            self.c.tls_set(ca_certs=tls["ca"], certfile=tls["cert"], keyfile=tls["key"])
         self.c.connect("127.0.0.1", port)
         self.c.loop_start()
 

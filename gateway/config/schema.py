@@ -300,6 +300,7 @@ class SparkplugConfig:
     password_env: str | None = key(None, "environment variable holding the broker password",
                                    kind="envvar", nullable=True, null_means="no password")
     keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
+    tls: MqttTlsConfig = section(MqttTlsConfig, "TLS to the broker")
     data_interval_s: float = key(1.0, "one DDATA of the measured values (slot aggregates) this "
                                  "often; state changes are sent as they happen", kind="float",
                                  unit="s", lo=0.1, hi=3600.0)

@@ -47,6 +47,10 @@ class SparkplugSettings:
     keepalive_s: int = 30
     username: str | None = None
     password: str | None = None
+    tls_enabled: bool = False
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
     primary_host_id: str | None = None
     data_interval_s: float = 1.0
     store_path: str = "sparkplug.sqlite"
@@ -324,6 +328,18 @@ class NodeRuntime:
         c.max_queued_messages_set(0)
         if s.username:
             c.username_pw_set(s.username, s.password)
+        if s.tls_enabled:
+            try:
+                c.tls_set(ca_certs=s.ca_file, certfile=s.cert_file, keyfile=s.key_file)
+            except (OSError, ValueError) as e:     # ssl.SSLError is an OSError
+                self.counters["tls_errors"] += 1
+                if self.counters["tls_errors"] == 1:
+                    log.error("sparkplug %s: TLS set-up failed (%s); retrying, data is held", s.edge_node_id, e)
+                self._client = None
+                self.node.connect_failed()
+                self._persist_bdseq()
+                self._retry()
+                return
         c.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect

@@ -163,7 +163,8 @@ def settings_from_config(cfg) -> SparkplugSettings:
     return SparkplugSettings(
         group_id=group, edge_node_id=node, device_id=sp.device_id or st.id,
         servers=[(sp.host, int(sp.port))], client_id=sp.client_id, keepalive_s=int(sp.keepalive_s),
-        username=sp.username, password=password, primary_host_id=sp.primary_host_id,
+        username=sp.username, password=password, tls_enabled=bool(sp.tls.enabled), ca_file=sp.tls.ca_file,
+        cert_file=sp.tls.cert_file, key_file=sp.tls.key_file, primary_host_id=sp.primary_host_id,
         data_interval_s=float(sp.data_interval_s),
         store_path=sp.store_path or _client.default_store(cfg.recorder.dir, group, node),
         history_budget_bytes=int(float(sp.history_budget_mb) * 1024 * 1024))
