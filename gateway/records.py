@@ -108,6 +108,7 @@ class CommandKind(str, enum.Enum):
     STOP = "stop"
     ACK = "ack"
     SETPOINT = "setpoint"
+    HOOK_REPLACED = "hook_replaced"    # the worn hook was replaced: closes its end-of-life alarm
 
 
 @dataclass

@@ -275,6 +275,44 @@ class MqttConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class SparkplugConfig:
+    enabled: bool = key(False, "publish the station as a Sparkplug B 3.0 device of its edge node "
+                        "(docs/sparkplug.md); alongside or instead of the JSON tree of `mqtt:`",
+                        kind="bool")
+    host: str = key("127.0.0.1", "broker host", kind="str")
+    port: int = key(1883, "broker port", kind="int", lo=1, hi=65535)
+    group_id: str | None = key(None, "Sparkplug group ID", kind="ident", nullable=True,
+                               null_means="`station.site`")
+    edge_node_id: str | None = key(None, "Sparkplug edge node ID; stations of one process with the "
+                                   "same group and edge node share one node (one MQTT session)",
+                                   kind="ident", nullable=True,
+                                   null_means="`<station.area>-<station.line>`")
+    device_id: str | None = key(None, "Sparkplug device ID of this station", kind="ident",
+                                nullable=True, null_means="`station.id`")
+    primary_host_id: str | None = key(None, "the primary host application whose "
+                                      "`spBv1.0/STATE/<id>` gates publishing (data is stored while "
+                                      "it is offline and replayed as historical)", kind="ident",
+                                      nullable=True, null_means="no primary host: publish whenever "
+                                      "connected")
+    client_id: str | None = key(None, "MQTT client ID of the edge node", kind="str", nullable=True,
+                                null_means="`hookwatch-spb-<group>-<edge node>`")
+    username: str | None = key(None, "broker user", kind="str", nullable=True, null_means="anonymous")
+    password_env: str | None = key(None, "environment variable holding the broker password",
+                                   kind="envvar", nullable=True, null_means="no password")
+    keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
+    tls: MqttTlsConfig = section(MqttTlsConfig, "TLS to the broker")
+    data_interval_s: float = key(1.0, "one DDATA of the measured values (slot aggregates) this "
+                                 "often; state changes are sent as they happen", kind="float",
+                                 unit="s", lo=0.1, hi=3600.0)
+    store_path: str | None = key(None, "SQLite store of the node: bdSeq and the data held while no "
+                                 "primary host is online", kind="path", nullable=True,
+                                 null_means="`<recorder.dir>/sparkplug-<group>-<edge node>.sqlite`")
+    history_budget_mb: float = key(50.0, "measured values kept while the host is offline; the "
+                                   "oldest are dropped (counted) beyond it — state and alarm "
+                                   "changes are never dropped", kind="float", unit="MB", lo=0.1)
+
+
+@dataclass(frozen=True, kw_only=True)
 class ModbusWritesConfig:
     enabled: bool = key(False, "accept writes (commands) from a PLC; reads are always allowed",
                         kind="bool")
@@ -404,6 +442,7 @@ class StationConfig:
     recorder: RecorderConfig = section(RecorderConfig, "recording of every test")
     mqtt: MqttConfig = section(MqttConfig, "northbound MQTT (to the MES)")
     modbus_tcp: ModbusTcpConfig = section(ModbusTcpConfig, "northbound Modbus TCP server (to the PLC)")
+    sparkplug: SparkplugConfig = section(SparkplugConfig, "northbound Sparkplug B 3.0 (to SCADA / MES)")
     logging: LoggingConfig = section(LoggingConfig, "logging")
     #: not a key: the station file this configuration was read from, and its fleet file
     source: str = field(default="", metadata={"internal": True})

@@ -46,7 +46,8 @@ ENVELOPE = (
     Field("schema", "int", f"payload schema version ({SCHEMA_VERSION})"),
     Field("seq", "int", "per-station sequence number: one counter for every message of the station "
           "that goes through the outbox, strictly increasing across gateway restarts; consumers "
-          "drop a message whose seq they have already seen (see Delivery)"),
+          "drop an outbox message whose seq they have already processed — `status` takes no part "
+          "in that rule (see Delivery, De-duplication)"),
     Field("time", "str", "UTC time of what the message reports, ISO 8601 with milliseconds "
           "(`2026-03-01T08:00:00.020Z`)"),
     Field("station", "str", "station id"),
@@ -54,7 +55,13 @@ ENVELOPE = (
 
 STATUS_FIELDS = ENVELOPE + (
     Field("status", "str", "`online` (published on every connect) or `offline` (the Last Will, "
-          "published by the broker when the gateway vanishes, or by the gateway on a clean stop)"),
+          "published by the broker when the gateway vanishes, or by the gateway on a clean stop). "
+          "In the Last Will, `time` is the time the session **started** (the Will is handed to the "
+          "broker with the CONNECT and cannot change afterwards), not the moment the gateway "
+          "vanished; that moment is known only to the broker (it publishes the Will at once on a "
+          "closed TCP connection, at the latest 1.5 × `keepalive_s` after the last packet): take "
+          "your receive time. On a clean stop `time` is the stop time. `seq` is the last seq "
+          "assigned when the message was built; it consumes no number"),
     Field("software", "str", "gateway software version"),
     Field("map_version", "int", "version of the PLC register map served alongside"),
 )
@@ -120,6 +127,18 @@ ALARM_FIELDS = ENVELOPE + (
     Field("cleared_at", "str|null", "UTC time the alarm was cleared"),
 )
 
+#: values of `result.status` (the method's verdict, METHOD.md) and what each means for the MES
+RESULT_STATUS: tuple[tuple[str, str], ...] = (
+    ("failure", "the hook reached its end of life: `t_life` is its wear life (s); replace the hook "
+     "and count the life in the grade's statistics"),
+    ("no_failure", "the test ran to its planned end `t_end` without an end of life: the life is "
+     "longer than `t_end` (a censored observation, not a failure); the hook may stay in service"),
+    ("no_baseline", "no steady baseline μ_ss was found, so no life can be judged: check the set-up "
+     "(threading, tension, meter) and repeat the test"),
+    ("aborted", "the test was stopped before a judgement (command, protection stop, gateway "
+     "restart): no life; `end_reason` says why; repeat the test when needed"),
+)
+
 RESULT_FIELDS = ENVELOPE + (
     Field("test_id", "str|null", "the test"),
     Field("sample_id", "str|null", "its sample"),
@@ -128,7 +147,8 @@ RESULT_FIELDS = ENVELOPE + (
     Field("test_status", "str", "completed or aborted"),
     Field("end_reason", "str", "completed, protection stop, stopped by command, gateway restart, …"),
     Field("result", "object|null", "the method's result (status, t_life, mu_ss, mu_th, k_b, … — "
-          "the keys of `hookwatch analyze --json`)"),
+          "the keys of `hookwatch analyze --json`); `result.status` is one of "
+          + ", ".join(f"`{k}`" for k, _ in RESULT_STATUS) + " (see Results)"),
 )
 
 REPLY_FIELDS = ENVELOPE + (
@@ -177,6 +197,9 @@ TOPICS: tuple[Topic, ...] = (
           "acknowledge the active end-of-life alarm", CMD_SIMPLE_FIELDS),
     Topic("cmd_setpoint", "cmd/setpoint", "subscribe", 1, False, False,
           "set the tension setpoint of the next test", CMD_SETPOINT_FIELDS),
+    Topic("cmd_hook_replaced", "cmd/hook_replaced", "subscribe", 1, False, False,
+          "the worn hook was replaced: closes its end-of-life alarm (refused without one)",
+          CMD_SIMPLE_FIELDS),
 )
 TOPIC = {t.key: t for t in TOPICS}
 
@@ -195,7 +218,8 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.PORT_LOST: (("port", "meter or stm32"),),
     EventType.PORT_BACK: (("port", "meter or stm32"),),
     EventType.ALARM_ACK: (("source", "who acknowledged (mqtt, plc:ADDR, cli)"),),
-    EventType.ALARM_CLEARED: (("reason", "why (new test started)"),),
+    EventType.ALARM_CLEARED: (("reason", "why (new test started, hook_replaced)"),
+                              ("source", "who closed it (hook_replaced: mqtt, sparkplug, cli …)")),
     EventType.COMMAND_REJECTED: (("command", "the command"), ("source", "where it came from"),
                                  ("reason", "why it was refused")),
     EventType.CONFIG_RELOADED: (),
@@ -339,6 +363,7 @@ def _examples() -> dict[str, dict[str, Any]]:
         "cmd_stop": {"request_id": "r-18"},
         "cmd_ack": {"request_id": "r-19"},
         "cmd_setpoint": {"t_set": 0.6},
+        "cmd_hook_replaced": {"request_id": "r-20"},
     }
 
 
@@ -399,6 +424,33 @@ def render() -> str:
         "- `status` is not in the outbox: `online` is published (retained) on every connect, "
         "`offline` is the retained Last Will, also published on a clean stop. Its `seq` is the "
         "last seq assigned when the session started (it does not consume a number).",
+        "",
+        "### De-duplication",
+        "",
+        "The exact rule, per station: keep `H`, the highest `seq` of an **outbox** message "
+        "(`state`, `telemetry`, `event/…`, `alarm/…`, `result`, `reply`) you have processed, "
+        "stored with what you processed. An outbox message with `seq ≤ H` is a duplicate: drop "
+        "it. Otherwise process it and set `H = seq`. **`status` never takes part** (never compare "
+        "it with `H`, never move `H` with it): it is not an outbox message, its `seq` is only the "
+        "stream position when it was built. Gaps in `seq` are normal (dropped telemetry, "
+        "superseded `state`): never wait for a missing number. Within one station outbox messages "
+        "arrive in `seq` order, so `seq ≤ H` can only be a resend or a retained replay.",
+        "",
+        "Example of an outage: the MES has processed up to `seq` 1040 (`H = 1040`). The broker "
+        "link drops; the station produces `event` 1041, `telemetry` 1042–1045 and `alarm` 1046, "
+        "kept in the outbox. On reconnect the gateway publishes `status` `online` with `seq` 1046 "
+        "**first**, then delivers 1041 … 1046 in order. A consumer applying \"drop seq ≤ the "
+        "highest seen\" to every message would set 1046 from `status` and lose the whole backlog; "
+        "with the rule above `status` is ignored, 1041 … 1046 are processed and `H = 1046`. If the "
+        "gateway is then killed after sending 1046 but before the broker's PUBACK reached it, it "
+        "sends 1046 again after its restart: `1046 ≤ H`, dropped. A resubscription replays the "
+        "retained `state`/`alarm`/`result` with their original `seq` ≤ `H`: dropped too (the "
+        "retained value is the one you already hold).",
+        "",
+        "Order a consumer can rely on: per station, outbox messages in `seq` order; `status` "
+        "`online` before the backlog of the session it announces; `status` `offline` (the Will) "
+        "after everything the broker received from that session.",
+        "",
         "- The end-of-life alarm lifecycle: `active` (raised, unacknowledged) → `acknowledged` "
         "(cmd/ack, a PLC write or the CLI) → `cleared` (the hook was replaced and a new test "
         "started). Every transition is one retained message on `alarm/end_of_life`, so a MES "
@@ -415,6 +467,12 @@ def render() -> str:
             out.append(f"| `{f.name}` | {f.type} | {f.doc} |")
         out += ["", "Example:", "", "```json", json.dumps(json_safe(ex[t.key]), ensure_ascii=False),
                 "```", ""]
+    out += ["## Results", "", "`result.result.status`, the method's verdict on the test, and what "
+            "it means for the MES:", "", "| status | meaning |", "|---|---|"]
+    for k, d in RESULT_STATUS:
+        out.append(f"| `{k}` | {d} |")
+    out += ["", "`test_status` says how the test ended (`completed` at its planned end or at the "
+            "end of life, `aborted` when stopped early); `end_reason` says why.", ""]
     out += ["## Events", "", "`event/<type>`; the `data` object holds:", "",
             "| type | data keys |", "|---|---|"]
     for et, keys in EVENT_DATA.items():

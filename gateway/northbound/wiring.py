@@ -5,6 +5,7 @@ import logging
 import os
 
 from . import schema
+from .sparkplug.output import SparkplugOutput, settings_from_config
 from .modbus_server import ModbusOutput, ModbusSettings
 from .mqtt import MqttOutput, MqttSettings
 
@@ -63,4 +64,6 @@ def outputs_for(cfg, station) -> list:
 
         # the MQTT link reaches the PLC through the station's state (StationState.mqtt_ok)
         outs.append(ModbusOutput(modbus_settings(cfg), station))
+    if getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
+        outs.append(SparkplugOutput(settings_from_config(cfg), station))
     return outs

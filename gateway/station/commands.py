@@ -49,6 +49,7 @@ COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
     CommandKind.STOP: (),
     CommandKind.ACK: (),
     CommandKind.SETPOINT: ("t_set",),
+    CommandKind.HOOK_REPLACED: (),
 }
 
 
@@ -162,6 +163,9 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         err = check_t_set(a.get("t_set"), limits)
         if err:
             return reject(cmd, "T_SET", err)
+    elif cmd.kind == CommandKind.HOOK_REPLACED:
+        if getattr(getattr(station, "state", None), "alarm", "none") not in ("active", "acknowledged"):
+            return reject(cmd, "NO_ALARM", "no end-of-life alarm to close")
     else:  # pragma: no cover - CommandKind is closed
         return reject(cmd, "BAD_REQUEST", f"command {cmd.kind!r} unknown")
     return None

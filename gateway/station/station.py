@@ -198,6 +198,10 @@ class Station:
         elif cmd.kind == CommandKind.ACK:
             self._emit_event(EventType.ALARM_ACK, source=cmd.source)
             self._push_state()
+        elif cmd.kind == CommandKind.HOOK_REPLACED:
+            self._set_alarm("none", closed_by="hook_replaced")
+            self._emit_event(EventType.ALARM_CLEARED, source=cmd.source, reason="hook_replaced")
+            self._push_state()
         elif cmd.kind == CommandKind.SETPOINT:
             if self.default_plan is not None:
                 self.default_plan = replace(self.default_plan, t_set=float(cmd.args["t_set"]))

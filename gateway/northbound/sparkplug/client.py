@@ -1,0 +1,478 @@
+"""The MQTT side of a Sparkplug edge node: one paho-mqtt 2.x client, one thread, one store.
+
+One :class:`NodeRuntime` per edge node (per broker, group and edge node ID) in a process; the
+stations of that node attach to it (:mod:`.output`). Its thread owns the paho client, the pure
+:class:`~.node.EdgeNode` and the SQLite outbox (:mod:`gateway.northbound.outbox`, public API
+only) that holds the bdSeq and the store-and-forward DDATA. Stations hand inputs over through one
+bounded queue (``post``), never blocking their slot loop; paho's callbacks run on this thread
+(``client.loop``), so the state machine is only ever touched here.
+
+Each connection attempt takes the next bdSeq, persists it (kill -9 safe: a WAL commit), and
+builds a new client whose Will is the NDEATH with that bdSeq, QoS 1, not retained, set before
+CONNECT.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import os
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import paho.mqtt.client as paho
+from paho.mqtt.enums import CallbackAPIVersion
+
+from ... import __version__
+from ...records import Command, CommandKind
+from ..outbox import Outbox, Row
+from .node import Disconnect, EdgeNode, MemoryBuffer, Publish, Submit
+
+log = logging.getLogger("hookwatch.sparkplug")
+
+#: inputs waiting for the node thread at most (beyond: the oldest telemetry update is dropped)
+QUEUE_MAX = 10_000
+
+
+@dataclass
+class SparkplugSettings:
+    group_id: str
+    edge_node_id: str
+    device_id: str
+    servers: list[tuple[str, int]] = field(default_factory=lambda: [("127.0.0.1", 1883)])
+    client_id: str | None = None
+    keepalive_s: int = 30
+    username: str | None = None
+    password: str | None = None
+    tls_enabled: bool = False
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    primary_host_id: str | None = None
+    data_interval_s: float = 1.0
+    store_path: str = "sparkplug.sqlite"
+    history_budget_bytes: int = 50 * 1024 * 1024
+    reconnect_min_s: float = 1.0
+    reconnect_max_s: float = 10.0
+    poll_s: float = 0.02
+    #: the first CONNECT waits this long after the first station attached, so that the stations of
+    #: a fleet starting together get their DBIRTHs right after the NBIRTH
+    gather_s: float = 0.5
+
+    def node_key(self) -> tuple:
+        return (tuple(self.servers), self.group_id, self.edge_node_id)
+
+
+class OutboxBuffer:
+    """The node's store-and-forward buffer on the SQLite outbox (its public API only).
+
+    A store that cannot be written (disk full, I/O error) is a state, not a crash: rows wait in
+    memory (at most ``memory_max``; beyond, the oldest measured values are dropped, counted) and
+    are written to disk as soon as it accepts them again; the replay takes disk rows, then these.
+    """
+
+    def __init__(self, outbox: Outbox, memory_max: int = 20_000):
+        self.ob = outbox
+        self.memory: collections.deque = collections.deque()    # (key, Row, telemetry)
+        self.memory_max = memory_max
+        self.store_errors = 0
+        self.dropped = 0
+
+    def _flush_memory(self) -> bool:
+        if not self.memory:
+            return True
+        try:
+            self.ob.add([r for _k, r, _t in self.memory])
+        except sqlite3.Error:
+            return False
+        self.memory.clear()
+        log.warning("sparkplug store %s writable again; held rows written", self.ob.path)
+        return True
+
+    def put(self, topic: str, payload: bytes, telemetry: bool) -> None:
+        row = Row(self.ob.next_seq(), "telemetry" if telemetry else "event", topic, payload, 0, False,
+                  time.time())
+        if self._flush_memory():
+            try:
+                self.ob.add([row])
+                return
+            except sqlite3.Error as e:
+                self.store_errors += 1
+                if self.store_errors == 1 or self.store_errors % 1000 == 0:
+                    log.error("sparkplug store %s not writable (%s): data held in memory (%d errors so "
+                              "far)", self.ob.path, e, self.store_errors)
+        self.memory.append((row.seq, row, telemetry))
+        if len(self.memory) > self.memory_max:
+            for i, (_k, _r, tel) in enumerate(self.memory):
+                if tel:
+                    del self.memory[i]
+                    break
+            else:
+                self.memory.popleft()
+            self.dropped += 1
+
+    def peek(self, n: int) -> list[tuple[int, str, bytes]]:
+        self._flush_memory()
+        try:
+            rows = [(r.seq, r.topic, r.payload) for r in self.ob.pending(0, n)]
+        except sqlite3.Error:
+            rows = []
+        for k, r, _t in self.memory:
+            if len(rows) >= n:
+                break
+            rows.append((k, r.topic, r.payload))
+        return rows
+
+    def remove(self, keys: list[int]) -> None:
+        ks = set(keys)
+        if self.memory:
+            self.memory = collections.deque(x for x in self.memory if x[0] not in ks)
+        try:
+            self.ob.confirm(keys)
+        except sqlite3.Error as e:
+            # they were published: a resend after a restart is flagged historical, harmless
+            log.error("sparkplug store %s: cannot delete replayed rows: %s", self.ob.path, e)
+
+    def __len__(self) -> int:
+        try:
+            n = self.ob.count()
+        except sqlite3.Error:
+            n = 0
+        return n + len(self.memory)
+
+
+class NodeRuntime:
+    """The edge node's thread: paho client + EdgeNode + outbox (see the module docstring)."""
+
+    def __init__(self, s: SparkplugSettings):
+        self.s = s
+        self.outbox: Outbox | None = None
+        last = None
+        try:
+            self.outbox = Outbox(s.store_path, s.history_budget_bytes)
+            last = self.outbox.meta_get("bdseq")
+        except (OSError, sqlite3.Error) as e:
+            log.error("sparkplug %s/%s: store %s unusable (%s): data is held in memory only and bdSeq "
+                      "restarts at 0", s.group_id, s.edge_node_id, s.store_path, e)
+        self.node = EdgeNode(s.group_id, s.edge_node_id, primary_host_id=s.primary_host_id,
+                             last_bdseq=last, software=f"hookwatch {__version__}")
+        self.node.buffer = OutboxBuffer(self.outbox) if self.outbox is not None else MemoryBuffer()
+        self.outputs: dict[str, Any] = {}          # device id → SparkplugOutput
+        self._q: collections.deque = collections.deque()
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._client: paho.Client | None = None
+        self._sock = False
+        self._server = 0
+        self._next_attempt = 0.0
+        self._backoff = s.reconnect_min_s
+        self._disconnect: Disconnect | None = None
+        self._qos1: list = []              # QoS 1 publishes (NDEATH) not yet acknowledged
+        self.counters: dict[str, int] = collections.Counter()
+
+    # ------------------------------------------------------------------ any thread
+    def post(self, item: tuple) -> None:
+        with self._lock:
+            if len(self._q) >= QUEUE_MAX:
+                for i, it in enumerate(self._q):
+                    if it[0] == "update" and it[3]:       # oldest telemetry-only update
+                        del self._q[i]
+                        self.counters["dropped_updates"] += 1
+                        break
+            self._q.append(item)
+        self._wake.set()
+
+    def start(self) -> None:
+        if self._thread is None:
+            self._next_attempt = time.monotonic() + self.s.gather_s
+            self._thread = threading.Thread(target=self._main, daemon=True,
+                                            name=f"sparkplug-{self.s.edge_node_id}")
+            self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    # ------------------------------------------------------------------ node thread
+    def _now(self) -> int:
+        return int(time.time() * 1000)
+
+    def _main(self) -> None:
+        """Supervised: a failure is logged and counted, the session restarts after a pause."""
+        try:
+            while True:
+                try:
+                    self._run()
+                    break
+                except Exception:
+                    self.counters["crashes"] += 1
+                    log.exception("sparkplug %s: node thread failed (%d so far); restarting the session, "
+                                  "stored data stays in %s", self.s.edge_node_id, self.counters["crashes"],
+                                  self.s.store_path)
+                    try:
+                        self._close(clean=False)
+                    except Exception:  # noqa: BLE001 - the client may be half built
+                        self._client = None
+                        self._sock = False
+                        self.node.disconnected()
+                    if self._stop.wait(min(self.s.reconnect_max_s, 5.0)):
+                        break
+        finally:
+            self._close(clean=True)
+            if self.outbox is not None:
+                self.outbox.close()
+
+    def _run(self) -> None:
+        while True:
+            self._wake.clear()
+            self._inputs()
+            if self._stop.is_set():
+                self._inputs()
+                break
+            if self._sock:
+                if self.node.replaying and self.node.publishing:
+                    pubs, keys = self.node.drain(self._now())
+                    self._act(pubs)
+                    self.node.buffer.remove(keys)
+                rc = self._client.loop(timeout=self.s.poll_s)
+                if self._disconnect is not None:
+                    self._planned_disconnect(self._disconnect)
+                elif rc != paho.MQTT_ERR_SUCCESS:
+                    self._lost(f"network loop: {paho.error_string(rc)}")
+            else:
+                now = time.monotonic()
+                if now >= self._next_attempt:
+                    self._connect()
+                else:
+                    self._wake.wait(min(0.1, self._next_attempt - now))
+
+    def _inputs(self) -> None:
+        while True:
+            with self._lock:
+                if not self._q:
+                    return
+                item = self._q.popleft()
+            kind = item[0]
+            now = self._now()
+            if kind == "up":
+                self._act(self.node.device_up(item[1], item[2], now))
+            elif kind == "update":
+                self._act(self.node.device_update(item[1], item[2], now))
+            elif kind == "down":
+                self._act(self.node.device_down(item[1], now))
+            elif kind == "result":
+                _, dev, ck, ok, code, reason = item
+                self._act(self.node.command_result(dev, ck, ok, code, reason, now))
+
+    def _act(self, outs) -> None:
+        for o in outs:
+            if isinstance(o, Publish):
+                if self._client is None or not self._sock:
+                    continue
+                info = self._client.publish(o.topic, o.payload, qos=o.qos, retain=o.retain)
+                if o.qos:
+                    self._qos1.append(info)
+                self.counters["published"] += 1
+                if info.rc != paho.MQTT_ERR_SUCCESS:
+                    log.warning("sparkplug: publish on %s failed: %s", o.topic, paho.error_string(info.rc))
+            elif isinstance(o, Disconnect):
+                # carried out after the network loop returns (we may be inside a paho callback),
+                # once the NDEATH queued before it is on the wire
+                self._disconnect = o
+            elif isinstance(o, Submit):
+                self._submit(o)
+
+    def _submit(self, sub: Submit) -> None:
+        out = self.outputs.get(sub.device_id)
+        try:
+            ck = CommandKind(sub.kind)
+        except ValueError:
+            self._act(self.node.command_result(sub.device_id, sub.kind, False, 9,
+                                               f"{sub.kind} is not available in this version", self._now()))
+            return
+        if out is None or out.station is None or out.loop is None or out.loop.is_closed():
+            self._act(self.node.command_result(sub.device_id, sub.kind, False, 10, "the station is not running",
+                                               self._now()))
+            return
+        cmd = Command(ck, "sparkplug", dict(sub.args))
+        try:
+            fut = asyncio.run_coroutine_threadsafe(out.station.submit(cmd), out.loop)
+        except RuntimeError:
+            self.post(("result", sub.device_id, sub.kind, False, 10, "the station is not running"))
+            return
+
+        def done(f, dev=sub.device_id, kind=sub.kind):
+            try:
+                r = f.result()
+                self.post(("result", dev, kind, bool(r.ok), int(getattr(r, "code", 0) or 0), r.reason))
+            except Exception as e:  # noqa: BLE001 - the station failed to carry it out
+                self.post(("result", dev, kind, False, 10, f"the station failed: {type(e).__name__}: {e}"))
+
+        fut.add_done_callback(done)
+
+    def _connect(self) -> None:
+        s = self.s
+        will = self.node.connecting()
+        self._persist_bdseq()
+        host, port = s.servers[self._server % len(s.servers)]
+        c = paho.Client(CallbackAPIVersion.VERSION2,
+                        client_id=s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}",
+                        clean_session=True, protocol=paho.MQTTv311)
+        c.max_queued_messages_set(0)
+        if s.username:
+            c.username_pw_set(s.username, s.password)
+        if s.tls_enabled:
+            try:
+                c.tls_set(ca_certs=s.ca_file, certfile=s.cert_file, keyfile=s.key_file)
+            except (OSError, ValueError) as e:     # ssl.SSLError is an OSError
+                self.counters["tls_errors"] += 1
+                if self.counters["tls_errors"] == 1:
+                    log.error("sparkplug %s: TLS set-up failed (%s); retrying, data is held", s.edge_node_id, e)
+                self._client = None
+                self.node.connect_failed()
+                self._persist_bdseq()
+                self._retry()
+                return
+        c.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
+        c.on_connect = self._on_connect
+        c.on_disconnect = self._on_disconnect
+        c.on_message = self._on_message
+        self._client = c
+        try:
+            c.connect(host, port, keepalive=s.keepalive_s)
+        except OSError as e:
+            if self.counters["connect_errors"] == 0 or self._backoff >= s.reconnect_max_s:
+                log.warning("sparkplug %s: cannot connect to %s:%s: %s", s.edge_node_id, host, port, e)
+            self.counters["connect_errors"] += 1
+            self._client = None
+            self.node.connect_failed()          # no CONNECT packet was sent: bdSeq not used
+            self._persist_bdseq()
+            self._retry()
+            return
+        self._sock = True
+
+    def _persist_bdseq(self) -> None:
+        """The bdSeq of the coming CONNECT, or the last one used, kept for the next process."""
+        if self.outbox is None:
+            return
+        last = self.node.bdseq if not self.node.fresh else None
+        try:
+            self.outbox.add([], meta={"bdseq": last})
+        except sqlite3.Error as e:
+            self.counters["bdseq_store_errors"] += 1
+            log.error("sparkplug: cannot persist bdSeq %s: %s", last, e)
+
+    def _retry(self) -> None:
+        self._next_attempt = time.monotonic() + self._backoff
+        self._backoff = min(self.s.reconnect_max_s, self._backoff * 2)
+
+    def _lost(self, why: str) -> None:
+        log.warning("sparkplug %s: connection lost (%s)", self.s.edge_node_id, why)
+        self._close(clean=False)
+        self._retry()
+
+    def _planned_disconnect(self, d: Disconnect) -> None:
+        self._disconnect = None
+        log.info("sparkplug %s: disconnecting: %s", self.s.edge_node_id, d.reason)
+        if d.next_server:
+            self._server = (self._server + 1) % len(self.s.servers)
+        self._close(clean=False)
+        self._next_attempt = time.monotonic() + 0.2
+
+    def _close(self, clean: bool) -> None:
+        c = self._client
+        if c is None:
+            return
+        if clean and self._sock and self.node.connected:
+            # a deliberate end: the NDEATH ourselves (the broker only sends the Will on a failure)
+            self._qos1.append(c.publish(*_pub_args(self.node.ndeath())))
+        # what is queued (DDEATH, NDEATH) goes out before the DISCONNECT: wait for the QoS 1 ones
+        t_end = time.monotonic() + 2.0
+        while self._sock and time.monotonic() < t_end and (c.want_write() or self._unacked(c)):
+            if c.loop(timeout=0.05) != paho.MQTT_ERR_SUCCESS:
+                break
+        self._sock = False
+        try:
+            c.disconnect()
+            c.loop(timeout=0.05)
+        except Exception:  # noqa: BLE001 - closing a broken socket
+            pass
+        self._client = None
+        self._qos1 = []
+        self.node.disconnected()
+
+    def _unacked(self, c: paho.Client) -> bool:
+        self._qos1 = [i for i in self._qos1 if not i.is_published()]
+        return bool(self._qos1)
+
+    # paho callbacks (this thread, from client.loop)
+    def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+        if reason_code.is_failure:
+            log.error("sparkplug %s: broker refused the connection: %s", self.s.edge_node_id, reason_code)
+            self._close(clean=False)
+            self._retry()
+            return
+        log.info("sparkplug %s/%s: connected (bdSeq %d)", self.s.group_id, self.s.edge_node_id,
+                 self.node.bdseq)
+        self._backoff = self.s.reconnect_min_s
+        for t, q in self.node.subscriptions():
+            client.subscribe(t, qos=q)
+        self._act(self.node.connected_ok(self._now()))
+
+    def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
+        if self._sock:
+            self._sock = False
+            self._client = None
+            self.node.disconnected()
+            self._retry()
+
+    def _on_message(self, client, userdata, msg) -> None:
+        now = self._now()
+        if msg.topic == self.node.state_topic():
+            self._act(self.node.host_state(msg.payload, now))
+        else:
+            self._act(self.node.command(msg.topic, msg.payload, now))
+
+
+def _pub_args(p: Publish) -> tuple:
+    return (p.topic, p.payload, p.qos, p.retain)
+
+
+# ---------------------------------------------------------------------- one runtime per node
+_RUNTIMES: dict[tuple, NodeRuntime] = {}
+_RT_LOCK = threading.Lock()
+
+
+def attach(s: SparkplugSettings, output) -> NodeRuntime:
+    with _RT_LOCK:
+        rt = _RUNTIMES.get(s.node_key())
+        if rt is None:
+            rt = _RUNTIMES[s.node_key()] = NodeRuntime(s)
+        rt.outputs[s.device_id] = output
+        rt.start()
+        return rt
+
+
+def detach(s: SparkplugSettings) -> NodeRuntime | None:
+    """Remove a station; the last one stops the node (NDEATH, disconnect). Returns the runtime to
+    join when it was the last."""
+    with _RT_LOCK:
+        rt = _RUNTIMES.get(s.node_key())
+        if rt is None:
+            return None
+        rt.outputs.pop(s.device_id, None)
+        if rt.outputs:
+            return None
+        del _RUNTIMES[s.node_key()]
+        return rt
+
+
+def default_store(records_dir: str, group_id: str, edge_node_id: str) -> str:
+    return os.path.join(records_dir, f"sparkplug-{group_id}-{edge_node_id}.sqlite")

@@ -1,0 +1,210 @@
+"""docs/sparkplug.md, generated from the metric definition (metrics.py) and the conformance table
+below: ``python -m gateway.northbound.sparkplug.docs > docs/sparkplug.md`` (a test checks it is
+current)."""
+from __future__ import annotations
+
+from . import metrics as M
+
+#: (statement ID of the Sparkplug 3.0 specification, what it asks, status, how / where / proof)
+#: status: "yes" implemented and tested; "yes*" implemented, not covered by a test; "partial";
+#: "no"; "n/a" (does not apply to this edge node)
+CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
+    ("tck-id-topic-structure, -namespace-a", "topic `spBv1.0/group/VERB/node[/device]`", "yes",
+     "node.py `EdgeNode.topic`; e2e checks every topic"),
+    ("tck-id-topic-structure-namespace-valid-group-id / -edge-node-id / -device-id",
+     "IDs are UTF-8 without `+ / #`", "yes",
+     "`valid_id` refuses them; the config's `ident` kind is stricter still"),
+    ("tck-id-topic-structure-namespace-unique-device-id", "device IDs unique in the node", "yes",
+     "device ID = station ID, unique in a fleet (loader)"),
+    ("tck-id-topic-structure-namespace-unique-edge-node-descriptor",
+     "group/edge node unique in the infrastructure", "partial",
+     "derived from site/area/line; two gateway processes configured with the same hierarchy would "
+     "clash — set `sparkplug.edge_node_id` per process"),
+    ("tck-id-principles-persistence-clean-session-311", "Clean Session true (MQTT 3.1.1)", "yes",
+     "client.py"),
+    ("tck-id-message-flow-edge-node-birth-publish-will-message (-topic, -payload, -qos, -will-retained)",
+     "NDEATH as the Will: its topic, Sparkplug payload, QoS 1, not retained", "yes",
+     "client.py sets the Will before CONNECT; e2e: the broker's Will after kill -9 is QoS 1, "
+     "not retained"),
+    ("tck-id-message-flow-edge-node-birth-publish-will-message-payload-bdSeq, "
+     "tck-id-topics-nbirth-bdseq-increment", "bdSeq Int64, +1 per CONNECT, from 0, wraps at 256",
+     "yes", "persisted in the node's SQLite store before each CONNECT (WAL commit): e2e kill -9 → "
+     "restart gives bdSeq + 1; unit test of the wrap"),
+    ("tck-id-topics-nbirth-bdseq-matching, tck-id-payloads-ndeath-bdseq",
+     "NBIRTH's bdSeq = the Will's", "yes", "e2e: NBIRTH, the Will after kill -9, the NDEATH of a "
+     "clean stop and of STATE offline all carry the session's bdSeq"),
+    ("tck-id-topics-ndeath-payload, tck-id-topics-ndeath-seq", "NDEATH: bdSeq only, no seq", "yes",
+     "`EdgeNode.ndeath`"),
+    ("tck-id-operational-behavior-edge-node-intentional-disconnect-ndeath, "
+     "tck-id-payloads-ndeath-will-message-publisher-disconnect-mqtt311",
+     "NDEATH published before a deliberate DISCONNECT", "yes",
+     "client.py waits for its PUBACK before DISCONNECT; e2e: clean stop gives DDEATH then NDEATH"),
+    ("tck-id-message-flow-edge-node-ncmd-subscribe, tck-id-message-flow-device-dcmd-subscribe",
+     "subscribe to NCMD and DCMD (QoS 1)", "yes", "`EdgeNode.subscriptions`"),
+    ("tck-id-message-flow-edge-node-birth-publish-phid-wait (-id, -online, -timestamp), "
+     "tck-id-operational-behavior-edge-node-birth-sequence-wait",
+     "with a primary host: births only after its STATE online, newer-or-equal timestamp", "yes",
+     "unit tests (an older STATE is ignored); e2e"),
+    ("tck-id-operational-behavior-edge-node-termination-host-offline (-timestamp), "
+     "tck-id-message-flow-edge-node-birth-publish-phid-offline",
+     "STATE offline (not older): NDEATH, disconnect", "yes", "e2e: NDEATH, then nothing until online"),
+    ("tck-id-operational-behavior-edge-node-termination-host-offline-reconnect, "
+     "tck-id-operational-behavior-primary-application-state-with-multiple-servers-walk",
+     "then connect to the next MQTT server", "partial",
+     "one server is configured today (`sparkplug.host`/`port`); the runtime walks a server list "
+     "(`SparkplugSettings.servers`) but the configuration has no list yet"),
+    ("tck-id-topics-nbirth-mqtt, -dbirth-mqtt, -ddata-mqtt, -ddeath-mqtt",
+     "NBIRTH, DBIRTH, DDATA, DDEATH at QoS 0, not retained", "yes", "e2e checks qos/retain"),
+    ("tck-id-topics-nbirth-seq-num, tck-id-payloads-sequence-num-incrementing, "
+     "tck-id-payloads-dbirth-seq-inc / ddata-seq-inc / ddeath-seq-inc",
+     "NBIRTH seq 0, then +1 per message, 255 → 0", "yes",
+     "e2e checks every message of each session, a session with ≥ 1 wrap; unit test"),
+    ("tck-id-topics-nbirth-timestamp, tck-id-payloads-*-timestamp, -timestamp-in-UTC",
+     "payload timestamp (UTC ms) on every message", "yes", "ms since the epoch"),
+    ("tck-id-payloads-name-birth-data-requirement", "a timestamp on every metric of births and data",
+     "yes", "unit test"),
+    ("tck-id-topics-nbirth-metric-reqs, tck-id-topics-dbirth-metric-reqs, "
+     "tck-id-operational-behavior-data-publish-dbirth(-values)",
+     "births carry every metric with name, datatype and current value (is_null when none)", "yes",
+     "the tables below; e2e checks names, aliases, datatypes; unit test: DBIRTH = DEVICE_METRICS"),
+    ("tck-id-topics-nbirth-rebirth-metric, tck-id-operational-behavior-data-commands-rebirth-*",
+     "`Node Control/Rebirth` Boolean false, without alias", "yes", "unit test"),
+    ("tck-id-payloads-alias-uniqueness, -alias-birth-requirement",
+     "aliases unique in the node, births carry name and alias", "yes",
+     "device aliases = CRC-32 of the device ID · 4096 + index, clashes moved (unit test); "
+     "bdSeq and Rebirth carry no alias (the spec requires that for Rebirth)"),
+    ("tck-id-payloads-alias-data-cmd-requirement, tck-id-payloads-metric-datatype-not-req",
+     "DDATA by alias only, without name and datatype", "yes", "e2e and unit test"),
+    ("tck-id-operational-behavior-data-commands-ncmd-rebirth-*, -rebirth-action-1/2/3",
+     "on an NCMD Rebirth: NBIRTH (same bdSeq) and every DBIRTH, nothing in between", "yes",
+     "e2e: NCMD → NBIRTH seq 0, same bdSeq, DBIRTH"),
+    ("tck-id-operational-behavior-data-commands-dcmd-*", "DCMD writes metrics of the DBIRTH", "yes",
+     "by name or alias; start/stop/ack/hook replaced go through the station's one command path; "
+     "e2e: a DCMD start starts a test, `Device Control/Last Result Code` 0"),
+    ("tck-id-payloads-dbirth-order, tck-id-message-flow-device-birth-publish-nbirth-wait",
+     "DBIRTHs right after the NBIRTH, before any data", "partial",
+     "so at every (re)birth (the first CONNECT waits 0.5 s for the stations of a fleet starting "
+     "together); a station that starts later in a running node gets its DBIRTH then "
+     "(after data of others), as do stations whose stored history is replayed after a restart "
+     "before they run again"),
+    ("tck-id-operational-behavior-device-ddeath", "DDEATH when a device is lost", "yes",
+     "when its station stops (e2e: clean stop)"),
+    ("tck-id-operational-behavior-data-publish-dbirth-change, tck-id-principles-rbe-recommended",
+     "DDATA only on change (report by exception)", "partial",
+     "state, alarm and test metrics by exception; the measured values (tension, μ, speed) are "
+     "interval aggregates sent every `data_interval_s`"),
+    ("tck-id-operational-behavior-data-publish-dbirth-order",
+     "chronological order of values in a payload", "yes", "one value per metric per payload"),
+    ("store and forward (spec §5: `is_historical`)",
+     "data held while no primary host is online, replayed flagged historical", "yes",
+     "e2e: ≥ 270 held, replayed in order with is_historical, then live data"),
+    ("tck-id-payloads-propertyset-*", "PropertySet keys/values of equal length", "yes",
+     "`engUnit`, `description`, `writable`"),
+    ("tck-id-principles-persistence-clean-session-50, -ndeath-will-message-publisher-disconnect-mqtt50",
+     "MQTT 5 rules", "n/a", "the node speaks MQTT 3.1.1"),
+    ("tck-id-payloads-template-*, tck-id-topics-nbirth-templates", "templates", "n/a",
+     "no templates are used"),
+    ("tck-id-topics-ndata-*", "NDATA", "n/a", "node metrics do not change during a session"),
+    ("tck-id-case-sensitivity-metric-names", "no metric names equal in lower case", "yes",
+     "unit-checked over the tables"),
+)
+
+HEAD = """# Sparkplug B 3.0
+
+*Generated from `gateway/northbound/sparkplug/metrics.py` and `docs.py`:
+`python -m gateway.northbound.sparkplug.docs > docs/sparkplug.md`.*
+
+With a `sparkplug:` section (docs/configuration.md) a station is published as a **Sparkplug B
+3.0 device** of an **edge node**, alongside or instead of the JSON tree of `mqtt:`
+(docs/mqtt.md). The payloads follow the specification's protobuf definition
+(`gateway/northbound/sparkplug/sparkplug_b.proto`; the generated `sparkplug_b_pb2.py` is committed
+and needs only the `protobuf` runtime).
+
+## Identity
+
+| Sparkplug | from | default |
+|---|---|---|
+| group ID | `sparkplug.group_id` | `station.site` |
+| edge node ID | `sparkplug.edge_node_id` | `<station.area>-<station.line>` |
+| device ID | `sparkplug.device_id` | `station.id` (one device per station) |
+
+Stations of one gateway process with the same broker, group and edge node share **one** edge
+node (one MQTT session, one bdSeq, one seq counter); each is a device of it.
+
+## Session
+
+1. Before each MQTT CONNECT the node takes the next **bdSeq** (0 … 255, +1 per CONNECT packet
+   sent; a refused TCP connection sends none and uses none) and stores it (`sparkplug.store_path`, SQLite WAL: a `kill -9` does not lose it), then connects
+   with the **NDEATH as the MQTT Will** (QoS 1, not retained, the bdSeq metric only) and Clean
+   Session.
+2. It subscribes to `spBv1.0/<group>/NCMD/<node>`, `spBv1.0/<group>/DCMD/<node>/+` and, with a
+   primary host, `spBv1.0/STATE/<primary_host_id>`.
+3. Without a primary host it publishes NBIRTH (seq 0, the same bdSeq) and a DBIRTH per station
+   at once; with one it waits for the host's STATE `{"online": true, "timestamp": <ms>}` (a STATE
+   whose timestamp is older than the last one seen is ignored).
+4. Live data: DDATA by alias only, seq +1 per message (255 → 0), QoS 0.
+5. STATE `online: false`: the node publishes its NDEATH, disconnects and connects again (next
+   bdSeq), and waits for the host: from then on data is **held**.
+6. A station that stops: DDEATH. The last station of the node: NDEATH (before DISCONNECT).
+
+## Store and forward
+
+While no primary host is online (or the broker is unreachable) DDATA payloads are stored in the
+node's SQLite store (the outbox of `gateway/northbound/outbox.py`), metrics flagged
+`is_historical = true` with their original timestamps. When the host is online again the node
+publishes NBIRTH and the DBIRTHs (current values), then the stored DDATA **in order** (seq given
+at sending), then, once the store is empty, a live DDATA with the latest value of every metric
+that changed during the replay, and live data after it. Measured values (tension, μ, speed)
+beyond `sparkplug.history_budget_mb` are dropped oldest first (counted); state, test and alarm
+changes are never dropped. A store that cannot be written (disk full) is a state: rows wait in
+memory (bounded, measured values dropped first, counted, one log line) until the disk accepts
+them again. Replayed data goes at QoS 0 like all Sparkplug data: a connection lost
+during the replay loses the batch in flight (at most 50 payloads), not the rest of the store.
+
+## Node controls (NCMD)
+
+| metric | what the node does |
+|---|---|
+| `Node Control/Rebirth` = true | NBIRTH (seq 0, same bdSeq) and every DBIRTH again; no data in between |
+| `Node Control/Next Server` = true | NDEATH, DISCONNECT, CONNECT to the next configured server (the same one when only one is configured), new bdSeq, births after the host's STATE |
+| `Node Control/Reboot` = true | restarts the Sparkplug session exactly like Next Server but on the same server. It does NOT reboot the box, restart the gateway or touch a station or its running test: a test rig is never stopped by a SCADA write |
+
+## Device commands (DCMD)
+
+A DCMD names (or aliases) the writable metrics of the DBIRTH. `Device Control/Start Test`,
+`Stop Test`, `Acknowledge Alarm`, `Hook Replaced` set to true become the commands `start`,
+`stop`, `ack`, `hook_replaced` of the station's **one command path** (the same validation and
+rejection codes as MQTT, the PLC and the CLI; `source` is `sparkplug`). `start` takes its
+arguments from `Device Control/Sample ID`, `Grade`, `Setpoint` and `Planned End` in the same
+DCMD. The outcome comes back as DDATA of `Device Control/Last Command` and
+`Device Control/Last Result Code` (0 accepted, else the rejection code of docs/mqtt.md).
+"""
+
+
+def _metric_table(defs, alias) -> list[str]:
+    out = ["| metric | datatype | unit | alias | writable | description |", "|---|---|---|---|---|---|"]
+    for i, d in enumerate(defs):
+        out.append(f"| `{d.name}` | {d.datatype.name} | {d.units or ''} | {alias(i, d)} | "
+                   f"{'yes' if d.writable else ''} | {d.description} |")
+    return out
+
+
+def render() -> str:
+    lines = [HEAD.rstrip("\n"), "", "## Node metrics (NBIRTH)", ""]
+    na = M.node_aliases()
+    lines += _metric_table(M.NODE_METRICS, lambda i, d: str(na[d.name]) if d.name in na else "none")
+    lines += ["", "## Device metrics (DBIRTH: every metric; DDATA: by alias)", "",
+              "Aliases are `base + index` with `base = (CRC-32(device ID) + 1) · 4096` (stable "
+              "across restarts; a clash between two stations moves one block up).", ""]
+    lines += _metric_table(M.DEVICE_METRICS, lambda i, d: f"base + {i}")
+    lines += ["", "## Conformance (Sparkplug 3.0 normative statements)", "",
+              "yes = implemented and tested (tests/test_sparkplug_*.py); partial = see the note; "
+              "n/a = does not apply.", "",
+              "| statement | requirement | status | how / proof |", "|---|---|---|---|"]
+    for sid, req, status, how in CONFORMANCE:
+        lines.append(f"| {sid} | {req} | {status} | {how} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    print(render(), end="")

@@ -1,0 +1,140 @@
+"""The ONE definition of the Sparkplug metrics of an edge node and of a station (device).
+
+Names, Sparkplug datatypes, engineering units and descriptions; the aliases are derived from it
+(stable across restarts, so that data stored before a restart still means the same after it).
+Values come from the station's records, events and state (see :mod:`.output`).
+"""
+from __future__ import annotations
+
+import enum
+import zlib
+from dataclasses import dataclass
+
+
+class DataType(enum.IntEnum):
+    """Sparkplug B datatypes (the index table of sparkplug_b.proto)."""
+    Int8 = 1
+    Int16 = 2
+    Int32 = 3
+    Int64 = 4
+    UInt8 = 5
+    UInt16 = 6
+    UInt32 = 7
+    UInt64 = 8
+    Float = 9
+    Double = 10
+    Boolean = 11
+    String = 12
+    DateTime = 13
+    Text = 14
+
+
+@dataclass(frozen=True)
+class MetricDef:
+    name: str
+    datatype: DataType
+    units: str = ""
+    description: str = ""
+    writable: bool = False        # a command the host may write (DCMD / NCMD)
+    telemetry: bool = False       # a periodic measurement (its history may be trimmed over budget)
+
+
+# ------------------------------------------------------------------------------ node (NBIRTH)
+BDSEQ = "bdSeq"
+REBIRTH = "Node Control/Rebirth"
+NEXT_SERVER = "Node Control/Next Server"
+REBOOT = "Node Control/Reboot"
+
+NODE_METRICS: tuple[MetricDef, ...] = (
+    MetricDef(BDSEQ, DataType.Int64, description="birth/death sequence of this MQTT session"),
+    MetricDef(REBIRTH, DataType.Boolean, description="write true: publish NBIRTH and every DBIRTH again",
+              writable=True),
+    MetricDef(NEXT_SERVER, DataType.Boolean, description="write true: NDEATH, disconnect, connect to the "
+              "next configured server (the same one when only one is configured)", writable=True),
+    MetricDef(REBOOT, DataType.Boolean, description="write true: restart the Sparkplug session (NDEATH, "
+              "new connection, new bdSeq, births); the box, the stations and their tests are NOT "
+              "restarted", writable=True),
+    MetricDef("Properties/Software", DataType.String, description="gateway software and version"),
+    MetricDef("Properties/Devices", DataType.Int32, description="stations (devices) hosted by this node"),
+)
+
+# ------------------------------------------------------------------------------ device (DBIRTH)
+START = "Device Control/Start Test"
+STOP = "Device Control/Stop Test"
+ACK = "Device Control/Acknowledge Alarm"
+HOOK_REPLACED = "Device Control/Hook Replaced"
+ARG_SAMPLE_ID = "Device Control/Sample ID"
+ARG_GRADE = "Device Control/Grade"
+ARG_T_SET = "Device Control/Setpoint"
+ARG_T_END = "Device Control/Planned End"
+
+#: DCMD metric → command kind (gateway.records.CommandKind value)
+COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_replaced"}
+#: DCMD argument metric → key of the command's arguments (gateway.station.commands.COMMAND_KEYS)
+COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end"}
+
+DEVICE_METRICS: tuple[MetricDef, ...] = (
+    MetricDef("Test/State", DataType.String, description="idle | baseline_search | monitoring | "
+              "end_of_life | completed | aborted"),
+    MetricDef("Test/ID", DataType.String),
+    MetricDef("Test/Sample ID", DataType.String),
+    MetricDef("Test/Grade", DataType.String),
+    MetricDef("Test/Setpoint", DataType.Float, "N", "mean tension setpoint t_set"),
+    MetricDef("Test/Planned End", DataType.Double, "s", "planned test duration t_end"),
+    MetricDef("Test/Elapsed", DataType.Double, "s", "time since the test started"),
+    MetricDef("Test/Status", DataType.String, description="the method's status once the test ended: "
+              "failure | no_failure | no_baseline | aborted"),
+    MetricDef("Test/End Reason", DataType.String),
+    MetricDef("Method/mu_ss", DataType.Double, "", "steady-state friction coefficient μ_ss"),
+    MetricDef("Method/mu_th", DataType.Double, "", "end-of-life threshold (1+δ)·μ_ss"),
+    MetricDef("Method/t_life", DataType.Double, "s", "wear life: start of the persistent exceedance"),
+    MetricDef("Alarm/End Of Life/State", DataType.String, description="ISA-18.2: normal | unacknowledged | "
+              "acknowledged | rtn_unacknowledged | shelved | out_of_service (gateway/alarms.py)"),
+    MetricDef("Alarm/End Of Life/Active", DataType.Boolean, description="the alarm is standing (annunciated)"),
+    MetricDef("Alarm/End Of Life/Priority", DataType.Int32, description="ISA-18.2 priority, 1 critical … "
+              "4 low"),
+    MetricDef("Status/Protection Stop", DataType.Boolean),
+    MetricDef("Status/Meter OK", DataType.Boolean, description="Modbus RTU link to the tension meter"),
+    MetricDef("Status/STM32 OK", DataType.Boolean, description="serial link to the motor controller"),
+    MetricDef("Tension/T1", DataType.Float, "N", "inlet tension, interval mean", telemetry=True),
+    MetricDef("Tension/T2", DataType.Float, "N", "outlet tension, interval mean", telemetry=True),
+    MetricDef("Tension/Mean", DataType.Float, "N", "(T1+T2)/2, interval mean", telemetry=True),
+    MetricDef("Friction/mu", DataType.Double, "", "capstan μ = ln(T2/T1)/θ over valid slots, interval mean",
+              telemetry=True),
+    MetricDef("Quality/Valid Ratio", DataType.Double, "", "valid slots / slots in the interval",
+              telemetry=True),
+    MetricDef("Control/Speed Command", DataType.Float, "rpm", telemetry=True),
+    MetricDef("Control/Speed Actual", DataType.Float, "rpm", telemetry=True),
+    MetricDef("Control/Saturation", DataType.Boolean, description="control output clamped in the interval",
+              telemetry=True),
+    MetricDef("Device Control/Last Command", DataType.String,
+              description="the last command received over DCMD and its outcome"),
+    MetricDef("Device Control/Last Result Code", DataType.Int32,
+              description="0 accepted, else the rejection code (docs/mqtt.md)"),
+    MetricDef(START, DataType.Boolean, description="write true (with the argument metrics) to start a test",
+              writable=True),
+    MetricDef(STOP, DataType.Boolean, description="write true to stop the running test", writable=True),
+    MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the end-of-life alarm",
+              writable=True),
+    MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced",
+              writable=True),
+    MetricDef(ARG_SAMPLE_ID, DataType.String, description="start argument: sample ID", writable=True),
+    MetricDef(ARG_GRADE, DataType.String, description="start argument: needle grade", writable=True),
+    MetricDef(ARG_T_SET, DataType.Float, "N", "start argument: setpoint", writable=True),
+    MetricDef(ARG_T_END, DataType.Double, "s", "start argument: planned duration", writable=True),
+)
+
+NODE_BY_NAME = {m.name: m for m in NODE_METRICS}
+DEVICE_BY_NAME = {m.name: m for m in DEVICE_METRICS}
+
+
+def node_aliases() -> dict[str, int]:
+    """Node metrics: aliases 1 … n, except bdSeq (the Will carries it by name) and
+    Node Control/Rebirth (tck-id-operational-behavior-data-commands-rebirth-name-aliases)."""
+    return {m.name: i for i, m in enumerate(NODE_METRICS) if m.name not in (BDSEQ, REBIRTH)}
+
+
+def device_alias_base(device_id: str) -> int:
+    """Aliases of a device's metrics are base + index: base from the device ID (stable across
+    restarts and start orders), above every node alias; unique in the node (checked there)."""
+    return (zlib.crc32(device_id.encode("utf-8")) + 1) << 12

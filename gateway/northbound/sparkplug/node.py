@@ -1,0 +1,541 @@
+"""Sparkplug B 3.0 edge node as a pure state machine: no sockets, no clock, no threads.
+
+Inputs (method calls, each with the time in ms where it matters):
+  ``connecting()`` before each MQTT CONNECT (→ the Will: NDEATH with the next bdSeq, persisted
+  by the caller before it connects), ``connected()``, ``disconnected()``, ``host_state()`` (the
+  primary host's ``spBv1.0/STATE/<host_id>``), ``device_up()`` / ``device_update()`` /
+  ``device_down()`` (a station), ``command()`` (NCMD/DCMD payloads), ``command_result()``.
+Outputs: :class:`Publish` (topic, payload bytes, qos, retain), :class:`Disconnect`,
+:class:`Submit` (a device command for the station's one command path) — returned as lists.
+
+Store and forward: while no primary host is online (or no connection), device data goes to a
+:class:`Buffer` as DDATA payloads whose metrics carry ``is_historical = true`` and their original
+timestamps; when the host is online again, after NBIRTH and the DBIRTHs, :meth:`EdgeNode.drain`
+replays them in order (seq assigned at sending), and only then is data published live.
+
+See docs/sparkplug.md for the rules implemented (with the specification's statement IDs).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from . import metrics as M
+from .sparkplug_b_pb2 import Payload
+
+NAMESPACE = "spBv1.0"
+QOS_DATA = 0          # NBIRTH, DBIRTH, NDATA, DDATA, DDEATH: QoS 0, not retained
+QOS_DEATH = 1         # NDEATH (the Will): QoS 1, not retained
+
+
+@dataclass(frozen=True)
+class Publish:
+    topic: str
+    payload: bytes
+    qos: int = QOS_DATA
+    retain: bool = False
+
+
+@dataclass(frozen=True)
+class Disconnect:
+    reason: str
+    next_server: bool = False
+
+
+@dataclass(frozen=True)
+class Submit:
+    device_id: str
+    kind: str                       # gateway.records.CommandKind value
+    args: dict[str, Any]
+
+
+class Buffer(Protocol):
+    """Store-and-forward of DDATA payloads (the runtime uses the SQLite outbox)."""
+
+    def put(self, topic: str, payload: bytes, telemetry: bool) -> None: ...
+    def peek(self, n: int) -> list[tuple[int, str, bytes]]: ...     # (key, topic, payload), oldest first
+    def remove(self, keys: list[int]) -> None: ...
+    def __len__(self) -> int: ...
+
+
+class MemoryBuffer:
+    """A Buffer in memory (tests, and the fallback when the outbox cannot be opened)."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[int, str, bytes]] = []
+        self._n = 0
+
+    def put(self, topic: str, payload: bytes, telemetry: bool) -> None:
+        self._n += 1
+        self.rows.append((self._n, topic, payload))
+
+    def peek(self, n: int) -> list[tuple[int, str, bytes]]:
+        return self.rows[:n]
+
+    def remove(self, keys: list[int]) -> None:
+        ks = set(keys)
+        self.rows = [r for r in self.rows if r[0] not in ks]
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+
+def valid_id(s: str) -> bool:
+    """Sparkplug IDs: UTF-8, non-empty, no MQTT separators or wildcards."""
+    return bool(s) and not any(c in s for c in "/+#")
+
+
+# ----------------------------------------------------------------------------- payload helpers
+def set_value(m: Payload.Metric, dt: M.DataType, value: Any) -> None:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        m.is_null = True
+        return
+    if dt in (M.DataType.Int8, M.DataType.Int16, M.DataType.Int32):
+        m.int_value = int(value) & 0xFFFFFFFF       # two's complement in uint32 (the spec's encoding)
+    elif dt in (M.DataType.UInt8, M.DataType.UInt16, M.DataType.UInt32):
+        m.int_value = int(value)
+    elif dt in (M.DataType.Int64,):
+        m.long_value = int(value) & 0xFFFFFFFFFFFFFFFF
+    elif dt in (M.DataType.UInt64, M.DataType.DateTime):
+        m.long_value = int(value)
+    elif dt == M.DataType.Float:
+        m.float_value = float(value)
+    elif dt == M.DataType.Double:
+        m.double_value = float(value)
+    elif dt == M.DataType.Boolean:
+        m.boolean_value = bool(value)
+    else:
+        m.string_value = str(value)
+
+
+def get_value(m: Payload.Metric) -> Any:
+    if m.HasField("is_null") and m.is_null:
+        return None
+    which = m.WhichOneof("value")
+    return getattr(m, which) if which else None
+
+
+def _properties(m: Payload.Metric, d: M.MetricDef) -> None:
+    keys, vals = [], []
+    if d.units:
+        keys.append("engUnit")
+        vals.append(d.units)
+    if d.description:
+        keys.append("description")
+        vals.append(d.description)
+    if d.writable:
+        keys.append("writable")
+        vals.append(True)
+    for k, v in zip(keys, vals):
+        m.properties.keys.append(k)
+        pv = m.properties.values.add()
+        if isinstance(v, bool):
+            pv.type = M.DataType.Boolean
+            pv.boolean_value = v
+        else:
+            pv.type = M.DataType.String
+            pv.string_value = v
+
+
+@dataclass
+class Device:
+    device_id: str
+    alias_base: int
+    values: dict[str, Any] = field(default_factory=dict)
+    stamps: dict[str, int] = field(default_factory=dict)
+    born: bool = False
+    stopped: bool = False          # its station stopped while data of it waits in the buffer
+
+
+class EdgeNode:
+    """One Sparkplug edge node hosting stations as devices (see the module docstring)."""
+
+    def __init__(self, group_id: str, edge_node_id: str, *, primary_host_id: str | None = None,
+                 last_bdseq: int | None = None, software: str = "hookwatch", replay_batch: int = 50):
+        for what, v in (("group_id", group_id), ("edge_node_id", edge_node_id)):
+            if not valid_id(v):
+                raise ValueError(f"sparkplug.{what} {v!r}: must be non-empty without '/', '+' or '#'")
+        if primary_host_id is not None and not valid_id(primary_host_id):
+            raise ValueError(f"sparkplug.primary_host_id {primary_host_id!r}: must be non-empty without "
+                             "'/', '+' or '#'")
+        self.group_id = group_id
+        self.edge_node_id = edge_node_id
+        self.host_id = primary_host_id
+        self.software = software
+        self.replay_batch = replay_batch
+        #: bdSeq of the current session (the last one used before a restart until connecting());
+        #: the caller persists it after connecting() and before it connects
+        self.bdseq = 0 if last_bdseq is None else int(last_bdseq) % 256
+        self._fresh = last_bdseq is None
+        self._before_connect = (self.bdseq, self._fresh)
+        self.seq = 0
+        self.connected = False
+        self.node_born = False
+        self.host_online = primary_host_id is None
+        self.host_ts = -1
+        self.devices: dict[str, Device] = {}
+        self.buffer: Buffer = MemoryBuffer()
+        self._replaying = False
+        self._dirty: dict[str, set[str]] = {}
+        self.counters: dict[str, int] = {"stored": 0, "replayed": 0, "births": 0, "rebirths": 0,
+                                         "ignored_commands": 0}
+        self._node_alias = M.node_aliases()
+
+    # ------------------------------------------------------------------ topics
+    def topic(self, kind: str, device_id: str | None = None) -> str:
+        t = f"{NAMESPACE}/{self.group_id}/{kind}/{self.edge_node_id}"
+        return f"{t}/{device_id}" if device_id is not None else t
+
+    def state_topic(self) -> str | None:
+        return f"{NAMESPACE}/STATE/{self.host_id}" if self.host_id else None
+
+    def subscriptions(self) -> list[tuple[str, int]]:
+        subs = [(self.topic("NCMD"), 1), (self.topic("DCMD", "+"), 1)]
+        st = self.state_topic()
+        if st:
+            subs.append((st, 1))
+        return subs
+
+    @property
+    def publishing(self) -> bool:
+        """Live data may go out now: connected, host online, births done."""
+        return self.connected and self.host_online and self.node_born
+
+    # ------------------------------------------------------------------ session
+    def connecting(self) -> Publish:
+        """Before each CONNECT: the next bdSeq and the Will (NDEATH, QoS 1, not retained). The caller
+        persists :attr:`bdseq` before connecting, so a restart after kill -9 continues from it."""
+        self._before_connect = (self.bdseq, self._fresh)
+        if self._fresh:
+            self._fresh = False
+        else:
+            self.bdseq = (self.bdseq + 1) % 256
+        return self.ndeath()
+
+    @property
+    def fresh(self) -> bool:
+        """No bdSeq used yet (the first CONNECT will carry 0)."""
+        return self._fresh
+
+    def connect_failed(self) -> None:
+        """No CONNECT packet went out (the TCP connection failed): the bdSeq is not used up."""
+        self.bdseq, self._fresh = self._before_connect
+
+    def ndeath(self) -> Publish:
+        p = Payload()
+        m = p.metrics.add()
+        m.name = M.BDSEQ
+        m.datatype = M.DataType.Int64
+        m.long_value = self.bdseq
+        return Publish(self.topic("NDEATH"), p.SerializeToString(), QOS_DEATH, False)
+
+    def connected_ok(self, now_ms: int) -> list[Publish]:
+        self.connected = True
+        self.node_born = False
+        if self.host_id is not None:
+            # wait for the host's retained STATE before any birth
+            self.host_online = False
+            return []
+        return self._births(now_ms)
+
+    def disconnected(self) -> None:
+        self.connected = False
+        self.node_born = False
+        self._replaying = False
+        for d in self.devices.values():
+            d.born = False
+
+    def host_state(self, payload: bytes, now_ms: int) -> list[Publish | Disconnect]:
+        """``spBv1.0/STATE/<host_id>`` in the 3.0 form ``{"online": bool, "timestamp": ms}``."""
+        try:
+            doc = json.loads(payload.decode("utf-8"))
+            online = doc["online"]
+            ts = int(doc["timestamp"])
+            if not isinstance(online, bool):
+                raise TypeError("online is not a boolean")
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError):
+            self.counters["ignored_commands"] += 1
+            return []
+        if ts < self.host_ts:
+            return []              # an older STATE than one already seen: ignored
+        self.host_ts = ts
+        if online and not self.host_online:
+            self.host_online = True
+            if self.connected:
+                return self._births(now_ms)
+        elif not online and self.host_online:
+            self.host_online = False
+            if self.connected and self.node_born:
+                # the host is gone: end this session cleanly and wait (reconnected) for it
+                out: list[Publish | Disconnect] = [self.ndeath()]
+                self.node_born = False
+                for d in self.devices.values():
+                    d.born = False
+                out.append(Disconnect("primary host offline"))
+                return out
+        return []
+
+    # ------------------------------------------------------------------ births and deaths
+    def _next_seq(self) -> int:
+        s = self.seq
+        self.seq = (self.seq + 1) % 256
+        return s
+
+    def _payload(self, now_ms: int, seq: bool = True) -> Payload:
+        p = Payload()
+        p.timestamp = int(now_ms)
+        if seq:
+            p.seq = self._next_seq()
+        return p
+
+    def nbirth(self, now_ms: int) -> Publish:
+        self.seq = 0
+        p = self._payload(now_ms)
+        for i, d in enumerate(M.NODE_METRICS):
+            m = p.metrics.add()
+            m.name = d.name
+            if d.name in self._node_alias:
+                m.alias = self._node_alias[d.name]
+            m.timestamp = int(now_ms)
+            m.datatype = d.datatype
+            if d.name == M.BDSEQ:
+                set_value(m, d.datatype, self.bdseq)
+            elif d.writable:
+                set_value(m, d.datatype, False)
+            elif d.name == "Properties/Software":
+                set_value(m, d.datatype, self.software)
+            elif d.name == "Properties/Devices":
+                set_value(m, d.datatype, sum(1 for x in self.devices.values() if not x.stopped))
+            _properties(m, d)
+        self.node_born = True
+        self.counters["births"] += 1
+        return Publish(self.topic("NBIRTH"), p.SerializeToString())
+
+    def dbirth(self, dev: Device, now_ms: int) -> Publish:
+        p = self._payload(now_ms)
+        for i, d in enumerate(M.DEVICE_METRICS):
+            m = p.metrics.add()
+            m.name = d.name
+            m.alias = dev.alias_base + i
+            m.timestamp = dev.stamps.get(d.name, int(now_ms))
+            m.datatype = d.datatype
+            set_value(m, d.datatype, False if d.writable and d.datatype == M.DataType.Boolean
+                      else dev.values.get(d.name))
+            _properties(m, d)
+        dev.born = True
+        return Publish(self.topic("DBIRTH", dev.device_id), p.SerializeToString())
+
+    def _births(self, now_ms: int) -> list[Publish]:
+        out = [self.nbirth(now_ms)]
+        for dev in self.devices.values():
+            if not dev.stopped or len(self.buffer):
+                out.append(self.dbirth(dev, now_ms))
+        self._replaying = len(self.buffer) > 0
+        self._dirty = {}
+        if not self._replaying:
+            out.extend(self._bury_stopped(now_ms))
+        return out
+
+    def rebirth(self, now_ms: int) -> list[Publish]:
+        """Node Control/Rebirth: NBIRTH (same bdSeq, seq 0) and every DBIRTH again."""
+        if not (self.connected and self.host_online):
+            return []
+        self.counters["rebirths"] += 1
+        return self._births(now_ms)
+
+    def _ddeath(self, dev: Device, now_ms: int) -> Publish:
+        dev.born = False
+        return Publish(self.topic("DDEATH", dev.device_id), self._payload(now_ms).SerializeToString())
+
+    def _bury_stopped(self, now_ms: int) -> list[Publish]:
+        out = []
+        for dev in list(self.devices.values()):
+            if dev.stopped:
+                if dev.born:
+                    out.append(self._ddeath(dev, now_ms))
+                del self.devices[dev.device_id]
+        return out
+
+    # ------------------------------------------------------------------ devices
+    def device_up(self, device_id: str, values: dict[str, Any], now_ms: int) -> list[Publish]:
+        if not valid_id(device_id):
+            raise ValueError(f"sparkplug device id {device_id!r}: must be non-empty without '/', '+' or '#'")
+        base = M.device_alias_base(device_id)
+        taken = {d.alias_base for k, d in self.devices.items() if k != device_id}
+        while base in taken:       # a CRC clash between two station IDs: the next free block
+            base += 1 << 12
+        dev = self.devices.get(device_id)
+        if dev is None or dev.alias_base != base:
+            dev = Device(device_id, base)
+            self.devices[device_id] = dev
+        dev.stopped = False
+        for k, v in values.items():
+            if k in M.DEVICE_BY_NAME:
+                dev.values[k] = v
+                dev.stamps[k] = int(now_ms)
+        if self.publishing:
+            return [self.dbirth(dev, now_ms)]
+        return []
+
+    def device_down(self, device_id: str, now_ms: int) -> list[Publish]:
+        dev = self.devices.get(device_id)
+        if dev is None:
+            return []
+        if self.publishing and not self._replaying:
+            out = [self._ddeath(dev, now_ms)] if dev.born else []
+            del self.devices[device_id]
+            return out
+        dev.stopped = True         # buried after its stored data went out
+        return []
+
+    def device_update(self, device_id: str, values: dict[str, Any], now_ms: int) -> list[Publish]:
+        """New values of a station's metrics: DDATA by alias now, or into the buffer."""
+        dev = self.devices.get(device_id)
+        if dev is None:
+            return []
+        changed = {}
+        for k, v in values.items():
+            d = M.DEVICE_BY_NAME.get(k)
+            if d is None:
+                continue
+            if d.telemetry or dev.values.get(k, _MISSING) != v:
+                changed[k] = v
+            dev.values[k] = v
+            dev.stamps[k] = int(now_ms)
+        if not changed:
+            return []
+        if self.publishing and dev.born and not self._replaying:
+            p = self._payload(now_ms)
+            self._add_data(p, dev, changed, now_ms, historical=False)
+            return [Publish(self.topic("DDATA", device_id), p.SerializeToString())]
+        if self._replaying and self.publishing:
+            self._dirty.setdefault(device_id, set()).update(changed)
+        p = Payload()
+        p.timestamp = int(now_ms)
+        self._add_data(p, dev, changed, now_ms, historical=True)
+        telemetry = all(M.DEVICE_BY_NAME[k].telemetry for k in changed)
+        self.buffer.put(self.topic("DDATA", device_id), p.SerializeToString(), telemetry)
+        self.counters["stored"] += 1
+        return []
+
+    @staticmethod
+    def _add_data(p: Payload, dev: Device, values: dict[str, Any], now_ms: int, historical: bool) -> None:
+        index = _DEVICE_INDEX
+        for k, v in values.items():
+            d = M.DEVICE_BY_NAME[k]
+            m = p.metrics.add()
+            m.alias = dev.alias_base + index[k]      # by alias only, no name, no datatype
+            m.timestamp = int(now_ms)
+            if historical:
+                m.is_historical = True
+            set_value(m, d.datatype, v)
+
+    # ------------------------------------------------------------------ replay
+    @property
+    def replaying(self) -> bool:
+        return self._replaying
+
+    def drain(self, now_ms: int) -> tuple[list[Publish], list[int]]:
+        """The next batch of stored DDATA (oldest first, seq assigned now) and the buffer keys to
+        remove once they are handed to the client. When the buffer is empty, the replay ends: the
+        latest values that changed meanwhile go out live, stopped stations get their DDEATH."""
+        if not (self.publishing and self._replaying):
+            return [], []
+        rows = self.buffer.peek(self.replay_batch)
+        out: list[Publish] = []
+        keys: list[int] = []
+        for key, topic, payload in rows:
+            dev_id = topic.rsplit("/", 1)[-1]
+            dev = self.devices.get(dev_id)
+            if dev is None:
+                # stored before a restart, for a station not (yet) running here: birth it, so that
+                # its history is not lost; buried at the end of the replay
+                dev = Device(dev_id, M.device_alias_base(dev_id), stopped=True)
+                self.devices[dev_id] = dev
+            if not dev.born:
+                out.append(self.dbirth(dev, now_ms))
+            p = Payload()
+            try:
+                p.ParseFromString(payload)
+            except Exception:   # noqa: BLE001 - a damaged row: skip it, counted
+                self.counters["ignored_commands"] += 1
+                keys.append(key)
+                continue
+            p.seq = self._next_seq()
+            out.append(Publish(self.topic("DDATA", dev_id), p.SerializeToString()))
+            keys.append(key)
+            self.counters["replayed"] += 1
+        if len(rows) < self.replay_batch and len(self.buffer) <= len(rows):
+            self._replaying = False
+            for dev_id, names in self._dirty.items():
+                dev = self.devices.get(dev_id)
+                if dev is None or not dev.born:
+                    continue
+                p = self._payload(now_ms)
+                self._add_data(p, dev, {k: dev.values.get(k) for k in names}, now_ms, historical=False)
+                out.append(Publish(self.topic("DDATA", dev_id), p.SerializeToString()))
+            self._dirty = {}
+            out.extend(self._bury_stopped(now_ms))
+        return out, keys
+
+    # ------------------------------------------------------------------ commands
+    def command(self, topic: str, payload: bytes, now_ms: int) -> list[Publish | Disconnect | Submit]:
+        """An NCMD or DCMD; metrics by name or by alias. Unknown or malformed ones are counted."""
+        parts = topic.split("/")
+        p = Payload()
+        try:
+            p.ParseFromString(payload)
+        except Exception:   # noqa: BLE001 - protobuf raises DecodeError and others on garbage
+            self.counters["ignored_commands"] += 1
+            return []
+        if len(parts) == 4 and parts[2] == "NCMD":
+            by_alias = {a: n for n, a in self._node_alias.items()}
+            out: list[Publish | Disconnect | Submit] = []
+            for m in p.metrics:
+                name = m.name or by_alias.get(m.alias, "")
+                if get_value(m) is not True:
+                    continue
+                if name == M.REBIRTH:
+                    out.extend(self.rebirth(now_ms))
+                elif name in (M.NEXT_SERVER, M.REBOOT):
+                    if self.connected:
+                        out.append(self.ndeath())
+                    self.node_born = False
+                    out.append(Disconnect(name, next_server=name == M.NEXT_SERVER))
+                else:
+                    self.counters["ignored_commands"] += 1
+            return out
+        if len(parts) == 5 and parts[2] == "DCMD":
+            dev = self.devices.get(parts[4])
+            if dev is None or dev.stopped:
+                self.counters["ignored_commands"] += 1
+                return []
+            names = {dev.alias_base + i: d.name for i, d in enumerate(M.DEVICE_METRICS)}
+            vals = {}
+            for m in p.metrics:
+                name = m.name or names.get(m.alias, "")
+                if name in M.DEVICE_BY_NAME and M.DEVICE_BY_NAME[name].writable:
+                    vals[name] = get_value(m)
+                else:
+                    self.counters["ignored_commands"] += 1
+            args = {M.COMMAND_ARGS[k]: v for k, v in vals.items() if k in M.COMMAND_ARGS and v is not None}
+            subs: list[Publish | Disconnect | Submit] = []
+            for name, kind in M.COMMANDS.items():
+                if vals.get(name) is True:
+                    subs.append(Submit(dev.device_id, kind, args if kind == "start" else {}))
+            return subs
+        self.counters["ignored_commands"] += 1
+        return []
+
+    def command_result(self, device_id: str, kind: str, ok: bool, code: int, reason: str,
+                       now_ms: int) -> list[Publish]:
+        text = f"{kind}: accepted" if ok else f"{kind}: rejected: {reason}"
+        return self.device_update(device_id, {"Device Control/Last Command": text,
+                                              "Device Control/Last Result Code": 0 if ok else int(code)},
+                                  now_ms)
+
+
+_MISSING = object()
+_DEVICE_INDEX = {d.name: i for i, d in enumerate(M.DEVICE_METRICS)}

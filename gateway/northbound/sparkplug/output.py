@@ -1,0 +1,170 @@
+"""A station as a Sparkplug device: the station-side Output (see gateway/records.py).
+
+The station's loop calls ``on_record`` / ``on_event`` / ``on_state`` with O(1) work: records are
+aggregated per ``data_interval_s``; state changes become metric values; both are handed to the
+node's thread (:class:`~.client.NodeRuntime`) through its queue. ``start`` attaches the station
+to its node (DBIRTH), ``stop`` detaches it (DDEATH; the last station ends the node: NDEATH).
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import os
+import time
+from typing import Any
+
+from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
+from ...records import Event, EventType, SlotRecord, StationState
+from . import client as _client
+from .client import SparkplugSettings
+
+log = logging.getLogger("hookwatch.sparkplug")
+
+#: ISA-18.2 priority of the end-of-life alarm
+EOL_PRIORITY = int(ALARMS["end_of_life"].priority)
+
+
+def _alarm_values(value: str) -> dict[str, Any]:
+    try:
+        s = from_station(value)
+    except ValueError:
+        s = AlarmState.NORMAL
+    return {"Alarm/End Of Life/State": s.value, "Alarm/End Of Life/Active": s in ANNUNCIATED,
+            "Alarm/End Of Life/Priority": EOL_PRIORITY}
+
+
+def state_values(st: StationState) -> dict[str, Any]:
+    """The device metrics that follow the station's state."""
+    return {
+        "Test/State": st.state.name.lower(), "Test/ID": st.test_id, "Test/Sample ID": st.sample_id,
+        "Test/Grade": st.grade, "Test/Setpoint": st.t_set, "Test/Planned End": st.t_end,
+        "Test/Status": st.status, "Test/End Reason": st.end_reason,
+        "Method/mu_ss": st.mu_ss, "Method/mu_th": st.mu_th, "Method/t_life": st.t_life,
+        **_alarm_values(st.alarm),
+        "Status/Protection Stop": st.protection_stop, "Status/Meter OK": st.meter_ok,
+        "Status/STM32 OK": st.stm32_ok,
+    }
+
+
+class _Agg:
+    __slots__ = ("t0", "n", "nr", "s1", "s2", "nv", "smu", "nmu", "sat", "cmd", "act")
+
+    def __init__(self, t0: float):
+        self.t0 = t0
+        self.n = self.nr = self.nv = self.nmu = 0
+        self.s1 = self.s2 = self.smu = 0.0
+        self.sat = False
+        self.cmd = self.act = math.nan
+
+    def add(self, r: SlotRecord) -> None:
+        self.n += 1
+        if r.present and r.t1 == r.t1 and r.t2 == r.t2:
+            self.nr += 1
+            self.s1 += r.t1
+            self.s2 += r.t2
+        if r.q:
+            self.nv += 1
+            if r.mu is not None:
+                self.smu += r.mu
+                self.nmu += 1
+        self.sat = self.sat or r.saturated
+        self.cmd = r.speed_cmd
+        self.act = r.speed_act
+
+    def values(self) -> dict[str, Any]:
+        nr = self.nr
+        return {"Tension/T1": self.s1 / nr if nr else None, "Tension/T2": self.s2 / nr if nr else None,
+                "Tension/Mean": (self.s1 + self.s2) / (2 * nr) if nr else None,
+                "Friction/mu": self.smu / self.nmu if self.nmu else None,
+                "Quality/Valid Ratio": self.nv / self.n if self.n else None,
+                "Control/Speed Command": self.cmd, "Control/Speed Actual": self.act,
+                "Control/Saturation": self.sat}
+
+
+class SparkplugOutput:
+    """Station output publishing the station as one Sparkplug device of its edge node."""
+
+    def __init__(self, settings: SparkplugSettings, station=None):
+        self.s = settings
+        self.station = station
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.rt: _client.NodeRuntime | None = None
+        self._agg: _Agg | None = None
+        self._last: dict[str, Any] = {}
+
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        st = getattr(self.station, "state", None)
+        self._last = state_values(st) if st is not None else {}
+        self.rt = _client.attach(self.s, self)
+        self.rt.post(("up", self.s.device_id, dict(self._last)))
+
+    async def stop(self) -> None:
+        if self.rt is None:
+            return
+        self._flush(time.monotonic())
+        self.rt.post(("down", self.s.device_id))
+        last = _client.detach(self.s)
+        if last is not None:
+            await asyncio.get_running_loop().run_in_executor(None, last.stop, 5.0)
+        self.rt = None
+
+    def on_record(self, rec: SlotRecord) -> None:
+        now = time.monotonic()
+        agg = self._agg
+        if agg is None:
+            agg = self._agg = _Agg(now)
+        agg.add(rec)
+        if now - agg.t0 >= self.s.data_interval_s:
+            self._flush(now)
+
+    def _flush(self, now: float) -> None:
+        agg = self._agg
+        if agg is None or agg.n == 0 or self.rt is None:
+            return
+        self._agg = _Agg(now)
+        self.rt.post(("update", self.s.device_id, agg.values(), True))
+
+    def on_state(self, st: StationState) -> None:
+        vals = state_values(st)
+        changed = {k: v for k, v in vals.items() if self._last.get(k, _NONE) != v}
+        if st.elapsed_s and st.test_id:
+            changed["Test/Elapsed"] = round(st.elapsed_s, 3)
+        self._last = vals
+        if changed and self.rt is not None:
+            self.rt.post(("update", self.s.device_id, changed, False))
+
+    def on_event(self, ev: Event) -> None:
+        # the alarm and test metrics follow the state pushed with each event; an end of life is
+        # reported at once, with its numbers, even before the next state push
+        if ev.type == EventType.END_OF_LIFE and self.rt is not None:
+            d = ev.data
+            self.rt.post(("update", self.s.device_id, {
+                **_alarm_values("active"),
+                "Method/t_life": d.get("t_life"), "Method/mu_ss": d.get("mu_ss"),
+                "Method/mu_th": d.get("mu_th")}, False))
+
+
+_NONE = object()
+
+
+def settings_from_config(cfg) -> SparkplugSettings:
+    """SparkplugSettings from a station's configuration (its `sparkplug:` and `station:` sections)."""
+    sp, st = cfg.sparkplug, cfg.station
+    group = sp.group_id or st.site or "hookwatch"
+    node = sp.edge_node_id or "-".join(x for x in (st.area, st.line) if x) or "edge"
+    password = None
+    if sp.password_env:
+        password = os.environ.get(sp.password_env)
+        if password is None:
+            log.error("station %s: sparkplug.password_env: environment variable %s is not set; "
+                      "connecting without a password", st.id, sp.password_env)
+    return SparkplugSettings(
+        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id,
+        servers=[(sp.host, int(sp.port))], client_id=sp.client_id, keepalive_s=int(sp.keepalive_s),
+        username=sp.username, password=password, tls_enabled=bool(sp.tls.enabled), ca_file=sp.tls.ca_file,
+        cert_file=sp.tls.cert_file, key_file=sp.tls.key_file, primary_host_id=sp.primary_host_id,
+        data_interval_s=float(sp.data_interval_s),
+        store_path=sp.store_path or _client.default_store(cfg.recorder.dir, group, node),
+        history_budget_bytes=int(float(sp.history_budget_mb) * 1024 * 1024))

@@ -1,0 +1,42 @@
+"""The `sparkplug:` section: defaults, IDs from the plant hierarchy, bad IDs refused with file:line."""
+import textwrap
+
+import pytest
+
+from gateway.config import ConfigError, load_station
+from gateway.northbound.sparkplug.output import settings_from_config
+from gateway.northbound.wiring import outputs_for
+
+BASE = """\
+station: {id: loom-01, site: plant-a, area: hall-2, line: line-3}
+meter: {port: /dev/a-meter}
+stm32: {port: /dev/a-stm32}
+recorder: {dir: REC}
+"""
+
+
+def station(tmp_path, extra=""):
+    p = tmp_path / "s.yaml"
+    p.write_text(BASE.replace("REC", str(tmp_path / "rec")) + textwrap.dedent(extra))
+    return load_station(str(p))
+
+
+def test_defaults_and_ids_from_the_plant_hierarchy(tmp_path):
+    cfg = station(tmp_path)
+    assert cfg.sparkplug.enabled is False and cfg.sparkplug.primary_host_id is None
+    assert outputs_for(cfg, None) == []
+    cfg = station(tmp_path, "sparkplug: {enabled: true, primary_host_id: scada-1}\n")
+    s = settings_from_config(cfg)
+    assert (s.group_id, s.edge_node_id, s.device_id) == ("plant-a", "hall-2-line-3", "loom-01")
+    assert s.primary_host_id == "scada-1" and s.servers == [("127.0.0.1", 1883)]
+    assert s.store_path == str(tmp_path / "rec" / "sparkplug-plant-a-hall-2-line-3.sqlite")
+    outs = outputs_for(cfg, None)
+    assert [type(o).__name__ for o in outs] == ["SparkplugOutput"]
+
+
+@pytest.mark.parametrize("bad", ["group_id: 'a/b'", "edge_node_id: 'x+y'", "device_id: '#'",
+                                 "primary_host_id: ''", "port: 0", "data_interval_s: 0.01"])
+def test_bad_values_are_refused_with_the_line(tmp_path, bad):
+    with pytest.raises(ConfigError) as e:
+        station(tmp_path, f"sparkplug:\n  enabled: true\n  {bad}\n")
+    assert "sparkplug." in str(e.value) and "s.yaml:" in str(e.value)
