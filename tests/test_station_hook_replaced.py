@@ -25,8 +25,8 @@ def test_hook_replaced_closes_the_alarm_and_is_refused_without_one(tmp_path):
     out = Events()
     st = Station(station_id="hr", method={}, control=ControlParams(), meter=TimedMeter(slow=()),
                  stm32=QuietStm32(), records_dir=str(tmp_path), outputs=[out])
-    st.test_id = "T-1"
-    st._set_alarm("active", t_life=12.0)
+    st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, sample_id="S-1")
+    assert st.state.alarm == "active"
 
     async def main():
         first = await st.submit(Command(CommandKind.HOOK_REPLACED, "sparkplug"))

@@ -164,7 +164,7 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if err:
             return reject(cmd, "T_SET", err)
     elif cmd.kind == CommandKind.HOOK_REPLACED:
-        if getattr(getattr(station, "state", None), "alarm", "none") not in ("active", "acknowledged"):
+        if state.alarm not in ("active", "acknowledged"):
             return reject(cmd, "NO_ALARM", "no end-of-life alarm to close")
     else:  # pragma: no cover - CommandKind is closed
         return reject(cmd, "BAD_REQUEST", f"command {cmd.kind!r} unknown")

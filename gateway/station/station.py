@@ -199,7 +199,6 @@ class Station:
             self._emit_event(EventType.ALARM_ACK, source=cmd.source)
             self._push_state()
         elif cmd.kind == CommandKind.HOOK_REPLACED:
-            self._set_alarm("none", closed_by="hook_replaced")
             self._emit_event(EventType.ALARM_CLEARED, source=cmd.source, reason="hook_replaced")
             self._push_state()
         elif cmd.kind == CommandKind.SETPOINT:
