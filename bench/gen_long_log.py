@@ -38,7 +38,8 @@ def generate(path: str, hours: float = 10.0, seed: int = 7) -> str:
             np.savetxt(f, rows, fmt=("%.4f", "%.3f", "%.3f"), delimiter=",")
     meta = path[: -len(".csv.gz")] + ".meta.yaml"
     with open(meta, "w") as f:
-        f.write(f"sample_id: bench-10h\ngrade: I\nmethod:\n  t_set: 0.5\n  t_end: {hours * 3600:g}\n")
+        # as the recorder writes it: a log hookwatch recorded (its analyses may cache columns)
+        f.write(f"software: hookwatch bench\nsample_id: bench-10h\ngrade: I\nmethod:\n  t_set: 0.5\n  t_end: {hours * 3600:g}\n")
     return path
 
 

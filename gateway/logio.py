@@ -194,6 +194,16 @@ def _read_bytes(path: str) -> bytes:
     return _decompress(path, _read_raw(path))
 
 
+def _recorded_here(path: str, meta: dict) -> bool:
+    """True when the log's sidecar says hookwatch recorded it (``software: hookwatch …``)."""
+    if not meta:
+        try:
+            meta = read_meta(path)
+        except Exception:  # noqa: BLE001 - no readable sidecar: not one of ours
+            return False
+    return str(meta.get("software", "")).startswith("hookwatch")
+
+
 def read_log(path: str, with_meta: bool = True) -> Log:
     """The log at ``path``: columns t, T1, T2 as float64 arrays (every complete row; see
     :mod:`gateway.logcache` for the validated binary cache used for large logs)."""
@@ -244,7 +254,9 @@ def read_log(path: str, with_meta: bool = True) -> Log:
     meta = read_meta(path) if with_meta else {}
     lg = Log(path=path, t=data[:, 0].copy(), t1=data[:, 1].copy(), t2=data[:, 2].copy(),
              meta=meta, columns=columns)
-    if key is not None and lg.t.size >= logcache.MIN_ROWS:
+    # the cache goes only beside logs that hookwatch recorded (their sidecar names the software):
+    # a log from elsewhere (a colleague's share, the method vectors) is read, never written beside
+    if key is not None and lg.t.size >= logcache.MIN_ROWS and _recorded_here(path, meta):
         logcache.store(path, key, lg.t, lg.t1, lg.t2, columns)
     return lg
 

@@ -22,7 +22,7 @@ def small_cache(monkeypatch):
     monkeypatch.delenv("HOOKWATCH_LOG_CACHE", raising=False)
 
 
-def _write_log(path, seed=1, extra_cols=False):
+def _write_log(path, seed=1, extra_cols=False, recorded=True):
     rng = np.random.default_rng(seed)
     t = np.arange(ROWS) * 0.02 + rng.uniform(-0.004, 0.004, ROWS)
     t1 = rng.uniform(0.1, 0.3, ROWS)
@@ -33,6 +33,9 @@ def _write_log(path, seed=1, extra_cols=False):
     opener = gzip.open if path.endswith(".gz") else open
     with opener(path, "wt") as f:
         f.write("".join(lines))
+    if recorded:   # the sidecar of a log hookwatch recorded names the software
+        with open(logio.sidecar_path(path), "w") as f:
+            f.write("software: hookwatch test\nmethod:\n  t_set: 0.5\n")
     return t, t1, t2
 
 
@@ -53,6 +56,19 @@ def test_cache_written_then_used_bit_identical(tmp_path, small_cache, monkeypatc
     for a, b, ref in ((first.t, second.t, t), (first.t1, second.t1, t1), (first.t2, second.t2, t2)):
         assert a.tobytes() == b.tobytes() == ref.tobytes()
     assert second.columns == first.columns == ["t", "T1", "T2", "q"]
+
+
+def test_no_cache_beside_a_log_hookwatch_did_not_record(tmp_path, small_cache):
+    """A log from elsewhere (no sidecar, or one that does not name hookwatch) is read, and nothing
+    is written beside it (e.g. a shared folder of reference logs)."""
+    p = str(tmp_path / "foreign.csv.gz")
+    t, _, _ = _write_log(p, recorded=False)
+    assert logio.read_log(p, with_meta=False).t.tobytes() == t.tobytes()
+    assert not os.path.exists(logcache.cache_path(p))
+    with open(logio.sidecar_path(p), "w") as f:
+        f.write("sample_id: x\nmethod:\n  t_set: 0.5\n")
+    logio.read_log(p)
+    assert not os.path.exists(logcache.cache_path(p))
 
 
 def test_stale_cache_same_size_and_mtime_is_not_used(tmp_path, small_cache):
@@ -115,7 +131,7 @@ def test_small_logs_leave_no_cache(tmp_path, monkeypatch):
     p = str(tmp_path / "a.csv.gz")
     _write_log(p)
     logio.read_log(p, with_meta=False)
-    assert os.listdir(tmp_path) == ["a.csv.gz"]
+    assert not os.path.exists(logcache.cache_path(p))
 
 
 def test_unwritable_cache_place_does_not_fail_the_read(tmp_path, small_cache):
