@@ -66,3 +66,18 @@ def outputs_for(cfg, station) -> list:
         connected = (lambda: mqtt_out.connected) if mqtt_out is not None else None
         outs.append(ModbusOutput(modbus_settings(cfg), station, mqtt_connected=connected))
     return outs
+
+
+def metrics_outputs(cfg, station, outputs: list) -> list:
+    """The metrics output of a station (``metrics.enabled``), reading the MQTT outbox and the
+    PLC server counters of the station's other ``outputs``."""
+    m = getattr(cfg, "metrics", None)
+    if m is None or not m.enabled:
+        return []
+    from .metrics import MetricsOutput
+    from .modbus_server import ModbusOutput
+    from .mqtt import MqttOutput
+
+    mqtt = next((o for o in outputs if isinstance(o, MqttOutput)), None)
+    modbus = next((o for o in outputs if isinstance(o, ModbusOutput)), None)
+    return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus)]

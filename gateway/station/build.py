@@ -55,6 +55,9 @@ def build_station(cfg, *, outputs: list | None = None, with_northbound: bool = T
     )
     if with_northbound:
         st.outputs.extend(northbound_outputs(cfg, st))
+    from ..northbound.wiring import metrics_outputs
+
+    st.outputs.extend(metrics_outputs(cfg, st, st.outputs))
     return st
 
 
