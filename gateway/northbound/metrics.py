@@ -53,7 +53,7 @@ import time
 from typing import Any, Callable
 
 from prometheus_client import CollectorRegistry, PlatformCollector, ProcessCollector
-from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client.exposition import generate_latest
 from prometheus_client.metrics_core import (CounterMetricFamily, GaugeMetricFamily,
                                             HistogramMetricFamily, Metric)
 
@@ -84,6 +84,8 @@ MAX_CONNECTIONS = 4
 REQUEST_TIMEOUT_S = 5.0
 MAX_LINE = 8192
 RETRY_S = 5.0
+#: the classic text format (what generate_latest writes; every Prometheus 2.x reads it)
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 _RUNNING = (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE)
 
 
@@ -435,6 +437,14 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         super().setup()
         self.rfile = _LimitedReader(self.rfile)
 
+    def parse_request(self) -> bool:
+        if len(self.raw_requestline) > MAX_LINE:
+            self.requestline, self.request_version, self.command = "", "HTTP/1.0", ""
+            self.close_connection = True
+            self.send_error(414)
+            return False
+        return super().parse_request()
+
     def do_GET(self) -> None:
         self._serve(body=True)
 
@@ -451,7 +461,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
                            "text/html; charset=utf-8")
         elif path == "/metrics":
             try:
-                data, ctype = generate_latest(self.server.registry), CONTENT_TYPE_LATEST
+                data, ctype = generate_latest(self.server.registry), CONTENT_TYPE
             except Exception:
                 log.exception("metrics: rendering failed")
                 self.send_error(500)
