@@ -41,15 +41,16 @@ the PLC server counters (a Modbus TCP server may serve several stations; labelle
 """
 from __future__ import annotations
 
-import bisect
 import http.server
 import logging
 import math
+import os
 import socket
 import socketserver
 import sqlite3
 import threading
 import time
+from bisect import bisect_left
 from typing import Any, Callable
 
 from prometheus_client import CollectorRegistry, PlatformCollector, ProcessCollector
@@ -84,6 +85,8 @@ MAX_CONNECTIONS = 4
 REQUEST_TIMEOUT_S = 5.0
 MAX_LINE = 8192
 RETRY_S = 5.0
+#: niceness added to the threads that answer scrapes
+SCRAPE_NICE = 5
 #: the classic text format (what generate_latest writes; every Prometheus 2.x reads it)
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 _RUNNING = (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE)
@@ -100,7 +103,7 @@ class Histogram:
 
     def observe(self, v: float) -> None:
         # bisect_left: v == bound falls in that bound's bucket (Prometheus' "le")
-        self.counts[bisect.bisect_left(self.le, v)] += 1
+        self.counts[bisect_left(self.le, v)] += 1
         self.sum += v
 
     def snapshot(self) -> dict[str, Any]:
@@ -213,18 +216,23 @@ class MetricsOutput:
             self._outbox.close()
 
     def on_record(self, rec: SlotRecord) -> None:
+        # O(1), a few hundred ns: plain attribute updates and C bisects, nothing else
         f = self.f
         f.slots += 1
         lat = rec.lateness_s
         if lat > self._late_max:        # a slot lost to an overrun (recorded as MISSING)
             f.overruns += 1
             return
-        f.lateness.observe(lat)
+        h = f.lateness
+        h.counts[bisect_left(h.le, lat)] += 1
+        h.sum += lat
         if rec.present:
             f.filled += 1
             rtt = rec.rtt_s
             if rtt == rtt:              # not NaN
-                f.rtt.observe(rtt)
+                h = f.rtt
+                h.counts[bisect_left(h.le, rtt)] += 1
+                h.sum += rtt
             if rec.q:
                 f.mu = rec.mu
 
@@ -434,6 +442,12 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.0"
 
     def setup(self) -> None:
+        # a scrape yields the CPU to the stations' slot threads (Linux: nice is per thread)
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
+                           os.getpriority(os.PRIO_PROCESS, 0) + SCRAPE_NICE)
+        except (OSError, AttributeError):
+            pass
         super().setup()
         self.rfile = _LimitedReader(self.rfile)
 
