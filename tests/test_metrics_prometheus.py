@@ -1,6 +1,7 @@
 """Metrics scraped by Debian's real Prometheus server while `hookwatch run` runs against
 `hookwatch sim` (processes talking over pseudo-terminals; everything on loopback)."""
 import json
+import os
 import subprocess
 import time
 import urllib.parse
@@ -9,10 +10,11 @@ import urllib.request
 import pytest
 import yaml
 
+from conftest import ROOT
 from e2e import run_gateway, station_yaml, virtual_station, wait_log
 from tools import free_port, require_tool
 
-pytestmark = pytest.mark.slow
+RULES = os.path.join(ROOT, "deploy", "prometheus", "hookwatch-rules.yml")
 
 
 def query(api: str, promql: str) -> list[dict]:
@@ -56,6 +58,7 @@ def prometheus(tmp_path):
         conf = tmp_path / "prometheus.yml"
         conf.write_text(yaml.safe_dump({
             "global": {"scrape_interval": "1s", "scrape_timeout": "900ms", "evaluation_interval": "1s"},
+            "rule_files": [RULES],
             "scrape_configs": [{"job_name": "hookwatch", "static_configs": [{"targets": [target]}]}],
         }))
         log = open(tmp_path / "prometheus.log", "w")
@@ -132,5 +135,18 @@ def test_prometheus_scrapes_a_running_gateway(tmp_path, prometheus):
             p99 = query(api, 'histogram_quantile(0.99, rate(hookwatch_slot_lateness_seconds_bucket'
                              '{station="loom-m"}[5s]))')
             assert p99 and 0 <= float(p99[0]["value"][1]) <= 0.010
+            # the shipped recording rules evaluate on the live series
+            ratio = wait_for(lambda: query(api, 'hookwatch:slots_filled:ratio1m{station="loom-m"}'), 20,
+                             "recording rule", plog)
+            assert 0.5 <= float(ratio[0]["value"][1]) <= 1.0
         finally:
             gw.stop()
+
+
+def test_shipped_prometheus_config_and_rules_are_valid():
+    promtool = require_tool("promtool")
+    for args in (["check", "config", os.path.join(ROOT, "deploy", "prometheus", "prometheus.yml")],
+                 ["check", "rules", RULES]):
+        p = subprocess.run([promtool, *args], capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "SUCCESS" in p.stdout + p.stderr
