@@ -285,3 +285,28 @@ def test_config_section(tmp_path):
     assert (cfg.metrics.enabled, cfg.metrics.host, cfg.metrics.port) == (True, "127.0.0.1", 9620)
     with pytest.raises(ConfigError, match="metrics.port"):
         load_station(str(_station_file(tmp_path, {"enabled": True, "port": 70000})))
+
+
+def _exposed_names() -> set[str]:
+    snap = M.MetricsOutput(fake_station("docs"), "127.0.0.1", 0).snapshot()
+    snap.update(outbox={"messages": 1, "oldest_age_s": 2.0, "dropped_telemetry": 0},
+                plc={"listen": "127.0.0.1:5020", "listening": True, "counters": {"reads": 1}},
+                headroom=0.5, mu=0.2, mu_ss=0.2, mu_th=0.25, events={"port_lost": 1})
+    snap["links"]["mqtt"] = {"up": True, "counters": {"sent": 1, "disconnects": 1}}
+    return {f.name + ("_total" if f.type == "counter" else "")
+            for f in M.families([snap], console_clients=1)}
+
+
+def test_docs_and_shipped_rules_name_exactly_the_exposed_metrics():
+    import re
+
+    exposed = _exposed_names()
+    with open(os.path.join(ROOT, "docs", "metrics.md"), encoding="utf-8") as f:
+        doc = f.read()
+    documented = set(re.findall(r"^\| `(hookwatch_[a-z_]+)`", doc, re.M))
+    assert documented == exposed
+    with open(os.path.join(ROOT, "deploy", "prometheus", "hookwatch-rules.yml"), encoding="utf-8") as f:
+        rules = f.read()
+    used = {re.sub(r"_(bucket|sum|count)$", "", n)
+            for n in re.findall(r"\b(hookwatch_[a-z_]+)", rules + doc)}
+    assert used <= exposed, used - exposed
