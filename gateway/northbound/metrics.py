@@ -50,6 +50,7 @@ import socketserver
 import sqlite3
 import threading
 import time
+import urllib.parse
 from bisect import bisect_left
 from typing import Any, Callable
 
@@ -166,9 +167,11 @@ class OutboxGauge:
         with self._lock:
             try:
                 if self._db is None:
-                    self._db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, timeout=0.5,
-                                               check_same_thread=False)
-                n, oldest = self._db.execute("SELECT COUNT(*), MIN(created) FROM messages").fetchone()
+                    uri = "file:" + urllib.parse.quote(os.path.abspath(self.path)) + "?mode=ro"
+                    self._db = sqlite3.connect(uri, uri=True, timeout=0.5, check_same_thread=False)
+                (n,) = self._db.execute("SELECT COUNT(*) FROM messages").fetchone()
+                row = self._db.execute("SELECT created FROM messages ORDER BY seq LIMIT 1").fetchone()
+                oldest = row[0] if row else None
             except sqlite3.Error:
                 self.close_locked()
                 return 0, None
