@@ -291,7 +291,7 @@ def _exposed_names() -> set[str]:
     snap = M.MetricsOutput(fake_station("docs"), "127.0.0.1", 0).snapshot()
     snap.update(outbox={"messages": 1, "oldest_age_s": 2.0, "dropped_telemetry": 0},
                 plc={"listen": "127.0.0.1:5020", "listening": True, "counters": {"reads": 1}},
-                headroom=0.5, mu=0.2, mu_ss=0.2, mu_th=0.25, events={"port_lost": 1})
+                headroom=0.5, t_cross=5400.0, warning=True, mu=0.2, mu_ss=0.2, mu_th=0.25, events={"port_lost": 1})
     snap["links"]["mqtt"] = {"up": True, "counters": {"sent": 1, "disconnects": 1}}
     return {f.name + ("_total" if f.type == "counter" else "")
             for f in M.families([snap], console_clients=1)}
@@ -310,3 +310,18 @@ def test_docs_and_shipped_rules_name_exactly_the_exposed_metrics():
     used = {re.sub(r"_(bucket|sum|count)$", "", n)
             for n in re.findall(r"\b(hookwatch_[a-z_]+)", rules + doc)}
     assert used <= exposed, used - exposed
+
+
+def test_wear_figures_follow_the_state_when_it_carries_them(endpoints):
+    """METHOD.md §5a: headroom, projection and warning are shown once the station state has them."""
+    name = f"st-{free_port()}"
+    out = M.MetricsOutput(fake_station(name), "127.0.0.1", 0)
+    run(out.start())
+    st = StationState(name, state=TS.MONITORING, mu_ss=0.2, mu_th=0.25)
+    st.headroom, st.t_cross, st.warn_slot = 0.4, 5400.0, 12345    # fields of a later StationState
+    out.on_state(st)
+    m = scrape(out.endpoint)
+    lab = (("station", name),)
+    assert m[("hookwatch_wear_headroom", lab)] == pytest.approx(0.4)
+    assert m[("hookwatch_wear_projected_end_seconds", lab)] == 5400.0
+    assert m[("hookwatch_wear_warning", lab)] == 1

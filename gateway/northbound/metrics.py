@@ -33,7 +33,8 @@ object)::
      "outbox": {"messages": 12, "oldest_age_s": 3.5, "dropped_telemetry": 0} | null,
      "plc": {"listen": "127.0.0.1:5020", "listening": true, "counters": {"reads": 9, ...}} | null,
      "state": "monitoring", "test_running": true, "alarm": "none",
-     "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null, "headroom": 0.4 | null,
+     "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null,
+     "headroom": 0.4 | null, "t_cross": 5400.0 | null, "warning": false,    # METHOD.md §5a
      "events": {"port_lost": 1, ...}}
 
 Process-wide figures (not per station): :func:`set_console_clients` (the console sets it) and
@@ -115,7 +116,7 @@ class Histogram:
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
-                 "mu_th", "headroom", "state", "alarm", "events")
+                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events")
 
     def __init__(self, station: str):
         self.station = station
@@ -126,6 +127,8 @@ class StationFigures:
         self.mu_ss: float | None = None
         self.mu_th: float | None = None
         self.headroom: float | None = None
+        self.t_cross: float | None = None
+        self.warning = False
         self.state = TestState.IDLE
         self.alarm = "none"
         self.events: dict[str, int] = {}
@@ -248,7 +251,10 @@ class MetricsOutput:
         f = self.f
         f.state, f.alarm = st.state, st.alarm
         f.mu_ss, f.mu_th = st.mu_ss, st.mu_th
+        # METHOD.md §5a figures, once the station state carries them
         f.headroom = getattr(st, "headroom", None)
+        f.t_cross = getattr(st, "t_cross", None)
+        f.warning = getattr(st, "warn_slot", None) is not None
         if st.state not in _RUNNING:
             f.mu = None
 
@@ -283,6 +289,7 @@ class MetricsOutput:
             "links": links, "outbox": outbox, "plc": plc,
             "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
             "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
+            "t_cross": f.t_cross, "warning": f.warning,
             "events": dict(f.events),
         }
 
@@ -387,6 +394,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
     state = GaugeMetricFamily(f"{p}_station_state", "the station's test state (1 for the current "
                               "one)", labels=["station", "state"])
     running = GaugeMetricFamily(f"{p}_test_running", "1 while a test runs", labels=["station"])
+    warning = GaugeMetricFamily(f"{p}_wear_warning", "1 once the test's early wear warning fired "
+                                "(METHOD.md §5a)", labels=["station"])
     alarm = GaugeMetricFamily(f"{p}_alarm", "end-of-life alarm state (1 for the current one)",
                               labels=["station", "alarm"])
     events = CounterMetricFamily(f"{p}_events", "station events by type", labels=["station", "type"])
@@ -394,17 +403,20 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
         for ts_ in TestState:
             state.add_metric([s["station"], ts_.name.lower()], 1.0 if s["state"] == ts_.name.lower() else 0.0)
         running.add_metric([s["station"]], 1.0 if s["test_running"] else 0.0)
+        warning.add_metric([s["station"]], 1.0 if s.get("warning") else 0.0)
         for a in ("none", "active", "acknowledged"):
             alarm.add_metric([s["station"], a], 1.0 if s["alarm"] == a else 0.0)
         for t, v in sorted(s["events"].items()):
             events.add_metric([s["station"], t], float(v))
-    out += [state, running, alarm, events]
+    out += [state, running, warning, alarm, events]
 
     for key, name, doc in (("mu", "mu", "last valid friction coefficient μ of the running test"),
                            ("mu_ss", "mu_ss", "steady baseline μ_ss of the running test"),
                            ("mu_th", "mu_threshold", "end-of-life threshold (1+δ)·μ_ss"),
-                           ("headroom", "wear_headroom", "wear headroom of the running test "
-                            "(METHOD.md §5a)")):
+                           ("headroom", "wear_headroom", "wear headroom h of the last window "
+                            "(METHOD.md §5a): 1 at the baseline, 0 at the threshold"),
+                           ("t_cross", "wear_projected_end_seconds", "test time at which the recent "
+                            "μ trend reaches the threshold (METHOD.md §5a projection)")):
         g = GaugeMetricFamily(f"{p}_{name}", doc, labels=["station"])
         for s in snapshots:
             v = s.get(key)
