@@ -325,3 +325,38 @@ def test_wear_figures_follow_the_state_when_it_carries_them(endpoints):
     assert m[("hookwatch_wear_headroom", lab)] == pytest.approx(0.4)
     assert m[("hookwatch_wear_projected_end_seconds", lab)] == 5400.0
     assert m[("hookwatch_wear_warning", lab)] == 1
+
+
+def test_hostile_requests_get_an_answer_or_a_close_and_scrapes_go_on(monkeypatch, endpoints):
+    monkeypatch.setattr(M._Handler, "timeout", 0.5)
+    out = M.MetricsOutput(fake_station(f"st-{free_port()}"), "127.0.0.1", 0)
+    run(out.start())
+    ep = out.endpoint
+    assert ep.listening.wait(5)
+    host, port = ep.address
+    hostile = [
+        bytes(range(256)) * 4,                                          # binary garbage
+        b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n",                            # an HTTP/2 preface
+        b"GET /metrics HTTP/1.1\r\n" + b"X-A: b\r\n" * 200 + b"\r\n",    # a header flood
+        b"GET /metrics HTTP/1.0\r\nContent-Length: 99999999\r\n\r\n",    # a body announced
+        b"GET /metrics HTTP/1.0\r\nX-Long: " + b"z" * 100_000 + b"\r\n\r\n",
+    ]
+    for data in hostile:
+        with socket.create_connection((host, port), timeout=5) as s:
+            try:
+                s.sendall(data)
+                reply = s.recv(100)
+            except (ConnectionResetError, BrokenPipeError):
+                reply = b""
+            assert reply == b"" or reply[:10] in (b"HTTP/1.0 4", b"HTTP/1.0 5") and reply[9:12] != b"500", \
+                (data[:40], reply)
+    # a client that sends half a request and waits is dropped after the request timeout
+    with socket.create_connection((host, port), timeout=5) as s:
+        s.sendall(b"GET /met")
+        t0 = time.monotonic()
+        try:
+            assert s.recv(100) == b""
+        except ConnectionResetError:
+            pass
+        assert time.monotonic() - t0 < 3.0
+    assert _get(ep, "/metrics") == 200

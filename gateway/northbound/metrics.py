@@ -49,6 +49,7 @@ import os
 import socket
 import socketserver
 import sqlite3
+import sys
 import threading
 import time
 import urllib.parse
@@ -455,6 +456,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     server_version = "hookwatch-metrics"
     timeout = REQUEST_TIMEOUT_S
     protocol_version = "HTTP/1.0"
+    default_request_version = "HTTP/1.0"      # garbage gets a status line too, never HTTP/0.9
 
     def setup(self) -> None:
         # a scrape yields the CPU to the stations' slot threads (Linux: nice is per thread)
@@ -472,7 +474,13 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             self.close_connection = True
             self.send_error(414)
             return False
-        return super().parse_request()
+        if not super().parse_request():
+            return False
+        if self.rfile.too_long:
+            self.close_connection = True
+            self.send_error(431, "header line too long")
+            return False
+        return True
 
     def do_GET(self) -> None:
         self._serve(body=True)
@@ -519,10 +527,14 @@ class _LimitedReader:
 
     def __init__(self, raw):
         self._raw = raw
+        self.too_long = False
 
     def readline(self, limit: int = -1) -> bytes:
         lim = MAX_LINE + 1 if limit < 0 else min(limit, MAX_LINE + 1)
-        return self._raw.readline(lim)
+        line = self._raw.readline(lim)
+        if len(line) > MAX_LINE:
+            self.too_long = True
+        return line
 
     def __getattr__(self, name):
         return getattr(self._raw, name)
@@ -551,6 +563,15 @@ class _Server(socketserver.ThreadingMixIn, http.server.HTTPServer):
         except BaseException:
             self.slots.release()
             raise
+
+    def handle_error(self, request, client_address) -> None:
+        # a client that hangs up or times out is its own business: one debug line, no traceback
+        # on stderr (socketserver's default); anything else is a bug worth a log entry
+        exc = sys.exc_info()[1]
+        if isinstance(exc, OSError):
+            log.debug("metrics: request from %s ended: %s", client_address, exc)
+        else:
+            log.exception("metrics: request from %s failed", client_address)
 
     def process_request_thread(self, request, client_address) -> None:
         try:
