@@ -6,14 +6,18 @@ slot   — ``MetricsOutput.on_record`` per slot (the only metrics work on the 50
          with RTT, a silent meter, an overrun); median of RUNS runs of N slots each.
 scrape — one scrape at the HTTP endpoint's cost (snapshots of S stations with their drivers'
          counters, rendering, text exposition), for 1, 8 and 16 stations: median of RUNS.
+wire   — (--wire ROUNDS) `hookwatch run` against `hookwatch sim` over pseudo-terminals
+         (bench_station.py's wire run), alternately without metrics and with metrics scraped
+         every --scrape-s seconds: slots filled and lateness of each run.
 
-    bench/bench_metrics.py [--runs 7] [--slots 200000]
+    bench/bench_metrics.py [--runs 7] [--slots 200000] [--wire 2 --duration 60 --scrape-s 1]
 """
 from __future__ import annotations
 
 import argparse
 import math
 import os
+import socket
 import statistics
 import sys
 import time
@@ -21,6 +25,7 @@ from types import SimpleNamespace
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
 
 from prometheus_client import CollectorRegistry  # noqa: E402
 from prometheus_client.exposition import generate_latest  # noqa: E402
@@ -100,12 +105,61 @@ def bench_scrape(runs: int) -> None:
               f"(min {min(times) * 1e3:.2f}), {size / 1024:.1f} KiB of text")
 
 
+def bench_wire(rounds: int, duration: float, scrape_s: float) -> None:
+    import threading
+    import urllib.request
+
+    import bench_station
+
+    res: dict[bool, list[dict]] = {False: [], True: []}
+    for _ in range(rounds):
+        for on in (False, True):
+            with socket.socket() as sk:
+                sk.bind(("127.0.0.1", 0))
+                port = sk.getsockname()[1]
+            args = argparse.Namespace(baud=115200, duration=duration, extra_config={
+                "metrics": {"enabled": on, "host": "127.0.0.1", "port": port}})
+            stop = threading.Event()
+            scrapes = [0]
+
+            def scraper(port=port, stop=stop, scrapes=scrapes):
+                while not stop.wait(scrape_s):
+                    try:
+                        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+                            r.read()
+                        scrapes[0] += 1
+                    except OSError:
+                        pass
+            th = threading.Thread(target=scraper, daemon=True)
+            if on:
+                th.start()
+            print(f"metrics {'on' if on else 'off'}: ", end="", flush=True)
+            out = bench_station.wire(args)
+            stop.set()
+            out["scrapes"] = scrapes[0]
+            res[on].append(out)
+    for on in (False, True):
+        rs = res[on]
+        print(f"wire, metrics {'on, scraped every %g s' % scrape_s if on else 'off'}: {len(rs)} runs of "
+              f"{duration:.0f} s: filled median {statistics.median(r['filled_pct'] for r in rs):.3f} %, "
+              f"lateness p99 median {statistics.median(r['lateness_ms_p99'] for r in rs):.3f} ms "
+              f"(runs {', '.join('%.2f' % r['lateness_ms_p99'] for r in rs)}), gateway CPU median "
+              f"{statistics.median(r['cpu_pct'] for r in rs):.1f} % of a core"
+              + (f", scrapes {[r['scrapes'] for r in rs]}" if on else ""))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--slots", type=int, default=200_000)
+    ap.add_argument("--wire", type=int, default=0, metavar="ROUNDS")
+    ap.add_argument("--duration", type=float, default=60.0)
+    ap.add_argument("--scrape-s", type=float, default=1.0)
     a = ap.parse_args()
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
+    if a.wire:
+        bench_wire(a.wire, a.duration, a.scrape_s)
+        return
     bench_slot(a.runs, a.slots)
     bench_scrape(a.runs)
 

@@ -30,7 +30,8 @@ object)::
      "links": {"meter": {"up": true, "counters": {"timeouts": 2, ...}},
                "stm32": {"up": true, "counters": {...}},
                "mqtt": {"up": false, "counters": {...}}},        # only links the station has
-     "outbox": {"messages": 12, "oldest_age_s": 3.5, "dropped_telemetry": 0} | null,
+     "outbox": {"messages": 12 | null, "oldest_age_s": 3.5 | null,   # null: file unreadable
+                "dropped_telemetry": 0} | null,
      "plc": {"listen": "127.0.0.1:5020", "listening": true, "counters": {"reads": 9, ...}} | null,
      "state": "monitoring", "test_running": true, "alarm": "none",
      "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null,
@@ -167,7 +168,8 @@ class OutboxGauge:
         self._db: sqlite3.Connection | None = None
         self._lock = threading.Lock()
 
-    def read(self) -> tuple[int, float | None]:
+    def read(self) -> tuple[int | None, float | None]:
+        """(messages, age of the oldest in s); (None, None) while the file cannot be read."""
         with self._lock:
             try:
                 if self._db is None:
@@ -178,7 +180,7 @@ class OutboxGauge:
                 oldest = row[0] if row else None
             except sqlite3.Error:
                 self.close_locked()
-                return 0, None
+                return None, None
         return int(n), (max(0.0, time.time() - float(oldest)) if oldest is not None else None)
 
     def close_locked(self) -> None:
@@ -370,7 +372,7 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
                                   labels=["station"])
     for s in snapshots:
         ob = s.get("outbox")
-        if ob is not None:
+        if ob is not None and ob["messages"] is not None:
             depth.add_metric([s["station"]], float(ob["messages"]))
             age.add_metric([s["station"]], float(ob["oldest_age_s"] or 0.0))
             dropped.add_metric([s["station"]], float(ob["dropped_telemetry"]))
