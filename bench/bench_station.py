@@ -67,6 +67,7 @@ def wire(args) -> dict:
         "test": {"sample_id": "B-1", "grade": "I", "t_set_n": 0.5, "t_end_s": 36000},
         "recorder": {"dir": os.path.join(work, "records")},
         "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
+        **getattr(args, "extra_config", {}),     # sections another benchmark adds (bench_metrics)
     }
     st = os.path.join(work, "bench.yaml")
     with open(st, "w") as f:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
 
-from .northbound.wiring import outputs_for
+from .northbound.wiring import metrics_outputs, outputs_for
 from .ports import MeterPort, Output, Stm32Port
 from .station.build import (control_params, default_plan, method_values, records_dir_ok,
                             station_limits)
@@ -48,4 +48,6 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     )
     if with_northbound:
         st.outputs.extend(northbound_outputs(cfg, st))
+    # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
+    st.outputs.extend(metrics_outputs(cfg, st, st.outputs))
     return st

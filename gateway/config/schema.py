@@ -334,6 +334,17 @@ class ModbusTcpConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class MetricsConfig:
+    enabled: bool = key(False, "serve the gateway's own health (slots, lateness, meter RTT, link "
+                        "errors, outbox, PLC) to Prometheus at http://host:port/metrics "
+                        "(docs/metrics.md)", kind="bool")
+    host: str = key("127.0.0.1", "address to listen on (0.0.0.0: every interface; the endpoint has "
+                    "no authentication)", kind="str")
+    port: int = key(9620, "TCP port; every station of one process shares the endpoint on the same "
+                    "host and port (one series set per station)", kind="int", lo=1, hi=65535)
+
+
+@dataclass(frozen=True, kw_only=True)
 class LoggingConfig:
     level: str = key("info", "log level of the station (journal / stderr)", kind="enum",
                      choices=("debug", "info", "warning", "error"))
@@ -443,6 +454,7 @@ class StationConfig:
     mqtt: MqttConfig = section(MqttConfig, "northbound MQTT (to the MES)")
     modbus_tcp: ModbusTcpConfig = section(ModbusTcpConfig, "northbound Modbus TCP server (to the PLC)")
     sparkplug: SparkplugConfig = section(SparkplugConfig, "northbound Sparkplug B 3.0 (to SCADA / MES)")
+    metrics: MetricsConfig = section(MetricsConfig, "metrics for Prometheus (the gateway's own health)")
     logging: LoggingConfig = section(LoggingConfig, "logging")
     #: not a key: the station file this configuration was read from, and its fleet file
     source: str = field(default="", metadata={"internal": True})

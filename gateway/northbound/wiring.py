@@ -6,6 +6,7 @@ import os
 
 from . import schema
 from .sparkplug.output import SparkplugOutput, settings_from_config
+from .metrics import MetricsOutput
 from .modbus_server import ModbusOutput, ModbusSettings
 from .mqtt import MqttOutput, MqttSettings
 
@@ -67,3 +68,15 @@ def outputs_for(cfg, station) -> list:
     if getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
         outs.append(SparkplugOutput(settings_from_config(cfg), station))
     return outs
+
+
+def metrics_outputs(cfg, station, outputs: list) -> list:
+    """The metrics output of a station (``metrics.enabled``), reading the MQTT outbox and the
+    PLC server counters of the station's other ``outputs``."""
+    m = getattr(cfg, "metrics", None)
+    if m is None or not m.enabled:
+        return []
+
+    mqtt = next((o for o in outputs if isinstance(o, MqttOutput)), None)
+    modbus = next((o for o in outputs if isinstance(o, ModbusOutput)), None)
+    return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus)]
