@@ -24,6 +24,8 @@ import struct
 from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
+from gateway import safeyaml
+
 #: the repository's default map (the gateway's configuration model may point elsewhere)
 DEFAULT_MAP_PATH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                 "config", "meters", "zn-s.yaml")
@@ -286,22 +288,26 @@ def _check_num(where, key, v, lo, hi, allowed):
 
 
 def load_map(path: str | os.PathLike) -> MeterMap:
-    """Read and validate a register map file; raises MapError naming file, key, value, allowed."""
-    import yaml
-
+    """Read and validate a register map file; raises MapError naming file, key, value, allowed.
+    The file is read by the gateway's bounded YAML reader (size, nesting, aliases, encoding)."""
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8") as f:
-            data = yaml.safe_load(f)
+        data = safeyaml.read(path, limits=safeyaml.CONFIG).data
     except FileNotFoundError:
         raise MapError(f"{path}: register map file not found") from None
     except OSError as e:
         raise MapError(f"{path}: cannot read register map: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        at = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        raise MapError(f"{path}: not valid YAML{at}: {getattr(e, 'problem', e)}") from None
+    except safeyaml.YamlError as e:
+        raise MapError(f"{path}: {e.detail()}") from None
     return map_from_dict(data, path)
+
+
+def _key_text(k: Any) -> str:
+    """An unknown key as an error message shows it: a name as written, anything else not at all
+    (the file may not be a map: its text is not echoed)."""
+    if isinstance(k, str) and len(k) <= 40 and k.replace("_", "").replace("-", "").isalnum():
+        return k
+    return "(a key that is not a name, not shown)"
 
 
 def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
@@ -311,9 +317,13 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
     if not isinstance(data, dict):
         raise MapError(f"{where}: expected a mapping of keys ({', '.join(TOP_KEYS)}), "
                        f"got {type(data).__name__}")
+    if data and not any(k in TOP_KEYS for k in data):
+        # not a register map at all (say, meter.map: /etc/shadow): never echo its content
+        raise MapError(f"{where}: not a register map: none of its {len(data)} key(s) is a map key; "
+                       f"allowed keys: {', '.join(TOP_KEYS)}")
     for k in data:
         if k not in TOP_KEYS:
-            raise MapError(f"{where}: {k}: unknown key; allowed keys: {', '.join(TOP_KEYS)}")
+            raise MapError(f"{where}: {_key_text(k)}: unknown key; allowed keys: {', '.join(TOP_KEYS)}")
     d = {**DEFAULTS, **{k: v for k, v in data.items() if v is not None or k == "channels"}}
     model = d.get("model", "ZN-S")
     if not isinstance(model, str):
@@ -341,7 +351,7 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
         raise _bad(where, "channels", chans, "a mapping with ch1 and ch2")
     for k in chans:
         if k not in CHANNEL_NAMES:
-            raise MapError(f"{where}: channels.{k}: unknown channel; allowed: ch1, ch2")
+            raise MapError(f"{where}: channels.{_key_text(k)}: unknown channel; allowed: ch1, ch2")
     for k in CHANNEL_NAMES:
         if k not in chans:
             raise MapError(f"{where}: channels.{k}: missing; the meter has two channels, ch1 and ch2")
@@ -359,7 +369,7 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         raise _bad(where, key, c, f"a mapping with keys {', '.join(CHANNEL_KEYS)}")
     for k in c:
         if k not in CHANNEL_KEYS:
-            raise MapError(f"{where}: {key}.{k}: unknown key; allowed keys: {', '.join(CHANNEL_KEYS)}")
+            raise MapError(f"{where}: {key}.{_key_text(k)}: unknown key; allowed keys: {', '.join(CHANNEL_KEYS)}")
     if "address" not in c:
         raise MapError(f"{where}: {key}.address: missing; give the register address of the value")
     lo = base

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from . import safeyaml
+
 REQUIRED_COLUMNS = ("t", "T1", "T2")
 
 
@@ -66,19 +68,14 @@ def _read_bytes(path: str) -> bytes:
 
 
 def read_meta(path: str) -> dict[str, Any]:
-    """The sidecar of a log, or {} when there is none."""
-    import yaml
-
+    """The sidecar of a log, or {} when there is none (read within :data:`safeyaml.SIDECAR`)."""
     sp = sidecar_path(path)
     if not os.path.exists(sp):
         return {}
     try:
-        with open(sp, encoding="utf-8") as f:
-            meta = yaml.safe_load(f)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise LogError(f"{sp}:{where} not valid YAML: {getattr(e, 'problem', e)}") from None
+        meta = safeyaml.read(sp, limits=safeyaml.SIDECAR).data
+    except safeyaml.YamlError as e:
+        raise LogError(f"{sp}: {e.detail()}") from None
     except OSError as e:
         raise LogError(f"{sp}: cannot read: {e.strerror or e}") from None
     if meta is None:

@@ -20,7 +20,7 @@ import os
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-import yaml
+from gateway import safeyaml
 
 from .plant import GRADES, SECTIONS, PlantParams, params_from_dict
 
@@ -325,16 +325,13 @@ def load_scenario(path: str | os.PathLike | None = None) -> Scenario:
     """Read and validate a scenario file (None: the packaged demo)."""
     path = os.fspath(path) if path is not None else DEFAULT_SCENARIO
     try:
-        with open(path, encoding="utf-8") as f:
-            data = yaml.safe_load(f)
+        data = safeyaml.read(path, limits=safeyaml.CONFIG).data
     except FileNotFoundError:
         raise ScenarioError(f"{path}: no such scenario file") from None
     except IsADirectoryError:
         raise ScenarioError(f"{path}: is a folder, not a scenario file") from None
     except OSError as e:
         raise ScenarioError(f"{path}: cannot read: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        at = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-        raise ScenarioError(f"{path}: not valid YAML{at}: {getattr(e, 'problem', None) or e}") from None
+    except safeyaml.YamlError as e:
+        raise ScenarioError(f"{path}: {e.detail()}") from None
     return scenario_from_dict(data, path)

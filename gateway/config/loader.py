@@ -542,7 +542,8 @@ def _check_map(cfg, rep: _Report) -> None:
     except ImportError:
         return                            # drivers not installed: the driver checks it at start
     except Exception as e:                # MapError (a ValueError) or a bad override
-        rep.error(where, f"{path}: {e}", anchor=("meter",))
+        text = str(e)
+        rep.error(where, text if text.startswith(path + ":") else f"{path}: {text}", anchor=("meter",))
 
 
 # ---------------------------------------------------------------------------------------------
