@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 from gateway import safeyaml
+from gateway.validation import Problem, ValidationError, did_you_mean, key_text, suggestion_text
 
 #: the repository's default map (the gateway's configuration model may point elsewhere)
 DEFAULT_MAP_PATH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
@@ -56,9 +57,12 @@ DEFAULTS: dict[str, Any] = {"unit_id": 1, "baud": 115200, "parity": "N", "stopbi
                             "bytesize": 8, "function": 3, "address_base": 0, "turnaround_ms": 2.0}
 
 
-class MapError(ValueError):
+class MapError(ValidationError):
     """A register map (or an override) is not valid; the message names file, key, value and what
-    is allowed."""
+    is allowed, and ``problem`` holds the same as data (file, key path, value, allowed)."""
+
+    def __init__(self, text: str, problem: Problem | None = None):
+        super().__init__(problem or Problem((), text), text=text)
 
 
 class DecodeError(ValueError):
@@ -255,7 +259,27 @@ def _is_num(v) -> bool:
 
 
 def _bad(where: str, key: str, value, allowed: str) -> MapError:
-    return MapError(f"{where}: {key}: {value!r} is not allowed; {allowed}")
+    msg = f"{value!r} is not allowed; {allowed}"
+    return MapError(f"{where}: {key}: {msg}", Problem(_path(key), msg, value=value, allowed=allowed,
+                                                      file=where))
+
+
+def _unknown(where: str, key: str, k: Any, allowed) -> MapError:
+    options = ", ".join(allowed)
+    sugg = did_you_mean(k, allowed)
+    msg = f"unknown key; allowed keys: {options}" + suggestion_text(sugg)
+    path = _path(key) + (k,)
+    return MapError(f"{where}: {key + '.' if key else ''}{key_text(k)}: {msg}",
+                    Problem(path, msg, value=k, allowed=options, suggestion=sugg, file=where))
+
+
+def _fail(where: str, key: str, msg: str) -> MapError:
+    """A problem of ``key`` that is not one bad value (a missing key, a rule between keys)."""
+    return MapError(f"{where}: {key}: {msg}", Problem(_path(key), msg, file=where))
+
+
+def _path(key: str) -> tuple:
+    return tuple(key.split(".")) if key else ()
 
 
 def _check_int(where, key, v, lo, hi, allowed=None):
@@ -302,14 +326,6 @@ def load_map(path: str | os.PathLike) -> MeterMap:
     return map_from_dict(data, path)
 
 
-def _key_text(k: Any) -> str:
-    """An unknown key as an error message shows it: a name as written, anything else not at all
-    (the file may not be a map: its text is not echoed)."""
-    if isinstance(k, str) and len(k) <= 40 and k.replace("_", "").replace("-", "").isalnum():
-        return k
-    return "(a key that is not a name, not shown)"
-
-
 def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
     where = path
     if data is None:
@@ -323,7 +339,7 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
                        f"allowed keys: {', '.join(TOP_KEYS)}")
     for k in data:
         if k not in TOP_KEYS:
-            raise MapError(f"{where}: {_key_text(k)}: unknown key; allowed keys: {', '.join(TOP_KEYS)}")
+            raise _unknown(where, "", k, TOP_KEYS)
     d = {**DEFAULTS, **{k: v for k, v in data.items() if v is not None or k == "channels"}}
     model = d.get("model", "ZN-S")
     if not isinstance(model, str):
@@ -346,15 +362,15 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
                                "a number of milliseconds 0..1000")
     chans = d.get("channels")
     if chans is None:
-        raise MapError(f"{where}: channels: missing; give ch1 and ch2 (each with an address)")
+        raise _fail(where, "channels", f"missing; give ch1 and ch2 (each with an address)")
     if not isinstance(chans, dict):
         raise _bad(where, "channels", chans, "a mapping with ch1 and ch2")
     for k in chans:
         if k not in CHANNEL_NAMES:
-            raise MapError(f"{where}: channels.{_key_text(k)}: unknown channel; allowed: ch1, ch2")
+            raise _fail(where, f"channels.{key_text(k)}", f"unknown channel; allowed: ch1, ch2")
     for k in CHANNEL_NAMES:
         if k not in chans:
-            raise MapError(f"{where}: channels.{k}: missing; the meter has two channels, ch1 and ch2")
+            raise _fail(where, f"channels.{k}", f"missing; the meter has two channels, ch1 and ch2")
     ch = [_channel(where, n, chans[n], base) for n in CHANNEL_NAMES]
     m = MeterMap(path=path, unit_id=unit_id, baud=baud, parity=parity, stopbits=stopbits,
                  bytesize=8, function=function, address_base=base,
@@ -369,9 +385,9 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         raise _bad(where, key, c, f"a mapping with keys {', '.join(CHANNEL_KEYS)}")
     for k in c:
         if k not in CHANNEL_KEYS:
-            raise MapError(f"{where}: {key}.{_key_text(k)}: unknown key; allowed keys: {', '.join(CHANNEL_KEYS)}")
+            raise _unknown(where, key, k, CHANNEL_KEYS)
     if "address" not in c:
-        raise MapError(f"{where}: {key}.address: missing; give the register address of the value")
+        raise _fail(where, f"{key}.address", f"missing; give the register address of the value")
     lo = base
     addr = _check_int(where, f"{key}.address", c["address"], lo, 65535 + base,
                       f"an integer {lo}..{65535 + base} (address_base is {base})")
@@ -380,14 +396,14 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         raise _bad(where, f"{key}.type", typ, "one of " + ", ".join(DATA_TYPES))
     width = DATA_TYPES[typ][0]
     if "word_order" in c and width == 1:
-        raise MapError(f"{where}: {key}.word_order: only applies to 32-bit types (int32, float32); "
+        raise _fail(where, f"{key}.word_order", f"only applies to 32-bit types (int32, float32); "
                        f"{typ} is one register; remove the key")
     wo = c.get("word_order", "big")
     if wo not in WORD_ORDERS:
         raise _bad(where, f"{key}.word_order", wo,
                    "big (high word first) or little (low word first)")
     if "scale" in c and "decimals_register" in c:
-        raise MapError(f"{where}: {key}: give either scale or decimals_register, not both")
+        raise _fail(where, key, f"give either scale or decimals_register, not both")
     scale = None
     dreg = None
     decimals = 0
@@ -398,11 +414,11 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
                               f"an integer 0..{MAX_DECIMALS} (value = raw / 10^decimals)")
     else:
         if "decimals" in c:
-            raise MapError(f"{where}: {key}.decimals: only with decimals_register (the value the "
+            raise _fail(where, f"{key}.decimals", f"only with decimals_register (the value the "
                            f"virtual meter serves there); for a fixed factor use scale")
         scale = c.get("scale", 1.0 if typ == "float32" else None)
         if scale is None:
-            raise MapError(f"{where}: {key}: {typ} needs scale (N per count, e.g. 0.001) or "
+            raise _fail(where, key, f"{typ} needs scale (N per count, e.g. 0.001) or "
                            f"decimals_register")
         if not _is_num(scale) or not math.isfinite(scale) or scale <= 0:
             raise _bad(where, f"{key}.scale", scale, "a positive number (N per count, e.g. 0.001)")
@@ -417,21 +433,21 @@ def _check_layout(where: str, m: MeterMap) -> None:
     for a, w, key in m._spans():
         for r in range(a, a + w):
             if r > 65535:
-                raise MapError(f"{where}: {key}: register {r + m.address_base} is past the end of "
+                raise _fail(where, key, f"register {r + m.address_base} is past the end of "
                                f"the address space")
             if r in used:
-                raise MapError(f"{where}: {key}: register {r + m.address_base} overlaps {used[r]}")
+                raise _fail(where, key, f"register {r + m.address_base} overlaps {used[r]}")
             used[r] = key
     dregs = {}
     for c in m.channels:
         if c.decimals_register is not None:
             if c.decimals_register in dregs and dregs[c.decimals_register] != c.decimals:
-                raise MapError(f"{where}: channels.{c.name}.decimals: {c.decimals} differs from "
+                raise _fail(where, f"channels.{c.name}.decimals", f"{c.decimals} differs from "
                                f"{dregs[c.decimals_register]} for the shared decimal-point register "
                                f"{c.decimals_register + m.address_base}")
             dregs[c.decimals_register] = c.decimals
     _, start, count = m.read_block
     if count > MAX_READ_REGISTERS:
-        raise MapError(f"{where}: channels: the registers span {count} registers from "
+        raise _fail(where, "channels", f"the registers span {count} registers from "
                        f"{start + m.address_base}; one read (FC{m.function}) covers at most "
                        f"{MAX_READ_REGISTERS}: put the channels closer together")

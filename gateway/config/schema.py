@@ -25,6 +25,7 @@ from typing import Any, Callable
 
 from ..control import ControlParams, NotchParams
 from ..method.params import PARAMS as METHOD_PARAMS
+from ..validation import show_value, show_yaml
 
 # ---------------------------------------------------------------------------------------------
 # key kinds
@@ -117,26 +118,8 @@ def _num(x: float) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-def _show(v: Any) -> str:
-    """A value as it would be written in YAML."""
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
-        return f"{v:g}"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_show(x) for x in v) + "]"
-    return str(v)
-
-
-def show_value(v: Any) -> str:
-    """A bad value in an error message (strings quoted so that '' and ' 9600' are visible)."""
-    if isinstance(v, str):
-        return repr(v)
-    if isinstance(v, dict):
-        return "a mapping"
-    return _show(v)
+#: a value as written in YAML, and a bad value in a message: one definition (gateway.validation)
+_show = show_yaml
 
 
 def key(default: Any = REQUIRED, doc: str = "", *, kind: str, **kw: Any):
