@@ -24,7 +24,8 @@ def main(runs: int = 7) -> None:
         p = subprocess.run([exe, "analyze", log, "--json"], capture_output=True, text=True)
         times.append(time.perf_counter() - t0)
         assert p.returncode == 0, p.stderr
-    print(f"analyze 10 h log end to end (process start, gunzip, parse, method): median {statistics.median(times):.3f} s, "
+    print("analyze 10 h log end to end (process start, gunzip, parse, method): "
+          f"median {statistics.median(times):.3f} s, "
           f"min {min(times):.3f} s over {runs} runs  [goal ≤ 1.0 s]")
     print("  result:", p.stdout.strip()[:160], "…")
 

@@ -21,8 +21,9 @@ from __future__ import annotations
 import math
 import os
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Sequence
+from typing import Any
 
 from gateway import safeyaml
 from gateway.validation import Problem, ValidationError, did_you_mean, key_text, suggestion_text
@@ -175,10 +176,10 @@ class MeterMap:
                                       f"{dp}; allowed 0..{MAX_DECIMALS}")
                 out.append(raw / 10 ** dp if dp else float(raw))
             elif c.type == "float32":
-                v = raw * c.scale if c.scale != 1.0 else raw
+                v = raw * c.scale if c.scale != 1.0 else raw  # type: ignore[operator]  # set for float32
                 out.append(float(f"{v:.7g}") if math.isfinite(v) else v)
             else:
-                out.append(round(raw * c.scale, 9))
+                out.append(round(raw * c.scale, 9))  # type: ignore[operator]  # no decimals_register
         return out[0], out[1]
 
     def encode(self, ch1: float, ch2: float) -> list[int]:
@@ -196,7 +197,7 @@ class MeterMap:
 
     # ------------------------------------------------------------------ overrides
     def with_overrides(self, baud: int | None = None, unit_id: int | None = None,
-                       parity: str | None = None) -> "MeterMap":
+                       parity: str | None = None) -> MeterMap:
         """A copy with the station's overrides (None = keep the map's value); validated."""
         kw: dict[str, Any] = {}
         where = f"{self.path} (station override)"
@@ -231,7 +232,7 @@ def _pack(c: ChannelMap, value: float) -> list[int]:
         else:
             q = round(min(max(value, lo), hi), 3) if math.isfinite(value) else (hi if value > 0 else lo)
             if c.scale not in (None, 1.0):
-                q = q / c.scale
+                q = q / c.scale  # type: ignore[operator]  # not None here
             q = min(max(q, lo), hi)
     else:
         if math.isnan(value):
@@ -362,15 +363,15 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
                                "a number of milliseconds 0..1000")
     chans = d.get("channels")
     if chans is None:
-        raise _fail(where, "channels", f"missing; give ch1 and ch2 (each with an address)")
+        raise _fail(where, "channels", "missing; give ch1 and ch2 (each with an address)")
     if not isinstance(chans, dict):
         raise _bad(where, "channels", chans, "a mapping with ch1 and ch2")
     for k in chans:
         if k not in CHANNEL_NAMES:
-            raise _fail(where, f"channels.{key_text(k)}", f"unknown channel; allowed: ch1, ch2")
+            raise _fail(where, f"channels.{key_text(k)}", "unknown channel; allowed: ch1, ch2")
     for k in CHANNEL_NAMES:
         if k not in chans:
-            raise _fail(where, f"channels.{k}", f"missing; the meter has two channels, ch1 and ch2")
+            raise _fail(where, f"channels.{k}", "missing; the meter has two channels, ch1 and ch2")
     ch = [_channel(where, n, chans[n], base) for n in CHANNEL_NAMES]
     m = MeterMap(path=path, unit_id=unit_id, baud=baud, parity=parity, stopbits=stopbits,
                  bytesize=8, function=function, address_base=base,
@@ -387,7 +388,7 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         if k not in CHANNEL_KEYS:
             raise _unknown(where, key, k, CHANNEL_KEYS)
     if "address" not in c:
-        raise _fail(where, f"{key}.address", f"missing; give the register address of the value")
+        raise _fail(where, f"{key}.address", "missing; give the register address of the value")
     lo = base
     addr = _check_int(where, f"{key}.address", c["address"], lo, 65535 + base,
                       f"an integer {lo}..{65535 + base} (address_base is {base})")
@@ -403,7 +404,7 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         raise _bad(where, f"{key}.word_order", wo,
                    "big (high word first) or little (low word first)")
     if "scale" in c and "decimals_register" in c:
-        raise _fail(where, key, f"give either scale or decimals_register, not both")
+        raise _fail(where, key, "give either scale or decimals_register, not both")
     scale = None
     dreg = None
     decimals = 0
@@ -414,8 +415,8 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
                               f"an integer 0..{MAX_DECIMALS} (value = raw / 10^decimals)")
     else:
         if "decimals" in c:
-            raise _fail(where, f"{key}.decimals", f"only with decimals_register (the value the "
-                           f"virtual meter serves there); for a fixed factor use scale")
+            raise _fail(where, f"{key}.decimals", "only with decimals_register (the value the "
+                           "virtual meter serves there); for a fixed factor use scale")
         scale = c.get("scale", 1.0 if typ == "float32" else None)
         if scale is None:
             raise _fail(where, key, f"{typ} needs scale (N per count, e.g. 0.001) or "
@@ -438,7 +439,7 @@ def _check_layout(where: str, m: MeterMap) -> None:
             if r in used:
                 raise _fail(where, key, f"register {r + m.address_base} overlaps {used[r]}")
             used[r] = key
-    dregs = {}
+    dregs: dict[int, int] = {}
     for c in m.channels:
         if c.decimals_register is not None:
             if c.decimals_register in dregs and dregs[c.decimals_register] != c.decimals:

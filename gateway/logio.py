@@ -97,7 +97,8 @@ def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) < max(cols) + 1:
-            return f"{path}: line {lineno}: expected at least {max(cols) + 1} columns, got {len(row)}: {','.join(row)[:80]!r}"
+            return (f"{path}: line {lineno}: expected at least {max(cols) + 1} columns, got {len(row)}: "
+                    f"{','.join(row)[:80]!r}")
         for c in cols:
             try:
                 float(row[c])
@@ -201,6 +202,7 @@ def read_log(path: str, with_meta: bool = True) -> Log:
         last = body[cut + 1:]
         if len(last.split(",")) < len(columns):
             body = body[: cut + 1]
+    data: np.ndarray | None
     if not body.strip():
         data = np.empty((0, 3))
     else:

@@ -35,7 +35,7 @@ from typing import Any
 
 import yaml
 
-KeyPath = tuple  # a key path: ("meter", "baud") or ("modbus_tcp", "writes", "allowed_clients", 0)
+KeyPath = tuple[Any, ...]  # a key path: ("meter", "baud") or ("modbus_tcp", "writes", "allowed_clients", 0)
 
 
 @dataclass(frozen=True)
@@ -184,18 +184,21 @@ class _Loader(yaml.SafeLoader):
         return self._limit(mark, f"lists/mappings nested deeper than {n} levels; allowed: at "
                            f"most {n} levels", "max_depth")
 
+    def _next_mark(self) -> Any:
+        return self.peek_event().start_mark  # type: ignore[no-untyped-call]
+
     def compose_node(self, parent, index):  # type: ignore[no-untyped-def]
         if self.check_event(yaml.AliasEvent):
             self._aliases += 1
             if self._aliases > self.limits.max_aliases:
                 n = self.limits.max_aliases
-                raise self._limit(self.peek_event().start_mark, f"more than {n} aliases (*name); "
+                raise self._limit(self._next_mark(), f"more than {n} aliases (*name); "
                                   f"allowed: at most {n}", "max_aliases")
             return super().compose_node(parent, index)
         self._depth += 1
         try:
             if self._depth > self.limits.max_depth:
-                raise self._too_deep(self.peek_event().start_mark)
+                raise self._too_deep(self._next_mark())
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -261,7 +264,7 @@ class Doc:
     """A parsed file: the plain value tree and the position of every key path."""
     file: str
     data: Any
-    pos: dict  # KeyPath -> Pos (of the key; for list items, of the item)
+    pos: dict[KeyPath, Pos]  # of the key; for list items, of the item
     line: int = 1  # where the top-level value starts
 
 
@@ -279,7 +282,7 @@ def read(file: str, text: str | None = None, limits: Limits = CONFIG) -> Doc:
     node = None
     try:
         node = loader.get_single_node()
-        pos: dict = {}
+        pos: dict[KeyPath, Pos] = {}
         if node is None:
             data = None
         else:
@@ -328,10 +331,10 @@ def kind(v: Any) -> str:
             bool: "a boolean", dict: "a mapping"}.get(type(v), type(v).__name__)
 
 
-def _value(loader: _Loader, node: yaml.Node, path: KeyPath, pos: dict, file: str) -> Any:
+def _value(loader: _Loader, node: yaml.Node, path: KeyPath, pos: dict[KeyPath, Pos], file: str) -> Any:
     if isinstance(node, yaml.MappingNode):
         loader.flatten_mapping(node)  # `<<: *anchor` merge keys (counted by _expanded_size)
-        out: dict = {}
+        out: dict[Any, Any] = {}
         for knode, vnode in node.value:
             if not isinstance(knode, yaml.ScalarNode):
                 raise YamlError(file, knode.start_mark.line + 1, "a key must be a plain name")

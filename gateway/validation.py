@@ -12,8 +12,9 @@ This module imports nothing of the project (drivers and gateway use it alike, wi
 from __future__ import annotations
 
 import difflib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any
 
 
 class _Missing:
@@ -24,7 +25,7 @@ class _Missing:
 #: ``Problem.value`` of a problem that is not about one value (a missing key, a rule)
 MISSING: Any = _Missing()
 
-KeyPath = tuple  # ("meter", "baud"), ("channels", "ch1", "address"), ("faults", 0, "at_s")
+KeyPath = tuple[Any, ...]  # ("meter", "baud"), ("channels", "ch1", "address"), ("faults", 0, "at_s")
 
 
 def dotted(path: Iterable[Any]) -> str:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gateway.control import ControlParams, Controller, Notch, NotchParams, notch_coefficients
+from gateway.control import Controller, ControlParams, Notch, NotchParams, notch_coefficients
 
 
 @pytest.mark.parametrize("f0,q", [(0.5, 2.0), (3.0, 3.75), (6.6, 12.0), (10.0, 8.0)])

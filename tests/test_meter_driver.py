@@ -12,7 +12,6 @@ import yaml
 
 from conftest import ROOT
 from drivers.zns import Reading, ZnsMeter
-
 from meter_helpers import MeterProcess
 
 MAPS = os.path.join(ROOT, "config", "meters")
@@ -244,7 +243,7 @@ def test_50hz_poll_loop_at_115200(meter_proc):
             await m.close()
 
     m, attempts = asyncio.run(main())
-    for results, durations, counters in attempts:
+    for results, _durations, counters in attempts:
         good = [r for r in results if r is not None]
         rtts = sorted(r.rtt_s for r in good)
         print(f"\n50 Hz at 115200: {len(good)}/{n} filled, rtt median {statistics.median(rtts) * 1e3:.2f} ms, "

@@ -7,8 +7,7 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from drivers.zns_map import (DEFAULT_MAP_PATH, DecodeError, MapError, crc16_modbus, load_map,
-                             map_from_dict)
+from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, crc16_modbus, load_map, map_from_dict
 
 MAPS = os.path.join(ROOT, "config", "meters")
 
@@ -143,7 +142,8 @@ def test_address_base_one(tmp_path):
     m = load_map(write(tmp_path, d))
     assert m.read_block == (3, 0, 4)
     d["channels"]["ch1"]["address"] = 0
-    with pytest.raises(MapError, match=r"channels.ch1.address: 0 is not allowed; an integer 1..65536 \(address_base is 1\)"):
+    with pytest.raises(MapError,
+                       match=r"channels.ch1.address: 0 is not allowed; an integer 1..65536 \(address_base is 1\)"):
         load_map(write(tmp_path, d))
 
 

@@ -2,7 +2,8 @@
 import math
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from gateway.method import MethodParams, StreamingMonitor, analyze_slots, gate_arrays
 from gateway.method.core import SlotArrays

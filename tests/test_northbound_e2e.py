@@ -36,7 +36,7 @@ def scenario(tmp_path, name, t_end=70):
 
 
 def parse_time(s):
-    return dt.datetime.strptime(s, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.timezone.utc).timestamp()
+    return dt.datetime.strptime(s, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.UTC).timestamp()
 
 
 def live(sub, suffix=None):

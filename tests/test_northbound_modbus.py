@@ -35,7 +35,7 @@ def plant(tmp_path_factory):
         stations[unit] = s
         runs.append(RunningStation(lt, s))
     for unit in (3, 4):
-        wait_for(lambda: mbpoll(port, "-t", "3:float", "-B", "-r", str(R.IR["t1"].address), unit=unit)[1]
+        wait_for(lambda unit=unit: mbpoll(port, "-t", "3:float", "-B", "-r", str(R.IR["t1"].address), unit=unit)[1]
                  .get(R.IR["t1"].address) == 0.4, 20, what="the server with live values")
     yield port, stations
     for r in runs:
@@ -209,7 +209,7 @@ def _send(port, payload: bytes, wait_reply: bool = False):
             s.settimeout(0.01)
             try:
                 s.recv(512)
-            except (socket.timeout, ConnectionError):
+            except (TimeoutError, ConnectionError):
                 pass
 
 
@@ -222,7 +222,8 @@ frames = st.one_of(
     st.builds(lambda t, u, p: _mbap(t, u, p), st.integers(0, 65535), st.integers(0, 255),
               st.binary(min_size=0, max_size=260)),                             # random PDU
     st.builds(lambda t, u, fc, body: _mbap(t, u, bytes([fc]) + body), st.integers(0, 65535),
-              st.sampled_from([0, 3, 4, 5, 9]), st.sampled_from([1, 2, 3, 4, 5, 6, 8, 15, 16, 17, 22, 23, 43, 0x80 | 3, 255]),
+              st.sampled_from([0, 3, 4, 5, 9]),
+              st.sampled_from([1, 2, 3, 4, 5, 6, 8, 15, 16, 17, 22, 23, 43, 0x80 | 3, 255]),
               st.binary(min_size=0, max_size=40)),                              # plausible functions
     st.builds(lambda t, u, p, n: _mbap(t, u, p, n), st.integers(0, 65535), st.integers(0, 255),
               st.binary(max_size=20), st.integers(0, 65535)),                   # lying lengths

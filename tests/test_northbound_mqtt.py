@@ -236,7 +236,8 @@ def test_broker_outage_and_gateway_restart_deliver_every_event_in_order_once(tmp
         msgs = live
         seqs = [m[2]["seq"] for m in msgs]
         dups = [(m[1], m[2]["seq"], m[0]) for m in msgs if seqs.count(m[2]["seq"]) > 1]
-        assert len(seqs) == len(set(seqs)), f"a seq arrived twice: {dups} in {[(m[1][-12:], m[2].get('seq'), m[0], round(m[3] % 1000, 2)) for m in sub.messages()]}"
+        seen = [(m[1][-12:], m[2].get("seq"), m[0], round(m[3] % 1000, 2)) for m in sub.messages()]
+        assert len(seqs) == len(set(seqs)), f"a seq arrived twice: {dups} in {seen}"
         assert seqs == sorted(seqs), "out of order"
         ns = [m[2]["data"]["n"] for m in msgs if "/event/" in m[1]]
         assert ns == list(range(40)), ns
@@ -379,9 +380,8 @@ def test_password_from_file_and_env(tmp_path, monkeypatch):
 def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
     """The alarm lifecycle survives a gateway restart: it is kept with the outbox, and a new test
     (a new hook) clears it even though the restarted station no longer knows about it."""
-    from tools import free_port
-
     from gateway.northbound.outbox import Outbox
+    from tools import free_port
 
     port = free_port()
 

@@ -3,6 +3,8 @@ import sqlite3
 
 from gateway.northbound.outbox import Outbox, Row
 
+TELEMETRY_BYTES = "SELECT SUM(LENGTH(payload)+LENGTH(topic)+64) FROM messages WHERE kind='telemetry'"
+
 
 def _rows(ob, kinds, size=100):
     out = []
@@ -66,10 +68,10 @@ def test_over_budget_the_oldest_telemetry_goes_first_and_events_never(tmp_path):
     all_tel = [i + 1 for i, k in enumerate(kinds) if k == "telemetry"]
     assert tel == all_tel[-len(tel):]
     # the running byte count matches the table
-    real = ob.db.execute("SELECT SUM(LENGTH(payload)+LENGTH(topic)+64) FROM messages WHERE kind='telemetry'").fetchone()[0]
+    real = ob.db.execute(TELEMETRY_BYTES).fetchone()[0]
     assert real == ob.telemetry_bytes
     ob.confirm(tel[:5])
-    real = ob.db.execute("SELECT SUM(LENGTH(payload)+LENGTH(topic)+64) FROM messages WHERE kind='telemetry'").fetchone()[0]
+    real = ob.db.execute(TELEMETRY_BYTES).fetchone()[0]
     assert real == ob.telemetry_bytes
     ob.close()
 

@@ -6,9 +6,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from drivers.sim.plant import (GRADES, TABLE4_LIFE, Plant, PlantParams, SensorParams, WearParams,
-                               WearProfile, resolve_wear, table_life)
-from gateway.control import ControlParams, Controller
+from drivers.sim.plant import (
+    GRADES,
+    TABLE4_LIFE,
+    Plant,
+    PlantParams,
+    SensorParams,
+    WearParams,
+    WearProfile,
+    resolve_wear,
+    table_life,
+)
+from gateway.control import Controller, ControlParams
 from gateway.method.core import analyze_readings
 from gateway.method.params import MethodParams
 
@@ -187,9 +196,10 @@ def test_steady_stage_passes_the_baseline_window_rule_at_the_noisiest_point():
 
 
 def test_demo_life_batch_analysis_finds_baseline_and_life_after_onset():
-    from drivers.sim.scenario import load_scenario
-    from conftest import ROOT
     import os
+
+    from conftest import ROOT
+    from drivers.sim.scenario import load_scenario
 
     sc = load_scenario(os.path.join(ROOT, "config", "scenarios", "demo.yaml"))
     plant = Plant(sc.plant, seed=sc.seed)

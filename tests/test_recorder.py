@@ -11,8 +11,7 @@ import numpy as np
 
 from gateway.logio import read_log
 from gateway.records import SlotRecord
-from gateway.station.recorder import (LOG_NAME, RESULT_NAME, TestRecorder, incomplete_tests,
-                                      recover_incomplete)
+from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, incomplete_tests, recover_incomplete
 
 META = {"station": "t", "sample_id": "S", "method": {"t_set": 0.5, "t_end": 100.0}}
 

@@ -40,7 +40,7 @@ def wait_done(gw, timeout):
         return gw.p.wait(timeout)
     except subprocess.TimeoutExpired:
         gw.stop()
-        raise AssertionError(f"gateway did not finish in {timeout} s; log:\n{gw.log()}")
+        raise AssertionError(f"gateway did not finish in {timeout} s; log:\n{gw.log()}") from None
 
 
 def only_test(tmp_path, station):
@@ -127,7 +127,7 @@ def test_closed_loop_holds_setpoint_open_loop_wanders_notch_reduces_ripple(tmp_p
             _sim, links = stack.enter_context(virtual_station(sub, sc, seed=3))
             st = station_yaml(sub, links, name=name, control=control, test={"t_end_s": duration})
             procs[name] = (sub, run_gateway(sub, st, "--start", "--exit-when-done"))
-        for name, (sub, gw) in procs.items():
+        for _name, (_sub, gw) in procs.items():
             assert wait_done(gw, duration + 60) == 0, gw.log()
             gw.stop()
     out = {}

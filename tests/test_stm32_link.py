@@ -65,7 +65,7 @@ async def poll(cond, timeout=5.0, every=0.01):
         if r:
             return r
         await asyncio.sleep(every)
-    raise AssertionError("condition not met within %.1f s" % timeout)
+    raise AssertionError(f"condition not met within {timeout:.1f} s")
 
 
 async def run_speed(link, rpm, until, timeout=5.0):

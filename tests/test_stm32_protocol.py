@@ -13,7 +13,7 @@ from drivers.sim.stm32 import SimpleMotor, Stm32Firmware
 def test_crc16_modbus_check_value():
     assert p.crc16(b"123456789") == 0x4B37          # CRC-16/MODBUS catalogue check value
     assert p.crc16(b"") == 0xFFFF
-    from pymodbus.framer.rtu import FramerRTU      # an independent implementation (wire order)
+    from pymodbus.framer.rtu import FramerRTU  # an independent implementation (wire order)
     for data in (b"\x00\x01\x01", bytes(range(40)), b"\xa5\x5a" * 9):
         c = p.crc16(data)
         assert FramerRTU.compute_CRC(data) == ((c & 0xFF) << 8) | (c >> 8)

@@ -142,7 +142,7 @@ def test_reply_time_is_the_wire_time(tmp_path, baud):
     with MeterProcess(tmp_path / "meter.log", "--baud", str(baud), "--value", "0.5,0.5") as mp:
         # batches of 40: a batch spoilt by CPU starvation (2 cores shared by many) is measured
         # again, up to 3 times; scheduling delays only ever add time
-        for attempt in range(3):
+        for attempt in range(3):  # noqa: B007 (used after the loop)
             times = measure_reply_times(mp.device, baud, 40)
             med = statistics.median(times)
             print(f"\n{baud} baud: 4-register read, expected {expected * 1e3:.2f} ms, measured median "

@@ -256,7 +256,7 @@ def _faults(where: str, v: Any) -> tuple[FaultSpec, ...]:
             if r not in item:
                 raise _fail(where, f"{key}.{r}", f"missing; fault {kind} needs {', '.join(extra_req)}")
         if "at_s" not in item:
-            raise _fail(where, f"{key}.at_s", f"missing; the fault's start, s after the sim starts")
+            raise _fail(where, f"{key}.at_s", "missing; the fault's start, s after the sim starts")
         at = _number(where, f"{key}.at_s", item["at_s"])
         dur = _number(where, f"{key}.duration_s", item.get("duration_s"), 0.0, False, nullable=True)
         delay = None
@@ -280,7 +280,7 @@ def _method(where: str, d: dict, t_set: float) -> dict[str, Any]:
     from gateway.method.params import ParamError, build_params
 
     if "t_set" in d:
-        raise _fail(where, "method.t_set", f"set the tension in plant.t_set")
+        raise _fail(where, "method.t_set", "set the tension in plant.t_set")
     try:
         build_params({**d, "t_set": t_set}, source=f"{where}: method")
     except ParamError as e:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..method.params import ParamError, build_params
-from ..validation import MISSING, Problem, did_you_mean, suggestion_text
+from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
 from . import schema as S
 from .yamlpos import Pos, YamlError
 from .yamlpos import load as load_yaml
@@ -195,8 +195,8 @@ def validate_fleet(folder: str) -> list[Loaded]:
     """Validate every station of a fleet folder (``fleet.yaml`` + ``stations/*.yaml``)."""
     if not os.path.isdir(folder):
         raise FileNotFoundError(folder)
-    ff = os.path.join(folder, "fleet.yaml")
-    ff = ff if os.path.isfile(ff) else None
+    candidate = os.path.join(folder, "fleet.yaml")
+    ff = candidate if os.path.isfile(candidate) else None
     return [validate_station(p, fleet_file=ff) for p in station_files(folder)]
 
 
@@ -255,7 +255,7 @@ def _read_fleet(file: str) -> tuple[dict | None, dict, list[Issue]]:
     if defaults is None:
         defaults = {}
     if not isinstance(defaults, dict):
-        issues.append(Issue("error", "defaults", f"{S.show_value(defaults)} is not a mapping; allowed: "
+        issues.append(Issue("error", "defaults", f"{show_value(defaults)} is not a mapping; allowed: "
                             "a station file's sections (meter:, method:, mqtt:, …)", file,
                             doc.pos[("defaults",)].line))
         return None, {}, issues
@@ -326,7 +326,7 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
     if v is None:
         if k.nullable:
             return True, None
-        d = "" if k.required else f"; leave the key out for the default ({S._show(k.default)})"
+        d = "" if k.required else f"; leave the key out for the default ({show_yaml(k.default)})"
         return False, _bad(v, f"null is not allowed; allowed: {allowed}{d}", allowed)
     if isinstance(v, dict):
         return False, _bad(v, f"a mapping is not allowed here; allowed: {allowed}", allowed)
@@ -334,32 +334,34 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
     if kind in ("int", "float"):
         bad = isinstance(v, bool) or not isinstance(v, (int, float)) or (kind == "int" and isinstance(v, float))
         if bad:
-            return False, _bad(v, f"{S.show_value(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{show_value(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}", allowed)
         if kind == "float":
             v = float(v)
             if not S.finite(v):
-                return False, _bad(v, f"{S.show_value(v)} is not a finite number; allowed: {allowed}", allowed)
+                return False, _bad(v, f"{show_value(v)} is not a finite number; allowed: {allowed}", allowed)
         if k.choices is not None:
             if v not in k.choices:
-                return False, _bad(v, f"{S.show_value(v)} is not allowed; allowed: {allowed}", allowed)
+                return False, _bad(v, f"{show_value(v)} is not allowed; allowed: {allowed}", allowed)
             return True, v
         if ((k.lo is not None and (v <= k.lo if k.lo_open else v < k.lo))
                 or (k.hi is not None and (v >= k.hi if k.hi_open else v > k.hi))):
-            return False, _bad(v, f"{S.show_value(v)} is out of range; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{show_value(v)} is out of range; allowed: {allowed}", allowed)
         return True, v
     if kind == "bool":
         if not isinstance(v, bool):
-            return False, _bad(v, f"{S.show_value(v)} is not true or false; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{show_value(v)} is not true or false; allowed: {allowed}", allowed)
         return True, v
     if kind in ("str_list", "ip_list"):
         if not isinstance(v, list):
-            return False, _bad(v, f"{S.show_value(v)} is not a list; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{show_value(v)} is not a list; allowed: {allowed}", allowed)
         out = []
         for i, item in enumerate(v):
             if not isinstance(item, str) or not item.strip():
-                return False, _bad(v, f"item {i + 1} ({S.show_value(item)}) is not a string; allowed: {allowed}", allowed)
+                return False, _bad(v, f"item {i + 1} ({show_value(item)}) is not a string; "
+                                   f"allowed: {allowed}", allowed)
             if kind == "ip_list" and not S.check_ip(item.strip()):
-                return False, _bad(v, f"item {i + 1} ({item!r}) is not an IP address or network; allowed: {allowed}", allowed)
+                return False, _bad(v, f"item {i + 1} ({item!r}) is not an IP address or network; "
+                                   f"allowed: {allowed}", allowed)
             out.append(item.strip())
         return True, tuple(out)
     # string kinds
@@ -371,9 +373,9 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
             hint = f" (put it in quotes: '{v}')"
         elif isinstance(v, list):
             hint = ""
-        return False, _bad(v, f"{S.show_value(v)} is not a string{hint}; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{show_value(v)} is not a string{hint}; allowed: {allowed}", allowed)
     if kind == "enum":
-        for c in k.choices:
+        for c in k.choices or ():
             if v.strip().lower() == str(c).lower():
                 return True, c
         return False, _bad(v, f"{v!r} is not allowed; allowed: {allowed}", allowed)
@@ -404,7 +406,7 @@ def _section(sec: S.Section, tree: Any, path: tuple, rep: _Report, ctx: dict):
     if tree is None:
         tree = {}
     if not isinstance(tree, dict):
-        rep.error(path, f"{S.show_value(tree)} is not a mapping; allowed: a section with the keys "
+        rep.error(path, f"{show_value(tree)} is not a mapping; allowed: a section with the keys "
                   f"{', '.join(e.name for e in sec.entries)}")
         return None
     names = [e.name for e in sec.entries]
@@ -460,7 +462,7 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
     if tree is None:
         tree = {}
     if not isinstance(tree, dict):
-        rep.error(path, f"{S.show_value(tree)} is not a mapping; allowed: method parameters "
+        rep.error(path, f"{show_value(tree)} is not a mapping; allowed: method parameters "
                   f"({', '.join(S.METHOD_KEYS)})")
         return None
     values: dict[str, Any] = {}

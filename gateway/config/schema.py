@@ -20,12 +20,13 @@ import dataclasses
 import ipaddress
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Any, Callable
+from typing import Any
 
 from ..control import ControlParams, NotchParams
 from ..method.params import PARAMS as METHOD_PARAMS
-from ..validation import show_value, show_yaml
+from ..validation import show_yaml
 
 # ---------------------------------------------------------------------------------------------
 # key kinds
@@ -367,7 +368,7 @@ METHOD_EXCLUDED = {"t_set": "test.t_set_n", "t_end": "test.t_end_s"}
 METHOD_KEYS = tuple(p.name for p in METHOD_PARAMS if p.name not in METHOD_EXCLUDED)
 
 
-def method_defaults() -> dict[str, float]:
+def method_defaults() -> dict[str, float | None]:
     return {p.name: p.default for p in METHOD_PARAMS if p.name in METHOD_KEYS}
 
 
@@ -380,7 +381,8 @@ class StationConfig:
                                  default=False)
     method: dict = field(default_factory=method_defaults, metadata={
         "method": True, "doc": "the method's parameters (METHOD.md §10, docs/method.md)"})
-    control: ControlConfig = section(ControlConfig, "tension control (METHOD.md §8)")
+    # ControlConfig is made by make_dataclass: a value to mypy, not a type
+    control: ControlConfig = section(ControlConfig, "tension control (METHOD.md §8)")  # type: ignore[valid-type]
     test: TestConfig = section(TestConfig, "the test a station starts without further instructions")
     grades: tuple[str, ...] = key(("I", "II"), "needle grades a test may name", kind="str_list")
     recorder: RecorderConfig = section(RecorderConfig, "recording of every test")
@@ -411,7 +413,7 @@ class MethodSection:
 
 
 def _section(name: str, cls: type, doc: str) -> Section:
-    entries = []
+    entries: list[Key | Section | MethodSection] = []
     for f in fields(cls):
         m = f.metadata
         if "key" in m:

@@ -48,7 +48,7 @@ class Reg:
         return (30001 if self.table == INPUT else 40001) + self.address
 
 
-def _layout(table: str, specs: list[tuple]) -> tuple[Reg, ...]:
+def _layout(table: str, specs: list[tuple[Any, ...]]) -> tuple[Reg, ...]:
     regs, addr = [], 0
     for spec in specs:
         name, typ, unit, doc, *rest = spec
@@ -226,7 +226,8 @@ EXCEPTIONS = (
 
 
 def _type_doc(r: Reg) -> str:
-    return {"string": f"string ({r.count} registers)", "enum": "uint16 (enum)", "bits": "uint16 (bits)"}.get(r.type, r.type)
+    return {"string": f"string ({r.count} registers)", "enum": "uint16 (enum)",
+            "bits": "uint16 (bits)"}.get(r.type, r.type)
 
 
 def rows(station: dict[str, Any] | None = None) -> list[dict[str, Any]]:
