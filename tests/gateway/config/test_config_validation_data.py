@@ -1,7 +1,7 @@
 """One validation style (issue 11 item 5): station configuration, meter maps, scenarios and the
 method's parameters report a bad field as data — key path, value, allowed, did-you-mean, file and
 line — not as text to be parsed back. The messages themselves are the broken-config corpus'
-(tests/test_check.py); this file checks the data behind them."""
+(tests/gateway/commands/test_check.py); this file checks the data behind them."""
 import os
 
 import pytest

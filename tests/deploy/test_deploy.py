@@ -28,7 +28,8 @@ import tomllib
 import pytest
 
 from conftest import ROOT
-from tools import free_port, require_tool
+from kit.proc import stop_process
+from kit.tools import free_port, require_tool, wait_port
 
 DEPLOY = os.path.join(ROOT, "deploy")
 VENV_HOOKWATCH = os.path.join(os.path.dirname(sys.executable), "hookwatch")
@@ -245,13 +246,7 @@ class Broker:
                                   stderr=subprocess.STDOUT)
 
     def stop(self):
-        if self.p is not None and self.p.poll() is None:
-            self.p.send_signal(signal.SIGTERM)
-            try:
-                self.p.wait(15)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
+        stop_process(self.p, timeout=15)
         self.p = None
 
     def close(self):
@@ -261,19 +256,6 @@ class Broker:
     def text(self):
         with open(self.dir / "mosquitto.log", errors="replace") as f:
             return f.read()[-6000:]
-
-
-def _wait_port(port, proc=None, timeout=20.0):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if proc is not None and proc.poll() is not None:
-            raise AssertionError(f"process exited with {proc.returncode}")
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise AssertionError(f"nothing listens on {port}")
 
 
 class LineReader:
@@ -307,9 +289,7 @@ class LineReader:
             sel.close()
 
     def close(self):
-        if self.p.poll() is None:
-            self.p.terminate()
-            self.p.wait(10)
+        stop_process(self.p, timeout=10)
         self.p.stdout.close()
         self.p.stderr.close()
 
@@ -353,7 +333,7 @@ class Proxy:
         self.p = subprocess.Popen([socat, f"TCP-LISTEN:{self.listen},bind=127.0.0.1,reuseaddr,fork",
                                    f"TCP:127.0.0.1:{self.target}"], start_new_session=True,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        _wait_port(self.listen, self.p)
+        wait_port(self.listen, proc=self.p)
 
     def down(self):
         if self.p is not None:
@@ -388,11 +368,11 @@ def test_edge_broker_bridges_to_central_and_queues_through_an_outage(tmp_path):
     readers = []
     try:
         central.start()
-        _wait_port(central_plain, central.p)
-        _wait_port(central_tls, central.p)
+        wait_port(central_plain, proc=central.p)
+        wait_port(central_tls, proc=central.p)
         proxy.up()
         edge.start()
-        _wait_port(edge_port, edge.p)
+        wait_port(edge_port, proc=edge.p)
         # Telegraf's view: a persistent QoS 1 session on the central broker
         tg = LineReader([sub, "-h", "127.0.0.1", "-p", str(central_plain), "-u", "telegraf", "-P", "tg-pw",
                          "-i", "telegraf-test", "-c", "-q", "1", "-v", "-t", "hookwatch/#"])
@@ -425,7 +405,7 @@ def test_edge_broker_bridges_to_central_and_queues_through_an_outage(tmp_path):
             publish(f"{base}/telemetry" if i % 5 else f"{base}/event/baseline", f'{{"seq": {i}}}')
         edge.stop()                 # saves its queue to disk
         edge.start()
-        _wait_port(edge_port, edge.p)
+        wait_port(edge_port, proc=edge.p)
         publish(f"{base}/result", '{"seq": 21}')
         time.sleep(1.0)
         assert not any('"seq": 1}' in ln for ln in tg.lines), "delivered while the link was down?"
@@ -600,7 +580,8 @@ def test_gateway_speaks_the_units_notify_protocol(tmp_path):
     well within WatchdogSec/2 while the stations make progress, STOPPING=1 on SIGTERM — over a
     real unix datagram socket, against a virtual station."""
     from conftest import hookwatch_cmd
-    from e2e import Proc, station_yaml
+    from kit.e2e import station_yaml
+    from kit.proc import Proc
 
     unit = _unit_settings(read("systemd", "hookwatch-fleet.service"))
     watchdog_s = float(unit["WatchdogSec"][0].rstrip("s"))

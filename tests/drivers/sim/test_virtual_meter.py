@@ -11,8 +11,8 @@ import serial
 
 from conftest import ROOT
 from drivers.zns_map import DEFAULT_MAP_PATH, load_map, with_crc
-from meter_helpers import MeterProcess
-from tools import require_tool
+from kit.meter import MeterProcess
+from kit.tools import require_tool
 
 MAPS = os.path.join(ROOT, "config", "meters")
 SLOT_S = 0.020

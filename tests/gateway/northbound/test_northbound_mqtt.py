@@ -16,7 +16,10 @@ from gateway.northbound import schema as S
 from gateway.northbound.mqtt import MqttOutput, MqttSettings, _Telemetry
 from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TState
-from northbound_helpers import Broker, LoopThread, Sub, make_station, pub, wait_for
+from kit.broker import Broker, Sub, pub
+from kit.northbound import LoopThread, make_station
+from kit.proc import stop_process
+from kit.tools import wait_for
 
 BASE = "hookwatch/lab/hall/l1/st1"
 
@@ -125,13 +128,13 @@ def test_alarm_lifecycle_and_payloads_as_documented(tmp_path):
 
 
 class _Feeder:
-    """tests/northbound_feeder.py as a process; its stdout lines collected by a thread."""
+    """tests/kit/feeder.py as a process; its stdout lines collected by a thread."""
 
     def __init__(self, tmp_path, port, *args, name="feeder"):
         import threading
 
         self._log = open(tmp_path / f"{name}.log", "w")
-        self.p = subprocess.Popen([sys.executable, f"{ROOT}/tests/northbound_feeder.py", "--port", str(port),
+        self.p = subprocess.Popen([sys.executable, f"{ROOT}/tests/kit/feeder.py", "--port", str(port),
                                    "--outbox", str(tmp_path / "outbox.sqlite"), "--base", BASE, *args],
                                   stdout=subprocess.PIPE, stderr=self._log, text=True, cwd=ROOT)
         self.lines: list[str] = []
@@ -152,13 +155,7 @@ class _Feeder:
         return self.p.wait(timeout)
 
     def end(self, sig=signal.SIGTERM):
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-            try:
-                self.p.wait(20)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
+        stop_process(self.p, sig, timeout=20)
         self._t.join(5)
         self.p.stdout.close()
         self._log.close()
@@ -310,7 +307,7 @@ def test_commands_over_mqtt_go_through_the_station_command_path(tmp_path):
 
 
 def test_unreachable_broker_keeps_everything_and_never_blocks_the_station(tmp_path):
-    from tools import free_port
+    from kit.tools import free_port
 
     port = free_port()
     out = MqttOutput(settings(tmp_path, port))
@@ -381,7 +378,7 @@ def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
     """The alarm lifecycle survives a gateway restart: it is kept with the outbox, and a new test
     (a new hook) clears it even though the restarted station no longer knows about it."""
     from gateway.northbound.outbox import Outbox
-    from tools import free_port
+    from kit.tools import free_port
 
     port = free_port()
 
@@ -411,7 +408,7 @@ def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
 
 def _certs(d):
     """A CA, a server certificate for 127.0.0.1 and a client certificate (openssl)."""
-    from tools import require_tool
+    from kit.tools import require_tool
 
     ossl = require_tool("openssl")
 
@@ -430,7 +427,7 @@ def _certs(d):
 
 
 def test_tls_with_client_certificate_and_password_from_a_file(tmp_path):
-    from tools import require_tool
+    from kit.tools import require_tool
 
     c = _certs(tmp_path)
     passwd = tmp_path / "passwd"

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 from gateway.northbound import registers as R
 from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
 from gateway.records import TestState as TState
-from northbound_helpers import LoopThread, RunningStation, make_station, mbpoll, wait_for
-from tools import free_port, require_tool
+from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
+from kit.tools import free_port, require_tool, wait_for
 
 IR, HR = R.IR, R.HR
 

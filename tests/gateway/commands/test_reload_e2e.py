@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from e2e import fleet_dir, run_gateway, test_dirs, virtual_station, wait_log
+from kit.e2e import fleet_dir, run_gateway, test_dirs, virtual_station, wait_log
 
 pytestmark = pytest.mark.slow
 

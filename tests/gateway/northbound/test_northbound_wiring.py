@@ -7,7 +7,7 @@ from gateway.config import load_station
 from gateway.northbound.modbus_server import ModbusOutput
 from gateway.northbound.mqtt import MqttOutput
 from gateway.northbound.wiring import outputs_for
-from northbound_helpers import make_station
+from kit.northbound import make_station
 
 
 def _cfg(tmp_path, **sections):

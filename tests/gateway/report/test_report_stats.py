@@ -7,12 +7,13 @@ from fractions import Fraction
 
 import pytest
 
+from conftest import TESTS
 from gateway.report import stats as S
 from gateway.report import tables as T
 from gateway.report.campaign import DELTA_FACTORS, WearTable
 from gateway.report.render import table_csv
 
-PAPER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "paper")
+PAPER = os.path.join(TESTS, "paper")
 
 
 def _rows(name):

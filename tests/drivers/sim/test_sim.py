@@ -18,6 +18,7 @@ from conftest import ROOT, hookwatch_cmd
 from drivers import stm32_protocol as sp
 from drivers.sim.scenario import FAULT_KINDS, ScenarioError, load_scenario, scenario_from_dict
 from drivers.zns_map import DEFAULT_MAP_PATH, crc_ok, load_map, with_crc
+from kit.proc import stop_process
 
 SCENARIOS = os.path.join(ROOT, "config", "scenarios")
 
@@ -283,13 +284,7 @@ class SimProc:
             return [json.loads(x) for x in f if x.strip()]
 
     def stop(self, sig=signal.SIGTERM) -> int:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-        try:
-            rc = self.p.wait(20)
-        except subprocess.TimeoutExpired:
-            self.p.kill()
-            rc = self.p.wait()
+        rc = stop_process(self.p, sig, timeout=20)
         self.rest = self.p.stdout.read()
         self.p.stdout.close()
         self.err.close()

@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
 from gateway.logio import read_log
+from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
 
 pytestmark = pytest.mark.slow
 

@@ -12,7 +12,7 @@ import yaml
 
 from conftest import ROOT
 from drivers.zns import Reading, ZnsMeter
-from meter_helpers import MeterProcess
+from kit.meter import MeterProcess
 
 MAPS = os.path.join(ROOT, "config", "meters")
 SLOT_S = 0.020

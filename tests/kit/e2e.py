@@ -5,89 +5,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
 import subprocess
-import threading
 import time
 
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-
-
-class Proc:
-    def __init__(self, argv, log_path, env=None):
-        self.log_path = log_path
-        self._log = open(log_path, "w")
-        self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, text=True,
-                                  env=env, cwd=ROOT)
-        # stdout is read by a thread: a select() on the pipe would miss lines already buffered
-        self._lines: list[str] = []
-        self._next = 0
-        self._eof = False
-        self._cond = threading.Condition()
-        self._reader = threading.Thread(target=self._pump, daemon=True)
-        self._reader.start()
-
-    def _pump(self) -> None:
-        for line in self.p.stdout:
-            with self._cond:
-                self._lines.append(line)
-                self._cond.notify_all()
-        with self._cond:
-            self._eof = True
-            self._cond.notify_all()
-
-    def readline_until(self, prefix: str, timeout: float = 20.0) -> str:
-        """The rest of the first stdout line (not yet consumed) that starts with ``prefix``."""
-        t_end = time.monotonic() + timeout
-        with self._cond:
-            while True:
-                while self._next < len(self._lines):
-                    line = self._lines[self._next]
-                    self._next += 1
-                    if line.startswith(prefix):
-                        return line[len(prefix):].strip()
-                left = t_end - time.monotonic()
-                if self._eof or left <= 0:
-                    break
-                self._cond.wait(left)
-        raise AssertionError(f"no '{prefix}' line from {self.p.args}; log:\n{self.log()}")
-
-    def stdout_lines(self) -> list[str]:
-        with self._cond:
-            return list(self._lines)
-
-    def log_all(self) -> str:
-        try:
-            with open(self.log_path) as f:
-                return f.read()
-        except OSError:
-            return ""
-
-    def log(self) -> str:
-        try:
-            with open(self.log_path) as f:
-                return f.read()[-4000:]
-        except OSError:
-            return ""
-
-    def stop(self, sig=signal.SIGTERM, timeout: float = 15.0) -> int:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-            try:
-                self.p.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
-        self._reader.join(5)
-        with self._cond:
-            out = "".join(self._lines[self._next:])
-        if self.p.stdout:
-            self.p.stdout.close()
-        self._log.close()
-        self.stdout_rest = out
-        return self.p.returncode
+from kit.proc import Proc
 
 
 @contextlib.contextmanager

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station
+from kit.e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station
 
 pytestmark = pytest.mark.slow
 

@@ -1,7 +1,7 @@
 """A process that feeds an MqttOutput like a station would (50 Hz records, state, numbered events),
 for tests that kill or restart the producer. Prints `ready`, then `emitted <n>` after each event.
 
-    python tests/northbound_feeder.py --port P --outbox PATH --first 0 --count 20 [--alarm-at N]
+    python tests/kit/feeder.py --port P --outbox PATH --first 0 --count 20 [--alarm-at N]
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import os
 import sys
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 from gateway.northbound.mqtt import MqttOutput, MqttSettings  # noqa: E402
 from gateway.records import Event, EventType, SlotRecord, StationState, TestState  # noqa: E402

@@ -10,12 +10,13 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
 from gateway.northbound import registers as R
 from gateway.northbound import schema as S
 from gateway.records import EventType
-from northbound_helpers import Broker, Sub, mbpoll, pub, wait_for
-from tools import free_port, require_tool
+from kit.broker import Broker, Sub, pub
+from kit.e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.northbound import mbpoll
+from kit.tools import free_port, require_tool, wait_for
 
 pytestmark = pytest.mark.slow
 

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from conftest import ROOT, hookwatch_cmd
-from test_report_figures import png_info
+from kit.images import png_info
 
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 import gen_campaign as G  # noqa: E402

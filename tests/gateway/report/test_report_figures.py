@@ -1,6 +1,5 @@
 """Figures: min/max decimation keeps spikes; Figs. 7–9 are PNGs of the stated size."""
 import os
-import struct
 
 import numpy as np
 import pytest
@@ -8,20 +7,7 @@ import pytest
 from gateway.method.core import gate_and_baseline, life_result, to_slots
 from gateway.method.params import MethodParams
 from gateway.report import figures as F
-
-
-def png_info(path):
-    """(width, height) from the PNG header, and the pixel standard deviation."""
-    with open(path, "rb") as f:
-        head = f.read(24)
-    assert head[:8] == b"\x89PNG\r\n\x1a\n", f"{path}: not a PNG"
-    assert head[12:16] == b"IHDR"
-    w, h = struct.unpack(">II", head[16:24])
-    from PIL import Image
-
-    with Image.open(path) as im:
-        a = np.asarray(im.convert("L"), dtype=np.float64)
-    return w, h, float(a.std())
+from kit.images import png_info
 
 
 def test_minmax_columns_keeps_a_single_spike_in_a_ten_hour_series():

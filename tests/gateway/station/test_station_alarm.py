@@ -6,7 +6,7 @@ import json
 from gateway.control import ControlParams
 from gateway.records import Command, CommandKind
 from gateway.station.station import Station, TestPlan
-from test_slot_clock import QuietStm32, TimedMeter
+from kit.fakes import QuietStm32, TimedMeter
 
 
 def _station(tmp_path, plan=None):

@@ -10,6 +10,7 @@ import sys
 import time
 
 from conftest import ROOT
+from kit.proc import stop_process
 
 
 class MeterProcess:
@@ -73,13 +74,7 @@ class MeterProcess:
             return ""
 
     def stop(self) -> None:
-        if self.p.poll() is None:
-            self.p.terminate()
-            try:
-                self.p.wait(10)
-            except subprocess.TimeoutExpired:
-                self.p.kill()
-                self.p.wait()
+        stop_process(self.p, timeout=10)
         for f in (self.p.stdin, self.p.stdout):
             if f:
                 try:

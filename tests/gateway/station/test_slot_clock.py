@@ -4,11 +4,11 @@ whose reads take a controlled time (the wire-level drivers are tested against th
 elsewhere)."""
 import asyncio
 import math
-import time
 
 from gateway.control import ControlParams
 from gateway.station.clock import SlotClock
 from gateway.station.station import Station, TestPlan
+from kit.fakes import QuietStm32, TimedMeter
 
 
 def test_deadlines_come_from_t0_not_from_the_last_wakeup():
@@ -20,55 +20,6 @@ def test_deadlines_come_from_t0_not_from_the_last_wakeup():
     assert c.slot_at(now[0]) == 7
     now[0] = 100.0 + 7 * 0.02 + 0.011
     assert c.slot_at(now[0]) == 8
-
-
-class _Reading:
-    def __init__(self, k):
-        self.ch1, self.ch2, self.rtt_s = 0.4, 0.6 + 1e-4 * (k % 7), 0.003
-
-
-class TimedMeter:
-    """Answers after 3 ms; the reads named in ``slow`` take 75 ms (an overrun of ~3 slots)."""
-    connected = True
-
-    def __init__(self, slow):
-        self.slow, self.calls, self.counters = set(slow), 0, {}
-        self.call_times = []
-
-    async def open(self):
-        pass
-
-    async def close(self):
-        pass
-
-    async def read(self):
-        self.calls += 1
-        self.call_times.append(time.monotonic())
-        await asyncio.sleep(0.075 if self.calls in self.slow else 0.003)
-        return _Reading(self.calls)
-
-
-class QuietStm32:
-    connected = True
-    counters: dict = {}
-
-    async def open(self):
-        pass
-
-    async def close(self):
-        pass
-
-    async def enable(self):
-        return None
-
-    async def set_speed(self, rpm):
-        return None
-
-    async def stop(self, reason=""):
-        return None
-
-    async def read_status(self):
-        return None
 
 
 class Capture:
