@@ -26,7 +26,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 from ..zns_map import MeterMap, crc_ok, with_crc
 from .pty import PtyLink
@@ -51,10 +51,11 @@ def silence_s(baud: int) -> float:
 
 class VirtualMeter:
     def __init__(self, meter_map: MeterMap, source: Callable[[], tuple[float, float]],
-                 link_path: str | None = None, *, spin_s: float = SPIN_S):
+                 link_path: str | None = None, *, spin_s: float = SPIN_S, link: Any = None):
         self.map = meter_map
         self.source = source
-        self.link = PtyLink(link_path)
+        # a pty by default; any link with PtyLink's interface (drivers.sim.loopback) may be given
+        self.link = link if link is not None else PtyLink(link_path)
         self.faults = MeterFaults()
         self.spin_s = spin_s
         self.counters = {"requests": 0, "replies": 0, "exceptions": 0, "bad_crc": 0,

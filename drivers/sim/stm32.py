@@ -284,7 +284,7 @@ class VirtualStm32:
 
     def __init__(self, *args, firmware=None, motor=None, link_path: str | None = None,
                  watchdog_s: float = 0.2, baud: int = DEFAULT_BAUD, processing_s: float = 0.0002,
-                 tick_s: float = 0.005, gap_s: float = 0.005):
+                 tick_s: float = 0.005, gap_s: float = 0.005, link: Any = None):
         rest = list(args)
         if rest and not hasattr(rest[0], "set_command"):
             firmware = rest.pop(0)
@@ -298,7 +298,8 @@ class VirtualStm32:
             raise TypeError("VirtualStm32: a motor (set_command, enable, speed_rpm, stalled) is required")
         self.firmware = self._make_firmware(firmware, watchdog_s)
         self.motor = motor
-        self.link = PtyLink(link_path)
+        # a pty by default; any link with PtyLink's interface (drivers.sim.loopback) may be given
+        self.link = link if link is not None else PtyLink(link_path)
         self.baud = int(baud)
         self.processing_s = processing_s
         self.tick_s = tick_s

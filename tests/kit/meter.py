@@ -10,7 +10,7 @@ import sys
 import time
 
 from conftest import ROOT
-from kit.proc import stop_process
+from kit.proc import read_log, stop_process
 
 
 class MeterProcess:
@@ -67,11 +67,7 @@ class MeterProcess:
         return json.loads(self.command("counters", "counters: "))
 
     def log(self) -> str:
-        try:
-            with open(self.log_path) as f:
-                return f.read()[-4000:]
-        except OSError:
-            return ""
+        return read_log(self.log_path)
 
     def stop(self) -> None:
         stop_process(self.p, timeout=10)

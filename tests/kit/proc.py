@@ -10,6 +10,16 @@ import time
 from conftest import ROOT
 
 
+def read_log(path, tail: int | None = 4000) -> str:
+    """The end of a process' log file ("" when there is none)."""
+    try:
+        with open(path) as f:
+            text = f.read()
+    except OSError:
+        return ""
+    return text if tail is None else text[-tail:]
+
+
 def stop_process(p: subprocess.Popen | None, sig: int = signal.SIGTERM, timeout: float = 15.0) -> int | None:
     """Send ``sig`` to a running process, wait ``timeout`` s, then SIGKILL; the exit code
     (None for no process). Pipes are left to their owner."""
@@ -74,18 +84,10 @@ class Proc:
             return list(self._lines)
 
     def log_all(self) -> str:
-        try:
-            with open(self.log_path) as f:
-                return f.read()
-        except OSError:
-            return ""
+        return read_log(self.log_path, None)
 
     def log(self) -> str:
-        try:
-            with open(self.log_path) as f:
-                return f.read()[-4000:]
-        except OSError:
-            return ""
+        return read_log(self.log_path)
 
     def stop(self, sig=signal.SIGTERM, timeout: float = 15.0) -> int:
         stop_process(self.p, sig, timeout)
