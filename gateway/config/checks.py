@@ -12,6 +12,8 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from drivers import stm32_protocol as P
+
 from . import schema as S
 from .loader import Loaded, load_meter_map
 
@@ -45,14 +47,9 @@ class _Rep:
 
 def stm32_exchange_s(baud: int) -> float:
     """Wire time of one SET_SPEED request and its ACK (with status) at ``baud``, plus latency."""
-    try:
-        from drivers import stm32_protocol as P  # type: ignore
-        req = P.OVERHEAD + P.REQUEST_PAYLOAD[P.Cmd.SET_SPEED]
-        rep = P.OVERHEAD + P.ACK_PAYLOAD
-        bits = P.BITS_PER_CHAR
-    except (ImportError, AttributeError, KeyError):
-        req, rep, bits = 11, 23, 10
-    return (req + rep) * bits / float(baud) + STM32_LATENCY_S
+    req = P.OVERHEAD + P.REQUEST_PAYLOAD[P.Cmd.SET_SPEED]
+    rep = P.OVERHEAD + P.ACK_PAYLOAD
+    return (req + rep) * P.BITS_PER_CHAR / float(baud) + STM32_LATENCY_S
 
 
 def bus_budget(cfg) -> dict | None:
@@ -161,13 +158,9 @@ def _duration(cfg, ld, r):
 
 
 def _speeds(cfg, ld, r):
-    try:
-        from drivers.stm32_protocol import DEFAULT_MAX_RPM  # type: ignore
-    except ImportError:
-        return
-    if cfg.control.n_max_rpm > DEFAULT_MAX_RPM:
+    if cfg.control.n_max_rpm > P.DEFAULT_MAX_RPM:
         r.warning(("control", "n_max_rpm"), f"{cfg.control.n_max_rpm:g} rpm is above the STM32 "
-                  f"firmware's speed range (0 … {DEFAULT_MAX_RPM:g} rpm): commands above it are refused",
+                  f"firmware's speed range (0 … {P.DEFAULT_MAX_RPM:g} rpm): commands above it are refused",
                   anchor=("control",))
     if cfg.stm32.watchdog_s < 5 * cfg.method["ts"]:
         r.warning(("stm32", "watchdog_s"), f"{cfg.stm32.watchdog_s:g} s is less than 5 slots: one "

@@ -13,10 +13,13 @@ resolved against the folder of that file.
 """
 from __future__ import annotations
 
+import dataclasses
 import glob
 import os
 from dataclasses import dataclass, field
 from typing import Any
+
+from drivers.zns_map import DEFAULT_MAP_PATH, load_map
 
 from ..method.params import ParamError, build_params
 from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
@@ -500,29 +503,16 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
 
 def default_meter_map() -> str:
     """The packaged ZN-S register map."""
-    try:
-        from drivers import zns_map  # type: ignore
-        for attr in ("DEFAULT_MAP_PATH", "DEFAULT_MAP"):
-            p = getattr(zns_map, attr, None)
-            if isinstance(p, (str, os.PathLike)) and os.path.isfile(p):
-                return os.fspath(p)
-    except ImportError:
-        pass
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    return os.path.join(root, "config", "meters", "zn-s.yaml")
+    return os.fspath(DEFAULT_MAP_PATH)
 
 
 def load_meter_map(cfg):
     """The MeterMap of a station with its overrides applied; MapError/ValueError on a bad map."""
-    from drivers.zns_map import load_map  # type: ignore
-
     m = load_map(cfg.meter.map)
     return m.with_overrides(baud=cfg.meter.baud, unit_id=cfg.meter.unit_id, parity=cfg.meter.parity)
 
 
 def _build(tree: dict, loaded: Loaded):
-    import dataclasses
-
     rep = _Report(loaded)
     cfg = _section(S.ROOT, tree, (), rep, {})
     if cfg is None:
@@ -555,8 +545,6 @@ def _check_map(cfg, rep: _Report) -> None:
         return
     try:
         load_meter_map(cfg)
-    except ImportError:
-        return                            # drivers not installed: the driver checks it at start
     except Exception as e:                # MapError (a ValueError) or a bad override
         text = str(e)
         rep.error(where, text if text.startswith(path + ":") else f"{path}: {text}", anchor=("meter",))
