@@ -14,10 +14,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def long_log_slots():
     """The 10-hour log on its slot grid, with its parameters (written once by gen_long_log)."""
     sys.path[:0] = [os.path.dirname(HERE), HERE]
+    from gen_long_log import generate
+
     from gateway.analysis import params_for
     from gateway.logio import read_log
     from gateway.method import to_slots
-    from gen_long_log import generate
 
     path = os.path.join(HERE, "data", "long10h.csv.gz")
     if not os.path.exists(path):

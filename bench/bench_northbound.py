@@ -227,7 +227,7 @@ def run_plc(args) -> dict:
 
 # ------------------------------------------------------------------ EoL latency
 def _parse(s: str) -> float:
-    return dt.datetime.strptime(s, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.timezone.utc).timestamp()
+    return dt.datetime.strptime(s, "%Y-%m-%dT%H:%M:%S.%fZ").replace(tzinfo=dt.UTC).timestamp()
 
 
 def run_latency(args) -> dict:

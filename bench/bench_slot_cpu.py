@@ -134,9 +134,10 @@ def drivers(args) -> None:
 
 def pure(args) -> None:
     from bench_station import PlantMeter, PlantStm32, VirtualClock
+
     from drivers.sim.plant import Plant
     from drivers.sim.scenario import load_scenario
-    from gateway.control import ControlParams, Controller
+    from gateway.control import Controller, ControlParams
     from gateway.method.core import StreamingMonitor
     from gateway.station import recorder as recmod
     from gateway.station import station as stmod

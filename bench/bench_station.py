@@ -194,8 +194,8 @@ class VirtualClock:
 
 
 def memory(args) -> dict:
-    from drivers.sim.scenario import load_scenario
     from drivers.sim.plant import Plant
+    from drivers.sim.scenario import load_scenario
     from gateway.control import ControlParams
     from gateway.station import station as stmod
 

@@ -266,7 +266,7 @@ def plant_run(grade: str, t_set: float, seed: int, duration: float, time_scale: 
     loop (or holding the open-loop speed): a pure loop, no I/O. A share ``drop`` of the slots,
     and a few short bursts, lose their reading (meter timeouts). Returns (t, T1, T2, truth)."""
     from drivers.sim.plant import Plant, PlantParams
-    from gateway.control import ControlParams, Controller
+    from gateway.control import Controller, ControlParams
 
     plant = Plant(PlantParams(grade=grade, t_set=t_set, time_scale=time_scale), seed)
     tp = plant.p.tension
@@ -340,7 +340,7 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
                 logs.append(log)
                 tests.append(TestDef(sid, g, sp, t_end, truth["cross_run_s"]))
     write_wear(os.path.join(root, "wear.csv"), wear_rows(tests))
-    for k, mode in enumerate(("open", "closed")):
+    for _k, mode in enumerate(("open", "closed")):
         t, a, b, _ = plant_run("I", 0.5, seed0 + 50, control_s, time_scale, mode=mode, drop=0.0)
         log = os.path.join(root, "control", f"{mode}_loop.csv.gz")
         sl = slice(None, None, control_every)     # the drift is slow: every 10th slot is enough
@@ -364,7 +364,8 @@ def write_log_plain(path: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray) ->
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", help="campaign folder to write")
-    ap.add_argument("--compress", type=float, default=100.0, help="divide lives and windows by this (1: real 10 h tests)")
+    ap.add_argument("--compress", type=float, default=100.0,
+                    help="divide lives and windows by this (1: real 10 h tests)")
     ap.add_argument("--hours", type=float, default=10.0, help="t_end before compression")
     ap.add_argument("--layout", choices=("flat", "gateway"), default="flat")
     ap.add_argument("--no-wear", action="store_true")

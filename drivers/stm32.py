@@ -116,8 +116,9 @@ class Stm32Link:
         import serial
 
         try:
-            ser = serial.Serial(self.port, self.baud, bytesize=8, parity="N", stopbits=1,
-                                timeout=0, write_timeout=0, exclusive=True)
+            # serial_for_url: a device path as serial.Serial, or a pyserial URL (hwloop:// in tests)
+            ser = serial.serial_for_url(self.port, self.baud, bytesize=8, parity="N", stopbits=1,
+                                        timeout=0, write_timeout=0, exclusive=True)
         except (serial.SerialException, OSError, ValueError) as e:
             if not self._open_error_logged:
                 log.warning("stm32 %s: cannot open (%s); retrying every %.1f s", self.port, e,

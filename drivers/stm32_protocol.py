@@ -82,7 +82,10 @@ NAK_PAYLOAD = 2                      # request command + error code
 
 
 class ProtocolError(ValueError):
-    """A frame that passed its CRC but does not make sense (wrong length, unknown type)."""
+    """A frame that passed its CRC but does not make sense (wrong length, unknown type).
+    ``code`` is the NAK code to answer a bad request with (None for a bad reply)."""
+
+    code: int | None = None
 
 
 # ---------------------------------------------------------------------------------------- CRC

@@ -153,7 +153,7 @@ class ZnsMeter:
         self._ser = None
 
     async def _try_connect(self) -> bool:
-        if not os.path.exists(self.port):
+        if "://" not in self.port and not os.path.exists(self.port):   # a URL: pyserial decides
             return False
         parity = self.map.parity
         if parity != "N" and _is_pty(self.port):

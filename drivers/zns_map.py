@@ -21,8 +21,12 @@ from __future__ import annotations
 import math
 import os
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Sequence
+from typing import Any
+
+from gateway import safeyaml
+from gateway.validation import Problem, ValidationError, did_you_mean, key_text, suggestion_text
 
 #: the repository's default map (the gateway's configuration model may point elsewhere)
 DEFAULT_MAP_PATH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
@@ -54,9 +58,12 @@ DEFAULTS: dict[str, Any] = {"unit_id": 1, "baud": 115200, "parity": "N", "stopbi
                             "bytesize": 8, "function": 3, "address_base": 0, "turnaround_ms": 2.0}
 
 
-class MapError(ValueError):
+class MapError(ValidationError):
     """A register map (or an override) is not valid; the message names file, key, value and what
-    is allowed."""
+    is allowed, and ``problem`` holds the same as data (file, key path, value, allowed)."""
+
+    def __init__(self, text: str, problem: Problem | None = None):
+        super().__init__(problem or Problem((), text), text=text)
 
 
 class DecodeError(ValueError):
@@ -169,10 +176,10 @@ class MeterMap:
                                       f"{dp}; allowed 0..{MAX_DECIMALS}")
                 out.append(raw / 10 ** dp if dp else float(raw))
             elif c.type == "float32":
-                v = raw * c.scale if c.scale != 1.0 else raw
+                v = raw * c.scale if c.scale != 1.0 else raw  # type: ignore[operator]  # set for float32
                 out.append(float(f"{v:.7g}") if math.isfinite(v) else v)
             else:
-                out.append(round(raw * c.scale, 9))
+                out.append(round(raw * c.scale, 9))  # type: ignore[operator]  # no decimals_register
         return out[0], out[1]
 
     def encode(self, ch1: float, ch2: float) -> list[int]:
@@ -190,7 +197,7 @@ class MeterMap:
 
     # ------------------------------------------------------------------ overrides
     def with_overrides(self, baud: int | None = None, unit_id: int | None = None,
-                       parity: str | None = None) -> "MeterMap":
+                       parity: str | None = None) -> MeterMap:
         """A copy with the station's overrides (None = keep the map's value); validated."""
         kw: dict[str, Any] = {}
         where = f"{self.path} (station override)"
@@ -225,7 +232,7 @@ def _pack(c: ChannelMap, value: float) -> list[int]:
         else:
             q = round(min(max(value, lo), hi), 3) if math.isfinite(value) else (hi if value > 0 else lo)
             if c.scale not in (None, 1.0):
-                q = q / c.scale
+                q = q / c.scale  # type: ignore[operator]  # not None here
             q = min(max(q, lo), hi)
     else:
         if math.isnan(value):
@@ -253,7 +260,27 @@ def _is_num(v) -> bool:
 
 
 def _bad(where: str, key: str, value, allowed: str) -> MapError:
-    return MapError(f"{where}: {key}: {value!r} is not allowed; {allowed}")
+    msg = f"{value!r} is not allowed; {allowed}"
+    return MapError(f"{where}: {key}: {msg}", Problem(_path(key), msg, value=value, allowed=allowed,
+                                                      file=where))
+
+
+def _unknown(where: str, key: str, k: Any, allowed) -> MapError:
+    options = ", ".join(allowed)
+    sugg = did_you_mean(k, allowed)
+    msg = f"unknown key; allowed keys: {options}" + suggestion_text(sugg)
+    path = _path(key) + (k,)
+    return MapError(f"{where}: {key + '.' if key else ''}{key_text(k)}: {msg}",
+                    Problem(path, msg, value=k, allowed=options, suggestion=sugg, file=where))
+
+
+def _fail(where: str, key: str, msg: str) -> MapError:
+    """A problem of ``key`` that is not one bad value (a missing key, a rule between keys)."""
+    return MapError(f"{where}: {key}: {msg}", Problem(_path(key), msg, file=where))
+
+
+def _path(key: str) -> tuple:
+    return tuple(key.split(".")) if key else ()
 
 
 def _check_int(where, key, v, lo, hi, allowed=None):
@@ -286,21 +313,17 @@ def _check_num(where, key, v, lo, hi, allowed):
 
 
 def load_map(path: str | os.PathLike) -> MeterMap:
-    """Read and validate a register map file; raises MapError naming file, key, value, allowed."""
-    import yaml
-
+    """Read and validate a register map file; raises MapError naming file, key, value, allowed.
+    The file is read by the gateway's bounded YAML reader (size, nesting, aliases, encoding)."""
     path = os.fspath(path)
     try:
-        with open(path, encoding="utf-8") as f:
-            data = yaml.safe_load(f)
+        data = safeyaml.read(path, limits=safeyaml.CONFIG).data
     except FileNotFoundError:
         raise MapError(f"{path}: register map file not found") from None
     except OSError as e:
         raise MapError(f"{path}: cannot read register map: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        at = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        raise MapError(f"{path}: not valid YAML{at}: {getattr(e, 'problem', e)}") from None
+    except safeyaml.YamlError as e:
+        raise MapError(f"{path}: {e.detail()}") from None
     return map_from_dict(data, path)
 
 
@@ -311,9 +334,13 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
     if not isinstance(data, dict):
         raise MapError(f"{where}: expected a mapping of keys ({', '.join(TOP_KEYS)}), "
                        f"got {type(data).__name__}")
+    if data and not any(k in TOP_KEYS for k in data):
+        # not a register map at all (say, meter.map: /etc/shadow): never echo its content
+        raise MapError(f"{where}: not a register map: none of its {len(data)} key(s) is a map key; "
+                       f"allowed keys: {', '.join(TOP_KEYS)}")
     for k in data:
         if k not in TOP_KEYS:
-            raise MapError(f"{where}: {k}: unknown key; allowed keys: {', '.join(TOP_KEYS)}")
+            raise _unknown(where, "", k, TOP_KEYS)
     d = {**DEFAULTS, **{k: v for k, v in data.items() if v is not None or k == "channels"}}
     model = d.get("model", "ZN-S")
     if not isinstance(model, str):
@@ -336,15 +363,15 @@ def map_from_dict(data: Any, path: str = "<map>") -> MeterMap:
                                "a number of milliseconds 0..1000")
     chans = d.get("channels")
     if chans is None:
-        raise MapError(f"{where}: channels: missing; give ch1 and ch2 (each with an address)")
+        raise _fail(where, "channels", "missing; give ch1 and ch2 (each with an address)")
     if not isinstance(chans, dict):
         raise _bad(where, "channels", chans, "a mapping with ch1 and ch2")
     for k in chans:
         if k not in CHANNEL_NAMES:
-            raise MapError(f"{where}: channels.{k}: unknown channel; allowed: ch1, ch2")
+            raise _fail(where, f"channels.{key_text(k)}", "unknown channel; allowed: ch1, ch2")
     for k in CHANNEL_NAMES:
         if k not in chans:
-            raise MapError(f"{where}: channels.{k}: missing; the meter has two channels, ch1 and ch2")
+            raise _fail(where, f"channels.{k}", "missing; the meter has two channels, ch1 and ch2")
     ch = [_channel(where, n, chans[n], base) for n in CHANNEL_NAMES]
     m = MeterMap(path=path, unit_id=unit_id, baud=baud, parity=parity, stopbits=stopbits,
                  bytesize=8, function=function, address_base=base,
@@ -359,9 +386,9 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         raise _bad(where, key, c, f"a mapping with keys {', '.join(CHANNEL_KEYS)}")
     for k in c:
         if k not in CHANNEL_KEYS:
-            raise MapError(f"{where}: {key}.{k}: unknown key; allowed keys: {', '.join(CHANNEL_KEYS)}")
+            raise _unknown(where, key, k, CHANNEL_KEYS)
     if "address" not in c:
-        raise MapError(f"{where}: {key}.address: missing; give the register address of the value")
+        raise _fail(where, f"{key}.address", "missing; give the register address of the value")
     lo = base
     addr = _check_int(where, f"{key}.address", c["address"], lo, 65535 + base,
                       f"an integer {lo}..{65535 + base} (address_base is {base})")
@@ -370,14 +397,14 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
         raise _bad(where, f"{key}.type", typ, "one of " + ", ".join(DATA_TYPES))
     width = DATA_TYPES[typ][0]
     if "word_order" in c and width == 1:
-        raise MapError(f"{where}: {key}.word_order: only applies to 32-bit types (int32, float32); "
+        raise _fail(where, f"{key}.word_order", f"only applies to 32-bit types (int32, float32); "
                        f"{typ} is one register; remove the key")
     wo = c.get("word_order", "big")
     if wo not in WORD_ORDERS:
         raise _bad(where, f"{key}.word_order", wo,
                    "big (high word first) or little (low word first)")
     if "scale" in c and "decimals_register" in c:
-        raise MapError(f"{where}: {key}: give either scale or decimals_register, not both")
+        raise _fail(where, key, "give either scale or decimals_register, not both")
     scale = None
     dreg = None
     decimals = 0
@@ -388,11 +415,11 @@ def _channel(where: str, name: str, c: Any, base: int) -> ChannelMap:
                               f"an integer 0..{MAX_DECIMALS} (value = raw / 10^decimals)")
     else:
         if "decimals" in c:
-            raise MapError(f"{where}: {key}.decimals: only with decimals_register (the value the "
-                           f"virtual meter serves there); for a fixed factor use scale")
+            raise _fail(where, f"{key}.decimals", "only with decimals_register (the value the "
+                           "virtual meter serves there); for a fixed factor use scale")
         scale = c.get("scale", 1.0 if typ == "float32" else None)
         if scale is None:
-            raise MapError(f"{where}: {key}: {typ} needs scale (N per count, e.g. 0.001) or "
+            raise _fail(where, key, f"{typ} needs scale (N per count, e.g. 0.001) or "
                            f"decimals_register")
         if not _is_num(scale) or not math.isfinite(scale) or scale <= 0:
             raise _bad(where, f"{key}.scale", scale, "a positive number (N per count, e.g. 0.001)")
@@ -407,21 +434,21 @@ def _check_layout(where: str, m: MeterMap) -> None:
     for a, w, key in m._spans():
         for r in range(a, a + w):
             if r > 65535:
-                raise MapError(f"{where}: {key}: register {r + m.address_base} is past the end of "
+                raise _fail(where, key, f"register {r + m.address_base} is past the end of "
                                f"the address space")
             if r in used:
-                raise MapError(f"{where}: {key}: register {r + m.address_base} overlaps {used[r]}")
+                raise _fail(where, key, f"register {r + m.address_base} overlaps {used[r]}")
             used[r] = key
-    dregs = {}
+    dregs: dict[int, int] = {}
     for c in m.channels:
         if c.decimals_register is not None:
             if c.decimals_register in dregs and dregs[c.decimals_register] != c.decimals:
-                raise MapError(f"{where}: channels.{c.name}.decimals: {c.decimals} differs from "
+                raise _fail(where, f"channels.{c.name}.decimals", f"{c.decimals} differs from "
                                f"{dregs[c.decimals_register]} for the shared decimal-point register "
                                f"{c.decimals_register + m.address_base}")
             dregs[c.decimals_register] = c.decimals
     _, start, count = m.read_block
     if count > MAX_READ_REGISTERS:
-        raise MapError(f"{where}: channels: the registers span {count} registers from "
+        raise _fail(where, "channels", f"the registers span {count} registers from "
                        f"{start + m.address_base}; one read (FC{m.function}) covers at most "
                        f"{MAX_READ_REGISTERS}: put the channels closer together")

@@ -1,5 +1,6 @@
 """hookwatch: needle-hook wear life from yarn tension, at the edge."""
-from importlib.metadata import PackageNotFoundError, version as _v
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _v
 
 try:
     __version__ = _v("hookwatch")

@@ -254,7 +254,7 @@ class Alarm:
                 "closed_by": self.closed_by, "data": dict(self.data)}
 
     @classmethod
-    def from_dict(cls, d: Any) -> "Alarm":
+    def from_dict(cls, d: Any) -> Alarm:
         """Read back a persisted alarm; a damaged record raises AlarmError naming the field."""
         if not isinstance(d, dict):
             raise AlarmError(f"alarm record: expected an object, got {type(d).__name__}")

@@ -12,8 +12,7 @@ from drivers.zns import ZnsMeter
 
 from .northbound.wiring import metrics_outputs, outputs_for
 from .ports import MeterPort, Output, Stm32Port
-from .station.build import (control_params, default_plan, method_values, records_dir_ok,
-                            station_limits)
+from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.station import Station
 
 __all__ = ["build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -42,7 +43,7 @@ class ControlParams:
     hold_missing_s: float = 1.0
     notch: NotchParams = NotchParams()
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "notch"}
         d["notch"] = {f.name: getattr(self.notch, f.name) for f in fields(self.notch)}
         return d
@@ -95,15 +96,16 @@ class Notch:
             return x
         f_tar = min(f_tar, 0.45 * self.fs)          # stay below Nyquist
         q_tar = min(max(f_tar / p.bw_hz, p.q_min), p.q_max)
-        if self.f0 is None:
-            self.f0, self.q = f_tar, q_tar
+        if self.f0 is None or self.q is None:
+            f0, q = f_tar, q_tar
         else:
-            self.f0 += p.alpha_f * (f_tar - self.f0)
-            self.q += p.alpha_q * (q_tar - self.q)
-        if (math.isnan(self._f_last) or abs(self.f0 - self._f_last) > p.f_update_hz
-                or abs(self.q - self._q_last) > p.q_update):
-            self._b, self._a = notch_coefficients(self.f0, self.q, self.fs)
-            self._f_last, self._q_last = self.f0, self.q
+            f0 = self.f0 + p.alpha_f * (f_tar - self.f0)
+            q = self.q + p.alpha_q * (q_tar - self.q)
+        self.f0, self.q = f0, q
+        if (math.isnan(self._f_last) or abs(f0 - self._f_last) > p.f_update_hz
+                or abs(q - self._q_last) > p.q_update):
+            self._b, self._a = notch_coefficients(f0, q, self.fs)
+            self._f_last, self._q_last = f0, q
             self.updates += 1
         if not self.active:                          # (re-)engage without a bump
             self._steady_state(x)
@@ -168,6 +170,7 @@ class Controller:
 
     def step(self, t_mean: float | None, speed_rpm: float) -> ControlOut:
         p = self.p
+        x: float | None
         if t_mean is not None and math.isfinite(t_mean):
             x = t_mean
             self._last_x = x

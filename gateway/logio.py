@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from . import logcache
+from . import logcache, safeyaml
 
 #: a log file smaller than this is never looked up in the cache (cannot hold MIN_ROWS rows)
 _CACHE_MIN_BYTES = 256 << 10
@@ -75,19 +75,14 @@ def _decompress(path: str, raw: bytes) -> bytes:
 
 
 def read_meta(path: str) -> dict[str, Any]:
-    """The sidecar of a log, or {} when there is none."""
-    import yaml
-
+    """The sidecar of a log, or {} when there is none (read within :data:`safeyaml.SIDECAR`)."""
     sp = sidecar_path(path)
     if not os.path.exists(sp):
         return {}
     try:
-        with open(sp, encoding="utf-8") as f:
-            meta = yaml.safe_load(f)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise LogError(f"{sp}:{where} not valid YAML: {getattr(e, 'problem', e)}") from None
+        meta = safeyaml.read(sp, limits=safeyaml.SIDECAR).data
+    except safeyaml.YamlError as e:
+        raise LogError(f"{sp}: {e.detail()}") from None
     except OSError as e:
         raise LogError(f"{sp}: cannot read: {e.strerror or e}") from None
     if meta is None:
@@ -109,7 +104,8 @@ def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:
         if not row or all(not c.strip() for c in row):
             continue
         if len(row) < max(cols) + 1:
-            return f"{path}: line {lineno}: expected at least {max(cols) + 1} columns, got {len(row)}: {','.join(row)[:80]!r}"
+            return (f"{path}: line {lineno}: expected at least {max(cols) + 1} columns, got {len(row)}: "
+                    f"{','.join(row)[:80]!r}")
         for c in cols:
             try:
                 float(row[c])
@@ -241,6 +237,7 @@ def read_log(path: str, with_meta: bool = True) -> Log:
         last = body[cut + 1:]
         if len(last.split(",")) < len(columns):
             body = body[: cut + 1]
+    data: np.ndarray | None
     if not body.strip():
         data = np.empty((0, 3))
     else:

@@ -36,7 +36,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 from ..zns_map import DEFAULT_MAP_PATH, MapError, MeterMap, crc_ok, load_map, with_crc
 from .pty import PtyLink
@@ -80,7 +80,7 @@ class ReplyWriter:
     ``lock`` serialises the writes with a meter detaching its pty (so a reply is never written to
     a descriptor that was closed and reused)."""
 
-    _instance: "ReplyWriter | None" = None
+    _instance: ReplyWriter | None = None
     _instance_lock = threading.Lock()
 
     def __init__(self, wake_early_s: float = WAKE_EARLY_S):
@@ -94,7 +94,7 @@ class ReplyWriter:
         self.oversleep: deque[float] = deque(maxlen=10_000)   # wake time − planned wake time, s
 
     @classmethod
-    def shared(cls) -> "ReplyWriter":
+    def shared(cls) -> ReplyWriter:
         with cls._instance_lock:
             if cls._instance is None:
                 cls._instance = cls()
@@ -164,10 +164,11 @@ def silence_s(baud: int) -> float:
 
 class VirtualMeter:
     def __init__(self, meter_map: MeterMap, source: Callable[[], tuple[float, float]],
-                 link_path: str | None = None, *, writer: ReplyWriter | None = None):
+                 link_path: str | None = None, *, writer: ReplyWriter | None = None, link: Any = None):
         self.map = meter_map
         self.source = source
-        self.link = PtyLink(link_path)
+        # a pty by default; any link with PtyLink's interface (drivers.sim.loopback) may be given
+        self.link = link if link is not None else PtyLink(link_path)
         self.faults = MeterFaults()
         self.writer = writer or ReplyWriter.shared()
         self._gen = 0                      # bumped on detach: replies of an older pty are dropped

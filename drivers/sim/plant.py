@@ -54,7 +54,7 @@ MU_SS_RANGE = (0.24, 0.40)          # drawn μ_ss is clipped to Table 3's span
 CV_FLOOR = 0.005                    # drawn t_life spread is at least 0.5 %
 
 
-def _interp(t_set: float, values: tuple[float, float, float]) -> float:
+def _interp(t_set: float, values: tuple[float, ...]) -> float:
     """Piecewise-linear in T_set through the table's three setpoints, extrapolated with the end
     slopes."""
     xs = TABLE_T_SET

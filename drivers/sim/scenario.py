@@ -17,15 +17,16 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-import yaml
+from gateway import safeyaml
 
 # the scenario's method and control sections are checked by gateway's pure core (the layer under
 # the drivers: numbers in, numbers out, no I/O)
 from gateway.control import ControlParams, NotchParams
 from gateway.method.params import ParamError, build_params
+from gateway.validation import Problem, ValidationError, did_you_mean, suggestion_text
 
 from ..stm32_protocol import WATCHDOG_MS_MAX, WATCHDOG_MS_MIN
 from ..zns_map import BAUDS, DEFAULT_MAP_PATH, MapError, load_map
@@ -92,9 +93,12 @@ DEFAULT_SCENARIO = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(
                                 "config", "scenarios", "demo.yaml")
 
 
-class ScenarioError(ValueError):
+class ScenarioError(ValidationError):
     """A scenario file that cannot be used; the message names file, key, value and what is
-    allowed."""
+    allowed, and ``problem`` holds the same as data (file, key path, value, allowed)."""
+
+    def __init__(self, text: str, problem: Problem | None = None):
+        super().__init__(problem or Problem((), text), text=text)
 
 
 @dataclass(frozen=True)
@@ -142,7 +146,8 @@ class Scenario:
             if b is not None or self.unit_id is not None:
                 m = m.with_overrides(baud=b, unit_id=self.unit_id)
         except MapError as e:
-            raise ScenarioError(f"{self.path}: meter.map: {e}") from None
+            raise ScenarioError(f"{self.path}: meter.map: {e}",
+                                Problem(("meter", "map"), str(e), value=path, file=self.path)) from None
         except OSError as e:
             raise ScenarioError(f"{self.path}: meter.map: {path}: {e.strerror}") from None
         return m
@@ -151,7 +156,24 @@ class Scenario:
 # ----------------------------------------------------------------------------------------------
 
 def _bad(where: str, key: str, value: Any, allowed: str) -> ScenarioError:
-    return ScenarioError(f"{where}: {key}: {value!r} is not allowed; allowed: {allowed}")
+    msg = f"{value!r} is not allowed; allowed: {allowed}"
+    return ScenarioError(f"{where}: {key}: {msg}", Problem(_path(key), msg, value=value,
+                                                           allowed=allowed, file=where))
+
+
+def _fail(where: str, key: str, msg: str) -> ScenarioError:
+    """A problem of ``key`` that is not one bad value (a missing key, a rule between keys)."""
+    return ScenarioError(f"{where}: {key}: {msg}", Problem(_path(key), msg, file=where))
+
+
+def _path(key: str) -> tuple:
+    out: list = []
+    for part in key.split("."):
+        name, _, idx = part.partition("[")
+        out.append(name)
+        if idx:
+            out.append(int(idx.rstrip("]")))
+    return tuple(out)
 
 
 def _mapping(where: str, key: str, v: Any) -> dict:
@@ -165,7 +187,11 @@ def _mapping(where: str, key: str, v: Any) -> dict:
 def _unknown(where: str, prefix: str, d: dict, allowed) -> None:
     for k in d:
         if k not in allowed:
-            raise ScenarioError(f"{where}: {prefix}{k}: unknown key; allowed: {', '.join(allowed)}")
+            sugg = did_you_mean(k, allowed)
+            msg = f"unknown key; allowed: {', '.join(allowed)}" + suggestion_text(sugg)
+            raise ScenarioError(f"{where}: {prefix}{k}: {msg}",
+                                Problem(_path(prefix + str(k)), msg, value=k,
+                                        allowed=", ".join(allowed), suggestion=sugg, file=where))
 
 
 def _number(where: str, key: str, v: Any, lo: float = 0.0, lo_incl: bool = True,
@@ -215,7 +241,7 @@ def _plant(where: str, d: dict) -> PlantParams:
             out[k] = _number(where, key, v, lo, incl, hi)
     p = params_from_dict(out)
     if p.sensor.full_scale_n <= p.t_set:
-        raise ScenarioError(f"{where}: plant.t_set: {p.t_set!r} is not allowed; allowed: below the "
+        raise _fail(where, "plant.t_set", f"{p.t_set!r} is not allowed; allowed: below the "
                             f"sensor full scale ({p.sensor.full_scale_n:g} N)")
     if p.trace_every_s < p.step_s:
         raise _bad(where, "plant.trace_every_s", p.trace_every_s, f"≥ plant.step_s ({p.step_s:g})")
@@ -241,9 +267,9 @@ def _faults(where: str, v: Any) -> tuple[FaultSpec, ...]:
         _unknown(where, f"{key}.", item, FAULT_KEYS + extra_ok)
         for r in extra_req:
             if r not in item:
-                raise ScenarioError(f"{where}: {key}.{r}: missing; fault {kind} needs {', '.join(extra_req)}")
+                raise _fail(where, f"{key}.{r}", f"missing; fault {kind} needs {', '.join(extra_req)}")
         if "at_s" not in item:
-            raise ScenarioError(f"{where}: {key}.at_s: missing; the fault's start, s after the sim starts")
+            raise _fail(where, f"{key}.at_s", "missing; the fault's start, s after the sim starts")
         at = _number(where, f"{key}.at_s", item["at_s"])
         dur = _number(where, f"{key}.duration_s", item.get("duration_s"), 0.0, False, nullable=True)
         delay = None
@@ -257,7 +283,7 @@ def _faults(where: str, v: Any) -> tuple[FaultSpec, ...]:
     for i, a in enumerate(out):
         for j, b in enumerate(out):
             if i < j and a.fault == b.fault and a.at_s < b.end_s and b.at_s < a.end_s:
-                raise ScenarioError(f"{where}: faults[{j}]: {b.fault} at {b.at_s:g} s overlaps "
+                raise _fail(where, f"faults[{j}]", f"{b.fault} at {b.at_s:g} s overlaps "
                                     f"faults[{i}] ({a.at_s:g}–{a.end_s:g} s); allowed: one "
                                     f"{b.fault} at a time")
     return tuple(sorted(out, key=lambda f: f.at_s))
@@ -266,11 +292,13 @@ def _faults(where: str, v: Any) -> tuple[FaultSpec, ...]:
 def _method(where: str, d: dict, t_set: float) -> dict[str, Any]:
 
     if "t_set" in d:
-        raise ScenarioError(f"{where}: method.t_set: set the tension in plant.t_set")
+        raise _fail(where, "method.t_set", "set the tension in plant.t_set")
     try:
         build_params({**d, "t_set": t_set}, source=f"{where}: method")
     except ParamError as e:
-        raise ScenarioError(str(e)) from None
+        pr = e.problem
+        raise ScenarioError(str(e), replace(pr, path=("method",) + pr.path, file=where,
+                                            related=tuple(("method",) + r for r in pr.related))) from None
     return dict(d)
 
 
@@ -307,7 +335,7 @@ def scenario_from_dict(data: Any, path: str = "<scenario>") -> Scenario:
             raise _bad(where, "meter.map", mpath, "a path to a register map (relative to this file)")
         mpath = mpath if os.path.isabs(mpath) else os.path.normpath(os.path.join(base, mpath))
         if not os.path.isfile(mpath):
-            raise ScenarioError(f"{where}: meter.map: {meter['map']!r}: no such file ({mpath})")
+            raise _fail(where, "meter.map", f"{meter['map']!r}: no such file ({mpath})")
     baud = meter.get("baud")
     if baud is not None:
         if isinstance(baud, bool) or baud not in BAUDS:
@@ -334,16 +362,13 @@ def load_scenario(path: str | os.PathLike | None = None) -> Scenario:
     """Read and validate a scenario file (None: the packaged demo)."""
     path = os.fspath(path) if path is not None else DEFAULT_SCENARIO
     try:
-        with open(path, encoding="utf-8") as f:
-            data = yaml.safe_load(f)
+        data = safeyaml.read(path, limits=safeyaml.CONFIG).data
     except FileNotFoundError:
         raise ScenarioError(f"{path}: no such scenario file") from None
     except IsADirectoryError:
         raise ScenarioError(f"{path}: is a folder, not a scenario file") from None
     except OSError as e:
         raise ScenarioError(f"{path}: cannot read: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        at = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
-        raise ScenarioError(f"{path}: not valid YAML{at}: {getattr(e, 'problem', None) or e}") from None
+    except safeyaml.YamlError as e:
+        raise ScenarioError(f"{path}: {e.detail()}") from None
     return scenario_from_dict(data, path)

@@ -18,11 +18,12 @@ import math
 import os
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, TextIO
+from typing import Any, TextIO
 
-from .plant import Plant
 from .meter import VirtualMeter
+from .plant import Plant
 from .scenario import DEFAULT_SCENARIO, FaultSpec, Scenario, ScenarioError, load_scenario
 from .stm32 import Stm32Firmware, VirtualStm32
 
@@ -118,13 +119,13 @@ class SimStation:
         self.clock = clock
         self.plant = Plant(scenario.plant, seed=self.seed)
         self.t0: float | None = None
-        self.meter = None
-        self.stm32 = None
+        self.meter: Any = None      # VirtualMeter, made by start()
+        self.stm32: Any = None      # VirtualStm32, made by start()
         self.active: dict[str, FaultSpec] = {}
         self.fired: list[dict] = []
         self._tasks: list[asyncio.Task] = []
-        self._trace_f = None
-        self._trace_w = None
+        self._trace_f: Any = None
+        self._trace_w: Any = None
         self._last_trace_flush = 0.0
         self._seen_first_run = False
         self._seen_onset = False
@@ -353,7 +354,7 @@ async def run_fleet(stations: list[SimStation], stop: asyncio.Event, duration_s:
         if duration_s is not None:
             try:
                 await asyncio.wait_for(stop.wait(), timeout=duration_s)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
         else:
             await stop.wait()

@@ -23,10 +23,25 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from ..stm32_protocol import (DEFAULT_BAUD, DEFAULT_MAX_RPM, RUNNING_RPM, WATCHDOG_MS_MAX,
-                              WATCHDOG_MS_MIN, Cmd, Flag, FrameParser, NakCode, ProtocolError,
-                              Status, StopReason, decode_frame, decode_request, encode_ack,
-                              encode_nak, wire_time_s)
+from ..stm32_protocol import (
+    DEFAULT_BAUD,
+    DEFAULT_MAX_RPM,
+    RUNNING_RPM,
+    WATCHDOG_MS_MAX,
+    WATCHDOG_MS_MIN,
+    Cmd,
+    Flag,
+    FrameParser,
+    NakCode,
+    ProtocolError,
+    Status,
+    StopReason,
+    decode_frame,
+    decode_request,
+    encode_ack,
+    encode_nak,
+    wire_time_s,
+)
 from .pty import PtyLink
 
 #: stop reasons a STOP command may carry
@@ -269,21 +284,22 @@ class VirtualStm32:
 
     def __init__(self, *args, firmware=None, motor=None, link_path: str | None = None,
                  watchdog_s: float = 0.2, baud: int = DEFAULT_BAUD, processing_s: float = 0.0002,
-                 tick_s: float = 0.005, gap_s: float = 0.005):
-        args = list(args)
-        if args and not hasattr(args[0], "set_command"):
-            firmware = args.pop(0)
-        if args:
-            motor = args.pop(0)
-        if args:
-            link_path = args.pop(0)
-        if args:
+                 tick_s: float = 0.005, gap_s: float = 0.005, link: Any = None):
+        rest = list(args)
+        if rest and not hasattr(rest[0], "set_command"):
+            firmware = rest.pop(0)
+        if rest:
+            motor = rest.pop(0)
+        if rest:
+            link_path = rest.pop(0)
+        if rest:
             raise TypeError("VirtualStm32: too many positional arguments")
         if motor is None:
             raise TypeError("VirtualStm32: a motor (set_command, enable, speed_rpm, stalled) is required")
         self.firmware = self._make_firmware(firmware, watchdog_s)
         self.motor = motor
-        self.link = PtyLink(link_path)
+        # a pty by default; any link with PtyLink's interface (drivers.sim.loopback) may be given
+        self.link = link if link is not None else PtyLink(link_path)
         self.baud = int(baud)
         self.processing_s = processing_s
         self.tick_s = tick_s
@@ -292,13 +308,14 @@ class VirtualStm32:
         self.parser = FrameParser()
         self.counters = {"rx_frames": 0, "replies": 0, "dropped_replies": 0, "ignored_bytes": 0,
                          "corrupted_replies": 0}
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None  # set by start()
         self._tick_task: asyncio.Task | None = None
         self._reader_fd: int | None = None
         self._rx_free = 0.0          # when the receive line is free again (frames arrive in turn)
         self._tx_free = 0.0
         self._last_rx = 0.0
-        self._out = (None, None)     # what the motor was last told: (enabled, rpm)
+        # what the motor was last told: (enabled, rpm)
+        self._out: tuple[bool | None, float | None] = (None, None)
         self._handles: set[asyncio.TimerHandle] = set()
 
     @staticmethod
@@ -319,6 +336,13 @@ class VirtualStm32:
     @property
     def device(self) -> str | None:
         return self.link.device
+
+    @property
+    def _running_loop(self) -> asyncio.AbstractEventLoop:
+        loop = self._loop
+        if loop is None:
+            raise RuntimeError("VirtualStm32 is not started")
+        return loop
 
     async def start(self, own_ticker: bool = True) -> str:
         """Open the pty and start. ``own_ticker=False``: the caller calls :meth:`tick` every
@@ -416,7 +440,7 @@ class VirtualStm32:
         data = self.link.read_available()
         if not data:
             return
-        now = self._loop.time()
+        now = self._running_loop.time()
         self._last_rx = now
         if self.faults.silent:
             self.counters["ignored_bytes"] += len(data)
@@ -434,7 +458,7 @@ class VirtualStm32:
             self._handles.discard(h)
             fn(*args)
 
-        h = self._loop.call_at(when, run)
+        h = self._running_loop.call_at(when, run)
         self._handles.add(h)
 
     def _schedule(self, raw: bytes, arrived: float) -> None:
@@ -446,7 +470,7 @@ class VirtualStm32:
         done = max(arrived, self._rx_free) + wire_time_s(len(raw), self.baud)
         self._rx_free = done
         now = done + self.processing_s
-        self._measure(self._loop.time())
+        self._measure(self._running_loop.time())
         reply = self.firmware.handle(raw, now)
         self._apply()
         if reply is None:

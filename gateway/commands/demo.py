@@ -74,6 +74,7 @@ def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
            "--seed", str(args.seed), "--truth", truth]
     log = open(os.path.join(work, "sim.log"), "w")
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
+    assert p.stdout is not None
     log.close()
     paths: dict[str, str] = {}
     t_end = time.monotonic() + 30
@@ -129,7 +130,7 @@ def run(args) -> int:
             task = asyncio.create_task(st.run(stop))
             try:
                 await asyncio.wait_for(stop.wait(), args.timeout)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 print("hookwatch demo: timed out", file=sys.stderr)
                 stop.set()
             await task

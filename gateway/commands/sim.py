@@ -8,12 +8,12 @@ import os
 import signal
 import sys
 
-from ..cli import CliError
 import yaml
 
 from drivers.sim.scenario import ScenarioError, load_scenario
-from drivers.sim.station import (EventLog, SimStation, fleet_from_dict, fleet_of_count, is_fleet_file,
-                                 run_fleet)
+from drivers.sim.station import EventLog, SimStation, fleet_from_dict, fleet_of_count, is_fleet_file, run_fleet
+
+from ..cli import CliError
 
 MAX_FLEET = 64
 

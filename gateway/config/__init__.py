@@ -4,8 +4,18 @@ The schema — every key, its type, default, unit, allowed values and documentat
 declarative definition in :mod:`gateway.config.schema`; validation (:mod:`.loader`) and
 ``docs/configuration.md`` (:mod:`.docs`) are generated from it.
 """
-from .loader import (ConfigError, Issue, Loaded, cross_issues, fleet_file_for, load_fleet,
-                     load_station, station_files, validate_fleet, validate_station)
+from .loader import (
+                     ConfigError,
+                     Issue,
+                     Loaded,
+                     cross_issues,
+                     fleet_file_for,
+                     load_fleet,
+                     load_station,
+                     station_files,
+                     validate_fleet,
+                     validate_station,
+)
 from .schema import StationConfig
 
 __all__ = ["ConfigError", "Issue", "Loaded", "StationConfig", "cross_issues", "fleet_file_for",

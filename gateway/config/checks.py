@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from drivers import stm32_protocol as P
 
@@ -49,8 +49,7 @@ def stm32_exchange_s(baud: int) -> float:
     """Wire time of one SET_SPEED request and its ACK (with status) at ``baud``, plus latency."""
     req = P.OVERHEAD + P.REQUEST_PAYLOAD[P.Cmd.SET_SPEED]
     rep = P.OVERHEAD + P.ACK_PAYLOAD
-    bits = P.BITS_PER_CHAR
-    return (req + rep) * bits / float(baud) + STM32_LATENCY_S
+    return (req + rep) * P.BITS_PER_CHAR / float(baud) + STM32_LATENCY_S
 
 
 def bus_budget(cfg) -> dict | None:

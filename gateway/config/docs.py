@@ -1,6 +1,7 @@
 """Generate docs/configuration.md from the schema: `python -m gateway.config.docs > docs/configuration.md`."""
 from __future__ import annotations
 
+from .. import safeyaml
 from ..method.params import PARAMS
 from . import schema as S
 from .checks import CHECKS
@@ -104,7 +105,25 @@ def render() -> str:
     out += ["", "Between the stations of one fleet folder (and everything named in one "
             "`hookwatch check` call):", ""]
     out += [f"- {c}" for c in CROSS]
-    out += ["", "## `hookwatch check PATH...`", "",
+    out += ["", "## Limits of a YAML file", "",
+            "Every YAML file the gateway reads (station, fleet, meter map, scenario, log sidecar) is "
+            "read by one bounded reader (`gateway/safeyaml.py`), safe schema only (no `!!python` "
+            "tags). A file beyond a limit is refused with one line that names the file, the line "
+            "where known, the limit and what is allowed — by `hookwatch check` (exit 1), at start, "
+            "and on a reload (the running configuration stays).", "",
+            "| limit | configuration files | log sidecars |", "|---|---|---|"]
+    for name, what in (("max_bytes", "file size"), ("max_depth", "nesting of lists/mappings"),
+                       ("max_aliases", "aliases (`*name`)"),
+                       ("max_nodes", "values once aliases and merge keys are expanded"),
+                       ("max_int_digits", "characters of an integer")):
+        c, sc = getattr(safeyaml.CONFIG, name), getattr(safeyaml.SIDECAR, name)
+        fmt = safeyaml._size if name == "max_bytes" else str
+        out.append(f"| {what} | {fmt(c)} | {fmt(sc)} |")
+    out += ["", "Also refused: text that is not UTF-8, a NUL byte or another control character "
+            "(tab and line breaks are fine), a recursive alias, a key given twice. Errors never "
+            "quote the content of a file that is not what it should be (`meter.map: /etc/shadow` "
+            "says it is not a register map, not what its first line holds).", ""]
+    out += ["## `hookwatch check PATH...`", "",
             "Validates, then checks that each valid station can work before anything runs. Exit 0: "
             "no errors (warnings allowed; `--strict` fails on warnings too); 1: errors; 2: usage "
             "(no such path, a folder without `stations/*.yaml`). `--skip-local` leaves out the "

@@ -13,17 +13,16 @@ resolved against the folder of that file.
 """
 from __future__ import annotations
 
-import difflib
+import dataclasses
 import glob
 import os
-import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..method.params import SPEC as METHOD_SPEC
 from drivers.zns_map import DEFAULT_MAP_PATH, load_map
 
 from ..method.params import ParamError, build_params
+from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
 from . import schema as S
 from .yamlpos import Pos, YamlError
 from .yamlpos import load as load_yaml
@@ -36,11 +35,18 @@ FLEET_KEYS = ("defaults",)
 
 @dataclass(frozen=True)
 class Issue:
+    """A problem of a station as `hookwatch check` reports it: where, which key, the sentence;
+    and the same as data (``path``, ``value``, ``allowed``, ``suggestion``), never to be parsed
+    back from the sentence."""
     severity: str              # "error" | "warning"
     key: str                   # dotted key path, "" for the file as a whole
     message: str
     file: str | None = None
     line: int | None = None
+    path: tuple = field(default=(), compare=False)
+    value: Any = field(default=MISSING, compare=False)
+    allowed: str | None = field(default=None, compare=False)
+    suggestion: str | None = field(default=None, compare=False)
 
     @property
     def where(self) -> str:
@@ -82,11 +88,17 @@ class Loaded:
     def locate(self, path: tuple) -> Pos | None:
         return _locate(self.pos, path)
 
-    def issue(self, severity: str, path: tuple, message: str, anchor: tuple | None = None) -> Issue:
+    def issue(self, severity: str, path: tuple, message: str, anchor: tuple | None = None,
+              data: Problem | None = None) -> Issue:
+        """An Issue at ``path`` (located at the key, else at ``anchor``, else at the nearest
+        parent); ``data`` adds the value, what is allowed and a suggestion."""
         p = self.pos.get(tuple(path)) or (self.locate(anchor) if anchor else None) or self.locate(path)
+        extra: dict[str, Any] = {"path": tuple(path)}
+        if data is not None:
+            extra.update(value=data.value, allowed=data.allowed, suggestion=data.suggestion)
         if p is None:
-            return Issue(severity, _dotted(path), message, self.path, None)
-        return Issue(severity, _dotted(path), message, p.file, p.line)
+            return Issue(severity, _dotted(path), message, self.path, None, **extra)
+        return Issue(severity, _dotted(path), message, p.file, p.line, **extra)
 
 
 def _dotted(path: tuple) -> str:
@@ -106,8 +118,13 @@ class _Report:
     def __init__(self, loaded: Loaded):
         self.loaded = loaded
 
-    def error(self, path: tuple, message: str, anchor: tuple | None = None) -> None:
-        self.loaded.issues.append(self.loaded.issue("error", path, message, anchor))
+    def error(self, path: tuple, message: str, anchor: tuple | None = None,
+              data: Problem | None = None) -> None:
+        self.loaded.issues.append(self.loaded.issue("error", path, message, anchor, data))
+
+    def problem(self, path: tuple, pr: Problem, anchor: tuple | None = None) -> None:
+        """A Problem of the engine, reported at ``path`` (the key as the file names it)."""
+        self.loaded.issues.append(self.loaded.issue(pr.severity, path, pr.message, anchor, pr))
 
     def warning(self, path: tuple, message: str, anchor: tuple | None = None) -> None:
         self.loaded.issues.append(self.loaded.issue("warning", path, message, anchor))
@@ -181,8 +198,8 @@ def validate_fleet(folder: str) -> list[Loaded]:
     """Validate every station of a fleet folder (``fleet.yaml`` + ``stations/*.yaml``)."""
     if not os.path.isdir(folder):
         raise FileNotFoundError(folder)
-    ff = os.path.join(folder, "fleet.yaml")
-    ff = ff if os.path.isfile(ff) else None
+    candidate = os.path.join(folder, "fleet.yaml")
+    ff = candidate if os.path.isfile(candidate) else None
     return [validate_station(p, fleet_file=ff) for p in station_files(folder)]
 
 
@@ -234,13 +251,14 @@ def _read_fleet(file: str) -> tuple[dict | None, dict, list[Issue]]:
         if S.lookup((k,)) is not None:
             msg = f"station settings in fleet.yaml go under `defaults:` (defaults:\\n  {k}: …)"
         else:
-            msg = "unknown key" + _did_you_mean(k, FLEET_KEYS) + f"; fleet.yaml has: {', '.join(FLEET_KEYS)}"
+            msg = ("unknown key" + suggestion_text(did_you_mean(k, FLEET_KEYS))
+                   + f"; fleet.yaml has: {', '.join(FLEET_KEYS)}")
         issues.append(Issue("error", k, msg, file, p.line))
     defaults = doc.data.get("defaults")
     if defaults is None:
         defaults = {}
     if not isinstance(defaults, dict):
-        issues.append(Issue("error", "defaults", f"{S.show_value(defaults)} is not a mapping; allowed: "
+        issues.append(Issue("error", "defaults", f"{show_value(defaults)} is not a mapping; allowed: "
                             "a station file's sections (meter:, method:, mqtt:, …)", file,
                             doc.pos[("defaults",)].line))
         return None, {}, issues
@@ -279,24 +297,21 @@ _SPECIAL_UNKNOWN = {
 }
 
 
-def _did_you_mean(name: str, options) -> str:
-    m = difflib.get_close_matches(name, list(options), n=1, cutoff=0.6)
-    return f"; did you mean {m[0]!r}?" if m else ""
-
-
 def _unknown(path: tuple, options, rep: _Report) -> None:
     special = _SPECIAL_UNKNOWN.get(path)
     if special:
         rep.error(path, special)
         return
     name = path[-1]
-    hint = _did_you_mean(name, options)
+    sugg = did_you_mean(name, options)
+    hint = suggestion_text(sugg)
     if not hint:
         elsewhere = [_dotted(p) for p, e in S.walk() if p[-1] == name and p[:-1] != path[:-1]]
         if elsewhere:
             hint = f"; it is a key of {' / '.join(e.rsplit('.', 1)[0] + ':' for e in elsewhere)}"
     where = f"keys of {_dotted(path[:-1])}:" if len(path) > 1 else "sections:"
-    rep.error(path, f"unknown key{hint} ({where} {', '.join(options)})")
+    msg = f"unknown key{hint} ({where} {', '.join(options)})"
+    rep.problem(path, Problem(path, msg, allowed=", ".join(options), suggestion=sugg))
 
 
 _WRONG_TYPE = {"int": "an integer", "float": "a number", "bool": "true or false",
@@ -304,45 +319,52 @@ _WRONG_TYPE = {"int": "an integer", "float": "a number", "bool": "true or false"
 
 
 def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
-    """(True, value) or (False, message) for one key's value."""
+    """(True, value) or (False, Problem) for one key's value (the Problem's path is empty: the
+    caller knows where the value is)."""
     allowed = k.allowed()
+
+    def _bad(v: Any, message: str, allowed: str) -> Problem:
+        return Problem((), message, value=v, allowed=allowed)
+
     if v is None:
         if k.nullable:
             return True, None
-        d = "" if k.required else f"; leave the key out for the default ({S._show(k.default)})"
-        return False, f"null is not allowed; allowed: {allowed}{d}"
+        d = "" if k.required else f"; leave the key out for the default ({show_yaml(k.default)})"
+        return False, _bad(v, f"null is not allowed; allowed: {allowed}{d}", allowed)
     if isinstance(v, dict):
-        return False, f"a mapping is not allowed here; allowed: {allowed}"
+        return False, _bad(v, f"a mapping is not allowed here; allowed: {allowed}", allowed)
     kind = k.kind
     if kind in ("int", "float"):
         bad = isinstance(v, bool) or not isinstance(v, (int, float)) or (kind == "int" and isinstance(v, float))
         if bad:
-            return False, f"{S.show_value(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}"
+            return False, _bad(v, f"{show_value(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}", allowed)
         if kind == "float":
             v = float(v)
             if not S.finite(v):
-                return False, f"{S.show_value(v)} is not a finite number; allowed: {allowed}"
+                return False, _bad(v, f"{show_value(v)} is not a finite number; allowed: {allowed}", allowed)
         if k.choices is not None:
             if v not in k.choices:
-                return False, f"{S.show_value(v)} is not allowed; allowed: {allowed}"
+                return False, _bad(v, f"{show_value(v)} is not allowed; allowed: {allowed}", allowed)
             return True, v
         if ((k.lo is not None and (v <= k.lo if k.lo_open else v < k.lo))
                 or (k.hi is not None and (v >= k.hi if k.hi_open else v > k.hi))):
-            return False, f"{S.show_value(v)} is out of range; allowed: {allowed}"
+            return False, _bad(v, f"{show_value(v)} is out of range; allowed: {allowed}", allowed)
         return True, v
     if kind == "bool":
         if not isinstance(v, bool):
-            return False, f"{S.show_value(v)} is not true or false; allowed: {allowed}"
+            return False, _bad(v, f"{show_value(v)} is not true or false; allowed: {allowed}", allowed)
         return True, v
     if kind in ("str_list", "ip_list"):
         if not isinstance(v, list):
-            return False, f"{S.show_value(v)} is not a list; allowed: {allowed}"
+            return False, _bad(v, f"{show_value(v)} is not a list; allowed: {allowed}", allowed)
         out = []
         for i, item in enumerate(v):
             if not isinstance(item, str) or not item.strip():
-                return False, f"item {i + 1} ({S.show_value(item)}) is not a string; allowed: {allowed}"
+                return False, _bad(v, f"item {i + 1} ({show_value(item)}) is not a string; "
+                                   f"allowed: {allowed}", allowed)
             if kind == "ip_list" and not S.check_ip(item.strip()):
-                return False, f"item {i + 1} ({item!r}) is not an IP address or network; allowed: {allowed}"
+                return False, _bad(v, f"item {i + 1} ({item!r}) is not an IP address or network; "
+                                   f"allowed: {allowed}", allowed)
             out.append(item.strip())
         return True, tuple(out)
     # string kinds
@@ -354,23 +376,23 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
             hint = f" (put it in quotes: '{v}')"
         elif isinstance(v, list):
             hint = ""
-        return False, f"{S.show_value(v)} is not a string{hint}; allowed: {allowed}"
+        return False, _bad(v, f"{show_value(v)} is not a string{hint}; allowed: {allowed}", allowed)
     if kind == "enum":
-        for c in k.choices:
+        for c in k.choices or ():
             if v.strip().lower() == str(c).lower():
                 return True, c
-        return False, f"{v!r} is not allowed; allowed: {allowed}"
+        return False, _bad(v, f"{v!r} is not allowed; allowed: {allowed}", allowed)
     if kind == "str":
         return True, v
     s = v.strip()
     if not s:
-        return False, f"{v!r} is empty; allowed: {allowed}"
+        return False, _bad(v, f"{v!r} is empty; allowed: {allowed}", allowed)
     if kind == "ident" and not S.check_ident(s):
-        return False, f"{v!r} is not a valid name; allowed: {allowed}"
+        return False, _bad(v, f"{v!r} is not a valid name; allowed: {allowed}", allowed)
     if kind == "topic" and not S.TOPIC_RE.match(s):
-        return False, f"{v!r} is not a valid topic prefix; allowed: {allowed}"
+        return False, _bad(v, f"{v!r} is not a valid topic prefix; allowed: {allowed}", allowed)
     if kind == "envvar" and not S.ENV_RE.match(s):
-        return False, f"{v!r} is not a valid variable name; allowed: {allowed}"
+        return False, _bad(v, f"{v!r} is not a valid variable name; allowed: {allowed}", allowed)
     return True, s
 
 
@@ -387,7 +409,7 @@ def _section(sec: S.Section, tree: Any, path: tuple, rep: _Report, ctx: dict):
     if tree is None:
         tree = {}
     if not isinstance(tree, dict):
-        rep.error(path, f"{S.show_value(tree)} is not a mapping; allowed: a section with the keys "
+        rep.error(path, f"{show_value(tree)} is not a mapping; allowed: a section with the keys "
                   f"{', '.join(e.name for e in sec.entries)}")
         return None
     names = [e.name for e in sec.entries]
@@ -402,7 +424,7 @@ def _section(sec: S.Section, tree: Any, path: tuple, rep: _Report, ctx: dict):
             if e.name in tree:
                 good, val = convert(e, tree[e.name])
                 if not good:
-                    rep.error(p, val)
+                    rep.problem(p, val)
                     ok = False
                     continue
                 if e.kind in ("path", "port") and val is not None:
@@ -443,7 +465,7 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
     if tree is None:
         tree = {}
     if not isinstance(tree, dict):
-        rep.error(path, f"{S.show_value(tree)} is not a mapping; allowed: method parameters "
+        rep.error(path, f"{show_value(tree)} is not a mapping; allowed: method parameters "
                   f"({', '.join(S.METHOD_KEYS)})")
         return None
     values: dict[str, Any] = {}
@@ -455,6 +477,7 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
             _unknown(path + (k,), S.METHOD_KEYS, rep)
             ok = False
     base = {"t_set": test.t_set_n, "t_end": test.t_end_s}
+    from_test = {"t_set": ("test", "t_set_n"), "t_end": ("test", "t_end_s")}
     bad: set[str] = set()
     params = None
     for _ in range(len(values) + 2):
@@ -462,26 +485,20 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
             params = build_params({**{k: v for k, v in values.items() if k not in bad}, **base})
             break
         except ParamError as e:
-            msg = str(e)
-            head = msg.split(";")[0]
-            names = [n for n in re.findall(r"[a-z_]+", head) if n in METHOD_SPEC]
-            mine = [n for n in dict.fromkeys(names) if n in values and n not in bad]
-            name = mine[-1] if mine else None
-            bad.update(mine[:-1])          # a rule between two keys the file sets: report it once
+            pr = e.problem
             ok = False
-            if name is None:
-                target = {"t_set": ("test", "t_set_n"), "t_end": ("test", "t_end_s")}.get(names[0] if names else "")
-                rep.error(target or path, _strip_name(msg, names[0] if names else ""))
+            # the fields the problem involves that this file sets; a rule between two of them
+            # (r_min < r_max) is reported once, on the last one the message names
+            mine = [f[0] for f in pr.fields if f and f[0] in values and f[0] not in bad]
+            if not mine:
+                name = pr.path[0] if pr.path else ""
+                rep.problem(from_test.get(name, path), pr)
                 break
-            bad.add(name)
-            rep.error(path + (name,), _strip_name(msg, name))
+            bad.update(mine)
+            rep.problem(path + (mine[-1],), pr)
     if not ok or params is None:
         return None
     return {k: getattr(params, k) for k in S.METHOD_KEYS}
-
-
-def _strip_name(msg: str, name: str) -> str:
-    return msg[len(name) + 2:] if name and msg.startswith(name + ": ") else msg
 
 
 def default_meter_map() -> str:
@@ -496,8 +513,6 @@ def load_meter_map(cfg):
 
 
 def _build(tree: dict, loaded: Loaded):
-    import dataclasses
-
     rep = _Report(loaded)
     cfg = _section(S.ROOT, tree, (), rep, {})
     if cfg is None:
@@ -530,10 +545,9 @@ def _check_map(cfg, rep: _Report) -> None:
         return
     try:
         load_meter_map(cfg)
-    except ImportError:
-        return                            # drivers not installed: the driver checks it at start
     except Exception as e:                # MapError (a ValueError) or a bad override
-        rep.error(where, f"{path}: {e}", anchor=("meter",))
+        text = str(e)
+        rep.error(where, text if text.startswith(path + ":") else f"{path}: {text}", anchor=("meter",))
 
 
 # ---------------------------------------------------------------------------------------------

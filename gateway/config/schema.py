@@ -20,11 +20,13 @@ import dataclasses
 import ipaddress
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Any, Callable
+from typing import Any
 
 from ..control import ControlParams, NotchParams
 from ..method.params import PARAMS as METHOD_PARAMS
+from ..validation import show_yaml
 
 # ---------------------------------------------------------------------------------------------
 # key kinds
@@ -117,26 +119,8 @@ def _num(x: float) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-def _show(v: Any) -> str:
-    """A value as it would be written in YAML."""
-    if v is None:
-        return "null"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, float):
-        return f"{v:g}"
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_show(x) for x in v) + "]"
-    return str(v)
-
-
-def show_value(v: Any) -> str:
-    """A bad value in an error message (strings quoted so that '' and ' 9600' are visible)."""
-    if isinstance(v, str):
-        return repr(v)
-    if isinstance(v, dict):
-        return "a mapping"
-    return _show(v)
+#: a value as written in YAML, and a bad value in a message: one definition (gateway.validation)
+_show = show_yaml
 
 
 def key(default: Any = REQUIRED, doc: str = "", *, kind: str, **kw: Any):
@@ -434,7 +418,7 @@ METHOD_EXCLUDED = {"t_set": "test.t_set_n", "t_end": "test.t_end_s",
 METHOD_KEYS = tuple(p.name for p in METHOD_PARAMS if p.name not in METHOD_EXCLUDED)
 
 
-def method_defaults() -> dict[str, float]:
+def method_defaults() -> dict[str, float | None]:
     return {p.name: p.default for p in METHOD_PARAMS if p.name in METHOD_KEYS}
 
 
@@ -447,7 +431,8 @@ class StationConfig:
                                  default=False)
     method: dict = field(default_factory=method_defaults, metadata={
         "method": True, "doc": "the method's parameters (METHOD.md §10, docs/method.md)"})
-    control: ControlConfig = section(ControlConfig, "tension control (METHOD.md §8)")
+    # ControlConfig is made by make_dataclass: a value to mypy, not a type
+    control: ControlConfig = section(ControlConfig, "tension control (METHOD.md §8)")  # type: ignore[valid-type]
     test: TestConfig = section(TestConfig, "the test a station starts without further instructions")
     grades: tuple[str, ...] = key(("I", "II"), "needle grades a test may name", kind="str_list")
     recorder: RecorderConfig = section(RecorderConfig, "recording of every test")
@@ -480,7 +465,7 @@ class MethodSection:
 
 
 def _section(name: str, cls: type, doc: str) -> Section:
-    entries = []
+    entries: list[Key | Section | MethodSection] = []
     for f in fields(cls):
         m = f.metadata
         if "key" in m:

@@ -9,6 +9,8 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Any, Mapping
 
+from ..validation import MISSING, Problem, ValidationError, did_you_mean
+
 
 @dataclass(frozen=True)
 class ParamSpec:
@@ -68,8 +70,19 @@ STOPPED = "STOPPED"
 MIN_TREND_WINDOWS = 10
 
 
-class ParamError(ValueError):
-    """A parameter name or value that the method cannot use. The message says what is allowed."""
+class ParamError(ValidationError):
+    """A parameter name or value that the method cannot use. The message says what is allowed;
+    ``problem`` holds the same as data: the parameter (``problem.path == (name,)``; a rule
+    between two parameters names the other in ``problem.related``), the value and what is allowed."""
+
+
+def _err(prefix: str, name: str, message: str, value: Any = MISSING, allowed: str | None = None,
+         related: tuple[str, ...] = (), text: str | None = None,
+         suggestion: str | None = None) -> ParamError:
+    """A ParamError on parameter ``name``: ``{prefix}{name}: {message}`` unless ``text`` is given."""
+    return ParamError(Problem((name,), message, value=value, allowed=allowed, suggestion=suggestion,
+                              related=tuple((r,) for r in related)),
+                      text=text if text is not None else f"{prefix}{name}: {message}")
 
 
 @dataclass(frozen=True)
@@ -176,19 +189,20 @@ def _flag(name: str, value: Any, source: str) -> bool:
         return bool(value)
     if isinstance(value, str) and value.strip().lower() in _TRUE + _FALSE:
         return value.strip().lower() in _TRUE
-    raise ParamError(f"{source}{name}: {value!r} is not true or false ({SPEC[name].doc})")
+    raise _err(source, name, f"{value!r} is not true or false ({SPEC[name].doc})", value, "true or false")
 
 
 def _num(name: str, value: Any, source: str) -> float | int | bool | None:
     spec = SPEC[name]
     if spec.kind == "bool":
         return _flag(name, value, source)
+    what = f"a number ({spec.doc}, {spec.unit})"
     if value is None:
         if spec.optional:
             return None
-        raise ParamError(f"{source}{name}: a number is required ({spec.doc}, {spec.unit})")
+        raise _err(source, name, f"a number is required ({spec.doc}, {spec.unit})", value, what)
     if isinstance(value, bool):
-        raise ParamError(f"{source}{name}: {value!r} is not a number ({spec.doc}, {spec.unit})")
+        raise _err(source, name, f"{value!r} is not a number ({spec.doc}, {spec.unit})", value, what)
     if isinstance(value, str):
         v = value.strip().lower()
         if spec.optional and v in ("", "none", "null"):
@@ -196,16 +210,19 @@ def _num(name: str, value: Any, source: str) -> float | int | bool | None:
         try:
             value = float(v)
         except ValueError:
-            raise ParamError(f"{source}{name}: {value!r} is not a number ({spec.doc}, {spec.unit})") from None
+            raise _err(source, name, f"{value!r} is not a number ({spec.doc}, {spec.unit})",
+                       value, what) from None
     try:
         f = float(value)
-    except (TypeError, ValueError):
-        raise ParamError(f"{source}{name}: {value!r} is not a number ({spec.doc}, {spec.unit})") from None
+    except (TypeError, ValueError, OverflowError):
+        raise _err(source, name, f"{value!r} is not a number ({spec.doc}, {spec.unit})",
+                   value, what) from None
     if not math.isfinite(f):
-        raise ParamError(f"{source}{name}: {value!r} is not a finite number")
+        raise _err(source, name, f"{value!r} is not a finite number", value, "a finite number")
     if spec.kind == "int":
         if f != int(f):
-            raise ParamError(f"{source}{name}: {value!r} is not a whole number ({spec.doc})")
+            raise _err(source, name, f"{value!r} is not a whole number ({spec.doc})", value,
+                       "a whole number")
         return int(f)
     return f
 
@@ -216,12 +233,16 @@ def build_params(values: Mapping[str, Any], source: str = "") -> MethodParams:
     prefix = f"{source}: " if source else ""
     unknown = [k for k in values if k not in SPEC]
     if unknown:
-        raise ParamError(f"{prefix}unknown parameter {unknown[0]!r}; valid names: {', '.join(PARAM_NAMES)}")
+        k = unknown[0]
+        raise _err(prefix, k, "unknown parameter", allowed=", ".join(PARAM_NAMES),
+                   suggestion=did_you_mean(k, PARAM_NAMES),
+                   text=f"{prefix}unknown parameter {k!r}; valid names: {', '.join(PARAM_NAMES)}")
     kw: dict[str, Any] = {}
     for k, v in values.items():
         kw[k] = _num(k, v, prefix)
     if kw.get("t_set") is None:
-        raise ParamError(f"{prefix}t_set: missing; the regulated mean tension T_set (N) is required")
+        raise _err(prefix, "t_set", "missing; the regulated mean tension T_set (N) is required",
+                   allowed=f"a number ({SPEC['t_set'].doc}, N)")
     p = MethodParams(**kw)
     validate(p, prefix)
     return p
@@ -229,7 +250,8 @@ def build_params(values: Mapping[str, Any], source: str = "") -> MethodParams:
 
 def validate(p: MethodParams, prefix: str = "") -> None:
     def bad(name: str, rule: str) -> None:
-        raise ParamError(f"{prefix}{name}: {getattr(p, name)!r} is impossible; allowed: {rule}")
+        v = getattr(p, name)
+        raise _err(prefix, name, f"{v!r} is impossible; allowed: {rule}", v, rule)
 
     for name in ("ts", "t_set", "full_scale", "w_ss", "w_hold", "tau", "delta", "sigma_max", "g_max"):
         if not getattr(p, name) > 0:
@@ -245,7 +267,9 @@ def validate(p: MethodParams, prefix: str = "") -> None:
     if not p.r_min > 0:
         bad("r_min", "> 0")
     if not p.r_min < p.r_max:
-        raise ParamError(f"{prefix}r_min {p.r_min!r} must be smaller than r_max {p.r_max!r}")
+        msg = f"r_min {p.r_min!r} must be smaller than r_max {p.r_max!r}"
+        raise _err(prefix, "r_max", msg, p.r_max, f"> r_min ({p.r_min!r})", related=("r_min",),
+                   text=prefix + msg)
     if not p.stop_after >= 0:
         bad("stop_after", "≥ 0")
     if not 0 < p.valid_ratio_min <= 1:

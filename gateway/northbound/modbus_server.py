@@ -40,8 +40,8 @@ from .. import __version__
 from ..method.rules import REASONS
 from ..ports import CommandSink, StationLimits
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
-from ..threadloop import submit_to
 from ..station.commands import CODE, check_sample_id
+from ..threadloop import submit_to
 from . import registers as R
 
 log = logging.getLogger("hookwatch.modbus")

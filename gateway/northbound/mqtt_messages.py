@@ -9,8 +9,9 @@ a function of the stream's sequence number, which the pump stamps when it queues
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from .. import __version__
 from ..method.rules import REASONS

@@ -17,8 +17,7 @@ from typing import Any
 from ..method.rules import REASONS
 from ..ports import StationLimits
 from ..records import AlarmState, CommandKind, TestState
-from ..station.commands import (REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end,
-                                check_t_set)
+from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
 MAP_VERSION = 1
@@ -331,7 +330,8 @@ EXCEPTIONS = (
 
 
 def _type_doc(r: Reg) -> str:
-    return {"string": f"string ({r.count} registers)", "enum": "uint16 (enum)", "bits": "uint16 (bits)"}.get(r.type, r.type)
+    return {"string": f"string ({r.count} registers)", "enum": "uint16 (enum)",
+            "bits": "uint16 (bits)"}.get(r.type, r.type)
 
 
 def rows(station: dict[str, Any] | None = None) -> list[dict[str, Any]]:

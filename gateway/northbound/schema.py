@@ -240,14 +240,14 @@ def base_topic(prefix: str, site: Any, area: Any, line: Any, station: str) -> st
     return "/".join([pre, topic_level(site), topic_level(area), topic_level(line), topic_level(station)])
 
 
-def topic_for(base: str, key: str, **kw) -> str:
+def topic_for(base: str, key: str, **kw: Any) -> str:
     return f"{base}/{TOPIC[key].path.format(**kw)}"
 
 
 # ----------------------------------------------------------------------------- payloads
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
-    d = _dt.datetime.fromtimestamp(round(float(t), 3), tz=_dt.timezone.utc)
+    d = _dt.datetime.fromtimestamp(round(float(t), 3), tz=_dt.UTC)
     return d.strftime("%Y-%m-%dT%H:%M:%S.") + f"{d.microsecond // 1000:03d}Z"
 
 
@@ -263,7 +263,7 @@ def json_safe(v: Any) -> Any:
         return {str(k): json_safe(x) for k, x in v.items()}
     if isinstance(v, (list, tuple, set)):
         return [json_safe(x) for x in v]
-    if hasattr(v, "value") and isinstance(getattr(v, "value"), (str, int)):
+    if hasattr(v, "value") and isinstance(v.value, (str, int)):
         return v.value
     if hasattr(v, "item"):                     # numpy scalar
         try:
@@ -315,10 +315,10 @@ def alarm_payload(seq: int, t: float, station: str, alarm: dict[str, Any]) -> di
 
 def result_payload(seq: int, ev: Event, st: StationState | None) -> dict[str, Any]:
     d = ev.data
-    same = st is not None and ev.test_id is not None and st.test_id == ev.test_id
+    own = st if st is not None and ev.test_id is not None and st.test_id == ev.test_id else None
     return {**_env(seq, ev.wall_time, ev.station), "test_id": ev.test_id or d.get("test_dir"),
-            "sample_id": st.sample_id if same else None, "grade": st.grade if same else None,
-            "t_set": st.t_set if same else None, "test_status": d.get("test_status", "aborted"),
+            "sample_id": own.sample_id if own else None, "grade": own.grade if own else None,
+            "t_set": own.t_set if own else None, "test_status": d.get("test_status", "aborted"),
             "end_reason": d.get("reason", ""), "result": d.get("result")}
 
 

@@ -5,10 +5,10 @@ import logging
 import os
 
 from . import schema
-from .sparkplug.output import SparkplugOutput, settings_from_config
 from .metrics import MetricsOutput
 from .modbus_server import ModbusOutput, ModbusSettings
 from .mqtt import MqttOutput, MqttSettings
+from .sparkplug.output import SparkplugOutput, settings_from_config
 
 log = logging.getLogger("hookwatch.northbound")
 

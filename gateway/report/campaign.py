@@ -21,10 +21,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
+from .. import logio
 from ..analysis import AnalysisError, params_for
 from ..logio import LogError, read_meta, sidecar_path
 from ..method.params import MethodParams
-from .. import logio
 
 #: written into a report folder so that a report inside the campaign folder is never mistaken
 #: for recorded tests on the next run

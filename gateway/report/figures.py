@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+
 from ..method import rules as R
 from .stats import group_stats
 

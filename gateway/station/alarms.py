@@ -26,7 +26,7 @@ log = logging.getLogger("hookwatch.alarms")
 
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
-    d = _dt.datetime.fromtimestamp(round(float(t), 3), tz=_dt.timezone.utc)
+    d = _dt.datetime.fromtimestamp(round(float(t), 3), tz=_dt.UTC)
     return d.strftime("%Y-%m-%dT%H:%M:%S.") + f"{d.microsecond // 1000:03d}Z"
 
 

@@ -20,8 +20,8 @@ from typing import Any
 
 import yaml
 
-from ..records import Event, SlotRecord
 from ..analysis import AnalysisError, analyze_file
+from ..records import Event, SlotRecord
 
 log = logging.getLogger("hookwatch.recorder")
 

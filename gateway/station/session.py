@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import __version__
-from ..control import ControlParams, Controller
+from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams, build_params
 from ..records import Event, SlotRecord, StationState

@@ -23,7 +23,8 @@ import statistics
 import time
 from collections import deque
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Coroutine
+from typing import Any
+from collections.abc import Callable, Coroutine
 
 from ..control import ControlParams, Controller
 from ..method.core import StreamingMonitor

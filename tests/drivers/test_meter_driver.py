@@ -1,0 +1,287 @@
+"""The gateway's meter driver (pymodbus RTU master) against the virtual meter in a separate process,
+over a pty behind a stable symlink: values, timeouts, CRC errors, exceptions, a vanishing port, and
+a 50 Hz poll loop."""
+import asyncio
+import os
+import statistics
+import time
+from types import SimpleNamespace
+
+import pytest
+import yaml
+
+from conftest import ROOT
+from drivers.zns import Reading, ZnsMeter
+from kit.meter import MeterProcess
+
+MAPS = os.path.join(ROOT, "config", "meters")
+SLOT_S = 0.020
+
+
+def cfg(port, **kw):
+    base = dict(port=port, map=None, baud=None, unit_id=None, parity=None, timeout_s=0.015,
+                swap_channels=False)
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+async def wait_until(cond, timeout=5.0, step=0.01):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        await asyncio.sleep(step)
+    return cond()
+
+
+async def read_ok(meter, tries=20):
+    """A good reading (tolerating an odd miss on a loaded machine)."""
+    for _ in range(tries):
+        r = await meter.read()
+        if r is not None:
+            return r
+        await asyncio.sleep(SLOT_S)
+    raise AssertionError(f"no good reading in {tries} tries: {meter.counters}")
+
+
+@pytest.fixture
+def meter_proc(tmp_path):
+    procs = []
+
+    def start(*args, link_name="meter"):
+        mp = MeterProcess(tmp_path / f"{link_name}.log", *args, link=str(tmp_path / link_name))
+        procs.append(mp)
+        return mp
+
+    yield start
+    for p in procs:
+        p.stop()
+
+
+def test_reads_values(meter_proc):
+    mp = meter_proc("--value", "0.5,1.234")
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path))
+        await m.open()
+        try:
+            assert m.connected
+            readings = [await m.read() for _ in range(30)]
+        finally:
+            await m.close()
+        return m, readings
+
+    m, readings = asyncio.run(main())
+    good = [r for r in readings if r is not None]
+    assert len(good) >= 24, m.counters          # an odd timeout when the machine is busy
+    assert all(isinstance(r, Reading) and (r.ch1, r.ch2) == (0.5, 1.234) for r in good)
+    rtts = [r.rtt_s for r in good]
+    assert m.map.poll_time_s() <= statistics.median(rtts) < m.timeout_s
+    assert m.counters["reads_ok"] == len(good) and not m.connected
+
+
+def test_reads_other_map_and_overrides(meter_proc):
+    """int32 in mN, little-endian words, FC 4, even parity; station overrides baud and unit."""
+    path = os.path.join(MAPS, "zn-s-int32-little.yaml")
+    mp = meter_proc("--map", path, "--baud", "38400", "--unit", "17", "--value", "2.5,0.001")
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path, map=path, baud=38400, unit_id=17, timeout_s=0.02))
+        await m.open()
+        try:
+            return m, await read_ok(m)
+        finally:
+            await m.close()
+
+    m, r = asyncio.run(main())
+    assert (m.map.baud, m.map.unit_id, m.map.parity, m.map.function) == (38400, 17, "E", 4)
+    assert (r.ch1, r.ch2) == (2.5, 0.001)
+
+
+def test_timeouts_crc_errors_and_exceptions(meter_proc, tmp_path):
+    mp = meter_proc("--value", "1.0,2.0")
+    # a map whose block the meter does not have → the meter answers exception 02
+    bad_map = tmp_path / "far.yaml"
+    bad_map.write_text(yaml.safe_dump({"channels": {"ch1": {"address": 10}, "ch2": {"address": 12}}}))
+
+    async def timed(m):
+        t0 = time.monotonic()
+        r = await m.read()
+        return r, time.monotonic() - t0
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path))
+        far = ZnsMeter.from_config(cfg(mp.path, map=str(bad_map)))
+        await m.open()
+        out = {}
+        try:
+            await read_ok(m)
+            mp.command("drop on")
+            out["drop"] = [await timed(m) for _ in range(5)]
+            mp.command("drop off")
+            await read_ok(m)
+            mp.command("crc on")
+            out["crc"] = [await timed(m) for _ in range(5)]
+            mp.command("crc off")
+            await read_ok(m)
+            # a late reply (after the timeout) must not be taken for the next read's answer
+            mp.command("delay 0.025")
+            out["late"] = await timed(m)
+            mp.command("value 3.0 4.0")
+            mp.command("delay 0")
+            await asyncio.sleep(0.05)       # the late reply (1.0, 2.0) lands between the reads
+            out["after_late"] = await read_ok(m)
+            out["counters"] = dict(m.counters)
+        finally:
+            await m.close()
+        await far.open()
+        try:
+            out["far"] = await far.read()
+            out["far_counters"] = dict(far.counters)
+            out["far_code"] = far.last_exception_code
+        finally:
+            await far.close()
+        return out
+
+    out = asyncio.run(main())
+    c = out["counters"]
+    # dropped replies: counted as timeouts, None, never longer than timeout_s (+ scheduling slack)
+    assert all(r is None for r, _ in out["drop"])
+    drop_dt = sorted(dt for _, dt in out["drop"])
+    assert drop_dt[2] < 0.015 + 0.005 and drop_dt[-1] < 0.015 + 0.025, drop_dt   # + scheduling
+    assert c["timeouts"] >= 5
+    # bad CRC: counted and None as soon as the reply is in, not after the timeout
+    assert all(r is None for r, _ in out["crc"])
+    assert statistics.median(dt for _, dt in out["crc"]) < 0.012
+    assert c["crc_errors"] == 5
+    # late reply: the read times out; the next read returns the new values, the stray bytes counted
+    assert out["late"][0] is None
+    assert (out["after_late"].ch1, out["after_late"].ch2) == (3.0, 4.0)
+    assert c["late_bytes"] >= 1 and c["timeouts"] == 6
+    assert out["far"] is None and out["far_counters"]["modbus_exceptions"] == 1 and out["far_code"] == 2
+    srv = mp.counters()
+    assert srv["dropped"] == 5
+
+
+def test_port_vanishes_and_comes_back(meter_proc):
+    mp = meter_proc("--value", "0.7,0.8")
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path))
+        await m.open()
+        try:
+            await read_ok(m)
+            mp.command("vanish")
+            assert await wait_until(lambda: not m.connected, 3.0), m.counters
+            assert not os.path.exists(mp.path)
+            t0 = time.monotonic()
+            r = await m.read()
+            dt_disconnected = time.monotonic() - t0
+            assert r is None and dt_disconnected < 0.002
+            await asyncio.sleep(0.6)        # a reopen attempt happens and fails quietly
+            assert not m.connected and m.counters["reopened"] == 0
+            mp.command("restore", "meter: ")
+            assert await wait_until(lambda: m.connected, 3.0), m.counters
+            r = await read_ok(m)
+            return m, r
+        finally:
+            await m.close()
+
+    m, r = asyncio.run(main())
+    assert (r.ch1, r.ch2) == (0.7, 0.8)
+    assert m.counters["port_lost"] == 1 and m.counters["reopened"] == 1
+    assert m.counters["not_connected"] >= 1
+
+
+def test_open_before_the_port_exists(tmp_path):
+    link = str(tmp_path / "late")
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(link))
+        await m.open()                       # does not raise, keeps trying
+        assert not m.connected and await m.read() is None
+        with MeterProcess(tmp_path / "late.log", "--value", "1.5,1.5", link=link):
+            assert await wait_until(lambda: m.connected, 3.0), m.counters
+            r = await read_ok(m)
+        await m.close()
+        return m, r
+
+    m, r = asyncio.run(main())
+    assert (r.ch1, r.ch2) == (1.5, 1.5) and m.counters["reopened"] == 1
+
+
+async def poll_50hz(m, n):
+    """Absolute-deadline 50 Hz loop as the station runs it: one read per 20 ms slot."""
+    loop = asyncio.get_running_loop()
+    t0 = loop.time() + 0.05
+    results, durations = [], []
+    for k in range(n):
+        await asyncio.sleep(max(0.0, t0 + k * SLOT_S - loop.time()))
+        t = time.monotonic()
+        results.append(await m.read())
+        durations.append(time.monotonic() - t)
+    return results, durations
+
+
+def test_50hz_poll_loop_at_115200(meter_proc):
+    mp = meter_proc("--ramp", "0.5", "--value", "0.0,1.0")
+    n = 300
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path))
+        await m.open()
+        try:
+            attempts = []
+            # another run only if one was starved of CPU (2 cores shared by many)
+            for _ in range(3):
+                results, durations = await poll_50hz(m, n)
+                attempts.append((results, durations, dict(m.counters)))
+                if sum(r is not None for r in results) / n >= 0.99:
+                    break
+            return m, attempts
+        finally:
+            await m.close()
+
+    m, attempts = asyncio.run(main())
+    for results, _durations, counters in attempts:
+        good = [r for r in results if r is not None]
+        rtts = sorted(r.rtt_s for r in good)
+        print(f"\n50 Hz at 115200: {len(good)}/{n} filled, rtt median {statistics.median(rtts) * 1e3:.2f} ms, "
+              f"p99 {rtts[int(0.99 * len(rtts))] * 1e3:.2f} ms, wire {m.map.poll_time_s() * 1e3:.2f} ms; "
+              f"{counters}")
+    results, durations, counters = attempts[-1]
+    good = [r for r in results if r is not None]
+    assert len(good) / n >= 0.99, counters
+    # no read held the slot much longer than the timeout (99th percentile, + event-loop slack)
+    assert sorted(durations)[int(0.99 * n)] < m.timeout_s + 0.003
+    # values move with the ramp (each reading is fresh)
+    assert len({r.ch1 for r in good}) > n // 2
+
+
+def test_pymodbus_rtt_at_19200(meter_proc):
+    """At 19200 a read takes 14 ms on the wire: pymodbus adds well under a millisecond to it (the
+    margin to a 20 ms slot is thin: see docs/protocols/zn-s.md)."""
+    mp = meter_proc("--baud", "19200", "--value", "0.5,0.5")
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path, baud=19200, timeout_s=0.03))
+        await m.open()
+        try:
+            out = []
+            for _ in range(40):
+                out.append(await m.read())
+                await asyncio.sleep(0.005)
+            return m, out
+        finally:
+            await m.close()
+
+    m, results = asyncio.run(main())
+    good = [r for r in results if r is not None]
+    rtts = sorted(r.rtt_s for r in good)
+    med, p10 = statistics.median(rtts), rtts[len(rtts) // 10]
+    print(f"\n19200: pymodbus rtt median {med * 1e3:.2f} ms, p10 {p10 * 1e3:.2f} ms "
+          f"(wire {m.map.poll_time_s() * 1e3:.2f} ms), {len(good)}/{len(results)} good")
+    assert len(good) >= 36, m.counters
+    wire = m.map.poll_time_s()
+    # no hidden inter-character waits: the fast reads are within 2 ms of the wire time
+    assert wire <= p10 < wire + 0.002 and med < wire + 0.005

@@ -1,0 +1,185 @@
+"""Streaming form == batch form on thousands of random logs (hypothesis)."""
+import math
+
+import numpy as np
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from gateway.method import MethodParams, StreamingMonitor, analyze_slots, gate_arrays
+from gateway.method.core import SlotArrays, gate_and_baseline
+
+EVENT_KINDS = ["dropout", "burst", "spike", "low", "ratio_low", "ratio_high", "saturation", "nan",
+               "gap_ng", "gap_ng1", "gap_stop", "gap_stop1"]
+
+
+@st.composite
+def random_log(draw, wear=False):
+    """A random log; ``wear`` favours long tests past the baseline (many §5a windows)."""
+    if wear:
+        p = MethodParams(
+            t_set=0.5, w_ss=draw(st.sampled_from([0.2, 0.4])), w_hold=draw(st.sampled_from([0.4, 1.0])),
+            tau=draw(st.sampled_from([0.3, 2.0])), tau_g=draw(st.sampled_from([0.1, 1.0])),
+            stop_after=draw(st.sampled_from([1.0, 10.0])), delta=draw(st.sampled_from([0.1, 0.25])),
+            end_slot=draw(st.sampled_from([None, 2500, 4000])),
+            h_warn=draw(st.sampled_from([0.5, 0.9])), n_warn=draw(st.sampled_from([1, 3, 5])),
+            trend_windows=draw(st.sampled_from([10, 25, 60])))
+        return _make_log(draw, p, n=draw(st.integers(1500, 6000)), max_events=6)
+    p = MethodParams(
+        t_set=0.5, w_ss=draw(st.sampled_from([0.6, 1.0])), w_hold=draw(st.sampled_from([1.0, 2.0, 3.0])),
+        tau=draw(st.sampled_from([0.3, 0.5])), tau_g=draw(st.sampled_from([0.0, 0.1, 0.2, 1.0])),
+        stop_after=draw(st.sampled_from([0.0, 0.2, 1.0])), delta=draw(st.sampled_from([0.1, 0.25])),
+        t_end=draw(st.sampled_from([None, None, 60.0, 90.0])),
+        end_slot=draw(st.sampled_from([None, None, None, 0, 1, 2000, 3001, 4500])),
+        h_warn=draw(st.sampled_from([0.5, 0.9, 1.2])), n_warn=draw(st.sampled_from([1, 2, 5])),
+        trend_windows=draw(st.sampled_from([10, 12, 60])),
+    )
+    return _make_log(draw, p, n=draw(st.integers(0, 5000)), max_events=25)
+
+
+def _make_log(draw, p, n, max_events):
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    onset = draw(st.integers(0, 5000))
+    k = np.arange(n)
+    mu = 0.25 + draw(st.sampled_from([0.0005, 0.002, 0.006])) * rng.standard_normal(n)
+    mu += np.where(k > onset, (k - onset) * draw(st.sampled_from([1e-5, 1e-4, 1e-3])), 0.0)
+    mean = 0.5 + 0.01 * rng.standard_normal(n)
+    theta = math.radians(105)
+    e = np.exp(mu * theta)
+    t1 = np.round(2 * mean / (1 + e), 3)
+    t2 = np.round(t1 * e, 3)
+    present = np.ones(n, dtype=bool)
+    n_g, n_stop = p.n_g, p.n_stop
+    for _ in range(draw(st.integers(0, max_events))):
+        kind = draw(st.sampled_from(EVENT_KINDS))
+        if n == 0:
+            break
+        at = draw(st.integers(0, n - 1))
+        length = {"burst": draw(st.integers(1, 80)), "gap_ng": n_g, "gap_ng1": n_g + 1,
+                  "gap_stop": n_stop, "gap_stop1": n_stop + 1}.get(kind, 1)
+        sl = slice(at, min(n, at + max(length, 1)))
+        if kind in ("dropout", "burst", "gap_ng", "gap_ng1", "gap_stop", "gap_stop1"):
+            present[sl] = False
+        elif kind == "spike":
+            t2[sl] += draw(st.sampled_from([0.25, 0.2500001, 0.3, 1.0]))
+        elif kind == "low":
+            t1[sl] = draw(st.sampled_from([0.0, 0.01, 0.025, -0.1]))
+        elif kind == "ratio_low":
+            t2[sl] = t1[sl]
+        elif kind == "ratio_high":
+            t2[sl] = t1[sl] * 4.3
+        elif kind == "saturation":
+            t2[sl] = draw(st.sampled_from([4.9, 4.95, 5.0]))
+        elif kind == "nan":
+            t1[sl] = draw(st.sampled_from([math.nan, math.inf]))
+    t1[~present] = np.nan
+    t2[~present] = np.nan
+    if p.n_grid is not None:
+        # a planned end: the log may stop early (the rest is MISSING) or run past it (ignored)
+        m = p.n_grid
+        if n >= m:
+            present, t1, t2 = present[:m], t1[:m], t2[:m]
+        else:
+            pad = m - n
+            present = np.concatenate([present, np.zeros(pad, bool)])
+            t1 = np.concatenate([t1, np.full(pad, np.nan)])
+            t2 = np.concatenate([t2, np.full(pad, np.nan)])
+    return p, present, t1, t2
+
+
+@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(random_log())
+def test_streaming_equals_batch(case):
+    _streaming_equals_batch(*case)
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(random_log(wear=True))
+def test_streaming_equals_batch_past_the_baseline(case):
+    """end_slot, headroom, warning and projection (§3, §5a) on long tests with many windows."""
+    _streaming_equals_batch(*case)
+
+
+def _streaming_equals_batch(p, present, t1, t2):
+    batch = analyze_slots(SlotArrays(present, t1, t2), p)
+    mask, ratio, mu = gate_arrays(present, t1, t2, p)
+    mon = StreamingMonitor(p)
+    windows = []
+    warned = []
+    for k in range(len(present)):
+        if mon.finished:
+            break
+        out = mon.push(bool(present[k]), float(t1[k]), float(t2[k]))
+        assert out.mask == mask[k]
+        assert out.q == (mask[k] == 0)
+        if out.mu is None:
+            assert math.isnan(mu[k])
+        else:
+            assert out.mu == mu[k]
+        if out.ratio is None:
+            assert math.isnan(ratio[k])
+        else:
+            assert out.ratio == ratio[k]
+        if out.window is not None:
+            assert "window" in out.events and out.window.last_slot == k
+            windows.append(out.window)
+        if "wear_warning" in out.events:
+            warned.append(k)
+    stream = mon.close(len(present))
+    assert stream.as_dict() == batch.as_dict()
+    # §5a window by window: the streaming form published exactly the batch form's windows (those
+    # the streaming form completed before close() padded the rest with MISSING slots)
+    g = gate_and_baseline(SlotArrays(present, t1, t2), p)
+    assert [(w.j, w.n_eff, w.value) for w in windows] == g.windows[:len(windows)]
+    if windows:
+        last = [w for w in windows if w.value is not None]
+        if len(windows) == len(g.windows) and last:
+            assert stream.headroom == last[-1].headroom and stream.t_cross == last[-1].t_cross
+    assert warned == ([stream.warn_slot] if stream.warn_slot is not None and warned else [])
+    event(f"status {stream.status}{' STOPPED' if stream.stop_reasons == ['STOPPED'] else ''}")
+    event(f"warning {stream.warn_slot is not None}, projection {stream.t_cross is not None}, "
+          f"headroom {stream.headroom is not None}")
+    if p.end_slot is not None and stream.status == "aborted" and stream.stop_reasons == ["STOPPED"]:
+        assert stream.stop_slot == p.end_slot == stream.n_slots
+
+
+def test_gap_of_ng_keeps_count_and_ng_plus_one_resets():
+    """§5 at the boundary: a gap of exactly N_g non-exceeding slots keeps c, N_g + 1 resets it."""
+    p = MethodParams(t_set=0.5, w_ss=1.0, w_hold=1.0, tau=1.0, tau_g=0.1, stop_after=10.0)
+    n_ss, n_tau, n_g = p.n_ss, p.n_tau, p.n_g
+    theta = p.theta
+
+    def run(gap):
+        mu = [0.25] * n_ss + [0.4] * (n_tau - 10) + [0.25] * gap + [0.4] * 10 + [0.25] * 200
+        t1 = np.full(len(mu), 0.4)
+        t2 = np.round(t1 * np.exp(np.array(mu) * theta), 12)
+        present = np.ones(len(mu), bool)
+        r = analyze_slots(SlotArrays(present, t1, t2), p)
+        mon = StreamingMonitor(p)
+        for a, b in zip(t1, t2):
+            mon.push(True, float(a), float(b))
+        assert mon.result().as_dict() == r.as_dict()
+        return r
+
+    kept = run(n_g)
+    assert kept.status == "failure"
+    # c reached N_τ at the last exceeding slot; k_life = k − N_τ + 1
+    assert kept.k_life == n_ss + n_tau - 10 + n_g + 10 - 1 - n_tau + 1
+    reset = run(n_g + 1)
+    assert reset.status == "no_failure"
+
+
+def test_protection_stop_on_the_51st_missing_slot():
+    p = MethodParams(t_set=0.5)
+    n = 400
+    t1 = np.full(n, 0.3)
+    t2 = np.full(n, 0.6)
+    for gap, expect_stop in ((50, False), (51, True)):
+        present = np.ones(n, bool)
+        present[100:100 + gap] = False
+        r = analyze_slots(SlotArrays(present, t1.copy(), t2.copy()), p)
+        if expect_stop:
+            assert r.status == "aborted" and r.stop_slot == 150 and r.stop_reasons == ["MISSING"]
+            assert r.n_slots == 151
+        else:
+            assert r.stop_slot is None and r.n_slots == n

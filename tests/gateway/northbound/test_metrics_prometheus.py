@@ -1,0 +1,152 @@
+"""Metrics scraped by Debian's real Prometheus server while `hookwatch run` runs against
+`hookwatch sim` (processes talking over pseudo-terminals; everything on loopback)."""
+import json
+import os
+import subprocess
+import time
+import urllib.parse
+import urllib.request
+
+import pytest
+import yaml
+
+from conftest import ROOT
+from kit.e2e import run_gateway, station_yaml, virtual_station, wait_log
+from kit.tools import free_port, require_tool
+
+RULES = os.path.join(ROOT, "deploy", "prometheus", "hookwatch-rules.yml")
+
+
+def query(api: str, promql: str) -> list[dict]:
+    url = f"{api}/api/v1/query?" + urllib.parse.urlencode({"query": promql})
+    with urllib.request.urlopen(url, timeout=5) as r:
+        body = json.load(r)
+    assert body["status"] == "success", body
+    return body["data"]["result"]
+
+
+def series(api: str, match: str) -> list[dict]:
+    url = f"{api}/api/v1/series?" + urllib.parse.urlencode({"match[]": match})
+    with urllib.request.urlopen(url, timeout=5) as r:
+        body = json.load(r)
+    assert body["status"] == "success", body
+    return body["data"]
+
+
+def wait_for(fn, timeout: float, what: str, log=lambda: ""):
+    t_end = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < t_end:
+        try:
+            last = fn()
+            if last:
+                return last
+        except OSError as e:      # Prometheus not listening yet
+            last = e
+        time.sleep(0.5)
+    raise AssertionError(f"{what}: last answer {last!r}\n{log()}")
+
+
+@pytest.fixture
+def prometheus(tmp_path):
+    """Start Prometheus on a free loopback port; yields (start(target), api url)."""
+    binary = require_tool("prometheus")
+    procs = []
+
+    def start(target: str) -> str:
+        port = free_port()
+        conf = tmp_path / "prometheus.yml"
+        conf.write_text(yaml.safe_dump({
+            "global": {"scrape_interval": "1s", "scrape_timeout": "900ms", "evaluation_interval": "1s"},
+            "rule_files": [RULES],
+            "scrape_configs": [{"job_name": "hookwatch", "static_configs": [{"targets": [target]}]}],
+        }))
+        log = open(tmp_path / "prometheus.log", "w")
+        p = subprocess.Popen([binary, f"--config.file={conf}", f"--web.listen-address=127.0.0.1:{port}",
+                              f"--storage.tsdb.path={tmp_path / 'tsdb'}", "--log.level=warn"],
+                             stdout=log, stderr=subprocess.STDOUT)
+        procs.append((p, log))
+        return f"http://127.0.0.1:{port}"
+
+    yield start
+    for p, log in procs:
+        p.terminate()
+        try:
+            p.wait(15)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+        log.close()
+
+
+def test_prometheus_scrapes_a_running_gateway(tmp_path, prometheus):
+    mport = free_port()
+    with virtual_station(tmp_path, "config/scenarios/quick.yaml") as (_sim, links):
+        path = station_yaml(tmp_path, links, name="loom-m", method={"w_ss": 5, "w_hold": 20, "tau": 5})
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+        cfg["metrics"] = {"enabled": True, "host": "127.0.0.1", "port": mport}
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        gw = run_gateway(tmp_path, path, "--start", "--duration", "120")
+        try:
+            wait_log(gw, "metrics for Prometheus on", timeout=30)
+            api = prometheus(f"127.0.0.1:{mport}")
+            plog = lambda: (tmp_path / "prometheus.log").read_text()[-3000:] + "\n" + gw.log()  # noqa: E731
+
+            # the target is up
+            up = wait_for(lambda: [r for r in query(api, 'up{job="hookwatch"}') if r["value"][1] == "1"],
+                          60, "target up", plog)
+            assert up[0]["metric"]["instance"] == f"127.0.0.1:{mport}"
+
+            # the station's series are there, its links up, a test running
+            names = wait_for(lambda: {s["__name__"] for s in series(api, '{station="loom-m"}')} >= {
+                "hookwatch_slots_total", "hookwatch_slots_filled_total",
+                "hookwatch_slot_lateness_seconds_bucket", "hookwatch_meter_rtt_seconds_bucket",
+                "hookwatch_link_up", "hookwatch_station_state"} and
+                {s["__name__"] for s in series(api, '{station="loom-m"}')}, 30, "station series", plog)
+            assert "hookwatch_test_running" in names
+            def links():
+                return {r["metric"]["link"]: r["value"][1]
+                        for r in query(api, 'hookwatch_link_up{station="loom-m"}')}
+
+            wait_for(lambda: links() == {"meter": "1", "stm32": "1"}, 20, "links up", plog)
+            running = query(api, 'hookwatch_test_running{station="loom-m"}')
+            assert running and running[0]["value"][1] == "1"
+
+            # and moving: slots counted between two queries (50 per second)
+            def slots():
+                r = query(api, 'hookwatch_slots_total{station="loom-m"}')
+                return float(r[0]["value"][1]) if r else None
+
+            first = wait_for(slots, 20, "slots series", plog)
+            second = wait_for(lambda: (v := slots()) is not None and v >= first + 100 and v, 20,
+                              "slots moving", plog)
+            assert second - first >= 100
+            # 50 slots per second between the first and the last sample of 5 s of scrapes
+            time.sleep(5)
+            window = query(api, 'hookwatch_slots_total{station="loom-m"}[6s]')[0]["values"]
+            assert len(window) >= 3, window
+            (t0, v0), (t1, v1) = window[0], window[-1]
+            assert 40 <= (float(v1) - float(v0)) / (t1 - t0) <= 60, window
+            filled = query(api, 'hookwatch_slots_filled_total{station="loom-m"}')
+            assert float(filled[0]["value"][1]) > 0
+            # p99 lateness is computable from the histogram
+            p99 = query(api, 'histogram_quantile(0.99, rate(hookwatch_slot_lateness_seconds_bucket'
+                             '{station="loom-m"}[5s]))')
+            assert p99 and 0 <= float(p99[0]["value"][1]) <= 0.010
+            # the shipped recording rules evaluate on the live series
+            ratio = wait_for(lambda: query(api, 'hookwatch:slots_filled:ratio1m{station="loom-m"}'), 20,
+                             "recording rule", plog)
+            assert 0.5 <= float(ratio[0]["value"][1]) <= 1.0
+        finally:
+            gw.stop()
+
+
+def test_shipped_prometheus_config_and_rules_are_valid():
+    promtool = require_tool("promtool")
+    for args in (["check", "config", os.path.join(ROOT, "deploy", "prometheus", "prometheus.yml")],
+                 ["check", "rules", RULES]):
+        p = subprocess.run([promtool, *args], capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stdout + p.stderr
+        assert "SUCCESS" in p.stdout + p.stderr

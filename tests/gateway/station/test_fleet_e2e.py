@@ -1,0 +1,74 @@
+"""Issue 6: many stations in one gateway process, each isolated. Four virtual stations (separate
+`hookwatch sim` processes) and one `hookwatch run FLEET_DIR`; one meter dies mid-test, the other
+three keep their slots and finish their lives with results identical to offline analysis."""
+import contextlib
+import os
+import signal
+import subprocess
+
+import pytest
+import yaml
+
+from conftest import ROOT, hookwatch_cmd
+from kit.e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station
+
+pytestmark = pytest.mark.slow
+
+METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
+STATIONS = ("st-a", "st-b", "st-c", "st-d")
+VICTIM = "st-b"
+
+
+def _scenario(path, seed):
+    path.write_text(yaml.safe_dump({
+        "description": "fleet test life", "seed": seed, "meter": {"map": METER_MAP},
+        "stm32": {"watchdog_s": 0.2},
+        "plant": {"grade": "I" if seed % 2 else "II", "t_set": 0.5, "time_scale": 600},
+        "method": {"w_ss": 5, "w_hold": 20, "tau": 5, "t_end": 70}, "faults": []}))
+    return str(path)
+
+
+def test_four_stations_one_process_one_meter_killed(tmp_path):
+    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01},
+                      test={"t_end_s": 70, "autostart": True})
+    with contextlib.ExitStack() as stack:
+        sims = {}
+        for i, name in enumerate(STATIONS):
+            sub = tmp_path / name
+            sub.mkdir()
+            sims[name] = stack.enter_context(
+                virtual_station(sub, _scenario(sub / "sc.yaml", seed=11 + i)))
+            _proc, links = sims[name]
+            (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
+                "station": {"id": name}, "meter": {"port": links["meter"]},
+                "stm32": {"port": links["stm32"]}, "test": {"sample_id": f"S-{name}"}}))
+        chk = subprocess.run(hookwatch_cmd() + ["check", "--skip-local", str(fleet)],
+                             capture_output=True, text=True, cwd=ROOT, timeout=60)
+        assert chk.returncode == 0, chk.stdout + chk.stderr
+        stats = tmp_path / "stats.json"
+        gw = run_gateway(tmp_path, str(fleet), "--exit-when-done", "--stats-json", str(stats))
+        # mid-test, the victim's virtual station dies with both its ports: its meter is gone
+        import time
+        time.sleep(25)
+        victim = sims[VICTIM][0]
+        victim.p.send_signal(signal.SIGKILL)
+        victim.p.wait(10)
+        try:
+            assert gw.p.wait(150) == 0, gw.log()
+        finally:
+            gw.stop()
+    st = read_json(str(stats))
+    for name in STATIONS:
+        dirs = test_dirs(tmp_path, name)
+        assert len(dirs) == 1, (name, dirs)
+        res = read_json(os.path.join(dirs[0], "result.json"))
+        online = res["method"]
+        assert analyze_cli(os.path.join(dirs[0], "log.csv.gz")) == online, name
+        if name == VICTIM:
+            assert res["test_status"] == "aborted" and online["stop_reasons"] == ["MISSING"], res
+            continue
+        assert res["test_status"] == "completed", (name, res)
+        assert online["status"] == "failure", (name, online)
+        s = st[name]
+        assert s["filled_ratio"] >= 0.999, (name, s)
+        assert online["reasons"]["MISSING"] <= 0.001 * online["n_slots"], (name, online)

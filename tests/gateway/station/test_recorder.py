@@ -1,0 +1,81 @@
+"""The recorder: exact round trip of the values the method used, flushed each second, kill -9 safe."""
+import json
+import math
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+
+from gateway.logio import read_log
+from gateway.records import SlotRecord
+from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, incomplete_tests, recover_incomplete
+
+META = {"station": "t", "sample_id": "S", "method": {"t_set": 0.5, "t_end": 100.0}}
+
+
+def rec(k, t1, t2, present=True):
+    return SlotRecord(k=k, t=k * 0.02, present=present, t1=t1, t2=t2, q=1, mask=0, ratio=t2 / t1,
+                      mu=math.log(t2 / t1) / 1.8, mean_filt=(t1 + t2) / 2, speed_cmd=150.0,
+                      speed_act=149.5, saturated=False)
+
+
+def test_values_round_trip_exactly(tmp_path):
+    rng = np.random.default_rng(3)
+    vals = rng.uniform(0.1, 4.9, (500, 2)).astype(np.float32).astype(np.float64)
+    r = TestRecorder(str(tmp_path / "x"), META)
+    for k, (a, b) in enumerate(vals):
+        r.on_record(rec(k, float(a), float(b), present=(k % 7 != 3)))
+    r.close({"ok": True})
+    lg = read_log(str(tmp_path / "x" / LOG_NAME))
+    keep = np.array([k % 7 != 3 for k in range(500)])
+    assert np.array_equal(lg.t1, vals[keep, 0]) and np.array_equal(lg.t2, vals[keep, 1])
+    assert np.array_equal(np.floor(lg.t / 0.02 + 0.5), np.flatnonzero(keep))
+    assert lg.meta["sample_id"] == "S"
+    assert lg.columns[:3] == ["t", "T1", "T2"] and "speed_cmd" in lg.columns
+    assert json.loads((tmp_path / "x" / RESULT_NAME).read_text()) == {"ok": True}
+
+
+WRITER = textwrap.dedent("""
+    import sys, time
+    from gateway.records import SlotRecord
+    from gateway.station.recorder import TestRecorder
+    r = TestRecorder(sys.argv[1], {"station": "t", "method": {"t_set": 0.5, "t_end": 1000.0}},
+                     flush_interval_s=1.0)
+    t0 = time.monotonic(); k = 0
+    while True:
+        while time.monotonic() < t0 + k * 0.02:
+            time.sleep(0.001)
+        r.on_record(SlotRecord(k=k, t=k * 0.02, present=True, t1=0.3, t2=0.6, q=1, mask=0,
+                               ratio=2.0, mu=0.37, mean_filt=0.45, speed_cmd=1.0, speed_act=1.0,
+                               saturated=False))
+        if k == 0:
+            print("started", flush=True)
+        k += 1
+""")
+
+
+def test_kill_9_loses_at_most_the_last_second_and_restart_closes_as_aborted(tmp_path):
+    d = tmp_path / "station" / "test1"
+    p = subprocess.Popen([sys.executable, "-c", WRITER, str(d)], stdout=subprocess.PIPE, text=True)
+    assert p.stdout.readline().strip() == "started"
+    t_start = time.monotonic()
+    time.sleep(3.5)
+    elapsed = time.monotonic() - t_start
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    p.stdout.close()
+    lg = read_log(str(d / LOG_NAME))
+    written_s = lg.t.max() if lg.t.size else 0.0
+    assert elapsed - written_s <= 1.0 + 0.3, (elapsed, written_s)   # ≤ 1 s lost (+ scheduling slack)
+    assert np.all(np.diff(lg.t) > 0)
+    assert incomplete_tests(str(tmp_path / "station")) == [str(d)]
+    closed = recover_incomplete(str(tmp_path / "station"))
+    assert len(closed) == 1
+    res = json.loads((d / RESULT_NAME).read_text())
+    assert res["test_status"] == "aborted" and res["end_reason"] == "gateway restart"
+    assert res["method"]["status"] == "aborted"      # t_end not reached: the rest is MISSING
+    assert res["method"]["n_slots"] >= lg.t.size
+    assert incomplete_tests(str(tmp_path / "station")) == []

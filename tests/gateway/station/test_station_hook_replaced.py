@@ -1,0 +1,42 @@
+"""`hook_replaced` (a Sparkplug DCMD, MQTT or CLI command) closes the end-of-life alarm of the
+replaced hook through the one command path; without an alarm it is refused with NO_ALARM."""
+import asyncio
+import json
+
+from gateway.control import ControlParams
+from gateway.records import Command, CommandKind, EventType
+from gateway.station.commands import CODE
+from gateway.station.station import Station
+from kit.fakes import Capture, QuietStm32, TimedMeter
+
+
+class Events(Capture):
+    """Capture (records) plus the events."""
+
+    def __init__(self):
+        super().__init__()
+        self.events = []
+
+    def on_event(self, ev):
+        self.events.append(ev)
+
+
+def test_hook_replaced_closes_the_alarm_and_is_refused_without_one(tmp_path):
+    out = Events()
+    st = Station(station_id="hr", method={}, control=ControlParams(), meter=TimedMeter(slow=()),
+                 stm32=QuietStm32(), records_dir=str(tmp_path), outputs=[out])
+    st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, sample_id="S-1")
+    assert st.state.alarm == "active"
+
+    async def main():
+        first = await st.submit(Command(CommandKind.HOOK_REPLACED, "sparkplug"))
+        second = await st.submit(Command(CommandKind.HOOK_REPLACED, "sparkplug"))
+        return first, second
+
+    first, second = asyncio.run(main())
+    assert first.ok and st.state.alarm == "none"
+    with open(tmp_path / "hr" / "alarm.json") as f:
+        assert json.load(f)["alarm"] == "none"
+    cleared = [e for e in out.events if e.type == EventType.ALARM_CLEARED]
+    assert len(cleared) == 1 and cleared[0].data["reason"] == "hook_replaced"
+    assert not second.ok and second.code == CODE["NO_ALARM"]

@@ -1,0 +1,1 @@
+"""The shared test kit: processes, broker, virtual devices, fakes (see tests/conftest.py)."""

@@ -1,0 +1,108 @@
+"""End-to-end helpers: a virtual station (`hookwatch sim`) and the gateway (`hookwatch run`) as
+separate processes talking over pseudo-terminals."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import time
+
+import yaml
+
+from conftest import ROOT, hookwatch_cmd
+from kit.proc import Proc
+
+
+@contextlib.contextmanager
+def virtual_station(tmp_path, scenario: str, seed: int = 1, extra: list[str] | None = None):
+    """Start `hookwatch sim SCENARIO` with its links under tmp_path/links; yields (proc, links)."""
+    link_dir = tmp_path / "links"
+    link_dir.mkdir(exist_ok=True)
+    sc = scenario if os.path.isabs(scenario) else os.path.join(ROOT, scenario)
+    truth = tmp_path / "truth.json"
+    proc = Proc(hookwatch_cmd() + ["sim", sc, "--link-dir", str(link_dir), "--seed", str(seed),
+                                   "--truth", str(truth), *(extra or [])],
+                str(tmp_path / "sim.log"))
+    try:
+        proc.readline_until("meter:")
+        proc.readline_until("stm32:")
+        yield proc, {"meter": str(link_dir / "meter"), "stm32": str(link_dir / "stm32"),
+                     "truth": str(truth)}
+    finally:
+        proc.stop()
+
+
+def station_yaml(tmp_path, links, *, name="e2e", method=None, control=None, test=None,
+                 mqtt=None, modbus_tcp=None, meter=None) -> str:
+    cfg = {
+        "station": {"id": name, "site": "lab", "area": "test", "line": "l1"},
+        "meter": {"port": links["meter"], "map": os.path.join(ROOT, "config", "meters", "zn-s.yaml"),
+                  **(meter or {})},
+        "stm32": {"port": links["stm32"]},
+        "method": method or {},
+        "control": control or {},
+        "test": {"sample_id": "S-1", "grade": "I", "t_set_n": 0.5, "t_end_s": 60, **(test or {})},
+        "recorder": {"dir": str(tmp_path / "records")},
+        "mqtt": {"enabled": False, **(mqtt or {})},
+        "modbus_tcp": {"enabled": False, **(modbus_tcp or {})},
+    }
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return str(path)
+
+
+def run_gateway(tmp_path, station_path, *args, name="gw") -> Proc:
+    return Proc(hookwatch_cmd() + ["run", station_path, *args], str(tmp_path / f"{name}.log"))
+
+
+def test_dirs(tmp_path, station="e2e"):
+    d = tmp_path / "records" / station
+    return sorted(str(d / x) for x in os.listdir(d) if (d / x).is_dir()) if d.exists() else []
+
+
+def read_json(path):
+    with open(path) as f:
+        return json.load(f)
+
+
+test_dirs.__test__ = False  # a helper, not a test (pytest collects it where it is imported)
+
+
+def analyze_cli(log_path) -> dict:
+    """`hookwatch analyze LOG --json` as a user runs it: the result keys (without `log`)."""
+    p = subprocess.run(hookwatch_cmd() + ["analyze", str(log_path), "--json"], capture_output=True,
+                       text=True, cwd=ROOT, timeout=60)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    out.pop("log")
+    return out
+
+
+def wait_log(proc: Proc, text: str, timeout: float = 20.0) -> None:
+    """Wait until ``text`` appears in a process' log (stderr)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if text in proc.log_all():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"{text!r} not in the log of {proc.p.args}:\n{proc.log()}")
+
+
+def fleet_dir(tmp_path, **defaults):
+    """A fleet folder (fleet.yaml + stations/) for test stations on the virtual bench: short
+    method windows, records under tmp_path, no northbound; ``defaults`` are merged in by section."""
+    base = {
+        "station": {"site": "lab", "area": "hall", "line": "l1"},
+        "meter": {"map": os.path.join(ROOT, "config", "meters", "zn-s.yaml")},
+        "method": {"w_ss": 5, "w_hold": 20, "tau": 5},
+        "test": {"t_set_n": 0.5, "t_end_s": 70},
+        "recorder": {"dir": str(tmp_path / "records")},
+        "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
+    }
+    for k, v in defaults.items():
+        base[k] = {**base.get(k, {}), **v}
+    fleet = tmp_path / "fleet"
+    (fleet / "stations").mkdir(parents=True)
+    (fleet / "fleet.yaml").write_text(yaml.safe_dump({"defaults": base}))
+    return fleet
