@@ -167,8 +167,9 @@ class ZnsMeter:
         self._release()
         m = self.map
         try:
-            ser = serial.Serial(self.port, baudrate=m.baud, bytesize=m.bytesize, parity=parity,
-                                stopbits=m.stopbits, timeout=0, write_timeout=0)
+            # serial_for_url: a device path, or a pyserial URL (the back-to-back tests' hwloop://)
+            ser = serial.serial_for_url(self.port, baudrate=m.baud, bytesize=m.bytesize, parity=parity,
+                                        stopbits=m.stopbits, timeout=0, write_timeout=0)
         except (OSError, ValueError, serial.SerialException) as e:
             log.debug("meter %s: open failed: %r", self.port, e)
             return False

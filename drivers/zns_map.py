@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-from gateway import safeyaml
+import gateway.safeyaml as safeyaml
 from gateway.validation import Problem, ValidationError, did_you_mean, key_text, suggestion_text
 
 #: the repository's default map (the gateway's configuration model may point elsewhere)

@@ -18,7 +18,10 @@ from collections import defaultdict
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGES = ("gateway", "drivers")
-PURE_CORE = ("gateway.ports", "gateway.records", "gateway.method", "gateway.control")
+#: what drivers may import of gateway: the contracts, records, the pure method and control, and the
+#: two leaves every file reader shares (one bounded YAML reader, one validation style)
+PURE_CORE = ("gateway.ports", "gateway.records", "gateway.method", "gateway.control", "gateway.validation",
+             "gateway.safeyaml")
 
 
 def _modules() -> dict[str, str]:

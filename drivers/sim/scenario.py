@@ -20,7 +20,7 @@ import os
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-from gateway import safeyaml
+import gateway.safeyaml as safeyaml
 
 # the scenario's method and control sections are checked by gateway's pure core (the layer under
 # the drivers: numbers in, numbers out, no I/O)

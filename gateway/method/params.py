@@ -297,5 +297,8 @@ def validate(p: MethodParams, prefix: str = "") -> None:
     if not p.settle_time >= 0:
         bad("settle_time", "≥ 0")
     if not p.start_timeout > p.settle_time:
-        raise ParamError(f"{prefix}start_timeout {p.start_timeout!r} must be longer than "
-                         f"settle_time {p.settle_time!r}")
+        raise _err(prefix, "start_timeout", f"{p.start_timeout!r} must be longer than settle_time "
+                   f"{p.settle_time!r}", p.start_timeout, f"> settle_time ({p.settle_time!r})",
+                   related=("settle_time",),
+                   text=f"{prefix}start_timeout {p.start_timeout!r} must be longer than "
+                        f"settle_time {p.settle_time!r}")
