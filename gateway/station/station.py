@@ -17,7 +17,6 @@ import json
 import logging
 import math
 import os
-import re
 import statistics
 import time
 from collections import deque
@@ -31,7 +30,7 @@ from ..method.params import MethodParams
 from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
 from .clock import SlotClock
-from .recorder import TestRecorder, recover_incomplete, utc_iso
+from .recorder import TestRecorder, new_test_dir, recover_incomplete, utc_iso
 
 log = logging.getLogger("hookwatch.station")
 
@@ -89,10 +88,6 @@ class SlotStats:
                 "lateness_ms_max": lat[-1] * 1e3 if lat else math.nan,
                 "rtt_ms_median": statistics.median(self.rtt) * 1e3 if self.rtt else math.nan,
                 "stm32_busy_skips": self.stm32_busy_skips}
-
-
-def _safe_name(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)[:48] or "test"
 
 
 class Station:
@@ -244,7 +239,7 @@ class Station:
         p = build_params(values, f"station {self.id}")
         self.k_start = None            # the test's slot 0 is the next slot the loop processes
         start_wall = time.time()
-        self.test_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(start_wall)) + "-" + _safe_name(plan.sample_id)
+        self.test_id, test_dir = new_test_dir(self.station_dir, plan.sample_id, start_wall)
         self.plan, self.params = plan, p
         self.monitor = StreamingMonitor(p)
         self.controller = Controller(self.control_params, plan.t_set)
@@ -256,7 +251,7 @@ class Station:
             "method": {k: v for k, v in p.as_dict().items()},
             "control": self.control_params.as_dict(),
         }
-        self.recorder = TestRecorder(os.path.join(self.station_dir, self.test_id), meta,
+        self.recorder = TestRecorder(test_dir, meta,
                                      self.flush_interval_s)
         st = self.state
         if st.alarm != "none":
