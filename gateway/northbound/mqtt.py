@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import json
 import logging
 import math
 import os
@@ -31,7 +30,8 @@ from paho.mqtt.enums import CallbackAPIVersion
 from .. import __version__
 from ..method.rules import REASONS
 from ..records import Event, EventType, SlotRecord, StationState
-from ..station.commands import CODE, Rejection, command_from_mapping
+from ..station.commands import CODE, Rejection
+from .cmdparse import RejectionLimiter, clip, parse_command, rejected_event_data
 from . import schema
 from .outbox import Outbox, Row
 from .registers import MAP_VERSION
@@ -182,6 +182,7 @@ class MqttOutput:
         self._setup_error: str | None = None
         self._connect_error_logged = False
         self._refused: str | None = None
+        self._rej_limiter = RejectionLimiter()
 
     # ================================================================ station side
     def _put(self, kind: str, topic: str, build: Callable[[int], dict], *, retain: bool = False,
@@ -490,16 +491,10 @@ class MqttOutput:
     def _on_message(self, client, userdata, msg) -> None:
         name = msg.topic.rsplit("/", 1)[-1]
         self.counters["commands"] += 1
-        try:
-            text = msg.payload.decode("utf-8").strip()
-            payload = json.loads(text) if text else {}
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            self._reply(name, None, Rejection(False, f"{name}: payload is not JSON: {e}", None,
-                                              CODE["BAD_REQUEST"]))
-            return
-        cmd = command_from_mapping(name, payload, "mqtt")
+        cmd = parse_command(name, msg.payload, "mqtt")   # bounded: size, depth, numbers, strings
         if isinstance(cmd, Rejection):
-            self._reply(name, cmd.request_id, cmd)
+            self._reply(clip(name, 32).strip("'"), cmd.request_id, cmd)
+            self._intake_rejected(name, cmd)
             return
         st, loop = self.station, self.loop
         if st is None or loop is None or loop.is_closed():
@@ -522,6 +517,20 @@ class MqttOutput:
             self._reply(cmd.kind.value, cmd.request_id, r)
 
         fut.add_done_callback(done)
+
+    def _intake_rejected(self, name: str, rej: Rejection) -> None:
+        """A code-9 refusal becomes a ``command_rejected`` event of the station (rate-limited)."""
+        n = self._rej_limiter.allow(time.monotonic())
+        st, loop = self.station, self.loop
+        if n is None or st is None or loop is None or loop.is_closed():
+            return
+        data = rejected_event_data(name, rej, "mqtt")
+        if n:
+            data["suppressed"] = n
+        try:
+            loop.call_soon_threadsafe(lambda: st._emit_event(EventType.COMMAND_REJECTED, **data))
+        except RuntimeError:
+            pass
 
     def _reply(self, command: str, request_id: str | None, r) -> None:
         code = 0 if r.ok else int(getattr(r, "code", CODE["BAD_REQUEST"]) or CODE["BAD_REQUEST"])
