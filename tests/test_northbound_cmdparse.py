@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from paho.mqtt.enums import CallbackAPIVersion
 
-from gateway.northbound.cmdparse import (ECHO_CHARS, MAX_PAYLOAD_BYTES, RejectionLimiter, clip,
+from gateway.northbound.cmdparse import (ECHO_CHARS, RejectionLimiter, clip,
                                          nesting_depth, parse_command, rejected_event_data)
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.records import Command, CommandKind

@@ -250,18 +250,8 @@ class TestRecorder:
                 self.lost_spans.append([ks[0], ks[-1]])
 
     def _write_meta(self) -> None:
-        path = os.path.join(self.dir, META_NAME)
-        tmp = path + ".tmp"
-        try:
-            with open(tmp, "w", encoding="utf-8") as f:
-                yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except OSError:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
+        _atomic_write(os.path.join(self.dir, META_NAME),
+                      lambda f: yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True))
 
     def on_record(self, rec: SlotRecord) -> None:
         if not rec.present or self.closed:
@@ -367,12 +357,13 @@ _retry_thread: threading.Thread | None = None
 RESULT_RETRY_S = 5.0
 
 
-def _write_result_file(test_dir: str, result: dict[str, Any]) -> None:
-    path = os.path.join(test_dir, RESULT_NAME)
+def _atomic_write(path: str, dump: Callable[[Any], Any]) -> None:
+    """Write a text file through a synced temporary file and a rename; on failure the temporary
+    file is removed and the error raised (the old file, if any, stays)."""
     tmp = path + ".tmp"
     try:
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(result, f, indent=1)
+            dump(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -380,6 +371,10 @@ def _write_result_file(test_dir: str, result: dict[str, Any]) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def _write_result_file(test_dir: str, result: dict[str, Any]) -> None:
+    _atomic_write(os.path.join(test_dir, RESULT_NAME), lambda f: json.dump(result, f, indent=1))
 
 
 def _retry_results() -> None:
