@@ -30,7 +30,7 @@ from .framer import Framer, FrameError, encode
 log = logging.getLogger("hookwatch.modbus")
 
 MAX_CONNECTIONS = 64
-MAX_PER_CLIENT = 8
+MAX_PER_CLIENT = 16
 IDLE_TIMEOUT_S = 60.0
 EVICT_IDLE_S = 1.0
 READ_CHUNK = 4096
