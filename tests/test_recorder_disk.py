@@ -12,9 +12,10 @@ import pytest
 
 from e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
 from gateway.logio import read_log
-from gateway.records import SlotRecord
+from gateway.records import Command, CommandKind, SlotRecord
 from gateway.station import recorder as recmod
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, new_test_dir
+from northbound_helpers import LoopThread, RunningStation, make_station, wait_for
 from smallfs import fill, small_tmpfs
 from test_station_e2e import TUNED, events, scenario
 
@@ -189,23 +190,36 @@ def test_test_dirs_are_exclusive_within_one_millisecond(tmp_path):
     assert len({p for _, p in ids}) == 3 and all(os.path.isdir(p) for _, p in ids)
 
 
-@pytest.mark.slow
 def test_two_tests_started_within_one_second_get_two_folders(tmp_path):
-    sc = scenario(tmp_path, "twice", method={"t_end": 600})
-    with virtual_station(tmp_path, sc) as (_sim, links):
-        st = station_yaml(tmp_path, links, name="twice", control=TUNED, test={"t_end_s": 600})
-        # the CLI's console: start, abort, start again at once
-        gw = run_gateway(tmp_path, st, "--start", "--duration", "12")
-        t_wait = time.monotonic() + 30
-        while time.monotonic() < t_wait and not test_dirs(tmp_path, "twice"):
-            time.sleep(0.05)
-        assert test_dirs(tmp_path, "twice"), gw.log()
-        gw.stop()
-    first, = test_dirs(tmp_path, "twice")
-    ids = {os.path.basename(first)}
-    # a second start of the same sample within the same second, from the same wall time
-    tid, path = new_test_dir(str(tmp_path / "records" / "twice"), "S-1",
-                             time.mktime(time.strptime(os.path.basename(first)[:15], "%Y%m%dT%H%M%S"))
-                             - time.timezone + int(os.path.basename(first)[16:19]) / 1000)
-    assert tid not in ids and path != first and os.listdir(path) == []
-    assert os.path.exists(os.path.join(first, LOG_NAME))
+    """A real station (slot loop at 50 Hz, fake ports): start, stop, start again with the same
+    sample within one second → two folders, each with its own log, result and events."""
+    lt = LoopThread()
+    st = make_station(tmp_path, [], station_id="twice")
+    run = RunningStation(lt, st)
+    try:
+        wait_for(lambda: st.stats.slots > 5, 10, what="slots")
+        t0 = time.time()
+        for kind, args in ((CommandKind.START, {"sample_id": "S-1", "t_set": 0.5}),
+                           (CommandKind.STOP, {}),
+                           (CommandKind.START, {"sample_id": "S-1", "t_set": 0.5})):
+            r = lt.call(st.submit(Command(kind, "cli", args)))
+            assert r.ok, r.reason
+            time.sleep(0.1)
+        assert time.time() - t0 < 1.0
+        r = lt.call(st.submit(Command(CommandKind.STOP, "cli", {})))
+        assert r.ok
+    finally:
+        run.stop()
+        lt.close()
+    dirs = test_dirs(tmp_path, "twice")
+    assert len(dirs) == 2, dirs
+    ids = set()
+    for d in dirs:
+        res = read_json(os.path.join(d, RESULT_NAME))
+        ids.add(res["test_id"])
+        assert res["test_id"] == os.path.basename(d)
+        assert read_log(os.path.join(d, LOG_NAME)).t.size > 0
+        evs = events(d)
+        assert {e["test_id"] for e in evs} == {res["test_id"]}
+        assert [e["type"] for e in evs].count("test_started") == 1
+    assert len(ids) == 2
