@@ -65,12 +65,17 @@ def _read_raw(path: str) -> bytes:
 
 def _decompress(path: str, raw: bytes) -> bytes:
     if raw[:2] == b"\x1f\x8b":
+        # the recorder writes one gzip member per flush; a log cut off by kill -9 (older
+        # recorders: one stream) has no trailer: keep what decompresses
+        out, rest = [], raw
         try:
-            # a log cut off by kill -9 has no gzip trailer: keep what decompresses
-            d = zlib.decompressobj(16 + zlib.MAX_WBITS)
-            raw = d.decompress(raw)
+            while rest[:2] == b"\x1f\x8b":
+                d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+                out.append(d.decompress(rest))
+                rest = d.unused_data
         except zlib.error as e:
             raise LogError(f"{path}: corrupt gzip data: {e}") from None
+        raw = b"".join(out)
     return raw
 
 

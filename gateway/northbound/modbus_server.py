@@ -1,7 +1,9 @@
 """Modbus TCP server for PLCs: live values in input registers, commands in holding registers.
 
 One server per (host, port) in the process, shared by the stations configured on it; each station
-answers on its own unit ID. The server runs pymodbus' ``ModbusTcpServer`` on its own thread and
+answers on its own unit ID. The server is our own asyncio server in layers
+(``gateway/northbound/modbus_tcp``: MBAP framer, pure PDU codec, server with connection caps, idle
+timeout and pacing; only the functions the register map documents) and runs on its own thread and
 event loop, so PLC traffic never runs on a station's loop.
 
 - Live values: each station's :class:`ModbusOutput` (a station output) encodes a complete input
@@ -9,17 +11,16 @@ event loop, so PLC traffic never runs on a station's loop.
   state change) and swaps it in with one reference assignment; a read returns a consistent
   snapshot. The heartbeat is advanced by that same loop: it stops when the station is stuck.
 - Writes: refused with exception 01 unless the station's YAML enables them and the client's
-  address is listed; every value is checked against the register map and the shared command
+  address is listed (an address or a network, e.g. ``10.10.5.0/24``); every value is checked against the register map and the shared command
   rules (gateway/station/commands.py) before anything changes (exception 03 when out of range);
   commands go to ``station.submit`` on the station's own loop (source ``plc:<address>``), a
   refused command answers exception 04 with its reason code in ``last_result``.
-- The client address of a request is taken from the connection's transport by a request
-  handler subclass and handed to the datastore through a context variable.
+- The client address of a request is the connection's peer address.
 """
 from __future__ import annotations
 
 import asyncio
-import contextvars
+import ipaddress
 import logging
 import math
 import os
@@ -29,13 +30,6 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
-from pymodbus.pdu import ExceptionResponse
-from pymodbus.server import ModbusTcpServer
-from pymodbus.server.requesthandler import ServerRequestHandler
-from pymodbus.simulator import DataType, SimData, SimDevice
-
 from .. import __version__
 from ..method.rules import REASONS
 from ..ports import CommandSink, StationLimits
@@ -43,10 +37,10 @@ from ..records import Command, CommandKind, Event, EventType, SlotRecord, Statio
 from ..station.commands import CODE, check_sample_id
 from ..threadloop import submit_to
 from . import registers as R
+from .modbus_tcp.pdu import Exc as ExcCodes
+from .modbus_tcp.server import ModbusTcpServer, Pacer, Store
 
 log = logging.getLogger("hookwatch.modbus")
-
-_PEER: contextvars.ContextVar[str | None] = contextvars.ContextVar("hookwatch_modbus_peer", default=None)
 
 #: input registers served from the command status (not from the station's image)
 CMD_BASE = R.IR["last_command"].address
@@ -63,12 +57,6 @@ SERVER_NICE = 10
 
 
 
-def tame_pymodbus_logging() -> None:
-    """pymodbus logs an error with frame dumps for every bad request: keep it quiet."""
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    logging.getLogger("pymodbus.logging").setLevel(logging.CRITICAL)
-
-
 # ============================================================================ the datastore
 class Unit:
     """One station's registers on a shared server."""
@@ -82,144 +70,19 @@ class Unit:
         self.lock = asyncio.Lock()      # writes of one unit are applied one at a time
 
     def may_write(self, peer: str | None) -> bool:
+        return self.owner.may_write(peer)
+
+    def write_policy(self) -> str:
         o = self.owner
-        return bool(o.writes_enabled and peer is not None and peer in o.allowed_clients)
+        return ("writes allowed only from " + ", ".join(sorted(o.allowed_clients))
+                if o.writes_enabled else "writes disabled")
 
-
-class Store:
-    """Duck-typed replacement of pymodbus' SimCore: what ``ModbusPDU.datastore_update`` calls."""
-
-    def __init__(self):
-        self.units: dict[int, Unit] = {}
-        self.counters: dict[str, int] = {"reads": 0, "writes": 0, "refused": 0, "bad_value": 0,
-                                         "unknown_unit": 0}
-
-    def device_ids(self) -> list[int]:
-        return list(self.units)
-
-    def _unit(self, device_id: int) -> Unit:
-        u = self.units.get(device_id)
-        if u is None:
-            self.counters["unknown_unit"] += 1
-            raise NoSuchIdException(f"unit {device_id}")
-        return u
-
-    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
-        u = self._unit(device_id)
-        self.counters["reads"] += 1
-        if func_code == 4:
-            if not 1 <= count <= 125:
-                return ExcCodes.ILLEGAL_VALUE
-            if address < 0 or address + count > R.INPUT_SIZE:
-                return ExcCodes.ILLEGAL_ADDRESS
-            img = u.ir + u.cmd_regs
-            out = img[address:address + count]
-            if address <= STATUS_ADDR < address + count and u.may_write(_PEER.get()):
-                out[STATUS_ADDR - address] |= WRITES_BIT
-            return out
-        if func_code in (3, 6, 16, 23):
-            if not 1 <= count <= 125:
-                return ExcCodes.ILLEGAL_VALUE
-            if address < 0 or address + count > R.HOLDING_SIZE:
-                return ExcCodes.ILLEGAL_ADDRESS
-            return u.hr[address:address + count]
-        return ExcCodes.ILLEGAL_FUNCTION
-
-    async def async_setValues(self, device_id: int, func_code: int, address: int, values):
-        u = self._unit(device_id)
-        if func_code not in (6, 16, 23):
-            return ExcCodes.ILLEGAL_FUNCTION
-        peer = _PEER.get()
-        if not u.may_write(peer):
-            self.counters["refused"] += 1
-            log.info("unit %d: write from %s refused (writes %s)", device_id, peer,
-                     "allowed only from " + ", ".join(sorted(u.owner.allowed_clients))
-                     if u.owner.writes_enabled else "disabled")
-            return ExcCodes.ILLEGAL_FUNCTION
-        values = [int(v) for v in values]
-        async with u.lock:
-            rc = await u.owner.handle_write(u, address, values, peer)
-        if rc is None:
-            self.counters["writes"] += 1
-        elif rc == ExcCodes.ILLEGAL_VALUE:
-            self.counters["bad_value"] += 1
-        return rc
-
-
-_TASKS: set = set()    # requests being handled (a task needs a strong reference)
-
-
-class _Pacer:
-    """At most ``rate`` requests per second over the whole server: time is cut into windows of
-    ``window_s``, each serving ``rate · window_s`` requests; a request beyond a window's share
-    waits for the next window with room (all waiting requests of a window wake together, so the
-    pacing costs one wake-up per window, not one per request). A flood of PLC requests cannot take
-    the CPU from the stations."""
-
-    def __init__(self, rate: float, window_s: float = 0.005):
-        self.q = window_s
-        self.cap = max(1, int(round(rate * window_s)))
-        self.w = 0
-        self.n = 0
-        self.delayed = 0
-
-    async def wait(self) -> None:
-        now = time.monotonic()
-        cur = int(now / self.q)
-        if cur > self.w:
-            self.w, self.n = cur, 0
-        if self.n >= self.cap:
-            self.w += 1
-            self.n = 0
-        self.n += 1
-        delay = self.w * self.q - now
-        if delay > 0:
-            self.delayed += 1
-            await asyncio.sleep(delay)
-
-
-class _Handler(ServerRequestHandler):
-    """Request handler: the client's address is visible to the datastore, requests are paced,
-    and a request is handled from its own PDU (not the handler's last one, which a pipelining
-    client may overwrite while an earlier request waits)."""
-
-    def handle_later(self):
-        # already on the server's loop: a task, not run_coroutine_threadsafe (self-pipe + future)
-        t = self.loop.create_task(self.handle_request())
-        _TASKS.add(t)
-        t.add_done_callback(_TASKS.discard)
-
-    async def handle_request(self):
-        pdu, addr = self.last_pdu, self.last_addr
-        if not pdu:
-            return
-        peer = None
-        try:
-            if self.transport is not None:
-                pn = self.transport.get_extra_info("peername")
-                peer = pn[0] if pn else None
-        except Exception:
-            peer = None
-        _PEER.set(peer)
-        pacer = getattr(self.server, "pacer", None)
-        if pacer is not None:
-            await pacer.wait()
-        try:
-            response = await pdu.datastore_update(self.server.context, pdu.dev_id)
-        except NoSuchIdException:
-            response = ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
-        except Exception as e:  # a request must never take the server down
-            log.debug("request %r failed: %s", pdu, e, exc_info=True)
-            response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
-        response.transaction_id = pdu.transaction_id
-        response.dev_id = pdu.dev_id
-        if self.transport is not None:
-            self.server_send(response, addr)
-
-
-class _TcpServer(ModbusTcpServer):
-    def callback_new_connection(self):
-        return _Handler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+    def decorate_input(self, regs: list[int], address: int, peer: str | None) -> list[int]:
+        """The status word's ``writes_enabled`` bit is per client."""
+        if address <= STATUS_ADDR < address + len(regs) and self.may_write(peer):
+            regs = list(regs)
+            regs[STATUS_ADDR - address] |= WRITES_BIT
+        return regs
 
 
 # ============================================================================ shared servers
@@ -232,9 +95,9 @@ class SharedServer:
     def __init__(self, host: str, port: int):
         self.host, self.port = host, port
         self.store = Store()
-        self.pacer = _Pacer(MAX_REQUESTS_PER_S)
+        self.pacer = Pacer(MAX_REQUESTS_PER_S)
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.server: _TcpServer | None = None
+        self.server: ModbusTcpServer | None = None
         self.listening = threading.Event()
         self.error: str | None = None
         self._stop: asyncio.Event | None = None
@@ -248,7 +111,6 @@ class SharedServer:
         asyncio.run(self._serve())
 
     async def _serve(self) -> None:
-        tame_pymodbus_logging()
         # PLC traffic runs in this thread of the gateway process: a station thread woken by its
         # slot clock must get the interpreter within ~1 ms, not the default 5 ms switch interval
         if sys.getswitchinterval() > SWITCH_INTERVAL_S:
@@ -262,16 +124,13 @@ class SharedServer:
         self.loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
         self._ready.set()
-        dummy = SimDevice(0, simdata=[SimData(0, values=0, datatype=DataType.REGISTERS)])
         logged = False
         while not self._stop.is_set():
-            server = _TcpServer(dummy, address=(self.host, self.port))
-            server.context = self.store
-            server.pacer = self.pacer
+            server = ModbusTcpServer(self.store, self.pacer)
             try:
-                await server.serve_forever(background=True)
+                await server.start(self.host, self.port)
             except Exception as e:  # address in use, permission
-                server.close()
+                await server.close()
                 self.error = f"modbus_tcp {self.host}:{self.port}: cannot listen: {e}"
                 if not logged:
                     log.error("%s; retrying every %.0f s", self.error, self.RETRY_S)
@@ -287,7 +146,7 @@ class SharedServer:
             log.info("Modbus TCP server listening on %s:%d", self.host, self.port)
             await self._stop.wait()
         if self.server is not None:
-            await self.server.shutdown()
+            await self.server.close()
             self.server = None
         self.listening.clear()
 
@@ -382,6 +241,7 @@ class ModbusOutput:
         self.sink: CommandSink | None = station
         self.writes_enabled = bool(settings.writes_enabled)
         self.allowed_clients = frozenset(str(a) for a in settings.allowed_clients)
+        self._allowed_nets = _networks(self.allowed_clients)
         self.word_order = settings.word_order
         self.limits: StationLimits = (station.limits if station is not None
                                       else StationLimits(grades=tuple(settings.grades)))
@@ -411,9 +271,20 @@ class ModbusOutput:
         """Send the PLC's commands to ``sink`` (gateway.ports.CommandSource)."""
         self.sink = sink
 
+    def may_write(self, peer: str | None) -> bool:
+        """Writes enabled and ``peer`` inside one of ``allowed_clients`` (addresses or networks)."""
+        if not self.writes_enabled or not peer:
+            return False
+        try:
+            ip = ipaddress.ip_address(peer)
+        except ValueError:
+            return False
+        if getattr(ip, "ipv4_mapped", None) is not None:
+            ip = ip.ipv4_mapped
+        return any(ip in n for n in self._allowed_nets if n.version == ip.version)
+
     # -- output protocol (station loop)
     async def start(self) -> None:
-        tame_pymodbus_logging()
         self.loop = asyncio.get_running_loop()
         self.server = await self.loop.run_in_executor(None, shared_server, self.s.host, int(self.s.port))
         unit = Unit(int(self.s.unit_id), self)
@@ -535,8 +406,7 @@ class ModbusOutput:
                 return ExcCodes.DEVICE_FAILURE
             u.hr = R.apply_register(u.hr, plan.new, "t_set")
         if plan.wrote("command"):
-            code = int(plan.value("command"))
-            u.hr = R.apply_register(u.hr, plan.new, "command")
+            code = int(plan.value("command"))   # the command register reads 0 (docs/registers.md)
             kind = R.COMMAND_KINDS[code]
             args: dict[str, Any] = {}
             if kind == CommandKind.START:
@@ -564,3 +434,15 @@ class ModbusOutput:
         n = (u.cmd_regs[2] + 1) & 0xFFFF
         u.cmd_regs = [code, result, n]
         return ok
+
+
+def _networks(items) -> tuple:
+    """``allowed_clients`` entries as networks (an address is a /32 or /128); entries that are
+    neither are ignored here (``hookwatch check`` reports them)."""
+    out = []
+    for a in items:
+        try:
+            out.append(ipaddress.ip_network(str(a).strip(), strict=False))
+        except ValueError:
+            log.error("modbus_tcp.writes.allowed_clients: %r is not an address or network; ignored", a)
+    return tuple(out)

@@ -18,7 +18,6 @@ Threads:
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import time
 from typing import Any
@@ -26,10 +25,11 @@ from typing import Any
 from ..ports import CommandSink
 from ..records import Event, EventType, SlotRecord, StationState
 from ..station.alarms import AlarmStore
-from ..station.commands import CODE, Rejection, command_from_mapping
+from ..station.commands import CODE, Rejection
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
 from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
+from .cmdparse import RejectionLimiter, clip, parse_command, rejected_event_data
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
 
@@ -65,6 +65,7 @@ class MqttOutput:
         self._last_state: StationState | None = None
         self._last_state_key: tuple[Any, ...] | None = None
         self._last_state_pub = 0.0
+        self._rej_limiter = RejectionLimiter()
 
     source = "mqtt"
 
@@ -143,16 +144,10 @@ class MqttOutput:
 
     def _command(self, name: str, raw: bytes) -> None:
         """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop."""
-        try:
-            text = raw.decode("utf-8").strip()
-            payload = json.loads(text) if text else {}
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            self._reply(name, None, Rejection(False, f"{name}: payload is not JSON: {e}", None,
-                                              CODE["BAD_REQUEST"]))
-            return
-        cmd = command_from_mapping(name, payload, "mqtt")
+        cmd = parse_command(name, raw, "mqtt")   # bounded: size, depth, numbers, strings
         if isinstance(cmd, Rejection):
-            self._reply(name, cmd.request_id, cmd)
+            self._reply(clip(name, 32).strip("'"), cmd.request_id, cmd)
+            self._intake_rejected(name, cmd)
             return
         sink = self.sink
         fut = submit_to(self.loop, sink.submit(cmd)) if sink is not None else None
@@ -170,6 +165,18 @@ class MqttOutput:
             self._reply(cmd.kind.value, cmd.request_id, r)
 
         fut.add_done_callback(done)
+
+    def _intake_rejected(self, name: str, rej: Rejection) -> None:
+        """A request refused before it became a command (code 9) is a ``command_rejected`` event of
+        the station, as every other refusal (rate-limited: a flood of garbage is one event a second
+        with the count of the ones left out)."""
+        n = self._rej_limiter.allow(time.monotonic())
+        if n is None or self.station is None:
+            return
+        data = rejected_event_data(name, rej, "mqtt")
+        if n:
+            data["suppressed"] = n
+        call_soon_on(self.loop, self.station.intake_rejected, data)
 
     def _reply(self, command: str, request_id: str | None, r: Any) -> None:
         self.pump.put(M.reply_message(self._base, self.s.station_id, time.time(), command, request_id, r))

@@ -1,22 +1,25 @@
 """Per-test recording: the log (METHOD.md §9 + extra columns) as .csv.gz, the metadata sidecar,
 the events file (JSON Lines) and the result.
 
-Flushed at least once a second (gzip sync flush): `kill -9` at any moment loses at most the last
-second, and what was written still reads (``gateway.logio`` keeps every complete row of a gzip
-stream without trailer). A test folder without ``result.json`` is a test that was cut off; on
+Flushed at least once a second, each flush one complete gzip member written in one call (a failed
+write is truncated back): `kill -9` at any moment loses at most the last second, and what reached
+the disk always reads back (``gateway.logio`` reads every member; a full or read-only disk is a
+state, see :class:`TestRecorder`). A test folder without ``result.json`` is a test that was cut off; on
 restart :func:`recover_incomplete` closes it as ``aborted`` (reason: gateway restart).
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import gzip
 import json
 import logging
 import math
 import os
+import re
 import threading
 import time
-from typing import Any
+from typing import Any, Callable
 
 import yaml
 
@@ -66,41 +69,190 @@ def _fsync_in_background(fd: int) -> None:
     _fsync_pool.submit(_fsync_dup, os.dup(fd))
 
 
+#: rows kept in memory while the disk refuses writes (5 minutes at 50 Hz, about 1 MB); beyond it
+#: the oldest unwritten rows are dropped and counted as a lost span (their slots read as MISSING)
+MAX_PENDING_ROWS = 15_000
+#: events kept in memory while the disk refuses writes
+MAX_PENDING_EVENTS = 1_000
+#: at most one "still cannot write" log line per this many seconds
+DISK_LOG_INTERVAL_S = 60.0
+
+
+class DiskError(OSError):
+    pass
+
+
+def _write_block(fd: int, data: bytes, good_offset: int) -> int:
+    """Write ``data`` at ``good_offset`` completely or not at all. On a short write or an error the
+    file is truncated back to ``good_offset`` (so it never ends in half a gzip member / half a
+    line) and the error is raised. Returns the new end offset."""
+    view = memoryview(data)
+    pos = good_offset
+    try:
+        while view:
+            n = os.pwrite(fd, view, pos)
+            if n <= 0:
+                raise OSError(28, "short write")
+            view = view[n:]
+            pos += n
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, good_offset)
+        raise
+    return pos
+
+
+def new_test_dir(station_dir: str, sample_id: str, start_wall: float | None = None) -> tuple[str, str]:
+    """A test id that cannot collide and its folder, created exclusively: UTC time to the
+    millisecond + the sample name; if that folder exists (two starts in one millisecond, a clock
+    step back), ``-2``, ``-3``, … is appended. Returns (test_id, path)."""
+    start_wall = time.time() if start_wall is None else start_wall
+    ms = int(round((start_wall % 1) * 1000)) % 1000
+    base = (time.strftime("%Y%m%dT%H%M%S", time.gmtime(start_wall)) + f".{ms:03d}Z-"
+            + safe_name(sample_id))
+    os.makedirs(station_dir, exist_ok=True)
+    for n in range(1, 10_000):
+        tid = base if n == 1 else f"{base}-{n}"
+        path = os.path.join(station_dir, tid)
+        try:
+            os.mkdir(path)           # exclusive: never shares another test's folder
+        except FileExistsError:
+            continue
+        return tid, path
+    raise FileExistsError(f"{station_dir}: no free test folder for {base}")
+
+
+def safe_name(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)[:48] or "test"
+
+
 class TestRecorder:
-    """Writes one test. Not thread-safe; called from the station's loop only."""
+    """Writes one test. Not thread-safe; called from the station's loop only.
+
+    The log is a sequence of complete gzip members, one per flush: each block is compressed in
+    memory and written in one call at the last good offset; a failed or short write is truncated
+    back, so what reached the disk always reads back (no CRC error, no half member).
+
+    A disk that refuses writes (full, read-only, gone) is a *state*, not a crash:
+    ``disk_ok`` turns False, ``on_disk_state(False, info)`` is called once, one error line is
+    logged (then at most one a minute, with a count); rows are kept in memory up to
+    :data:`MAX_PENDING_ROWS` (older ones are dropped and counted in ``lost_rows``/``lost_spans``).
+    When a write succeeds again ``disk_ok`` turns True, ``on_disk_state(True, info)`` is called,
+    the events ``disk_full`` and ``disk_ok`` (with the lost span) are appended to the events file
+    and the sidecar gets ``lost_spans`` at close. Slots of a lost span have no rows: the offline
+    analysis reads them as MISSING (METHOD.md §9).
+    """
 
     __test__ = False  # not a pytest test class
 
     def __init__(self, test_dir: str, meta: dict[str, Any], flush_interval_s: float = 1.0,
-                 fsync_interval_s: float = 10.0, clock=time.monotonic):
+                 fsync_interval_s: float = 10.0, clock=time.monotonic,
+                 on_disk_state: Callable[[bool, dict[str, Any]], None] | None = None):
         self.dir = test_dir
         os.makedirs(test_dir, exist_ok=True)
         self.meta = meta
         self._clock = clock
         self._flush_every = flush_interval_s
         self._fsync_every = fsync_interval_s
-        self._raw = open(os.path.join(test_dir, LOG_NAME), "wb")
-        self._gz = gzip.GzipFile(fileobj=self._raw, mode="wb", compresslevel=5,
-                                 filename="", mtime=0)
-        self._gz.write((",".join(LOG_COLUMNS) + "\n").encode())
-        self._buf: list[str] = []
-        self._events = open(os.path.join(test_dir, EVENTS_NAME), "a", encoding="utf-8")
+        self.on_disk_state = on_disk_state
+        self._fd = os.open(os.path.join(test_dir, LOG_NAME), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._off = 0
+        self._buf: list[str] = [",".join(LOG_COLUMNS) + "\n"]
+        self._buf_k: list[int] = [-1]       # slot of each buffered row (-1: the header)
+        self._ev_fd = os.open(os.path.join(test_dir, EVENTS_NAME), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        self._ev_off = os.fstat(self._ev_fd).st_size
+        self._ev_pending: list[str] = []
         self._last_flush = clock()
         self._last_fsync = clock()
         self.rows = 0
         self.closed = False
+        #: the disk state: False while writes fail (full, read-only); see the class doc
+        self.disk_ok = True
         self.write_errors = 0
-        self._write_meta()
+        self.lost_rows = 0
+        self.lost_spans: list[list[int]] = []   # [first k, last k] of rows that never reached the disk
+        self.dropped_events = 0
+        self._fail_since: float | None = None
+        self._fail_utc: str | None = None
+        self._fail_reason = ""
+        self._last_err_log = 0.0
+        self._errors_unlogged = 0
+        try:
+            self._write_meta()
+        except OSError as e:
+            self._failed(e)
         self.flush(force=True)
 
+    # -- disk state
+    def _failed(self, e: OSError) -> None:
+        self.write_errors += 1
+        now = self._clock()
+        if self.disk_ok:
+            self.disk_ok = False
+            self._fail_since = now
+            self._fail_utc = utc_iso()
+            self._fail_reason = e.strerror or str(e)
+            self._last_err_log = now
+            self._errors_unlogged = 0
+            log.error("%s: cannot write (%s): disk state FAILED; rows kept in memory (up to %d), "
+                      "then dropped and marked as a lost span", self.dir, self._fail_reason,
+                      MAX_PENDING_ROWS)
+            self._notify(False, {"reason": self._fail_reason, "utc": self._fail_utc})
+        else:
+            self._errors_unlogged += 1
+            if now - self._last_err_log >= DISK_LOG_INTERVAL_S:
+                log.error("%s: still cannot write (%s): %d failed writes since the last line, "
+                          "%d rows lost so far", self.dir, e.strerror or e, self._errors_unlogged,
+                          self.lost_rows)
+                self._last_err_log = now
+                self._errors_unlogged = 0
+
+    def _recovered(self) -> None:
+        if self.disk_ok:
+            return
+        self.disk_ok = True
+        dur = self._clock() - (self._fail_since or self._clock())
+        info = {"reason": self._fail_reason, "since_utc": self._fail_utc, "duration_s": round(dur, 3),
+                "lost_rows": self.lost_rows, "lost_spans": [list(s) for s in self.lost_spans],
+                "dropped_events": self.dropped_events}
+        log.warning("%s: writing again after %.1f s (%s); %d rows lost in %d span(s)", self.dir, dur,
+                    self._fail_reason, self.lost_rows, len(self.lost_spans))
+        self._ev_pending[:0] = [
+            json.dumps({"utc": self._fail_utc, "type": "disk_full", "station": self.meta.get("station"),
+                        "test_id": self.meta.get("test_id"), "data": {"reason": self._fail_reason}}) + "\n",
+            json.dumps({"utc": utc_iso(), "type": "disk_ok", "station": self.meta.get("station"),
+                        "test_id": self.meta.get("test_id"), "data": info}) + "\n"]
+        self._notify(True, info)
+
+    def _notify(self, ok: bool, info: dict[str, Any]) -> None:
+        if self.on_disk_state is not None:
+            try:
+                self.on_disk_state(ok, info)
+            except Exception:
+                log.exception("%s: disk state callback failed", self.dir)
+
+    def _drop_oldest_rows(self) -> None:
+        over = len(self._buf) - MAX_PENDING_ROWS
+        if over <= 0:
+            return
+        ks = [k for k in self._buf_k[:over] if k >= 0]
+        keep_header = self._buf_k[0] == -1
+        hdr = self._buf[0] if keep_header else None
+        del self._buf[:over]
+        del self._buf_k[:over]
+        if keep_header and self._buf_k[:1] != [-1]:
+            self._buf.insert(0, hdr)
+            self._buf_k.insert(0, -1)
+        if ks:
+            self.lost_rows += len(ks)
+            if self.lost_spans and self.lost_spans[-1][1] >= ks[0] - 1:
+                self.lost_spans[-1][1] = ks[-1]
+            else:
+                self.lost_spans.append([ks[0], ks[-1]])
+
     def _write_meta(self) -> None:
-        path = os.path.join(self.dir, META_NAME)
-        tmp = path + ".tmp"
-        with open(tmp, "w", encoding="utf-8") as f:
-            yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        _atomic_write(os.path.join(self.dir, META_NAME),
+                      lambda f: yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True))
 
     def on_record(self, rec: SlotRecord) -> None:
         if not rec.present or self.closed:
@@ -109,6 +261,7 @@ class TestRecorder:
             f"{rec.t:.4f},{_f(rec.t1)},{_f(rec.t2)},{rec.speed_cmd:.3f},"
             f"{'nan' if math.isnan(rec.speed_act) else format(rec.speed_act, '.3f')},"
             f"{int(rec.saturated)},{rec.q},{rec.mask},{_f(rec.mu)},{_f(rec.mean_filt)}\n")
+        self._buf_k.append(rec.k)
         self.rows += 1
         if self._clock() - self._last_flush >= self._flush_every:
             self.flush()
@@ -116,56 +269,157 @@ class TestRecorder:
     def on_event(self, ev: Event) -> None:
         if self.closed:
             return
+        self._ev_pending.append(json.dumps({"utc": utc_iso(ev.wall_time), **ev.as_dict()}) + "\n")
+        self._flush_events()
+
+    def _flush_events(self) -> bool:
+        if not self._ev_pending:
+            return True
         try:
-            self._events.write(json.dumps({"utc": utc_iso(ev.wall_time), **ev.as_dict()}) + "\n")
-            self._events.flush()
+            self._ev_off = _write_block(self._ev_fd, "".join(self._ev_pending).encode(), self._ev_off)
         except OSError as e:
-            self.write_errors += 1
-            log.error("%s: cannot write event: %s", self.dir, e)
+            over = len(self._ev_pending) - MAX_PENDING_EVENTS
+            if over > 0:
+                del self._ev_pending[:over]
+                self.dropped_events += over
+            self._failed(e)
+            return False
+        self._ev_pending.clear()
+        return True
 
     def flush(self, force: bool = False) -> None:
-        try:
-            if self._buf:
-                self._gz.write("".join(self._buf).encode())
+        """Write the buffered rows as one complete gzip member (and pending events); never raises."""
+        now = self._clock()
+        self._last_flush = now
+        ok = True
+        if self._buf:
+            block = gzip.compress("".join(self._buf).encode(), compresslevel=5, mtime=0)
+            try:
+                self._off = _write_block(self._fd, block, self._off)
                 self._buf.clear()
-            self._gz.flush()            # zlib sync flush + write to the OS
-            self._raw.flush()
-            now = self._clock()
-            self._last_flush = now
-            if force:
-                os.fsync(self._raw.fileno())
-                self._last_fsync = now
-            elif now - self._last_fsync >= self._fsync_every:
-                # never on the slot loop: an fsync on a busy disk can take longer than the STM32
-                # watchdog; a background thread syncs a duplicate of the descriptor
-                _fsync_in_background(self._raw.fileno())
-                self._last_fsync = now
-        except OSError as e:
-            self.write_errors += 1
-            log.error("%s: cannot write the log: %s (rows kept in memory: %d)", self.dir, e, len(self._buf))
+                self._buf_k.clear()
+            except OSError as e:
+                ok = False
+                self._drop_oldest_rows()
+                self._failed(e)
+        if ok and not self.disk_ok:
+            self._recovered()
+        if ok:
+            ok = self._flush_events()
+        if ok:
+            try:
+                if force:
+                    os.fsync(self._fd)
+                    os.fsync(self._ev_fd)
+                    self._last_fsync = now
+                elif now - self._last_fsync >= self._fsync_every:
+                    # never on the slot loop: an fsync on a busy disk can take longer than the STM32
+                    # watchdog; a background thread syncs a duplicate of the descriptor
+                    _fsync_in_background(self._fd)
+                    self._last_fsync = now
+            except OSError as e:
+                self._failed(e)
 
     def close(self, result: dict[str, Any]) -> None:
+        """Flush, close the files, add the lost spans to the sidecar and write the result. Never
+        raises: a result that cannot be written is kept and retried in the background (so a
+        completed test is not closed again as aborted after a restart)."""
         if self.closed:
             return
         self.flush(force=True)
-        try:
-            self._gz.close()
-            self._raw.close()
-            self._events.close()
-        except OSError as e:
-            log.error("%s: closing files: %s", self.dir, e)
+        if self._buf or self._ev_pending:
+            n = sum(1 for k in self._buf_k if k >= 0)
+            if n:
+                self.lost_rows += n
+                ks = [k for k in self._buf_k if k >= 0]
+                self.lost_spans.append([ks[0], ks[-1]])
+            log.error("%s: closing with %d rows and %d events that never reached the disk", self.dir,
+                      n, len(self._ev_pending))
+        for fd in (self._fd, self._ev_fd):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        if self.lost_rows or self.write_errors:
+            result = {**result, "recorder": {"lost_rows": self.lost_rows, "lost_spans": self.lost_spans,
+                                             "write_errors": self.write_errors,
+                                             "dropped_events": self.dropped_events}}
+            self.meta = {**self.meta, "lost_spans": self.lost_spans, "lost_rows": self.lost_rows}
+            try:
+                self._write_meta()
+            except OSError as e:
+                log.error("%s: cannot update the sidecar with the lost spans: %s", self.dir, e)
         write_result(self.dir, result)
         self.closed = True
 
 
-def write_result(test_dir: str, result: dict[str, Any]) -> None:
-    path = os.path.join(test_dir, RESULT_NAME)
+_pending_results: dict[str, dict[str, Any]] = {}
+_pending_lock = threading.Lock()
+_retry_thread: threading.Thread | None = None
+#: seconds between attempts to write a result that could not be written
+RESULT_RETRY_S = 5.0
+
+
+def _atomic_write(path: str, dump: Callable[[Any], Any]) -> None:
+    """Write a text file through a synced temporary file and a rename; on failure the temporary
+    file is removed and the error raised (the old file, if any, stays)."""
     tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(result, f, indent=1)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w", encoding="utf-8") as f:
+            dump(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def _write_result_file(test_dir: str, result: dict[str, Any]) -> None:
+    _atomic_write(os.path.join(test_dir, RESULT_NAME), lambda f: json.dump(result, f, indent=1))
+
+
+def _retry_results() -> None:
+    global _retry_thread
+    while True:
+        time.sleep(RESULT_RETRY_S)
+        with _pending_lock:
+            for d, res in list(_pending_results.items()):
+                try:
+                    _write_result_file(d, res)
+                except OSError:
+                    continue
+                del _pending_results[d]
+                log.warning("%s: result written after an earlier failure", d)
+            if not _pending_results:
+                _retry_thread = None
+                return
+
+
+def write_result(test_dir: str, result: dict[str, Any]) -> bool:
+    """Write ``result.json`` atomically. Never raises: on failure the result is kept in memory and
+    retried every :data:`RESULT_RETRY_S` in a background thread (one error line). Returns whether
+    it was written now."""
+    global _retry_thread
+    try:
+        _write_result_file(test_dir, result)
+        with _pending_lock:
+            _pending_results.pop(test_dir, None)
+        return True
+    except OSError as e:
+        log.error("%s: cannot write %s (%s); kept in memory, retried every %.0f s", test_dir,
+                  RESULT_NAME, e.strerror or e, RESULT_RETRY_S)
+        with _pending_lock:
+            _pending_results[test_dir] = result
+            if _retry_thread is None:
+                _retry_thread = threading.Thread(target=_retry_results, name="result-retry", daemon=True)
+                _retry_thread.start()
+        return False
+
+
+def pending_results() -> dict[str, dict[str, Any]]:
+    """Results not yet on disk (test folder → result)."""
+    with _pending_lock:
+        return dict(_pending_results)
 
 
 def incomplete_tests(station_dir: str) -> list[str]:
@@ -186,7 +440,10 @@ def recover_incomplete(station_dir: str, reason: str = "gateway restart") -> lis
     was recorded). Returns [(test_dir, result)]."""
 
     closed = []
+    pend = pending_results()
     for d in incomplete_tests(station_dir):
+        if d in pend:               # closed by this process; its result is still being retried
+            continue
         logp = os.path.join(d, LOG_NAME)
         res: dict[str, Any] = {"test_status": "aborted", "end_reason": reason, "closed_utc": utc_iso()}
         try:

@@ -5,8 +5,6 @@ is fed through :class:`RecorderOutput`, an ordinary output placed first in the s
 """
 from __future__ import annotations
 
-import os
-import re
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -16,7 +14,7 @@ from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams, build_params
 from ..records import Event, SlotRecord, StationState
-from .recorder import TestRecorder, utc_iso
+from .recorder import TestRecorder, new_test_dir, utc_iso
 
 
 @dataclass
@@ -27,9 +25,6 @@ class TestPlan:
     t_set: float
     t_end: float
 
-
-def _safe_name(s: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", s)[:48] or "test"
 
 
 @dataclass
@@ -54,7 +49,8 @@ class TestSession:
         values["t_end"] = plan.t_end
         p = build_params(values, f"station {station_id}")
         start_wall = time.time() if start_wall is None else start_wall
-        test_id = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime(start_wall)) + "-" + _safe_name(plan.sample_id)
+        # a folder of its own, created exclusively (two starts within one millisecond cannot share one)
+        test_id, test_dir = new_test_dir(station_dir, plan.sample_id, start_wall)
         meta = {
             "station": station_id, **{k: v for k, v in identity.items() if k != "id"},
             "test_id": test_id, "sample_id": plan.sample_id, "grade": plan.grade,
@@ -63,7 +59,7 @@ class TestSession:
             "method": dict(p.as_dict()),
             "control": control.as_dict(),
         }
-        rec = TestRecorder(os.path.join(station_dir, test_id), meta, flush_interval_s)
+        rec = TestRecorder(test_dir, meta, flush_interval_s)
         return cls(test_id=test_id, plan=plan, params=p, monitor=StreamingMonitor(p),
                    controller=Controller(control, plan.t_set), recorder=rec)
 

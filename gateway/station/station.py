@@ -181,6 +181,11 @@ class Station:
             st.t_life = rec.t_life
 
     # ---------------------------------------------------------------- commands
+    def intake_rejected(self, data: dict[str, Any]) -> None:
+        """A command source refused a request before it became a command (malformed, too large:
+        code 9); it is a ``command_rejected`` event like every other refusal. On this loop."""
+        self._emit_event(EventType.COMMAND_REJECTED, **data)
+
     async def submit(self, cmd: Command) -> CommandReply:
         """One command path for CLI, MQTT and PLC: validate, then act, with the same events."""
         reply = self.validate(cmd)

@@ -1,0 +1,226 @@
+"""Issue 12, items 3, 4 and 7: the recorder on a full and on an unwritable disk (a real tmpfs
+filled during a test), and test ids that cannot collide."""
+import gzip
+import json
+import math
+import os
+import random
+import subprocess
+import time
+
+import pytest
+
+from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from gateway.logio import read_log
+from gateway.records import Command, CommandKind, SlotRecord
+from gateway.station import recorder as recmod
+from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, new_test_dir
+from kit.northbound import LoopThread, RunningStation, make_station
+from kit.tools import wait_for
+from kit.smallfs import fill, small_tmpfs
+from test_station_e2e import TUNED, events, scenario
+
+
+_rng = random.Random(5)
+
+
+def rec(k):
+    # random values: blocks that compress little, so a page's slack cannot hide a full disk
+    return SlotRecord(k=k, t=k * 0.02, present=True, t1=_rng.uniform(0.2, 0.4), t2=_rng.uniform(0.5, 0.7), q=1, mask=0,
+                      ratio=2.0, mu=math.log(2) / 1.8, mean_filt=0.45, speed_cmd=150.0,
+                      speed_act=149.5, saturated=False)
+
+
+class Clock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+
+def test_full_disk_keeps_members_whole_marks_the_lost_span_and_resumes(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(recmod, "MAX_PENDING_ROWS", 200)
+    states = []
+    with small_tmpfs(tmp_path / "fs", "1m") as fs:
+        clk = Clock()
+        r = TestRecorder(os.path.join(fs, "t1"), {"station": "s", "test_id": "t1",
+                                                  "method": {"t_set": 0.5, "t_end": 100.0}},
+                         clock=clk, on_disk_state=lambda ok, info: states.append((ok, info)))
+        k = 0
+        for _ in range(5):                                  # 5 s on a good disk
+            for _ in range(50):
+                r.on_record(rec(k))
+                k += 1
+            clk.t += 1.0
+        r.flush()
+        filler = fill(fs)
+        for _ in range(10):                                 # 10 s on a full disk: 500 rows
+            for _ in range(50):
+                r.on_record(rec(k))
+                k += 1
+            clk.t += 1.0
+        assert not r.disk_ok and states == [(False, states[0][1])]
+        # what reached the disk (a tmpfs page's slack may take a block or two) reads back whole
+        assert read_log(os.path.join(fs, "t1", LOG_NAME)).t.size >= 250
+        with gzip.open(os.path.join(fs, "t1", LOG_NAME)) as f:
+            f.read()                                        # every member complete (trailer, CRC)
+        errors = [m for m in caplog.messages if "cannot write" in m]
+        assert len(errors) == 1, errors                     # once, not once per slot
+        os.unlink(filler)
+        for _ in range(3):
+            for _ in range(50):
+                r.on_record(rec(k))
+                k += 1
+            clk.t += 1.0
+        assert r.disk_ok and states[-1][0] is True
+        r.close({"test_status": "completed"})
+        assert 0 < r.lost_rows <= 500 - 200
+        assert read_log(os.path.join(fs, "t1", LOG_NAME)).t.size == 900 - r.lost_rows
+
+
+def test_full_disk_log_reads_back_and_lost_span_is_missing(tmp_path, monkeypatch):
+    monkeypatch.setattr(recmod, "MAX_PENDING_ROWS", 200)
+    with small_tmpfs(tmp_path / "fs", "1m") as fs:
+        clk = Clock()
+        d = os.path.join(fs, "t1")
+        r = TestRecorder(d, {"station": "s", "test_id": "t1",
+                             "method": {"t_set": 0.5, "t_end": 100.0}}, clock=clk)
+        k = 0
+        for sec in range(20):
+            if sec == 5:
+                filler = fill(fs)
+            if sec == 15:
+                os.unlink(filler)
+            for _ in range(50):
+                r.on_record(rec(k))
+                k += 1
+            clk.t += 1.0
+        r.close({"test_status": "completed"})
+        lg = read_log(os.path.join(d, LOG_NAME))
+        ks = {int(math.floor(t / 0.02 + 0.5)) for t in lg.t}
+        lost = set(range(1000)) - ks
+        assert len(lost) == r.lost_rows > 0
+        (a, b), = r.lost_spans
+        assert lost == set(range(a, b + 1))
+        with open(os.path.join(d, "events.jsonl")) as f:
+            evs = [json.loads(x) for x in f]
+        assert [e["type"] for e in evs] == ["disk_full", "disk_ok"]
+        assert evs[1]["data"]["lost_spans"] == [[a, b]]
+        res = read_json(os.path.join(d, RESULT_NAME))
+        assert res["recorder"]["lost_rows"] == r.lost_rows
+        out = analyze_cli(os.path.join(d, LOG_NAME))
+        # the lost span reads as MISSING slots (METHOD.md §9: a long gap aborts the analysis there)
+        assert out["n_slots"] > 0 and out["status"] in ("aborted", "no_failure", "failed"), out
+
+
+# ------------------------------------------------------------------ a real station on a small disk
+def _first_test_dir(tmp_path, station, timeout=30.0):
+    t_wait = time.monotonic() + timeout
+    while time.monotonic() < t_wait:
+        dirs = test_dirs(tmp_path, station)
+        if dirs and os.path.exists(os.path.join(dirs[0], LOG_NAME)):
+            return dirs[0]
+        time.sleep(0.2)
+    raise AssertionError(f"no test folder with a log for {station}")
+
+
+@pytest.mark.slow
+def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
+    sc = scenario(tmp_path, "full", method={"t_end": 600})
+    with small_tmpfs(tmp_path / "records", "2m"), virtual_station(tmp_path, sc) as (_sim, links):
+        st = station_yaml(tmp_path, links, name="full", control=TUNED, test={"t_end_s": 600})
+        gw = run_gateway(tmp_path, st, "--start", "--duration", "40")
+        d = _first_test_dir(tmp_path, "full")
+        time.sleep(3)
+        filler = fill(str(tmp_path / "records"))
+        time.sleep(5)
+        # while full: the log on disk reads back (what reached the disk)
+        assert read_log(os.path.join(d, LOG_NAME)).t.size > 0
+        os.unlink(filler)
+        time.sleep(4)
+        gw.stop()
+        glog = gw.log_all()
+        assert "station failed" not in glog and "Traceback" not in glog, glog
+        assert glog.count("cannot write") == 1, glog
+        evs = events(d)
+        types = [e["type"] for e in evs]
+        assert "disk_full" in types and "disk_ok" in types, types
+        res = read_json(os.path.join(d, RESULT_NAME))
+        # 5 s full < the in-memory reserve: no row lost; the offline result equals the live one
+        ok_ev = next(e for e in evs if e["type"] == "disk_ok")
+        assert ok_ev["data"]["lost_rows"] == 0
+        assert res.get("recorder", {"lost_rows": 0})["lost_rows"] == 0
+        assert read_log(os.path.join(d, LOG_NAME)).t.size > 0
+        out = analyze_cli(os.path.join(d, LOG_NAME))
+        assert out == res["method"], (out, res["method"])
+
+
+@pytest.mark.slow
+def test_station_folder_unwritable_mid_test_completes_and_keeps_its_result(tmp_path):
+    sc = scenario(tmp_path, "ro", method={"t_end": 10})
+    with small_tmpfs(tmp_path / "records", "8m"), virtual_station(tmp_path, sc) as (_sim, links):
+        st = station_yaml(tmp_path, links, name="ro", control=TUNED, test={"t_end_s": 10})
+        gw = run_gateway(tmp_path, st, "--start", "--duration", "30")
+        d = _first_test_dir(tmp_path, "ro")
+        time.sleep(2)
+        # the test folder becomes unwritable (immutable: no new file, also for root)
+        subprocess.run(["chattr", "+i", d], check=True)
+        t_end = time.monotonic() + 25
+        while time.monotonic() < t_end and "cannot write result.json" not in gw.log_all():
+            time.sleep(0.2)
+        assert "cannot write result.json" in gw.log_all(), gw.log()
+        assert not os.path.exists(os.path.join(d, RESULT_NAME))
+        subprocess.run(["chattr", "-i", d], check=True)
+        t_end = time.monotonic() + 15
+        while time.monotonic() < t_end and not os.path.exists(os.path.join(d, RESULT_NAME)):
+            time.sleep(0.2)
+        gw.stop()
+        glog = gw.log_all()
+        assert "station failed" not in glog and "Traceback" not in glog, glog
+        res = read_json(os.path.join(d, RESULT_NAME))
+        assert res["test_status"] == "completed", res
+        assert res["method"] == analyze_cli(os.path.join(d, LOG_NAME))
+
+
+# ------------------------------------------------------------------ item 7: ids that cannot collide
+def test_test_dirs_are_exclusive_within_one_millisecond(tmp_path):
+    ids = [new_test_dir(str(tmp_path), "S 1", 1_700_000_000.25) for _ in range(3)]
+    assert [i for i, _ in ids] == ["20231114T221320.250Z-S_1", "20231114T221320.250Z-S_1-2",
+                                   "20231114T221320.250Z-S_1-3"]
+    assert len({p for _, p in ids}) == 3 and all(os.path.isdir(p) for _, p in ids)
+
+
+def test_two_tests_started_within_one_second_get_two_folders(tmp_path):
+    """A real station (slot loop at 50 Hz, fake ports): start, stop, start again with the same
+    sample within one second → two folders, each with its own log, result and events."""
+    lt = LoopThread()
+    st = make_station(tmp_path, [], station_id="twice")
+    run = RunningStation(lt, st)
+    try:
+        wait_for(lambda: st.stats.slots > 5, 10, what="slots")
+        t0 = time.time()
+        for kind, args in ((CommandKind.START, {"sample_id": "S-1", "t_set": 0.5}),
+                           (CommandKind.STOP, {}),
+                           (CommandKind.START, {"sample_id": "S-1", "t_set": 0.5})):
+            r = lt.call(st.submit(Command(kind, "cli", args)))
+            assert r.ok, r.reason
+            time.sleep(0.1)
+        assert time.time() - t0 < 1.0
+        r = lt.call(st.submit(Command(CommandKind.STOP, "cli", {})))
+        assert r.ok
+    finally:
+        run.stop()
+        lt.close()
+    dirs = test_dirs(tmp_path, "twice")
+    assert len(dirs) == 2, dirs
+    ids = set()
+    for d in dirs:
+        res = read_json(os.path.join(d, RESULT_NAME))
+        ids.add(res["test_id"])
+        assert res["test_id"] == os.path.basename(d)
+        assert read_log(os.path.join(d, LOG_NAME)).t.size > 0
+        evs = events(d)
+        assert {e["test_id"] for e in evs} == {res["test_id"]}
+        assert [e["type"] for e in evs].count("test_started") == 1
+    assert len(ids) == 2
