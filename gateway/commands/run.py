@@ -90,9 +90,10 @@ def run(args) -> int:
         if err:
             raise CliError(f"station {c.station.id}: {err}", 1)
 
+    console = _console(cfgs)
     runners = []
     for i, c in enumerate(cfgs):
-        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs))))
+        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs), console)))
     fleet = Fleet(runners)
     stop = threading.Event()
     reload_req = threading.Event()
@@ -121,7 +122,7 @@ def run(args) -> int:
                     sdnotify.watchdog()
             if reload_req.is_set():
                 reload_req.clear()
-                _reload(args, fleet)
+                _reload(args, fleet, console)
             if args.duration is not None and now - t0 >= args.duration:
                 break
             if args.exit_when_done:
@@ -133,6 +134,8 @@ def run(args) -> int:
     finally:
         sdnotify.stopping()
         fleet.stop()
+        if console is not None:
+            console.stop()
     if args.stats_json:
         out = {r.name: (r.station.stats.summary() if r.station else None) for r in runners}
         for r in runners:
@@ -149,18 +152,33 @@ def run(args) -> int:
     return 0
 
 
-def _factory(cfg, args, phase: float):
+def _factory(cfg, args, phase: float, console=None):
     """Builds the station of ``cfg``; ``phase`` spreads the stations of one process over the slot."""
     def make():
         from ..station.build import build_station
 
         st = build_station(cfg, with_northbound=not args.no_northbound)
         st.slot_phase = phase
+        if console is not None:
+            st.outputs.append(console.output_for(st))
         return st
     return make
 
 
-def _reload(args, fleet) -> None:
+def _console(cfgs):
+    """The operator console of this process (``console:`` of the first station), or None."""
+    if not cfgs[0].console.enabled:
+        return None
+    from ..console.server import ConsoleServer, ConsoleSettings
+
+    console = ConsoleServer(ConsoleSettings.from_config(cfgs[0]),
+                            {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs})
+    for url in console.start():
+        print(f"console: {url}", flush=True)
+    return console
+
+
+def _reload(args, fleet, console=None) -> None:
     log = logging.getLogger("hookwatch.run")
     try:
         cfgs = {c.station.id: _override(c, args) for c in _load(args.path)}
@@ -176,7 +194,7 @@ def _reload(args, fleet) -> None:
         c = cfgs.get(r.name)
         if c is None:
             continue
-        r.factory = _factory(c, args, getattr(st, "slot_phase", 0.0))
+        r.factory = _factory(c, args, getattr(st, "slot_phase", 0.0), console)
         log.info("%s: configuration reloaded; station restarts", r.name)
         r.restart_requested = True
         if r.loop is not None and r._stop is not None:
