@@ -30,6 +30,7 @@ import logging
 import os
 import re
 import shutil
+import socket
 import ssl
 import sys
 import tempfile
@@ -53,6 +54,8 @@ MAX_BODY = 16 * 1024
 CLIENT_QUEUE = 64
 #: a client that cannot take one message within this long is dropped
 WRITE_TIMEOUT_S = 10.0
+#: kernel send buffer and transport high-water mark of a live client, bytes
+SEND_BUFFER = 16 * 1024
 #: most live (SSE) clients at once
 MAX_CLIENTS = 64
 #: how often the console drains the hand-overs and sends changes
@@ -382,6 +385,7 @@ class ConsoleServer:
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
                                            "Cache-Control": "no-store", "X-Accel-Buffering": "no"})
         await resp.prepare(request)
+        _small_send_buffer(request.transport)
         c = _Client()
         f.drain()
         first = ("data: " + json.dumps(f.snapshot(), separators=(",", ":")) + "\n\n").encode()
@@ -516,6 +520,20 @@ class ConsoleServer:
                 if png is None:
                     return _err(500, "no figure: " + err.decode(errors="replace")[-300:])
         return web.FileResponse(png, headers={"Content-Type": "image/png"})
+
+
+def _small_send_buffer(transport) -> None:
+    """Bound what the kernel and the transport hold for one live client: a client that stops
+    reading fills them within seconds, its queue fills, and it is dropped."""
+    if transport is None:
+        return
+    sock = transport.get_extra_info("socket")
+    try:
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        transport.set_write_buffer_limits(high=SEND_BUFFER)
+    except (OSError, AttributeError, NotImplementedError):
+        pass
 
 
 def _find_png(out: str) -> str | None:
