@@ -26,8 +26,10 @@ def test_console_http_auth_csrf_commands_lockout(tmp_path):
     with console_fleet(tmp_path, ("loom-a", "loom-b"), users={"alice": PW}) as (url, gw, _sims):
         c = Client(url)
         # reading is open on the local host: the fleet lists both stations, the series grows
-        st, fleet, _ = c.get("/api/fleet")
+        st, fleet, hdr = c.get("/api/fleet")
         assert st == 200 and sorted(s["station"] for s in fleet["stations"]) == ["loom-a", "loom-b"]
+        assert "default-src 'self'" in hdr["Content-Security-Policy"]
+        assert all(s["mqtt_ok"] is None for s in fleet["stations"])   # MQTT not configured
         snap = _wait(lambda: (lambda s: s if len(s[1]["rows"]) > 20 else None)(c.get("/api/station/loom-a")))
         rows = snap[1]["rows"]
         assert rows[0][0] == 0.0 and rows[-1][0] > rows[0][0]

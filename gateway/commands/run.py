@@ -172,7 +172,8 @@ def _console(cfgs):
     from ..console.server import ConsoleServer, ConsoleSettings
 
     console = ConsoleServer(ConsoleSettings.from_config(cfgs[0]),
-                            {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs})
+                            {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs},
+                            mqtt_enabled={c.station.id: bool(c.mqtt.enabled) for c in cfgs})
     for url in console.start():
         print(f"console: {url}", flush=True)
     return console

@@ -166,7 +166,7 @@ class StationFeed:
         # set by the ConsoleOutput bound to the current Station object
         self.station = None
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.mqtt_ok: bool | None = None
+        self.mqtt_enabled = False
 
     # ----------------------------------------------------------------- console thread
     def drain(self, budget: int = 100_000) -> bool:
@@ -233,8 +233,8 @@ class StationFeed:
                  t_cross=self.t_cross, slots=self.series.n_slots, valid=self.series.n_valid,
                  running=self.running, handover_dropped=self.dropped,
                  online=self.station is not None, last_seen=self.last_seen)
-        if self.mqtt_ok is not None:
-            s["mqtt_ok"] = self.mqtt_ok
+        if not self.mqtt_enabled:
+            s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
         return s
 
     def snapshot(self) -> dict[str, Any]:

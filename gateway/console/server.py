@@ -111,11 +111,15 @@ class _Client:
 class ConsoleServer:
     """One console per process: every station of the fleet, on its own thread and loop."""
 
-    def __init__(self, settings: ConsoleSettings, stations: dict[str, str], ts: float = 0.02):
-        """``stations``: station id → its records folder (recorder.dir/<id>)."""
+    def __init__(self, settings: ConsoleSettings, stations: dict[str, str], ts: float = 0.02,
+                 mqtt_enabled: dict[str, bool] | None = None):
+        """``stations``: station id → its records folder (recorder.dir/<id>); ``mqtt_enabled``:
+        stations that report over MQTT (the others show no MQTT link)."""
         self.settings = settings
         self.records = dict(stations)
         self.feeds = {name: StationFeed(name, ts) for name in stations}
+        for name, on in (mqtt_enabled or {}).items():
+            self.feeds[name].mqtt_enabled = bool(on)
         self.tl = ThreadLoop("console")
         self.sessions = auth.Sessions(settings.session_ttl_s)
         self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
