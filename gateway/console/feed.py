@@ -235,6 +235,11 @@ class StationFeed:
                  online=self.station is not None, last_seen=self.last_seen)
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
+        elif not s.get("mqtt_ok"):
+            # until StationState.mqtt_ok is filled by the station (issue 11), ask the MQTT output
+            outs = getattr(self.station, "outputs", ()) or ()
+            s["mqtt_ok"] = any(type(o).__name__ == "MqttOutput" and getattr(o, "connected", False)
+                               for o in list(outs))
         return s
 
     def snapshot(self) -> dict[str, Any]:
