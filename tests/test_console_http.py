@@ -115,3 +115,40 @@ def test_console_slow_client_dropped_fast_client_served(tmp_path):
         slow.setblocking(False)
         slow.close()
         fast.close()
+
+
+def test_console_history_fig7_downloads_and_campaign(tmp_path):
+    with console_fleet(tmp_path, ("loom-a", "loom-b"), users={"alice": PW},
+                       test={"t_end_s": 15}) as (url, gw, _sims):
+        c = Client(url)
+
+        def ended():
+            st, r, _ = c.get("/api/station/loom-a/tests")
+            return r if st == 200 and r["tests"] and "result.json" in r["tests"][0]["files"] else None
+
+        tests = _wait(ended, timeout=60)["tests"]
+        t = tests[0]
+        assert t["test_status"] == "completed" and t["sample_id"] == "S-loom-a"
+        assert t["status"] in ("no_failure", "no_baseline", "failure")
+        base = f"/api/station/loom-a/tests/{t['test_id']}"
+        # downloads: the recorded files, nothing else
+        req = c.opener.open(url + base + "/files/result.json", timeout=30)
+        assert json.loads(req.read())["test_id"] == t["test_id"]
+        assert c.get(base + "/files/alarm.json")[0] == 404
+        assert c.get("/api/station/loom-a/tests/..%2F..%2Fetc/files/result.json")[0] == 404
+        # the Fig. 7 PNG, made by the report code in its own process
+        with c.opener.open(url + base + "/fig7.png", timeout=120) as r:
+            png = r.read()
+        assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10000
+        # campaign: needs a login; then a report over both stations
+        assert c.post("/api/campaign", {"stations": ["loom-a", "loom-b"]})[0] == 401
+        c.login("alice", PW)
+        _wait(lambda: c.get("/api/station/loom-b/tests")[1]["tests"][:1]
+              and "result.json" in c.get("/api/station/loom-b/tests")[1]["tests"][0]["files"], 30)
+        assert c.post("/api/campaign", {"stations": ["nope"]})[0] == 400
+        st, r, _ = c.post("/api/campaign", {"stations": ["loom-a", "loom-b"]})
+        assert st == 200 and r["tests"] == 2, r
+        with c.opener.open(url + r["url"], timeout=30) as resp:
+            html = resp.read().decode()
+        assert "Table" in html and "fig7_" in html
+        assert c.get(r["url"].replace("report.html", "../../etc/passwd"))[0] == 404

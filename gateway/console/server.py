@@ -130,6 +130,8 @@ class ConsoleServer:
         self._tick_task: asyncio.Task | None = None
         self._cache = tempfile.mkdtemp(prefix="hookwatch-console-")
         self._fig_locks: dict[str, asyncio.Lock] = {}
+        self._campaign_busy = False
+        self._campaign_n = 0
         self.error: str | None = None
 
     # ----------------------------------------------------------------- lifecycle (any thread)
@@ -206,6 +208,8 @@ class ConsoleServer:
         r.add_get("/api/station/{sid}/tests", self.h_tests)
         r.add_get("/api/station/{sid}/tests/{tid}/fig7.png", self.h_fig7)
         r.add_get("/api/station/{sid}/tests/{tid}/files/{name}", self.h_file)
+        r.add_post("/api/campaign", self.h_campaign_run)
+        r.add_get("/api/campaign/{cid}/{path:.+}", self.h_campaign_file)
         r.add_static("/static/", STATIC, show_index=False, follow_symlinks=False)
         return app
 
@@ -460,6 +464,56 @@ class ConsoleServer:
         return web.json_response({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
                                  status=200 if reply.ok else 409)
 
+    # ----------------------------------------------------------------- campaign
+    async def h_campaign_run(self, request):
+        """Run the report (Tables 3–6, Figs. 7–9) over the ended tests of the chosen stations."""
+        try:
+            data = await self._json_body(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        stations = data.get("stations")
+        if not isinstance(stations, list) or not stations or len(stations) > len(self.records) \
+                or not all(isinstance(x, str) and x in self.records for x in stations):
+            return _err(400, f"stations: a list of station names from {sorted(self.records)}")
+        if self._campaign_busy:
+            return _err(429, "a campaign report is already being made; try again when it is done")
+        self._campaign_busy = True
+        self._campaign_n += 1
+        cid = f"c{self._campaign_n}"
+        base = os.path.join(self._cache, cid)
+        loop = asyncio.get_running_loop()
+        try:
+            n = await loop.run_in_executor(None, _campaign_inputs, self.records, sorted(set(stations)),
+                                           os.path.join(base, "in"))
+            if n == 0:
+                return _err(409, "no ended tests in the chosen stations")
+            p = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "gateway.cli", "report", os.path.join(base, "in"), "--out",
+                os.path.join(base, "out"), "-q", "--jobs", "1", stdout=asyncio.subprocess.DEVNULL,
+                stderr=asyncio.subprocess.PIPE, preexec_fn=lambda: os.nice(10))
+            try:
+                _, err = await asyncio.wait_for(p.communicate(), 600)
+            except asyncio.TimeoutError:
+                p.kill()
+                await p.wait()
+                return _err(504, "the report took longer than 10 minutes")
+            if not os.path.isfile(os.path.join(base, "out", "report.html")):
+                return _err(500, "no report: " + err.decode(errors="replace")[-300:])
+        finally:
+            self._campaign_busy = False
+        log.info("console: campaign report %s over %s (%d tests) by %s", cid, ", ".join(stations), n,
+                 request["session"].user)
+        return web.json_response({"ok": True, "tests": n, "url": f"/api/campaign/{cid}/report.html"})
+
+    async def h_campaign_file(self, request):
+        cid, path = request.match_info["cid"], request.match_info["path"]
+        if not re.match(r"^c[0-9]{1,6}$", cid) or not CAMPAIGN_FILE_RE.match(path):
+            return _err(404, "no such file")
+        f = os.path.join(self._cache, cid, "out", path)
+        if not os.path.isfile(f):
+            return _err(404, "no such file")
+        return web.FileResponse(f, headers={"Content-Type": CAMPAIGN_TYPES[os.path.splitext(f)[1]]})
+
     # ----------------------------------------------------------------- history
     def _station_dir(self, request) -> str:
         sid = request.match_info["sid"]
@@ -526,6 +580,31 @@ class ConsoleServer:
         return web.FileResponse(png, headers={"Content-Type": "image/png"})
 
 
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _campaign_inputs(records: dict[str, str], stations: list[str], into: str) -> int:
+    """Hard-link (or copy) the ended tests of ``stations`` under ``into``; the count of tests."""
+    n = 0
+    for sid in stations:
+        d = records[sid]
+        for t in list_tests(d):
+            if "result.json" not in t["files"] or "log.csv.gz" not in t["files"]:
+                continue      # a running or broken test is not part of a campaign
+            src = os.path.join(d, t["test_id"])
+            dst = os.path.join(into, sid, t["test_id"])
+            os.makedirs(dst, exist_ok=True)
+            for name in ("log.csv.gz", "log.meta.yaml", "result.json"):
+                if os.path.isfile(os.path.join(src, name)):
+                    _link_or_copy(os.path.join(src, name), os.path.join(dst, name))
+            n += 1
+    return n
+
+
 def _small_send_buffer(transport) -> None:
     """Bound what the kernel and the transport hold for one live client: a client that stops
     reading fills them within seconds, its queue fills, and it is dropped."""
@@ -538,6 +617,13 @@ def _small_send_buffer(transport) -> None:
         transport.set_write_buffer_limits(high=SEND_BUFFER)
     except (OSError, AttributeError, NotImplementedError):
         pass
+
+
+CAMPAIGN_FILE_RE = re.compile(r"^(report\.html|report\.md|problems\.txt|[A-Za-z0-9_.-]+\.csv|"
+                              r"figures/[A-Za-z0-9_.-]+\.png)$")
+CAMPAIGN_TYPES = {".html": "text/html; charset=utf-8", ".md": "text/markdown; charset=utf-8",
+                  ".txt": "text/plain; charset=utf-8", ".csv": "text/csv; charset=utf-8",
+                  ".png": "image/png"}
 
 
 def _find_png(out: str) -> str | None:

@@ -199,12 +199,29 @@
     }));
   }
 
+  // ------------------------------------------------------------------ campaign
+  async function campaignPage() {
+    main.innerHTML = `<h2 style="margin:0 0 .5em">Campaign report</h2>
+      <p>The report (paper Tables 3–6, Figs. 7–9) over the ended tests of the chosen stations. It needs a login (it takes a while and a core).</p>
+      <div id="choose" class="panel"></div><button id="b-campaign">make the report</button> <span id="camp-out"></span>`;
+    const r = await api("/api/fleet");
+    $("#choose").innerHTML = (r.stations || []).map(s => `<label><input type="checkbox" value="${esc(s.station)}" checked> ${esc(s.station)}</label> `).join("");
+    $("#b-campaign").addEventListener("click", async () => {
+      const stations = [...main.querySelectorAll("#choose input:checked")].map(i => i.value);
+      $("#camp-out").textContent = "making the report …";
+      const c = await api("/api/campaign", { method: "POST", body: { stations } });
+      if (c.ok) $("#camp-out").innerHTML = `${c.tests} tests: <a id="camp-link" target="_blank" href="${esc(c.url)}">open the report</a>`;
+      else $("#camp-out").textContent = "refused: " + c.reason;
+    });
+  }
+
   function route() {
     cleanup.forEach(f => f()); cleanup = [];
     const h = location.hash.replace(/^#/, "");
     let m;
     if ((m = h.match(/^\/station\/(.+)$/))) stationPage(decodeURIComponent(m[1]));
     else if ((m = h.match(/^\/history\/(.+)$/))) historyPage(decodeURIComponent(m[1]));
+    else if (h === "/campaign") campaignPage();
     else fleetPage();
   }
   window.addEventListener("hashchange", route);
