@@ -19,7 +19,6 @@ import argparse
 import json
 import math
 import os
-import signal
 import socket
 import statistics
 import subprocess
@@ -34,6 +33,7 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 sys.path.insert(0, ROOT)
 
+from bench_fleet import make_fleet, stop_sims_read  # noqa: E402
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
 
 CLK = os.sysconf("SC_CLK_TCK")
@@ -93,37 +93,9 @@ class SseClient(threading.Thread):
 
 
 def run_fleet(n: int, duration: float, clients: int) -> dict:
-    import yaml
-
-    work = tempfile.mkdtemp(prefix=f"hw-bench-console{n}-")
-    fleet = os.path.join(work, "fleet")
-    os.makedirs(os.path.join(fleet, "stations"))
-    scen = os.path.join(ROOT, "config", "scenarios", "life-I-0.5.yaml")
     port = free_port()
-    with open(os.path.join(fleet, "fleet.yaml"), "w") as f:
-        yaml.safe_dump({"defaults": {
-            "station": {"site": "lab", "area": "bench", "line": "l1"},
-            "meter": {"map": os.path.join(ROOT, "config", "meters", "zn-s.yaml")},
-            "control": {"dead_band_n": 0.01},
-            "test": {"t_set_n": 0.5, "t_end_s": 36000, "autostart": True},
-            "recorder": {"dir": os.path.join(work, "records")},
-            "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
-            "console": {"enabled": True, "listen": [f"127.0.0.1:{port}"]},
-            "logging": {"level": "warning"}}}, f)
-    sims = []
-    for i in range(n):
-        links = os.path.join(work, f"links{i}")
-        os.makedirs(links)
-        p = subprocess.Popen([EXE, "sim", scen, "--link-dir", links, "--seed", str(i + 1)],
-                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        p.stdout.readline()
-        p.stdout.readline()
-        sims.append(p)
-        with open(os.path.join(fleet, "stations", f"s{i:02d}.yaml"), "w") as f:
-            yaml.safe_dump({"station": {"id": f"s{i:02d}"},
-                            "meter": {"port": os.path.join(links, "meter")},
-                            "stm32": {"port": os.path.join(links, "stm32")},
-                            "test": {"sample_id": f"C-{i}"}}, f)
+    work, fleet, sims = make_fleet(n, f"hw-bench-console{n}-",
+                                   {"console": {"enabled": True, "listen": [f"127.0.0.1:{port}"]}})
     stats = os.path.join(work, "stats.json")
     gw = subprocess.Popen([EXE, "run", fleet, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -157,13 +129,7 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
     for c in cl:
         c.join(5)
     gw.wait()
-    for p in sims:
-        p.send_signal(signal.SIGTERM)
-    for p in sims:
-        p.wait(10)
-        p.stdout.close()
-    with open(stats) as f:
-        st = json.load(f)
+    st = stop_sims_read(sims, stats)
     out = {"clients": clients, "duration_s": duration,
            "worst_filled_pct": 100 * min(s["filled_ratio"] for s in st.values()),
            "worst_lateness_ms_p99": max(s["lateness_ms_p99"] for s in st.values()),
