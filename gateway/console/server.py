@@ -285,7 +285,6 @@ class ConsoleServer:
                 tok = request.headers.get("X-CSRF-Token", "")
                 if not hmac.compare_digest(tok.encode(), s.csrf.encode()):
                     return _err(403, "missing or wrong CSRF token (X-CSRF-Token)")
-                request["session"] = s
         elif path.startswith("/api/") and path != "/api/session" and not self._may_read(request):
             return _err(401, "log in to read from this address")
         resp = await handler(request)
@@ -421,7 +420,9 @@ class ConsoleServer:
             data = await self._json_body(request)
         except _HttpError as e:
             return _err(e.status, e.reason)
-        s: auth.Session = request["session"]
+        s = self._session(request)
+        if s is None:
+            return _err(401, "log in first")
         kind = data.pop("command", None)
         source = f"console:{s.user}"
         if not isinstance(kind, str):
@@ -502,7 +503,7 @@ class ConsoleServer:
         finally:
             self._campaign_busy = False
         log.info("console: campaign report %s over %s (%d tests) by %s", cid, ", ".join(stations), n,
-                 request["session"].user)
+                 getattr(self._session(request), "user", "?"))
         return web.json_response({"ok": True, "tests": n, "url": f"/api/campaign/{cid}/report.html"})
 
     async def h_campaign_file(self, request):
