@@ -36,23 +36,10 @@ sys.path.insert(0, ROOT)
 from bench_fleet import make_fleet, stop_sims_read  # noqa: E402
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
 
-CLK = os.sysconf("SC_CLK_TCK")
-
-
-def thread_cpu(pid: int, name: str) -> float:
-    """CPU seconds of the threads of ``pid`` called ``name``."""
-    total = 0.0
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                s = f.read()
-        except OSError:
-            continue
-        comm = s[s.index("(") + 1:s.rindex(")")]
-        if comm == name:
-            parts = s[s.rindex(")") + 2:].split()
-            total += (int(parts[11]) + int(parts[12])) / CLK
-    return total
+def console_cpu(base: str) -> float:
+    """CPU seconds of the console's thread (it reports its own ``time.thread_time()``)."""
+    with urllib.request.urlopen(base + "/api/fleet", timeout=5) as r:
+        return json.loads(r.read())["console"]["cpu_s"]
 
 
 def free_port() -> int:
@@ -113,17 +100,17 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
         c.start()
     time.sleep(1.0)
     c0, _ = proc_cpu_rss(gw.pid)
-    k0 = thread_cpu(gw.pid, "console")
+    k0 = console_cpu(base)
     t0 = time.monotonic()
     c1, k1, wall = c0, k0, 1e-9
     while gw.poll() is None:
         time.sleep(0.5)
         try:
             c, r = proc_cpu_rss(gw.pid)
-            k = thread_cpu(gw.pid, "console")
+            k = console_cpu(base)
             if r > 0:
                 c1, k1, wall = c, k, time.monotonic() - t0
-        except (OSError, IndexError, ValueError):
+        except (OSError, IndexError, ValueError, KeyError):
             break
     stop.set()
     for c in cl:

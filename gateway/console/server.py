@@ -126,6 +126,7 @@ class ConsoleServer:
         self.clients: dict[str, set[_Client]] = {n: set() for n in stations}
         self.urls: list[str] = []
         self.dropped_clients = 0
+        self.cpu_s = 0.0
         self._runner: web.AppRunner | None = None
         self._tick_task: asyncio.Task | None = None
         self._cache = tempfile.mkdtemp(prefix="hookwatch-console-")
@@ -216,6 +217,7 @@ class ConsoleServer:
     async def _ticker(self) -> None:
         while True:
             await asyncio.sleep(TICK_S)
+            self.cpu_s = time.thread_time()      # CPU of the console's own thread (benchmarks)
             try:
                 self.tick()
             except Exception:
@@ -320,7 +322,9 @@ class ConsoleServer:
 
     async def h_fleet(self, request):
         return web.json_response({"stations": [f.summary() for f in self.feeds.values()],
-                                  "time": time.time()})
+                                  "time": time.time(),
+                                  "console": {"cpu_s": self.cpu_s, "dropped_clients": self.dropped_clients,
+                                              "live_clients": sum(len(c) for c in self.clients.values())}})
 
     async def h_session(self, request):
         s = self._session(request)
