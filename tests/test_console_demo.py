@@ -19,7 +19,7 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     require_tool("mosquitto")
     require_tool("mosquitto_sub")
     require_tool("mbpoll")
-    st = station_yaml(tmp_path, {"meter": "/dev/null", "stm32": "/dev/null"}, name="demo",
+    st = station_yaml(tmp_path, {"meter": "/dev/ttyDEMO0", "stm32": "/dev/ttyDEMO1"}, name="demo",
                       method={"w_ss": 5, "w_hold": 20, "tau": 5}, control={"dead_band_n": 0.01},
                       test={"sample_id": "DEMO-Q", "t_end_s": 70})
     work = tmp_path / "work"
@@ -30,12 +30,13 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     try:
         url = demo.readline_until("console :", timeout=60).split()[0]
         assert re.match(r"^http://127\.0\.0\.1:\d+/$", url)
-        demo.readline_until("PLC map :")
-        demo.readline_until("mbpoll")                      # state registers
-        demo.readline_until("T1, T2")
-        mbpoll = demo.readline_until("mbpoll")
         demo.readline_until("MES     :")
-        sub = demo.readline_until("mosquitto_sub")
+        t_end = time.monotonic() + 10
+        while not any("mosquitto_sub " in ln for ln in demo.stdout_lines()) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        lines = [ln.strip() for ln in demo.stdout_lines()]
+        mbpoll = [ln for ln in lines if ln.startswith("mbpoll ")][-1].split(" ", 1)[1]   # T1, T2, μ …
+        sub = [ln for ln in lines if ln.startswith("mosquitto_sub ")][0].split(" ", 1)[1]
         time.sleep(3)
         # the console serves the fleet
         with urllib.request.urlopen(url + "api/fleet", timeout=10) as r:
