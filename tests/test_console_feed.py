@@ -64,5 +64,5 @@ def test_handover_is_bounded_and_ordered():
                                                                "k_b": 60, "stable_first": 10}))
     feed2.drain()
     sm = feed2.summary()
-    assert sm["slots"] == 100 and feed2.markers["t_b"] == 60 * 0.02
+    assert sm["slots"] == 100 and sm["filled"] == 100 and feed2.markers["t_b"] == 60 * 0.02
     assert math.isclose(sm["mu_now"], 0.3 + 74.5 / 1000, abs_tol=1e-6)   # median of the last 50

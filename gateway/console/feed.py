@@ -56,6 +56,7 @@ class Series:
         self.recent_mu: collections.deque = collections.deque(maxlen=50)
         self.n_slots = 0
         self.n_valid = 0
+        self.n_present = 0
 
     def reset(self) -> None:
         self.width = 1
@@ -63,7 +64,7 @@ class Series:
         self.gen += 1
         self.dirty_from = 0
         self.recent_mu.clear()
-        self.n_slots = self.n_valid = 0
+        self.n_slots = self.n_valid = self.n_present = 0
 
     def add(self, rec: SlotRecord) -> None:
         k = rec.k
@@ -87,6 +88,7 @@ class Series:
                 b[_MX] = mu
             b[_NV] += 1
         if rec.present:
+            self.n_present += 1
             b[_S1] += rec.t1
             b[_S2] += rec.t2
             b[_NP] += 1
@@ -231,6 +233,7 @@ class StationFeed:
             s["state"] = st.state.name.lower()
         s.update(mu_now=_num(self.series.mu_now() or math.nan, 6), headroom=self.headroom,
                  t_cross=self.t_cross, slots=self.series.n_slots, valid=self.series.n_valid,
+                 filled=self.series.n_present,
                  running=self.running, handover_dropped=self.dropped,
                  online=self.station is not None, last_seen=self.last_seen)
         if not self.mqtt_enabled:

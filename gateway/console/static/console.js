@@ -54,6 +54,10 @@
     const cls = h <= 0 ? "out" : h < 0.5 ? "low" : "";
     return `<div class="bar ${cls}" title="headroom ${fmt(h, 2)}"><div style="width:${w}%"></div></div>`;
   }
+  function slotsText(s) {
+    const n = s.slots || 0;
+    return n ? `${fmt(100 * (s.filled || 0) / n, 2)} % filled, ${fmt(100 * (s.valid || 0) / n, 2)} % valid of ${n}` : "–";
+  }
   function link(ok) { return ok == null ? "–" : ok ? '<span class="ok">ok</span>' : '<span class="bad">lost</span>'; }
   function alarmBadge(a) { return a && a !== "none" ? `<span class="alarm-${esc(a)}">${esc(a)}</span>` : "none"; }
 
@@ -78,7 +82,7 @@
           <span>headroom</span><span>${headroomBar(s.headroom)}</span>
           <span>alarm</span><span class="alarm">${alarmBadge(s.alarm)} ${s.alarm === "active" ? `<button class="ack" data-sid="${esc(s.station)}">acknowledge</button>` : ""}</span>
           <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
-          <span>slots</span><span>${s.valid || 0} valid / ${s.slots || 0}</span>
+          <span>slots</span><span>${slotsText(s)}</span>
         </div>
         <a href="#/history/${encodeURIComponent(s.station)}">history</a></div>`).join("");
       main.querySelectorAll("button.ack").forEach(b => b.addEventListener("click", () => command(b.dataset.sid, { command: "ack" }).then(load)));
@@ -157,7 +161,7 @@
         <span>t_life</span><span id="t-life">${s.t_life != null ? fmt(s.t_life, 2) + " s" : "–"}</span>
         <span>alarm</span><span id="alarm">${alarmBadge(s.alarm)}</span>
         <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
-        <span>slots</span><span>${s.valid || 0} valid / ${s.slots || 0}</span>`;
+        <span>slots</span><span>${slotsText(s)}</span>`;
       if (events) $("#events").innerHTML = events.slice().reverse().map(e => `<div>${new Date(e.time * 1000).toISOString().slice(11, 19)} ${esc(e.type)} ${esc(JSON.stringify(Object.fromEntries(Object.entries(e).filter(([k]) => !["type", "time", "station", "test_id"].includes(k)))))}</div>`).join("");
     }
     const es = new EventSource("/api/station/" + encodeURIComponent(sid) + "/stream");
