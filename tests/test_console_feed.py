@@ -66,3 +66,42 @@ def test_handover_is_bounded_and_ordered():
     sm = feed2.summary()
     assert sm["slots"] == 100 and sm["filled"] == 100 and feed2.markers["t_b"] == 60 * 0.02
     assert math.isclose(sm["mu_now"], 0.3 + 74.5 / 1000, abs_tol=1e-6)   # median of the last 50
+
+
+def test_curve_rebuilt_from_the_recorder_log_after_a_loss(tmp_path):
+    """The hand-over overflows mid-test (console stalled): the series comes back from the log on
+    disk (read while the recorder still writes it) plus the live tail, from slot 0, no gap."""
+    from gateway.console.feed import series_from_log
+    from gateway.station.recorder import TestRecorder
+
+    td = tmp_path / "T1"
+    r = TestRecorder(str(td), {"test_id": "T1"}, flush_interval_s=0.0)
+    feed = StationFeed("x")
+    out = ConsoleOutput(feed)
+    out.on_event(Event(EventType.TEST_STARTED, "x", 0.0, "T1", 0, {"t_set": 0.5}))
+    live = Series(0.02)
+    n = HANDOVER_SLOTS + 3000
+    for k in range(n):
+        rc = rec(k, mu=0.35 + (k % 7) / 1000)
+        r.on_record(rc)
+        live.add(rc)
+        if k == 10:
+            feed.drain()              # the console saw the start, then stalls
+        out.on_record(rc)
+    r.flush(force=True)
+    assert feed.dropped > 0
+    feed.drain()
+    assert feed.pending is not None and feed.running
+    for k in range(n, n + 500):        # live records go on while the log is read
+        rc = rec(k, mu=0.36)
+        live.add(rc)
+        out.on_record(rc)
+    feed.drain()
+    disk = series_from_log(str(td / "log.csv.gz"), 0.02)   # the recorder has not closed the file
+    assert disk.n_slots == n
+    gen = feed.series.gen
+    feed.rebuild_from(disk)
+    assert feed.pending is None and feed.series.gen > gen and feed.rebuilds == 1
+    assert feed.series.n_slots == n + 500
+    assert feed.series.rows() == live.rows()
+    r.close({"test_id": "T1"})

@@ -57,6 +57,7 @@ class Series:
         self.n_slots = 0
         self.n_valid = 0
         self.n_present = 0
+        self.last_k = -1
 
     def reset(self) -> None:
         self.width = 1
@@ -65,6 +66,7 @@ class Series:
         self.dirty_from = 0
         self.recent_mu.clear()
         self.n_slots = self.n_valid = self.n_present = 0
+        self.last_k = -1
 
     def add(self, rec: SlotRecord) -> None:
         k = rec.k
@@ -78,6 +80,7 @@ class Series:
         elif self.dirty_from > len(self.buckets) - 1:
             self.dirty_from = len(self.buckets) - 1
         self.n_slots += 1
+        self.last_k = k
         mu = rec.mu
         if rec.q and mu is not None:
             self.n_valid += 1
@@ -149,6 +152,49 @@ class Series:
         return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
 
 
+def series_from_log(path: str, ts: float = 0.02, max_buckets: int = MAX_BUCKETS) -> Series:
+    """The series of a recorded test from its log on disk — also while the recorder still writes
+    it (the log is zlib-sync-flushed every second: everything up to the last flush is read; a
+    torn last line is left out)."""
+    import zlib
+
+    from ..station.recorder import LOG_COLUMNS
+
+    s = Series(ts, max_buckets)
+    d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    col = {c: i for i, c in enumerate(LOG_COLUMNS)}
+    it, i1, i2, ic, ia, iq, imu = (col[c] for c in ("t", "T1", "T2", "speed_cmd", "speed_act", "q", "mu"))
+    tail = b""
+    header = True
+    with open(path, "rb") as f:
+        while True:
+            chunk = f.read(1 << 20)
+            if not chunk:
+                break
+            try:
+                data = tail + d.decompress(chunk)
+            except zlib.error:
+                break               # a damaged stream: what was read so far stands
+            lines = data.split(b"\n")
+            tail = lines.pop()
+            for ln in lines:
+                if header:
+                    header = False
+                    continue
+                v = ln.split(b",")
+                try:
+                    k = int(float(v[it]) / ts + 1e-6)
+                    q = int(v[iq])
+                    mu = float(v[imu]) if q else None
+                    rec = SlotRecord(k=k, t=k * ts, present=True, t1=float(v[i1]), t2=float(v[i2]),
+                                     q=q, mask=0, ratio=None, mu=mu, mean_filt=math.nan,
+                                     speed_cmd=float(v[ic]), speed_act=float(v[ia]), saturated=False)
+                except (ValueError, IndexError):
+                    continue        # a bad row is skipped, never fatal
+                s.add(rec)
+    return s
+
+
 class StationFeed:
     """What the console knows about one station; lives on the console thread (except ``q``)."""
 
@@ -163,6 +209,11 @@ class StationFeed:
         self.headroom: float | None = None
         self.t_cross: float | None = None
         self.running = False
+        self.test_id: str | None = None
+        #: live records kept while the series is rebuilt from disk after a loss in the hand-over
+        self.pending: list | None = None
+        self.rebuilds = 0
+        self._dropped_seen = 0
         self.last_k: int | None = None
         self.last_seen = 0.0
         # set by the ConsoleOutput bound to the current Station object
@@ -181,7 +232,10 @@ class StationFeed:
             n += 1
             changed = True
             if isinstance(item, SlotRecord):
-                if self.running:
+                if self.pending is not None:
+                    if len(self.pending) < HANDOVER_SLOTS * 8:
+                        self.pending.append(item)
+                elif self.running:
                     self.series.add(item)
                     self.last_k = item.k
                     for name in ("headroom", "t_cross"):
@@ -198,7 +252,26 @@ class StationFeed:
                         setattr(self, name, v)
         if n:
             self.last_seen = time.time()
+        if self.dropped != self._dropped_seen:
+            self._dropped_seen = self.dropped
+            st = self.state
+            if self.running or (st is not None and st.test_id and st.state.value in (1, 2, 3)):
+                self.running = True
+                self.test_id = self.test_id or (st.test_id if st is not None else None)
+                if self.pending is None and self.test_id:
+                    self.pending = []       # the server rebuilds the series from the log on disk
         return changed
+
+    def rebuild_from(self, disk: Series) -> None:
+        """Swap in the series read from disk, then the live records it does not have yet."""
+        pending, self.pending = self.pending or [], None
+        for rec in pending:
+            if rec.k > disk.last_k:
+                disk.add(rec)
+        disk.gen = self.series.gen + 1
+        disk.dirty_from = 0
+        self.series = disk
+        self.rebuilds += 1
 
     def _event(self, ev: Event) -> None:
         d = ev.data
@@ -207,6 +280,8 @@ class StationFeed:
             self.markers = {"t_set": d.get("t_set")}
             self.headroom = self.t_cross = None
             self.running = True
+            self.test_id = ev.test_id
+            self.pending = None
             self.events.clear()
         elif ev.type == EventType.TEST_ENDED:
             self.running = False

@@ -43,7 +43,7 @@ from ..records import Command, CommandKind
 from ..station.commands import CODE, Rejection, command_from_mapping
 from ..threadloop import ThreadLoop
 from . import auth
-from .feed import ConsoleOutput, StationFeed
+from .feed import ConsoleOutput, StationFeed, series_from_log
 
 log = logging.getLogger("hookwatch.console")
 
@@ -133,6 +133,7 @@ class ConsoleServer:
         self._fig_locks: dict[str, asyncio.Lock] = {}
         self._campaign_busy = False
         self._campaign_n = 0
+        self._rebuilding: set[str] = set()
         self.error: str | None = None
 
     # ----------------------------------------------------------------- lifecycle (any thread)
@@ -227,6 +228,8 @@ class ConsoleServer:
         for name, feed in self.feeds.items():
             gen = feed.series.gen
             changed = feed.drain()
+            if feed.pending is not None and name not in self._rebuilding:
+                self._rebuild(name, feed)
             clients = self.clients[name]
             if not clients or not changed:
                 if changed:
@@ -246,6 +249,27 @@ class ConsoleServer:
                     c.q.put_nowait(data)
                 except asyncio.QueueFull:      # a slow browser is dropped, never waited for
                     self._drop(name, c, "queue full")
+
+    def _rebuild(self, name: str, feed: StationFeed) -> None:
+        """The hand-over lost records of a running test: read the test so far from the recorder's
+        log on disk (in a worker thread), then add the live tail kept meanwhile."""
+        path = os.path.join(self.records[name], feed.test_id or "", "log.csv.gz")
+        self._rebuilding.add(name)
+        log.warning("console: %s: live data lost in the hand-over (%d items); rebuilding the curve "
+                    "from %s", name, feed.dropped, path)
+
+        def done(fut) -> None:
+            self._rebuilding.discard(name)
+            try:
+                feed.rebuild_from(fut.result())
+            except Exception as e:       # no log yet or unreadable: the live tail goes on alone
+                log.error("console: %s: cannot read %s: %s", name, path, e)
+                pending, feed.pending = feed.pending or [], None
+                for rec in pending:
+                    feed.series.add(rec)
+
+        fut = asyncio.get_running_loop().run_in_executor(None, series_from_log, path, feed.series.ts)
+        fut.add_done_callback(done)
 
     def _drop(self, name: str, c: _Client, why: str) -> None:
         if c.dropped:
