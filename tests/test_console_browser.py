@@ -4,7 +4,7 @@
 shows the curve from slot 0, and acknowledge needs a login and the CSRF token.
 
 Screenshots are written to the test's tmp folder (fleet.png, station-mid.png, station-alarm.png,
-station-acked.png)."""
+station-acked.png, history.png)."""
 from __future__ import annotations
 
 import os
@@ -14,6 +14,7 @@ import time
 import pytest
 
 from console_helpers import console_fleet
+from e2e import wait_log
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -113,5 +114,17 @@ def test_console_in_a_browser(tmp_path, browser):
         # --- fleet card shows the acknowledged alarm too; no script errors anywhere
         page.goto(url + "/")
         page.wait_for_selector('.card[data-station="loom-a"] .alarm-acknowledged', timeout=10000)
+
+        # --- history: the ended test with its status and the Fig. 7 from the report code
+        wait_log(gw, "loom-a: test_ended", timeout=60)      # the planned end (70 s)
+        page.goto(url + "/#/history/loom-a")
+        page.wait_for_selector("button.fig7", timeout=20000)
+        row = page.locator("#tests tr").nth(1).inner_text()
+        assert "S-loom-a" in row and "failure" in row
+        page.click("button.fig7")
+        page.wait_for_function("document.querySelector('img.fig') && document.querySelector('img.fig')"
+                               ".complete && document.querySelector('img.fig').naturalWidth > 1000",
+                               timeout=120000)
+        page.screenshot(path=str(tmp_path / "history.png"), full_page=True)
         assert errors == []
         ctx.close()

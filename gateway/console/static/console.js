@@ -199,7 +199,10 @@
         <td>${t.files.map(f => `<a href="${base}${encodeURIComponent(t.test_id)}/files/${f}">${f}</a>`).join(" ")}</td>
         <td>${t.files.includes("result.json") ? `<button class="fig7" data-tid="${esc(t.test_id)}">Fig. 7</button>` : ""}</td></tr>`).join("") + "</table>" : "no recorded tests";
     main.querySelectorAll("button.fig7").forEach(b => b.addEventListener("click", () => {
-      $("#fig").innerHTML = `<p>rendering Fig. 7 of ${esc(b.dataset.tid)} …</p><img class="fig" alt="Fig. 7 of ${esc(b.dataset.tid)}" src="${base}${encodeURIComponent(b.dataset.tid)}/fig7.png">`;
+      $("#fig").innerHTML = `<p id="fig-note">rendering Fig. 7 of ${esc(b.dataset.tid)} …</p><img class="fig" alt="Fig. 7 of ${esc(b.dataset.tid)}" src="${base}${encodeURIComponent(b.dataset.tid)}/fig7.png">`;
+      const img = $("#fig img");
+      img.addEventListener("load", () => { $("#fig-note").textContent = "Fig. 7 of " + b.dataset.tid; });
+      img.addEventListener("error", () => { $("#fig-note").textContent = "no figure (see the gateway log)"; });
     }));
   }
 
