@@ -24,10 +24,13 @@ sys.path.insert(0, HERE)
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
 
 
-def run_fleet(n: int, duration: float, one_sim: bool = True) -> dict:
+def make_fleet(n: int, prefix: str, extra: dict | None = None, one_sim: bool = True) -> tuple[str, str, list]:
+    """A fleet folder of n stations on n virtual stations (life-I-0.5, 115200 baud), started;
+    returns (work folder, fleet folder, simulator processes). ``extra``: more fleet defaults;
+    ``one_sim``: one `hookwatch sim --count N` process for all (else one sim per station)."""
     import yaml
 
-    work = tempfile.mkdtemp(prefix=f"hw-bench-fleet{n}-")
+    work = tempfile.mkdtemp(prefix=prefix)
     fleet = os.path.join(work, "fleet")
     os.makedirs(os.path.join(fleet, "stations"))
     scen = os.path.join(ROOT, "config", "scenarios", "life-I-0.5.yaml")
@@ -39,7 +42,7 @@ def run_fleet(n: int, duration: float, one_sim: bool = True) -> dict:
             "test": {"t_set_n": 0.5, "t_end_s": 36000, "autostart": True},
             "recorder": {"dir": os.path.join(work, "records")},
             "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
-            "logging": {"level": "warning"}}}, f)
+            "logging": {"level": "warning"}, **(extra or {})}}, f)
     sims = []
     if one_sim:
         # one `hookwatch sim --count N` process hosts all N virtual stations (issue 16)
@@ -67,6 +70,22 @@ def run_fleet(n: int, duration: float, one_sim: bool = True) -> dict:
                             "meter": {"port": os.path.join(links, "meter")},
                             "stm32": {"port": os.path.join(links, "stm32")},
                             "test": {"sample_id": f"F-{i}"}}, f)
+    return work, fleet, sims
+
+
+def stop_sims_read(sims: list, stats: str) -> dict:
+    """Stop the simulators; the gateway's --stats-json figures."""
+    for p in sims:
+        p.send_signal(signal.SIGTERM)
+    for p in sims:
+        p.wait(10)
+        p.stdout.close()
+    with open(stats) as f:
+        return json.load(f)
+
+
+def run_fleet(n: int, duration: float, one_sim: bool = True) -> dict:
+    work, fleet, sims = make_fleet(n, f"hw-bench-fleet{n}-", one_sim=one_sim)
     stats = os.path.join(work, "stats.json")
     gw = subprocess.Popen([EXE, "run", fleet, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning"], stdout=subprocess.DEVNULL,
@@ -87,13 +106,7 @@ def run_fleet(n: int, duration: float, one_sim: bool = True) -> dict:
         except (OSError, IndexError):
             break
     gw.wait()
-    for p in sims:
-        p.send_signal(signal.SIGTERM)
-    for p in sims:
-        p.wait(10)
-        p.stdout.close()
-    with open(stats) as f:
-        st = json.load(f)
+    st = stop_sims_read(sims, stats)
     filled = [s["filled_ratio"] for s in st.values()]
     p99 = [s["lateness_ms_p99"] for s in st.values()]
     out = {"stations": n, "duration_s": duration, "worst_filled_pct": 100 * min(filled),

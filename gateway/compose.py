@@ -7,15 +7,18 @@ outputs know the station only as a command sink and a state source. ``hookwatch 
 """
 from __future__ import annotations
 
+import os
+
 from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
 
+from .console.server import ConsoleServer, ConsoleSettings
 from .northbound.wiring import metrics_outputs, outputs_for
 from .ports import MeterPort, Output, Stm32Port
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.station import Station
 
-__all__ = ["build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok"]
+__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok"]
 
 
 def build_meter(cfg) -> MeterPort:
@@ -50,3 +53,13 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs))
     return st
+
+
+def build_console(cfgs: list) -> ConsoleServer | None:
+    """The operator console of one process (the ``console:`` section of its first station; put it
+    in the fleet defaults), serving every station of ``cfgs``; None when it is not enabled."""
+    if not cfgs or not cfgs[0].console.enabled:
+        return None
+    return ConsoleServer(ConsoleSettings.from_config(cfgs[0]),
+                         {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs},
+                         mqtt_enabled={c.station.id: bool(c.mqtt.enabled) for c in cfgs})

@@ -2,7 +2,7 @@
 # Set up a development/runtime environment in ./.venv (idempotent).
 #   scripts/setup.sh           Python environment only
 #   scripts/setup.sh --tools   also the system tools the tests use (mosquitto, mbpoll, socat, systemd,
-#                              logrotate, openssl, prometheus)
+#                              logrotate, openssl, prometheus, chromium)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -17,6 +17,8 @@ if [ "${1:-}" = "--tools" ]; then
   command -v logrotate >/dev/null 2>&1 || [ -x /usr/sbin/logrotate ] || need+=(logrotate)
   command -v openssl >/dev/null 2>&1 || need+=(openssl)
   command -v prometheus >/dev/null 2>&1 || need+=(prometheus)
+  # the console's browser tests: Playwright (PyPI, test extras) drives Debian's chromium
+  [ -x /usr/bin/chromium ] || need+=(chromium)
   if [ ${#need[@]} -gt 0 ]; then
     if [ "$(id -u)" = 0 ]; then
       echo "setup: installing ${need[*]}" >&2

@@ -2,16 +2,24 @@
 
 It starts the virtual station (`hookwatch sim` on the demo scenario: a compressed needle life of a
 few minutes) as its own process, runs the gateway's station runtime against its two
-pseudo-terminals exactly as it would run against a real ZN-S meter and STM32, and when the test
-has ended re-analyses the recorded log offline to show that both results are identical.
+pseudo-terminals exactly as it would run against a real ZN-S meter and STM32, with the whole
+product around it: the operator console (web pages, a demo login), the PLC register map on a local
+Modbus TCP port and MQTT to a Mosquitto it starts itself when one is installed. It prints the URL
+and ready-to-paste `mbpoll` and `mosquitto_sub` lines, and when the test has ended says in plain
+words what happened, re-analyses the recorded log offline to show that both results are identical
+and writes the paper's Fig. 7 of the test.
 """
 from __future__ import annotations
 
 import asyncio
+import getpass
 import json
 import logging
 import os
+import secrets
+import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -20,8 +28,12 @@ import time
 from ..analysis import analyze_file
 from ..cli import CliError
 from ..compose import build_station
+from ..console import auth
+from ..console.server import ConsoleServer, ConsoleSettings
 from ..config import ConfigError, load_station
+from ..northbound import schema as mqtt_schema
 from ..records import EventType
+from ..report.pipeline import build_report
 from ..station.console import ConsoleOutput
 
 HELP = "run hookwatch on its built-in default: a simulated loom station through a compressed needle life"
@@ -41,6 +53,16 @@ def add_arguments(ap):
     ap.add_argument("--seed", type=int, default=1, help="simulator seed")
     ap.add_argument("--every", type=float, default=5.0, metavar="S", help="progress line interval, s")
     ap.add_argument("--timeout", type=float, default=1800.0, metavar="S", help="give up after this long")
+    ap.add_argument("--t-end", type=float, default=240.0, metavar="S",
+                    help="planned test duration (default 240 s: the alarm comes at ≈ 221 s)")
+    ap.add_argument("--console-port", type=int, default=8080, metavar="PORT",
+                    help="console port on 127.0.0.1 (default 8080; a free one if taken)")
+    ap.add_argument("--plc-port", type=int, default=5020, metavar="PORT",
+                    help="Modbus TCP port of the PLC map on 127.0.0.1 (default 5020; a free one if taken)")
+    ap.add_argument("--mqtt-port", type=int, default=1883, metavar="PORT",
+                    help="port of the demo's own Mosquitto (default 1883; a free one if taken)")
+    ap.add_argument("--no-console", action="store_true", help="without the web console")
+    ap.add_argument("--no-northbound", action="store_true", help="without the PLC map and MQTT")
 
 
 class _EndWatcher:
@@ -94,11 +116,81 @@ def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
                "truth": truth}
 
 
+def _port(wanted: int) -> int:
+    """``wanted`` if it is free on 127.0.0.1, else a free port."""
+    for port in (wanted, 0):
+        with socket.socket() as sk:
+            try:
+                sk.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return sk.getsockname()[1]
+    raise CliError("no free TCP port on 127.0.0.1", 1)
+
+
+def _start_mosquitto(work: str, port: int) -> subprocess.Popen | None:
+    """The demo's own broker on 127.0.0.1, when Mosquitto is installed; None otherwise."""
+    exe = shutil.which("mosquitto") or ("/usr/sbin/mosquitto" if os.path.exists("/usr/sbin/mosquitto") else None)
+    if exe is None:
+        return None
+    d = os.path.join(work, "mosquitto")
+    os.makedirs(d, exist_ok=True)
+    conf = os.path.join(d, "mosquitto.conf")
+    with open(conf, "w") as f:
+        # as root, mosquitto would drop to user `mosquitto`, who may not write here
+        f.write(f"user {getpass.getuser()}\nlistener {port} 127.0.0.1\nallow_anonymous true\n"
+                f"persistence false\nlog_dest file {d}/mosquitto.log\n")
+    p = subprocess.Popen([exe, "-c", conf], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t_end = time.monotonic() + 5
+    while time.monotonic() < t_end:
+        with socket.socket() as sk:
+            if sk.connect_ex(("127.0.0.1", port)) == 0:
+                return p
+        if p.poll() is not None:
+            break
+        time.sleep(0.05)
+    p.kill()
+    p.wait()
+    return None
+
+
+def _stop_proc(p: subprocess.Popen | None) -> None:
+    if p is None:
+        return
+    if p.poll() is None:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+    if p.stdout:
+        p.stdout.close()
+
+
+def _demo_console(cfg, work: str, port: int):
+    """The console with one demo user (a fresh random password, printed)."""
+    users = os.path.join(work, "console-users.json")
+    password = secrets.token_urlsafe(9)
+    auth.add_user(users, "demo", password)
+    console = ConsoleServer(ConsoleSettings(listen=(f"127.0.0.1:{port}",), users_file=users),
+                            {cfg.station.id: os.path.join(cfg.recorder.dir, cfg.station.id)},
+                            mqtt_enabled={cfg.station.id: bool(cfg.mqtt.enabled)})
+    urls = console.start()
+    if not urls:
+        return None, None
+    print(f"console : {urls[0]}  (reading is open; to acknowledge log in as demo / {password})", flush=True)
+    return console, urls[0]
+
+
 def run(args) -> int:
     import dataclasses
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    # as in `hookwatch run`: the slot loop must not wait 5 ms for the GIL behind the console,
+    # the PLC server or paho
+    sys.setswitchinterval(0.0005)
     try:
         cfg = load_station(args.station)
     except ConfigError as e:
@@ -108,22 +200,52 @@ def run(args) -> int:
     print(f"hookwatch demo: a virtual loom station (scenario {os.path.relpath(args.scenario)}), "
           f"files under {work}", flush=True)
     sim, links = _start_sim(args, work)
+    broker = None
+    console = None
     try:
         cfg = dataclasses.replace(
             cfg,
             meter=dataclasses.replace(cfg.meter, port=links["meter"]),
             stm32=dataclasses.replace(cfg.stm32, port=links["stm32"]),
             recorder=dataclasses.replace(cfg.recorder, dir=os.path.join(work, "records")),
-            test=dataclasses.replace(cfg.test, autostart=True),
+            test=dataclasses.replace(cfg.test, autostart=True, t_end_s=float(args.t_end)),
         )
+        if not args.no_northbound:
+            plc_port = _port(args.plc_port)
+            cfg = dataclasses.replace(cfg, modbus_tcp=dataclasses.replace(
+                cfg.modbus_tcp, enabled=True, host="127.0.0.1", port=plc_port))
+            mqtt_port = _port(args.mqtt_port)
+            broker = _start_mosquitto(work, mqtt_port)
+            if broker is not None:
+                cfg = dataclasses.replace(cfg, mqtt=dataclasses.replace(
+                    cfg.mqtt, enabled=True, host="127.0.0.1", port=mqtt_port))
         print(f"meter on {os.path.realpath(links['meter'])}, STM32 on {os.path.realpath(links['stm32'])}; "
               f"test {cfg.test.sample_id} grade {cfg.test.grade}, T_set {cfg.test.t_set_n} N, "
               f"planned {cfg.test.t_end_s:g} s", flush=True)
+        if not args.no_console:
+            console, _url = _demo_console(cfg, work, _port(args.console_port))
+        if cfg.modbus_tcp.enabled:
+            p = cfg.modbus_tcp.port
+            print(f"PLC map : Modbus TCP on 127.0.0.1:{p} (docs/registers.md); test state, status, alarm:\n"
+                  f"          mbpoll -m tcp -p {p} -a 1 -0 -t 3 -r 0 -c 8 -1 127.0.0.1\n"
+                  f"          T1, T2, tension, μ, μ_ss, μ_th:\n"
+                  f"          mbpoll -m tcp -p {p} -a 1 -0 -t 3:float -B -r 8 -c 6 -1 127.0.0.1", flush=True)
+        if cfg.mqtt.enabled:
+            st_ = cfg.station
+            base = mqtt_schema.base_topic(cfg.mqtt.prefix, st_.site, st_.area, st_.line, st_.id)
+            print(f"MES     : MQTT on the demo's own Mosquitto, 127.0.0.1:{cfg.mqtt.port} (docs/mqtt.md):\n"
+                  f"          mosquitto_sub -h 127.0.0.1 -p {cfg.mqtt.port} -t '{base}/#' -v", flush=True)
+        elif not args.no_northbound:
+            print("MES     : no MQTT (Mosquitto is not installed: apt-get install mosquitto)", flush=True)
+
+        ended = {}
 
         async def main():
             stop = asyncio.Event()
-            st = build_station(cfg, outputs=[ConsoleOutput(every_s=args.every), _EndWatcher(stop)],
-                               with_northbound=False)
+            outs = [ConsoleOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
+            st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
+            if console is not None:
+                st.outputs.append(console.output_for(st))
             loop = asyncio.get_running_loop()
             for s in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(s, stop.set)
@@ -138,14 +260,10 @@ def run(args) -> int:
 
         st = asyncio.run(main())
     finally:
-        sim.send_signal(signal.SIGTERM)
-        try:
-            sim.wait(10)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
-        if sim.stdout:
-            sim.stdout.close()
+        _stop_proc(sim)
+        if console is not None:
+            console.stop()
+        _stop_proc(broker)
     if not st.results:
         print("hookwatch demo: no test was completed", file=sys.stderr)
         return 1
@@ -161,13 +279,54 @@ def run(args) -> int:
           f"valid {m['n_valid']}/{m['n_slots']} slots")
     print(f"  offline: `hookwatch analyze {log_path}` gives "
           f"{'the identical result' if same else 'A DIFFERENT RESULT: ' + json.dumps(off)}")
+    onset = None
     try:
         with open(links["truth"]) as f:
-            truth = json.load(f)
-        onset = truth.get("onset_run_s")
-        if onset is not None:
-            print(f"  simulated onset of accelerated wear (ground truth): {onset:.1f} s after the yarn started")
+            onset = json.load(f).get("onset_run_s")
     except (OSError, ValueError):
         pass
+    print()
+    print("  " + _plain_words(m, ended, onset, float(st.method_values.get("tau", 60.0)), st.ts))
     print(f"  recorded: {test_dir}/ (log.csv.gz, log.meta.yaml, events.jsonl, result.json)")
+    fig = _fig7(test_dir, os.path.join(work, "report"))
+    print(f"  Fig. 7 : {fig}" if fig else "  Fig. 7 : not written (see hookwatch report)")
     return 0 if same else 1
+
+
+class _EolWatcher(_EndWatcher):
+    """Remembers when the end of life was detected (slot of the event)."""
+
+    def __init__(self, ended: dict):
+        self.ended = ended
+
+    def on_event(self, ev):
+        if ev.type == EventType.END_OF_LIFE and ev.k is not None:
+            self.ended["k_detect"] = ev.k
+
+
+def _plain_words(m: dict, ended: dict, onset: float | None, tau: float, ts: float) -> str:
+    """What happened, in one sentence, from the real numbers."""
+    t_life = m.get("t_life")
+    if t_life is None:
+        return (f"no end of life within the test (status {m.get('status')})"
+                + (f"; simulated wear onset {onset:.1f} s" if onset is not None else ""))
+    parts = [f"end of life at {t_life:.1f} s after the start"]
+    if onset is not None:
+        parts.append(f"simulated wear onset {onset:.1f} s")
+    k = ended.get("k_detect")
+    if k is not None:
+        t_det = (k + 1) * ts
+        parts.append(f"detected {t_det - t_life:.0f} s later (at {t_det:.1f} s), as the {tau:g} s "
+                     f"persistence requires")
+    return "; ".join(parts)
+
+
+def _fig7(test_dir: str, out: str) -> str | None:
+    try:
+        build_report(test_dir, out, progress=False)
+    except Exception as e:  # the demo's result stands without its picture
+        print(f"  (Fig. 7 not written: {type(e).__name__}: {e})")
+        return None
+    d = os.path.join(out, "figures")
+    names = sorted(n for n in os.listdir(d) if n.startswith("fig7")) if os.path.isdir(d) else []
+    return os.path.join(d, names[0]) if names else None

@@ -11,7 +11,7 @@ import time
 
 from .. import sdnotify
 from ..cli import CliError
-from ..compose import build_station, records_dir_ok
+from ..compose import build_console, build_station, records_dir_ok
 from ..config import ConfigError, load_fleet, load_station
 from ..station.fleet import Fleet, StationRunner
 
@@ -88,9 +88,10 @@ def run(args) -> int:
         if err:
             raise CliError(f"station {c.station.id}: {err}", 1)
 
+    console = _console(cfgs)
     runners = []
     for i, c in enumerate(cfgs):
-        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs))))
+        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs), console)))
     fleet = Fleet(runners)
     stop = threading.Event()
     reload_req = threading.Event()
@@ -119,7 +120,7 @@ def run(args) -> int:
                     sdnotify.watchdog()
             if reload_req.is_set():
                 reload_req.clear()
-                _reload(args, fleet)
+                _reload(args, fleet, console)
             if args.duration is not None and now - t0 >= args.duration:
                 break
             if args.exit_when_done:
@@ -131,6 +132,8 @@ def run(args) -> int:
     finally:
         sdnotify.stopping()
         fleet.stop()
+        if console is not None:
+            console.stop()
     if args.stats_json:
         out = {r.name: (r.station.stats.summary() if r.station else None) for r in runners}
         for r in runners:
@@ -147,16 +150,28 @@ def run(args) -> int:
     return 0
 
 
-def _factory(cfg, args, phase: float):
+def _factory(cfg, args, phase: float, console=None):
     """Builds the station of ``cfg``; ``phase`` spreads the stations of one process over the slot."""
     def make():
         st = build_station(cfg, with_northbound=not args.no_northbound)
         st.slot_phase = phase
+        if console is not None:
+            st.outputs.append(console.output_for(st))
         return st
     return make
 
 
-def _reload(args, fleet) -> None:
+def _console(cfgs):
+    """The operator console of this process (``console:`` of the first station), or None."""
+    console = build_console(cfgs)
+    if console is None:
+        return None
+    for url in console.start():
+        print(f"console: {url}", flush=True)
+    return console
+
+
+def _reload(args, fleet, console=None) -> None:
     """SIGHUP: load the configuration again; each station decides on its own loop whether it
     restarts with it (idle) or keeps the parameters of its running test."""
     log = logging.getLogger("hookwatch.run")
@@ -169,4 +184,4 @@ def _reload(args, fleet) -> None:
     for i, r in enumerate(fleet.runners):
         c = cfgs.get(r.name)
         if c is not None:
-            r.request_reload(_factory(c, args, i / n))
+            r.request_reload(_factory(c, args, i / n, console))

@@ -329,6 +329,36 @@ class MetricsConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class ConsoleTlsConfig:
+    cert_file: str | None = key(None, "server certificate (PEM) for HTTPS on the plant network",
+                                kind="path", nullable=True, null_means="plain HTTP")
+    key_file: str | None = key(None, "private key of cert_file", kind="path", nullable=True,
+                               null_means="plain HTTP")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConsoleConfig:
+    enabled: bool = key(False, "serve the operator console (web pages: fleet, station, history); "
+                        "one console per process shows every station of the fleet, configured by "
+                        "the first station file", kind="bool")
+    listen: tuple[str, ...] = key(("127.0.0.1:8080",), "addresses to listen on, as host:port",
+                                  kind="str_list")
+    tls: ConsoleTlsConfig = section(ConsoleTlsConfig, "HTTPS (certificate and key)")
+    users_file: str | None = key(None, "users who may give commands (`hookwatch console-user "
+                                 "add`); salted scrypt hashes", kind="path", nullable=True,
+                                 null_means="`console-users.json` in recorder.dir")
+    read_without_login: str = key("local", "who may read without logging in: local (clients on "
+                                  "the loopback address), all, none", kind="enum",
+                                  choices=("local", "all", "none"))
+    session_ttl_s: float = key(28800.0, "a login lasts this long without activity", kind="float",
+                               unit="s", lo=60.0, hi=7 * 86400.0)
+    lockout_attempts: int = key(5, "failed logins of one user or client address before a lockout",
+                                kind="int", lo=1, hi=100)
+    lockout_s: float = key(300.0, "how long a lockout lasts", kind="float", unit="s", lo=1.0,
+                           hi=86400.0)
+
+
+@dataclass(frozen=True, kw_only=True)
 class LoggingConfig:
     level: str = key("info", "log level of the station (journal / stderr)", kind="enum",
                      choices=("debug", "info", "warning", "error"))
@@ -440,6 +470,7 @@ class StationConfig:
     modbus_tcp: ModbusTcpConfig = section(ModbusTcpConfig, "northbound Modbus TCP server (to the PLC)")
     sparkplug: SparkplugConfig = section(SparkplugConfig, "northbound Sparkplug B 3.0 (to SCADA / MES)")
     metrics: MetricsConfig = section(MetricsConfig, "metrics for Prometheus (the gateway's own health)")
+    console: ConsoleConfig = section(ConsoleConfig, "operator console (web pages)")
     logging: LoggingConfig = section(LoggingConfig, "logging")
     #: not a key: the station file this configuration was read from, and its fleet file
     source: str = field(default="", metadata={"internal": True})

@@ -1,0 +1,65 @@
+"""`hookwatch user add|remove|list`: the people who may give commands from the operator console."""
+from __future__ import annotations
+
+import getpass
+import os
+import sys
+
+from ..cli import CliError
+
+HELP = "manage the operator console's users (add, remove, list)"
+DESCRIPTION = (HELP + ". Passwords are stored as salted scrypt hashes (N=2^14, r=8, p=1) in the "
+               "users file: console.users_file of the station/fleet given, or --file.")
+
+
+def add_arguments(ap):
+    ap.add_argument("action", choices=("add", "remove", "list"))
+    ap.add_argument("name", nargs="?", help="user name (add, remove)")
+    g = ap.add_mutually_exclusive_group(required=True)
+    g.add_argument("--config", metavar="STATION.yaml|DIR", help="take console.users_file from this configuration")
+    g.add_argument("--file", metavar="PATH", help="the users file")
+    ap.add_argument("--password-stdin", action="store_true",
+                    help="read the password from the first line of stdin (else asked twice on the terminal)")
+
+
+def _users_file(args) -> str:
+    if args.file:
+        return args.file
+    from ..config import ConfigError, load_fleet, load_station
+    try:
+        cfgs = load_fleet(args.config) if os.path.isdir(args.config) else [load_station(args.config)]
+    except (ConfigError, FileNotFoundError) as e:
+        raise CliError(str(e), 1) from None
+    if not cfgs:
+        raise CliError(f"{args.config}: no station files", 1)
+    c = cfgs[0]
+    return c.console.users_file or os.path.join(c.recorder.dir, "console-users.json")
+
+
+def run(args) -> int:
+    from ..console import auth
+
+    path = _users_file(args)
+    try:
+        if args.action == "list":
+            for name, e in sorted(auth.load_users(path).items()):
+                print(f"{name}\tcreated {e.get('created', '?')}")
+            return 0
+        if not args.name:
+            raise CliError(f"{args.action}: a user name is needed")
+        if args.action == "remove":
+            if not auth.remove_user(path, args.name):
+                raise CliError(f"no user {args.name!r} in {path}", 1)
+            print(f"user {args.name} removed from {path}")
+            return 0
+        if args.password_stdin:
+            pw = sys.stdin.readline().rstrip("\n")
+        else:
+            pw = getpass.getpass(f"password for {args.name}: ")
+            if getpass.getpass("again: ") != pw:
+                raise CliError("the passwords differ", 1)
+        new = auth.add_user(path, args.name, pw)
+    except auth.UsersError as e:
+        raise CliError(str(e), 1) from None
+    print(f"user {args.name} {'added to' if new else 'updated in'} {path}")
+    return 0

@@ -1,0 +1,361 @@
+"""From a station's slot loop to the console: one bounded, non-blocking hand-over per station.
+
+:class:`ConsoleOutput` is an ordinary station output. On the slot loop it does nothing but append
+the object it is given (the slot record, event or state copy the station already made) to a
+``collections.deque`` with a maximum length: no lock, no allocation of its own, never blocks. If the
+console thread stalls for longer than the deque holds (:data:`HANDOVER_SLOTS` slots), the oldest
+items are dropped and counted; the station and its recorder are never affected.
+
+The console thread drains the deque a few times a second (:meth:`StationFeed.drain`) into a
+:class:`Series`: μ(t) and the slow signals of the running test from slot 0, min/max-decimated
+into at most :data:`MAX_BUCKETS` buckets. When the buckets are full, neighbours are merged and the
+bucket width doubles, so a 10-hour test costs the same memory and the same bytes to a browser as a
+one-minute one, and a one-slot spike of μ stays visible in the min/max envelope.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import math
+import time
+from dataclasses import asdict
+from typing import Any
+
+from ..records import Event, EventType, SlotRecord, StationState
+
+#: slots the hand-over holds (2 min 44 s at 50 Hz) before the oldest are dropped
+HANDOVER_SLOTS = 8192
+#: most buckets of a series (then neighbours merge and the width doubles)
+MAX_BUCKETS = 1024
+#: events kept per station for the event list
+MAX_EVENTS = 200
+
+# bucket fields: first slot, mu min, mu max, n valid, sums of t1, t2 (n present), speed cmd (n),
+# speed act (n act)
+_K0, _MN, _MX, _NV, _S1, _S2, _NP, _SC, _NC, _SA, _NA = range(11)
+
+
+def _new_bucket(k0: int) -> list:
+    return [k0, math.inf, -math.inf, 0, 0.0, 0.0, 0, 0.0, 0, 0.0, 0]
+
+
+def _num(x: float, nd: int = 5):
+    return round(x, nd) if x is not None and math.isfinite(x) else None
+
+
+class Series:
+    """The running test as min/max buckets from slot 0 (bounded memory)."""
+
+    def __init__(self, ts: float = 0.02, max_buckets: int = MAX_BUCKETS):
+        self.ts = ts
+        self.max = max_buckets
+        self.width = 1                # slots per bucket
+        self.buckets: list[list] = []
+        self.gen = 0                  # changes whenever earlier buckets change (merge or reset)
+        self.dirty_from = 0           # first bucket changed since the last take_changes()
+        self.recent_mu: collections.deque = collections.deque(maxlen=50)
+        self.n_slots = 0
+        self.n_valid = 0
+        self.n_present = 0
+        self.last_k = -1
+
+    def reset(self) -> None:
+        self.width = 1
+        self.buckets = []
+        self.gen += 1
+        self.dirty_from = 0
+        self.recent_mu.clear()
+        self.n_slots = self.n_valid = self.n_present = 0
+        self.last_k = -1
+
+    def add(self, rec: SlotRecord) -> None:
+        k = rec.k
+        b = self.buckets[-1] if self.buckets else None
+        if b is None or k >= b[_K0] + self.width:
+            if len(self.buckets) >= self.max:
+                self._merge()
+            b = _new_bucket(k - k % self.width)
+            self.buckets.append(b)
+            self.dirty_from = min(self.dirty_from, len(self.buckets) - 1)
+        elif self.dirty_from > len(self.buckets) - 1:
+            self.dirty_from = len(self.buckets) - 1
+        self.n_slots += 1
+        self.last_k = k
+        mu = rec.mu
+        if rec.q and mu is not None:
+            self.n_valid += 1
+            self.recent_mu.append(mu)
+            if mu < b[_MN]:
+                b[_MN] = mu
+            if mu > b[_MX]:
+                b[_MX] = mu
+            b[_NV] += 1
+        if rec.present:
+            self.n_present += 1
+            b[_S1] += rec.t1
+            b[_S2] += rec.t2
+            b[_NP] += 1
+        if math.isfinite(rec.speed_cmd):
+            b[_SC] += rec.speed_cmd
+            b[_NC] += 1
+        if math.isfinite(rec.speed_act):
+            b[_SA] += rec.speed_act
+            b[_NA] += 1
+
+    def _merge(self) -> None:
+        w = self.width * 2
+        out: list[list] = []
+        for b in self.buckets:
+            k0 = b[_K0] - b[_K0] % w
+            if out and out[-1][_K0] == k0:
+                o = out[-1]
+                o[_MN] = min(o[_MN], b[_MN])
+                o[_MX] = max(o[_MX], b[_MX])
+                for i in (_NV, _S1, _S2, _NP, _SC, _NC, _SA, _NA):
+                    o[i] += b[i]
+            else:
+                out.append([k0] + b[1:])
+        self.buckets = out
+        self.width = w
+        self.gen += 1
+        self.dirty_from = 0
+
+    def row(self, b: list) -> list:
+        """[t, μ min, μ max, T1, T2, mean tension, speed cmd, speed act] of one bucket."""
+        np_ = b[_NP]
+        t1 = b[_S1] / np_ if np_ else None
+        t2 = b[_S2] / np_ if np_ else None
+        return [round(b[_K0] * self.ts, 3),
+                _num(b[_MN], 6) if b[_NV] else None, _num(b[_MX], 6) if b[_NV] else None,
+                _num(t1, 4) if t1 is not None else None, _num(t2, 4) if t2 is not None else None,
+                _num((t1 + t2) / 2, 4) if t1 is not None else None,
+                _num(b[_SC] / b[_NC], 2) if b[_NC] else None,
+                _num(b[_SA] / b[_NA], 2) if b[_NA] else None]
+
+    def rows(self, start: int = 0) -> list[list]:
+        return [self.row(b) for b in self.buckets[start:]]
+
+    def take_changes(self) -> tuple[int, list[list]] | None:
+        """(first changed index, its rows onwards) since the last call, or None."""
+        if self.dirty_from >= len(self.buckets):
+            return None
+        start = self.dirty_from
+        self.dirty_from = len(self.buckets)
+        return start, self.rows(start)
+
+    def mu_now(self) -> float | None:
+        """Median of the last (up to) 50 valid μ: one second of a healthy test."""
+        if not self.recent_mu:
+            return None
+        s = sorted(self.recent_mu)
+        n = len(s)
+        return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
+
+
+def series_from_log(path: str, ts: float = 0.02, max_buckets: int = MAX_BUCKETS) -> Series:
+    """The series of a recorded test from its log on disk — also while the recorder still writes
+    it (the log is zlib-sync-flushed every second: everything up to the last flush is read; a
+    torn last line is left out)."""
+    import zlib
+
+    from ..station.recorder import LOG_COLUMNS
+
+    s = Series(ts, max_buckets)
+    d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+    col = {c: i for i, c in enumerate(LOG_COLUMNS)}
+    it, i1, i2, ic, ia, iq, imu = (col[c] for c in ("t", "T1", "T2", "speed_cmd", "speed_act", "q", "mu"))
+    tail = b""
+    header = True
+    with open(path, "rb") as f:
+        while True:
+            chunk = f.read(1 << 20)
+            if not chunk:
+                break
+            try:
+                data = tail + d.decompress(chunk)
+            except zlib.error:
+                break               # a damaged stream: what was read so far stands
+            lines = data.split(b"\n")
+            tail = lines.pop()
+            for ln in lines:
+                if header:
+                    header = False
+                    continue
+                v = ln.split(b",")
+                try:
+                    k = int(float(v[it]) / ts + 1e-6)
+                    q = int(v[iq])
+                    mu = float(v[imu]) if q else None
+                    rec = SlotRecord(k=k, t=k * ts, present=True, t1=float(v[i1]), t2=float(v[i2]),
+                                     q=q, mask=0, ratio=None, mu=mu, mean_filt=math.nan,
+                                     speed_cmd=float(v[ic]), speed_act=float(v[ia]), saturated=False)
+                except (ValueError, IndexError):
+                    continue        # a bad row is skipped, never fatal
+                s.add(rec)
+    return s
+
+
+class StationFeed:
+    """What the console knows about one station; lives on the console thread (except ``q``)."""
+
+    def __init__(self, name: str, ts: float = 0.02):
+        self.name = name
+        self.q: collections.deque = collections.deque(maxlen=HANDOVER_SLOTS)
+        self.dropped = 0
+        self.series = Series(ts)
+        self.state: StationState | None = None
+        self.events: collections.deque = collections.deque(maxlen=MAX_EVENTS)
+        self.markers: dict[str, Any] = {}
+        self.headroom: float | None = None
+        self.t_cross: float | None = None
+        self.running = False
+        self.test_id: str | None = None
+        #: live records kept while the series is rebuilt from disk after a loss in the hand-over
+        self.pending: list | None = None
+        self.rebuilds = 0
+        self._dropped_seen = 0
+        self.last_k: int | None = None
+        self.last_seen = 0.0
+        # set by the ConsoleOutput bound to the current Station object
+        self.station = None
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.mqtt_enabled = False
+
+    # ----------------------------------------------------------------- console thread
+    def drain(self, budget: int = 100_000) -> bool:
+        """Move what the slot loop handed over into the series; True if anything changed."""
+        q = self.q
+        n = 0
+        changed = False
+        while q and n < budget:
+            item = q.popleft()
+            n += 1
+            changed = True
+            if isinstance(item, SlotRecord):
+                if self.pending is not None:
+                    if len(self.pending) < HANDOVER_SLOTS * 8:
+                        self.pending.append(item)
+                elif self.running:
+                    self.series.add(item)
+                    self.last_k = item.k
+                    for name in ("headroom", "t_cross"):
+                        v = getattr(item, name, None)
+                        if v is not None:
+                            setattr(self, name, v)
+            elif isinstance(item, Event):
+                self._event(item)
+            elif isinstance(item, StationState):
+                self.state = item
+                for name in ("headroom", "t_cross"):
+                    v = getattr(item, name, None)
+                    if v is not None:
+                        setattr(self, name, v)
+        if n:
+            self.last_seen = time.time()
+        if self.dropped != self._dropped_seen:
+            self._dropped_seen = self.dropped
+            st = self.state
+            if self.running or (st is not None and st.test_id and st.state.value in (1, 2, 3)):
+                self.running = True
+                self.test_id = self.test_id or (st.test_id if st is not None else None)
+                if self.pending is None and self.test_id:
+                    self.pending = []       # the server rebuilds the series from the log on disk
+        return changed
+
+    def rebuild_from(self, disk: Series) -> None:
+        """Swap in the series read from disk, then the live records it does not have yet."""
+        pending, self.pending = self.pending or [], None
+        for rec in pending:
+            if rec.k > disk.last_k:
+                disk.add(rec)
+        disk.gen = self.series.gen + 1
+        disk.dirty_from = 0
+        self.series = disk
+        self.rebuilds += 1
+
+    def _event(self, ev: Event) -> None:
+        d = ev.data
+        if ev.type == EventType.TEST_STARTED:
+            self.series.reset()
+            self.markers = {"t_set": d.get("t_set")}
+            self.headroom = self.t_cross = None
+            self.running = True
+            self.test_id = ev.test_id
+            self.pending = None
+            self.events.clear()
+        elif ev.type == EventType.TEST_ENDED:
+            self.running = False
+            self.markers["t_end"] = (ev.k + 1) * self.series.ts if ev.k is not None else None
+        elif ev.type == EventType.BASELINE:
+            ts = self.series.ts
+            self.markers.update(mu_ss=d.get("mu_ss"), mu_th=d.get("mu_th"),
+                                k_b=d.get("k_b"), t_b=(d["k_b"] * ts if d.get("k_b") is not None else None),
+                                t_stable=(d["stable_first"] * ts if d.get("stable_first") is not None else None))
+        elif ev.type == EventType.END_OF_LIFE:
+            self.markers["t_life"] = d.get("t_life")
+        for name in ("headroom", "t_cross"):
+            if d.get(name) is not None:
+                setattr(self, name, d[name])
+        if d.get("warn_slot") is not None:
+            self.markers["t_warn"] = (d["warn_slot"] + 1) * self.series.ts
+        self.events.append(ev.as_dict())
+
+    def summary(self) -> dict[str, Any]:
+        """The fleet card."""
+        st = self.state
+        s = asdict(st) if st is not None else {"station": self.name}
+        if st is not None:
+            s["state"] = st.state.name.lower()
+        s.update(mu_now=_num(self.series.mu_now() or math.nan, 6), headroom=self.headroom,
+                 t_cross=self.t_cross, slots=self.series.n_slots, valid=self.series.n_valid,
+                 filled=self.series.n_present,
+                 running=self.running, handover_dropped=self.dropped,
+                 online=self.station is not None, last_seen=self.last_seen)
+        if not self.mqtt_enabled:
+            s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
+        elif not s.get("mqtt_ok"):
+            # until StationState.mqtt_ok is filled by the station (issue 11), ask the MQTT output
+            outs = getattr(self.station, "outputs", ()) or ()
+            s["mqtt_ok"] = any(type(o).__name__ == "MqttOutput" and getattr(o, "connected", False)
+                               for o in list(outs))
+        return s
+
+    def snapshot(self) -> dict[str, Any]:
+        s = self.series
+        return {"type": "snapshot", "station": self.name, "gen": s.gen, "width_s": s.width * s.ts,
+                "rows": s.rows(), "markers": self.markers, "summary": self.summary(),
+                "events": list(self.events)}
+
+
+class ConsoleOutput:
+    """The station-side end of the hand-over (one per Station object)."""
+
+    def __init__(self, feed: StationFeed, station=None):
+        self.feed = feed
+        self.station = station
+        self._q = feed.q
+        self._max = HANDOVER_SLOTS
+
+    async def start(self) -> None:
+        self.feed.loop = asyncio.get_running_loop()
+        self.feed.station = self.station
+
+    async def stop(self) -> None:
+        if self.feed.station is self.station:
+            self.feed.station = None
+            self.feed.loop = None
+
+    def _put(self, item) -> None:
+        q = self._q
+        if len(q) >= self._max:
+            self.feed.dropped += 1
+        q.append(item)
+
+    def on_record(self, rec: SlotRecord) -> None:
+        self._put(rec)
+
+    def on_event(self, ev: Event) -> None:
+        self._put(ev)
+
+    def on_state(self, st: StationState) -> None:
+        self._put(st)

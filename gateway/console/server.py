@@ -1,0 +1,700 @@
+"""The operator console: an aiohttp server on its own thread and loop (:class:`ConsoleServer`).
+
+Pages (static, shipped in ``static/``; uPlot vendored, nothing from the internet):
+``/`` fleet, ``/#/station/<id>`` station, ``/#/history/<id>`` history.
+
+JSON API (reading: open from the loopback address, else a login — ``console.read_without_login``)::
+
+    GET  /api/fleet                         fleet cards
+    GET  /api/station/<id>                  snapshot: decimated series from slot 0, markers, events
+    GET  /api/station/<id>/stream           Server-Sent Events: snapshot, then changes (~4/s)
+    GET  /api/station/<id>/tests            recorded tests
+    GET  /api/station/<id>/tests/<test>/fig7.png        the report's Fig. 7 of a test
+    GET  /api/station/<id>/tests/<test>/files/<name>    log.csv.gz, log.meta.yaml, events.jsonl, result.json
+    GET  /api/session                       who is logged in (+ CSRF token)
+    POST /api/login  {user, password}       → session cookie + CSRF token
+    POST /api/logout
+    POST /api/station/<id>/command {command, ...}   start | stop | ack | setpoint | hook_replaced
+
+Every POST other than login needs the session cookie and the ``X-CSRF-Token`` header; commands go
+through the station's one validation (``Station.submit`` on the station's own loop) and are logged
+with the user.
+"""
+from __future__ import annotations
+
+import asyncio
+import hmac
+import ipaddress
+import json
+import logging
+import os
+import re
+import shutil
+import socket
+import ssl
+import sys
+import tempfile
+import time
+from typing import Any
+
+from aiohttp import web
+
+from ..records import Command, CommandKind
+from ..station.commands import CODE, Rejection, command_from_mapping
+from ..threadloop import ThreadLoop
+from . import auth
+from .feed import ConsoleOutput, StationFeed, series_from_log
+
+log = logging.getLogger("hookwatch.console")
+
+STATIC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "static")
+#: largest request body accepted
+MAX_BODY = 16 * 1024
+#: messages queued per live client before it is dropped as too slow
+CLIENT_QUEUE = 64
+#: a client that cannot take one message within this long is dropped
+WRITE_TIMEOUT_S = 10.0
+#: kernel send buffer and transport high-water mark of a live client, bytes
+SEND_BUFFER = 16 * 1024
+#: most live (SSE) clients at once
+MAX_CLIENTS = 64
+#: how often the console drains the hand-overs and sends changes
+TICK_S = 0.25
+COOKIE = "hw_session"
+TEST_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}$")
+DOWNLOADS = {"log.csv.gz": "application/gzip", "log.meta.yaml": "text/yaml; charset=utf-8",
+             "events.jsonl": "application/x-ndjson", "result.json": "application/json"}
+
+
+class ConsoleSettings:
+    def __init__(self, *, listen=("127.0.0.1:8080",), cert_file=None, key_file=None,
+                 users_file: str, read_without_login="local", session_ttl_s=28800.0,
+                 lockout_attempts=5, lockout_s=300.0):
+        self.listen = tuple(listen)
+        self.cert_file, self.key_file = cert_file, key_file
+        self.users_file = users_file
+        self.read_without_login = read_without_login
+        self.session_ttl_s = float(session_ttl_s)
+        self.lockout_attempts = int(lockout_attempts)
+        self.lockout_s = float(lockout_s)
+
+    @classmethod
+    def from_config(cls, cfg) -> "ConsoleSettings":
+        c = cfg.console
+        users = c.users_file or os.path.join(cfg.recorder.dir, "console-users.json")
+        return cls(listen=c.listen, cert_file=c.tls.cert_file, key_file=c.tls.key_file,
+                   users_file=users, read_without_login=c.read_without_login,
+                   session_ttl_s=c.session_ttl_s, lockout_attempts=c.lockout_attempts,
+                   lockout_s=c.lockout_s)
+
+
+def parse_listen(addr: str) -> tuple[str, int]:
+    host, sep, port = str(addr).rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"console.listen {addr!r}: expected host:port")
+    return host.strip("[]") or "0.0.0.0", int(port)
+
+
+def _is_loopback(remote: str | None) -> bool:
+    try:
+        return ipaddress.ip_address(remote or "").is_loopback
+    except ValueError:
+        return False
+
+
+class _Client:
+    def __init__(self):
+        self.q: asyncio.Queue = asyncio.Queue(CLIENT_QUEUE)
+        self.dropped = False
+
+
+class ConsoleServer:
+    """One console per process: every station of the fleet, on its own thread and loop."""
+
+    def __init__(self, settings: ConsoleSettings, stations: dict[str, str], ts: float = 0.02,
+                 mqtt_enabled: dict[str, bool] | None = None):
+        """``stations``: station id → its records folder (recorder.dir/<id>); ``mqtt_enabled``:
+        stations that report over MQTT (the others show no MQTT link)."""
+        self.settings = settings
+        self.records = dict(stations)
+        self.feeds = {name: StationFeed(name, ts) for name in stations}
+        for name, on in (mqtt_enabled or {}).items():
+            self.feeds[name].mqtt_enabled = bool(on)
+        self.tl = ThreadLoop("console")
+        self.sessions = auth.Sessions(settings.session_ttl_s)
+        self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
+        self.clients: dict[str, set[_Client]] = {n: set() for n in stations}
+        self.urls: list[str] = []
+        self.dropped_clients = 0
+        self.cpu_s = 0.0
+        self._runner: web.AppRunner | None = None
+        self._tick_task: asyncio.Task | None = None
+        self._cache = tempfile.mkdtemp(prefix="hookwatch-console-")
+        self._fig_locks: dict[str, asyncio.Lock] = {}
+        self._campaign_busy = False
+        self._campaign_n = 0
+        self._rebuilding: set[str] = set()
+        self.error: str | None = None
+
+    # ----------------------------------------------------------------- lifecycle (any thread)
+    def output_for(self, station) -> ConsoleOutput:
+        """The station output that feeds this console (one per Station object)."""
+        return ConsoleOutput(self.feeds[station.id], station)
+
+    def start(self, timeout: float = 10.0) -> list[str]:
+        """Start the thread and listen; returns the URLs. A port in use is logged, not raised."""
+        self.tl.start()
+        try:
+            self.urls = self.tl.submit(self._start()).result(timeout)
+        except Exception as e:  # the stations run on without a console
+            self.error = f"{type(e).__name__}: {e}"
+            log.error("console not started: %s", self.error)
+            self.urls = []
+        return self.urls
+
+    def stop(self, timeout: float = 5.0) -> None:
+        try:
+            self.tl.submit(self._stop()).result(timeout)
+        except Exception as e:
+            log.warning("console stop: %s", e)
+        self.tl.stop(timeout)
+        shutil.rmtree(self._cache, ignore_errors=True)
+
+    # ----------------------------------------------------------------- on the console loop
+    async def _start(self) -> list[str]:
+        app = self.make_app()
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        await self._runner.setup()
+        ctx = None
+        if self.settings.cert_file and self.settings.key_file:
+            ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+            ctx.load_cert_chain(self.settings.cert_file, self.settings.key_file)
+        urls = []
+        for addr in self.settings.listen:
+            host, port = parse_listen(addr)
+            site = web.TCPSite(self._runner, host, port, ssl_context=ctx, reuse_address=True)
+            await site.start()
+            for s in (site._server.sockets if site._server else []):  # the real port when 0
+                h, p = s.getsockname()[:2]
+                shown = f"[{h}]" if ":" in h else h
+                urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
+        self._tick_task = asyncio.get_running_loop().create_task(self._ticker())
+        for u in urls:
+            log.info("console on %s", u)
+        return urls
+
+    async def _stop(self) -> None:
+        if self._tick_task is not None:
+            self._tick_task.cancel()
+        for cs in self.clients.values():
+            for c in list(cs):
+                c.dropped = True
+                try:
+                    c.q.put_nowait(None)
+                except asyncio.QueueFull:
+                    pass
+        if self._runner is not None:
+            await self._runner.cleanup()
+
+    def make_app(self) -> web.Application:
+        app = web.Application(client_max_size=MAX_BODY, middlewares=[self._guard])
+        r = app.router
+        r.add_get("/", self.h_index)
+        r.add_get("/api/fleet", self.h_fleet)
+        r.add_get("/api/session", self.h_session)
+        r.add_post("/api/login", self.h_login)
+        r.add_post("/api/logout", self.h_logout)
+        r.add_get("/api/station/{sid}", self.h_station)
+        r.add_get("/api/station/{sid}/stream", self.h_stream)
+        r.add_post("/api/station/{sid}/command", self.h_command)
+        r.add_get("/api/station/{sid}/tests", self.h_tests)
+        r.add_get("/api/station/{sid}/tests/{tid}/fig7.png", self.h_fig7)
+        r.add_get("/api/station/{sid}/tests/{tid}/files/{name}", self.h_file)
+        r.add_post("/api/campaign", self.h_campaign_run)
+        r.add_get("/api/campaign/{cid}/{path:.+}", self.h_campaign_file)
+        r.add_static("/static/", STATIC, show_index=False, follow_symlinks=False)
+        return app
+
+    async def _ticker(self) -> None:
+        while True:
+            await asyncio.sleep(TICK_S)
+            self.cpu_s = time.thread_time()      # CPU of the console's own thread (benchmarks)
+            try:
+                self.tick()
+            except Exception:
+                log.exception("console tick failed")
+
+    def tick(self) -> None:
+        for name, feed in self.feeds.items():
+            gen = feed.series.gen
+            changed = feed.drain()
+            if feed.pending is not None and name not in self._rebuilding:
+                self._rebuild(name, feed)
+            clients = self.clients[name]
+            if not clients or not changed:
+                if changed:
+                    feed.series.take_changes()
+                continue
+            if feed.series.gen != gen:
+                feed.series.take_changes()
+                msg = feed.snapshot()
+            else:
+                ch = feed.series.take_changes()
+                msg = {"type": "update", "gen": feed.series.gen, "from": ch[0] if ch else None,
+                       "rows": ch[1] if ch else [], "markers": feed.markers,
+                       "summary": feed.summary(), "events": list(feed.events)[-20:]}
+            data = ("data: " + json.dumps(msg, separators=(",", ":")) + "\n\n").encode()
+            for c in list(clients):
+                try:
+                    c.q.put_nowait(data)
+                except asyncio.QueueFull:      # a slow browser is dropped, never waited for
+                    self._drop(name, c, "queue full")
+
+    def _rebuild(self, name: str, feed: StationFeed) -> None:
+        """The hand-over lost records of a running test: read the test so far from the recorder's
+        log on disk (in a worker thread), then add the live tail kept meanwhile."""
+        path = os.path.join(self.records[name], feed.test_id or "", "log.csv.gz")
+        self._rebuilding.add(name)
+        log.warning("console: %s: live data lost in the hand-over (%d items); rebuilding the curve "
+                    "from %s", name, feed.dropped, path)
+
+        def done(fut) -> None:
+            self._rebuilding.discard(name)
+            try:
+                feed.rebuild_from(fut.result())
+            except Exception as e:       # no log yet or unreadable: the live tail goes on alone
+                log.error("console: %s: cannot read %s: %s", name, path, e)
+                pending, feed.pending = feed.pending or [], None
+                for rec in pending:
+                    feed.series.add(rec)
+
+        fut = asyncio.get_running_loop().run_in_executor(None, series_from_log, path, feed.series.ts)
+        fut.add_done_callback(done)
+
+    def _drop(self, name: str, c: _Client, why: str) -> None:
+        if c.dropped:
+            return
+        c.dropped = True
+        self.clients[name].discard(c)
+        self.dropped_clients += 1
+        log.info("console: live client of %s dropped (%s)", name, why)
+        while True:   # make room for the end marker
+            try:
+                c.q.get_nowait()
+            except asyncio.QueueEmpty:
+                break
+        c.q.put_nowait(None)
+
+    # ----------------------------------------------------------------- security
+    def _session(self, request) -> auth.Session | None:
+        return self.sessions.get(request.cookies.get(COOKIE))
+
+    def _may_read(self, request) -> bool:
+        mode = self.settings.read_without_login
+        if mode == "all" or (mode == "local" and _is_loopback(request.remote)):
+            return True
+        return self._session(request) is not None
+
+    @web.middleware
+    async def _guard(self, request, handler):
+        path = request.path
+        if request.method == "POST":
+            if request.content_length is not None and request.content_length > MAX_BODY:
+                return _err(413, f"request body larger than {MAX_BODY} bytes")
+            origin = request.headers.get("Origin")
+            if origin and origin.split("://", 1)[-1] != request.host:
+                return _err(403, "cross-origin request refused")
+            if path != "/api/login":
+                s = self._session(request)
+                if s is None:
+                    return _err(401, "log in first")
+                tok = request.headers.get("X-CSRF-Token", "")
+                if not hmac.compare_digest(tok.encode(), s.csrf.encode()):
+                    return _err(403, "missing or wrong CSRF token (X-CSRF-Token)")
+        elif path.startswith("/api/") and path != "/api/session" and not self._may_read(request):
+            return _err(401, "log in to read from this address")
+        resp = await handler(request)
+        resp.headers.setdefault("X-Content-Type-Options", "nosniff")
+        resp.headers.setdefault("X-Frame-Options", "DENY")
+        resp.headers.setdefault("Content-Security-Policy",
+                                "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'")
+        resp.headers.setdefault("Cache-Control", "no-store")
+        return resp
+
+    async def _json_body(self, request) -> dict:
+        try:
+            body = await request.read()
+        except web.HTTPRequestEntityTooLarge:
+            raise _HttpError(413, f"request body larger than {MAX_BODY} bytes") from None
+        try:
+            data = json.loads(body.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            raise _HttpError(400, "request body is not JSON") from None
+        if not isinstance(data, dict):
+            raise _HttpError(400, "request body must be a JSON object")
+        return data
+
+    # ----------------------------------------------------------------- handlers
+    async def h_index(self, request):
+        return web.FileResponse(os.path.join(STATIC, "index.html"))
+
+    def _feed(self, request) -> StationFeed:
+        f = self.feeds.get(request.match_info["sid"])
+        if f is None:
+            raise _HttpError(404, f"no station {request.match_info['sid']!r}")
+        return f
+
+    async def h_fleet(self, request):
+        return web.json_response({"stations": [f.summary() for f in self.feeds.values()],
+                                  "time": time.time(),
+                                  "console": {"cpu_s": self.cpu_s, "dropped_clients": self.dropped_clients,
+                                              "live_clients": sum(len(c) for c in self.clients.values())}})
+
+    async def h_session(self, request):
+        s = self._session(request)
+        if s is None:
+            return web.json_response({"user": None, "read": self._may_read(request)})
+        return web.json_response({"user": s.user, "csrf": s.csrf, "read": True})
+
+    async def h_login(self, request):
+        try:
+            data = await self._json_body(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        user, pw = data.get("user"), data.get("password")
+        if not isinstance(user, str) or not isinstance(pw, str) or not auth.USER_RE.match(user) \
+                or len(pw) > auth.PASSWORD_MAX:
+            return _err(400, "user and password required")
+        remote = request.remote or "?"
+        left = self.lockout.locked("u:" + user, "a:" + remote)
+        if left > 0:
+            log.warning("console: login of %r from %s refused: locked out (%.0f s left)", user, remote, left)
+            return _err(429, f"too many failed logins; try again in {left:.0f} s",
+                        headers={"Retry-After": str(int(left) + 1)})
+        try:
+            users = auth.load_users(self.settings.users_file)
+        except auth.UsersError as e:
+            log.error("console: %s", e)
+            return _err(500, "users file unreadable; see the gateway log")
+        entry = users.get(user)
+        loop = asyncio.get_running_loop()
+        if entry is None:
+            # the same work as a real check, so the answer time does not tell which users exist
+            await loop.run_in_executor(None, auth.hash_password, pw)
+            ok = False
+        else:
+            ok = await loop.run_in_executor(None, auth.verify_password, pw, entry)
+        if not ok:
+            self.lockout.failed("u:" + user, "a:" + remote)
+            log.warning("console: failed login of %r from %s", user, remote)
+            return _err(401, "wrong user or password")
+        self.lockout.succeeded("u:" + user, "a:" + remote)
+        self.sessions.drop(request.cookies.get(COOKIE))
+        token, s = self.sessions.create(user, remote)
+        log.info("console: %s logged in from %s", user, remote)
+        resp = web.json_response({"user": user, "csrf": s.csrf})
+        resp.set_cookie(COOKIE, token, httponly=True, samesite="Strict", path="/",
+                        secure=bool(self.settings.cert_file), max_age=int(self.settings.session_ttl_s))
+        return resp
+
+    async def h_logout(self, request):
+        self.sessions.drop(request.cookies.get(COOKIE))
+        resp = web.json_response({"user": None})
+        resp.del_cookie(COOKIE, path="/")
+        return resp
+
+    async def h_station(self, request):
+        try:
+            f = self._feed(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        return web.json_response(f.snapshot())
+
+    async def h_stream(self, request):
+        try:
+            f = self._feed(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        if sum(len(c) for c in self.clients.values()) >= MAX_CLIENTS:
+            return _err(503, f"too many live clients (at most {MAX_CLIENTS})")
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
+                                           "Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+        await resp.prepare(request)
+        _small_send_buffer(request.transport)
+        c = _Client()
+        f.drain()
+        first = ("data: " + json.dumps(f.snapshot(), separators=(",", ":")) + "\n\n").encode()
+        self.clients[f.name].add(c)
+        try:
+            await asyncio.wait_for(resp.write(first), WRITE_TIMEOUT_S)
+            while True:
+                data = await c.q.get()
+                if data is None:
+                    break
+                await asyncio.wait_for(resp.write(data), WRITE_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            self._drop(f.name, c, "write timed out")
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass
+        finally:
+            self.clients[f.name].discard(c)
+            if c.dropped and request.transport is not None:
+                request.transport.close()
+        return resp
+
+    async def h_command(self, request):
+        try:
+            f = self._feed(request)
+            data = await self._json_body(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        s = self._session(request)
+        if s is None:
+            return _err(401, "log in first")
+        kind = data.pop("command", None)
+        source = f"console:{s.user}"
+        if not isinstance(kind, str):
+            return self._reply(f, s, "?", Rejection(False, "command: missing (start, stop, ack, setpoint, "
+                                                    "hook_replaced)", None, CODE["BAD_REQUEST"]))
+        hook = kind == "hook_replaced"
+        if hook:
+            if data:
+                return self._reply(f, s, kind, Rejection(False, "hook_replaced: takes no keys", None,
+                                                         CODE["BAD_REQUEST"]))
+            cmd: Any = Command(CommandKind.ACK, source)
+        else:
+            cmd = command_from_mapping(kind, data, source)
+        if isinstance(cmd, Rejection):
+            return self._reply(f, s, kind, cmd)
+        st, loop = f.station, f.loop
+        if st is None or loop is None:
+            return self._reply(f, s, kind, Rejection(False, f"station {f.name} is not running", None,
+                                                     CODE["NO_STATION"]))
+        if hook and getattr(getattr(st, "state", None), "alarm", "none") != "active":
+            log.info("console: %s: hook replaced on %s (reported by %s; no alarm to acknowledge)",
+                     f.name, f.name, s.user)
+            return web.json_response({"ok": True, "reason": "", "code": 0})
+        try:
+            fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
+            reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
+        except (asyncio.TimeoutError, RuntimeError) as e:
+            reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,
+                              CODE["NO_STATION"])
+        if hook and reply.ok:
+            log.info("console: %s: hook replaced, alarm acknowledged by %s", f.name, s.user)
+        return self._reply(f, s, kind, reply)
+
+    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply) -> web.Response:
+        code = getattr(reply, "code", 0 if reply.ok else CODE["BAD_REQUEST"])
+        if reply.ok:
+            log.info("console: command %s on %s by %s: accepted", kind, f.name, s.user)
+        else:
+            log.warning("console: command %s on %s by %s: refused: %s", kind, f.name, s.user, reply.reason)
+        return web.json_response({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
+                                 status=200 if reply.ok else 409)
+
+    # ----------------------------------------------------------------- campaign
+    async def h_campaign_run(self, request):
+        """Run the report (Tables 3–6, Figs. 7–9) over the ended tests of the chosen stations."""
+        try:
+            data = await self._json_body(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        stations = data.get("stations")
+        if not isinstance(stations, list) or not stations or len(stations) > len(self.records) \
+                or not all(isinstance(x, str) and x in self.records for x in stations):
+            return _err(400, f"stations: a list of station names from {sorted(self.records)}")
+        if self._campaign_busy:
+            return _err(429, "a campaign report is already being made; try again when it is done")
+        self._campaign_busy = True
+        self._campaign_n += 1
+        cid = f"c{self._campaign_n}"
+        base = os.path.join(self._cache, cid)
+        loop = asyncio.get_running_loop()
+        try:
+            n = await loop.run_in_executor(None, _campaign_inputs, self.records, sorted(set(stations)),
+                                           os.path.join(base, "in"))
+            if n == 0:
+                return _err(409, "no ended tests in the chosen stations")
+            p = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "gateway.cli", "report", os.path.join(base, "in"), "--out",
+                os.path.join(base, "out"), "-q", "--jobs", "1", stdout=asyncio.subprocess.DEVNULL,
+                stderr=asyncio.subprocess.PIPE, preexec_fn=lambda: os.nice(10))
+            try:
+                _, err = await asyncio.wait_for(p.communicate(), 600)
+            except asyncio.TimeoutError:
+                p.kill()
+                await p.wait()
+                return _err(504, "the report took longer than 10 minutes")
+            if not os.path.isfile(os.path.join(base, "out", "report.html")):
+                return _err(500, "no report: " + err.decode(errors="replace")[-300:])
+        finally:
+            self._campaign_busy = False
+        log.info("console: campaign report %s over %s (%d tests) by %s", cid, ", ".join(stations), n,
+                 getattr(self._session(request), "user", "?"))
+        return web.json_response({"ok": True, "tests": n, "url": f"/api/campaign/{cid}/report.html"})
+
+    async def h_campaign_file(self, request):
+        cid, path = request.match_info["cid"], request.match_info["path"]
+        if not re.match(r"^c[0-9]{1,6}$", cid) or not CAMPAIGN_FILE_RE.match(path):
+            return _err(404, "no such file")
+        f = os.path.join(self._cache, cid, "out", path)
+        if not os.path.isfile(f):
+            return _err(404, "no such file")
+        return web.FileResponse(f, headers={"Content-Type": CAMPAIGN_TYPES[os.path.splitext(f)[1]]})
+
+    # ----------------------------------------------------------------- history
+    def _station_dir(self, request) -> str:
+        sid = request.match_info["sid"]
+        d = self.records.get(sid)
+        if d is None:
+            raise _HttpError(404, f"no station {sid!r}")
+        return d
+
+    def _test_dir(self, request) -> str:
+        d = self._station_dir(request)
+        tid = request.match_info["tid"]
+        if not TEST_ID_RE.match(tid) or not os.path.isdir(os.path.join(d, tid)):
+            raise _HttpError(404, f"no test {tid!r}")
+        return os.path.join(d, tid)
+
+    async def h_tests(self, request):
+        try:
+            d = self._station_dir(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        tests = await asyncio.get_running_loop().run_in_executor(None, list_tests, d)
+        return web.json_response({"station": request.match_info["sid"], "tests": tests})
+
+    async def h_file(self, request):
+        try:
+            td = self._test_dir(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        name = request.match_info["name"]
+        if name not in DOWNLOADS or not os.path.isfile(os.path.join(td, name)):
+            return _err(404, f"no file {name!r}")
+        tid = os.path.basename(td)
+        return web.FileResponse(os.path.join(td, name), headers={
+            "Content-Type": DOWNLOADS[name],
+            "Content-Disposition": f'attachment; filename="{tid}-{name}"'})
+
+    async def h_fig7(self, request):
+        try:
+            td = self._test_dir(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        if not os.path.isfile(os.path.join(td, "result.json")):
+            return _err(409, "the test is still running; its figure comes when it has ended")
+        key = request.match_info["sid"] + "__" + os.path.basename(td)
+        out = os.path.join(self._cache, key)
+        lock = self._fig_locks.setdefault(key, asyncio.Lock())
+        async with lock:
+            png = _find_png(out)
+            if png is None:
+                # the report runs as its own process at low priority: no figure delays a slot
+                p = await asyncio.create_subprocess_exec(
+                    sys.executable, "-m", "gateway.cli", "report", td, "--out", out, "-q", "--jobs", "1",
+                    stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
+                    preexec_fn=lambda: os.nice(10))
+                try:
+                    _, err = await asyncio.wait_for(p.communicate(), 120)
+                except asyncio.TimeoutError:
+                    p.kill()
+                    await p.wait()
+                    return _err(504, "the figure took too long")
+                png = _find_png(out)
+                if png is None:
+                    return _err(500, "no figure: " + err.decode(errors="replace")[-300:])
+        return web.FileResponse(png, headers={"Content-Type": "image/png"})
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _campaign_inputs(records: dict[str, str], stations: list[str], into: str) -> int:
+    """Hard-link (or copy) the ended tests of ``stations`` under ``into``; the count of tests."""
+    n = 0
+    for sid in stations:
+        d = records[sid]
+        for t in list_tests(d):
+            if "result.json" not in t["files"] or "log.csv.gz" not in t["files"]:
+                continue      # a running or broken test is not part of a campaign
+            src = os.path.join(d, t["test_id"])
+            dst = os.path.join(into, sid, t["test_id"])
+            os.makedirs(dst, exist_ok=True)
+            for name in ("log.csv.gz", "log.meta.yaml", "result.json"):
+                if os.path.isfile(os.path.join(src, name)):
+                    _link_or_copy(os.path.join(src, name), os.path.join(dst, name))
+            n += 1
+    return n
+
+
+def _small_send_buffer(transport) -> None:
+    """Bound what the kernel and the transport hold for one live client: a client that stops
+    reading fills them within seconds, its queue fills, and it is dropped."""
+    if transport is None:
+        return
+    sock = transport.get_extra_info("socket")
+    try:
+        if sock is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        transport.set_write_buffer_limits(high=SEND_BUFFER)
+    except (OSError, AttributeError, NotImplementedError):
+        pass
+
+
+CAMPAIGN_FILE_RE = re.compile(r"^(report\.html|report\.md|problems\.txt|[A-Za-z0-9_.-]+\.csv|"
+                              r"figures/[A-Za-z0-9_.-]+\.png)$")
+CAMPAIGN_TYPES = {".html": "text/html; charset=utf-8", ".md": "text/markdown; charset=utf-8",
+                  ".txt": "text/plain; charset=utf-8", ".csv": "text/csv; charset=utf-8",
+                  ".png": "image/png"}
+
+
+def _find_png(out: str) -> str | None:
+    d = os.path.join(out, "figures")
+    try:
+        names = sorted(n for n in os.listdir(d) if n.startswith("fig7") and n.endswith(".png"))
+    except OSError:
+        return None
+    return os.path.join(d, names[0]) if names else None
+
+
+def list_tests(station_dir: str, limit: int = 500) -> list[dict[str, Any]]:
+    """The recorded tests of a station folder, newest first."""
+    try:
+        names = sorted((n for n in os.listdir(station_dir)
+                        if TEST_ID_RE.match(n) and os.path.isdir(os.path.join(station_dir, n))),
+                       reverse=True)[:limit]
+    except OSError:
+        return []
+    out = []
+    for n in names:
+        td = os.path.join(station_dir, n)
+        item: dict[str, Any] = {"test_id": n, "files": [f for f in DOWNLOADS if os.path.isfile(os.path.join(td, f))]}
+        try:
+            with open(os.path.join(td, "result.json"), encoding="utf-8") as fh:
+                r = json.load(fh)
+            m = r.get("method", r) if isinstance(r, dict) else {}
+            item.update(status=m.get("status"), t_life=m.get("t_life"), mu_ss=m.get("mu_ss"),
+                        mu_th=m.get("mu_th"), headroom=m.get("headroom"),
+                        test_status=r.get("test_status"), end_reason=r.get("end_reason"),
+                        sample_id=r.get("sample_id"), grade=r.get("grade"))
+        except (OSError, ValueError, AttributeError):
+            item.update(status=None, test_status="running" if "result.json" not in item["files"] else "unreadable")
+        out.append(item)
+    return out
+
+
+class _HttpError(Exception):
+    def __init__(self, status: int, reason: str):
+        super().__init__(reason)
+        self.status, self.reason = status, reason
+
+
+def _err(status: int, reason: str, headers: dict | None = None) -> web.Response:
+    return web.json_response({"ok": False, "reason": reason}, status=status, headers=headers)

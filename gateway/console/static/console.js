@@ -1,0 +1,236 @@
+"use strict";
+// hookwatch operator console: fleet, station (live), history. No build step, no external assets.
+(function () {
+  const $ = (s, el) => (el || document).querySelector(s);
+  const main = $("#main");
+  const session = { user: null, csrf: null };
+  const hw = window.hw = { points: 0, snapshots: 0, updates: 0 };
+  let cleanup = [];
+
+  function esc(s) { return String(s == null ? "" : s).replace(/[&<>"']/g, c => ({"&":"&amp;","<":"&lt;",">":"&gt;","\"":"&quot;","'":"&#39;"}[c])); }
+  function fmt(x, nd) { return (x == null || !isFinite(x)) ? "–" : Number(x).toFixed(nd == null ? 4 : nd); }
+  function say(text, ok) { const m = $("#msg"); m.textContent = text || ""; m.className = ok ? "ok" : ""; }
+
+  async function api(path, opts) {
+    opts = opts || {};
+    const headers = { "Accept": "application/json" };
+    if (opts.body !== undefined) headers["Content-Type"] = "application/json";
+    if (opts.method === "POST" && session.csrf) headers["X-CSRF-Token"] = session.csrf;
+    const r = await fetch(path, { method: opts.method || "GET", headers, credentials: "same-origin",
+                                  body: opts.body === undefined ? undefined : JSON.stringify(opts.body) });
+    let data = {};
+    try { data = await r.json(); } catch (e) { data = { reason: r.statusText }; }
+    data.status = r.status;
+    return data;
+  }
+
+  async function refreshSession() {
+    const s = await api("/api/session");
+    session.user = s.user; session.csrf = s.csrf || null;
+    $("#who").textContent = s.user ? "logged in: " + s.user : "not logged in (reading only)";
+    $("#login").classList.toggle("hidden", !!s.user);
+    $("#logout").classList.toggle("hidden", !s.user);
+  }
+  $("#login").addEventListener("submit", async ev => {
+    ev.preventDefault();
+    const r = await api("/api/login", { method: "POST", body: { user: $("#login-user").value, password: $("#login-pw").value } });
+    $("#login-pw").value = "";
+    if (r.status === 200) { say("logged in as " + r.user, true); } else { say("login refused: " + r.reason); }
+    await refreshSession();
+  });
+  $("#logout").addEventListener("click", async () => { await api("/api/logout", { method: "POST", body: {} }); await refreshSession(); say("logged out", true); });
+
+  async function command(sid, body) {
+    const r = await api("/api/station/" + encodeURIComponent(sid) + "/command", { method: "POST", body });
+    if (r.ok) say(body.command + ": accepted", true); else say(body.command + " refused: " + r.reason);
+    return r;
+  }
+  hw.command = command;
+
+  // ------------------------------------------------------------------ fleet
+  function headroomBar(h) {
+    if (h == null) return '<div class="bar" title="no headroom yet"></div>';
+    const w = Math.max(0, Math.min(1, h)) * 100;
+    const cls = h <= 0 ? "out" : h < 0.5 ? "low" : "";
+    return `<div class="bar ${cls}" title="headroom ${fmt(h, 2)}"><div style="width:${w}%"></div></div>`;
+  }
+  function slotsText(s) {
+    const n = s.slots || 0;
+    return n ? `${fmt(100 * (s.filled || 0) / n, 2)} % filled, ${fmt(100 * (s.valid || 0) / n, 2)} % valid of ${n}` : "–";
+  }
+  function link(ok) { return ok == null ? "–" : ok ? '<span class="ok">ok</span>' : '<span class="bad">lost</span>'; }
+  function alarmBadge(a) { return a && a !== "none" ? `<span class="alarm-${esc(a)}">${esc(a)}</span>` : "none"; }
+
+  function fleetPage() {
+    main.innerHTML = `<div class="row"><h2 style="margin:0">Fleet</h2>
+      <label>sort by <select id="sort"><option value="headroom">headroom (least first)</option><option value="name">name</option></select></label></div>
+      <div class="cards" id="cards"></div>`;
+    const sortSel = $("#sort");
+    sortSel.value = localStorage.getItem("hw-sort") || "headroom";
+    sortSel.addEventListener("change", () => { localStorage.setItem("hw-sort", sortSel.value); load(); });
+    async function load() {
+      const r = await api("/api/fleet");
+      if (r.status !== 200) { say(r.reason); return; }
+      const st = r.stations.slice();
+      if (sortSel.value === "headroom") st.sort((a, b) => (a.headroom == null ? 1e9 : a.headroom) - (b.headroom == null ? 1e9 : b.headroom) || a.station.localeCompare(b.station));
+      else st.sort((a, b) => a.station.localeCompare(b.station));
+      $("#cards").innerHTML = st.map(s => `<div class="card" data-station="${esc(s.station)}">
+        <h3><a href="#/station/${encodeURIComponent(s.station)}">${esc(s.station)}</a></h3>
+        <div class="kv">
+          <span>state</span><span class="state">${esc(s.state || (s.online ? "" : "offline"))}${s.sample_id ? " · " + esc(s.sample_id) : ""}</span>
+          <span>μ now</span><span>${fmt(s.mu_now)} <small>(μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</small></span>
+          <span>headroom</span><span>${headroomBar(s.headroom)}</span>
+          <span>alarm</span><span class="alarm">${alarmBadge(s.alarm)} ${s.alarm === "active" ? `<button class="ack" data-sid="${esc(s.station)}">acknowledge</button>` : ""}</span>
+          <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
+          <span>slots</span><span>${slotsText(s)}</span>
+        </div>
+        <a href="#/history/${encodeURIComponent(s.station)}">history</a></div>`).join("");
+      main.querySelectorAll("button.ack").forEach(b => b.addEventListener("click", () => command(b.dataset.sid, { command: "ack" }).then(load)));
+    }
+    load();
+    const t = setInterval(load, 1000);
+    cleanup.push(() => clearInterval(t));
+  }
+
+  // ------------------------------------------------------------------ station
+  function markerPlugin(get) {
+    return { hooks: { draw: [u => {
+      const m = get(); const ctx = u.ctx; ctx.save();
+      const lines = [["t_stable", "#2e7d32", "stable"], ["t_b", "#2e7d32", "baseline"], ["t_warn", "#f9a825", "warning"], ["t_life", "#c62828", "t_life"]];
+      for (const [k, color, label] of lines) {
+        const v = m[k]; if (v == null) continue;
+        const x = u.valToPos(v, "x", true); if (x < u.bbox.left || x > u.bbox.left + u.bbox.width) continue;
+        ctx.strokeStyle = color; ctx.lineWidth = 2 * devicePixelRatio; ctx.setLineDash([6, 4]);
+        ctx.beginPath(); ctx.moveTo(x, u.bbox.top); ctx.lineTo(x, u.bbox.top + u.bbox.height); ctx.stroke();
+        ctx.fillStyle = color; ctx.font = (11 * devicePixelRatio) + "px sans-serif"; ctx.fillText(label, x + 4, u.bbox.top + 12 * devicePixelRatio);
+      }
+      ctx.restore();
+    }] } };
+  }
+
+  function stationPage(sid) {
+    main.innerHTML = `<h2 style="margin:0 0 .5em">Station ${esc(sid)} <small><a href="#/history/${encodeURIComponent(sid)}">history</a></small></h2>
+      <div class="panel kv" id="st-info"></div>
+      <div class="panel controls" id="ctl">
+        <label>sample <input id="c-sample" maxlength="32"></label>
+        <label>grade <input id="c-grade" maxlength="16"></label>
+        <label>T_set (N) <input id="c-tset" type="number" step="0.01"></label>
+        <label>duration (s) <input id="c-tend" type="number" step="1"></label>
+        <button id="b-start">start</button> <button id="b-stop">stop</button>
+        <button id="b-ack">acknowledge</button> <button id="b-hook">hook replaced</button>
+      </div>
+      <div class="panel"><b>μ(t)</b> <small id="mu-note"></small><div id="mu-chart"></div></div>
+      <div class="row"><div class="panel"><b>tension (N)</b><div id="t-chart"></div></div>
+      <div class="panel"><b>speed (rpm)</b><div id="s-chart"></div></div></div>
+      <div class="panel"><b>events</b><div class="events" id="events"></div></div>`;
+    let rows = [], markers = {}, summary = {}, width = 0.02;
+    const W = Math.min(1200, main.clientWidth - 40);
+    const muPlot = new uPlot({ width: W, height: 320, scales: { x: { time: false } }, plugins: [markerPlugin(() => markers)],
+      series: [{ label: "t (s)" }, { label: "μ (min/max)", stroke: "#1d3557", width: 1 },
+               { label: "μ_ss", stroke: "#2e7d32", dash: [4, 4] }, { label: "μ_th", stroke: "#c62828", dash: [8, 4] }],
+      axes: [{ label: "t (s)" }, { label: "μ" }] }, [[], [], [], []], $("#mu-chart"));
+    const half = Math.max(300, (W - 40) / 2);
+    const tPlot = new uPlot({ width: half, height: 220, scales: { x: { time: false } },
+      series: [{ label: "t (s)" }, { label: "T1", stroke: "#1f77b4" }, { label: "T2", stroke: "#d62728" },
+               { label: "mean", stroke: "#333" }, { label: "T_set", stroke: "#2e7d32", dash: [4, 4] }] },
+      [[], [], [], [], []], $("#t-chart"));
+    const sPlot = new uPlot({ width: half, height: 220, scales: { x: { time: false } },
+      series: [{ label: "t (s)" }, { label: "command", stroke: "#9467bd" }, { label: "actual", stroke: "#8c564b" }] },
+      [[], [], []], $("#s-chart"));
+
+    function redraw() {
+      const x = [], mu = [], ss = [], th = [];
+      const tx = [], t1 = [], t2 = [], tm = [], tset = [], sc = [], sa = [];
+      const mss = markers.mu_ss == null ? summary.mu_ss : markers.mu_ss, mth = markers.mu_th == null ? summary.mu_th : markers.mu_th;
+      const ts = markers.t_set == null ? summary.t_set : markers.t_set;
+      for (const r of rows) {
+        x.push(r[0], r[0] + width / 2); mu.push(r[1], r[2]);
+        ss.push(mss, mss); th.push(mth, mth);
+        tx.push(r[0]); t1.push(r[3]); t2.push(r[4]); tm.push(r[5]); tset.push(ts); sc.push(r[6]); sa.push(r[7]);
+      }
+      hw.points = x.length; hw.lastT = rows.length ? rows[rows.length - 1][0] : null; hw.firstT = rows.length ? rows[0][0] : null;
+      muPlot.setData([x, mu, ss, th]); tPlot.setData([tx, t1, t2, tm, tset]); sPlot.setData([tx, sc, sa]);
+      $("#mu-note").textContent = rows.length ? `${rows.length} buckets of ${fmt(width, 2)} s, t = ${fmt(hw.firstT, 1)} … ${fmt(hw.lastT, 1)} s` : "no test data yet";
+    }
+    function info(events) {
+      const s = summary;
+      $("#st-info").innerHTML = `<span>state</span><span id="state">${esc(s.state)}</span>
+        <span>test</span><span>${esc(s.test_id)} · sample ${esc(s.sample_id)} · grade ${esc(s.grade)} · T_set ${fmt(s.t_set, 2)} N</span>
+        <span>μ now</span><span>${fmt(s.mu_now)} (μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</span>
+        <span>headroom</span><span>${headroomBar(s.headroom)} ${s.t_cross != null ? "projected crossing at " + fmt(s.t_cross, 0) + " s" : ""}</span>
+        <span>t_life</span><span id="t-life">${s.t_life != null ? fmt(s.t_life, 2) + " s" : "–"}</span>
+        <span>alarm</span><span id="alarm">${alarmBadge(s.alarm)}</span>
+        <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
+        <span>slots</span><span>${slotsText(s)}</span>`;
+      if (events) $("#events").innerHTML = events.slice().reverse().map(e => `<div>${new Date(e.time * 1000).toISOString().slice(11, 19)} ${esc(e.type)} ${esc(JSON.stringify(Object.fromEntries(Object.entries(e).filter(([k]) => !["type", "time", "station", "test_id"].includes(k)))))}</div>`).join("");
+    }
+    const es = new EventSource("/api/station/" + encodeURIComponent(sid) + "/stream");
+    let gen = null;
+    es.onmessage = ev => {
+      const m = JSON.parse(ev.data);
+      if (m.type === "snapshot") { rows = m.rows; width = m.width_s; gen = m.gen; hw.snapshots++; }
+      else if (m.gen !== gen) { fetch("/api/station/" + encodeURIComponent(sid)).then(r => r.json()).then(s => { rows = s.rows; width = s.width_s; gen = s.gen; markers = s.markers; summary = s.summary; redraw(); }); return; }
+      else if (m.from != null) { rows = rows.slice(0, m.from).concat(m.rows); hw.updates++; }
+      markers = m.markers || {}; summary = m.summary || {};
+      info(m.events); redraw();
+    };
+    es.onerror = () => say("live data interrupted; reconnecting …");
+    cleanup.push(() => es.close());
+    $("#b-start").addEventListener("click", () => {
+      const b = { command: "start", sample_id: $("#c-sample").value };
+      if ($("#c-grade").value) b.grade = $("#c-grade").value;
+      if ($("#c-tset").value) b.t_set = Number($("#c-tset").value);
+      if ($("#c-tend").value) b.t_end = Number($("#c-tend").value);
+      command(sid, b);
+    });
+    $("#b-stop").addEventListener("click", () => command(sid, { command: "stop" }));
+    $("#b-ack").addEventListener("click", () => command(sid, { command: "ack" }));
+    $("#b-hook").addEventListener("click", () => command(sid, { command: "hook_replaced" }));
+  }
+
+  // ------------------------------------------------------------------ history
+  async function historyPage(sid) {
+    main.innerHTML = `<h2 style="margin:0 0 .5em">History of ${esc(sid)} <small><a href="#/station/${encodeURIComponent(sid)}">live</a></small></h2><div id="tests">loading …</div><div id="fig"></div>`;
+    const r = await api("/api/station/" + encodeURIComponent(sid) + "/tests");
+    if (r.status !== 200) { $("#tests").textContent = r.reason; return; }
+    const base = "/api/station/" + encodeURIComponent(sid) + "/tests/";
+    $("#tests").innerHTML = r.tests.length ? `<table><tr><th>test</th><th>sample</th><th>grade</th><th>status</th><th>t_life (s)</th><th>μ_ss</th><th>headroom at end</th><th>files</th><th></th></tr>` +
+      r.tests.map(t => `<tr><td>${esc(t.test_id)}</td><td>${esc(t.sample_id)}</td><td>${esc(t.grade)}</td><td>${esc(t.test_status)} / ${esc(t.status)}</td><td>${fmt(t.t_life, 2)}</td><td>${fmt(t.mu_ss)}</td><td>${fmt(t.headroom, 2)}</td>
+        <td>${t.files.map(f => `<a href="${base}${encodeURIComponent(t.test_id)}/files/${f}">${f}</a>`).join(" ")}</td>
+        <td>${t.files.includes("result.json") ? `<button class="fig7" data-tid="${esc(t.test_id)}">Fig. 7</button>` : ""}</td></tr>`).join("") + "</table>" : "no recorded tests";
+    main.querySelectorAll("button.fig7").forEach(b => b.addEventListener("click", () => {
+      $("#fig").innerHTML = `<p id="fig-note">rendering Fig. 7 of ${esc(b.dataset.tid)} …</p><img class="fig" alt="Fig. 7 of ${esc(b.dataset.tid)}" src="${base}${encodeURIComponent(b.dataset.tid)}/fig7.png">`;
+      const img = $("#fig img");
+      img.addEventListener("load", () => { $("#fig-note").textContent = "Fig. 7 of " + b.dataset.tid; });
+      img.addEventListener("error", () => { $("#fig-note").textContent = "no figure (see the gateway log)"; });
+    }));
+  }
+
+  // ------------------------------------------------------------------ campaign
+  async function campaignPage() {
+    main.innerHTML = `<h2 style="margin:0 0 .5em">Campaign report</h2>
+      <p>The report (paper Tables 3–6, Figs. 7–9) over the ended tests of the chosen stations. It needs a login (it takes a while and a core).</p>
+      <div id="choose" class="panel"></div><button id="b-campaign">make the report</button> <span id="camp-out"></span>`;
+    const r = await api("/api/fleet");
+    $("#choose").innerHTML = (r.stations || []).map(s => `<label><input type="checkbox" value="${esc(s.station)}" checked> ${esc(s.station)}</label> `).join("");
+    $("#b-campaign").addEventListener("click", async () => {
+      const stations = [...main.querySelectorAll("#choose input:checked")].map(i => i.value);
+      $("#camp-out").textContent = "making the report …";
+      const c = await api("/api/campaign", { method: "POST", body: { stations } });
+      if (c.ok) $("#camp-out").innerHTML = `${c.tests} tests: <a id="camp-link" target="_blank" href="${esc(c.url)}">open the report</a>`;
+      else $("#camp-out").textContent = "refused: " + c.reason;
+    });
+  }
+
+  function route() {
+    cleanup.forEach(f => f()); cleanup = [];
+    const h = location.hash.replace(/^#/, "");
+    let m;
+    if ((m = h.match(/^\/station\/(.+)$/))) stationPage(decodeURIComponent(m[1]));
+    else if ((m = h.match(/^\/history\/(.+)$/))) historyPage(decodeURIComponent(m[1]));
+    else if (h === "/campaign") campaignPage();
+    else fleetPage();
+  }
+  window.addEventListener("hashchange", route);
+  refreshSession().then(route);
+})();

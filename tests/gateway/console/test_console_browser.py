@@ -1,0 +1,130 @@
+"""The console in a real browser (Playwright from PyPI driving Debian's chromium) against
+`hookwatch sim` + `hookwatch run` as processes: the fleet page lists the stations, the station page's
+μ curve grows through a one-minute virtual life until the end-of-life alarm, a page opened mid-test
+shows the curve from slot 0, and acknowledge needs a login and the CSRF token.
+
+Screenshots are written to the test's tmp folder (fleet.png, station-mid.png, station-alarm.png,
+station-acked.png, history.png)."""
+from __future__ import annotations
+
+import os
+import shutil
+import time
+
+import pytest
+
+from kit.console_helpers import console_fleet
+from kit.e2e import wait_log
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync"]
+PW = "correct horse battery"
+
+
+@pytest.fixture
+def browser():
+    missing = None
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        missing = "playwright is not installed (pip install playwright)"
+    if missing is None and not (os.path.exists(CHROMIUM) or shutil.which("chromium")):
+        missing = "Debian's chromium is not installed (scripts/setup.sh --tools)"
+    if missing:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(missing)
+        pytest.skip(missing)
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+def _wait_js(page, expr, timeout_s=60.0):
+    page.wait_for_function(expr, timeout=timeout_s * 1000, polling=250)
+
+
+def test_console_in_a_browser(tmp_path, browser):
+    with console_fleet(tmp_path, ("loom-a", "loom-b"), users={"alice": PW}) as (url, gw, _sims):
+        t0 = time.monotonic()
+        # the page's CSP forbids eval; Playwright's wait_for_function needs it (the header is tested over HTTP)
+        ctx = browser.new_context(viewport={"width": 1300, "height": 1100}, bypass_csp=True)
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        # --- fleet: one card per station of the running fleet
+        page.goto(url + "/")
+        page.wait_for_selector('.card[data-station="loom-b"]', timeout=20000)
+        cards = page.locator(".card").evaluate_all("els => els.map(e => e.dataset.station)")
+        assert sorted(cards) == ["loom-a", "loom-b"]
+        _wait_js(page, "document.querySelector('.card .state').textContent.includes('baseline')", 20)
+        page.screenshot(path=str(tmp_path / "fleet.png"), full_page=True)
+
+        # --- station page: the μ curve grows
+        page.goto(url + "/#/station/loom-a")
+        _wait_js(page, "window.hw.points > 10", 30)
+        n1 = page.evaluate("window.hw.points")
+        t1 = page.evaluate("window.hw.lastT")
+        time.sleep(3)
+        _wait_js(page, f"window.hw.lastT > {t1} + 1", 20)
+        assert page.evaluate("window.hw.points") > n1
+
+        # --- a page opened mid-test shows the curve from slot 0
+        while time.monotonic() - t0 < 30:
+            time.sleep(0.5)
+        late = ctx.new_page()
+        late.goto(url + "/#/station/loom-a")
+        _wait_js(late, "window.hw.points > 0", 20)
+        assert late.evaluate("window.hw.firstT") == 0
+        assert late.evaluate("window.hw.lastT") > 20
+        late.screenshot(path=str(tmp_path / "station-mid.png"), full_page=True)
+        late.close()
+
+        # --- the end-of-life alarm appears (t_life ≈ 53 s, known ≈ 58 s into the life)
+        page.wait_for_selector("#alarm .alarm-active", timeout=90000)
+        assert page.locator("#t-life").inner_text().endswith(" s")
+        page.screenshot(path=str(tmp_path / "station-alarm.png"), full_page=True)
+
+        # --- acknowledge without a login: refused, the alarm stays active
+        page.click("#b-ack")
+        page.wait_for_function("document.querySelector('#msg').textContent.includes('refused')")
+        assert "log in first" in page.locator("#msg").inner_text()
+        assert page.locator("#alarm .alarm-active").count() == 1
+
+        # --- log in; a POST without the CSRF token is still refused
+        page.fill("#login-user", "alice")
+        page.fill("#login-pw", PW)
+        page.click("#login button")
+        page.wait_for_selector("#logout:not(.hidden)")
+        st = page.evaluate("""async () => (await fetch('/api/station/loom-a/command', {method: 'POST',
+            headers: {'Content-Type': 'application/json'}, body: JSON.stringify({command: 'ack'})})).status""")
+        assert st == 403
+        assert page.locator("#alarm .alarm-active").count() == 1
+
+        # --- acknowledge with the login and the token: accepted; the page shows it
+        page.click("#b-ack")
+        page.wait_for_function("document.querySelector('#msg').textContent.includes('ack: accepted')")
+        page.wait_for_selector("#alarm .alarm-acknowledged", timeout=15000)
+        page.screenshot(path=str(tmp_path / "station-acked.png"), full_page=True)
+        assert "console:alice" in gw.log_all()
+
+        # --- fleet card shows the acknowledged alarm too; no script errors anywhere
+        page.goto(url + "/")
+        page.wait_for_selector('.card[data-station="loom-a"] .alarm-acknowledged', timeout=10000)
+
+        # --- history: the ended test with its status and the Fig. 7 from the report code
+        wait_log(gw, "loom-a: test_ended", timeout=60)      # the planned end (70 s)
+        page.goto(url + "/#/history/loom-a")
+        page.wait_for_selector("button.fig7", timeout=20000)
+        row = page.locator("#tests tr").nth(1).inner_text()
+        assert "S-loom-a" in row and "failure" in row
+        page.click("button.fig7")
+        page.wait_for_function("document.querySelector('img.fig') && document.querySelector('img.fig')"
+                               ".complete && document.querySelector('img.fig').naturalWidth > 1000",
+                               timeout=120000)
+        page.screenshot(path=str(tmp_path / "history.png"), full_page=True)
+        assert errors == []
+        ctx.close()
