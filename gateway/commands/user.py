@@ -6,6 +6,8 @@ import os
 import sys
 
 from ..cli import CliError
+from ..config import ConfigError, load_fleet, load_station
+from ..console import auth
 
 HELP = "manage the operator console's users (add, remove, list)"
 DESCRIPTION = (HELP + ". Passwords are stored as salted scrypt hashes (N=2^14, r=8, p=1) in the "
@@ -25,7 +27,6 @@ def add_arguments(ap):
 def _users_file(args) -> str:
     if args.file:
         return args.file
-    from ..config import ConfigError, load_fleet, load_station
     try:
         cfgs = load_fleet(args.config) if os.path.isdir(args.config) else [load_station(args.config)]
     except (ConfigError, FileNotFoundError) as e:
@@ -37,7 +38,6 @@ def _users_file(args) -> str:
 
 
 def run(args) -> int:
-    from ..console import auth
 
     path = _users_file(args)
     try:

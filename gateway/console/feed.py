@@ -22,6 +22,7 @@ from dataclasses import asdict
 from typing import Any
 
 from ..records import Event, EventType, SlotRecord, StationState
+from ..station.recorder import LOG_COLUMNS
 
 #: slots the hand-over holds (2 min 44 s at 50 Hz) before the oldest are dropped
 HANDOVER_SLOTS = 8192
@@ -158,7 +159,6 @@ def series_from_log(path: str, ts: float = 0.02, max_buckets: int = MAX_BUCKETS)
     torn last line is left out)."""
     import zlib
 
-    from ..station.recorder import LOG_COLUMNS
 
     s = Series(ts, max_buckets)
     d = zlib.decompressobj(16 + zlib.MAX_WBITS)
