@@ -6,7 +6,11 @@ per batch), publishes them strictly in seq order with at most ``window`` in flig
 when the broker confirms (``on_publish``), runs paho's network loop (``client.loop``) and
 reconnects with back-off. Because one thread does all of this, paho's own resend of in-flight
 messages after a reconnect always happens before anything newer is published: the order on the
-wire is the seq order. It knows nothing of stations: link changes and received commands go to
+wire is the seq order. The thread is supervised (``_main``): a fault anywhere in it (a callback,
+the outbox, paho) is counted and logged at most once a minute, the client is dropped (the link goes
+down through ``on_link``; the broker publishes the Will) and the pump restarts with back-off,
+keeping the outbox and the queued messages; unconfirmed rows are sent again. It knows nothing of
+stations: link changes and received commands go to
 the two callbacks it is given (called on the pump thread).
 """
 from __future__ import annotations
@@ -31,6 +35,10 @@ log = logging.getLogger("hookwatch.mqtt")
 
 #: messages waiting for the pump at most (a dead pump: the oldest are dropped and counted)
 QUEUE_MAX = 100_000
+#: at most one log line per this many seconds about pump failures (with the count in between)
+FAULT_LOG_INTERVAL_S = 60.0
+#: a pump that ran this long without a fault starts again from the shortest restart delay
+FAULT_RESET_S = 30.0
 
 
 class SecretError(Exception):
@@ -106,6 +114,12 @@ class MqttPump:
         self._setup_error: str | None = None
         self._connect_error_logged = False
         self._refused: str | None = None
+        # supervision (see _main): rows taken from the queue but not yet stored, fault counting
+        self._unstored: list[Row] = []
+        self.faults = 0
+        self._faults_unlogged = 0
+        self._fault_logged_at = -FAULT_LOG_INTERVAL_S
+        self._restart_delay = settings.reconnect_min_s
 
     # ================================================================ any thread
     def put(self, msg: M.Message) -> int:
@@ -144,10 +158,22 @@ class MqttPump:
 
     # ================================================================ pump thread
     def _main(self) -> None:
+        """Supervisor: any exception of the pump (a callback, the outbox, paho) is logged (rate-
+        limited, with a count), the client is dropped (the link goes down, the broker publishes the
+        Will) and the pump restarts after a back-off, keeping the outbox and the queue."""
         try:
-            self._pump()
-        except Exception:
-            log.exception("%s: MQTT pump crashed; messages stay in the outbox", self.s.station_id)
+            while True:
+                t0 = time.monotonic()
+                try:
+                    self._pump()
+                    return
+                except Exception as e:
+                    if time.monotonic() - t0 >= FAULT_RESET_S:
+                        self._restart_delay = self.s.reconnect_min_s
+                    self._fault(e)
+                if self._stop_evt.wait(self._restart_delay):
+                    return
+                self._restart_delay = min(self.s.reconnect_max_s, self._restart_delay * 2)
         finally:
             try:
                 self._drain_queue()
@@ -156,22 +182,58 @@ class MqttPump:
             self._close_client()
             self.outbox.close()
 
+    def _fault(self, e: Exception) -> None:
+        """One pump fault: count it, log it (the first with its traceback, then one line a minute
+        with the count), drop the client; what was in flight is sent again from the outbox."""
+        self.faults += 1
+        self.counters["pump_restarts"] += 1
+        self._faults_unlogged += 1
+        now = time.monotonic()
+        if now - self._fault_logged_at >= FAULT_LOG_INTERVAL_S:
+            log.error("%s: MQTT pump failed (%d fault(s) since the last report, %d in all): %s: %s; "
+                      "restarting in %.1f s, messages are kept in the outbox", self.s.station_id,
+                      self._faults_unlogged, self.faults, type(e).__name__, e, self._restart_delay,
+                      exc_info=self.faults == 1)
+            self._faults_unlogged = 0
+            self._fault_logged_at = now
+        try:
+            self._abandon_client()
+        except Exception:   # the link callback itself failed: the client is dropped all the same
+            log.debug("%s: error while dropping the client", self.s.station_id, exc_info=True)
+
+    def _abandon_client(self) -> None:
+        """Drop the client without a clean disconnect (the broker publishes the Will): the link is
+        down, unconfirmed rows stay in the outbox and are sent again by the next client."""
+        c, self._client = self._client, None
+        self._sock_open = False
+        self._mid2seq.clear()
+        self._sent_upto = 0
+        self._next_attempt = 0.0
+        if c is not None:
+            try:
+                sock = c.socket()
+                if sock is not None:
+                    sock.close()
+            except Exception:
+                log.debug("%s: error while dropping the client", self.s.station_id, exc_info=True)
+        self._set_connected(False)
+
     def _drain_queue(self) -> None:
-        rows = self._queue.drain()
+        # rows and confirmations leave their holders only once the outbox took them (a fault in
+        # between keeps them for the restarted pump)
+        self._unstored += self._queue.drain()
         if self._queue.dropped != self._dropped_logged:
             log.error("%s: MQTT pump behind: %d message(s) dropped before reaching the outbox",
                       self.s.station_id, self._queue.dropped - self._dropped_logged)
             self._dropped_logged = self._queue.dropped
-        if rows:
-            self.outbox.add(rows, self._sent_upto)
-        acked = []
-        while True:
-            try:
-                acked.append(self._acked.popleft())
-            except IndexError:
-                break
+        if self._unstored:
+            self.outbox.add(self._unstored, self._sent_upto)
+            self._unstored = []
+        acked = list(self._acked)
         if acked:
             self.outbox.confirm(acked)
+            for _ in acked:
+                self._acked.popleft()
 
     def _pump(self) -> None:
         stop_deadline = None
