@@ -128,7 +128,7 @@ def test_events_during_and_after_a_full_disk_arrive_in_order_once(tmp_path, capl
             seqs = [m[2]["seq"] for m in msgs]
             assert seqs == sorted(set(seqs))
             assert out.outbox.refused_telemetry > 0
-            assert out.connected and out._thread.is_alive()
+            assert out.connected and out.pump._thread.is_alive()
             assert sum("cannot write" in m for m in caplog.messages) == 1, caplog.messages
         finally:
             running["on"] = False
