@@ -151,10 +151,10 @@ def state_message(base: str, t: float, st: StationState) -> Message:
 
 def status_message(base: str, station: str, t: float, online: bool) -> Message:
     """The retained ``status`` (also the Last Will): published directly, not through the outbox;
-    its seq is the stream position when it is sent."""
+    ``payload(n)``/``encode(n)`` take its own counter, the session number, not an outbox seq."""
     status = "online" if online else "offline"
     return _message("status", base,
-                    lambda seq: schema.status_payload(seq, t, station, status, SOFTWARE, MAP_VERSION))
+                    lambda session: schema.status_payload(session, t, station, status, SOFTWARE, MAP_VERSION))
 
 
 def reply_message(base: str, station: str, t: float, command: str, request_id: str | None,

@@ -120,6 +120,7 @@ class MqttPump:
         self._faults_unlogged = 0
         self._fault_logged_at = -FAULT_LOG_INTERVAL_S
         self._restart_delay = settings.reconnect_min_s
+        self._session = 0       # the status's own counter (see schema.STATUS_FIELDS)
 
     # ================================================================ any thread
     def put(self, msg: M.Message) -> int:
@@ -154,7 +155,14 @@ class MqttPump:
 
     def _status(self, online: bool) -> bytes:
         return M.status_message(self.s.base_topic, self.s.station_id, time.time(), online).encode(
-            self.outbox.last_seq)
+            self._session)
+
+    def _new_session(self) -> None:
+        """The next ``status`` session number (persisted in the outbox's meta table)."""
+        if self._session == 0:
+            self._session = int(self.outbox.meta_get("status_session") or 0)
+        self._session += 1
+        self.outbox.add([], self._sent_upto, meta={"status_session": self._session})
 
     # ================================================================ pump thread
     def _main(self) -> None:
@@ -281,9 +289,10 @@ class MqttPump:
     def _connect(self) -> None:
         s = self.s
         try:
+            self._new_session()
             if self._client is None:
                 self._client = self._make_client()
-            else:   # the Last Will carries the stream position at the start of this session
+            else:   # the Last Will carries this session's number
                 self._client.will_set(self._status_topic, self._status(False), qos=1, retain=True)
             self._setup_error = None
         except (SecretError, OSError, ValueError) as e:

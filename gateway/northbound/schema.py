@@ -20,7 +20,7 @@ from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
 #: version of the topic tree and payloads (every payload carries it as "schema")
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2      # 2: `status` carries its own `session` counter instead of a `seq`
 
 
 @dataclass(frozen=True)
@@ -46,22 +46,28 @@ ENVELOPE = (
     Field("schema", "int", f"payload schema version ({SCHEMA_VERSION})"),
     Field("seq", "int", "per-station sequence number: one counter for every message of the station "
           "that goes through the outbox, strictly increasing across gateway restarts; consumers "
-          "drop an outbox message whose seq they have already processed — `status` takes no part "
-          "in that rule (see Delivery, De-duplication)"),
+          "drop a message whose seq they have already processed (see Delivery, De-duplication). "
+          "Every payload but `status` carries it"),
     Field("time", "str", "UTC time of what the message reports, ISO 8601 with milliseconds "
           "(`2026-03-01T08:00:00.020Z`)"),
     Field("station", "str", "station id"),
 )
 
-STATUS_FIELDS = ENVELOPE + (
+STATUS_FIELDS = (
+    ENVELOPE[0],
+    Field("session", "int", "the status's own counter, not an outbox `seq` (never compare the two): "
+          "the number of the gateway's MQTT session for this station, +1 on every connect, persisted "
+          "in the outbox so it keeps increasing across gateway restarts. `online` and the `offline` "
+          "of the same session carry the same number; the highest number received is the current "
+          "status"),
+    ENVELOPE[2], ENVELOPE[3],
     Field("status", "str", "`online` (published on every connect) or `offline` (the Last Will, "
           "published by the broker when the gateway vanishes, or by the gateway on a clean stop). "
           "In the Last Will, `time` is the time the session **started** (the Will is handed to the "
           "broker with the CONNECT and cannot change afterwards), not the moment the gateway "
           "vanished; that moment is known only to the broker (it publishes the Will at once on a "
           "closed TCP connection, at the latest 1.5 × `keepalive_s` after the last packet): take "
-          "your receive time. On a clean stop `time` is the stop time. `seq` is the last seq "
-          "assigned when the message was built; it consumes no number"),
+          "your receive time. On a clean stop `time` is the stop time"),
     Field("software", "str", "gateway software version"),
     Field("map_version", "int", "version of the PLC register map served alongside"),
 )
@@ -284,9 +290,10 @@ def _env(seq: int, t: float, station: str) -> dict[str, Any]:
     return {"schema": SCHEMA_VERSION, "seq": int(seq), "time": iso_ms(t), "station": station}
 
 
-def status_payload(seq: int, t: float, station: str, status: str, software: str,
+def status_payload(session: int, t: float, station: str, status: str, software: str,
                    map_version: int) -> dict[str, Any]:
-    return {**_env(seq, t, station), "status": status, "software": software, "map_version": map_version}
+    return {"schema": SCHEMA_VERSION, "session": int(session), "time": iso_ms(t), "station": station,
+            "status": status, "software": software, "map_version": map_version}
 
 
 def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
@@ -342,7 +349,7 @@ def _examples() -> dict[str, dict[str, Any]]:
     ev = Event(EventType.END_OF_LIFE, "st1", t, st.test_id, 346525,
                {"k_life": 346525, "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545, "sample_id": "S-0042"})
     return {
-        "status": status_payload(1041, t, "st1", "online", "hookwatch 0.1.0", 1),
+        "status": status_payload(12, t, "st1", "online", "hookwatch 0.1.0", 1),
         "state": state_payload(1042, t, st),
         "telemetry": telemetry_payload(1043, t, "st1", {
             "test_id": st.test_id, "interval_s": 1.0, "slots": 50, "t1": 0.4313, "t2": 0.5712,
@@ -421,35 +428,38 @@ def render() -> str:
         "`seq`). Events, alarms, results and replies are never dropped.",
         "- `state` is retained and only its latest value matters: a buffered `state` that was "
         "superseded before it could be sent is dropped (a gap in `seq`).",
-        "- `status` is not in the outbox: `online` is published (retained) on every connect, "
-        "`offline` is the retained Last Will, also published on a clean stop. Its `seq` is the "
-        "last seq assigned when the session started (it does not consume a number).",
+        "- `status` is not in the outbox and has no `seq`: `online` is published (retained) on "
+        "every connect, `offline` is the retained Last Will, also published on a clean stop. It "
+        "carries its own counter, `session` (+1 on every connect, across restarts too).",
         "",
         "### De-duplication",
         "",
-        "The exact rule, per station: keep `H`, the highest `seq` of an **outbox** message "
-        "(`state`, `telemetry`, `event/…`, `alarm/…`, `result`, `reply`) you have processed, "
-        "stored with what you processed. An outbox message with `seq ≤ H` is a duplicate: drop "
-        "it. Otherwise process it and set `H = seq`. **`status` never takes part** (never compare "
-        "it with `H`, never move `H` with it): it is not an outbox message, its `seq` is only the "
-        "stream position when it was built. Gaps in `seq` are normal (dropped telemetry, "
+        "The exact rule, per station: keep `H`, the highest `seq` you have processed (every "
+        "message but `status` has one: `state`, `telemetry`, `event/…`, `alarm/…`, `result`, "
+        "`reply`), stored with what you processed. A message with `seq ≤ H` is a duplicate: drop "
+        "it. Otherwise process it and set `H = seq`. `status` has no `seq` and never takes part; "
+        "for `status`, keep the highest `session` instead (a lower one is an old, replayed "
+        "value). Gaps in `seq` are normal (dropped telemetry, "
         "superseded `state`): never wait for a missing number. Within one station outbox messages "
         "arrive in `seq` order, so `seq ≤ H` can only be a resend or a retained replay.",
         "",
         "Example of an outage: the MES has processed up to `seq` 1040 (`H = 1040`). The broker "
         "link drops; the station produces `event` 1041, `telemetry` 1042–1045 and `alarm` 1046, "
-        "kept in the outbox. On reconnect the gateway publishes `status` `online` with `seq` 1046 "
-        "**first**, then delivers 1041 … 1046 in order. A consumer applying \"drop seq ≤ the "
-        "highest seen\" to every message would set 1046 from `status` and lose the whole backlog; "
-        "with the rule above `status` is ignored, 1041 … 1046 are processed and `H = 1046`. If the "
+        "kept in the outbox. On reconnect the gateway publishes `status` `online` (`session` 8, no "
+        "`seq`) **first**, then delivers 1041 … 1046 in order: 1041 … 1046 are processed and "
+        "`H = 1046`. (Schema version 1 gave `status` a `seq`, the stream position — 1046 here — "
+        "and a consumer moving `H` with it lost the whole backlog; version 2 has none.) If the "
         "gateway is then killed after sending 1046 but before the broker's PUBACK reached it, it "
         "sends 1046 again after its restart: `1046 ≤ H`, dropped. A resubscription replays the "
         "retained `state`/`alarm`/`result` with their original `seq` ≤ `H`: dropped too (the "
         "retained value is the one you already hold).",
         "",
-        "Order a consumer can rely on: per station, outbox messages in `seq` order; `status` "
-        "`online` before the backlog of the session it announces; `status` `offline` (the Will) "
-        "after everything the broker received from that session.",
+        "Order a consumer can rely on (per station, on one subscription): messages with a `seq` "
+        "arrive in `seq` order; `status` `online` of a session arrives **before** every message "
+        "of that session, the backlog of an outage included (the gateway publishes it in the "
+        "connect handler, before it sends anything from the outbox); `status` `offline` (the Will) "
+        "arrives after everything the broker received from that session. So a consumer may treat "
+        "`online` as \"a backlog may follow\", never as \"everything before it was delivered\".",
         "",
         "- The end-of-life alarm lifecycle: `active` (raised, unacknowledged) → `acknowledged` "
         "(cmd/ack, a PLC write or the CLI) → `cleared` (the hook was replaced and a new test "

@@ -76,7 +76,7 @@ def field_schema(topic: S.Topic, f: S.Field) -> dict[str, Any]:
         out["enum"] = enum + ([None] if "null" in f.type else [])
     if f.name == "schema":
         out = {"const": S.SCHEMA_VERSION}
-    if f.name == "seq":
+    if f.name in ("seq", "session"):
         out["minimum"] = 0
     out["description"] = f.doc
     return out
