@@ -244,6 +244,10 @@ class MqttConfig:
     client_id: str | None = key(None, "MQTT client ID; must be unique on the broker", kind="str",
                                 nullable=True, null_means="`hookwatch-<station id>`")
     keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
+    protocol: str = key("auto", "MQTT protocol version: `auto` connects with MQTT 5 and falls back to "
+                        "3.1.1 when the broker refuses it; with MQTT 5 a command is answered on its "
+                        "Response Topic with its Correlation Data, with 3.1.1 on `reply`", kind="enum",
+                        choices=("auto", "5", "3.1.1"))
     username: str | None = key(None, "broker user", kind="str", nullable=True,
                                null_means="anonymous")
     password_env: str | None = key(None, "name of the environment variable that holds the broker "

@@ -142,18 +142,19 @@ class MqttOutput:
         if self.station is not None:
             call_soon_on(self.loop, self.station.set_uplink, "mqtt", ok)
 
-    def _command(self, name: str, raw: bytes) -> None:
-        """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop."""
+    def _command(self, name: str, raw: bytes, response: tuple[str, bytes | None] | None = None) -> None:
+        """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop; the
+        answer goes to ``response`` (MQTT 5 Response Topic, Correlation Data) or to ``reply``."""
         cmd = parse_command(name, raw, "mqtt")   # bounded: size, depth, numbers, strings
         if isinstance(cmd, Rejection):
-            self._reply(clip(name, 32).strip("'"), cmd.request_id, cmd)
+            self._reply(clip(name, 32).strip("'"), cmd.request_id, cmd, response)
             self._intake_rejected(name, cmd)
             return
         sink = self.sink
         fut = submit_to(self.loop, sink.submit(cmd)) if sink is not None else None
         if fut is None:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
-                                                        CODE["NO_STATION"]))
+                                                        CODE["NO_STATION"]), response)
             return
 
         def done(f: Any, cmd: Any = cmd) -> None:
@@ -162,7 +163,7 @@ class MqttOutput:
             except Exception as e:  # the station failed to carry it out
                 r = Rejection(False, f"the station failed: {type(e).__name__}: {e}", cmd.request_id,
                               CODE["NO_STATION"])
-            self._reply(cmd.kind.value, cmd.request_id, r)
+            self._reply(cmd.kind.value, cmd.request_id, r, response)
 
         fut.add_done_callback(done)
 
@@ -178,5 +179,7 @@ class MqttOutput:
             data["suppressed"] = n
         call_soon_on(self.loop, self.station.intake_rejected, data)
 
-    def _reply(self, command: str, request_id: str | None, r: Any) -> None:
-        self.pump.put(M.reply_message(self._base, self.s.station_id, time.time(), command, request_id, r))
+    def _reply(self, command: str, request_id: str | None, r: Any,
+               response: tuple[str, bytes | None] | None = None) -> None:
+        self.pump.put(M.reply_message(self._base, self.s.station_id, time.time(), command, request_id, r,
+                                      response))

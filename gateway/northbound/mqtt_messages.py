@@ -32,6 +32,7 @@ class Message:
     payload: Callable[[int], dict[str, Any]]
     qos: int = 1
     retain: bool = False
+    correlation: bytes | None = None            # MQTT 5 Correlation Data (a reply to a request)
 
     def encode(self, seq: int) -> bytes:
         return schema.encode(self.payload(seq))
@@ -158,11 +159,16 @@ def status_message(base: str, station: str, t: float, online: bool) -> Message:
 
 
 def reply_message(base: str, station: str, t: float, command: str, request_id: str | None,
-                  r: CommandReply) -> Message:
+                  r: CommandReply, response: tuple[str, bytes | None] | None = None) -> Message:
+    """The answer to a command: on ``reply``, or (MQTT 5) on the request's Response Topic with its
+    Correlation Data, ``response = (topic, correlation)``."""
     code = 0 if r.ok else int(getattr(r, "code", CODE["BAD_REQUEST"]) or CODE["BAD_REQUEST"])
     rid = request_id if request_id is not None else r.request_id
-    return _message("reply", base,
-                    lambda seq: schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))
+    msg = _message("reply", base,
+                   lambda seq: schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))
+    if response is None:
+        return msg
+    return Message(msg.kind, response[0], msg.payload, msg.qos, False, response[1])
 
 
 def command_filter(base: str) -> str:

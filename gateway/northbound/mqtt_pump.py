@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
 
 from ..threadloop import Mailbox
 from . import mqtt_messages as M
@@ -39,6 +41,12 @@ QUEUE_MAX = 100_000
 FAULT_LOG_INTERVAL_S = 60.0
 #: a pump that ran this long without a fault starts again from the shortest restart delay
 FAULT_RESET_S = 30.0
+#: an MQTT 5 Response Topic (characters) / Correlation Data (bytes) longer than this is not used
+#: (the reply goes to the ``reply`` topic): a request cannot make the gateway publish much
+RESPONSE_TOPIC_MAX = 256
+CORRELATION_MAX = 256
+#: values of ``mqtt.protocol``
+PROTOCOLS = ("auto", "5", "3.1.1")
 
 
 class SecretError(Exception):
@@ -54,6 +62,7 @@ class MqttSettings:
     port: int = 1883
     client_id: str | None = None
     keepalive_s: int = 30
+    protocol: str = "auto"            # auto (MQTT 5, 3.1.1 if the broker refuses it), 5, 3.1.1
     username: str | None = None
     password_env: str | None = None
     password_file: str | None = None
@@ -121,6 +130,9 @@ class MqttPump:
         self._fault_logged_at = -FAULT_LOG_INTERVAL_S
         self._restart_delay = settings.reconnect_min_s
         self._session = 0       # the status's own counter (see schema.STATUS_FIELDS)
+        #: MQTT 5 for the next connection (auto: until the broker refuses it)
+        self.v5 = settings.protocol in ("auto", "5")
+        self._connack = False
 
     # ================================================================ any thread
     def put(self, msg: M.Message) -> int:
@@ -128,7 +140,8 @@ class MqttPump:
         with self._lock:
             seq = self.outbox.next_seq()
             payload = msg.encode(seq)
-            self._queue.put_nowait(Row(seq, msg.kind, msg.topic, payload, msg.qos, msg.retain, time.time()))
+            self._queue.put_nowait(Row(seq, msg.kind, msg.topic, payload, msg.qos, msg.retain, time.time(),
+                                       msg.correlation))
         return seq
 
     def start(self) -> None:
@@ -271,7 +284,8 @@ class MqttPump:
     def _make_client(self) -> paho.Client:
         s = self.s
         c = paho.Client(CallbackAPIVersion.VERSION2, client_id=s.client_id or f"hookwatch-{s.station_id}",
-                        clean_session=True, protocol=paho.MQTTv311)
+                        clean_session=None if self.v5 else True,
+                        protocol=paho.MQTTv5 if self.v5 else paho.MQTTv311)
         c.max_inflight_messages_set(max(1, s.window))
         c.max_queued_messages_set(0)
         if s.username:
@@ -304,7 +318,10 @@ class MqttPump:
             self._schedule_retry(max_delay=True)
             return
         try:
-            self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s))
+            self._connack = False
+            # MQTT 5: a clean start and no session expiry, as the clean session of 3.1.1
+            self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s),
+                                 **({"clean_start": True} if self.v5 else {}))
         except (OSError, ValueError) as e:
             if not self._connect_error_logged:
                 log.warning("%s: MQTT broker %s:%s unreachable (%s); retrying, messages are kept in the "
@@ -326,6 +343,18 @@ class MqttPump:
         self._sock_open = False
         self.counters["disconnects"] += 1
         self._schedule_retry()
+        if not self._connack:
+            self._refused_v5(f"connection closed before CONNACK ({why})")
+
+    def _refused_v5(self, why: str) -> None:
+        """``protocol: auto`` and the broker did not take an MQTT 5 CONNECT: use 3.1.1 from now on
+        (a new client, at once)."""
+        if not (self.v5 and self.s.protocol == "auto"):
+            return
+        log.warning("%s: MQTT broker %s:%s refused MQTT 5 (%s); using MQTT 3.1.1 (commands are "
+                    "answered on `reply`)", self.s.station_id, self.s.host, self.s.port, why)
+        self.v5 = False
+        self._abandon_client()
 
     def _close_client(self) -> None:
         c = self._client
@@ -361,6 +390,12 @@ class MqttPump:
 
     # -- paho callbacks (run inside client.loop, on the pump thread)
     def _on_connect(self, client, userdata, flags, reason_code, properties) -> None:
+        if reason_code.is_failure and self.v5 and reason_code.value in (1, 132):
+            # 132 Unsupported Protocol Version (a 3.1.1 broker answers 1, unacceptable version)
+            client.disconnect()
+            self._refused_v5(str(reason_code))
+            return
+        self._connack = True
         if reason_code.is_failure:
             why = str(reason_code)
             (log.error if why != self._refused else log.debug)(
@@ -372,7 +407,8 @@ class MqttPump:
             self._sock_open = False
             self._schedule_retry(max_delay=True)
             return
-        log.info("%s: MQTT connected to %s:%s", self.s.station_id, self.s.host, self.s.port)
+        log.info("%s: MQTT %s connected to %s:%s", self.s.station_id, "5" if self.v5 else "3.1.1",
+                 self.s.host, self.s.port)
         self._set_connected(True)
         self._connect_error_logged = False
         self._refused = None
@@ -397,7 +433,12 @@ class MqttPump:
         if room <= 0:
             return
         for row in self.outbox.pending(self._sent_upto, room):
-            info = self._client.publish(row.topic, row.payload, qos=row.qos, retain=row.retain)
+            props = None
+            if row.correlation is not None and self.v5:
+                props = Properties(PacketTypes.PUBLISH)
+                props.CorrelationData = row.correlation
+            info = self._client.publish(row.topic, row.payload, qos=row.qos, retain=row.retain,
+                                        properties=props)
             if info.rc not in (paho.MQTT_ERR_SUCCESS, paho.MQTT_ERR_NO_CONN):
                 log.error("%s: publish of seq %d failed: %s", self.s.station_id, row.seq,
                           paho.error_string(info.rc))
@@ -410,4 +451,19 @@ class MqttPump:
 
     def _on_message(self, client, userdata, msg) -> None:
         self.counters["commands"] += 1
-        self.on_command(msg.topic.rsplit("/", 1)[-1], msg.payload)
+        self.on_command(msg.topic.rsplit("/", 1)[-1], msg.payload, self._response_of(msg))
+
+    def _response_of(self, msg) -> tuple[str, bytes | None] | None:
+        """MQTT 5: where the request wants its answer, ``(Response Topic, Correlation Data)``, if
+        it names a topic one may publish to within the bounds; None: answer on ``reply``."""
+        props = getattr(msg, "properties", None)
+        topic = getattr(props, "ResponseTopic", None) if props is not None else None
+        if topic is None:
+            return None
+        corr = getattr(props, "CorrelationData", None)
+        if (not isinstance(topic, str) or not 0 < len(topic) <= RESPONSE_TOPIC_MAX
+                or any(ch in topic for ch in "+#\x00") or topic.startswith("$")
+                or (corr is not None and len(corr) > CORRELATION_MAX)):
+            self.counters["bad_response_topic"] += 1
+            return None
+        return topic, None if corr is None else bytes(corr)

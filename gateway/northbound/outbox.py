@@ -55,6 +55,8 @@ class Row:
     qos: int = 1
     retain: bool = False
     created: float = 0.0
+    #: MQTT 5 Correlation Data of a reply sent to a request's Response Topic (None: none)
+    correlation: bytes | None = None
 
     @property
     def size(self) -> int:
@@ -74,6 +76,8 @@ class Outbox:
                         "topic TEXT NOT NULL, payload BLOB NOT NULL, qos INTEGER NOT NULL, "
                         "retain INTEGER NOT NULL, created REAL NOT NULL)")
         self.db.execute("CREATE INDEX IF NOT EXISTS messages_kind ON messages (kind, seq)")
+        if "correlation" not in {r[1] for r in self.db.execute("PRAGMA table_info(messages)")}:
+            self.db.execute("ALTER TABLE messages ADD COLUMN correlation BLOB")   # outbox of ≤ 0.1
         self.db.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
         r = self.db.execute("SELECT value FROM meta WHERE key='last_seq'").fetchone()
         m = self.db.execute("SELECT MAX(seq) FROM messages").fetchone()[0]
@@ -241,9 +245,10 @@ class Outbox:
             max_seq = 0
             newest_state = None
             for r in rows:
-                cur.execute("INSERT OR REPLACE INTO messages (seq, kind, topic, payload, qos, retain, created) "
-                            "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                            (r.seq, r.kind, r.topic, r.payload, r.qos, int(r.retain), r.created or time.time()))
+                cur.execute("INSERT OR REPLACE INTO messages (seq, kind, topic, payload, qos, retain, created, "
+                            "correlation) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                            (r.seq, r.kind, r.topic, r.payload, r.qos, int(r.retain), r.created or time.time(),
+                             r.correlation))
                 max_seq = max(max_seq, r.seq)
                 if r.kind == "telemetry":
                     self.telemetry_bytes += r.size
@@ -333,11 +338,11 @@ class Outbox:
         """Stored rows (and rows held in memory) with seq > after_seq, oldest first."""
         if not self.disk_ok:
             self.retry()
-        cur = self.db.execute("SELECT seq, kind, topic, payload, qos, retain, created FROM messages "
-                              "WHERE seq > ? ORDER BY seq LIMIT ?",
+        cur = self.db.execute("SELECT seq, kind, topic, payload, qos, retain, created, correlation FROM "
+                              "messages WHERE seq > ? ORDER BY seq LIMIT ?",
                               (after_seq, int(limit) + len(self._confirm_pending)))
-        rows = [Row(s, k, t, bytes(p), q, bool(r), c) for s, k, t, p, q, r, c in cur.fetchall()
-                if s not in self._confirm_pending]
+        rows = [Row(s, k, t, bytes(p), q, bool(r), c, None if cd is None else bytes(cd))
+                for s, k, t, p, q, r, c, cd in cur.fetchall() if s not in self._confirm_pending]
         if self._reserve:
             rows += [r for s, r in self._reserve.items() if s > after_seq]
             rows.sort(key=lambda r: r.seq)

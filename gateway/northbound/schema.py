@@ -194,7 +194,8 @@ TOPICS: tuple[Topic, ...] = (
     Topic("result", "result", "publish", 1, True, True,
           "the result of the last test that ended", RESULT_FIELDS),
     Topic("reply", "reply", "publish", 1, False, True,
-          "the answer to every command received on cmd/…", REPLY_FIELDS),
+          "the answer to every command received on cmd/… (MQTT 5: on the request's Response Topic "
+          "instead, when it names one)", REPLY_FIELDS),
     Topic("cmd_start", "cmd/start", "subscribe", 1, False, False,
           "start a test", CMD_START_FIELDS),
     Topic("cmd_stop", "cmd/stop", "subscribe", 1, False, False,
@@ -494,7 +495,11 @@ def render() -> str:
         "",
         "A command is a JSON object published to `cmd/<name>` (an empty payload counts as `{}`). "
         "MQTT and PLC commands go through the same validation (`gateway/station/commands.py`) and "
-        "the same station command path; every command is answered on `reply`, and a refused one "
+        "the same station command path; every command is answered on `reply` — or, over MQTT 5, on "
+        "the Response Topic the request names, with the request's Correlation Data (same payload, "
+        "QoS 1, not retained, through the outbox; a Response Topic with a wildcard, starting with "
+        "`$` or longer than 256 characters, or Correlation Data over 256 bytes, is not used: the "
+        "answer goes to `reply`) — and a refused one "
         "is never acted on (it also produces a `command_rejected` event). Unknown keys, unknown "
         "commands and payloads that are not JSON objects are refused.",
         "",
@@ -511,7 +516,8 @@ def render() -> str:
         "`hookwatch-<station>`), `keepalive_s`, `username`, the password from the environment "
         "variable named by `password_env` or the file named by `password_file` (never inline), "
         "`tls: {enabled, ca_file, cert_file, key_file}`, `telemetry_interval_s`, `outbox: {path, "
-        "telemetry_budget_mb}`. One MQTT connection per station (its own Last Will). The client "
+        "telemetry_budget_mb}`, `protocol` (`auto`: MQTT 5, falling back to 3.1.1 when the broker "
+        "refuses it; `5`; `3.1.1`). One MQTT connection per station (its own Last Will). The client "
         "reconnects by itself (after 1 s, doubling up to 10 s).",
         "",
     ]

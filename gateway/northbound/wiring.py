@@ -26,6 +26,7 @@ def mqtt_settings(cfg):
         base_topic=schema.base_topic(m.prefix, getattr(st, "site", ""), getattr(st, "area", ""),
                                      getattr(st, "line", ""), sid),
         host=m.host, port=int(m.port), client_id=m.client_id, keepalive_s=int(m.keepalive_s),
+        protocol=m.protocol,
         username=m.username, password_env=m.password_env, password_file=m.password_file,
         tls_enabled=bool(tls.enabled), ca_file=tls.ca_file, cert_file=tls.cert_file, key_file=tls.key_file,
         telemetry_interval_s=float(m.telemetry_interval_s), outbox_path=path,

@@ -67,7 +67,7 @@ def test_a_failing_pump_restarts_and_loses_nothing(tmp_path, caplog):
             assert pump.faults == 0
 
             # 1. the command callback raises (a fault that used to kill the pump thread)
-            pump.on_command = _once(pump.on_command, lambda name, raw: raw == b'{"boom": 1}',
+            pump.on_command = _once(pump.on_command, lambda name, raw, *_: raw == b'{"boom": 1}',
                                     RuntimeError("injected callback fault"))
             pub(b.port, f"{BASE}/cmd/ack", '{"boom": 1}')
             wait_for(lambda: pump.faults == 1 and links[-2:] == [False, True], 20, what="restart 1")
