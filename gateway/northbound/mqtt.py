@@ -9,7 +9,8 @@ Threads:
 - the station's loop calls ``on_record`` / ``on_event`` / ``on_state``: O(1) work (telemetry is
   aggregated in memory; a message is a JSON encode plus a bounded mailbox append), never I/O;
 - commands received on ``cmd/…`` (pump thread) are handed to the station's loop
-  (``threadloop.submit_to``, the one thread → loop hand-over); the answer goes out on ``reply``;
+  (``threadloop.submit_to``, the one thread → loop hand-over); the answer goes out on ``reply``
+  (MQTT 5: on the request's Response Topic, with its Correlation Data);
 - the broker connection reaches the station as ``station.set_uplink("mqtt", ok)`` through the same
   hand-over (so the PLC sees it in ``StationState.mqtt_ok``);
 - the end-of-life alarm is read from the station's alarm store (``gateway/station/alarms.py``);

@@ -2,6 +2,7 @@
 Mosquitto and answers a command on the request's Response Topic with its Correlation Data (a paho
 MQTT 5 client plays the MES); `mqtt.protocol: 3.1.1` keeps the `reply` topic; `auto` falls back to
 3.1.1 when a broker refuses MQTT 5."""
+import contextlib
 import json
 import queue
 import socket
@@ -61,69 +62,64 @@ def _output(tmp_path, port, protocol):
     return station, out
 
 
-def test_commands_are_answered_on_the_response_topic_with_the_correlation_data(tmp_path):
+@contextlib.contextmanager
+def gateway_and_mes(tmp_path, protocol):
+    """A station with its MQTT output (``protocol``) on a real Mosquitto, mosquitto_sub on `reply`
+    and the MQTT 5 MES subscribed to `mes/replies/#`."""
     lt = LoopThread()
     with Broker(tmp_path) as b:
-        station, out = _output(tmp_path, b.port, "auto")
+        station, out = _output(tmp_path, b.port, protocol)
         sub = Sub(b.port, BASE + "/reply")
         mes = None
         try:
             lt.call(out.start())
             wait_for(lambda: out.connected, 20, what="connected")
-            assert out.pump.v5
             mes = Mes(b.port, "mes/replies/#")
-            mes.request(f"{BASE}/cmd/start", '{"sample_id": "S-5", "t_set": 0.5, "request_id": "r1"}',
-                        "mes/replies/st1", b"\x00\x01corr-1")
-            topic, p, corr = mes.next()
-            assert topic == "mes/replies/st1" and corr == b"\x00\x01corr-1"
-            assert p["ok"] and p["command"] == "start" and p["request_id"] == "r1"
-            assert station.monitor is not None
-            # a refusal too; and a request without correlation data
-            mes.request(f"{BASE}/cmd/start", '{"sample_id": "S-6", "t_set": 0.5}', "mes/replies/st1", b"c2")
-            topic, p, corr = mes.next()
-            assert corr == b"c2" and not p["ok"] and p["code"] == 1
-            mes.request(f"{BASE}/cmd/stop", "[[[[1]]]]", "mes/replies/other")
-            topic, p, corr = mes.next()
-            assert topic == "mes/replies/other" and corr is None and p["code"] == 9
-            # no Response Topic, or one that may not be used (a wildcard): the answer is on `reply`
-            mes.request(f"{BASE}/cmd/stop", '{"request_id": "halt"}')
-            mes.request(f"{BASE}/cmd/ack", '{"request_id": "a1"}', "mes/replies/#", b"c3")
-            sub.wait(lambda s: len(s.messages("reply")) >= 2, 20)
-            on_reply = [m[2] for m in sub.messages("reply")]
-            assert [(r["request_id"], r["command"]) for r in on_reply] == [("halt", "stop"), ("a1", "ack")]
-            assert on_reply[0]["ok"]
-            assert mes.got.empty() and out.counters["bad_response_topic"] == 1
-            seqs = [r["seq"] for r in on_reply]
-            assert seqs == sorted(seqs)
+            yield station, out, sub, mes
         finally:
             if mes is not None:
                 mes.close()
             lt.call(out.stop())
             lt.close()
             sub.stop()
+
+
+def test_commands_are_answered_on_the_response_topic_with_the_correlation_data(tmp_path):
+    with gateway_and_mes(tmp_path, "auto") as (station, out, sub, mes):
+        assert out.pump.v5
+        mes.request(f"{BASE}/cmd/start", '{"sample_id": "S-5", "t_set": 0.5, "request_id": "r1"}',
+                    "mes/replies/st1", b"\x00\x01corr-1")
+        topic, p, corr = mes.next()
+        assert topic == "mes/replies/st1" and corr == b"\x00\x01corr-1"
+        assert p["ok"] and p["command"] == "start" and p["request_id"] == "r1"
+        assert station.monitor is not None
+        # a refusal too; and a request without correlation data
+        mes.request(f"{BASE}/cmd/start", '{"sample_id": "S-6", "t_set": 0.5}', "mes/replies/st1", b"c2")
+        topic, p, corr = mes.next()
+        assert corr == b"c2" and not p["ok"] and p["code"] == 1
+        mes.request(f"{BASE}/cmd/stop", "[[[[1]]]]", "mes/replies/other")
+        topic, p, corr = mes.next()
+        assert topic == "mes/replies/other" and corr is None and p["code"] == 9
+        # no Response Topic, or one that may not be used (a wildcard): the answer is on `reply`
+        mes.request(f"{BASE}/cmd/stop", '{"request_id": "halt"}')
+        mes.request(f"{BASE}/cmd/ack", '{"request_id": "a1"}', "mes/replies/#", b"c3")
+        sub.wait(lambda s: len(s.messages("reply")) >= 2, 20)
+        on_reply = [m[2] for m in sub.messages("reply")]
+        assert [(r["request_id"], r["command"]) for r in on_reply] == [("halt", "stop"), ("a1", "ack")]
+        assert on_reply[0]["ok"]
+        assert mes.got.empty() and out.counters["bad_response_topic"] == 1
+        seqs = [r["seq"] for r in on_reply]
+        assert seqs == sorted(seqs)
 
 
 def test_protocol_3_1_1_answers_on_reply(tmp_path):
-    lt = LoopThread()
-    with Broker(tmp_path) as b:
-        station, out = _output(tmp_path, b.port, "3.1.1")
-        sub = Sub(b.port, BASE + "/reply")
-        mes = None
-        try:
-            lt.call(out.start())
-            wait_for(lambda: out.connected, 20, what="connected")
-            assert not out.pump.v5
-            mes = Mes(b.port, "mes/replies/#")
-            mes.request(f"{BASE}/cmd/ack", '{"request_id": "a1"}', "mes/replies/st1", b"c1")
-            r = sub.wait(lambda s: s.messages("reply"), 20) and sub.messages("reply")[0][2]
-            assert r["request_id"] == "a1" and r["code"] == 3
-            assert mes.got.empty()
-        finally:
-            if mes is not None:
-                mes.close()
-            lt.call(out.stop())
-            lt.close()
-            sub.stop()
+    with gateway_and_mes(tmp_path, "3.1.1") as (_station, out, sub, mes):
+        assert not out.pump.v5
+        mes.request(f"{BASE}/cmd/ack", '{"request_id": "a1"}', "mes/replies/st1", b"c1")
+        sub.wait(lambda s: s.messages("reply"), 20)
+        r = sub.messages("reply")[0][2]
+        assert r["request_id"] == "a1" and r["code"] == 3
+        assert mes.got.empty()
 
 
 def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path):
