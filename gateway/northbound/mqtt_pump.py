@@ -49,6 +49,10 @@ CORRELATION_MAX = 256
 PROTOCOLS = ("auto", "5", "3.1.1")
 
 
+#: where an MQTT 5 request wants its answer: (Response Topic, Correlation Data)
+Response = tuple[str, bytes | None]
+
+
 class SecretError(Exception):
     pass
 
@@ -100,7 +104,8 @@ class MqttPump:
     """Store-and-forward of one station's messages (see the module docstring)."""
 
     def __init__(self, settings: MqttSettings, on_link: Callable[[bool], None] = lambda ok: None,
-                 on_command: Callable[[str, bytes], None] = lambda name, payload: None) -> None:
+                 on_command: Callable[[str, bytes, Response | None], None] = lambda name, payload, response: None
+                 ) -> None:
         self.s = settings
         self.on_link = on_link
         self.on_command = on_command
@@ -231,13 +236,16 @@ class MqttPump:
         self._sent_upto = 0
         self._next_attempt = 0.0
         if c is not None:
-            try:
-                sock = c.socket()
-                if sock is not None:
-                    sock.close()
-            except Exception:
-                log.debug("%s: error while dropping the client", self.s.station_id, exc_info=True)
+            self._close_socket(c)
         self._set_connected(False)
+
+    def _close_socket(self, c: paho.Client) -> None:
+        try:
+            sock = c.socket()
+            if sock is not None:
+                sock.close()
+        except Exception:
+            log.debug("%s: error while closing the socket", self.s.station_id, exc_info=True)
 
     def _drain_queue(self) -> None:
         # rows and confirmations leave their holders only once the outbox took them (a fault in
@@ -270,7 +278,7 @@ class MqttPump:
                 if done or time.monotonic() >= stop_deadline or not self.connected:
                     self._drain_queue()
                     break
-            if self._sock_open:
+            if self._sock_open and self._client is not None:
                 rc = self._client.loop(timeout=self.s.poll_s)
                 if rc != paho.MQTT_ERR_SUCCESS:
                     self._lost(f"network loop: {paho.error_string(rc)}")
@@ -320,8 +328,10 @@ class MqttPump:
         try:
             self._connack = False
             # MQTT 5: a clean start and no session expiry, as the clean session of 3.1.1
-            self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s),
-                                 **({"clean_start": True} if self.v5 else {}))
+            if self.v5:
+                self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s), clean_start=True)
+            else:
+                self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s))
         except (OSError, ValueError) as e:
             if not self._connect_error_logged:
                 log.warning("%s: MQTT broker %s:%s unreachable (%s); retrying, messages are kept in the "
@@ -376,11 +386,7 @@ class MqttPump:
         finally:
             self._set_connected(False)
             self._sock_open = False
-            try:
-                if c.socket() is not None:
-                    c.socket().close()
-            except Exception:
-                pass
+            self._close_socket(c)
             self._client = None
 
     def _set_connected(self, ok: bool) -> None:
@@ -430,15 +436,15 @@ class MqttPump:
 
     def _send_more(self) -> None:
         room = self.s.window - len(self._mid2seq)
-        if room <= 0:
+        c = self._client
+        if room <= 0 or c is None:
             return
         for row in self.outbox.pending(self._sent_upto, room):
             props = None
             if row.correlation is not None and self.v5:
                 props = Properties(PacketTypes.PUBLISH)
                 props.CorrelationData = row.correlation
-            info = self._client.publish(row.topic, row.payload, qos=row.qos, retain=row.retain,
-                                        properties=props)
+            info = c.publish(row.topic, row.payload, qos=row.qos, retain=row.retain, properties=props)
             if info.rc not in (paho.MQTT_ERR_SUCCESS, paho.MQTT_ERR_NO_CONN):
                 log.error("%s: publish of seq %d failed: %s", self.s.station_id, row.seq,
                           paho.error_string(info.rc))
@@ -453,7 +459,7 @@ class MqttPump:
         self.counters["commands"] += 1
         self.on_command(msg.topic.rsplit("/", 1)[-1], msg.payload, self._response_of(msg))
 
-    def _response_of(self, msg) -> tuple[str, bytes | None] | None:
+    def _response_of(self, msg) -> Response | None:
         """MQTT 5: where the request wants its answer, ``(Response Topic, Correlation Data)``, if
         it names a topic one may publish to within the bounds; None: answer on ``reply``."""
         props = getattr(msg, "properties", None)
