@@ -138,6 +138,8 @@ class MqttPump:
         #: MQTT 5 for the next connection (auto: until the broker refuses it)
         self.v5 = settings.protocol in ("auto", "5")
         self._connack = False
+        self._v5_ok = False         # the broker accepted MQTT 5 once: never fall back
+        self._v5_closed = 0         # MQTT 5 connections closed before their CONNACK, in a row
 
     # ================================================================ any thread
     def put(self, msg: M.Message) -> int:
@@ -353,13 +355,17 @@ class MqttPump:
         self._sock_open = False
         self.counters["disconnects"] += 1
         self._schedule_retry()
-        if not self._connack:
-            self._refused_v5(f"connection closed before CONNACK ({why})")
+        if not self._connack and self.v5:
+            # a broker that does not speak MQTT 5 may just close the connection; so may a broker
+            # that is going down: the second time in a row counts as a refusal
+            self._v5_closed += 1
+            if self._v5_closed >= 2:
+                self._refused_v5(f"connection closed before CONNACK twice ({why})")
 
     def _refused_v5(self, why: str) -> None:
         """``protocol: auto`` and the broker did not take an MQTT 5 CONNECT: use 3.1.1 from now on
         (a new client, at once)."""
-        if not (self.v5 and self.s.protocol == "auto"):
+        if not (self.v5 and self.s.protocol == "auto") or self._v5_ok:
             return
         log.warning("%s: MQTT broker %s:%s refused MQTT 5 (%s); using MQTT 3.1.1 (commands are "
                     "answered on `reply`)", self.s.station_id, self.s.host, self.s.port, why)
@@ -402,6 +408,7 @@ class MqttPump:
             self._refused_v5(str(reason_code))
             return
         self._connack = True
+        self._v5_closed = 0
         if reason_code.is_failure:
             why = str(reason_code)
             (log.error if why != self._refused else log.debug)(
@@ -416,6 +423,7 @@ class MqttPump:
         log.info("%s: MQTT %s connected to %s:%s", self.s.station_id, "5" if self.v5 else "3.1.1",
                  self.s.host, self.s.port)
         self._set_connected(True)
+        self._v5_ok = self._v5_ok or self.v5
         self._connect_error_logged = False
         self._refused = None
         self._backoff = self.s.reconnect_min_s

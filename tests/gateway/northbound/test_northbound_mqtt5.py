@@ -9,6 +9,7 @@ import socket
 import threading
 
 import paho.mqtt.client as paho
+import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
@@ -122,9 +123,12 @@ def test_protocol_3_1_1_answers_on_reply(tmp_path):
         assert mes.got.empty()
 
 
-def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path):
+@pytest.mark.parametrize("refusal", ["connack", "close"])
+def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path, refusal):
     """A broker that speaks only 3.1.1 (a socket server answering CONNECT by the protocol level the
-    client asks for: 5 → return code 1, unacceptable protocol version; 4 → accepted)."""
+    client asks for: 5 → return code 1, unacceptable protocol version, or the connection closed
+    without an answer; 4 → accepted). A closed connection counts as a refusal the second time in a
+    row (a broker going down closes connections too)."""
     port = free_port()
     levels: list[int] = []
     srv = socket.create_server(("127.0.0.1", port))
@@ -147,7 +151,8 @@ def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path):
             level = data[i + 1 + 6]
             levels.append(level)
             if level == 5:
-                c.sendall(b"\x20\x02\x00\x01")
+                if refusal == "connack":
+                    c.sendall(b"\x20\x02\x00\x01")
                 c.close()
             else:
                 c.sendall(b"\x20\x02\x00\x00")
@@ -160,7 +165,7 @@ def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path):
     try:
         lt.call(out.start())
         wait_for(lambda: out.connected, 20, what="connected with 3.1.1")
-        assert levels[:1] == [5] and levels[-1] == 4 and not out.pump.v5
+        assert levels == ([5, 4] if refusal == "connack" else [5, 5, 4]) and not out.pump.v5
     finally:
         out.s.drain_on_stop_s = 0.0
         lt.call(out.stop())
