@@ -28,9 +28,20 @@ import statistics
 from collections import deque
 from typing import Any
 
-from .stm32_protocol import (DEFAULT_BAUD, Cmd, FrameParser, ProtocolError, Reply, Status,
-                             StopReason, decode_reply, encode_frame, exchange_time_s,
-                             speed_payload, watchdog_payload)
+from .stm32_protocol import (
+    DEFAULT_BAUD,
+    Cmd,
+    FrameParser,
+    ProtocolError,
+    Reply,
+    Status,
+    StopReason,
+    decode_reply,
+    encode_frame,
+    exchange_time_s,
+    speed_payload,
+    watchdog_payload,
+)
 
 log = logging.getLogger("hookwatch.stm32")
 
@@ -93,7 +104,7 @@ class Stm32Link:
         self._open_error_logged = False
 
     @classmethod
-    def from_config(cls, cfg) -> "Stm32Link":
+    def from_config(cls, cfg) -> Stm32Link:
         def get(name, default):
             v = getattr(cfg, name, None)
             return default if v is None else v
@@ -385,7 +396,7 @@ class Stm32Link:
                 self._wake.clear()
                 try:
                     await asyncio.wait_for(self._wake.wait(), delay)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
             except asyncio.CancelledError:
                 raise

@@ -35,8 +35,9 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from ..zns_map import DEFAULT_MAP_PATH, MapError, MeterMap, crc_ok, load_map, with_crc
 from .pty import PtyLink

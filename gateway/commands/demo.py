@@ -28,9 +28,9 @@ import time
 from ..analysis import analyze_file
 from ..cli import CliError
 from ..compose import build_station
+from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
-from ..config import ConfigError, load_station
 from ..northbound import schema as mqtt_schema
 from ..records import EventType
 from ..report.pipeline import build_report

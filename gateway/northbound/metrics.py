@@ -354,7 +354,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
     ops = CounterMetricFamily(f"{p}_link_operations", "link traffic by kind (requests, replies, "
                               "reconnects; the drivers' counters)", labels=["station", "link", "kind"])
     up = GaugeMetricFamily(f"{p}_link_up", "1 when the link is up: meter and STM32 serial port open "
-                           "(a silent device shows as timeouts), MQTT connected to the broker", labels=["station", "link"])
+                           "(a silent device shows as timeouts), MQTT connected to the broker",
+                           labels=["station", "link"])
     for s in snapshots:
         for link, d in s["links"].items():
             up.add_metric([s["station"], link], 1.0 if d["up"] else 0.0)

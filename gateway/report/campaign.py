@@ -18,8 +18,9 @@ import os
 import re
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from .. import logio
 from ..analysis import AnalysisError, params_for

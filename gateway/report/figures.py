@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -201,7 +201,8 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
     warn_slot = result.get("warn_slot")
     return Fig7Data(
         title=title, unit=unit, scale=scale, x_end=x_end, mu=mu_env, bad=bad_env, missing=missing,
-        t1=grid_minmax(t1, dx, x_end), t2=grid_minmax(t2, dx, x_end), tm=grid_minmax(tm, dx, x_end), t_set=p.t_set, mu_ss=result.get("mu_ss"),
+        t1=grid_minmax(t1, dx, x_end), t2=grid_minmax(t2, dx, x_end), tm=grid_minmax(tm, dx, x_end),
+        t_set=p.t_set, mu_ss=result.get("mu_ss"),
         mu_th=result.get("mu_th"), delta=p.delta, stable=stable, t_life=result.get("t_life"),
         stop=None if result.get("stop_slot") is None else result["stop_slot"] * ts,
         status=result.get("status", "?"),

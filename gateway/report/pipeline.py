@@ -9,13 +9,23 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .. import __version__
+from ..logio import LogError, read_meta
 from . import tables as T
-from .campaign import (DELTA_FACTORS, REPORT_MARKER, ROLE_CLOSED, ROLE_OPEN, Campaign, ControlLog,
-                       Problem, Progress, discover, run_parallel)
+from .campaign import (
+    DELTA_FACTORS,
+    REPORT_MARKER,
+    ROLE_CLOSED,
+    ROLE_OPEN,
+    Campaign,
+    ControlLog,
+    Problem,
+    Progress,
+    discover,
+    run_parallel,
+)
+from .figures import render_fig9
 from .render import Document, Figure, Section, write_csvs, write_document
 from .worker import run_task
-from ..logio import read_meta, LogError
-from .figures import render_fig9
 
 
 @dataclass
@@ -149,7 +159,7 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
     # ---- per-test outcomes
     outcome_by_log: dict[str, dict] = {}
     fig8 = None
-    for task, spec, res in zip(tasks, owners, results):
+    for _task, spec, res in zip(tasks, owners, results):
         res = res or {"error": "no result"}
         if spec is None:
             if res.get("error"):

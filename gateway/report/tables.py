@@ -5,8 +5,9 @@ sample ID is not a duplicate; every other sample is listed apart with the reason
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 from ..method.params import STOPPED
 from . import stats as S

@@ -25,7 +25,7 @@ import time
 from typing import Any
 
 from . import pdu as P
-from .framer import Framer, FrameError, encode
+from .framer import FrameError, Framer, encode
 
 log = logging.getLogger("hookwatch.modbus")
 
@@ -187,7 +187,7 @@ class ModbusTcpServer:
             while True:
                 try:
                     data = await asyncio.wait_for(reader.read(READ_CHUNK), self.idle_timeout_s)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     c["idle_closed"] += 1
                     break
                 if not data:
@@ -206,7 +206,7 @@ class ModbusTcpServer:
                 if frames:
                     try:
                         await asyncio.wait_for(writer.drain(), self.idle_timeout_s)
-                    except asyncio.TimeoutError:
+                    except TimeoutError:
                         c["idle_closed"] += 1
                         break
         except (ConnectionError, OSError, asyncio.CancelledError):

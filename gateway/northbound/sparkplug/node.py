@@ -293,7 +293,7 @@ class EdgeNode:
     def nbirth(self, now_ms: int) -> Publish:
         self.seq = 0
         p = self._payload(now_ms)
-        for i, d in enumerate(M.NODE_METRICS):
+        for d in M.NODE_METRICS:
             m = p.metrics.add()
             m.name = d.name
             if d.name in self._node_alias:
