@@ -262,7 +262,7 @@ class VirtualMeter:
             self._silence.cancel()
             self._silence = None
         if self._buf:
-            self._silence = self._loop.call_at(now + t35, self._on_silence)
+            self._silence = self._ev_loop().call_at(now + t35, self._on_silence)
 
     def _expected_len(self) -> int | None:
         b = self._buf
@@ -339,6 +339,12 @@ class VirtualMeter:
         else:
             self._call_at(when, self._sample, t_req_end, what)
 
+    def _ev_loop(self) -> asyncio.AbstractEventLoop:
+        """The loop start() bound; timers are only armed by callbacks that start() registered."""
+        if self._loop is None:
+            raise RuntimeError("simulated meter not started")
+        return self._loop
+
     def _call_at(self, when: float, fn, *args) -> None:
         h: asyncio.TimerHandle
 
@@ -346,7 +352,7 @@ class VirtualMeter:
             self._timers.discard(h)
             fn(*args)
 
-        h = self._loop.call_at(when, run)
+        h = self._ev_loop().call_at(when, run)
         self._timers.add(h)
 
     def _sample(self, t_req_end: float, what) -> None:
