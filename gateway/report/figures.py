@@ -17,6 +17,9 @@ import numpy as np
 from ..method import rules as R
 from .stats import group_stats
 
+# (column centres, column minima, column maxima): what envelope_xy() draws
+Envelope = tuple[np.ndarray, np.ndarray, np.ndarray]
+
 WIDTH_PX = 1600
 HEIGHT_PX = 1000
 DPI = 100
@@ -151,17 +154,17 @@ class Fig7Data:
     unit: str
     scale: float
     x_end: float
-    mu: tuple                # (xc, lo, hi) valid μ
-    bad: tuple               # (xc, lo, hi) ln(R)/θ of gated-out slots where R is defined
+    mu: Envelope             # (xc, lo, hi) valid μ
+    bad: Envelope            # (xc, lo, hi) ln(R)/θ of gated-out slots where R is defined
     missing: np.ndarray      # column centres holding MISSING slots
-    t1: tuple
-    t2: tuple
-    tm: tuple                # (T1 + T2) / 2
+    t1: Envelope
+    t2: Envelope
+    tm: Envelope             # (T1 + T2) / 2
     t_set: float
     mu_ss: float | None
     mu_th: float | None
     delta: float
-    stable: tuple | None     # (start, end) in plot units
+    stable: tuple[float, float] | None     # (start, end) in plot units
     t_life: float | None     # in s
     stop: float | None       # protection stop, in s
     status: str
@@ -326,7 +329,7 @@ def render_fig7(d: Fig7Data, path: str) -> None:
 @dataclass
 class LoopSeries:
     label: str
-    x: tuple          # envelope of (T1 + T2)/2 over time (plot units)
+    x: Envelope       # envelope of (T1 + T2)/2 over time (plot units)
     smooth: tuple     # (x, running mean over ≥ 1 s) for a line
     hist: tuple       # (bin edges, counts) of the deviation from T_set
     mean: float
@@ -418,6 +421,8 @@ def render_fig9(points: dict[tuple[float, str], list[float]], grades: list[str],
             if not vals:
                 continue
             st = group_stats(vals)
+            if st.mean is None:     # not reached: vals is not empty
+                continue
             x = si - 0.4 + width * (gi + 0.5)
             xs.append(x)
             means.append(st.mean)

@@ -85,7 +85,8 @@ def grade_sort_key(grade: str):
 def ranking(means: Mapping[str, float | None]) -> str:
     """Grade ranking by mean t_life, longest first: ``"I > II"``; equal means (after the paper's
     rounding) are joined with ``=``. Grades without a mean are left out; "" if none."""
-    items = [(g, round_half_up(m, DIGITS["t_life"])) for g, m in means.items() if m is not None]
+    rounded = ((g, round_half_up(m, DIGITS["t_life"])) for g, m in means.items())
+    items = [(g, m) for g, m in rounded if m is not None]
     items.sort(key=lambda gm: (-gm[1], grade_sort_key(gm[0])))
     out = ""
     for i, (g, m) in enumerate(items):
