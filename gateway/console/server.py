@@ -174,7 +174,8 @@ class ConsoleServer:
             host, port = parse_listen(addr)
             site = web.TCPSite(self._runner, host, port, ssl_context=ctx, reuse_address=True)
             await site.start()
-            for s in (site._server.sockets if site._server else []):  # the real port when 0
+            server = site._server   # an asyncio.Server (typed as AbstractServer): the real port when 0
+            for s in (server.sockets if isinstance(server, asyncio.Server) else []):
                 h, p = s.getsockname()[:2]
                 shown = f"[{h}]" if ":" in h else h
                 urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
