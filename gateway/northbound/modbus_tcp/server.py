@@ -141,9 +141,12 @@ class ModbusTcpServer:
     async def _accept_loop(self) -> None:
         loop = asyncio.get_running_loop()
         c = self.store.counters
+        lsock = self._lsock     # started by start() once it listens
+        if lsock is None:
+            return
         while True:
             try:
-                conn, addr = await loop.sock_accept(self._lsock)
+                conn, addr = await loop.sock_accept(lsock)
             except asyncio.CancelledError:
                 raise
             except OSError as e:      # EMFILE, ENFILE, ECONNABORTED: a state, not a crash

@@ -118,7 +118,8 @@ def get_value(m: Payload.Metric) -> Any:
 
 
 def _properties(m: Payload.Metric, d: M.MetricDef) -> None:
-    keys, vals = [], []
+    keys: list[str] = []
+    vals: list[str | bool] = []
     if d.units:
         keys.append("engUnit")
         vals.append(d.units)
@@ -264,7 +265,7 @@ class EdgeNode:
         if online and not self.host_online:
             self.host_online = True
             if self.connected:
-                return self._births(now_ms)
+                return [*self._births(now_ms)]
         elif not online and self.host_online:
             self.host_online = False
             if self.connected and self.node_born:
