@@ -279,7 +279,7 @@ class ModbusOutput:
             ip = ipaddress.ip_address(peer)
         except ValueError:
             return False
-        if getattr(ip, "ipv4_mapped", None) is not None:
+        if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:   # ::ffff:a.b.c.d
             ip = ip.ipv4_mapped
         return any(ip in n for n in self._allowed_nets if n.version == ip.version)
 
