@@ -36,6 +36,7 @@ sys.path.insert(0, ROOT)
 from bench_fleet import make_fleet, stop_sims_read  # noqa: E402
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
 
+
 def console_cpu(base: str) -> float:
     """CPU seconds of the console's thread (it reports its own ``time.thread_time()``)."""
     with urllib.request.urlopen(base + "/api/fleet", timeout=5) as r:
@@ -70,7 +71,7 @@ class SseClient(threading.Thread):
                     break
                 self.bytes += len(b)
                 self.messages += b.count(b"data: {")
-            except socket.timeout:
+            except TimeoutError:
                 pass
             if time.monotonic() - last_poll >= 1.0:
                 last_poll = time.monotonic()

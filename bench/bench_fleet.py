@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """Issue 6 benchmark: stations per box. N virtual stations (one `hookwatch sim --count N`
-process, or with --sim-per-station one process each; 115200 baud) and ONE `hookwatch run FLEET_DIR` carrying all N stations, for DURATION seconds each;
+process, or with --sim-per-station one process each; 115200 baud) and ONE `hookwatch run FLEET_DIR`
+carrying all N stations, for DURATION seconds each;
 per N: the worst station's share of slots filled and slot-lateness p99, the gateway's CPU and the
 simulators' CPU (they count against the same two cores).
 

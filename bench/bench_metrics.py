@@ -140,10 +140,10 @@ def bench_wire(rounds: int, duration: float, scrape_s: float) -> None:
             res[on].append(out)
     for on in (False, True):
         rs = res[on]
-        print(f"wire, metrics {'on, scraped every %g s' % scrape_s if on else 'off'}: {len(rs)} runs of "
+        print(f"wire, metrics {f'on, scraped every {scrape_s:g} s' if on else 'off'}: {len(rs)} runs of "
               f"{duration:.0f} s: filled median {statistics.median(r['filled_pct'] for r in rs):.3f} %, "
               f"lateness p99 median {statistics.median(r['lateness_ms_p99'] for r in rs):.3f} ms "
-              f"(runs {', '.join('%.2f' % r['lateness_ms_p99'] for r in rs)}), gateway CPU median "
+              f"(runs {', '.join(format(r['lateness_ms_p99'], '.2f') for r in rs)}), gateway CPU median "
               f"{statistics.median(r['cpu_pct'] for r in rs):.1f} % of a core"
               + (f", scrapes {[r['scrapes'] for r in rs]}" if on else ""))
 

@@ -97,7 +97,7 @@ def drivers(args) -> None:
             res["idle"].append(await _slots(n, None) / n)
             m_ok = [0]
 
-            async def read_new():
+            async def read_new(m_ok=m_ok):
                 m_ok[0] += await new_m.read() is not None
             res["meter (lean RTU)"].append(await _slots(n, read_new) / n)
             if old_m is not None:

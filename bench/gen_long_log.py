@@ -39,7 +39,8 @@ def generate(path: str, hours: float = 10.0, seed: int = 7) -> str:
     meta = path[: -len(".csv.gz")] + ".meta.yaml"
     with open(meta, "w") as f:
         # as the recorder writes it: a log hookwatch recorded (its analyses may cache columns)
-        f.write(f"software: hookwatch bench\nsample_id: bench-10h\ngrade: I\nmethod:\n  t_set: 0.5\n  t_end: {hours * 3600:g}\n")
+        f.write("software: hookwatch bench\nsample_id: bench-10h\ngrade: I\n"
+                f"method:\n  t_set: 0.5\n  t_end: {hours * 3600:g}\n")
     return path
 
 

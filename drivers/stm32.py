@@ -28,9 +28,20 @@ import statistics
 from collections import deque
 from typing import Any
 
-from .stm32_protocol import (DEFAULT_BAUD, Cmd, FrameParser, ProtocolError, Reply, Status,
-                             StopReason, decode_reply, encode_frame, exchange_time_s,
-                             speed_payload, watchdog_payload)
+from .stm32_protocol import (
+    DEFAULT_BAUD,
+    Cmd,
+    FrameParser,
+    ProtocolError,
+    Reply,
+    Status,
+    StopReason,
+    decode_reply,
+    encode_frame,
+    exchange_time_s,
+    speed_payload,
+    watchdog_payload,
+)
 
 log = logging.getLogger("hookwatch.stm32")
 
@@ -93,7 +104,7 @@ class Stm32Link:
         self._open_error_logged = False
 
     @classmethod
-    def from_config(cls, cfg) -> "Stm32Link":
+    def from_config(cls, cfg) -> Stm32Link:
         def get(name, default):
             v = getattr(cfg, name, None)
             return default if v is None else v
@@ -127,13 +138,19 @@ class Stm32Link:
             return False
         self._open_error_logged = False
         self._ser = ser
-        self._fd = ser.fileno()
-        os.set_blocking(self._fd, False)
+        fd = self._fd = ser.fileno()
+        os.set_blocking(fd, False)
         self._parser.reset()
-        self._loop.add_reader(self._fd, self._on_readable)
+        self._ev_loop().add_reader(fd, self._on_readable)
         self.connected = True
         log.info("stm32 %s: open at %d baud", self.port, self.baud)
         return True
+
+    def _ev_loop(self) -> asyncio.AbstractEventLoop:
+        """The loop open() bound (the port is only opened after it)."""
+        if self._loop is None:
+            raise RuntimeError(f"stm32 {self.port}: open() was not called")
+        return self._loop
 
     def _release(self) -> None:
         if self._fd is not None and self._loop is not None:
@@ -180,6 +197,8 @@ class Stm32Link:
             w[2].set_result(value)
 
     def _on_readable(self) -> None:
+        if self._fd is None:    # released: the reader is removed with the fd
+            return
         try:
             data = os.read(self._fd, 4096)
         except BlockingIOError:
@@ -216,12 +235,12 @@ class Stm32Link:
         return self._seq
 
     async def _exchange(self, cmd: Cmd, payload: bytes = b"") -> Reply | None:
-        if not self.connected or self._lock is None:
+        loop = self._loop
+        if not self.connected or self._lock is None or loop is None:
             return None
         async with self._lock:
             if not self.connected:
                 return None
-            loop = self._loop
             t0 = loop.time()
             deadline = t0 + self.budget_s
             min_attempt = exchange_time_s(cmd, self.baud) + 0.001
@@ -233,6 +252,8 @@ class Stm32Link:
                 while True:
                     fut = loop.create_future()
                     self._waiter = (seq, int(cmd), fut)
+                    if self._fd is None:     # released while the lock was awaited
+                        return None
                     try:
                         os.write(self._fd, frame)
                     except BlockingIOError:
@@ -293,7 +314,7 @@ class Stm32Link:
                 break
             if not self.connected:
                 return None
-        if rep is None or not rep.ok:
+        if rep is None or not rep.ok or rep.status is None:    # an ACK always carries a status
             return None
         if self._wake is not None and rep.status.enabled != self._was_enabled:
             self._wake.set()        # the keep-alive starts or stops
@@ -356,7 +377,7 @@ class Stm32Link:
 
     async def keepalive(self) -> Status | None:
         """PING if the firmware is enabled and nothing went out for half the watchdog period."""
-        if not self.armed or self._loop is None:
+        if not self.armed or self._loop is None or self._lock is None:
             return None
         if self._loop.time() - self._last_tx < self.keepalive_interval_s or self._lock.locked():
             return None     # recent traffic (or an exchange in progress) feeds the watchdog
@@ -364,7 +385,9 @@ class Stm32Link:
         return await self._status(Cmd.PING)
 
     async def _supervise(self) -> None:
-        loop = self._loop
+        loop = self._loop       # started by open(), which sets it
+        if loop is None:
+            return
         while not self._closed:
             try:
                 if not self.connected:
@@ -382,10 +405,13 @@ class Stm32Link:
                     delay = min(max(0.002, due - loop.time()), 0.5)
                 else:
                     delay = 0.5
-                self._wake.clear()
+                wake = self._wake     # set by open() (a second open() replaces it)
+                if wake is None:
+                    return
+                wake.clear()
                 try:
-                    await asyncio.wait_for(self._wake.wait(), delay)
-                except asyncio.TimeoutError:
+                    await asyncio.wait_for(wake.wait(), delay)
+                except TimeoutError:
                     pass
             except asyncio.CancelledError:
                 raise

@@ -109,7 +109,7 @@ class ZnsMeter:
                         meter_map.poll_time_s() * 1e3, meter_map.baud)
 
     @classmethod
-    def from_config(cls, meter_cfg) -> "ZnsMeter":
+    def from_config(cls, meter_cfg) -> ZnsMeter:
         """From the station's ``meter:`` section (attributes port, map, baud, unit_id, parity,
         timeout_s, swap_channels; None = from the map / default). Raises MapError for a bad map."""
         path = getattr(meter_cfg, "map", None) or DEFAULT_MAP_PATH

@@ -1,7 +1,8 @@
 """Offline analysis: a recorded log + its sidecar + overrides → the method's result."""
 from __future__ import annotations
 
-from typing import Any, Iterable, Mapping
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 from .logio import LogError, read_log
 from .method.core import Result, analyze_slots, to_slots

@@ -22,7 +22,8 @@ Trade-off (bench/README.md): 24 bytes per row on disk (≈ 43 MB beside a 9.4 MB
 ``.csv.gz``), written once per log (≈ 50 ms), for an analysis that skips gunzip and the parse.
 A cache that cannot be written (read-only folder, full disk) is simply not written: the read
 still succeeds from the text; nor is one written that would leave less than 1 GiB or 10 % of the
-file system free (the records folder of a gateway must not fill up with derived files). ``HOOKWATCH_LOG_CACHE=0`` switches the cache off entirely.
+file system free (the records folder of a gateway must not fill up with derived files).
+``HOOKWATCH_LOG_CACHE=0`` switches the cache off entirely.
 """
 from __future__ import annotations
 

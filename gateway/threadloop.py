@@ -21,7 +21,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
-I = TypeVar("I")
+ItemT = TypeVar("ItemT")
 
 
 def submit_to(loop: asyncio.AbstractEventLoop | None,
@@ -119,7 +119,7 @@ class ThreadLoop:
         self.loop.call_soon_threadsafe(fn, *args)
 
 
-class Mailbox(Generic[I]):
+class Mailbox(Generic[ItemT]):
     """A bounded, non-blocking stream from a slot loop to another thread.
 
     :meth:`put_nowait` never blocks and never fails: when ``maxlen`` items wait, the oldest is
@@ -130,12 +130,12 @@ class Mailbox(Generic[I]):
         if maxlen < 1:
             raise ValueError("Mailbox maxlen must be at least 1")
         self.maxlen = maxlen
-        self._q: collections.deque[I] = collections.deque()
+        self._q: collections.deque[ItemT] = collections.deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self.dropped = 0
 
-    def put_nowait(self, item: I) -> bool:
+    def put_nowait(self, item: ItemT) -> bool:
         """Queue ``item``; False when an older item had to be dropped to make room."""
         with self._lock:
             full = len(self._q) >= self.maxlen
@@ -146,7 +146,7 @@ class Mailbox(Generic[I]):
         self._wake.set()
         return not full
 
-    def drain(self) -> list[I]:
+    def drain(self) -> list[ItemT]:
         """Everything queued, oldest first (empties the mailbox)."""
         with self._lock:
             items = list(self._q)

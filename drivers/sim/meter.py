@@ -35,8 +35,9 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 from ..zns_map import DEFAULT_MAP_PATH, MapError, MeterMap, crc_ok, load_map, with_crc
 from .pty import PtyLink
@@ -261,7 +262,7 @@ class VirtualMeter:
             self._silence.cancel()
             self._silence = None
         if self._buf:
-            self._silence = self._loop.call_at(now + t35, self._on_silence)
+            self._silence = self._ev_loop().call_at(now + t35, self._on_silence)
 
     def _expected_len(self) -> int | None:
         b = self._buf
@@ -338,6 +339,12 @@ class VirtualMeter:
         else:
             self._call_at(when, self._sample, t_req_end, what)
 
+    def _ev_loop(self) -> asyncio.AbstractEventLoop:
+        """The loop start() bound; timers are only armed by callbacks that start() registered."""
+        if self._loop is None:
+            raise RuntimeError("simulated meter not started")
+        return self._loop
+
     def _call_at(self, when: float, fn, *args) -> None:
         h: asyncio.TimerHandle
 
@@ -345,7 +352,7 @@ class VirtualMeter:
             self._timers.discard(h)
             fn(*args)
 
-        h = self._loop.call_at(when, run)
+        h = self._ev_loop().call_at(when, run)
         self._timers.add(h)
 
     def _sample(self, t_req_end: float, what) -> None:

@@ -28,10 +28,11 @@ import time
 from ..analysis import analyze_file
 from ..cli import CliError
 from ..compose import build_station
+from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
-from ..config import ConfigError, load_station
 from ..northbound import schema as mqtt_schema
+from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
 from ..station.console import ConsoleOutput
@@ -238,11 +239,11 @@ def run(args) -> int:
         elif not args.no_northbound:
             print("MES     : no MQTT (Mosquitto is not installed: apt-get install mosquitto)", flush=True)
 
-        ended = {}
+        ended: dict[str, int] = {}
 
         async def main():
             stop = asyncio.Event()
-            outs = [ConsoleOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
+            outs: list[Output] = [ConsoleOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
             st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
             if console is not None:
                 st.outputs.append(console.output_for(st))
@@ -296,7 +297,7 @@ def run(args) -> int:
 class _EolWatcher(_EndWatcher):
     """Remembers when the end of life was detected (slot of the event)."""
 
-    def __init__(self, ended: dict):
+    def __init__(self, ended: dict[str, int]):
         self.ended = ended
 
     def on_event(self, ev):

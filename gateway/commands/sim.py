@@ -120,19 +120,19 @@ def run(args) -> int:
     try:
         stations = []
         try:
-            for i, (e, d) in enumerate(zip(entries, dirs)):
+            for i, (entry, d) in enumerate(zip(entries, dirs)):
                 if not multi:
                     seed = args.seed
-                elif e.seed is not None:
-                    seed = e.seed
+                elif entry.seed is not None:
+                    seed = entry.seed
                 else:       # a fleet file entry without a seed: its own sample, not a copy
-                    seed = (args.seed if args.seed is not None else e.scenario.seed) + i
+                    seed = (args.seed if args.seed is not None else entry.scenario.seed) + i
                 stations.append(SimStation(
-                    e.scenario, link_dir=d, seed=seed,
-                    baud=args.baud if args.baud is not None else e.baud,
-                    truth_path=_per_station(args.truth, e.name, multi),
-                    trace_path=_per_station(args.trace, e.name, multi), events=events,
-                    name=e.name if multi else None))
+                    entry.scenario, link_dir=d, seed=seed,
+                    baud=args.baud if args.baud is not None else entry.baud,
+                    truth_path=_per_station(args.truth, entry.name, multi),
+                    trace_path=_per_station(args.trace, entry.name, multi), events=events,
+                    name=entry.name if multi else None))
         except ScenarioError as e:
             raise CliError(str(e)) from None
         # one scenario (also --count): its duration_s; a fleet file of several: until stopped

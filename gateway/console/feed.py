@@ -303,7 +303,7 @@ class StationFeed:
     def summary(self) -> dict[str, Any]:
         """The fleet card."""
         st = self.state
-        s = asdict(st) if st is not None else {"station": self.name}
+        s: dict[str, Any] = asdict(st) if st is not None else {"station": self.name}
         if st is not None:
             s["state"] = st.state.name.lower()
         s.update(mu_now=_num(self.series.mu_now() or math.nan, 6), headroom=self.headroom,

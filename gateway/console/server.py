@@ -79,7 +79,7 @@ class ConsoleSettings:
         self.lockout_s = float(lockout_s)
 
     @classmethod
-    def from_config(cls, cfg) -> "ConsoleSettings":
+    def from_config(cls, cfg) -> ConsoleSettings:
         c = cfg.console
         users = c.users_file or os.path.join(cfg.recorder.dir, "console-users.json")
         return cls(listen=c.listen, cert_file=c.tls.cert_file, key_file=c.tls.key_file,
@@ -174,7 +174,8 @@ class ConsoleServer:
             host, port = parse_listen(addr)
             site = web.TCPSite(self._runner, host, port, ssl_context=ctx, reuse_address=True)
             await site.start()
-            for s in (site._server.sockets if site._server else []):  # the real port when 0
+            server = site._server   # an asyncio.Server (typed as AbstractServer): the real port when 0
+            for s in (server.sockets if isinstance(server, asyncio.Server) else []):
                 h, p = s.getsockname()[:2]
                 shown = f"[{h}]" if ":" in h else h
                 urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
@@ -432,7 +433,7 @@ class ConsoleServer:
                 if data is None:
                     break
                 await asyncio.wait_for(resp.write(data), WRITE_TIMEOUT_S)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             self._drop(f.name, c, "write timed out")
         except (ConnectionResetError, asyncio.CancelledError):
             pass
@@ -477,7 +478,7 @@ class ConsoleServer:
         try:
             fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
             reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
-        except (asyncio.TimeoutError, RuntimeError) as e:
+        except (TimeoutError, RuntimeError) as e:
             reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,
                               CODE["NO_STATION"])
         if hook and reply.ok:
@@ -522,7 +523,7 @@ class ConsoleServer:
                 stderr=asyncio.subprocess.PIPE, preexec_fn=lambda: os.nice(10))
             try:
                 _, err = await asyncio.wait_for(p.communicate(), 600)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 p.kill()
                 await p.wait()
                 return _err(504, "the report took longer than 10 minutes")
@@ -599,7 +600,7 @@ class ConsoleServer:
                     preexec_fn=lambda: os.nice(10))
                 try:
                     _, err = await asyncio.wait_for(p.communicate(), 120)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     p.kill()
                     await p.wait()
                     return _err(504, "the figure took too long")

@@ -1,6 +1,15 @@
 """The wear-life method (METHOD.md): pure, no I/O, no clock."""
-from .core import (Result, SlotArrays, SlotOut, StreamingMonitor, analyze_readings, analyze_slots,
-                   gate_arrays, run_streaming, to_slots)
+from .core import (
+    Result,
+    SlotArrays,
+    SlotOut,
+    StreamingMonitor,
+    analyze_readings,
+    analyze_slots,
+    gate_arrays,
+    run_streaming,
+    to_slots,
+)
 from .params import PARAM_NAMES, PARAMS, RESULT_KEYS, MethodParams, ParamError, build_params
 from .start import StartOutcome, StartSequence
 from .wear import WearTracker, WindowOut

@@ -210,6 +210,9 @@ class StreamingMonitor:
                     mask |= R.RATIO_HIGH
         q = 1 if mask == 0 else 0
         if q:
+            # a valid slot has its ratio: T1 >= T_min, and T1 > 0 unless t_min_ratio = 0 and T1 = 0
+            # (that one case stops here, as np.log(None) did before)
+            assert ratio is not None, "valid slot without a ratio (t_min_ratio = 0 and T1 = 0)"
             self.n_valid += 1
             mu = float(R.log_ratio_mu(ratio, self._theta))
         else:
@@ -231,8 +234,9 @@ class StreamingMonitor:
             self._unsafe_mask = 0
 
         # persistent exceedance (§5)
-        if self.k_b is not None and self.k_life is None:
-            if q and mu > self.mu_th:
+        # (k_b and mu_th are set together; mu is set exactly on valid slots, q = 1)
+        if self.k_b is not None and self.k_life is None and self.mu_th is not None:
+            if mu is not None and mu > self.mu_th:
                 self.c += 1
                 self.g = 0
                 if self.c >= self._n_tau:
@@ -245,7 +249,7 @@ class StreamingMonitor:
                     self.g = 0
 
         # windows: baseline search (§4), then headroom (§5a)
-        if q:
+        if mu is not None:
             self._win_mu.append(mu)
         if (k + 1) % self._n_ss == 0:
             win = np.array(self._win_mu, dtype=np.float64)
@@ -360,7 +364,8 @@ def to_slots(t: np.ndarray, t1: np.ndarray, t2: np.ndarray, p: MethodParams) -> 
     return SlotArrays(present, a, b, dup, out)
 
 
-def gate_arrays(present: np.ndarray, t1: np.ndarray, t2: np.ndarray, p: MethodParams):
+def gate_arrays(present: np.ndarray, t1: np.ndarray, t2: np.ndarray,
+                p: MethodParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """§2 over whole arrays: returns (mask uint8, ratio with NaN where undefined, μ with NaN where
     invalid)."""
     n = present.size
@@ -414,7 +419,8 @@ def _protection_stop(mask: np.ndarray, p: MethodParams) -> tuple[int | None, int
     return s, run_mask
 
 
-def _baseline(mu: np.ndarray, valid: np.ndarray, n_usable: int, p: MethodParams):
+def _baseline(mu: np.ndarray, valid: np.ndarray, n_usable: int,
+              p: MethodParams) -> tuple[int, int, float] | tuple[None, None, None]:
     """§4 over windows that are complete and end before slot n_usable. Returns
     (stable_first, k_b, mu_ss) or (None, None, None)."""
     n_ss = p.n_ss
@@ -504,13 +510,13 @@ def gate_and_baseline(s: SlotArrays, p: MethodParams) -> GatedSlots:
 def life_result(g: GatedSlots, delta: float | None = None) -> Result:
     """§5–§6 over gated slots, with the δ of the gating parameters or the one given."""
     p = g.p if delta is None else g.p.with_delta(delta)
-    mask, mu, k_b = g.mask, g.mu, g.k_b
+    mask, mu, k_b, mu_ss = g.mask, g.mu, g.k_b, g.mu_ss
     valid = mask == 0
     k_life = None
     wear = None
-    if k_b is not None:
-        mu_th = R.threshold(g.mu_ss, p)
-        wear = WearTracker(p, g.mu_ss, mu_th)
+    if k_b is not None and mu_ss is not None:    # set together by the baseline search
+        mu_th = R.threshold(mu_ss, p)
+        wear = WearTracker(p, mu_ss, mu_th)
         for j, n_eff, value in g.windows:
             wear.add(j, n_eff, value)
         with np.errstate(invalid="ignore"):

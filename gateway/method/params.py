@@ -6,8 +6,9 @@ sidecar and of ``hookwatch analyze --set``. Docs and CLI help are generated from
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
-from typing import Any, Mapping
+from typing import Any
 
 from ..validation import MISSING, Problem, ValidationError, did_you_mean
 
@@ -171,7 +172,7 @@ class MethodParams:
             return None
         return int(round(self.t_end / self.ts))
 
-    def with_delta(self, delta: float) -> "MethodParams":
+    def with_delta(self, delta: float) -> MethodParams:
         return replace(self, delta=delta)
 
     def as_dict(self) -> dict[str, Any]:

@@ -9,6 +9,7 @@ import functools
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from .params import MethodParams
 
@@ -39,13 +40,13 @@ def reason_names(mask: int) -> list[str]:
     return [name for bit, name in REASONS if mask & bit]
 
 
-def slot_index(t, ts: float):
+def slot_index(t: ArrayLike, ts: float) -> NDArray[np.int64]:
     """Slot of a reading at time t (s from test start): round(t / Ts), halves rounded up.
     Works on floats and arrays."""
     return np.floor(np.asarray(t, dtype=np.float64) / ts + 0.5).astype(np.int64)
 
 
-def log_ratio_mu(r, theta: float):
+def log_ratio_mu(r: ArrayLike, theta: float) -> NDArray[np.float64]:
     """μ = ln(R) / θ. Always evaluated through numpy's log so that the scalar and the
     vectorised paths give bit-identical values."""
     return np.log(r) / theta

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 from .params import MethodParams
 
@@ -51,7 +52,7 @@ class StartOutcome:
     """What the sequence decided (``phase`` settled or failed), for events and the sidecar."""
     phase: str
     reason: str | None               # why the start failed (None when settled)
-    offsets: dict | None             # zero offsets found {"T1": N, "T2": N} (None: no zero check)
+    offsets: dict[str, float] | None  # zero offsets found {"T1": N, "T2": N} (None: no zero check)
     settle_s: float | None           # spin-up time until slot 0, s
     spin_slots: int                  # slots of spin-up fed
 
@@ -67,7 +68,7 @@ class StartSequence:
         self._hi = p.t_set * (1.0 + p.settle_band)
         self.phase = ZERO_CHECK if p.zero_check else SPIN_UP
         self.reason: str | None = None
-        self.offsets: dict | None = None
+        self.offsets: dict[str, float] | None = None
         # zero check
         self._z_slots = 0
         self._z_n = 0
@@ -163,9 +164,9 @@ class StartSequence:
         settle = self.spin_slots * self.p.ts if self.phase == SETTLED else None
         return StartOutcome(self.phase, self.reason, self.offsets, settle, self.spin_slots)
 
-    def sidecar(self) -> dict:
+    def sidecar(self) -> dict[str, Any]:
         """Information for the log's sidecar (never used by the analysis, §3a)."""
-        out: dict = {"settle_s": None if self.phase != SETTLED else self.spin_slots * self.p.ts}
+        out: dict[str, Any] = {"settle_s": None if self.phase != SETTLED else self.spin_slots * self.p.ts}
         if self.offsets is not None:
             out["zero_offsets_n"] = dict(self.offsets)
         return out

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +28,7 @@ class WindowOut:
     slope: float | None       # Theil–Sen slope used, 1/s (None with fewer than 10 windows)
     warning: bool             # this window completes the early-warning run (once per test)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {"j": self.j, "last_slot": self.last_slot, "n_eff": self.n_eff, "value": self.value,
                 "headroom": self.headroom, "t_cross": self.t_cross, "slope": self.slope,
                 "warning": self.warning}

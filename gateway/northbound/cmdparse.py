@@ -117,8 +117,8 @@ def parse_command(name: str, payload: bytes, source: str = "mqtt") -> Command | 
     try:
         kind = CommandKind(name)
     except ValueError:
-        allowed = ", ".join(k.value for k in CommandKind)
-        return bad("command", f"{clip(name)} unknown; allowed: {allowed}")
+        kinds = ", ".join(k.value for k in CommandKind)
+        return bad("command", f"{clip(name)} unknown; allowed: {kinds}")
     name = kind.value
     if len(payload) > MAX_PAYLOAD_BYTES:
         return bad(name, f"payload of {len(payload)} bytes; at most {MAX_PAYLOAD_BYTES}")

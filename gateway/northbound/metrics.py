@@ -44,6 +44,7 @@ the PLC server counters (a Modbus TCP server may serve several stations; labelle
 from __future__ import annotations
 
 import http.server
+import io
 import logging
 import math
 import os
@@ -56,7 +57,7 @@ import time
 import urllib.parse
 from bisect import bisect_left
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 from prometheus_client import CollectorRegistry, PlatformCollector, ProcessCollector
 from prometheus_client.exposition import generate_latest
@@ -272,7 +273,7 @@ class MetricsOutput:
                 links[name] = {"up": bool(getattr(drv, "connected", False)),
                                "counters": _counters(getattr(drv, "counters", None))}
         outbox = plc = None
-        if self.mqtt is not None:
+        if self.mqtt is not None and self._outbox is not None:     # set together in __init__
             links["mqtt"] = {"up": bool(self.mqtt.connected), "counters": _counters(self.mqtt.counters)}
             n, age = self._outbox.read()
             ob = getattr(self.mqtt, "outbox", None)
@@ -354,7 +355,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
     ops = CounterMetricFamily(f"{p}_link_operations", "link traffic by kind (requests, replies, "
                               "reconnects; the drivers' counters)", labels=["station", "link", "kind"])
     up = GaugeMetricFamily(f"{p}_link_up", "1 when the link is up: meter and STM32 serial port open "
-                           "(a silent device shows as timeouts), MQTT connected to the broker", labels=["station", "link"])
+                           "(a silent device shows as timeouts), MQTT connected to the broker",
+                           labels=["station", "link"])
     for s in snapshots:
         for link, d in s["links"].items():
             up.add_metric([s["station"], link], 1.0 if d["up"] else 0.0)
@@ -459,6 +461,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     timeout = REQUEST_TIMEOUT_S
     protocol_version = "HTTP/1.0"
     default_request_version = "HTTP/1.0"      # garbage gets a status line too, never HTTP/0.9
+    server: _Server                           # the one server class that uses this handler
+    raw_requestline: bytes                    # set by handle_one_request() (not in typeshed)
 
     def setup(self) -> None:
         # a scrape yields the CPU to the stations' slot threads (Linux: nice is per thread)
@@ -468,7 +472,9 @@ class _Handler(http.server.BaseHTTPRequestHandler):
         except (OSError, AttributeError):
             pass
         super().setup()
-        self.rfile = _LimitedReader(self.rfile)
+        self._lines = _LimitedReader(self.rfile)
+        # http.server reads the request line and the headers with readline() only
+        self.rfile = cast(io.BufferedIOBase, self._lines)
 
     def parse_request(self) -> bool:
         if len(self.raw_requestline) > MAX_LINE:
@@ -478,7 +484,7 @@ class _Handler(http.server.BaseHTTPRequestHandler):
             return False
         if not super().parse_request():
             return False
-        if self.rfile.too_long:
+        if self._lines.too_long:
             self.close_connection = True
             self.send_error(431, "header line too long")
             return False

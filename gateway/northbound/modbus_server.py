@@ -11,10 +11,10 @@ event loop, so PLC traffic never runs on a station's loop.
   state change) and swaps it in with one reference assignment; a read returns a consistent
   snapshot. The heartbeat is advanced by that same loop: it stops when the station is stuck.
 - Writes: refused with exception 01 unless the station's YAML enables them and the client's
-  address is listed (an address or a network, e.g. ``10.10.5.0/24``); every value is checked against the register map and the shared command
-  rules (gateway/station/commands.py) before anything changes (exception 03 when out of range);
-  commands go to ``station.submit`` on the station's own loop (source ``plc:<address>``), a
-  refused command answers exception 04 with its reason code in ``last_result``.
+  address is listed (an address or a network, e.g. ``10.10.5.0/24``); every value is checked against the
+  register map and the shared command rules (gateway/station/commands.py) before anything changes
+  (exception 03 when out of range); commands go to ``station.submit`` on the station's own loop
+  (source ``plc:<address>``), a refused command answers exception 04 with its reason code in ``last_result``.
 - The client address of a request is the connection's peer address.
 """
 from __future__ import annotations
@@ -61,7 +61,7 @@ SERVER_NICE = 10
 class Unit:
     """One station's registers on a shared server."""
 
-    def __init__(self, unit_id: int, owner: "ModbusOutput"):
+    def __init__(self, unit_id: int, owner: ModbusOutput):
         self.unit_id = unit_id
         self.owner = owner
         self.ir: list[int] = [0] * CMD_BASE
@@ -137,7 +137,7 @@ class SharedServer:
                     logged = True
                 try:
                     await asyncio.wait_for(self._stop.wait(), self.RETRY_S)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
                 continue
             self.server = server
@@ -279,7 +279,7 @@ class ModbusOutput:
             ip = ipaddress.ip_address(peer)
         except ValueError:
             return False
-        if getattr(ip, "ipv4_mapped", None) is not None:
+        if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:   # ::ffff:a.b.c.d
             ip = ip.ipv4_mapped
         return any(ip in n for n in self._allowed_nets if n.version == ip.version)
 
@@ -428,7 +428,7 @@ class ModbusOutput:
                 if not ok:
                     log.info("%s: PLC command %s from %s refused: %s", self.station_id, cmd.kind.value,
                              cmd.source, reply.reason)
-            except (asyncio.TimeoutError, RuntimeError, Exception) as e:
+            except (TimeoutError, RuntimeError, Exception) as e:
                 log.error("%s: PLC command %s: station did not answer (%s)", self.station_id,
                           cmd.kind.value, type(e).__name__)
         n = (u.cmd_regs[2] + 1) & 0xFFFF

@@ -18,8 +18,9 @@ import os
 import re
 import sys
 import time
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from .. import logio
 from ..analysis import AnalysisError, params_for
@@ -106,7 +107,7 @@ def _rel(path: str, root: str) -> str:
     return path if r.startswith("..") else r
 
 
-def find_logs(root: str, skip: set[str] = frozenset()) -> list[str]:
+def find_logs(root: str, skip: Collection[str] = frozenset()) -> list[str]:
     """Every ``*.csv`` / ``*.csv.gz`` below root (sorted), leaving out hidden folders, report
     folders (:data:`REPORT_MARKER`) and the paths in ``skip``."""
     out = []
@@ -186,7 +187,8 @@ def describe_test(log: str, root: str, overrides: dict[str, Any], problems: list
           and _num(top_t_set) != _num(method.get("t_set"))):
         problems.append(Problem(_rel(sp, root), f"t_set {top_t_set!r} differs from method.t_set "
                                 f"{method['t_set']!r}; the method's value is used"))
-    control = meta.get("control") if isinstance(meta.get("control"), dict) else {}
+    control_meta = meta.get("control")
+    control = control_meta if isinstance(control_meta, dict) else {}
     role = _text(meta.get("role"))
     if role is None and str(control.get("mode", "")).strip().lower() == "open":
         role = ROLE_OPEN
@@ -306,7 +308,7 @@ def read_wear(path: str, root: str, problems: list[Problem]) -> WearTable | None
 
 
 def discover(root: str, *, wear_path: str | None = None, overrides: dict[str, Any] | None = None,
-             skip: set[str] = frozenset()) -> Campaign:
+             skip: Collection[str] = frozenset()) -> Campaign:
     problems: list[Problem] = []
     overrides = overrides or {}
     default_wear = os.path.join(root, "wear.csv")

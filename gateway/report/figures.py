@@ -9,13 +9,16 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
 from ..method import rules as R
 from .stats import group_stats
+
+# (column centres, column minima, column maxima): what envelope_xy() draws
+Envelope = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 WIDTH_PX = 1600
 HEIGHT_PX = 1000
@@ -151,17 +154,17 @@ class Fig7Data:
     unit: str
     scale: float
     x_end: float
-    mu: tuple                # (xc, lo, hi) valid μ
-    bad: tuple               # (xc, lo, hi) ln(R)/θ of gated-out slots where R is defined
+    mu: Envelope             # (xc, lo, hi) valid μ
+    bad: Envelope            # (xc, lo, hi) ln(R)/θ of gated-out slots where R is defined
     missing: np.ndarray      # column centres holding MISSING slots
-    t1: tuple
-    t2: tuple
-    tm: tuple                # (T1 + T2) / 2
+    t1: Envelope
+    t2: Envelope
+    tm: Envelope             # (T1 + T2) / 2
     t_set: float
     mu_ss: float | None
     mu_th: float | None
     delta: float
-    stable: tuple | None     # (start, end) in plot units
+    stable: tuple[float, float] | None     # (start, end) in plot units
     t_life: float | None     # in s
     stop: float | None       # protection stop, in s
     status: str
@@ -201,7 +204,8 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
     warn_slot = result.get("warn_slot")
     return Fig7Data(
         title=title, unit=unit, scale=scale, x_end=x_end, mu=mu_env, bad=bad_env, missing=missing,
-        t1=grid_minmax(t1, dx, x_end), t2=grid_minmax(t2, dx, x_end), tm=grid_minmax(tm, dx, x_end), t_set=p.t_set, mu_ss=result.get("mu_ss"),
+        t1=grid_minmax(t1, dx, x_end), t2=grid_minmax(t2, dx, x_end), tm=grid_minmax(tm, dx, x_end),
+        t_set=p.t_set, mu_ss=result.get("mu_ss"),
         mu_th=result.get("mu_th"), delta=p.delta, stable=stable, t_life=result.get("t_life"),
         stop=None if result.get("stop_slot") is None else result["stop_slot"] * ts,
         status=result.get("status", "?"),
@@ -325,7 +329,7 @@ def render_fig7(d: Fig7Data, path: str) -> None:
 @dataclass
 class LoopSeries:
     label: str
-    x: tuple          # envelope of (T1 + T2)/2 over time (plot units)
+    x: Envelope       # envelope of (T1 + T2)/2 over time (plot units)
     smooth: tuple     # (x, running mean over ≥ 1 s) for a line
     hist: tuple       # (bin edges, counts) of the deviation from T_set
     mean: float
@@ -417,6 +421,8 @@ def render_fig9(points: dict[tuple[float, str], list[float]], grades: list[str],
             if not vals:
                 continue
             st = group_stats(vals)
+            if st.mean is None:     # not reached: vals is not empty
+                continue
             x = si - 0.4 + width * (gi + 0.5)
             xs.append(x)
             means.append(st.mean)

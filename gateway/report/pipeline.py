@@ -9,13 +9,24 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .. import __version__
+from ..logio import LogError, read_meta
 from . import tables as T
-from .campaign import (DELTA_FACTORS, REPORT_MARKER, ROLE_CLOSED, ROLE_OPEN, Campaign, ControlLog,
-                       Problem, Progress, discover, run_parallel)
+from .campaign import (
+    DELTA_FACTORS,
+    REPORT_MARKER,
+    ROLE_CLOSED,
+    ROLE_OPEN,
+    Campaign,
+    ControlLog,
+    Problem,
+    Progress,
+    TestSpec,
+    discover,
+    run_parallel,
+)
+from .figures import render_fig9
 from .render import Document, Figure, Section, write_csvs, write_document
 from .worker import run_task
-from ..logio import read_meta, LogError
-from .figures import render_fig9
 
 
 @dataclass
@@ -65,19 +76,22 @@ def _control_pair(camp: Campaign, open_loop: str | None, closed_loop: str | None
     c = from_cli(closed_loop, ROLE_CLOSED) if closed_loop else (closes[0] if closes else None)
     if open_loop and o is None or closed_loop and c is None:
         return None
-    for extra in (opens[1:] if not open_loop else []) + (closes[1:] if not closed_loop else []):
-        problems.append(Problem(extra.rel, f"another {extra.role} log; Fig. 8 uses "
-                                f"{(o if extra.role == ROLE_OPEN else c).rel}"))
+    # extra logs of a role exist only besides its first one, the log that is used
+    for extras, used in (([] if open_loop else opens[1:], o), ([] if closed_loop else closes[1:], c)):
+        for extra in extras:
+            if used is not None:
+                problems.append(Problem(extra.rel, f"another {extra.role} log; Fig. 8 uses {used.rel}"))
     if o is None and c is None:
         notes.append("Fig. 8 (open loop vs closed loop) needs two comparison logs: mark them with "
                      "`role: open_loop` / `role: closed_loop` in their sidecars or give "
                      "--open-loop/--closed-loop.")
         return None
     if o is None or c is None:
-        have = o or c
-        problems.append(Problem(have.rel, f"{have.role} log without its "
-                                f"{ROLE_CLOSED if have.role == ROLE_OPEN else ROLE_OPEN} counterpart; "
-                                "Fig. 8 not drawn"))
+        for have in (o, c):     # the one that is there
+            if have is not None:
+                problems.append(Problem(have.rel, f"{have.role} log without its "
+                                        f"{ROLE_CLOSED if have.role == ROLE_OPEN else ROLE_OPEN} counterpart; "
+                                        "Fig. 8 not drawn"))
         return None
     t_set = c.t_set if c.t_set is not None else o.t_set
     if t_set is None:
@@ -112,7 +126,8 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
     fig_notes: list[str] = []
 
     # ---- tasks: one per analysable test, plus Fig. 8
-    tasks, owners = [], []
+    tasks: list[dict[str, Any]] = []
+    owners: list[TestSpec | None] = []      # None: the Fig. 8 task
     used_names: set[str] = set()
     for spec in camp.tests:
         if spec.params is None:
@@ -149,25 +164,25 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
     # ---- per-test outcomes
     outcome_by_log: dict[str, dict] = {}
     fig8 = None
-    for task, spec, res in zip(tasks, owners, results):
+    for _task, owner, res in zip(tasks, owners, results):
         res = res or {"error": "no result"}
-        if spec is None:
+        if owner is None:
             if res.get("error"):
                 problems.append(Problem("Fig. 8", res["error"]))
             else:
                 fig8 = res
             continue
         if res.get("error"):
-            problems.append(Problem(spec.rel, res["error"].replace(spec.log + ": ", "")
+            problems.append(Problem(owner.rel, res["error"].replace(owner.log + ": ", "")
                                     + "; listed apart"))
         else:
             if res.get("fig_error"):
-                problems.append(Problem(spec.rel, res["fig_error"]))
+                problems.append(Problem(owner.rel, res["fig_error"]))
             for key, what in (("duplicates", "readings landed in an already filled slot (the later won)"),
                               ("out_of_grid", "readings outside the test's slot grid (ignored)")):
                 if res.get(key):
-                    spec.notes.append(f"{res[key]:,} {what}")
-        outcome_by_log[spec.log] = res
+                    owner.notes.append(f"{res[key]:,} {what}")
+        outcome_by_log[owner.log] = res
     samples = []
     for spec in camp.tests:
         s = T.make_sample(spec, outcome_by_log.get(spec.log), DELTA_FACTORS)
@@ -219,7 +234,7 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
     doc_sections.append(Section("Per sample (Table 3)", tables=[t3], anchor="table3"))
     doc_sections.append(Section("Per setpoint and grade (Table 4)", tables=[t4], anchor="table4"))
     doc_sections.append(Section("Sensitivity to δ (Table 5)", tables=[t5, t5s], anchor="table5"))
-    if t6 is not None:
+    if t6 is not None and t6c is not None:
         doc_sections.append(Section("Consistency with offline wear (Table 6)", tables=[t6, t6c],
                                     anchor="table6"))
     else:
@@ -233,7 +248,7 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
         figs.append(Figure(os.path.relpath(fig9, out_dir), "Fig. 9 — t_life by grade and setpoint: "
                            "bars are the mean over the samples in the statistics, whiskers ± one "
                            "sample SD, dots the samples (samples listed apart are not shown)."))
-    if fig8 is not None:
+    if fig8 is not None and ctl is not None:     # fig8 is the result of the ctl task
         st = fig8["stats"]
         figs.append(Figure(os.path.relpath(fig8["fig"], out_dir),
                            f"Fig. 8 — open loop ({ctl['rels'][0]}) vs closed loop ({ctl['rels'][1]}): "

@@ -8,9 +8,9 @@ the printed number.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from decimal import ROUND_HALF_UP, Decimal
-from typing import Iterable, Mapping, Sequence
 
 #: decimals the paper prints
 DIGITS = {"t_life": 1, "sd": 1, "cv": 2, "change": 2, "mu_ss": 4, "rho": 3}
@@ -54,7 +54,7 @@ class GroupStats:
     sd: float | None
     cv: float | None
 
-    def rounded(self) -> "GroupStats":
+    def rounded(self) -> GroupStats:
         return GroupStats(self.n, round_half_up(self.mean, DIGITS["t_life"]),
                           round_half_up(self.sd, DIGITS["sd"]), round_half_up(self.cv, DIGITS["cv"]))
 
@@ -85,7 +85,8 @@ def grade_sort_key(grade: str):
 def ranking(means: Mapping[str, float | None]) -> str:
     """Grade ranking by mean t_life, longest first: ``"I > II"``; equal means (after the paper's
     rounding) are joined with ``=``. Grades without a mean are left out; "" if none."""
-    items = [(g, round_half_up(m, DIGITS["t_life"])) for g, m in means.items() if m is not None]
+    rounded = ((g, round_half_up(m, DIGITS["t_life"])) for g, m in means.items())
+    items = [(g, m) for g, m in rounded if m is not None]
     items.sort(key=lambda gm: (-gm[1], grade_sort_key(gm[0])))
     out = ""
     for i, (g, m) in enumerate(items):

@@ -5,8 +5,9 @@ sample ID is not a duplicate; every other sample is listed apart with the reason
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 from ..method.params import STOPPED
 from . import stats as S
@@ -81,6 +82,7 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
     p = spec.params
     notes = list(spec.notes)
     results = None
+    apart: str | None
     if p is None:
         status, apart = STATUS_ERROR, "method parameters unusable (see problems)"
     elif outcome is None or outcome.get("error"):
@@ -193,7 +195,7 @@ def life_groups(samples: Sequence[Sample], factor: float = 1.0, only: set[str] |
         if not s.in_stats or (only is not None and s.sample_id not in only):
             continue
         t = s.result(factor).get("t_life")
-        if t is not None:
+        if t is not None and s.t_set is not None and s.grade is not None:  # both set when in_stats
             g.setdefault((s.t_set, s.grade), []).append(t)
     return g
 
@@ -323,9 +325,9 @@ def pretty_indicator(name: str) -> str:
 
 def table6(samples: Sequence[Sample], wear) -> tuple[Table, Table]:
     """(wear joined with t_life, ρ(t_life, indicator) with the expected sign)."""
-    by_id = {}
-    for s in sort_samples(samples):
-        by_id.setdefault(s.sample_id, s)
+    by_id: dict[str, Sample] = {}
+    for first in sort_samples(samples):
+        by_id.setdefault(first.sample_id, first)
     rows = []
     for sid in wear.order:
         s = by_id.get(sid)

@@ -28,7 +28,7 @@ def test_threadloop_runs_coroutines_and_calls_on_its_own_thread():
     assert submit_to(tl.loop, coro) is None and coro.cr_frame is None
     assert call_soon_on(tl.loop, print) is False
     with pytest.raises(RuntimeError):
-        ThreadLoop("never").loop
+        _ = ThreadLoop("never").loop
 
 
 def test_stop_cancels_pending_tasks():

@@ -25,7 +25,7 @@ import time
 from typing import Any
 
 from . import pdu as P
-from .framer import Framer, FrameError, encode
+from .framer import FrameError, Framer, encode
 
 log = logging.getLogger("hookwatch.modbus")
 
@@ -141,9 +141,12 @@ class ModbusTcpServer:
     async def _accept_loop(self) -> None:
         loop = asyncio.get_running_loop()
         c = self.store.counters
+        lsock = self._lsock     # started by start() once it listens
+        if lsock is None:
+            return
         while True:
             try:
-                conn, addr = await loop.sock_accept(self._lsock)
+                conn, addr = await loop.sock_accept(lsock)
             except asyncio.CancelledError:
                 raise
             except OSError as e:      # EMFILE, ENFILE, ECONNABORTED: a state, not a crash
@@ -187,7 +190,7 @@ class ModbusTcpServer:
             while True:
                 try:
                     data = await asyncio.wait_for(reader.read(READ_CHUNK), self.idle_timeout_s)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     c["idle_closed"] += 1
                     break
                 if not data:
@@ -206,7 +209,7 @@ class ModbusTcpServer:
                 if frames:
                     try:
                         await asyncio.wait_for(writer.drain(), self.idle_timeout_s)
-                    except asyncio.TimeoutError:
+                    except TimeoutError:
                         c["idle_closed"] += 1
                         break
         except (ConnectionError, OSError, asyncio.CancelledError):

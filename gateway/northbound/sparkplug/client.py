@@ -241,7 +241,10 @@ class NodeRuntime:
                     pubs, keys = self.node.drain(self._now())
                     self._act(pubs)
                     self.node.buffer.remove(keys)
-                rc = self._client.loop(timeout=self.s.poll_s)
+                client = self._client
+                if client is None:      # not reached: _sock is True only with a client
+                    continue
+                rc = client.loop(timeout=self.s.poll_s)
                 if self._disconnect is not None:
                     self._planned_disconnect(self._disconnect)
                 elif rc != paho.MQTT_ERR_SUCCESS:

@@ -109,7 +109,7 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "unit-checked over the tables"),
 )
 
-HEAD = """# Sparkplug B 3.0
+HEAD = ("""# Sparkplug B 3.0
 
 *Generated from `gateway/northbound/sparkplug/metrics.py` and `docs.py`:
 `python -m gateway.northbound.sparkplug.docs > docs/sparkplug.md`.*
@@ -134,9 +134,9 @@ node (one MQTT session, one bdSeq, one seq counter); each is a device of it.
 ## Session
 
 1. Before each MQTT CONNECT the node takes the next **bdSeq** (0 … 255, +1 per CONNECT packet
-   sent; a refused TCP connection sends none and uses none) and stores it (`sparkplug.store_path`, SQLite WAL: a `kill -9` does not lose it), then connects
-   with the **NDEATH as the MQTT Will** (QoS 1, not retained, the bdSeq metric only) and Clean
-   Session.
+   sent; a refused TCP connection sends none and uses none) and stores it (`sparkplug.store_path`,
+   SQLite WAL: a `kill -9` does not lose it), then connects with the **NDEATH as the MQTT Will**
+   (QoS 1, not retained, the bdSeq metric only) and Clean Session.
 2. It subscribes to `spBv1.0/<group>/NCMD/<node>`, `spBv1.0/<group>/DCMD/<node>/+` and, with a
    primary host, `spBv1.0/STATE/<primary_host_id>`.
 3. Without a primary host it publishes NBIRTH (seq 0, the same bdSeq) and a DBIRTH per station
@@ -166,9 +166,14 @@ during the replay loses the batch in flight (at most 50 payloads), not the rest 
 | metric | what the node does |
 |---|---|
 | `Node Control/Rebirth` = true | NBIRTH (seq 0, same bdSeq) and every DBIRTH again; no data in between |
-| `Node Control/Next Server` = true | NDEATH, DISCONNECT, CONNECT to the next configured server (the same one when only one is configured), new bdSeq, births after the host's STATE |
-| `Node Control/Reboot` = true | restarts the Sparkplug session exactly like Next Server but on the same server. It does NOT reboot the box, restart the gateway or touch a station or its running test: a test rig is never stopped by a SCADA write |
-
+"""
+    # a Markdown table row is one line: these two are longer than the source's line length
+    "| `Node Control/Next Server` = true | NDEATH, DISCONNECT, CONNECT to the next configured server (the same "
+    "one when only one is configured), new bdSeq, births after the host's STATE |\n"
+    "| `Node Control/Reboot` = true | restarts the Sparkplug session exactly like Next Server but on the same "
+    "server. It does NOT reboot the box, restart the gateway or touch a station or its running test: a test rig "
+    "is never stopped by a SCADA write |\n"
+    """
 ## Device commands (DCMD)
 
 A DCMD names (or aliases) the writable metrics of the DBIRTH. `Device Control/Start Test`,
@@ -178,7 +183,7 @@ rejection codes as MQTT, the PLC and the CLI; `source` is `sparkplug`). `start` 
 arguments from `Device Control/Sample ID`, `Grade`, `Setpoint` and `Planned End` in the same
 DCMD. The outcome comes back as DDATA of `Device Control/Last Command` and
 `Device Control/Last Result Code` (0 accepted, else the rejection code of docs/mqtt.md).
-"""
+""")
 
 
 def _metric_table(defs, alias) -> list[str]:

@@ -118,7 +118,8 @@ def get_value(m: Payload.Metric) -> Any:
 
 
 def _properties(m: Payload.Metric, d: M.MetricDef) -> None:
-    keys, vals = [], []
+    keys: list[str] = []
+    vals: list[str | bool] = []
     if d.units:
         keys.append("engUnit")
         vals.append(d.units)
@@ -264,7 +265,7 @@ class EdgeNode:
         if online and not self.host_online:
             self.host_online = True
             if self.connected:
-                return self._births(now_ms)
+                return [*self._births(now_ms)]
         elif not online and self.host_online:
             self.host_online = False
             if self.connected and self.node_born:
@@ -293,7 +294,7 @@ class EdgeNode:
     def nbirth(self, now_ms: int) -> Publish:
         self.seq = 0
         p = self._payload(now_ms)
-        for i, d in enumerate(M.NODE_METRICS):
+        for d in M.NODE_METRICS:
             m = p.metrics.add()
             m.name = d.name
             if d.name in self._node_alias:

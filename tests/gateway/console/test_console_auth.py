@@ -8,9 +8,9 @@ import stat
 
 import pytest
 
-from kit.console_helpers import Client
 from gateway.console import auth
 from gateway.console.server import ConsoleServer, ConsoleSettings
+from kit.console_helpers import Client
 
 
 def test_users_file_salted_scrypt_mode_0600(tmp_path):

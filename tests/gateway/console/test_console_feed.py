@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import math
 
-from gateway.console.feed import HANDOVER_SLOTS, MAX_BUCKETS, ConsoleOutput, Series, StationFeed
 from gateway import records
+from gateway.console.feed import HANDOVER_SLOTS, MAX_BUCKETS, ConsoleOutput, Series, StationFeed
 from gateway.records import Event, EventType, SlotRecord, StationState
 
 

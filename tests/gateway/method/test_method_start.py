@@ -19,7 +19,7 @@ def zero(seq, t1, t2, n=50):
 def test_zero_check_passes_and_records_offsets_then_the_motor_may_run():
     seq = StartSequence(P)
     assert seq.phase == ZERO_CHECK and not seq.motor_on
-    for i in range(49):
+    for _ in range(49):
         assert seq.zero_slot(True, 0.01, -0.005) == ZERO_CHECK
     assert seq.zero_slot(True, 0.01, -0.005) == SPIN_UP and seq.motor_on
     assert seq.offsets == pytest.approx({"T1": 0.01, "T2": -0.005})
@@ -141,6 +141,7 @@ def test_full_sequence_zero_then_spin_up_and_parameters_from_the_station():
     assert zero(seq, 0.04, 0.0) == SPIN_UP
     ph, n = spin(seq, ramp(1.0, 2000, t1=0.25, t2=0.35))
     assert ph == SETTLED and n * 0.02 < 3.0
-    assert seq.sidecar() == {"settle_s": pytest.approx(n * 0.02), "zero_offsets_n": pytest.approx({"T1": 0.04, "T2": 0.0})}
+    assert seq.sidecar() == {"settle_s": pytest.approx(n * 0.02),
+                             "zero_offsets_n": pytest.approx({"T1": 0.04, "T2": 0.0})}
     with pytest.raises(RuntimeError):
         seq.spin_slot(True, 0.25, 0.35, 0.3)

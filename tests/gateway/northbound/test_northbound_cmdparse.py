@@ -9,8 +9,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from paho.mqtt.enums import CallbackAPIVersion
 
-from gateway.northbound.cmdparse import (ECHO_CHARS, RejectionLimiter, clip,
-                                         nesting_depth, parse_command, rejected_event_data)
+from gateway.northbound.cmdparse import (
+    ECHO_CHARS,
+    RejectionLimiter,
+    clip,
+    nesting_depth,
+    parse_command,
+    rejected_event_data,
+)
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.records import Command, CommandKind
 from gateway.station.commands import Rejection
@@ -82,7 +88,8 @@ def test_rejection_limiter_counts_what_it_suppresses():
 # ------------------------------------------------------------------ the fuzzer through Mosquitto
 json_leaf = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6),
                       st.floats(allow_nan=False), st.text(max_size=80))
-json_val = st.recursive(json_leaf, lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=12), c, max_size=4),
+json_val = st.recursive(json_leaf,
+                        lambda c: st.lists(c, max_size=4) | st.dictionaries(st.text(max_size=12), c, max_size=4),
                         max_leaves=12)
 fields = st.fixed_dictionaries({}, optional={
     "sample_id": st.one_of(st.text(max_size=40), st.text(min_size=5000, max_size=6000), json_val),

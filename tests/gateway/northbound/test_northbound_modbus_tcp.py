@@ -18,11 +18,10 @@ from conftest import HERE
 from gateway.northbound import registers as R
 from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
 from gateway.northbound.modbus_tcp import server as S
-from gateway.northbound.modbus_tcp.framer import Framer, FrameError, encode
+from gateway.northbound.modbus_tcp.framer import FrameError, Framer, encode
 from gateway.northbound.modbus_tcp.pdu import Exc, decode
 from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
-from kit.tools import wait_for
-from kit.tools import free_port, require_tool
+from kit.tools import free_port, require_tool, wait_for
 
 IR, HR = R.IR, R.HR
 

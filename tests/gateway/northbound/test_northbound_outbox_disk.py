@@ -11,8 +11,8 @@ from gateway.northbound.outbox import Outbox, Row
 from gateway.records import Event, EventType, SlotRecord
 from kit.broker import Broker, Sub, pub
 from kit.northbound import LoopThread
-from kit.tools import wait_for
 from kit.smallfs import fill, small_tmpfs
+from kit.tools import wait_for
 
 BASE = "hookwatch/lab/hall/l1/st1"
 
@@ -124,7 +124,8 @@ def test_events_during_and_after_a_full_disk_arrive_in_order_once(tmp_path, capl
             time.sleep(1.0)                             # duplicates would show up now
             msgs = events()
             ns = [m[2]["data"]["n"] for m in msgs]
-            assert ns == list(range(total)), str([(m[2]["data"]["n"], m[2]["seq"], round(m[3] % 100, 2)) for m in msgs][20:])
+            assert ns == list(range(total)), str(
+                [(m[2]["data"]["n"], m[2]["seq"], round(m[3] % 100, 2)) for m in msgs][20:])
             seqs = [m[2]["seq"] for m in msgs]
             assert seqs == sorted(set(seqs))
             assert out.outbox.refused_telemetry > 0

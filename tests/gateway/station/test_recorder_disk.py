@@ -9,17 +9,16 @@ import subprocess
 import time
 
 import pytest
+from test_station_e2e import TUNED, events, scenario
 
-from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
 from gateway.logio import read_log
 from gateway.records import Command, CommandKind, SlotRecord
 from gateway.station import recorder as recmod
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, new_test_dir
+from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
 from kit.northbound import LoopThread, RunningStation, make_station
-from kit.tools import wait_for
 from kit.smallfs import fill, small_tmpfs
-from test_station_e2e import TUNED, events, scenario
-
+from kit.tools import wait_for
 
 _rng = random.Random(5)
 
