@@ -153,7 +153,11 @@ class WorkerHandle:
                 "--phase", f"{self.phase:.4f}", "--options", sup.opts_json,
                 "--summary-every", str(sup.summary_every)]
         try:
-            self.proc = subprocess.Popen(argv, pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL)
+            # systemd's notify socket is the supervisor's alone (NotifyAccess=main)
+            env = {k: v for k, v in os.environ.items()
+                   if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")}
+            self.proc = subprocess.Popen(argv, pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL,
+                                         env=env)
         finally:
             child.close()
         self.sock = parent
