@@ -201,3 +201,56 @@ def test_commands_flow_back_and_a_stuck_worker_is_killed_and_restarted(tmp_path)
     (d,) = test_dirs(tmp_path, "cmd")
     res = read_json(os.path.join(d, "result.json"))
     assert res["end_reason"] == "stopped by command" and res["sample_id"] == "CMD-1"
+
+
+def test_fleet_unit_notify_follows_the_workers(tmp_path):
+    """hookwatch-fleet.service (Type=notify, WatchdogSec): READY from the supervisor (MAINPID) once
+    its workers run; WATCHDOG=1 every 2 s while they are healthy, none while a worker is stuck,
+    again once the supervisor has restarted it — over a real unix datagram socket."""
+    import socket
+
+    from e2e import Proc
+
+    rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx.bind(str(tmp_path / "notify.sock"))
+    rx.settimeout(0.2)
+    got: list[tuple[float, str]] = []
+
+    def listen(seconds):
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            try:
+                got.append((time.monotonic(), rx.recv(4096).decode()))
+            except socket.timeout:
+                pass
+
+    fleet = fleet_dir(tmp_path, test={"t_end_s": 30})
+    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "10000000"}
+    with contextlib.ExitStack() as stack:
+        _stations(stack, tmp_path, fleet, ("n1", "n2"))
+        gw = Proc(hookwatch_cmd() + ["run", str(fleet), "--worker-watchdog", "5"],
+                  str(tmp_path / "gw.log"), env=env)
+        try:
+            t_end = time.monotonic() + 60
+            while not any("READY=1" in m for _, m in got):
+                assert time.monotonic() < t_end, (got, gw.log())
+                listen(0.5)
+            ready = next(m for _, m in got if "READY=1" in m)
+            assert f"MAINPID={gw.p.pid}" in ready
+            listen(5)
+            assert sum(m == "WATCHDOG=1" for _, m in got) >= 2, got
+            pid = _wait_pids(gw, "n1", 1)[0]
+            os.kill(pid, signal.SIGSTOP)
+            t_stop = time.monotonic()
+            _wait_pids(gw, "n1", 2, timeout=30)               # killed after 5 s silent, restarted
+            t_restart = time.monotonic()
+            listen(8)
+        finally:
+            rc = gw.stop()
+            rx.close()
+    assert rc == 0, gw.log()
+    beats = [t for t, m in got if m == "WATCHDOG=1"]
+    during = [t for t in beats if t_stop + 3.5 < t < t_restart]
+    assert not during, (t_stop, t_restart, beats)
+    assert len([t for t in beats if t > t_restart]) >= 2, (t_restart, beats)
+    assert "n1: worker pid" in gw.log_all() and "stuck loop?" in gw.log_all()

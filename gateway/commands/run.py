@@ -203,10 +203,6 @@ def run_supervised(args) -> int:
                     "process (--in-process)", ", ".join(map(str, shared)))
         args.in_process = True
         return run(args)
-    for c in cfgs:
-        err = records_dir_ok(c.recorder.dir)
-        if err:
-            raise CliError(f"station {c.station.id}: {err}", 1)
     opts = RunOptions.from_args(args)
     opts.log_level = level
     sup = Supervisor(args.path, opts, watchdog_s=args.worker_watchdog, backoff_s=args.restart_backoff)

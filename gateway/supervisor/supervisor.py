@@ -34,6 +34,8 @@ import threading
 import time
 from typing import Any
 
+from ..compose import records_dir_ok
+from ..config import Issue
 from ..records import CommandReply
 from ..threadloop import Mailbox
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
@@ -281,6 +283,11 @@ class Supervisor:
 
     def start(self) -> FleetPlan:
         self.plan = plan = plan_fleet(self.folder)
+        for path, cfg in list(plan.accepted):
+            err = records_dir_ok(apply_overrides(cfg, self.opts).recorder.dir)
+            if err:                       # a station that cannot record does not run
+                plan.accepted.remove((path, cfg))
+                plan.refused.append(Refused(path, cfg.station.id, [Issue("error", "recorder.dir", err, path)]))
         for r in plan.refused:
             self.refuse(r)
         n = max(1, len(plan.accepted))

@@ -97,7 +97,9 @@ class Worker:
         self.chan = FrameChannel(sock, name="ipc-writer")
         self.out = IpcOutput(self.chan, summary_every)
         self.stop = threading.Event()
-        self.stations: list[Station] = []
+        self.station: Station | None = None
+        #: results of the station's earlier incarnations (before a reload or an in-process restart)
+        self.earlier_results: list[dict[str, Any]] = []
         self.runner: StationRunner | None = None
 
     def load(self) -> Any:
@@ -111,8 +113,9 @@ class Worker:
         return make
 
     def _started(self, st: Station) -> None:
-        self.stations.append(st)
-        del self.stations[:-8]            # results of earlier incarnations are kept below
+        if self.station is not None:
+            self.earlier_results.extend(self.station.results)
+        self.station = st
         self.chan.send(FrameType.HELLO, {"station": st.id, "pid": os.getpid(), "proto": PROTO})
 
     # ------------------------------------------------------------ supervisor → worker
@@ -169,6 +172,9 @@ class Worker:
         if self.runner is not None:
             self.runner.request_reload(self.factory(cfg))
 
+    def results(self) -> list[dict[str, Any]]:
+        return self.earlier_results + (self.station.results if self.station is not None else [])
+
     # ------------------------------------------------------------ heartbeat (on the loop)
     def _heartbeat(self) -> None:
         r = self.runner
@@ -176,7 +182,7 @@ class Worker:
         self.chan.send(FrameType.HEARTBEAT, {
             "slots": st.stats.slots if st else 0, "filled": st.stats.filled if st else 0,
             "in_test": bool(st is not None and st.session is not None),
-            "results": sum(len(s.results) for s in self.stations),
+            "results": len(self.results()),
             "dropped": self.chan.dropped, "crashes": r.crashes if r else 0})
 
     def run(self) -> int:
@@ -196,7 +202,7 @@ class Worker:
             r.tl.thread.join(40)
         st = r.station
         final = {"stats": st.stats.summary() if st is not None else None,
-                 "results": [res for s in self.stations for res in s.results]}
+                 "results": self.results()}
         self.chan.flush()
         self.chan.send_now(FrameType.FINAL, final)
         try:
