@@ -41,8 +41,8 @@ def add_arguments(ap):
     ap.add_argument("--log-level", default=None, help="debug, info, warning, error")
     ap.add_argument("--in-process", action="store_true",
                     help="a fleet: every station in this one process (threads), as for small boxes")
-    ap.add_argument("--worker-watchdog", type=float, default=10.0, metavar="S",
-                    help="a fleet: a worker silent this long is killed and restarted (default 10)")
+    ap.add_argument("--worker-watchdog", type=float, default=5.0, metavar="S",
+                    help="a fleet: a worker silent this long is killed and restarted (default 5)")
     ap.add_argument("--restart-backoff", type=float, default=1.0, metavar="S",
                     help="a fleet: first restart delay of a crashed worker, doubled per crash in "
                          "a row up to 60 s; held back 300 s after 5 (default 1)")

@@ -9,7 +9,8 @@ socketpair, and then only supervises:
   ``hold_after`` crashes in a row it is *held back* for ``hold_s`` with an ERROR line and an event.
   A worker that ran ``stable_s`` counts as healthy again;
 - **watchdog**: each worker sends a HEARTBEAT every 0.5 s from its station's own loop; one silent
-  for ``watchdog_s`` (a stuck loop, a stopped process) is killed with SIGKILL and restarted;
+  for ``watchdog_s`` (5 s: a stuck loop, a stopped process) is killed with SIGKILL and restarted —
+  well within systemd's ``WatchdogSec=10s``, which guards the supervisor itself;
 - **SIGHUP**: the folder is read again; only a worker whose effective configuration changed gets a
   RELOAD frame (its station decides on its own loop: idle → restarts with it, in a test → keeps its
   parameters); a broken file keeps its running station; new files start, removed files stop.
@@ -251,7 +252,7 @@ class WorkerHandle:
 
 
 class Supervisor:
-    def __init__(self, folder: str, opts: RunOptions, *, watchdog_s: float = 10.0,
+    def __init__(self, folder: str, opts: RunOptions, *, watchdog_s: float = 5.0,
                  backoff_s: float = 1.0, backoff_max_s: float = 60.0, hold_after: int = 5,
                  hold_s: float = 300.0, stable_s: float = 60.0, startup_s: float = 60.0,
                  summary_every: int = 10) -> None:
@@ -363,16 +364,21 @@ class Supervisor:
 
     def healthy(self, max_age_s: float = 3.0) -> bool:
         """Every running worker's station loop answered within ``max_age_s`` (systemd watchdog).
-        A worker waiting for its restart does not hold the others' watchdog back."""
+        A worker waiting for its restart or still starting (its own start-up limit applies) does
+        not hold the others' watchdog back; one that went silent does, until it is killed."""
         now = time.monotonic()
         for w in self.workers.values():
-            if w.running and not w.stopping and (not w.hello or now - w.hub.heartbeat_t > max_age_s):
+            if w.running and not w.stopping and w.hello and now - w.hub.heartbeat_t > max_age_s:
                 return False
         return True
 
     def pending(self) -> bool:
-        """A worker is starting or waiting for its restart."""
-        return any(not w.stopping and (w.proc is None or not w.hello) for w in self.workers.values())
+        """A worker is starting, has not run a slot yet, or waits for its restart."""
+        for w in self.workers.values():
+            hb = w.hub.heartbeat
+            if not w.stopping and (w.proc is None or not w.hello or not hb or not hb.get("slots")):
+                return True
+        return False
 
     # ------------------------------------------------------------ reload
     def reload(self) -> None:
