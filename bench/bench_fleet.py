@@ -106,6 +106,7 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
         c_sim = sum(proc_cpu_rss(p.pid)[0] for p in sims)
         wall = time.monotonic() - t0
     gw.wait()
+    load = os.getloadavg()[0]
     c_gw = sum(c for p, (c, _r) in last.items()) - sum(c for p, (c, _r) in first.items() if p in last)
     for p in sims:
         p.send_signal(signal.SIGTERM)
@@ -122,14 +123,14 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
            "gateway_cpu_pct": 100 * c_gw / wall, "gateway_cpu_pct_per_station": 100 * c_gw / wall / n,
            "sims_cpu_pct": 100 * (c_sim - c_sim0) / wall,
            "rss_mb_worker_max": rss_worker if mode == "process" else rss_sup,
-           "rss_mb_supervisor": rss_sup}
+           "rss_mb_supervisor": rss_sup, "loadavg_1min": load}
     ok = (out["reported"] == n and out["worst_filled_pct"] >= 99.9
           and out["worst_lateness_ms_p99"] <= 2.0)
     print(f"{n:2d} stations {mode:9s}: worst filled {out['worst_filled_pct']:.3f} %, worst p99 "
           f"lateness {out['worst_lateness_ms_p99']:.2f} ms, gateway CPU {out['gateway_cpu_pct']:.0f} % "
           f"({out['gateway_cpu_pct_per_station']:.1f} %/station), simulators CPU "
           f"{out['sims_cpu_pct']:.0f} % (of one core), RSS {out['rss_mb_worker_max']:.0f} MB/worker, "
-          f"supervisor {out['rss_mb_supervisor']:.0f} MB  {'OK' if ok else 'over goal'}", flush=True)
+          f"supervisor {out['rss_mb_supervisor']:.0f} MB, load {load:.1f}  {'OK' if ok else 'over goal'}", flush=True)
     out["ok"] = ok
     return out
 

@@ -138,6 +138,7 @@ class WorkerHandle:
         self.started_at = 0.0
         self.next_start = 0.0
         self.crashes_in_row = 0
+        self.spawned = 0
         self.restarts = 0
         self.stopping = False
         self.fingerprint = ""
@@ -164,6 +165,7 @@ class WorkerHandle:
         finally:
             child.close()
         self.sock = parent
+        self.spawned += 1
         self.hello = False
         self.started_at = time.monotonic()
         self.hub.heartbeat = None
@@ -267,6 +269,7 @@ class Supervisor:
         self.stable_s = stable_s
         self.startup_s = startup_s
         self.summary_every = summary_every
+        self.max_starting = max(1, os.cpu_count() or 1)
         self.plan = FleetPlan(None)
         self.hubs: dict[str, StationHub] = {}
         self.workers: dict[str, WorkerHandle] = {}        # by station file path
@@ -294,6 +297,7 @@ class Supervisor:
         n = max(1, len(plan.accepted))
         for i, (path, cfg) in enumerate(plan.accepted):
             self._add(path, cfg, i / n)
+        self.tick()
         return plan
 
     def _add(self, path: str, cfg: Any, phase: float) -> None:
@@ -306,23 +310,28 @@ class Supervisor:
         w = WorkerHandle(self, hub, path, phase)
         w.fingerprint = fingerprint(apply_overrides(cfg, self.opts))
         hub.worker = w
-        self.workers[path] = w
-        w.spawn()
+        self.workers[path] = w          # started by tick(), a few at a time
 
     def all_up(self) -> bool:
-        return all(w.hello or not w.running for w in self.workers.values())
+        """Every worker runs its station (READY for systemd)."""
+        return all(w.stopping or (w.running and w.hello) for w in self.workers.values())
 
     # ------------------------------------------------------------ supervision
     def tick(self, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
+        # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
+        # opening) costs about a second of CPU, and N at once would starve the running stations
+        starting = sum(1 for w in self.workers.values() if w.running and not w.hello)
         for w in list(self.workers.values()):
             name = w.hub.name
             if w.proc is None:
-                if not w.stopping and now >= w.next_start:
-                    w.restarts += 1
+                if not w.stopping and now >= w.next_start and starting < self.max_starting:
+                    starting += 1
                     w.spawn()
-                    w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
-                                                 "restarts": w.restarts, "time": time.time()})
+                    if w.spawned > 1:
+                        w.restarts += 1
+                        w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
+                                                     "restarts": w.restarts, "time": time.time()})
                 continue
             rc = w.proc.poll()
             if rc is not None:
