@@ -16,7 +16,8 @@ Worker → supervisor (the stream; see :class:`FrameChannel` for how it is bound
 ====  ===========  ============================================================================
 type  name         body
 ====  ===========  ============================================================================
-1     HELLO        ``{station, pid, proto}`` once the worker runs its station
+1     HELLO        ``{station, pid, proto}`` once the worker has loaded (imports, configuration);
+                   it then waits for GO
 2     HEARTBEAT    ``{slots, filled, in_test, results, dropped, crashes}`` every 0.5 s, produced
                    *on the station's loop* (a stuck loop sends none: the supervisor's watchdog)
 3     STATE        the :class:`~gateway.records.StationState` as a mapping (enum → value)
@@ -32,6 +33,8 @@ Supervisor → worker (commands flow back):
 ====  ===========  ============================================================================
 16    COMMAND      ``{id, kind, source, args, request_id}`` → ``station.submit`` → REPLY ``id``
 17    RELOAD       ``{}``: re-read the station file; the station decides on its own loop
+18    GO           ``{}``: run the station (at start, once every worker of the fleet has loaded,
+                   so no station's slots compete with another worker's start-up)
 ====  ===========  ============================================================================
 """
 from __future__ import annotations
@@ -62,6 +65,7 @@ class FrameType(enum.IntEnum):
     FINAL = 7
     COMMAND = 16
     RELOAD = 17
+    GO = 18
 
 
 class ProtocolError(Exception):

@@ -134,7 +134,8 @@ class WorkerHandle:
         self.proc: subprocess.Popen[bytes] | None = None
         self.sock: socket.socket | None = None
         self.reader: threading.Thread | None = None
-        self.hello = False
+        self.hello = False               # loaded (HELLO), waiting for GO
+        self.go_t = 0.0                  # when GO was sent (the station runs from then on)
         self.started_at = 0.0
         self.next_start = 0.0
         self.crashes_in_row = 0
@@ -167,6 +168,7 @@ class WorkerHandle:
         self.sock = parent
         self.spawned += 1
         self.hello = False
+        self.go_t = 0.0
         self.started_at = time.monotonic()
         self.hub.heartbeat = None
         self.hub.heartbeat_t = 0.0
@@ -201,7 +203,8 @@ class WorkerHandle:
                             p[0].set()
                     elif ftype == FrameType.HELLO:
                         self.hello = True
-                        hub.heartbeat_t = time.monotonic()
+                        if not self.sup.barrier:
+                            self.go()
                     elif ftype == FrameType.FINAL:
                         hub.results.extend(body.get("results") or [])
                         hub.stats = body.get("stats")
@@ -221,6 +224,11 @@ class WorkerHandle:
             return True
         except OSError:
             return False
+
+    def go(self) -> None:
+        """Let the loaded worker run its station."""
+        self.go_t = time.monotonic()
+        self.send(FrameType.GO, {})
 
     def command(self, body: dict[str, Any], timeout: float) -> CommandReply:
         fid = next(self._ids)
@@ -270,6 +278,9 @@ class Supervisor:
         self.startup_s = startup_s
         self.summary_every = summary_every
         self.max_starting = max(1, os.cpu_count() or 1)
+        #: at start, loaded workers wait until all are loaded (then GO for all at once)
+        self.barrier = True
+        self.t_start = time.monotonic()
         self.plan = FleetPlan(None)
         self.hubs: dict[str, StationHub] = {}
         self.workers: dict[str, WorkerHandle] = {}        # by station file path
@@ -286,6 +297,7 @@ class Supervisor:
                                    "reason": r.message(), "time": time.time()})
 
     def start(self) -> FleetPlan:
+        self.t_start = time.monotonic()
         self.plan = plan = plan_fleet(self.folder)
         for path, cfg in list(plan.accepted):
             err = records_dir_ok(apply_overrides(cfg, self.opts).recorder.dir)
@@ -314,7 +326,7 @@ class Supervisor:
 
     def all_up(self) -> bool:
         """Every worker runs its station (READY for systemd)."""
-        return all(w.stopping or (w.running and w.hello) for w in self.workers.values())
+        return all(w.stopping or (w.running and w.go_t > 0) for w in self.workers.values())
 
     # ------------------------------------------------------------ supervision
     def tick(self, now: float | None = None) -> None:
@@ -322,6 +334,14 @@ class Supervisor:
         # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
         # opening) costs about a second of CPU, and N at once would starve the running stations
         starting = sum(1 for w in self.workers.values() if w.running and not w.hello)
+        if self.barrier and (now - self.t_start > self.startup_s or not any(
+                w.proc is None or (w.running and not w.hello) for w in self.workers.values())):
+            # every worker of the fleet has loaded (or the start-up time is over): all stations
+            # start their slot loops now, after the start-up CPU of all of them is spent
+            self.barrier = False
+            for w in self.workers.values():
+                if w.running and w.hello and not w.go_t:
+                    w.go()
         for w in list(self.workers.values()):
             name = w.hub.name
             if w.proc is None:
@@ -337,8 +357,10 @@ class Supervisor:
             if rc is not None:
                 self._exited(w, rc, now)
                 continue
-            age = now - (w.hub.heartbeat_t or w.started_at)
-            limit = self.watchdog_s if w.hello else self.startup_s
+            if w.hello and not w.go_t:
+                continue                     # loaded, waiting at the start barrier
+            age = now - max(w.hub.heartbeat_t, w.go_t, w.started_at)
+            limit = self.watchdog_s if w.go_t else self.startup_s
             if age > limit and not w.stopping:
                 log.error("%s: worker pid %d silent for %.1f s (stuck loop?): killed (SIGKILL)",
                           name, w.proc.pid, age)
@@ -377,7 +399,8 @@ class Supervisor:
         not hold the others' watchdog back; one that went silent does, until it is killed."""
         now = time.monotonic()
         for w in self.workers.values():
-            if w.running and not w.stopping and w.hello and now - w.hub.heartbeat_t > max_age_s:
+            if (w.running and not w.stopping and w.go_t
+                    and now - max(w.hub.heartbeat_t, w.go_t) > max_age_s):
                 return False
         return True
 
@@ -385,7 +408,7 @@ class Supervisor:
         """A worker is starting, has not run a slot yet, or waits for its restart."""
         for w in self.workers.values():
             hb = w.hub.heartbeat
-            if not w.stopping and (w.proc is None or not w.hello or not hb or not hb.get("slots")):
+            if not w.stopping and (w.proc is None or not w.go_t or not hb or not hb.get("slots")):
                 return True
         return False
 

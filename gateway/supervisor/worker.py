@@ -97,6 +97,7 @@ class Worker:
         self.chan = FrameChannel(sock, name="ipc-writer")
         self.out = IpcOutput(self.chan, summary_every)
         self.stop = threading.Event()
+        self.go = threading.Event()
         self.station: Station | None = None
         #: results of the station's earlier incarnations (before a reload or an in-process restart)
         self.earlier_results: list[dict[str, Any]] = []
@@ -116,7 +117,6 @@ class Worker:
         if self.station is not None:
             self.earlier_results.extend(self.station.results)
         self.station = st
-        self.chan.send(FrameType.HELLO, {"station": st.id, "pid": os.getpid(), "proto": PROTO})
 
     # ------------------------------------------------------------ supervisor → worker
     def _reader(self) -> None:
@@ -131,11 +131,14 @@ class Worker:
                         self._command(body)
                     elif ftype == FrameType.RELOAD:
                         self._reload()
+                    elif ftype == FrameType.GO:
+                        self.go.set()
         except (OSError, ProtocolError) as e:
             log.error("supervisor link: %s", e)
         if not self.stop.is_set():
             log.warning("supervisor link closed; the station stops")
         self.stop.set()
+        self.go.set()
 
     def _reply(self, fid: Any, ok: bool, reason: str, request_id: Any = None) -> None:
         self.chan.send(FrameType.REPLY, {"id": fid, "ok": ok, "reason": reason, "request_id": request_id})
@@ -189,6 +192,12 @@ class Worker:
         cfg = self.load()
         self.runner = r = StationRunner(cfg.station.id, self.factory(cfg), on_started=self._started)
         threading.Thread(target=self._reader, name="ipc-reader", daemon=True).start()
+        self.chan.send(FrameType.HELLO, {"station": cfg.station.id, "pid": os.getpid(), "proto": PROTO})
+        self.go.wait()
+        if self.stop.is_set():
+            self.chan.flush()
+            self.sock.close()
+            return 0
         r.start()
         while not self.stop.is_set() and r.tl.running:
             self.stop.wait(HEARTBEAT_S)
