@@ -6,6 +6,7 @@ each, in process-per-station mode (a supervisor and N workers, the default) and/
 the gateway's CPU (supervisor + workers) per station, the simulators' CPU, the largest worker RSS.
 
     bench/bench_fleet.py [--counts 1 2 4 8] [--duration 60] [--modes process inprocess]
+                         [--sim-exe OTHER/hookwatch --one-sim]
 """
 from __future__ import annotations
 
@@ -23,6 +24,11 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
+
+
+#: the virtual twins' program (``--sim-exe``) and whether one process hosts them all (``--one-sim``)
+SIM_EXE: str | None = None
+ONE_SIM = False
 
 
 def _children(pid: int) -> list[int]:
@@ -66,14 +72,28 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
             "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
             "logging": {"level": "warning"}}}, f)
     sims = []
-    for i in range(n):
-        links = os.path.join(work, f"links{i}")
-        os.makedirs(links)
-        p = subprocess.Popen([EXE, "sim", scen, "--link-dir", links, "--seed", str(i + 1)],
-                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        p.stdout.readline()
-        p.stdout.readline()
+    sim_exe = SIM_EXE or EXE
+    if ONE_SIM:
+        # one `hookwatch sim --count N` process hosts all N virtual stations (issue 16, `perf`)
+        p = subprocess.Popen([sim_exe, "sim", scen, "--count", str(n), "--seed", "1", "--link-dir",
+                              os.path.join(work, "links")], stdout=subprocess.PIPE,
+                             stderr=subprocess.DEVNULL, text=True)
+        while True:
+            line = p.stdout.readline()
+            if not line or line.startswith("ready:"):
+                break
         sims.append(p)
+    for i in range(n):
+        if ONE_SIM:
+            links = os.path.join(work, "links", f"sim{i + 1:02d}")
+        else:
+            links = os.path.join(work, f"links{i}")
+            os.makedirs(links)
+            p = subprocess.Popen([sim_exe, "sim", scen, "--link-dir", links, "--seed", str(i + 1)],
+                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+            p.stdout.readline()
+            p.stdout.readline()
+            sims.append(p)
         with open(os.path.join(fleet, "stations", f"s{i:02d}.yaml"), "w") as f:
             yaml.safe_dump({"station": {"id": f"s{i:02d}"},
                             "meter": {"port": os.path.join(links, "meter")},
@@ -142,7 +162,12 @@ def main():
                     choices=["process", "inprocess"])
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--json", help="append the figures to this JSON-lines file")
+    ap.add_argument("--sim-exe", help="the `hookwatch` whose `sim` plays the twins (default: this one)")
+    ap.add_argument("--one-sim", action="store_true",
+                    help="one `hookwatch sim --count N` process for all twins (a sim that has --count)")
     args = ap.parse_args()
+    global SIM_EXE, ONE_SIM
+    SIM_EXE, ONE_SIM = args.sim_exe, args.one_sim
     best = {m: 0 for m in args.modes}
     for n in args.counts:
         for mode in args.modes:          # the two modes back to back: a ratio from one run
