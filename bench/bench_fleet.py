@@ -28,6 +28,7 @@ from bench_station import EXE, proc_cpu_rss  # noqa: E402
 
 #: the virtual twins' program (``--sim-exe``) and whether one process hosts them all (``--one-sim``)
 SIM_EXE: str | None = None
+WARMUP_S = 6.0
 ONE_SIM = False
 
 
@@ -104,7 +105,7 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
     gw = subprocess.Popen([EXE, "run", fleet, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning", *extra], stdout=subprocess.DEVNULL,
                           stderr=subprocess.DEVNULL)
-    time.sleep(3.0)
+    time.sleep(WARMUP_S)                 # start-up (imports, the workers' start barrier) not counted
     first = _tree(gw.pid)
     c_sim0 = sum(proc_cpu_rss(p.pid)[0] for p in sims)
     t0 = time.monotonic()
@@ -128,6 +129,7 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
     gw.wait()
     load = os.getloadavg()[0]
     c_gw = sum(c for p, (c, _r) in last.items()) - sum(c for p, (c, _r) in first.items() if p in last)
+    c_sup = last.get(gw.pid, (0.0, 0.0))[0] - first.get(gw.pid, (0.0, 0.0))[0]
     for p in sims:
         p.send_signal(signal.SIGTERM)
     for p in sims:
@@ -143,14 +145,16 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
            "gateway_cpu_pct": 100 * c_gw / wall, "gateway_cpu_pct_per_station": 100 * c_gw / wall / n,
            "sims_cpu_pct": 100 * (c_sim - c_sim0) / wall,
            "rss_mb_worker_max": rss_worker if mode == "process" else rss_sup,
-           "rss_mb_supervisor": rss_sup, "loadavg_1min": load}
+           "rss_mb_supervisor": rss_sup, "loadavg_1min": load,
+           "supervisor_cpu_pct": 100 * c_sup / wall if mode == "process" else None}
     ok = (out["reported"] == n and out["worst_filled_pct"] >= 99.9
           and out["worst_lateness_ms_p99"] <= 2.0)
     print(f"{n:2d} stations {mode:9s}: worst filled {out['worst_filled_pct']:.3f} %, worst p99 "
           f"lateness {out['worst_lateness_ms_p99']:.2f} ms, gateway CPU {out['gateway_cpu_pct']:.0f} % "
           f"({out['gateway_cpu_pct_per_station']:.1f} %/station), simulators CPU "
           f"{out['sims_cpu_pct']:.0f} % (of one core), RSS {out['rss_mb_worker_max']:.0f} MB/worker, "
-          f"supervisor {out['rss_mb_supervisor']:.0f} MB, load {load:.1f}  {'OK' if ok else 'over goal'}", flush=True)
+          f"supervisor {out['rss_mb_supervisor']:.0f} MB"
+          + (f" {out['supervisor_cpu_pct']:.1f} % CPU" if mode == "process" else "") + f", load {load:.1f}  {'OK' if ok else 'over goal'}", flush=True)
     out["ok"] = ok
     return out
 

@@ -25,11 +25,12 @@ METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 
 
 def _scenario(path, seed):
-    path.write_text(yaml.safe_dump({
-        "description": "supervisor test life", "seed": seed, "meter": {"map": METER_MAP},
-        "stm32": {"watchdog_s": 0.2},
-        "plant": {"grade": "I" if seed % 2 else "II", "t_set": 0.5, "time_scale": 600},
-        "method": {"w_ss": 5, "w_hold": 20, "tau": 5, "t_end": 70}, "faults": []}))
+    """The one-minute life of config/scenarios/quick.yaml with its own seed (and grade)."""
+    with open(os.path.join(ROOT, "config", "scenarios", "quick.yaml")) as f:
+        sc = yaml.safe_load(f)
+    sc.update(seed=seed, meter={"map": METER_MAP})
+    sc["plant"]["grade"] = "I" if seed % 2 else "II"
+    path.write_text(yaml.safe_dump(sc))
     return str(path)
 
 
