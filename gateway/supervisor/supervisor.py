@@ -161,8 +161,10 @@ class WorkerHandle:
             # systemd's notify socket is the supervisor's alone (NotifyAccess=main)
             env = {k: v for k, v in os.environ.items()
                    if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")}
+            # its own session: a Ctrl-C on the terminal reaches the supervisor only, which stops
+            # the workers in order (systemd's KillMode=mixed still SIGKILLs leftovers)
             self.proc = subprocess.Popen(argv, pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL,
-                                         env=env)
+                                         env=env, start_new_session=True)
         finally:
             child.close()
         self.sock = parent
