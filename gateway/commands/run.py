@@ -14,12 +14,16 @@ from ..cli import CliError
 from ..compose import build_console, build_station, records_dir_ok
 from ..config import ConfigError, load_fleet, load_station
 from ..station.fleet import Fleet, StationRunner
+from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
+from ..supervisor.supervisor import Supervisor
 
-HELP = "run one station (a YAML file) or a whole fleet (a config folder)"
+HELP = "run one station (a YAML file) or a whole fleet (a config folder, one process per station)"
 DESCRIPTION = (HELP + ". Polls the meter at 50 Hz, closes the tension loop through the STM32, "
                "computes μ and the wear life online, records every test and reports north. "
                "SIGTERM/SIGINT stop cleanly (a running test is closed as aborted); SIGHUP reloads "
-               "the configuration of stations that are not in a test.")
+               "the configuration of stations that are not in a test. A fleet folder runs each station in its "
+               "own worker process under a supervisor (restart with back-off, watchdog); "
+               "--in-process keeps every station in this one process.")
 
 
 def add_arguments(ap):
@@ -35,6 +39,13 @@ def add_arguments(ap):
     ap.add_argument("--records-dir", metavar="DIR", help="override recorder.dir")
     ap.add_argument("--no-northbound", action="store_true", help="run without MQTT and Modbus TCP")
     ap.add_argument("--log-level", default=None, help="debug, info, warning, error")
+    ap.add_argument("--in-process", action="store_true",
+                    help="a fleet: every station in this one process (threads), as for small boxes")
+    ap.add_argument("--worker-watchdog", type=float, default=5.0, metavar="S",
+                    help="a fleet: a worker silent this long is killed and restarted (default 5)")
+    ap.add_argument("--restart-backoff", type=float, default=1.0, metavar="S",
+                    help="a fleet: first restart delay of a crashed worker, doubled per crash in "
+                         "a row up to 60 s; held back 300 s after 5 (default 1)")
 
 
 def _load(path: str):
@@ -53,28 +64,21 @@ def _load(path: str):
 
 
 def _override(cfg, args):
-    import dataclasses
+    return apply_overrides(cfg, RunOptions.from_args(args))
 
-    test = cfg.test
-    changes = {}
-    if args.sample:
-        changes["sample_id"] = args.sample
-    if args.grade:
-        changes["grade"] = args.grade
-    if args.t_set is not None:
-        changes["t_set_n"] = args.t_set
-    if args.t_end is not None:
-        changes["t_end_s"] = args.t_end
-    if args.start:
-        changes["autostart"] = True
-    if changes:
-        cfg = dataclasses.replace(cfg, test=dataclasses.replace(test, **changes))
-    if args.records_dir:
-        cfg = dataclasses.replace(cfg, recorder=dataclasses.replace(cfg.recorder, dir=args.records_dir))
-    return cfg
+
+def _shared_modbus_ports(cfgs) -> list[int]:
+    """Modbus TCP ports that several stations share (one unit each): one process must serve them."""
+    seen: dict[int, int] = {}
+    for c in cfgs:
+        if c.modbus_tcp.enabled:
+            seen[int(c.modbus_tcp.port)] = seen.get(int(c.modbus_tcp.port), 0) + 1
+    return sorted(p for p, n in seen.items() if n > 1)
 
 
 def run(args) -> int:
+    if os.path.isdir(args.path) and not args.in_process:
+        return run_supervised(args)
     cfgs = [_override(c, args) for c in _load(args.path)]
     # each station is a thread with its own loop; a thread woken by its slot deadline must not
     # wait the default 5 ms for the GIL while another station (or paho, or the PLC server) runs
@@ -185,3 +189,97 @@ def _reload(args, fleet, console=None) -> None:
         c = cfgs.get(r.name)
         if c is not None:
             r.request_reload(_factory(c, args, i / n, console))
+
+
+def _setup_logging(level: str | None) -> None:
+    logging.basicConfig(level=getattr(logging, (level or "info").upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+
+def run_supervised(args) -> int:
+    """A fleet folder, one worker process per station under this supervisor."""
+    try:
+        plan = plan_fleet(args.path)
+    except FileNotFoundError:
+        raise CliError(f"{args.path}: no such file or folder", 1) from None
+    if not plan.accepted and not plan.refused:
+        raise CliError(f"{args.path}: no station files found (expected stations/*.yaml)", 1)
+    cfgs = [_override(c, args) for _, c in plan.accepted]
+    first = cfgs[0] if cfgs else None
+    level = args.log_level or getattr(getattr(first, "logging", None), "level", None) or "info"
+    _setup_logging(level)
+    log = logging.getLogger("hookwatch.run")
+    shared = _shared_modbus_ports(cfgs)
+    one_place = [what for what, on in (("the operator console", any(c.console.enabled for c in cfgs)),
+                                       ("the metrics endpoint", any(c.metrics.enabled for c in cfgs)))
+                 if on]
+    if shared or one_place:
+        # the shared things (one Modbus TCP port with a unit per station, the console, the metrics
+        # endpoint) live in the supervisor only once its side serves the hubs (docs/runtime.md);
+        # until then such a fleet runs in one process
+        why = ([f"stations share Modbus TCP port(s) {', '.join(map(str, shared))}"] if shared else []) + one_place
+        log.warning("%s: the fleet runs in one process (--in-process)", "; ".join(why))
+        args.in_process = True
+        return run(args)
+    opts = RunOptions.from_args(args)
+    opts.log_level = level
+    sup = Supervisor(args.path, opts, watchdog_s=args.worker_watchdog, backoff_s=args.restart_backoff)
+    stop = threading.Event()
+    reload_req = threading.Event()
+    signal.signal(signal.SIGTERM, lambda s, f: stop.set())
+    signal.signal(signal.SIGINT, lambda s, f: stop.set())
+    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
+    plan = sup.start()
+    if not plan.accepted:
+        log.error("no station can run: every station file was refused")
+        return 1
+    t0 = time.monotonic()
+    ready = False
+    last_wd = 0.0
+    started_any = False
+    try:
+        while not stop.is_set():
+            stop.wait(0.2)
+            now = time.monotonic()
+            sup.tick(now)
+            if not ready and (sup.all_up() or now - t0 > 60):
+                ready = True
+                sdnotify.ready()
+            n_run = sum(1 for w in sup.workers.values() if w.running)
+            if now - last_wd >= 2.0:
+                last_wd = now
+                refused = [h.name for h in sup.hubs.values() if h.refused]
+                sdnotify.status(f"{n_run} station worker(s) running"
+                                + (f"; refused: {', '.join(refused)}" if refused else ""))
+                if ready and sup.healthy():
+                    sdnotify.watchdog()
+            if reload_req.is_set():
+                reload_req.clear()
+                sup.reload()
+            if args.duration is not None and now - t0 >= args.duration:
+                break
+            if args.exit_when_done:
+                if any(h.in_test for h in sup.hubs.values()):
+                    started_any = True
+                elif started_any and not sup.pending():
+                    break
+    finally:
+        sdnotify.stopping()
+        sup.stop()
+    out: dict = {}
+    for name, h in sup.hubs.items():
+        if h.refused:
+            out[name] = {"refused": h.refused}
+            continue
+        out[name] = dict(h.stats or {}, results=h.results,
+                         restarts=h.worker.restarts if h.worker else 0)
+    if args.stats_json:
+        with open(args.stats_json, "w") as f:
+            json.dump(out, f, indent=1, default=str)
+    for name, h in sup.hubs.items():
+        for res in h.results:
+            m = res["method"]
+            print(f"{name}: test {res['test_id']} {res['test_status']} ({res['end_reason']}): "
+                  f"status {m['status']}, t_life {m['t_life']}, mu_ss {m['mu_ss']}", flush=True)
+    return 0

@@ -1,0 +1,196 @@
+"""The supervisor ↔ worker IPC: length-prefixed JSON frames over a Unix socketpair.
+
+One frame on the wire::
+
+    +----------------+---------+------------------------------------+
+    | length: u32 BE | type: u8| body: UTF-8 JSON object (length-1) |
+    +----------------+---------+------------------------------------+
+
+``length`` counts the type byte and the body (so an empty body is length 1). A body is at most
+:data:`MAX_BODY` bytes; a longer (or undecodable) frame is a protocol violation and the peer closes
+the connection (the supervisor then treats the worker as crashed). Floats that are not finite are
+sent as ``null`` (strict JSON). No pickled objects: either side can be read by any JSON decoder.
+
+Worker → supervisor (the stream; see :class:`FrameChannel` for how it is bounded):
+
+====  ===========  ============================================================================
+type  name         body
+====  ===========  ============================================================================
+1     HELLO        ``{station, pid, proto}`` once the worker has loaded (imports, configuration);
+                   it then waits for GO
+2     HEARTBEAT    ``{slots, filled, in_test, results, dropped, crashes}`` every 0.5 s, produced
+                   *on the station's loop* (a stuck loop sends none: the supervisor's watchdog)
+3     STATE        the :class:`~gateway.records.StationState` as a mapping (enum → value)
+4     SLOTS        a summary of the last ``n`` slots: ``{k, n, filled, valid, mu_mean, t_mean,
+                   lateness_ms_max, rtt_ms_max, last: <the last SlotRecord as a mapping>}``
+5     EVENT        :meth:`~gateway.records.Event.as_dict`
+6     REPLY        ``{id, ok, reason, request_id}`` to a COMMAND
+7     FINAL        ``{stats, results}`` when the worker stops cleanly
+====  ===========  ============================================================================
+
+Supervisor → worker (commands flow back):
+
+====  ===========  ============================================================================
+16    COMMAND      ``{id, kind, source, args, request_id}`` → ``station.submit`` → REPLY ``id``
+17    RELOAD       ``{}``: re-read the station file; the station decides on its own loop
+18    GO           ``{}``: run the station (at start, once every worker of the fleet has loaded,
+                   so no station's slots compete with another worker's start-up)
+====  ===========  ============================================================================
+"""
+from __future__ import annotations
+
+import enum
+import json
+import math
+import socket
+import struct
+import threading
+from dataclasses import asdict, is_dataclass
+from typing import Any
+
+from ..threadloop import Mailbox
+
+PROTO = 1
+HEADER = struct.Struct(">IB")
+MAX_BODY = 1 << 20
+
+
+class FrameType(enum.IntEnum):
+    HELLO = 1
+    HEARTBEAT = 2
+    STATE = 3
+    SLOTS = 4
+    EVENT = 5
+    REPLY = 6
+    FINAL = 7
+    COMMAND = 16
+    RELOAD = 17
+    GO = 18
+
+
+class ProtocolError(Exception):
+    """A frame that breaks the format (too long, unknown type, not a JSON object)."""
+
+
+def _clean(v: Any) -> Any:
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, enum.Enum):
+        return _clean(v.value)
+    if isinstance(v, dict):
+        return {str(k): _clean(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_clean(x) for x in v]
+    if is_dataclass(v) and not isinstance(v, type):
+        return _clean(asdict(v))
+    return v
+
+
+def encode(ftype: FrameType, body: dict[str, Any]) -> bytes:
+    """One frame: header + strict JSON body (non-finite floats → null)."""
+    data = json.dumps(_clean(body), separators=(",", ":"), allow_nan=False,
+                      default=str).encode("utf-8")
+    if len(data) > MAX_BODY:
+        raise ProtocolError(f"frame body of {len(data)} bytes exceeds {MAX_BODY}")
+    return HEADER.pack(len(data) + 1, int(ftype)) + data
+
+
+class FrameDecoder:
+    """Incremental decoder: :meth:`feed` bytes, get the complete frames."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[tuple[FrameType, dict[str, Any]]]:
+        self._buf += data
+        out = []
+        while len(self._buf) >= HEADER.size:
+            length, t = HEADER.unpack_from(self._buf)
+            if length < 1 or length - 1 > MAX_BODY:
+                raise ProtocolError(f"frame length {length} out of range")
+            if len(self._buf) < HEADER.size - 1 + length:
+                break
+            body = bytes(self._buf[HEADER.size:HEADER.size - 1 + length])
+            del self._buf[:HEADER.size - 1 + length]
+            try:
+                ftype = FrameType(t)
+            except ValueError:
+                raise ProtocolError(f"unknown frame type {t}") from None
+            try:
+                obj = json.loads(body) if body else {}
+            except ValueError as e:
+                raise ProtocolError(f"frame {ftype.name}: bad JSON: {e}") from None
+            if not isinstance(obj, dict):
+                raise ProtocolError(f"frame {ftype.name}: body is not a JSON object")
+            out.append((ftype, obj))
+        return out
+
+
+def read_frames(sock: socket.socket, decoder: FrameDecoder, bufsize: int = 65536):
+    """Blocking: the next batch of frames from ``sock``; [] at EOF (raises ProtocolError)."""
+    while True:
+        data = sock.recv(bufsize)
+        if not data:
+            return None
+        frames = decoder.feed(data)
+        if frames:
+            return frames
+
+
+class FrameChannel:
+    """The sending side of one socket: a bounded queue and a writer thread.
+
+    :meth:`send` never blocks and never fails (it is called on a station's slot loop): frames wait
+    in a :class:`~gateway.threadloop.Mailbox` of ``maxlen`` frames; when the peer does not read
+    (a stalled supervisor, a full socket buffer) the oldest frames are dropped and counted in
+    :attr:`dropped`. The writer thread sends them in order with blocking ``sendall``."""
+
+    def __init__(self, sock: socket.socket, maxlen: int = 256, name: str = "ipc-writer") -> None:
+        self.sock = sock
+        self.box: Mailbox[bytes] = Mailbox(maxlen)
+        self.sent = 0
+        self.closed = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    @property
+    def dropped(self) -> int:
+        return self.box.dropped
+
+    def send(self, ftype: FrameType, body: dict[str, Any]) -> bool:
+        """Queue a frame; False when an older frame had to be dropped (or the channel is closed)."""
+        if self.closed.is_set():
+            return False
+        return self.box.put_nowait(encode(ftype, body))
+
+    def _run(self) -> None:
+        while not self.closed.is_set():
+            self.box.wait(0.5)
+            for frame in self.box.drain():
+                try:
+                    self.sock.sendall(frame)
+                except OSError:
+                    self.closed.set()
+                    return
+                self.sent += 1
+
+    def flush(self, timeout: float = 2.0) -> None:
+        """Send what is queued now from the calling thread (at exit), then stop the writer."""
+        self.closed.set()
+        self.box.wake()
+        self._thread.join(timeout)
+        self.sock.settimeout(timeout)
+        try:
+            for frame in self.box.drain():
+                self.sock.sendall(frame)
+        except OSError:
+            pass
+
+    def send_now(self, ftype: FrameType, body: dict[str, Any], timeout: float = 2.0) -> bool:
+        """Send one frame synchronously (after :meth:`flush`; the FINAL frame)."""
+        try:
+            self.sock.settimeout(timeout)
+            self.sock.sendall(encode(ftype, body))
+            return True
+        except OSError:
+            return False

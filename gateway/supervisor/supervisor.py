@@ -1,0 +1,474 @@
+"""One supervisor, one worker process per station (``hookwatch run FLEET_DIR``).
+
+The supervisor reads the fleet folder (a broken or clashing station file refuses that station
+alone), starts one worker per station (:mod:`gateway.supervisor.worker`) with one end of a Unix
+socketpair, and then only supervises:
+
+- **restart with exponential back-off**: a worker that exits (crash, ``kill -9``, OOM) is started
+  again after ``backoff_s · 2^(n-1)`` s (n = crashes in a row, capped at ``backoff_max_s``); after
+  ``hold_after`` crashes in a row it is *held back* for ``hold_s`` with an ERROR line and an event.
+  A worker that ran ``stable_s`` counts as healthy again;
+- **watchdog**: each worker sends a HEARTBEAT every 0.5 s from its station's own loop; one silent
+  for ``watchdog_s`` (5 s: a stuck loop, a stopped process) is killed with SIGKILL and restarted —
+  well within systemd's ``WatchdogSec=10s``, which guards the supervisor itself;
+- **SIGHUP**: the folder is read again; only a worker whose effective configuration changed gets a
+  RELOAD frame (its station decides on its own loop: idle → restarts with it, in a test → keeps its
+  parameters); a broken file keeps its running station; new files start, removed files stop.
+
+Per station the supervisor keeps a :class:`StationHub`: the latest state, the last slot summary,
+a bounded stream of slot summaries and events, and a command path back to the station. These are
+the hook points for the outputs that stay in the supervisor process (the shared Modbus TCP port
+with one unit per station, the web console, the metrics endpoint): see docs/runtime.md.
+"""
+from __future__ import annotations
+
+import collections
+import itertools
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+from ..compose import records_dir_ok
+from ..config import Issue
+from ..records import CommandReply
+from ..threadloop import Mailbox
+from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
+from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
+
+__all__ = ["StationHub", "Supervisor", "WorkerHandle"]
+
+log = logging.getLogger("hookwatch.supervisor")
+
+#: how many stream items (slot summaries, events) a hub keeps for late subscribers
+STREAM_LEN = 512
+
+
+class StationHub:
+    """Everything the supervisor process knows of one station: the hook point for shared outputs.
+
+    - :attr:`state` — the latest STATE frame (a :class:`~gateway.records.StationState` mapping);
+    - :attr:`last_slots` — the latest SLOTS frame (with ``last``: the latest slot record);
+    - :attr:`stream` — the last :data:`STREAM_LEN` items ``(kind, body)``, kind ``"slots"``,
+      ``"event"`` (station events) or ``"supervisor"`` (refused, exited, restarted, held back);
+    - :meth:`subscribe` — a :class:`~gateway.threadloop.Mailbox` fed with every new item, bounded
+      (a slow consumer loses its oldest items, counted; it never delays the station or the hub);
+    - :meth:`command` — a command to the station (``station.submit`` in its worker) with a timeout.
+
+    Frames are dispatched on the worker's reader thread; subscribers drain on their own thread.
+    """
+
+    def __init__(self, name: str, path: str | None) -> None:
+        self.name = name
+        self.path = path
+        self.state: dict[str, Any] | None = None
+        self.last_slots: dict[str, Any] | None = None
+        self.heartbeat: dict[str, Any] | None = None
+        self.heartbeat_t = 0.0
+        self.refused: str | None = None
+        self.stream: collections.deque[tuple[str, dict[str, Any]]] = collections.deque(maxlen=STREAM_LEN)
+        self.results: list[dict[str, Any]] = []
+        self.stats: dict[str, Any] | None = None
+        self.worker: WorkerHandle | None = None
+        self._subs: list[Mailbox[tuple[str, dict[str, Any]]]] = []
+        self._lock = threading.Lock()
+
+    def subscribe(self, maxlen: int = 1024) -> Mailbox[tuple[str, dict[str, Any]]]:
+        box: Mailbox[tuple[str, dict[str, Any]]] = Mailbox(maxlen)
+        with self._lock:
+            self._subs.append(box)
+        return box
+
+    def unsubscribe(self, box: Mailbox[tuple[str, dict[str, Any]]]) -> None:
+        with self._lock:
+            if box in self._subs:
+                self._subs.remove(box)
+
+    def publish(self, kind: str, body: dict[str, Any]) -> None:
+        """Never blocks: the stream and each subscriber's mailbox drop their oldest item."""
+        item = (kind, body)
+        with self._lock:
+            self.stream.append(item)
+            subs = list(self._subs)
+        for box in subs:
+            box.put_nowait(item)
+
+    def snapshot(self) -> dict[str, Any]:
+        """The station's latest state as the supervisor knows it (for a console or metrics)."""
+        w = self.worker
+        return {"station": self.name, "file": self.path, "refused": self.refused,
+                "running": bool(w is not None and w.running), "state": self.state,
+                "slots": self.last_slots, "heartbeat": self.heartbeat,
+                "restarts": w.restarts if w else 0}
+
+    def command(self, kind: str, args: dict[str, Any] | None = None, source: str = "supervisor",
+                request_id: str | None = None, timeout: float = 5.0) -> CommandReply:
+        """Send a command (start, stop, ack, setpoint) to the station and wait for its reply."""
+        w = self.worker
+        if w is None or not w.running:
+            return CommandReply(False, f"station {self.name} is not running", request_id)
+        return w.command({"kind": kind, "args": args or {}, "source": source,
+                          "request_id": request_id}, timeout)
+
+    @property
+    def in_test(self) -> bool:
+        hb = self.heartbeat
+        return bool(hb and hb.get("in_test"))
+
+
+class WorkerHandle:
+    """One worker process and its end of the socketpair."""
+    _ids = itertools.count(1)
+
+    def __init__(self, sup: Supervisor, hub: StationHub, path: str, phase: float) -> None:
+        self.sup = sup
+        self.hub = hub
+        self.path = path
+        self.phase = phase
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.sock: socket.socket | None = None
+        self.reader: threading.Thread | None = None
+        self.hello = False               # loaded (HELLO), waiting for GO
+        self.go_t = 0.0                  # when GO was sent (the station runs from then on)
+        self.started_at = 0.0
+        self.next_start = 0.0
+        self.crashes_in_row = 0
+        self.spawned = 0
+        self.restarts = 0
+        self.stopping = False
+        self.fingerprint = ""
+        self._send_lock = threading.Lock()
+        self._pending: dict[int, tuple[threading.Event, list[dict[str, Any]]]] = {}
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def spawn(self) -> None:
+        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        sup = self.sup
+        argv = [sys.executable, "-m", "gateway.supervisor.worker", self.path,
+                "--fd", str(child.fileno()), "--fleet-file", sup.plan.fleet_file or "",
+                "--phase", f"{self.phase:.4f}", "--options", sup.opts_json,
+                "--summary-every", str(sup.summary_every)]
+        try:
+            # systemd's notify socket is the supervisor's alone (NotifyAccess=main)
+            env = {k: v for k, v in os.environ.items()
+                   if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")}
+            # its own session: a Ctrl-C on the terminal reaches the supervisor only, which stops
+            # the workers in order (systemd's KillMode=mixed still SIGKILLs leftovers)
+            self.proc = subprocess.Popen(argv, pass_fds=(child.fileno(),), stdin=subprocess.DEVNULL,
+                                         env=env, start_new_session=True)
+        finally:
+            child.close()
+        self.sock = parent
+        self.spawned += 1
+        self.hello = False
+        self.go_t = 0.0
+        self.started_at = time.monotonic()
+        self.hub.heartbeat = None
+        self.hub.heartbeat_t = 0.0
+        self.reader = threading.Thread(target=self._read, args=(parent,), daemon=True,
+                                       name=f"ipc-{self.hub.name}")
+        self.reader.start()
+        log.info("%s: worker started (pid %d)", self.hub.name, self.proc.pid)
+
+    def _read(self, sock: socket.socket) -> None:
+        dec = FrameDecoder()
+        hub = self.hub
+        try:
+            while True:
+                frames = read_frames(sock, dec)
+                if frames is None:
+                    break
+                for ftype, body in frames:
+                    if ftype == FrameType.HEARTBEAT:
+                        hub.heartbeat = body
+                        hub.heartbeat_t = time.monotonic()
+                    elif ftype == FrameType.SLOTS:
+                        hub.last_slots = body
+                        hub.publish("slots", body)
+                    elif ftype == FrameType.EVENT:
+                        hub.publish("event", body)
+                    elif ftype == FrameType.STATE:
+                        hub.state = body
+                    elif ftype == FrameType.REPLY:
+                        p = self._pending.get(body.get("id"))     # type: ignore[arg-type]
+                        if p is not None:
+                            p[1].append(body)
+                            p[0].set()
+                    elif ftype == FrameType.HELLO:
+                        self.hello = True
+                        if not self.sup.barrier:
+                            self.go()
+                    elif ftype == FrameType.FINAL:
+                        hub.results.extend(body.get("results") or [])
+                        hub.stats = body.get("stats")
+        except (OSError, ProtocolError) as e:
+            log.error("%s: worker link broken: %s", hub.name, e)
+        finally:
+            for ev, _ in list(self._pending.values()):
+                ev.set()
+
+    def send(self, ftype: FrameType, body: dict[str, Any]) -> bool:
+        s = self.sock
+        if s is None:
+            return False
+        try:
+            with self._send_lock:
+                s.sendall(encode(ftype, body))
+            return True
+        except OSError:
+            return False
+
+    def go(self) -> None:
+        """Let the loaded worker run its station."""
+        self.go_t = time.monotonic()
+        self.send(FrameType.GO, {})
+
+    def command(self, body: dict[str, Any], timeout: float) -> CommandReply:
+        fid = next(self._ids)
+        ev: threading.Event = threading.Event()
+        slot: list[dict[str, Any]] = []
+        self._pending[fid] = (ev, slot)
+        rid = body.get("request_id")
+        try:
+            if not self.send(FrameType.COMMAND, {"id": fid, **body}):
+                return CommandReply(False, f"station {self.hub.name}: worker link down", rid)
+            ev.wait(timeout)
+        finally:
+            self._pending.pop(fid, None)
+        if not slot:
+            return CommandReply(False, f"station {self.hub.name} did not answer within {timeout:g} s", rid)
+        r = slot[0]
+        return CommandReply(bool(r.get("ok")), str(r.get("reason") or ""), r.get("request_id"))
+
+    def terminate(self) -> None:
+        self.stopping = True
+        if self.running and self.proc is not None:
+            self.proc.send_signal(signal.SIGTERM)
+
+    def reap(self) -> None:
+        """After the process ended: let the reader take the last frames, close the socket."""
+        if self.reader is not None:
+            self.reader.join(5)
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+class Supervisor:
+    def __init__(self, folder: str, opts: RunOptions, *, watchdog_s: float = 5.0,
+                 backoff_s: float = 1.0, backoff_max_s: float = 60.0, hold_after: int = 5,
+                 hold_s: float = 300.0, stable_s: float = 60.0, startup_s: float = 60.0,
+                 summary_every: int = 10) -> None:
+        self.folder = folder
+        self.opts = opts
+        self.opts_json = json.dumps(opts.as_dict())
+        self.watchdog_s = watchdog_s
+        self.backoff_s = backoff_s
+        self.backoff_max_s = backoff_max_s
+        self.hold_after = hold_after
+        self.hold_s = hold_s
+        self.stable_s = stable_s
+        self.startup_s = startup_s
+        self.summary_every = summary_every
+        self.max_starting = max(1, os.cpu_count() or 1)
+        #: at start, loaded workers wait until all are loaded (then GO for all at once)
+        self.barrier = True
+        self.t_start = time.monotonic()
+        self.plan = FleetPlan(None)
+        self.hubs: dict[str, StationHub] = {}
+        self.workers: dict[str, WorkerHandle] = {}        # by station file path
+        self._retired: list[WorkerHandle] = []             # removed or renamed, stopping
+
+    # ------------------------------------------------------------ start
+    def refuse(self, r: Refused, reload: bool = False) -> None:
+        hub = self.hubs.get(r.name)
+        if hub is None:
+            hub = self.hubs[r.name] = StationHub(r.name, r.path)
+        hub.refused = r.message()
+        log.error("station %s refused (%s): %s; the other stations run", r.name, r.path, r.message())
+        hub.publish("supervisor", {"type": "station_refused", "station": r.name, "file": r.path,
+                                   "reason": r.message(), "time": time.time()})
+
+    def start(self) -> FleetPlan:
+        self.t_start = time.monotonic()
+        self.plan = plan = plan_fleet(self.folder)
+        for path, cfg in list(plan.accepted):
+            err = records_dir_ok(apply_overrides(cfg, self.opts).recorder.dir)
+            if err:                       # a station that cannot record does not run
+                plan.accepted.remove((path, cfg))
+                plan.refused.append(Refused(path, cfg.station.id, [Issue("error", "recorder.dir", err, path)]))
+        for r in plan.refused:
+            self.refuse(r)
+        n = max(1, len(plan.accepted))
+        for i, (path, cfg) in enumerate(plan.accepted):
+            self._add(path, cfg, i / n)
+        self.tick()
+        return plan
+
+    def _add(self, path: str, cfg: Any, phase: float) -> None:
+        name = cfg.station.id
+        hub = self.hubs.get(name)
+        if hub is None:
+            hub = self.hubs[name] = StationHub(name, path)
+        hub.refused = None
+        hub.path = path
+        w = WorkerHandle(self, hub, path, phase)
+        w.fingerprint = fingerprint(apply_overrides(cfg, self.opts))
+        hub.worker = w
+        self.workers[path] = w          # started by tick(), a few at a time
+
+    def all_up(self) -> bool:
+        """Every worker runs its station (READY for systemd)."""
+        return all(w.stopping or (w.running and w.go_t > 0) for w in self.workers.values())
+
+    # ------------------------------------------------------------ supervision
+    def tick(self, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
+        # opening) costs about a second of CPU, and N at once would starve the running stations
+        starting = sum(1 for w in self.workers.values() if w.running and not w.hello)
+        if self.barrier and (now - self.t_start > self.startup_s or not any(
+                w.proc is None or (w.running and not w.hello) for w in self.workers.values())):
+            # every worker of the fleet has loaded (or the start-up time is over): all stations
+            # start their slot loops now, after the start-up CPU of all of them is spent
+            self.barrier = False
+            for w in self.workers.values():
+                if w.running and w.hello and not w.go_t:
+                    w.go()
+        for w in list(self.workers.values()):
+            name = w.hub.name
+            if w.proc is None:
+                if not w.stopping and now >= w.next_start and starting < self.max_starting:
+                    starting += 1
+                    w.spawn()
+                    if w.spawned > 1:
+                        w.restarts += 1
+                        w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
+                                                     "restarts": w.restarts, "time": time.time()})
+                continue
+            rc = w.proc.poll()
+            if rc is not None:
+                self._exited(w, rc, now)
+                continue
+            if w.hello and not w.go_t:
+                continue                     # loaded, waiting at the start barrier
+            age = now - max(w.hub.heartbeat_t, w.go_t, w.started_at)
+            limit = self.watchdog_s if w.go_t else self.startup_s
+            if age > limit and not w.stopping:
+                log.error("%s: worker pid %d silent for %.1f s (stuck loop?): killed (SIGKILL)",
+                          name, w.proc.pid, age)
+                w.hub.publish("supervisor", {"type": "worker_stuck", "station": name,
+                                             "silent_s": round(age, 1), "time": time.time()})
+                w.proc.kill()
+
+    def _exited(self, w: WorkerHandle, rc: int, now: float) -> None:
+        w.reap()
+        w.proc = None
+        w.hub.heartbeat = None
+        name = w.hub.name
+        if w.stopping:
+            return
+        why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
+        if now - w.started_at >= self.stable_s:
+            w.crashes_in_row = 0
+        w.crashes_in_row += 1
+        n = w.crashes_in_row
+        if n >= self.hold_after:
+            delay = self.hold_s
+            log.error("%s: worker keeps crashing (%d times in a row, last: %s): held back for %.0f s",
+                      name, n, why, delay)
+            kind = "worker_held_back"
+        else:
+            delay = min(self.backoff_max_s, self.backoff_s * 2 ** (n - 1))
+            log.error("%s: worker ended (%s); restarting in %.1f s", name, why, delay)
+            kind = "worker_exited"
+        w.next_start = now + delay
+        w.hub.publish("supervisor", {"type": kind, "station": name, "reason": why,
+                                     "crashes_in_row": n, "restart_in_s": delay, "time": time.time()})
+
+    def healthy(self, max_age_s: float = 3.0) -> bool:
+        """Every running worker's station loop answered within ``max_age_s`` (systemd watchdog).
+        A worker waiting for its restart or still starting (its own start-up limit applies) does
+        not hold the others' watchdog back; one that went silent does, until it is killed."""
+        now = time.monotonic()
+        for w in self.workers.values():
+            if (w.running and not w.stopping and w.go_t
+                    and now - max(w.hub.heartbeat_t, w.go_t) > max_age_s):
+                return False
+        return True
+
+    def pending(self) -> bool:
+        """A worker is starting, has not run a slot yet, or waits for its restart."""
+        for w in self.workers.values():
+            hb = w.hub.heartbeat
+            if not w.stopping and (w.proc is None or not w.go_t or not hb or not hb.get("slots")):
+                return True
+        return False
+
+    # ------------------------------------------------------------ reload
+    def reload(self) -> None:
+        try:
+            plan = plan_fleet(self.folder)
+        except OSError as e:
+            log.error("reload refused, configuration kept: %s: %s", self.folder, e)
+            return
+        seen = set()
+        for r in plan.refused:
+            seen.add(r.path)
+            if r.path in self.workers:
+                log.error("reload refused, configuration kept: %s", r.message())
+            else:
+                self.refuse(r, reload=True)
+        n = max(1, len(plan.accepted))
+        for i, (path, cfg) in enumerate(plan.accepted):
+            seen.add(path)
+            fp = fingerprint(apply_overrides(cfg, self.opts))
+            w = self.workers.get(path)
+            if w is None:
+                log.info("%s: new station file: starting its worker", cfg.station.id)
+                self._add(path, cfg, i / n)
+            elif w.hub.name != cfg.station.id:
+                log.info("%s: station id changed to %s: worker replaced", w.hub.name, cfg.station.id)
+                self._retire(w)
+                self._add(path, cfg, i / n)
+            elif fp != w.fingerprint:
+                w.fingerprint = fp
+                log.info("%s: %s changed: reload sent to its worker", w.hub.name, os.path.basename(path))
+                if not w.send(FrameType.RELOAD, {}):
+                    log.warning("%s: worker not running; it starts with the new file", w.hub.name)
+        for path, w in list(self.workers.items()):
+            if path not in seen:
+                log.info("%s: station file removed: its worker stops", w.hub.name)
+                self._retire(w)
+        self.plan = plan
+
+    def _retire(self, w: WorkerHandle) -> None:
+        w.terminate()
+        self.workers.pop(w.path, None)
+        self._retired.append(w)
+
+    # ------------------------------------------------------------ stop
+    def stop(self, timeout: float = 40.0) -> None:
+        ws = list(self.workers.values()) + list(self._retired)
+        for w in ws:
+            w.terminate()
+        t_end = time.monotonic() + timeout
+        for w in ws:
+            if w.proc is None:
+                continue
+            try:
+                w.proc.wait(max(0.1, t_end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.error("%s: worker did not stop within %.0f s: killed", w.hub.name, timeout)
+                w.proc.kill()
+                w.proc.wait()
+            w.reap()

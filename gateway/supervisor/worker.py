@@ -1,0 +1,253 @@
+"""One station in its own process: ``python -m gateway.supervisor.worker --fd N STATION.yaml``.
+
+Started by the supervisor (``hookwatch run FLEET_DIR``) with one end of a Unix socketpair as
+file descriptor ``N``. The station runs on a :class:`~gateway.station.fleet.StationRunner` (its own
+loop, restarted after an exception, SIGHUP reloads decided on its loop), with its own MQTT client
+and outbox when configured, plus an :class:`IpcOutput` that streams its state, slot summaries and
+events to the supervisor (:mod:`gateway.supervisor.ipc`). Commands from the supervisor go to
+``station.submit`` on the station's loop. SIGTERM/SIGINT, or the supervisor's end of the socket
+closing, stop the station cleanly (a running test is closed as aborted).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import asdict
+from typing import Any
+
+from ..compose import build_station
+from ..config import ConfigError, load_station
+from ..records import Command, CommandKind, Event, SlotRecord, StationState
+from ..station.fleet import StationRunner
+from ..station.station import Station
+from ..threadloop import submit_to
+from .fleetcfg import RunOptions, apply_overrides
+from .ipc import PROTO, FrameChannel, FrameDecoder, FrameType, ProtocolError, read_frames
+
+log = logging.getLogger("hookwatch.worker")
+
+#: one SLOTS frame per this many slots (0.2 s at 50 Hz)
+SUMMARY_EVERY = 10
+HEARTBEAT_S = 0.5
+
+
+class IpcOutput:
+    """An :class:`~gateway.ports.Output` that sends a station's stream to the supervisor.
+    O(1) per slot, never blocks: frames go to a bounded :class:`FrameChannel`."""
+
+    def __init__(self, chan: FrameChannel, every: int = SUMMARY_EVERY) -> None:
+        self.chan = chan
+        self.every = max(1, int(every))
+        self._reset()
+
+    def _reset(self) -> None:
+        self._n = self._filled = self._valid = self._tn = 0
+        self._mu = self._t = 0.0
+        self._late = self._rtt = 0.0
+
+    async def start(self) -> None:
+        pass
+
+    async def stop(self) -> None:
+        pass
+
+    def on_record(self, rec: SlotRecord) -> None:
+        self._n += 1
+        if rec.present:
+            self._filled += 1
+            self._t += (rec.t1 + rec.t2) * 0.5
+            self._tn += 1
+            if rec.rtt_s == rec.rtt_s and rec.rtt_s > self._rtt:
+                self._rtt = rec.rtt_s
+        if rec.q and rec.mu is not None:
+            self._valid += 1
+            self._mu += rec.mu
+        if rec.lateness_s > self._late:
+            self._late = rec.lateness_s
+        if self._n >= self.every:
+            self.chan.send(FrameType.SLOTS, {
+                "k": rec.k, "n": self._n, "filled": self._filled, "valid": self._valid,
+                "mu_mean": self._mu / self._valid if self._valid else None,
+                "t_mean": self._t / self._tn if self._tn else None,
+                "lateness_ms_max": self._late * 1e3, "rtt_ms_max": self._rtt * 1e3,
+                "last": asdict(rec)})
+            self._reset()
+
+    def on_event(self, ev: Event) -> None:
+        self.chan.send(FrameType.EVENT, ev.as_dict())
+
+    def on_state(self, st: StationState) -> None:
+        self.chan.send(FrameType.STATE, asdict(st))
+
+
+class Worker:
+    def __init__(self, sock: socket.socket, station_file: str, fleet_file: str | None,
+                 opts: RunOptions, phase: float = 0.0, summary_every: int = SUMMARY_EVERY) -> None:
+        self.sock = sock
+        self.station_file = station_file
+        self.fleet_file = fleet_file
+        self.opts = opts
+        self.phase = phase
+        self.chan = FrameChannel(sock, name="ipc-writer")
+        self.out = IpcOutput(self.chan, summary_every)
+        self.stop = threading.Event()
+        self.go = threading.Event()
+        self.station: Station | None = None
+        #: results of the station's earlier incarnations (before a reload or an in-process restart)
+        self.earlier_results: list[dict[str, Any]] = []
+        self.runner: StationRunner | None = None
+
+    def load(self) -> Any:
+        return apply_overrides(load_station(self.station_file, self.fleet_file or None), self.opts)
+
+    def factory(self, cfg: Any) -> Callable[[], Station]:
+        def make() -> Station:
+            st = build_station(cfg, outputs=[self.out], with_northbound=not self.opts.no_northbound)
+            st.slot_phase = self.phase
+            return st
+        return make
+
+    def _started(self, st: Station) -> None:
+        if self.station is not None:
+            self.earlier_results.extend(self.station.results)
+        self.station = st
+
+    # ------------------------------------------------------------ supervisor → worker
+    def _reader(self) -> None:
+        dec = FrameDecoder()
+        try:
+            while True:
+                frames = read_frames(self.sock, dec)
+                if frames is None:
+                    break
+                for ftype, body in frames:
+                    if ftype == FrameType.COMMAND:
+                        self._command(body)
+                    elif ftype == FrameType.RELOAD:
+                        self._reload()
+                    elif ftype == FrameType.GO:
+                        self.go.set()
+        except (OSError, ProtocolError) as e:
+            log.error("supervisor link: %s", e)
+        if not self.stop.is_set():
+            log.warning("supervisor link closed; the station stops")
+        self.stop.set()
+        self.go.set()
+
+    def _reply(self, fid: Any, ok: bool, reason: str, request_id: Any = None) -> None:
+        self.chan.send(FrameType.REPLY, {"id": fid, "ok": ok, "reason": reason, "request_id": request_id})
+
+    def _command(self, body: dict[str, Any]) -> None:
+        fid = body.get("id")
+        r = self.runner
+        st = r.station if r is not None else None
+        try:
+            cmd = Command(CommandKind(body.get("kind")), str(body.get("source") or "supervisor"),
+                          dict(body.get("args") or {}), body.get("request_id"))
+        except (ValueError, TypeError) as e:
+            self._reply(fid, False, f"bad command: {e}")
+            return
+        fut = submit_to(r.loop if r is not None else None, st.submit(cmd)) if st is not None else None
+        if fut is None:
+            self._reply(fid, False, "station is not running", cmd.request_id)
+            return
+
+        def done(f: Any) -> None:
+            try:
+                rep = f.result()
+                self._reply(fid, bool(rep.ok), rep.reason, rep.request_id)
+            except Exception as e:  # the station's submit failed: an answer all the same
+                self._reply(fid, False, f"{type(e).__name__}: {e}", cmd.request_id)
+        fut.add_done_callback(done)
+
+    def _reload(self) -> None:
+        try:
+            cfg = self.load()
+        except (ConfigError, OSError) as e:
+            log.error("reload refused, configuration kept: %s", str(e).replace("\n", "; "))
+            return
+        if self.runner is not None:
+            self.runner.request_reload(self.factory(cfg))
+
+    def results(self) -> list[dict[str, Any]]:
+        return self.earlier_results + (self.station.results if self.station is not None else [])
+
+    # ------------------------------------------------------------ heartbeat (on the loop)
+    def _heartbeat(self) -> None:
+        r = self.runner
+        st = r.station if r is not None else None
+        self.chan.send(FrameType.HEARTBEAT, {
+            "slots": st.stats.slots if st else 0, "filled": st.stats.filled if st else 0,
+            "in_test": bool(st is not None and st.session is not None),
+            "results": len(self.results()),
+            "dropped": self.chan.dropped, "crashes": r.crashes if r else 0})
+
+    def run(self) -> int:
+        cfg = self.load()
+        self.runner = r = StationRunner(cfg.station.id, self.factory(cfg), on_started=self._started)
+        threading.Thread(target=self._reader, name="ipc-reader", daemon=True).start()
+        self.chan.send(FrameType.HELLO, {"station": cfg.station.id, "pid": os.getpid(), "proto": PROTO})
+        self.go.wait()
+        if self.stop.is_set():
+            self.chan.flush()
+            self.sock.close()
+            return 0
+        r.start()
+        while not self.stop.is_set() and r.tl.running:
+            self.stop.wait(HEARTBEAT_S)
+            try:
+                r.tl.call_soon(self._heartbeat)
+            except RuntimeError:
+                break
+        clean = self.stop.is_set()
+        r.request_stop()
+        if r.tl.thread is not None:
+            r.tl.thread.join(40)
+        st = r.station
+        final = {"stats": st.stats.summary() if st is not None else None,
+                 "results": self.results()}
+        self.chan.flush()
+        self.chan.send_now(FrameType.FINAL, final)
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+        return 0 if clean else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="hookwatch-worker", description=__doc__)
+    ap.add_argument("station_file")
+    ap.add_argument("--fd", type=int, required=True, help="the worker's end of the socketpair")
+    ap.add_argument("--fleet-file", default="")
+    ap.add_argument("--phase", type=float, default=0.0)
+    ap.add_argument("--options", default="{}", help="hookwatch run's options as JSON")
+    ap.add_argument("--summary-every", type=int, default=SUMMARY_EVERY)
+    args = ap.parse_args(argv)
+    opts = RunOptions(**json.loads(args.options))
+    logging.basicConfig(level=getattr(logging, (opts.log_level or "info").upper(), logging.INFO),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    sys.setswitchinterval(0.0005)
+    sock = socket.socket(fileno=args.fd)
+    w = Worker(sock, args.station_file, args.fleet_file or None, opts, args.phase, args.summary_every)
+    signal.signal(signal.SIGTERM, lambda s, f: w.stop.set())
+    signal.signal(signal.SIGINT, lambda s, f: w.stop.set())
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)      # reloads come from the supervisor
+    try:
+        return w.run()
+    except ConfigError as e:
+        log.error("%s: refused: %s", args.station_file, str(e).replace("\n", "; "))
+        return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())
