@@ -31,8 +31,9 @@ class RunOptions:
 
     @classmethod
     def from_args(cls, args: Any) -> RunOptions:
-        return cls(**{f.name: getattr(args, f.name, None) or (False if f.type == "bool" else None)
-                      for f in dataclasses.fields(cls)})
+        kw: dict[str, Any] = {f.name: getattr(args, f.name, None) or (False if f.type == "bool" else None)
+                              for f in dataclasses.fields(cls)}
+        return cls(**kw)
 
     def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
