@@ -18,6 +18,7 @@ import asyncio
 import collections
 import math
 import time
+import zlib
 from dataclasses import asdict
 from typing import Any
 
@@ -155,11 +156,8 @@ class Series:
 
 def series_from_log(path: str, ts: float = 0.02, max_buckets: int = MAX_BUCKETS) -> Series:
     """The series of a recorded test from its log on disk — also while the recorder still writes
-    it (the log is zlib-sync-flushed every second: everything up to the last flush is read; a
-    torn last line is left out)."""
-    import zlib
-
-
+    it (the recorder writes one complete gzip member per flush, about once a second: every member
+    on disk is read, one after the other; a torn last member or line is left out)."""
     s = Series(ts, max_buckets)
     d = zlib.decompressobj(16 + zlib.MAX_WBITS)
     col = {c: i for i, c in enumerate(LOG_COLUMNS)}
@@ -172,9 +170,14 @@ def series_from_log(path: str, ts: float = 0.02, max_buckets: int = MAX_BUCKETS)
             if not chunk:
                 break
             try:
-                data = tail + d.decompress(chunk)
+                data = d.decompress(chunk)
+                while d.eof and d.unused_data:     # the next gzip member (one per recorder flush)
+                    rest = d.unused_data
+                    d = zlib.decompressobj(16 + zlib.MAX_WBITS)
+                    data += d.decompress(rest)
             except zlib.error:
                 break               # a damaged stream: what was read so far stands
+            data = tail + data
             lines = data.split(b"\n")
             tail = lines.pop()
             for ln in lines:
