@@ -36,7 +36,10 @@ def test_stop_cancels_pending_tasks():
     tl.start()
     cancelled = threading.Event()
 
+    started = threading.Event()
+
     async def forever():
+        started.set()
         try:
             await asyncio.sleep(3600)
         except asyncio.CancelledError:
@@ -44,6 +47,8 @@ def test_stop_cancels_pending_tasks():
             raise
 
     tl.submit(forever())
+    # a task cancelled before its first step never enters its try block: wait until it runs
+    assert started.wait(5)
     tl.stop(5)
     assert cancelled.is_set() and not tl.running
 
