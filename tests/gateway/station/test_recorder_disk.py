@@ -130,15 +130,17 @@ def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
     with small_tmpfs(tmp_path / "records", "2m"), virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="full", control=TUNED, test={"t_end_s": 600})
         gw = run_gateway(tmp_path, st, "--start", "--duration", "40")
-        d = _first_test_dir(tmp_path, "full")
-        time.sleep(3)
-        filler = fill(str(tmp_path / "records"))
-        time.sleep(5)
-        # while full: the log on disk reads back (what reached the disk)
-        assert read_log(os.path.join(d, LOG_NAME)).t.size > 0
-        os.unlink(filler)
-        time.sleep(4)
-        gw.stop()
+        try:
+            d = _first_test_dir(tmp_path, "full")
+            time.sleep(3)
+            filler = fill(str(tmp_path / "records"))
+            time.sleep(5)
+            # while full: the log on disk reads back (what reached the disk)
+            assert read_log(os.path.join(d, LOG_NAME)).t.size > 0
+            os.unlink(filler)
+            time.sleep(4)
+        finally:
+            gw.stop()    # also when an assertion failed: no gateway left holding the test's ports
         glog = gw.log_all()
         assert "station failed" not in glog and "Traceback" not in glog, glog
         assert glog.count("cannot write") == 1, glog
@@ -161,20 +163,25 @@ def test_station_folder_unwritable_mid_test_completes_and_keeps_its_result(tmp_p
     with small_tmpfs(tmp_path / "records", "8m"), virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="ro", control=TUNED, test={"t_end_s": 10})
         gw = run_gateway(tmp_path, st, "--start", "--duration", "30")
-        d = _first_test_dir(tmp_path, "ro")
-        time.sleep(2)
-        # the test folder becomes unwritable (immutable: no new file, also for root)
-        subprocess.run(["chattr", "+i", d], check=True)
-        t_end = time.monotonic() + 25
-        while time.monotonic() < t_end and "cannot write result.json" not in gw.log_all():
-            time.sleep(0.2)
-        assert "cannot write result.json" in gw.log_all(), gw.log()
-        assert not os.path.exists(os.path.join(d, RESULT_NAME))
-        subprocess.run(["chattr", "-i", d], check=True)
-        t_end = time.monotonic() + 15
-        while time.monotonic() < t_end and not os.path.exists(os.path.join(d, RESULT_NAME)):
-            time.sleep(0.2)
-        gw.stop()
+        d = None
+        try:
+            d = _first_test_dir(tmp_path, "ro")
+            time.sleep(2)
+            # the test folder becomes unwritable (immutable: no new file, also for root)
+            subprocess.run(["chattr", "+i", d], check=True)
+            t_end = time.monotonic() + 25
+            while time.monotonic() < t_end and "cannot write result.json" not in gw.log_all():
+                time.sleep(0.2)
+            assert "cannot write result.json" in gw.log_all(), gw.log()
+            assert not os.path.exists(os.path.join(d, RESULT_NAME))
+            subprocess.run(["chattr", "-i", d], check=True)
+            t_end = time.monotonic() + 15
+            while time.monotonic() < t_end and not os.path.exists(os.path.join(d, RESULT_NAME)):
+                time.sleep(0.2)
+        finally:
+            gw.stop()    # also when an assertion failed: no gateway left, no immutable folder left
+            if d is not None:
+                subprocess.run(["chattr", "-i", d], check=False)
         glog = gw.log_all()
         assert "station failed" not in glog and "Traceback" not in glog, glog
         res = read_json(os.path.join(d, RESULT_NAME))
