@@ -34,10 +34,15 @@ def params_for(meta: Mapping[str, Any], overrides: Mapping[str, Any], source: st
         raise AnalysisError(str(e)) from None
 
 
-def analyze_file(path: str, overrides: Mapping[str, Any] | None = None) -> Result:
+def analyze_log(path: str, overrides: Mapping[str, Any] | None = None) -> tuple[Result, MethodParams]:
+    """The result of a recorded log and the parameters it was analysed with."""
     try:
         log = read_log(path)
     except LogError as e:
         raise AnalysisError(str(e)) from None
     p = params_for(log.meta, overrides or {}, path)
-    return analyze_slots(to_slots(log.t, log.t1, log.t2, p), p)
+    return analyze_slots(to_slots(log.t, log.t1, log.t2, p), p), p
+
+
+def analyze_file(path: str, overrides: Mapping[str, Any] | None = None) -> Result:
+    return analyze_log(path, overrides)[0]

@@ -57,7 +57,7 @@ def test_control_keys_come_from_the_control_dataclasses():
 
 
 def test_method_keys_come_from_the_method_params():
-    assert set(S.METHOD_KEYS) == {p.name for p in PARAMS} - {"t_set", "t_end"}
+    assert set(S.METHOD_KEYS) == {p.name for p in PARAMS} - {"t_set", "t_end", "end_slot"}
 
 
 def test_every_key_is_documented():
@@ -82,7 +82,7 @@ def test_minimal_station_gets_every_default(tmp_path):
     assert cfg.meter.baud is None and cfg.meter.timeout_s == 0.015
     assert os.path.isfile(cfg.meter.map) and cfg.meter.map.endswith("zn-s.yaml")
     assert cfg.stm32.baud == 115200 and cfg.stm32.watchdog_s == 0.2
-    assert cfg.method == {p.name: p.default for p in PARAMS if p.name not in ("t_set", "t_end")}
+    assert cfg.method == {p.name: p.default for p in PARAMS if p.name not in ("t_set", "t_end", "end_slot")}
     assert cfg.control.kp == ControlParams().kp and cfg.control.notch.q_max == NotchParams().q_max
     assert cfg.test.t_set_n == 0.5 and cfg.test.t_end_s == 36000.0 and cfg.test.autostart is False
     assert cfg.grades == ("I", "II")

@@ -2,25 +2,41 @@
 import math
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, event, given, settings, strategies as st
 
 from gateway.method import MethodParams, StreamingMonitor, analyze_slots, gate_arrays
-from gateway.method.core import SlotArrays
+from gateway.method.core import SlotArrays, gate_and_baseline
 
 EVENT_KINDS = ["dropout", "burst", "spike", "low", "ratio_low", "ratio_high", "saturation", "nan",
                "gap_ng", "gap_ng1", "gap_stop", "gap_stop1"]
 
 
 @st.composite
-def random_log(draw):
+def random_log(draw, wear=False):
+    """A random log; ``wear`` favours long tests past the baseline (many §5a windows)."""
+    if wear:
+        p = MethodParams(
+            t_set=0.5, w_ss=draw(st.sampled_from([0.2, 0.4])), w_hold=draw(st.sampled_from([0.4, 1.0])),
+            tau=draw(st.sampled_from([0.3, 2.0])), tau_g=draw(st.sampled_from([0.1, 1.0])),
+            stop_after=draw(st.sampled_from([1.0, 10.0])), delta=draw(st.sampled_from([0.1, 0.25])),
+            end_slot=draw(st.sampled_from([None, 2500, 4000])),
+            h_warn=draw(st.sampled_from([0.5, 0.9])), n_warn=draw(st.sampled_from([1, 3, 5])),
+            trend_windows=draw(st.sampled_from([10, 25, 60])))
+        return _make_log(draw, p, n=draw(st.integers(1500, 6000)), max_events=6)
     p = MethodParams(
         t_set=0.5, w_ss=draw(st.sampled_from([0.6, 1.0])), w_hold=draw(st.sampled_from([1.0, 2.0, 3.0])),
         tau=draw(st.sampled_from([0.3, 0.5])), tau_g=draw(st.sampled_from([0.0, 0.1, 0.2, 1.0])),
         stop_after=draw(st.sampled_from([0.0, 0.2, 1.0])), delta=draw(st.sampled_from([0.1, 0.25])),
         t_end=draw(st.sampled_from([None, None, 60.0, 90.0])),
+        end_slot=draw(st.sampled_from([None, None, None, 0, 1, 2000, 3001, 4500])),
+        h_warn=draw(st.sampled_from([0.5, 0.9, 1.2])), n_warn=draw(st.sampled_from([1, 2, 5])),
+        trend_windows=draw(st.sampled_from([10, 12, 60])),
     )
+    return _make_log(draw, p, n=draw(st.integers(0, 5000)), max_events=25)
+
+
+def _make_log(draw, p, n, max_events):
     seed = draw(st.integers(0, 2**32 - 1))
-    n = draw(st.integers(0, 5000))
     rng = np.random.default_rng(seed)
     onset = draw(st.integers(0, 5000))
     k = np.arange(n)
@@ -33,7 +49,7 @@ def random_log(draw):
     t2 = np.round(t1 * e, 3)
     present = np.ones(n, dtype=bool)
     n_g, n_stop = p.n_g, p.n_stop
-    for _ in range(draw(st.integers(0, 25))):
+    for _ in range(draw(st.integers(0, max_events))):
         kind = draw(st.sampled_from(EVENT_KINDS))
         if n == 0:
             break
@@ -57,9 +73,9 @@ def random_log(draw):
             t1[sl] = draw(st.sampled_from([math.nan, math.inf]))
     t1[~present] = np.nan
     t2[~present] = np.nan
-    if p.end_slot is not None:
+    if p.n_grid is not None:
         # a planned end: the log may stop early (the rest is MISSING) or run past it (ignored)
-        m = p.end_slot
+        m = p.n_grid
         if n >= m:
             present, t1, t2 = present[:m], t1[:m], t2[:m]
         else:
@@ -73,10 +89,22 @@ def random_log(draw):
 @settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(random_log())
 def test_streaming_equals_batch(case):
-    p, present, t1, t2 = case
+    _streaming_equals_batch(*case)
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(random_log(wear=True))
+def test_streaming_equals_batch_past_the_baseline(case):
+    """end_slot, headroom, warning and projection (§3, §5a) on long tests with many windows."""
+    _streaming_equals_batch(*case)
+
+
+def _streaming_equals_batch(p, present, t1, t2):
     batch = analyze_slots(SlotArrays(present, t1, t2), p)
     mask, ratio, mu = gate_arrays(present, t1, t2, p)
     mon = StreamingMonitor(p)
+    windows = []
+    warned = []
     for k in range(len(present)):
         if mon.finished:
             break
@@ -91,8 +119,27 @@ def test_streaming_equals_batch(case):
             assert math.isnan(ratio[k])
         else:
             assert out.ratio == ratio[k]
+        if out.window is not None:
+            assert "window" in out.events and out.window.last_slot == k
+            windows.append(out.window)
+        if "wear_warning" in out.events:
+            warned.append(k)
     stream = mon.close(len(present))
     assert stream.as_dict() == batch.as_dict()
+    # §5a window by window: the streaming form published exactly the batch form's windows (those
+    # the streaming form completed before close() padded the rest with MISSING slots)
+    g = gate_and_baseline(SlotArrays(present, t1, t2), p)
+    assert [(w.j, w.n_eff, w.value) for w in windows] == g.windows[:len(windows)]
+    if windows:
+        last = [w for w in windows if w.value is not None]
+        if len(windows) == len(g.windows) and last:
+            assert stream.headroom == last[-1].headroom and stream.t_cross == last[-1].t_cross
+    assert warned == ([stream.warn_slot] if stream.warn_slot is not None and warned else [])
+    event(f"status {stream.status}{' STOPPED' if stream.stop_reasons == ['STOPPED'] else ''}")
+    event(f"warning {stream.warn_slot is not None}, projection {stream.t_cross is not None}, "
+          f"headroom {stream.headroom is not None}")
+    if p.end_slot is not None and stream.status == "aborted" and stream.stop_reasons == ["STOPPED"]:
+        assert stream.stop_slot == p.end_slot == stream.n_slots
 
 
 def test_gap_of_ng_keeps_count_and_ng_plus_one_resets():

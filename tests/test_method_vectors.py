@@ -1,4 +1,4 @@
-"""The four method vectors (copied from ../shared/vectors) through the CLI and through both forms."""
+"""The five method vectors (copied from ../shared/vectors) through the CLI and through both forms."""
 import glob
 import json
 import os
@@ -12,8 +12,9 @@ from gateway.logio import read_log
 from gateway.method import analyze_slots, run_streaming, to_slots
 
 EXACT = ["status", "k_b", "stable_first", "stable_last", "k_life", "n_slots", "n_valid", "reasons",
-         "stop_slot", "stop_reasons", "interrupted"]
-CLOSE = ["mu_ss", "mu_th", "t_life"]
+         "stop_slot", "stop_reasons", "interrupted", "warn_slot"]
+CLOSE = ["mu_ss", "mu_th", "t_life", "headroom"]
+RELATIVE = ["t_cross"]
 NAMES = sorted(os.path.basename(p)[:-len(".csv.gz")] for p in glob.glob(os.path.join(VECTORS, "*.csv.gz")))
 
 
@@ -25,6 +26,11 @@ def check(got, exp):
             assert got[k] is None, k
         else:
             assert abs(got[k] - exp[k]) <= 1e-9, k
+    for k in RELATIVE:
+        if exp[k] is None:
+            assert got[k] is None, k
+        else:
+            assert abs(got[k] - exp[k]) <= 1e-9 * max(1.0, abs(exp[k])), k
 
 
 def expected(name):
@@ -32,8 +38,8 @@ def expected(name):
         return json.load(f)
 
 
-def test_there_are_four_vectors():
-    assert NAMES == ["v1_failure", "v2_faults", "v3_no_failure", "v4_aborted"]
+def test_there_are_five_vectors():
+    assert NAMES == ["v1_failure", "v2_faults", "v3_no_failure", "v4_aborted", "v5_stopped"]
 
 
 def test_cli_json_reproduces_every_vector():
@@ -76,3 +82,60 @@ def test_set_overrides_sidecar():
     exp = expected("v1_failure")
     assert got["mu_ss"] == pytest.approx(exp["mu_ss"], abs=1e-12)
     assert got["mu_th"] == pytest.approx(1.5 * exp["mu_ss"], abs=1e-12)
+
+
+def test_streamed_windows_match_the_vector_figures():
+    """What the runtime publishes per window (SlotOut.window) ends at the result's figures."""
+    log = read_log(os.path.join(VECTORS, "v1_failure.csv.gz"))
+    p = params_for(log.meta, {}, "v1")
+    s = to_slots(log.t, log.t1, log.t2, p)
+    from gateway.method import StreamingMonitor
+    mon = StreamingMonitor(p)
+    wins, warned = [], []
+    for k in range(s.present.size):
+        out = mon.push(bool(s.present[k]), float(s.t1[k]), float(s.t2[k]))
+        if out.window is not None:
+            wins.append(out.window)
+        if "wear_warning" in out.events:
+            warned.append(k)
+    exp = expected("v1_failure")
+    assert warned == [exp["warn_slot"]]
+    assert wins[0].j == (exp["k_b"] + 1) // p.n_ss
+    assert abs(wins[-1].headroom - exp["headroom"]) <= 1e-9
+    assert any(w.t_cross is not None for w in wins) and wins[-1].t_cross is None
+
+
+def test_set_end_slot_and_warning_parameters_on_the_command_line():
+    log = os.path.join(VECTORS, "v1_failure.csv.gz")
+    exp = expected("v1_failure")
+    runs = {}
+    for end in (100000, 170000):
+        p = subprocess.run(hookwatch_cmd() + ["analyze", log, "--json", "--set", f"end_slot={end}",
+                                              "--set", "h_warn=0.9", "--set", "n_warn=2"],
+                           capture_output=True, text=True, timeout=60)
+        assert p.returncode == 0, p.stderr
+        runs[end] = json.loads(p.stdout)
+    got = runs[100000]       # stopped before the end of life
+    assert (got["status"], got["stop_slot"], got["stop_reasons"], got["n_slots"], got["interrupted"]) == \
+        ("aborted", 100000, ["STOPPED"], 100000, False)
+    got = runs[170000]       # stopped after t_life: stays a failure, interrupted
+    assert (got["status"], got["stop_slot"], got["stop_reasons"], got["interrupted"], got["k_life"]) == \
+        ("failure", 170000, ["STOPPED"], True, exp["k_life"])
+    # a higher h_warn and a shorter run warn earlier than the vector's defaults
+    assert got["warn_slot"] is not None and got["warn_slot"] < exp["warn_slot"]
+
+
+def test_cli_table_shows_headroom_warning_projection_and_stopped():
+    logs = [os.path.join(VECTORS, n + ".csv.gz") for n in ("v1_failure", "v3_no_failure", "v5_stopped")]
+    p = subprocess.run(hookwatch_cmd() + ["analyze", *logs], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    head = p.stdout.splitlines()[0].split()
+    assert head[-3:] == ["headroom", "warn_s", "t_cross_s"]
+    rows = {ln.split()[0]: ln.split() for ln in p.stdout.splitlines()[1:4]}
+    v1, v3, v5 = (rows[x] for x in logs)
+    assert v1[-3:] == ["-0.496", "3120.00", "-"]          # warning at the end of slot 155999
+    assert v3[-3:] == ["1.001", "-", "80836"]
+    assert v5[-3:] == ["0.986", "-", "-"] and v5[1] == "aborted"
+    assert "early warning at 3120.00 s (slot 155999)" in p.stdout
+    assert "reaches mu_th at 80836 s (22.5 h" in p.stdout
+    assert "ended on purpose at slot 125000 (STOPPED)" in p.stdout

@@ -103,6 +103,8 @@ class TensionParams:
     tau_s: float = 0.25             # τ_T: first-order lag of the mean tension
     dead_time_s: float = 0.08       # L: yarn transport take-up → hook
     mu_tension_coeff: float = -0.1  # μ·(1 + c·(T_m/T_set − 1)): slightly lower μ at higher load
+    slack_s: float = 0.0            # slow spin-up: running seconds (yarn moving above n_0) of slack
+                                    # yarn to wind up after each standstill before tension builds
 
 
 @dataclass(frozen=True)
@@ -128,6 +130,8 @@ class SensorParams:
     full_scale_n: float = 5.0       # readings clip at ± full scale
     gain_ch1: float = 1.0           # channel gain mismatch
     gain_ch2: float = 1.0
+    offset_ch1: float = 0.0         # zero offset of each channel, N (a mis-zeroed or drifted sensor)
+    offset_ch2: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -157,6 +161,7 @@ class PlantParams:
     step_s: float = 0.002               # fixed internal step
     theta_deg: float = 105.0
     trace_every_s: float = 0.1          # trace decimation (10 Hz)
+    threaded: bool = True               # False: the yarn is not threaded (no tension at all)
     motor: MotorParams = field(default_factory=MotorParams)
     tension: TensionParams = field(default_factory=TensionParams)
     drift: DriftParams = field(default_factory=DriftParams)
@@ -275,6 +280,7 @@ class PlantFaults:
     swap_channels: bool = False     # ch1 ↔ ch2 on the wire
 
 
+STANDSTILL_RPM = 1.0    # below this the take-up stands still (its slack forms again)
 _N_RANDOM = 5       # normals consumed per step: noise ch1, noise ch2, μ jitter, run-in jitter, drift
 
 
@@ -315,7 +321,8 @@ class Plant:
         self._delay = [0.0] * max(nd, 1)
         self._di = 0
         self._nd = nd
-        self.t_mean = p.tension.pretension_n    # true mean tension without ripple
+        self.t_mean = p.tension.pretension_n if p.threaded else 0.0   # true mean tension, no ripple
+        self.slack_left_s = p.tension.slack_s   # slack yarn still to wind up (slow spin-up)
         self._phi = 0.0
         # wear
         self.run_s = 0.0                    # running time (yarn moving), real s
@@ -424,17 +431,26 @@ class Plant:
                  + self._walk) * (1.0 + d.package_per_h * self.run_s / 3600.0)
         # ---- mean tension
         tp = p.tension
-        if f.yarn_break:
+        if f.yarn_break or not p.threaded:
             self.t_mean = 0.0
         else:
-            t_ss = tp.pretension_n + tp.gain_n_per_rpm * max(drift, 0.0) * max(n_l - tp.offset_rpm, 0.0)
+            excess = max(n_l - tp.offset_rpm, 0.0)
+            if tp.slack_s > 0:
+                if v < STANDSTILL_RPM and n_l < STANDSTILL_RPM:
+                    self.slack_left_s = tp.slack_s     # standstill: the slack forms again
+                elif excess > 0.0 and self.slack_left_s > 0.0:
+                    self.slack_left_s -= h             # winding the slack up: no tension yet
+                    excess = 0.0
+            t_ss = tp.pretension_n + tp.gain_n_per_rpm * max(drift, 0.0) * excess
             self.t_mean += (t_ss - self.t_mean) * self._a_t
         # ---- ripple
         r = p.ripple
         self._phi = (self._phi + 2.0 * math.pi * v / 60.0 * r.ratio_i * r.harmonic_h * h) % (2.0 * math.pi)
         # ---- wear clock and μ
         w = p.wear
-        running = v >= w.wear_min_rpm and not f.yarn_break
+        # the hook wears while yarn runs over it: not while the slack is wound up
+        running = (v >= w.wear_min_rpm and not f.yarn_break and p.threaded
+                   and self.slack_left_s <= 0.0)
         if running:
             if self.first_run_t is None:
                 self.first_run_t = t
@@ -476,8 +492,8 @@ class Plant:
         if self.faults.saturate:
             self.ch1 = self.ch2 = fs
             return
-        self.ch1 = self._quantise(s.gain_ch1 * t1 + s.noise_n * z[0], s.resolution_n, fs)
-        self.ch2 = self._quantise(s.gain_ch2 * t2 + s.noise_n * z[1], s.resolution_n, fs)
+        self.ch1 = self._quantise(s.gain_ch1 * t1 + s.offset_ch1 + s.noise_n * z[0], s.resolution_n, fs)
+        self.ch2 = self._quantise(s.gain_ch2 * t2 + s.offset_ch2 + s.noise_n * z[1], s.resolution_n, fs)
 
     @staticmethod
     def _quantise(x: float, res: float, fs: float) -> float:

@@ -49,7 +49,7 @@ TOP_KEYS = ("description", "seed", "duration_s", "meter", "stm32", "plant", "met
             "faults")
 METER_KEYS = ("map", "baud", "unit_id")
 STM32_KEYS = ("watchdog_s", "baud")
-PLANT_TOP = ("grade", "t_set", "time_scale", "step_s", "theta_deg", "trace_every_s")
+PLANT_TOP = ("grade", "t_set", "time_scale", "step_s", "theta_deg", "trace_every_s", "threaded")
 
 #: (section, key) -> (lower bound, lower inclusive, upper bound or None); default for numbers: ≥ 0
 BOUNDS: dict[tuple[str, str], tuple[float, bool, float | None]] = {
@@ -75,6 +75,9 @@ BOUNDS: dict[tuple[str, str], tuple[float, bool, float | None]] = {
     ("sensor", "full_scale_n"): (0.0, False, None),
     ("sensor", "gain_ch1"): (0.0, False, 10.0),
     ("sensor", "gain_ch2"): (0.0, False, 10.0),
+    ("sensor", "offset_ch1"): (-1.0, True, 1.0),
+    ("sensor", "offset_ch2"): (-1.0, True, 1.0),
+    ("tension", "slack_s"): (0.0, True, 600.0),
     ("wear", "mu_ss"): (0.0, False, 0.78),
     ("wear", "onset_s"): (0.0, False, None),
     ("wear", "run_in_tau_s"): (0.0, False, None),
@@ -191,6 +194,10 @@ def _plant(where: str, d: dict) -> PlantParams:
         if k == "grade":
             if not isinstance(v, str) or v not in GRADES:
                 raise _bad(where, key, v, ", ".join(GRADES))
+            out[k] = v
+        elif k == "threaded":
+            if not isinstance(v, bool):
+                raise _bad(where, key, v, "true or false")
             out[k] = v
         elif k in SECTIONS:
             sec = _mapping(where, key, v)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..analysis import AnalysisError, analyze_file, parse_overrides
+from ..analysis import AnalysisError, analyze_log, parse_overrides
 from ..cli import CliError
 from ..method.params import PARAMS
 
@@ -38,7 +38,7 @@ def run(args) -> int:
     failed = 0
     for path in args.logs:
         try:
-            res = analyze_file(path, overrides)
+            res, p = analyze_log(path, overrides)
         except AnalysisError as e:
             print(f"hookwatch analyze: {e}", file=sys.stderr)
             failed += 1
@@ -47,17 +47,48 @@ def run(args) -> int:
         if args.json:
             print(json.dumps(d), flush=True)
         else:
+            # display only: the warning's time (end of its last window), s from test start
+            d["warn_s"] = None if res.warn_slot is None else (res.warn_slot + 1) * p.ts
             rows.append(d)
     if rows:
-        hdr = ("log", "status", "mu_ss", "mu_th", "k_b", "t_life", "n_slots", "n_valid", "stop_slot")
-        table = [[_fmt(r[h]) if h not in ("t_life",) else _fmt(r[h], 2) for h in hdr] for r in rows]
-        w = [max(len(h), *(len(t[i]) for t in table)) for i, h in enumerate(hdr)]
-        print("  ".join(h.ljust(w[i]) for i, h in enumerate(hdr)))
-        for t in table:
-            print("  ".join(c.ljust(w[i]) for i, c in enumerate(t)))
-        for r in rows:
-            reasons = ", ".join(f"{k}={v}" for k, v in r["reasons"].items() if v)
-            extra = f"; protection stop at slot {r['stop_slot']} ({', '.join(r['stop_reasons'])})" \
-                if r["stop_slot"] is not None else ""
-            print(f"  {r['log']}: invalid slots by reason: {reasons or 'none'}{extra}")
+        _table(rows)
     return 2 if failed else 0
+
+
+#: (heading, result key, decimals) of the human table
+COLUMNS = (("log", "log", 0), ("status", "status", 0), ("mu_ss", "mu_ss", 6), ("mu_th", "mu_th", 6),
+           ("k_b", "k_b", 0), ("t_life", "t_life", 2), ("n_slots", "n_slots", 0),
+           ("n_valid", "n_valid", 0), ("stop_slot", "stop_slot", 0), ("headroom", "headroom", 3),
+           ("warn_s", "warn_s", 2), ("t_cross_s", "t_cross", 0))
+
+
+def _table(rows) -> None:
+    table = [[_fmt(r[key], nd) for _, key, nd in COLUMNS] for r in rows]
+    w = [max(len(h), *(len(t[i]) for t in table)) for i, (h, _, _) in enumerate(COLUMNS)]
+    print("  ".join(h.ljust(w[i]) for i, (h, _, _) in enumerate(COLUMNS)))
+    for t in table:
+        print("  ".join(c.ljust(w[i]) for i, c in enumerate(t)))
+    for r in rows:
+        reasons = ", ".join(f"{k}={v}" for k, v in r["reasons"].items() if v)
+        extra = ""
+        if r["stop_reasons"] == ["STOPPED"]:
+            extra = f"; ended on purpose at slot {r['stop_slot']} (STOPPED)"
+        elif r["stop_slot"] is not None:
+            extra = f"; protection stop at slot {r['stop_slot']} ({', '.join(r['stop_reasons'])})"
+        print(f"  {r['log']}: invalid slots by reason: {reasons or 'none'}{extra}")
+        if r["k_b"] is not None:
+            print(f"  {r['log']}: {_wear_line(r)}")
+
+
+def _wear_line(r) -> str:
+    """METHOD.md §5a in words (informative: never the status)."""
+    if r["headroom"] is None:
+        return "wear: no complete window with a value after the baseline"
+    out = [f"wear: headroom {r['headroom']:.3f} (last window; 1 = baseline, 0 = threshold)"]
+    out.append("no early warning" if r["warn_slot"] is None else
+               f"early warning at {r['warn_s']:.2f} s (slot {r['warn_slot']})")
+    out.append("no projection (trend flat or falling, past the threshold, or < 10 windows)"
+               if r["t_cross"] is None else
+               f"projection: the recent trend reaches mu_th at {r['t_cross']:.0f} s "
+               f"({r['t_cross'] / 3600:.1f} h; the accelerated stage usually comes sooner)")
+    return "; ".join(out)

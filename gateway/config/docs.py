@@ -93,7 +93,8 @@ def render() -> str:
                     "| key | default | unit | meaning |", "|---|---|---|---|"]
             for p in PARAMS:
                 if p.name in S.METHOD_KEYS:
-                    out.append(f"| `method.{p.name}` | `{p.default:g}` | {p.unit} | {_esc(p.doc)} |")
+                    d = str(p.default).lower() if isinstance(p.default, bool) else f"{p.default:g}"
+                    out.append(f"| `method.{p.name}` | `{d}` | {p.unit} | {_esc(p.doc)} |")
             out.append("")
             continue
         out += _section_doc(sec, (sec.name,))

@@ -380,7 +380,8 @@ ControlConfig.__doc__ = "control: the fields of gateway.control.ControlParams ex
 ControlConfig.__module__ = __name__
 
 #: method parameters a station file may set in `method:` (t_set/t_end come from `test:`)
-METHOD_EXCLUDED = {"t_set": "test.t_set_n", "t_end": "test.t_end_s"}
+METHOD_EXCLUDED = {"t_set": "test.t_set_n", "t_end": "test.t_end_s",
+                   "end_slot": "the sidecar (written by the gateway when a test is ended on purpose)"}
 METHOD_KEYS = tuple(p.name for p in METHOD_PARAMS if p.name not in METHOD_EXCLUDED)
 
 

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from . import rules as R
-from .params import MethodParams
+from .params import STOPPED, MethodParams
+from .wear import WearTracker, WindowOut
 
 # ----------------------------------------------------------------------------------------------
 # Results
@@ -41,6 +42,9 @@ class Result:
     interrupted: bool
     stop_slot: int | None
     stop_reasons: list[str] | None
+    headroom: float | None = None
+    warn_slot: int | None = None
+    t_cross: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -50,14 +54,23 @@ class Result:
             "n_valid": self.n_valid, "reasons": dict(self.reasons),
             "interrupted": self.interrupted, "stop_slot": self.stop_slot,
             "stop_reasons": None if self.stop_reasons is None else list(self.stop_reasons),
+            "headroom": self.headroom, "warn_slot": self.warn_slot, "t_cross": self.t_cross,
         }
 
 
 def _finish(p: MethodParams, *, n_slots: int, n_valid: int, reason_counts: dict[str, int],
             stable_first: int | None, k_b: int | None, mu_ss: float | None,
-            k_life: int | None, stop_slot: int | None, stop_mask: int) -> Result:
-    """One place that turns the method's findings into a status (§3, §5, §6)."""
+            k_life: int | None, stop_slot: int | None, stop_mask: int,
+            end_slot: int | None, wear: WearTracker | None) -> Result:
+    """One place that turns the method's findings into a status (§3, §5, §5a, §6).
+
+    ``end_slot``: the test was ended on purpose there (§3); it applies only when the analysed
+    slots reached it without a protection stop."""
     mu_th = None if mu_ss is None else R.threshold(mu_ss, p)
+    stop_reasons = None if stop_slot is None else R.reason_names(stop_mask)
+    if stop_slot is None and end_slot is not None and n_slots >= end_slot:
+        stop_slot = end_slot
+        stop_reasons = [STOPPED]
     interrupted = False
     if k_life is not None:
         status = STATUS_FAILURE
@@ -73,8 +86,10 @@ def _finish(p: MethodParams, *, n_slots: int, n_valid: int, reason_counts: dict[
         stable_first=stable_first, stable_last=k_b,
         k_life=k_life, t_life=None if k_life is None else k_life * p.ts,
         n_slots=n_slots, n_valid=n_valid, reasons=reason_counts, interrupted=interrupted,
-        stop_slot=stop_slot,
-        stop_reasons=None if stop_slot is None else R.reason_names(stop_mask),
+        stop_slot=stop_slot, stop_reasons=stop_reasons,
+        headroom=None if wear is None else wear.headroom,
+        warn_slot=None if wear is None else wear.warn_slot,
+        t_cross=None if wear is None else wear.t_cross,
     )
 
 
@@ -90,14 +105,23 @@ class SlotOut:
     mask: int
     ratio: float | None      # R = T2/T1 (diagnostic, also when invalid), None if undefined
     mu: float | None         # only when q = 1
-    events: list[str] = field(default_factory=list)  # "baseline", "end_of_life", "protection_stop"
+    #: "baseline", "end_of_life", "protection_stop", "window" (a §5a window is complete: see
+    #: ``window``), "wear_warning" (the §5a early warning, once per test)
+    events: list[str] = field(default_factory=list)
+    window: WindowOut | None = None   # the post-baseline window that ended with this slot
 
 
 class StreamingMonitor:
     """Feed one slot at a time with :meth:`push`; memory is bounded by W_hold.
 
     States: ``baseline_search`` → ``monitoring`` (baseline established) → ``failed`` (t_life found,
-    the test runs on) ; ``stopped`` after a protection stop; ``ended`` after t_end.
+    the test runs on) ; ``stopped`` after a protection stop; ``ended`` after t_end or end_slot.
+
+    After the baseline, every complete window yields a :class:`WindowOut` (§5a: value, headroom,
+    t_cross, warning) in ``SlotOut.window`` of the slot that completes it, with the event
+    ``"window"`` (and ``"wear_warning"`` the one time the early warning fires); ``wear`` holds the
+    running figures. A test ended on purpose (operator, PLC, MES, clean shutdown) ends with
+    :meth:`stop`, whose result equals the batch form over the log with ``end_slot`` in its sidecar.
     """
 
     def __init__(self, p: MethodParams):
@@ -113,7 +137,8 @@ class StreamingMonitor:
         self._n_tau = p.n_tau
         self._n_g = p.n_g
         self._n_stop = p.n_stop
-        self._end = p.end_slot
+        self._end = p.n_grid
+        self._end_slot = p.end_slot
         self.k = 0                       # next slot index
         self.n_valid = 0
         self.counts = [0] * len(R.REASONS)
@@ -136,6 +161,7 @@ class StreamingMonitor:
         self._stop_mask = 0
         self.windows_done = 0
         self.windows_steady_run = 0
+        self.wear: WearTracker | None = None   # §5a, from the baseline on
 
     # -- state for display --
     @property
@@ -218,26 +244,32 @@ class StreamingMonitor:
                     self.c = 0
                     self.g = 0
 
-        # baseline search (§4)
-        if self.k_b is None:
-            if q:
-                self._win_mu.append(mu)
-            if (k + 1) % self._n_ss == 0:
-                win = np.array(self._win_mu, dtype=np.float64)
-                self._win_mu = []
-                self.windows_done += 1
-                if R.window_steady(win, self.p):
-                    self._run.append(win)
-                    if len(self._run) == self._m:
-                        self.k_b = k
-                        self.stable_first = k - self._m * self._n_ss + 1
-                        self.mu_ss = R.baseline_value(np.concatenate(list(self._run)))
-                        self.mu_th = R.threshold(self.mu_ss, self.p)
-                        self._run.clear()
-                        events.append("baseline")
-                else:
+        # windows: baseline search (§4), then headroom (§5a)
+        if q:
+            self._win_mu.append(mu)
+        if (k + 1) % self._n_ss == 0:
+            win = np.array(self._win_mu, dtype=np.float64)
+            self._win_mu = []
+            self.windows_done += 1
+            if self.wear is not None:
+                w = self.wear.add(k // self._n_ss, win.size, R.window_value(win, self.p))
+                events.append("window")
+                if w.warning:
+                    events.append("wear_warning")
+                return SlotOut(k, q, mask, ratio, mu, events, w)
+            if R.window_steady(win, self.p):
+                self._run.append(win)
+                if len(self._run) == self._m:
+                    self.k_b = k
+                    self.stable_first = k - self._m * self._n_ss + 1
+                    self.mu_ss = R.baseline_value(np.concatenate(list(self._run)))
+                    self.mu_th = R.threshold(self.mu_ss, self.p)
+                    self.wear = WearTracker(self.p, self.mu_ss, self.mu_th)
                     self._run.clear()
-                self.windows_steady_run = len(self._run)
+                    events.append("baseline")
+            else:
+                self._run.clear()
+            self.windows_steady_run = len(self._run)
         return SlotOut(k, q, mask, ratio, mu, events)
 
     def reason_counts(self) -> dict[str, int]:
@@ -249,7 +281,8 @@ class StreamingMonitor:
         return _finish(self.p, n_slots=self.k, n_valid=self.n_valid,
                        reason_counts=self.reason_counts(), stable_first=self.stable_first,
                        k_b=self.k_b, mu_ss=self.mu_ss, k_life=self.k_life,
-                       stop_slot=self.stop_slot, stop_mask=self._stop_mask)
+                       stop_slot=self.stop_slot, stop_mask=self._stop_mask,
+                       end_slot=self._end_slot, wear=self.wear)
 
     def close(self, n_slots: int | None = None) -> Result:
         """End the test: slots up to the planned end (or up to ``n_slots``) that never came are
@@ -259,6 +292,19 @@ class StreamingMonitor:
             while not self.finished and self.k < target:
                 self.push(False)
         return self.result()
+
+    def stop(self, end_slot: int | None = None) -> Result:
+        """End the test on purpose (§3) before its planned end: the test has exactly ``end_slot``
+        slots (default: the slots pushed so far; slots up to it that never came are MISSING).
+        Write the same ``end_slot`` into the sidecar so that the offline result is the same."""
+        if end_slot is None:
+            end_slot = self.k
+        if end_slot < self.k:
+            raise ValueError(f"end_slot {end_slot} < {self.k} slots already analysed")
+        if self.stop_slot is None:
+            self._end = end_slot          # exactly end_slot slots; t_end adds nothing (§3)
+        self._end_slot = end_slot
+        return self.close()
 
 
 def run_streaming(p: MethodParams, present: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> Result:
@@ -291,11 +337,12 @@ class SlotArrays:
 
 def to_slots(t: np.ndarray, t1: np.ndarray, t2: np.ndarray, p: MethodParams) -> SlotArrays:
     """§1: assign readings to slots round(t / Ts); the later of two readings in a slot wins.
-    Without t_end the grid ends at the last reading's slot; with t_end it has t_end / Ts slots."""
+    Without t_end the grid ends at the last reading's slot; with t_end it has t_end / Ts slots;
+    with end_slot (§3, a test ended on purpose) exactly end_slot slots."""
     tf = np.isfinite(t)
     k = R.slot_index(np.where(tf, t, -1.0), p.ts)
     ok = tf & (k >= 0)
-    end = p.end_slot
+    end = p.n_grid
     if end is not None:
         ok &= k < end
     out = int(np.count_nonzero(~ok))
@@ -424,6 +471,19 @@ class GatedSlots:
     stable_first: int | None
     k_b: int | None
     mu_ss: float | None
+    windows: list[tuple[int, int, float | None]] = field(default_factory=list)  # §5a (j, N_eff, μ̃)
+
+
+def _post_windows(mu: np.ndarray, valid: np.ndarray, k_b: int, n_usable: int,
+                  p: MethodParams) -> list[tuple[int, int, float | None]]:
+    """§5a: the complete windows after Ω_stable that end before slot n_usable, as (j, N_eff, μ̃)."""
+    n_ss = p.n_ss
+    out = []
+    for j in range((k_b + 1) // n_ss, n_usable // n_ss):
+        a, b = j * n_ss, (j + 1) * n_ss
+        win = mu[a:b][valid[a:b]]
+        out.append((j, int(win.size), R.window_value(win, p)))
+    return out
 
 
 def gate_and_baseline(s: SlotArrays, p: MethodParams) -> GatedSlots:
@@ -437,7 +497,8 @@ def gate_and_baseline(s: SlotArrays, p: MethodParams) -> GatedSlots:
     # windows must be complete and end before a protection stop
     n_usable = n_slots if stop_slot is None else stop_slot
     stable_first, k_b, mu_ss = _baseline(mu, valid, n_usable, p)
-    return GatedSlots(p, mask, ratio, mu, stop_slot, stop_mask, stable_first, k_b, mu_ss)
+    windows = [] if k_b is None else _post_windows(mu, valid, k_b, n_usable, p)
+    return GatedSlots(p, mask, ratio, mu, stop_slot, stop_mask, stable_first, k_b, mu_ss, windows)
 
 
 def life_result(g: GatedSlots, delta: float | None = None) -> Result:
@@ -446,8 +507,12 @@ def life_result(g: GatedSlots, delta: float | None = None) -> Result:
     mask, mu, k_b = g.mask, g.mu, g.k_b
     valid = mask == 0
     k_life = None
+    wear = None
     if k_b is not None:
         mu_th = R.threshold(g.mu_ss, p)
+        wear = WearTracker(p, g.mu_ss, mu_th)
+        for j, n_eff, value in g.windows:
+            wear.add(j, n_eff, value)
         with np.errstate(invalid="ignore"):
             bb = valid[k_b + 1:] & (mu[k_b + 1:] > mu_th)
         i = _persistence(bb, p.n_tau, p.n_g)
@@ -456,7 +521,8 @@ def life_result(g: GatedSlots, delta: float | None = None) -> Result:
     counts = {name: int(np.count_nonzero(mask & bit)) for bit, name in R.REASONS}
     return _finish(p, n_slots=mask.size, n_valid=int(np.count_nonzero(valid)),
                    reason_counts=counts, stable_first=g.stable_first, k_b=k_b, mu_ss=g.mu_ss,
-                   k_life=k_life, stop_slot=g.stop_slot, stop_mask=g.stop_mask)
+                   k_life=k_life, stop_slot=g.stop_slot, stop_mask=g.stop_mask,
+                   end_slot=p.end_slot, wear=wear)
 
 
 def analyze_slots(s: SlotArrays, p: MethodParams) -> Result:

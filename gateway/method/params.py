@@ -13,11 +13,12 @@ from typing import Any, Mapping
 @dataclass(frozen=True)
 class ParamSpec:
     name: str
-    default: float | None
+    default: float | int | bool | None
     unit: str
     doc: str
     required: bool = False
     optional: bool = False  # may be None (e.g. t_end)
+    kind: str = "float"     # "float", "int" (a whole number) or "bool"
 
 
 PARAMS: tuple[ParamSpec, ...] = (
@@ -40,6 +41,18 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("tau", 60.0, "s", "persistence time τ"),
     ParamSpec("tau_g", 1.0, "s", "tolerated interruption τ_g"),
     ParamSpec("t_end", None, "s", "planned test duration (none: open-ended)", optional=True),
+    ParamSpec("end_slot", None, "slot", "first slot after a test ended on purpose (§3); written by "
+              "the gateway into the sidecar, not set in a station file", optional=True, kind="int"),
+    ParamSpec("h_warn", 0.5, "1", "headroom below which windows count toward the early warning (§5a)"),
+    ParamSpec("n_warn", 5, "1", "consecutive windows needed for the early warning (§5a)", kind="int"),
+    ParamSpec("trend_windows", 60, "1", "windows used by the projection's Theil–Sen slope (§5a)",
+              kind="int"),
+    ParamSpec("zero_check", True, "bool", "zero check before the motor starts (§3a)", kind="bool"),
+    ParamSpec("zero_tol", 0.02, "N", "allowed offset of each channel at zero (§3a)"),
+    ParamSpec("settle_band", 0.1, "1", "slot 0 needs the mean tension within settle_band · t_set "
+              "of t_set … (§3a)"),
+    ParamSpec("settle_time", 2.0, "s", "… for this long (§3a)"),
+    ParamSpec("start_timeout", 30.0, "s", "no settled tension after this long: the start fails (§3a)"),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(p.name for p in PARAMS)
 SPEC = {p.name: p for p in PARAMS}
@@ -47,7 +60,12 @@ SPEC = {p.name: p for p in PARAMS}
 RESULT_KEYS: tuple[str, ...] = (
     "status", "mu_ss", "mu_th", "k_b", "stable_first", "stable_last", "k_life", "t_life",
     "n_slots", "n_valid", "reasons", "interrupted", "stop_slot", "stop_reasons",
+    "headroom", "warn_slot", "t_cross",
 )
+#: the stop reason of a test ended on purpose (§3)
+STOPPED = "STOPPED"
+#: the §5a projection needs at least this many windows with a value
+MIN_TREND_WINDOWS = 10
 
 
 class ParamError(ValueError):
@@ -75,6 +93,15 @@ class MethodParams:
     tau: float = 60.0
     tau_g: float = 1.0
     t_end: float | None = None
+    end_slot: int | None = None
+    h_warn: float = 0.5
+    n_warn: int = 5
+    trend_windows: int = 60
+    zero_check: bool = True
+    zero_tol: float = 0.02
+    settle_band: float = 0.1
+    settle_time: float = 2.0
+    start_timeout: float = 30.0
 
     # ---- derived quantities (one place) ----
     @property
@@ -122,8 +149,11 @@ class MethodParams:
         return int(round(self.stop_after / self.ts))
 
     @property
-    def end_slot(self) -> int | None:
-        """Number of slots in a planned test (slots 0 .. end_slot-1), or None."""
+    def n_grid(self) -> int | None:
+        """Number of slots of the test's grid (slots 0 .. n_grid-1), or None when open-ended:
+        ``end_slot`` for a test ended on purpose (§3: t_end then adds nothing), else t_end / Ts."""
+        if self.end_slot is not None:
+            return self.end_slot
         if self.t_end is None:
             return None
         return int(round(self.t_end / self.ts))
@@ -135,8 +165,24 @@ class MethodParams:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-def _num(name: str, value: Any, source: str) -> float | None:
+_TRUE = ("true", "yes", "on", "1")
+_FALSE = ("false", "no", "off", "0")
+
+
+def _flag(name: str, value: Any, source: str) -> bool:
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, (int, float)) and value in (0, 1):
+        return bool(value)
+    if isinstance(value, str) and value.strip().lower() in _TRUE + _FALSE:
+        return value.strip().lower() in _TRUE
+    raise ParamError(f"{source}{name}: {value!r} is not true or false ({SPEC[name].doc})")
+
+
+def _num(name: str, value: Any, source: str) -> float | int | bool | None:
     spec = SPEC[name]
+    if spec.kind == "bool":
+        return _flag(name, value, source)
     if value is None:
         if spec.optional:
             return None
@@ -157,6 +203,10 @@ def _num(name: str, value: Any, source: str) -> float | None:
         raise ParamError(f"{source}{name}: {value!r} is not a number ({spec.doc}, {spec.unit})") from None
     if not math.isfinite(f):
         raise ParamError(f"{source}{name}: {value!r} is not a finite number")
+    if spec.kind == "int":
+        if f != int(f):
+            raise ParamError(f"{source}{name}: {value!r} is not a whole number ({spec.doc})")
+        return int(f)
     return f
 
 
@@ -208,3 +258,20 @@ def validate(p: MethodParams, prefix: str = "") -> None:
         bad("tau", f"≥ ts ({p.ts})")
     if p.t_end is not None and not p.t_end > 0:
         bad("t_end", "> 0, or none")
+    if p.end_slot is not None and not p.end_slot >= 0:
+        bad("end_slot", "a slot number ≥ 0, or none")
+    if not p.n_warn >= 1:
+        bad("n_warn", "≥ 1")
+    if not p.trend_windows >= MIN_TREND_WINDOWS:
+        bad("trend_windows", f"≥ {MIN_TREND_WINDOWS} (the projection needs at least "
+            f"{MIN_TREND_WINDOWS} windows with a value)")
+    for name in ("zero_tol", "start_timeout"):
+        if not getattr(p, name) > 0:
+            bad(name, "> 0")
+    if not 0 < p.settle_band < 1:
+        bad("settle_band", "0 < settle_band < 1")
+    if not p.settle_time >= 0:
+        bad("settle_time", "≥ 0")
+    if not p.start_timeout > p.settle_time:
+        raise ParamError(f"{prefix}start_timeout {p.start_timeout!r} must be longer than "
+                         f"settle_time {p.settle_time!r}")

@@ -5,6 +5,7 @@ per-slot path and the vectorised path evaluate the very same floating-point expr
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -76,3 +77,35 @@ def baseline_value(mu_valid_all: np.ndarray) -> float:
 
 def threshold(mu_ss: float, p: MethodParams) -> float:
     return (1.0 + p.delta) * mu_ss
+
+
+# ---- §5a: wear headroom, early warning, projection ----
+
+def window_value(mu_valid: np.ndarray, p: MethodParams) -> float | None:
+    """μ̃ of a complete post-baseline window: the median of its valid μ (even count: mean of the
+    middle two), or None when N_eff < valid_ratio_min · N_ss (the window has no value)."""
+    if mu_valid.size < n_eff_required(p):
+        return None
+    return float(np.median(mu_valid))
+
+
+def headroom(value: float, mu_ss: float, mu_th: float) -> float:
+    """h = (μ_th − μ̃) / (μ_th − μ_ss): 1 at the baseline, 0 at the threshold, not clipped."""
+    return (mu_th - value) / (mu_th - mu_ss)
+
+
+def window_mid_time(j: int, p: MethodParams) -> float:
+    """t_j = (j + 0.5) · N_ss · Ts, the middle of window j (s from test start)."""
+    return (j + 0.5) * p.n_ss * p.ts
+
+
+@functools.lru_cache(maxsize=8)
+def _pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.triu_indices(n, 1)
+
+
+def theil_sen_slope(values: np.ndarray, times: np.ndarray) -> float:
+    """Median over all pairs a < b of (v_b − v_a) / (t_b − t_a) (even count: mean of the middle
+    two)."""
+    a, b = _pairs(values.size)
+    return float(np.median((values[b] - values[a]) / (times[b] - times[a])))

@@ -166,13 +166,18 @@ class Fig7Data:
     status: str
     valid_pct: float
     reasons: str
+    stopped: bool = False    # ended on purpose (STOPPED, METHOD.md §3), not a protection stop
+    windows: tuple = ()      # §5a post-baseline windows: (x0, x1, μ̃ with NaN = no value) in plot units
+    h_warn: float = 0.5
+    warn: float | None = None  # §5a early warning, in s
 
 
 def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio: np.ndarray,
-              t1: np.ndarray, t2: np.ndarray, p, result: dict) -> Fig7Data:
+              t1: np.ndarray, t2: np.ndarray, p, result: dict, windows=()) -> Fig7Data:
     """Decimate one analysed test for Fig. 7. ``mask``/``mu``/``ratio`` from the method core's
-    gating (cut at a protection stop), ``t1``/``t2`` on the slot grid (NaN where absent)."""
-    n_grid = max(t1.size, mask.size, p.end_slot or 0)
+    gating (cut at a protection stop), ``t1``/``t2`` on the slot grid (NaN where absent),
+    ``windows`` the §5a windows after the baseline as (j, N_eff, μ̃ or None)."""
+    n_grid = max(t1.size, mask.size, p.n_grid or 0)
     span = max(n_grid * ts, ts)
     unit, scale = time_unit(span)
     x_end = span / scale
@@ -189,6 +194,10 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
         stable = (result["stable_first"] * ts / scale, (result["k_b"] + 1) * ts / scale)
     reasons = ", ".join(f"{k} {v:,}" for k, v in (result.get("reasons") or {}).items() if v)
     n_slots = result.get("n_slots") or 0
+    w_s = p.n_ss * ts / scale
+    wins = (np.array([j * w_s for j, _, _ in windows]), np.array([(j + 1) * w_s for j, _, _ in windows]),
+            np.array([np.nan if v is None else v for _, _, v in windows], dtype=np.float64))
+    warn_slot = result.get("warn_slot")
     return Fig7Data(
         title=title, unit=unit, scale=scale, x_end=x_end, mu=mu_env, bad=bad_env, missing=missing,
         t1=grid_minmax(t1, dx, x_end), t2=grid_minmax(t2, dx, x_end), tm=grid_minmax(tm, dx, x_end), t_set=p.t_set, mu_ss=result.get("mu_ss"),
@@ -196,7 +205,35 @@ def fig7_data(*, title: str, ts: float, mask: np.ndarray, mu: np.ndarray, ratio:
         stop=None if result.get("stop_slot") is None else result["stop_slot"] * ts,
         status=result.get("status", "?"),
         valid_pct=100.0 * (result.get("n_valid") or 0) / n_slots if n_slots else 0.0,
-        reasons=reasons or "none")
+        reasons=reasons or "none", stopped=result.get("stop_reasons") == ["STOPPED"],
+        windows=wins if windows else (), h_warn=p.h_warn,
+        warn=None if warn_slot is None else (warn_slot + 1) * ts)
+
+
+def _draw_headroom(ax, d: Fig7Data) -> None:
+    """§5a on the μ axis: each post-baseline window's median μ̃ as a segment over the window
+    (those under h_warn in another colour), and a headroom scale on the right (h is linear in μ̃:
+    1 at μ_ss, 0 at μ_th)."""
+    if d.mu_ss is None or d.mu_th is None or d.mu_th == d.mu_ss:
+        return
+    from matplotlib import patheffects as pe
+
+    mu_ss, mu_th = d.mu_ss, d.mu_th
+    if len(d.windows):
+        x0, x1, v = d.windows
+        ok = np.isfinite(v)
+        h = (mu_th - v[ok]) / (mu_th - mu_ss)
+        low = h < d.h_warn
+        for sel, color, label in ((~low, "#8c564b", "window median μ̃ (headroom windows)"),
+                                  (low, "#e377c2", f"window median μ̃ with headroom < {d.h_warn:g}")):
+            if sel.any():
+                ax.hlines(v[ok][sel], x0[ok][sel], x1[ok][sel], color=color, lw=3.0, label=label,
+                          zorder=4, path_effects=[pe.withStroke(linewidth=5.0, foreground="white")])
+    ax.axhline(mu_th - d.h_warn * (mu_th - mu_ss), color="#e377c2", lw=0.8, ls=":", alpha=0.8)
+    sec = ax.secondary_yaxis("right", functions=(lambda m: (mu_th - m) / (mu_th - mu_ss),
+                                                 lambda hh: mu_th - hh * (mu_th - mu_ss)))
+    sec.set_ylabel("headroom h", fontsize=13)
+    sec.tick_params(labelsize=11)
 
 
 def render_fig7(d: Fig7Data, path: str) -> None:
@@ -238,13 +275,18 @@ def render_fig7(d: Fig7Data, path: str) -> None:
     if d.mu_th is not None and d.stable is not None:
         ax.hlines(d.mu_th, d.stable[1], d.x_end, color="#ff7f0e", lw=2.0, ls="--",
                   label=f"threshold μ_th = (1 + {d.delta:g})·μ_ss = {d.mu_th:.4f}")
+    _draw_headroom(ax, d)
     for a in (ax, axt):
+        if d.warn is not None:
+            a.axvline(d.warn / d.scale, color="#e377c2", lw=2.0, ls="-.",
+                      label=f"early warning at {d.warn:,.1f} s" if a is ax else None)
         if d.t_life is not None:
             a.axvline(d.t_life / d.scale, color="#d62728", lw=2.0,
                       label=f"t_life = {d.t_life:,.1f} s" if a is ax else None)
         if d.stop is not None:
+            what = "ended on purpose (STOPPED)" if d.stopped else "protection stop"
             a.axvline(d.stop / d.scale, color="black", lw=1.5, ls=":",
-                      label=f"protection stop at {d.stop:,.1f} s" if a is ax else None)
+                      label=f"{what} at {d.stop:,.1f} s" if a is ax else None)
     ax.set_ylim(ylo, yhi)
     ax.set_xlim(0.0, d.x_end)
     ax.set_ylabel("equivalent friction coefficient μ", fontsize=14)
@@ -269,7 +311,9 @@ def render_fig7(d: Fig7Data, path: str) -> None:
     axt.set_xlabel(f"time ({d.unit})", fontsize=14)
     axt.legend(loc="upper right", fontsize=11, ncol=4, framealpha=0.85)
     _style(axt)
-    fig.subplots_adjust(left=0.07, right=0.985, top=0.95, bottom=0.07, hspace=0.08)
+    # room on the right for the headroom scale (§5a) when there is a baseline
+    right = 0.94 if d.mu_ss is not None and d.mu_th is not None else 0.985
+    fig.subplots_adjust(left=0.07, right=right, top=0.95, bottom=0.07, hspace=0.08)
     _save(fig, path)
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+from ..method.params import STOPPED
 from . import stats as S
 
 STATUS_ERROR = "error"          # the log could not be read or the method not set up
@@ -46,6 +47,18 @@ class Sample:
     apart: str | None = None              # why it is not in the statistics (None: it is)
     fig: str | None = None                # Fig. 7 path relative to the report folder
     delta0: float | None = None
+    ts: float = 0.02                      # sampling period of the test (slot → s)
+
+    @property
+    def warn_s(self) -> float | None:
+        """METHOD.md §5a early warning: the end of the warning run's last window, s."""
+        w = self.result().get("warn_slot")
+        return None if w is None else (w + 1) * self.ts
+
+    @property
+    def headroom(self) -> float | None:
+        """h of the last post-baseline window with a value (§5a)."""
+        return self.result().get("headroom")
 
     @property
     def in_stats(self) -> bool:
@@ -78,6 +91,7 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
         method_status = results[1.0]["status"]
         status = method_status
         r = results[1.0]
+        stopped = r.get("stop_reasons") == [STOPPED]
         if spec.gateway_status == "aborted" and method_status == "failure":
             # METHOD.md §3: t_life found before the test was cut short stands
             why = spec.gateway_reason or "no reason given"
@@ -87,11 +101,17 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
             why = spec.gateway_reason or "no reason given"
             notes.append(f"gateway: test aborted ({why}); method: {method_status}")
         elif method_status == "failure" and r.get("interrupted"):
-            notes.append("protection stop after t_life (interrupted); t_life stands (METHOD.md §3)")
-        if method_status == "aborted" and r.get("stop_reasons"):
+            what = "ended on purpose" if stopped else "protection stop"
+            notes.append(f"{what} after t_life (interrupted); t_life stands (METHOD.md §3)")
+        if method_status == "aborted" and stopped:
+            notes.append(f"ended on purpose at {r['stop_slot'] * p.ts:,.2f} s (STOPPED) before any "
+                         "t_life: the life is longer than that (censored), not in the statistics")
+        elif method_status == "aborted" and r.get("stop_reasons"):
             notes.append(f"protection stop at {r['stop_slot'] * p.ts:,.2f} s "
                          f"({', '.join(r['stop_reasons'])})")
         apart = None if status == "failure" else status
+        if status == "aborted" and stopped:
+            apart = "aborted (STOPPED: ended on purpose before t_life)"
     if spec.duplicate_of is not None:
         notes.append(f"duplicate sample_id (first: {spec.duplicate_of})")
         apart = apart or "duplicate sample_id"
@@ -99,7 +119,8 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
         apart = "no grade in the sidecar"
     return Sample(spec.sample_id, spec.grade, None if p is None else p.t_set,
                   None if p is None else p.t_end, spec.rel, status, results,
-                  note="; ".join(notes), apart=apart, delta0=None if p is None else p.delta)
+                  note="; ".join(notes), apart=apart, delta0=None if p is None else p.delta,
+                  ts=0.02 if p is None else p.ts)
 
 
 def _sort_key(s: Sample):
@@ -130,16 +151,22 @@ def table3(samples: Sequence[Sample]) -> Table:
         rows.append({"sample_id": s.sample_id, "grade": s.grade or "—", "t_set_N": s.t_set,
                      "t_end_h": None if s.t_end_s is None else s.t_end_s / 3600.0,
                      "t_life_s": s.t_life, "mu_ss": s.mu_ss, "status": s.status,
+                     "warn_s": s.warn_s, "headroom": s.headroom,
                      "valid_pct": (100.0 * r["n_valid"] / r["n_slots"]) if r.get("n_slots") else None,
                      "note": s.note, "log": s.rel})
     return Table("table3_samples", "Table 3 — online wear life per sample", [
         Column("sample_id", "Sample ID"), Column("grade", "Grade"),
         Column("t_set_N", "T_set (N)", "g"), Column("t_end_h", "t_end (h)", "g", 4),
         Column("t_life_s", "t_life (s)", "f1", 2), Column("mu_ss", "μ_ss", "f4", 6),
-        Column("status", "status"), Column("valid_pct", "valid slots (%)", "pct1", 2),
+        Column("status", "status"), Column("warn_s", "early warning (s)", "f1", 2),
+        Column("headroom", "last headroom", "f3", 6),
+        Column("valid_pct", "valid slots (%)", "pct1", 2),
         Column("note", "note"), Column("log", "log"),
-    ], rows, intro="Every test of the campaign at δ0 (the sidecar's δ). t_life and μ_ss exist only "
-                   "for status failure.")
+    ], rows, intro="Every test of the campaign at δ0 (the sidecar's δ). t_life exists only for "
+                   "status failure. Early warning and last headroom (METHOD.md §5a, informative): "
+                   "the end of the first run of n_warn windows under h_warn, and "
+                   "h = (μ_th − μ̃)/(μ_th − μ_ss) of the last window after the baseline (1 at the "
+                   "baseline, 0 at the threshold).")
 
 
 def table_apart(samples: Sequence[Sample]) -> Table:

@@ -42,7 +42,7 @@ def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
         try:
 
             d = fig7_data(title=task["title"], ts=p.ts, mask=g.mask, mu=g.mu, ratio=g.ratio,
-                          t1=s.t1, t2=s.t2, p=p, result=results[1.0])
+                          t1=s.t1, t2=s.t2, p=p, result=results[1.0], windows=g.windows)
             render_fig7(d, task["fig"])
             out["fig"] = task["fig"]
         except Exception as e:  # noqa: BLE001
