@@ -24,8 +24,9 @@ __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS
            "reject", "check_t_set", "check_sample_id", "check_grade", "check_t_end",
            "command_from_mapping", "validate", "StationLimits"]
 
-#: test states in which a test is running
-RUNNING = frozenset({TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE})
+#: test states in which a test is running (or starting: a stop cancels the start, §3a)
+RUNNING = frozenset({TestState.STARTING, TestState.BASELINE_SEARCH, TestState.MONITORING,
+                     TestState.END_OF_LIFE})
 
 #: rejection codes (served to PLCs in the "last command result" input register)
 REJECT_CODES: tuple[tuple[int, str, str], ...] = (
