@@ -100,6 +100,7 @@ class StationState:
     status: str | None = None          # the method's status once the test has ended
     end_reason: str | None = None      # why a test ended (completed, protection stop, command, restart)
     alarm: str = AlarmState.NONE.value  # an AlarmState value (gateway.station.alarms keeps it)
+    warning_alarm: str = AlarmState.NONE.value  # the §5a wear-warning alarm (lower priority)
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
     wear_warning: bool = False         # §5a early warning fired in this test

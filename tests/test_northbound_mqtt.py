@@ -16,7 +16,7 @@ from gateway.northbound import schema as S
 from gateway.northbound.mqtt import MqttOutput, MqttSettings, _Telemetry
 from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TState
-from northbound_helpers import Broker, LoopThread, Sub, make_station, pub, wait_for
+from northbound_helpers import Broker, LoopThread, RunningStation, Sub, make_station, pub, wait_for
 
 BASE = "hookwatch/lab/hall/l1/st1"
 
@@ -262,8 +262,9 @@ def test_commands_over_mqtt_go_through_the_station_command_path(tmp_path):
         station = make_station(tmp_path, [])
         out = MqttOutput(settings(tmp_path, b.port), station)
         station.outputs.append(out)
+        run = None
         try:
-            lt.call(out.start())
+            run = RunningStation(lt, station)     # the slot loop runs the start sequence (§3a)
             wait_for(lambda: out.connected, 20, what="connected")
             sub.wait(lambda s: s.messages("status"), 20)
 
@@ -303,7 +304,8 @@ def test_commands_over_mqtt_go_through_the_station_command_path(tmp_path):
             assert res["test_status"] == "aborted" and res["sample_id"] == "S-9"
             assert list(res) == S.field_names("result")
         finally:
-            lt.call(out.stop())
+            if run is not None:
+                run.stop()
             lt.close()
             sub.stop()
 

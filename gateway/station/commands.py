@@ -33,7 +33,7 @@ REJECT_CODES: tuple[tuple[int, str, str], ...] = (
     (0, "OK", "accepted"),
     (1, "BUSY", "a test is already running; stop it first"),
     (2, "NOT_RUNNING", "no test is running"),
-    (3, "NO_ALARM", "no unacknowledged end-of-life alarm"),
+    (3, "NO_ALARM", "no unacknowledged alarm (end of life or wear warning)"),
     (4, "SAMPLE_ID", f"sample_id missing, too long (> {SAMPLE_ID_MAX}) or not printable ASCII"),
     (5, "T_SET", "t_set not a number or out of range"),
     (6, "GRADE", "grade not one of the station's grades"),
@@ -154,8 +154,8 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if not running:
             return reject(cmd, "NOT_RUNNING", "no test is running")
     elif cmd.kind == CommandKind.ACK:
-        if state.alarm != "active":
-            return reject(cmd, "NO_ALARM", "no unacknowledged end-of-life alarm")
+        if state.alarm != "active" and state.warning_alarm != "active":
+            return reject(cmd, "NO_ALARM", "no unacknowledged alarm (end of life or wear warning)")
     elif cmd.kind == CommandKind.SETPOINT:
         if running:
             return reject(cmd, "SETPOINT_LOCKED",

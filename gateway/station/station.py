@@ -33,7 +33,7 @@ from ..method.core import SlotOut, StreamingMonitor
 from ..method.params import MethodParams
 from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
-from ..records import (AlarmState, Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
+from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
 from .alarms import AlarmStore
 from .clock import SlotClock
@@ -170,6 +170,7 @@ class Station:
         log.info("%s: %s %s", self.id, etype.value, data or "")
         self.alarms.on_event(ev)              # the alarm store first: outputs read it
         self.state.alarm = self.alarms.state.value
+        self.state.warning_alarm = self.alarms.warning.state.value
         self.fanout.event(ev)
         return ev
 
@@ -188,6 +189,7 @@ class Station:
 
     def _restore_alarm(self) -> None:
         rec = self.alarms.restore()
+        self.state.warning_alarm = self.alarms.warning.state.value
         if rec.active:
             st = self.state
             st.alarm = rec.state.value
@@ -248,7 +250,7 @@ class Station:
         att = StartAttempt.begin(plan, self.method_values, self.control_params, self.id, source)
         self.starting = att
         st = self.state
-        if self.alarms.state != AlarmState.NONE:     # a new test: the hook was replaced
+        if self.alarms.highest() is not None:        # a new test: the hook was replaced
             self._emit_event(EventType.ALARM_CLEARED, reason="new test started")
         st.state = TestState.STARTING
         st.test_id, st.sample_id, st.grade = None, plan.sample_id, plan.grade
@@ -432,7 +434,8 @@ class Station:
                 self._emit_event(EventType.WEAR_WARNING, k=kt, warn_slot=wear.warn_slot,
                                  t_warn=(wear.warn_slot + 1) * self.ts, headroom=wear.headroom,
                                  t_cross=wear.t_cross, h_warn=sess.params.h_warn,
-                                 n_warn=sess.params.n_warn, sample_id=sess.plan.sample_id)
+                                 n_warn=sess.params.n_warn, mu_ss=mon.mu_ss, mu_th=mon.mu_th,
+                                 sample_id=sess.plan.sample_id)
                 self._push_state()
             elif e == "protection_stop":
                 st.protection_stop = True
