@@ -38,10 +38,10 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..ports import StationLimits
+from ..ports import CommandSink, StationLimits
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
 from ..threadloop import submit_to
-from ..station.commands import CODE, check_sample_id, check_t_end, check_t_set
+from ..station.commands import CODE, check_sample_id
 from . import registers as R
 
 log = logging.getLogger("hookwatch.modbus")
@@ -61,8 +61,6 @@ MAX_REQUESTS_PER_S = float(os.environ.get("HW_MODBUS_MAX_RPS", 4000.0))
 #: the server thread's nice value above the process's
 SERVER_NICE = 10
 
-_CMD_KIND = {R.COMMAND_CODE["start"]: CommandKind.START, R.COMMAND_CODE["stop"]: CommandKind.STOP,
-             R.COMMAND_CODE["ack"]: CommandKind.ACK}
 
 
 def tame_pymodbus_logging() -> None:
@@ -380,6 +378,8 @@ class ModbusOutput:
         self.s = settings
         self.station_id = settings.station_id
         self.station = station
+        #: where commands go (a CommandSource bound to its CommandSink: the station)
+        self.sink: CommandSink | None = station
         self.writes_enabled = bool(settings.writes_enabled)
         self.allowed_clients = frozenset(str(a) for a in settings.allowed_clients)
         self.word_order = settings.word_order
@@ -404,6 +404,12 @@ class ModbusOutput:
         self._elapsed = 0.0
         self._slots = self._valid = 0
         self._counts = [0] * len(REASONS)
+
+    source = "plc"
+
+    def bind(self, sink: CommandSink) -> None:
+        """Send the PLC's commands to ``sink`` (gateway.ports.CommandSource)."""
+        self.sink = sink
 
     # -- output protocol (station loop)
     async def start(self) -> None:
@@ -501,7 +507,7 @@ class ModbusOutput:
         u.ir = img[:CMD_BASE]
 
     def _initial_holding(self) -> list[int]:
-        plan = getattr(self.station, "default_plan", None)
+        plan = self.station.default_plan if self.station is not None else None
         v: dict[str, Any] = {"command": 0, "t_end": 0}
         if plan is not None:
             v["t_set"] = plan.t_set
@@ -513,89 +519,34 @@ class ModbusOutput:
 
     # -- writes (server loop)
     async def handle_write(self, u: Unit, address: int, values: list[int], peer: str) -> ExcCodes | None:
-        end = address + len(values)
-        if address < 0 or end > R.HOLDING_SIZE or not values:
-            return ExcCodes.ILLEGAL_ADDRESS
-        if any(not 0 <= v <= 0xFFFF for v in values):
-            return ExcCodes.ILLEGAL_VALUE
-        new = list(u.hr)
-        new[address:end] = values
-        touched = [r for r in R.HOLDING_REGS if r.address < end and address < r.address + r.count]
-        for r in touched:
-            if r.count == 2 and not (address <= r.address and r.address + r.count <= end):
-                return ExcCodes.ILLEGAL_ADDRESS
-        decoded: dict[str, Any] = {}
-        for r in touched:
-            val = R.decode_value(r, new[r.address:r.address + r.count], self.word_order)
-            err = self._check(r.name, val)
-            if err:
-                log.info("%s: PLC %s wrote %s=%r: %s", self.station_id, peer, r.name, val, err)
-                return ExcCodes.ILLEGAL_VALUE
-            decoded[r.name] = val
+        plan = R.plan_write(u.hr, address, values, self.word_order, self.limits)
+        if plan.exception is not None:
+            if plan.decoded:
+                (name, val), = plan.decoded
+                log.info("%s: PLC %s wrote %s=%r: %s", self.station_id, peer, name, val, plan.reason)
+            return ExcCodes(plan.exception)
         # staging values first, then the setpoint, then the command
-        keep = {n: (R.HR[n].address, R.HR[n].count) for n in ("t_set", "command")}
-        staged = list(new)
-        for n, (a, c) in keep.items():
-            staged[a:a + c] = u.hr[a:a + c]
-        u.hr = staged
-        if "t_set" in decoded:
-            t_set = float(f"{decoded['t_set']:.7g}")
+        u.hr = list(plan.staged)
+        if plan.wrote("t_set"):
+            t_set = float(f"{plan.value('t_set'):.7g}")
             reply = await self._submit(Command(CommandKind.SETPOINT, f"plc:{peer}", {"t_set": t_set}),
                                        R.COMMAND_CODE["setpoint"], u)
             if not reply:
                 return ExcCodes.DEVICE_FAILURE
-            a, c = keep["t_set"]
-            hr = list(u.hr)
-            hr[a:a + c] = new[a:a + c]
-            u.hr = hr
-        if "command" in decoded:
-            code = int(decoded["command"])
-            a, c = keep["command"]
-            hr = list(u.hr)
-            hr[a:a + c] = new[a:a + c]
-            u.hr = hr
-            kind = _CMD_KIND[code]
+            u.hr = R.apply_register(u.hr, plan.new, "t_set")
+        if plan.wrote("command"):
+            code = int(plan.value("command"))
+            u.hr = R.apply_register(u.hr, plan.new, "command")
+            kind = R.COMMAND_KINDS[code]
             args: dict[str, Any] = {}
             if kind == CommandKind.START:
-                args = self._start_args(u)
+                args = R.start_args(u.hr, self.word_order, self.grades)
             if not await self._submit(Command(kind, f"plc:{peer}", args), code, u):
                 return ExcCodes.DEVICE_FAILURE
         return None
 
-    def _check(self, name: str, val: Any) -> str | None:
-        if name == "command":
-            return None if val in _CMD_KIND else f"command code {val}; allowed: 1 start, 2 stop, 3 ack"
-        if name == "t_set":
-            return check_t_set(val, self.limits)
-        if name == "grade":
-            return None if 0 <= val <= len(self.grades) else f"grade {val}; allowed: 0 … {len(self.grades)}"
-        if name == "t_end":
-            return None if val == 0 else check_t_end(val)
-        if name == "sample_id":
-            text = R.decode_sample_id(val)
-            if text is None:
-                return "sample_id: not 0-padded printable ASCII"
-            return None if text == "" else check_sample_id(text)
-        return f"{name} is not writable"
-
-    def _start_args(self, u: Unit) -> dict[str, Any]:
-        hr = u.hr
-        def get(n):
-            r = R.HR[n]
-            return R.decode_value(r, hr[r.address:r.address + r.count], self.word_order)
-        sid = R.decode_sample_id(get("sample_id")) or ""
-        g = int(get("grade"))
-        t_set = float(get("t_set"))
-        t_end = int(get("t_end"))
-        args: dict[str, Any] = {"sample_id": sid, "t_set": float(f"{t_set:.7g}") if math.isfinite(t_set) else t_set}
-        if 1 <= g <= len(self.grades):
-            args["grade"] = self.grades[g - 1]
-        if t_end:
-            args["t_end"] = float(t_end)
-        return args
-
     async def _submit(self, cmd: Command, code: int, u: Unit) -> bool:
-        st, loop = self.station, self.loop
+        st, loop = self.sink, self.loop
         result = CODE["NO_STATION"]
         ok = False
         fut = submit_to(loop, st.submit(cmd)) if st is not None else None

@@ -15,8 +15,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..method.rules import REASONS
-from ..records import AlarmState, TestState
-from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX
+from ..ports import StationLimits
+from ..records import AlarmState, CommandKind, TestState
+from ..station.commands import (REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end,
+                                check_t_set)
 
 #: version of the register map (input register 1)
 MAP_VERSION = 1
@@ -48,7 +50,7 @@ class Reg:
         return (30001 if self.table == INPUT else 40001) + self.address
 
 
-def _layout(table: str, specs: list[tuple]) -> tuple[Reg, ...]:
+def _layout(table: str, specs: list[tuple[Any, ...]]) -> tuple[Reg, ...]:
     regs, addr = [], 0
     for spec in specs:
         name, typ, unit, doc, *rest = spec
@@ -209,6 +211,109 @@ def status_word(flags: dict[str, bool]) -> int:
         if on:
             w |= 1 << STATUS_BIT[name]
     return w
+
+
+# ----------------------------------------------------------------------------- writes (pure)
+#: Modbus exception codes a write can get before anything changes
+EXC_ILLEGAL_ADDRESS = 2
+EXC_ILLEGAL_VALUE = 3
+#: the command codes that are commands (holding register ``command``)
+COMMAND_KINDS = {COMMAND_CODE["start"]: CommandKind.START, COMMAND_CODE["stop"]: CommandKind.STOP,
+                 COMMAND_CODE["ack"]: CommandKind.ACK}
+
+
+def check_holding(name: str, val: Any, limits: StationLimits) -> str | None:
+    """Is ``val`` (decoded) allowed in holding register ``name``? None if yes, else why not."""
+    if name == "command":
+        return None if val in COMMAND_KINDS else f"command code {val}; allowed: 1 start, 2 stop, 3 ack"
+    if name == "t_set":
+        return check_t_set(val, limits)
+    if name == "grade":
+        n = len(limits.grades)
+        return None if 0 <= val <= n else f"grade {val}; allowed: 0 … {n}"
+    if name == "t_end":
+        return None if val == 0 else check_t_end(val, limits.t_end_max_s)
+    if name == "sample_id":
+        text = decode_sample_id(val)
+        if text is None:
+            return "sample_id: not 0-padded printable ASCII"
+        return None if text == "" else check_sample_id(text, limits.sample_id_max)
+    return f"{name} is not writable"
+
+
+@dataclass(frozen=True)
+class WritePlan:
+    """What a write to the holding registers does, decided before anything changes.
+
+    ``exception`` set: refuse the write with it (nothing changes; ``reason`` says why). Otherwise
+    ``staged`` is the image to show at once (every register written except ``t_set`` and
+    ``command``, which change only when the station accepts them), ``new`` the image once all is
+    accepted, ``decoded`` the written registers' values."""
+    exception: int | None
+    reason: str = ""
+    staged: tuple[int, ...] = ()
+    new: tuple[int, ...] = ()
+    decoded: tuple[tuple[str, Any], ...] = ()
+
+    def value(self, name: str) -> Any:
+        return dict(self.decoded)[name]
+
+    def wrote(self, name: str) -> bool:
+        return any(n == name for n, _ in self.decoded)
+
+
+def plan_write(hr: list[int] | tuple[int, ...], address: int, values: list[int], word_order: str,
+               limits: StationLimits) -> WritePlan:
+    """Check a write of ``values`` at ``address`` against the register map and the command rules."""
+    end = address + len(values)
+    if address < 0 or end > HOLDING_SIZE or not values:
+        return WritePlan(EXC_ILLEGAL_ADDRESS, f"registers {address}…{end - 1} outside 0…{HOLDING_SIZE - 1}")
+    if any(not 0 <= v <= 0xFFFF for v in values):
+        return WritePlan(EXC_ILLEGAL_VALUE, "a register value outside 0…65535")
+    new = list(hr)
+    new[address:end] = values
+    touched = [r for r in HOLDING_REGS if r.address < end and address < r.address + r.count]
+    for r in touched:
+        if r.count == 2 and not (address <= r.address and r.address + r.count <= end):
+            return WritePlan(EXC_ILLEGAL_ADDRESS, f"{r.name}: half of a 32-bit value")
+    decoded: list[tuple[str, Any]] = []
+    for r in touched:
+        val = decode_value(r, new[r.address:r.address + r.count], word_order)
+        err = check_holding(r.name, val, limits)
+        if err:
+            return WritePlan(EXC_ILLEGAL_VALUE, err, decoded=((r.name, val),))
+        decoded.append((r.name, val))
+    staged = list(new)
+    for n in ("t_set", "command"):
+        a, c = HR[n].address, HR[n].count
+        staged[a:a + c] = hr[a:a + c]
+    return WritePlan(None, "", tuple(staged), tuple(new), tuple(decoded))
+
+
+def apply_register(hr: list[int] | tuple[int, ...], new: tuple[int, ...], name: str) -> list[int]:
+    """``hr`` with holding register ``name`` taken from ``new`` (once the station accepted it)."""
+    a, c = HR[name].address, HR[name].count
+    out = list(hr)
+    out[a:a + c] = new[a:a + c]
+    return out
+
+
+def start_args(hr: list[int] | tuple[int, ...], word_order: str, grades: tuple[str, ...]) -> dict[str, Any]:
+    """The arguments of a start command from the staged holding registers."""
+    def get(n: str) -> Any:
+        r = HR[n]
+        return decode_value(r, list(hr[r.address:r.address + r.count]), word_order)
+    sid = decode_sample_id(get("sample_id")) or ""
+    g = int(get("grade"))
+    t_set = float(get("t_set"))
+    t_end = int(get("t_end"))
+    args: dict[str, Any] = {"sample_id": sid,
+                            "t_set": float(f"{t_set:.7g}") if math.isfinite(t_set) else t_set}
+    if 1 <= g <= len(grades):
+        args["grade"] = grades[g - 1]
+    if t_end:
+        args["t_end"] = float(t_end)
+    return args
 
 
 # ----------------------------------------------------------------------------- docs

@@ -402,8 +402,9 @@ def render() -> str:
         "- The end-of-life alarm lifecycle: `active` (raised, unacknowledged) → `acknowledged` "
         "(cmd/ack, a PLC write or the CLI) → `cleared` (the hook was replaced and a new test "
         "started). Every transition is one retained message on `alarm/end_of_life`, so a MES "
-        "that connects late sees the current state. The alarm is kept with the outbox: after a "
-        "gateway restart the next test start still clears an alarm raised before it.",
+        "that connects late sees the current state. The alarm is kept in the station's alarm "
+        "store (`alarm.json` in its records folder), which the PLC registers read as well: after a "
+        "gateway restart the alarm stands until the next test start clears it.",
         "",
         "## Payloads",
         "",

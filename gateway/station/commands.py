@@ -121,12 +121,12 @@ def command_from_mapping(kind: str, payload: Any, source: str) -> Command | Reje
                          None, CODE["BAD_REQUEST"])
     rid = payload.get("request_id")
     rid = None if rid is None else str(rid)[:64]
-    allowed = COMMAND_KEYS[ck]
-    unknown = sorted(k for k in payload if k not in allowed and k != "request_id")
+    keys = COMMAND_KEYS[ck]
+    unknown = sorted(k for k in payload if k not in keys and k != "request_id")
     if unknown:
         return Rejection(False, f"{ck.value}: unknown key(s) {', '.join(map(repr, unknown))}; allowed: "
-                         f"{', '.join(allowed + ('request_id',))}", rid, CODE["BAD_REQUEST"])
-    args = {k: payload[k] for k in allowed if k in payload}
+                         f"{', '.join(keys + ('request_id',))}", rid, CODE["BAD_REQUEST"])
+    args = {k: payload[k] for k in keys if k in payload}
     return Command(ck, source, args, rid)
 
 

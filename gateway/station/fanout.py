@@ -39,26 +39,21 @@ class Fanout:
                           "failures are counted)", self.station_id, o, what)
 
     def record(self, rec: SlotRecord) -> None:
-        for o in self.head:
-            try:
-                o.on_record(rec)
-            except Exception:
-                self._failed(o, "record")
-        for o in self.outputs:
+        for o in (*self.head, *self.outputs):
             try:
                 o.on_record(rec)
             except Exception:
                 self._failed(o, "record")
 
     def event(self, ev: Event) -> None:
-        for o in self.all():
+        for o in (*self.head, *self.outputs):
             try:
                 o.on_event(ev)
             except Exception:
                 self._failed(o, "event")
 
     def state(self, st: StationState) -> None:
-        for o in self.all():
+        for o in (*self.head, *self.outputs):
             try:
                 o.on_state(st)
             except Exception:

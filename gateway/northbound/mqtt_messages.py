@@ -1,0 +1,169 @@
+"""MQTT messages of a station, built purely: station data in, (topic, payload, QoS, retain) out.
+
+No I/O, no clock, no threads: each function turns a slot record summary, an event, the station's
+state, the alarm store's record or a command reply into :class:`Message` objects. The payload is
+a function of the stream's sequence number, which the pump stamps when it queues the message
+(``gateway/northbound/mqtt_pump.py``). The topic tree and payload fields are defined once in
+``schema.py``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+from .. import __version__
+from ..method.rules import REASONS
+from ..records import AlarmState, CommandReply, Event, EventType, SlotRecord, StationState
+from ..station.alarms import AlarmRecord
+from ..station.commands import CODE
+from . import schema
+from .registers import MAP_VERSION
+
+SOFTWARE = f"hookwatch {__version__}"
+
+
+@dataclass(frozen=True)
+class Message:
+    """One MQTT message: what to publish where. ``payload(seq)`` is its JSON object."""
+    kind: str                                   # telemetry, event, alarm, result, state, reply, status
+    topic: str
+    payload: Callable[[int], dict[str, Any]]
+    qos: int = 1
+    retain: bool = False
+
+    def encode(self, seq: int) -> bytes:
+        return schema.encode(self.payload(seq))
+
+
+def _r(x: float) -> float:
+    return round(x, 6)
+
+
+class Telemetry:
+    """Per-interval aggregation of slot records (O(1) per record)."""
+    __slots__ = ("n", "n_read", "s1", "s2", "sm", "mn", "mx", "n_valid", "smu", "nmu", "counts",
+                 "n_sat", "speed_cmd", "speed_act", "t0")
+
+    def __init__(self, t0: float):
+        self.t0 = t0
+        self.n = self.n_read = self.n_valid = self.nmu = self.n_sat = 0
+        self.s1 = self.s2 = self.sm = self.smu = 0.0
+        self.mn = math.inf
+        self.mx = -math.inf
+        self.counts = [0] * len(REASONS)
+        self.speed_cmd = 0.0
+        self.speed_act = math.nan
+
+    def add(self, rec: SlotRecord) -> None:
+        self.n += 1
+        if rec.present:
+            t1, t2 = rec.t1, rec.t2
+            if t1 == t1 and t2 == t2:
+                self.n_read += 1
+                self.s1 += t1
+                self.s2 += t2
+                m = (t1 + t2) * 0.5
+                self.sm += m
+                if m < self.mn:
+                    self.mn = m
+                if m > self.mx:
+                    self.mx = m
+        if rec.q:
+            self.n_valid += 1
+            if rec.mu is not None:
+                self.smu += rec.mu
+                self.nmu += 1
+        mask = rec.mask
+        if mask:
+            for i, (bit, _) in enumerate(REASONS):
+                if mask & bit:
+                    self.counts[i] += 1
+        if rec.saturated:
+            self.n_sat += 1
+        self.speed_cmd = rec.speed_cmd
+        self.speed_act = rec.speed_act
+
+    def summary(self, now: float, test_id: str | None) -> dict[str, Any]:
+        nr = self.n_read
+        return {
+            "test_id": test_id, "interval_s": round(now - self.t0, 3), "slots": self.n,
+            "t1": _r(self.s1 / nr) if nr else None, "t2": _r(self.s2 / nr) if nr else None,
+            "tension": {"mean": _r(self.sm / nr) if nr else None, "min": _r(self.mn) if nr else None,
+                        "max": _r(self.mx) if nr else None},
+            "mu": _r(self.smu / self.nmu) if self.nmu else None,
+            "valid_ratio": (self.n_valid / self.n if self.n else None) if test_id else None,
+            "counts": {name: c for (_, name), c in zip(REASONS, self.counts)},
+            "speed_cmd": self.speed_cmd, "speed_act": self.speed_act,
+            "saturated_slots": self.n_sat, "saturation": self.n_sat > 0,
+        }
+
+
+
+def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
+    """The alarm store's record as the fields of the ``alarm/end_of_life`` message."""
+    return {"state": "cleared" if rec.state == AlarmState.NONE else rec.state.value,
+            "active": rec.active, "acknowledged": rec.acknowledged, "test_id": rec.test_id,
+            "sample_id": rec.sample_id, "t_life": rec.t_life, "k_life": rec.k_life,
+            "mu_ss": rec.mu_ss, "mu_th": rec.mu_th, "raised_at": rec.raised_at,
+            "acknowledged_at": rec.acknowledged_at, "acknowledged_by": rec.acknowledged_by,
+            "cleared_at": rec.cleared_at}
+
+
+def _message(key: str, base: str, payload: Callable[[int], dict[str, Any]], **path: str) -> Message:
+    """A message on topic ``key`` of the tree; QoS and retain as ``schema.TOPICS`` defines them."""
+    t = schema.TOPIC[key]
+    return Message(key, schema.topic_for(base, key, **path), payload, t.qos, t.retain)
+
+
+def telemetry_message(base: str, station: str, t: float, summary: dict[str, Any]) -> Message:
+    return _message("telemetry", base, lambda seq: schema.telemetry_payload(seq, t, station, summary))
+
+
+def alarm_message(base: str, station: str, t: float, rec: AlarmRecord) -> Message:
+    fields = alarm_fields(rec)
+    return _message("alarm", base, lambda seq: schema.alarm_payload(seq, t, station, fields))
+
+
+def event_messages(base: str, ev: Event, last_state: StationState | None,
+                   alarm: AlarmRecord) -> list[Message]:
+    """The messages of one event: the event itself, then the alarm (alarm events, as the alarm
+    store now has it) or the retained result (end of a test)."""
+    out = [_message("event", base, lambda seq: schema.event_payload(seq, ev), type=ev.type.value)]
+    if ev.type in (EventType.END_OF_LIFE, EventType.ALARM_ACK, EventType.ALARM_CLEARED):
+        out.append(alarm_message(base, ev.station, ev.wall_time, alarm))
+    elif ev.type == EventType.TEST_ENDED:
+        out.append(_message("result", base, lambda seq: schema.result_payload(seq, ev, last_state)))
+    return out
+
+
+def state_key(st: StationState) -> tuple[Any, ...]:
+    """What makes a new retained ``state`` message worth sending (not the elapsed time)."""
+    return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
+            st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
+            st.meter_ok, st.stm32_ok)
+
+
+def state_message(base: str, t: float, st: StationState) -> Message:
+    return _message("state", base, lambda seq: schema.state_payload(seq, t, st))
+
+
+def status_message(base: str, station: str, t: float, online: bool) -> Message:
+    """The retained ``status`` (also the Last Will): published directly, not through the outbox;
+    its seq is the stream position when it is sent."""
+    status = "online" if online else "offline"
+    return _message("status", base,
+                    lambda seq: schema.status_payload(seq, t, station, status, SOFTWARE, MAP_VERSION))
+
+
+def reply_message(base: str, station: str, t: float, command: str, request_id: str | None,
+                  r: CommandReply) -> Message:
+    code = 0 if r.ok else int(getattr(r, "code", CODE["BAD_REQUEST"]) or CODE["BAD_REQUEST"])
+    rid = request_id if request_id is not None else r.request_id
+    return _message("reply", base,
+                    lambda seq: schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))
+
+
+def command_filter(base: str) -> str:
+    """The subscription that receives every command topic of the station."""
+    return schema.topic_for(base, "cmd_start").rsplit("/", 1)[0] + "/+"
