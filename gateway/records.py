@@ -104,6 +104,7 @@ class StationState:
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
     wear_warning: bool = False         # §5a early warning fired in this test
+    stopped: bool = False              # the last test was ended on purpose (STOPPED, §3)
     protection_stop: bool = False
     meter_ok: bool = False
     stm32_ok: bool = False

@@ -285,7 +285,7 @@ class Station:
         st.mu_ss = st.mu_th = st.t_life = None
         st.k_b = None
         st.status = st.end_reason = None
-        st.protection_stop = False
+        st.protection_stop = st.stopped = False
         st.headroom = st.t_cross = None
         st.wear_warning = False
         st.elapsed_s = 0.0
@@ -331,6 +331,7 @@ class Station:
         st.state = TestState.COMPLETED if test_status == "completed" else TestState.ABORTED
         st.status = res.status
         st.end_reason = reason
+        st.stopped = res.stop_reasons == ["STOPPED"]
         self._emit_event(EventType.TEST_ENDED, k=mon.k - 1, reason=reason, source=source,
                          test_status=test_status, result=res.as_dict())
         sess.recorder.close(out)
