@@ -99,26 +99,31 @@ def make(tmp_path, meter_kw=None, method=None, t_end=100.0):
                  default_plan=TestPlan("S-1", "I", 0.5, t_end), autostart=True)
     vclock = VirtualClock(st.ts)
     st.clock_factory = lambda ts: vclock
-    events = []
+    tap = Tap()
+    st.outputs.append(tap)
+    return st, motor, tap
 
-    class Tap:
-        async def start(self):
-            pass
 
-        async def stop(self):
-            pass
+class Tap:
+    """An output that keeps the events and states it is given."""
 
-        def on_record(self, rec):
-            pass
+    def __init__(self):
+        self.events, self.states = [], []
 
-        def on_event(self, ev):
-            events.append(ev)
+    async def start(self):
+        pass
 
-        def on_state(self, s):
-            pass
+    async def stop(self):
+        pass
 
-    st.outputs.append(Tap())
-    return st, motor, events
+    def on_record(self, rec):
+        pass
+
+    def on_event(self, ev):
+        self.events.append(ev)
+
+    def on_state(self, s):
+        self.states.append(s)
 
 
 def run(st, max_slots, during=None):
@@ -149,7 +154,7 @@ def kinds(events):
 
 # ------------------------------------------------------------------------------------------------
 def test_zero_check_with_motor_off_then_spin_up_then_slot_0_and_a_stop_command_writes_end_slot(tmp_path):
-    st, motor, events = make(tmp_path)
+    st, motor, tap = make(tmp_path)
 
     async def during(st, stop):
         await until(lambda: st.state.state == TState.STARTING)
@@ -161,9 +166,9 @@ def test_zero_check_with_motor_off_then_spin_up_then_slot_0_and_a_stop_command_w
     # the zero check ran with the motor off (1 s = 50 slots), then the motor was enabled
     assert motor.calls[0].startswith("stop:gateway start") and "enable" in motor.calls
     assert motor.speeds_while_off == 0
-    k = kinds(events)
+    k = kinds(tap.events)
     assert k.index(EventType.TEST_STARTING) < k.index(EventType.TEST_STARTED)
-    started = next(e for e in events if e.type == EventType.TEST_STARTED)
+    started = next(e for e in tap.events if e.type == EventType.TEST_STARTED)
     assert started.k == 0 and 0.5 <= started.data["settle_s"] < 1.5, started.data
     assert abs(started.data["zero_offsets_n"]["T1"] - 0.001) < 1e-9
     d = only_test(tmp_path)
@@ -182,7 +187,7 @@ def test_zero_check_with_motor_off_then_spin_up_then_slot_0_and_a_stop_command_w
 
 
 def test_clean_shutdown_writes_end_slot_and_reads_the_same_offline(tmp_path):
-    st, _motor, _events = make(tmp_path)
+    st, _motor, _tap = make(tmp_path)
 
     async def during(st, stop):
         await until(lambda: st.session is not None and st.session.monitor.k >= 200)
@@ -199,7 +204,7 @@ def test_clean_shutdown_writes_end_slot_and_reads_the_same_offline(tmp_path):
 
 
 def test_a_test_that_reaches_t_end_has_no_end_slot(tmp_path):
-    st, _motor, _events = make(tmp_path, t_end=4.0)
+    st, _motor, _tap = make(tmp_path, t_end=4.0)
     run(st, 1000)
     d = only_test(tmp_path)
     res = json.loads((d / "result.json").read_text())
@@ -210,13 +215,13 @@ def test_a_test_that_reaches_t_end_has_no_end_slot(tmp_path):
 
 
 def test_no_tension_start_fails_after_the_timeout_motor_stopped_nothing_recorded(tmp_path):
-    st, motor, events = make(tmp_path, meter_kw={"threaded": False})
+    st, motor, tap = make(tmp_path, meter_kw={"threaded": False})
     run(st, 400)
-    failed = [e for e in events if e.type == EventType.START_FAILED]
-    assert len(failed) == 1, kinds(events)
+    failed = [e for e in tap.events if e.type == EventType.START_FAILED]
+    assert len(failed) == 1, kinds(tap.events)
     assert failed[0].data["reason"].startswith("no tension after 3 s: T̄ 0.00 N"), failed[0].data
     assert failed[0].data["spin_up_s"] == 3.0
-    assert EventType.TEST_STARTED not in kinds(events)
+    assert EventType.TEST_STARTED not in kinds(tap.events)
     assert not (tmp_path / "ss").exists() or not [x for x in os.listdir(tmp_path / "ss")
                                                  if (tmp_path / "ss" / x).is_dir()]
     assert "enable" in motor.calls and motor.calls[-2].startswith("stop:no tension after 3 s")
@@ -225,9 +230,9 @@ def test_no_tension_start_fails_after_the_timeout_motor_stopped_nothing_recorded
 
 
 def test_a_zero_offset_refuses_the_start_the_motor_never_runs(tmp_path):
-    st, motor, events = make(tmp_path, meter_kw={"offset": 0.06})
+    st, motor, tap = make(tmp_path, meter_kw={"offset": 0.06})
     run(st, 200)
-    failed = [e for e in events if e.type == EventType.START_FAILED]
+    failed = [e for e in tap.events if e.type == EventType.START_FAILED]
     assert len(failed) == 1
     assert failed[0].data["reason"] == "zero check failed: T1 0.061 N (allowed ±0.02 N)", failed[0].data
     assert failed[0].data["zero_offsets_n"]["T1"] > 0.06
@@ -236,16 +241,16 @@ def test_a_zero_offset_refuses_the_start_the_motor_never_runs(tmp_path):
 
 
 def test_swapped_channels_refuse_the_start(tmp_path):
-    st, motor, events = make(tmp_path, meter_kw={"t1": 0.6, "ratio": lambda n: 1 / 1.5})
+    st, motor, tap = make(tmp_path, meter_kw={"t1": 0.6, "ratio": lambda n: 1 / 1.5})
     run(st, 400)
-    failed = [e for e in events if e.type == EventType.START_FAILED]
+    failed = [e for e in tap.events if e.type == EventType.START_FAILED]
     assert len(failed) == 1 and failed[0].data["reason"].startswith(
         "channels swapped? set meter.swap_channels"), failed
     assert st.state.state == TState.IDLE and motor.calls[-2].startswith("stop:channels swapped")
 
 
 def test_a_stop_during_the_start_cancels_it(tmp_path):
-    st, motor, events = make(tmp_path, meter_kw={"threaded": False})
+    st, motor, tap = make(tmp_path, meter_kw={"threaded": False})
 
     async def during(st, stop):
         await until(lambda: motor.enabled)
@@ -253,13 +258,13 @@ def test_a_stop_during_the_start_cancels_it(tmp_path):
         assert reply.ok
 
     run(st, 300, during)
-    failed = [e for e in events if e.type == EventType.START_FAILED]
+    failed = [e for e in tap.events if e.type == EventType.START_FAILED]
     assert len(failed) == 1 and failed[0].data["reason"] == "start cancelled by command (mqtt)"
     assert not motor.enabled and st.state.state == TState.IDLE
 
 
 def test_a_start_while_starting_is_busy(tmp_path):
-    st, _motor, _events = make(tmp_path, meter_kw={"threaded": False})
+    st, _motor, _tap = make(tmp_path, meter_kw={"threaded": False})
     replies = []
 
     async def during(st, stop):
@@ -277,17 +282,14 @@ def test_headroom_and_the_wear_warning_reach_state_events_and_the_alarm_store(tm
     def ratio(n):
         return 1.5 if n < 150 else 1.5 + 0.001 * (n - 150)
 
-    st, _motor, events = make(tmp_path, meter_kw={"ratio": ratio},
+    st, _motor, tap = make(tmp_path, meter_kw={"ratio": ratio},
                               method={"n_warn": 2, "h_warn": 0.5})
-    states = []
-    st.outputs.append(type("S", (), {"start": lambda s: asyncio.sleep(0), "stop": lambda s: asyncio.sleep(0),
-                                     "on_record": lambda s, r: None, "on_event": lambda s, e: None,
-                                     "on_state": lambda s, x: states.append(x)})())
     run(st, 800)
+    events, states = tap.events, tap.states
     k = kinds(events)
     assert k.count(EventType.WEAR_WARNING) == 1, k
     assert k.index(EventType.BASELINE) < k.index(EventType.WEAR_WARNING) < k.index(EventType.END_OF_LIFE)
-    ww = next(e for e in events if e.type == EventType.WEAR_WARNING)
+    ww = next(e for e in tap.events if e.type == EventType.WEAR_WARNING)
     assert ww.data["headroom"] < 0.5 and ww.data["warn_slot"] == ww.k
     # every window's headroom went out in the state; the projection once 10 windows had a value
     hs = [s.headroom for s in states if s.headroom is not None]

@@ -114,31 +114,37 @@ EVENT_FIELDS = ENVELOPE + (
     Field("data", "object", "event-specific values, see the table of events"),
 )
 
-ALARM_FIELDS = ENVELOPE + (
-    Field("alarm", "str", "`end_of_life`"),
-    Field("priority", "int", "1: the most urgent (the wear warning is 2)"),
+#: the lifecycle fields both alarms share (the alarm store's AlarmRecord)
+_ALARM_STATE = (
     Field("state", "str", "`active` (raised, not acknowledged) → `acknowledged` → `cleared` "
           "(the hook was replaced and a new test started)"),
     Field("active", "bool", "true while the alarm is raised (active or acknowledged)"),
     Field("acknowledged", "bool", "true once someone acknowledged it"),
-    Field("test_id", "str|null", "the test that reached its end of life"),
-    Field("sample_id", "str|null", "its sample"),
-    Field("t_life", "float|null", "wear life, s from test start"),
-    Field("k_life", "int|null", "slot of the end of life"),
-    Field("mu_ss", "float|null", "baseline μ_ss"),
-    Field("mu_th", "float|null", "threshold μ_th"),
+)
+_ALARM_TIMES = (
     Field("raised_at", "str|null", "UTC time the alarm was raised"),
     Field("acknowledged_at", "str|null", "UTC time of the acknowledgement"),
     Field("acknowledged_by", "str|null", "source of the acknowledgement (mqtt, plc:ADDR, cli)"),
     Field("cleared_at", "str|null", "UTC time the alarm was cleared"),
 )
 
+ALARM_FIELDS = ENVELOPE + (
+    Field("alarm", "str", "`end_of_life`"),
+    Field("priority", "int", "1: the most urgent (the wear warning is 2)"),
+    *_ALARM_STATE,
+    Field("test_id", "str|null", "the test that reached its end of life"),
+    Field("sample_id", "str|null", "its sample"),
+    Field("t_life", "float|null", "wear life, s from test start"),
+    Field("k_life", "int|null", "slot of the end of life"),
+    Field("mu_ss", "float|null", "baseline μ_ss"),
+    Field("mu_th", "float|null", "threshold μ_th"),
+    *_ALARM_TIMES,
+)
+
 WARNING_FIELDS = ENVELOPE + (
     Field("alarm", "str", "`warning`"),
     Field("priority", "int", "2: below the end of life (1)"),
-    Field("state", "str", "`active` → `acknowledged` → `cleared`, as the end-of-life alarm"),
-    Field("active", "bool", "true while the alarm is raised (active or acknowledged)"),
-    Field("acknowledged", "bool", "true once someone acknowledged it"),
+    *_ALARM_STATE,
     Field("test_id", "str|null", "the test whose headroom fell"),
     Field("sample_id", "str|null", "its sample"),
     Field("warn_slot", "int|null", "last slot of the window that completed the warning run (§5a)"),
@@ -147,10 +153,7 @@ WARNING_FIELDS = ENVELOPE + (
     Field("t_cross", "float|null", "the projection at that window, s from test start (null: none)"),
     Field("mu_ss", "float|null", "baseline μ_ss"),
     Field("mu_th", "float|null", "threshold μ_th"),
-    Field("raised_at", "str|null", "UTC time the alarm was raised"),
-    Field("acknowledged_at", "str|null", "UTC time of the acknowledgement"),
-    Field("acknowledged_by", "str|null", "source of the acknowledgement (mqtt, plc:ADDR, cli)"),
-    Field("cleared_at", "str|null", "UTC time the alarm was cleared"),
+    *_ALARM_TIMES,
 )
 
 RESULT_FIELDS = ENVELOPE + (
