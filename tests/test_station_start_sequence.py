@@ -72,11 +72,14 @@ class PlantMeter:
     """Motor off: the zero reading (plus ``offset`` on T1). Motor on: T1 ``t1`` N and
     T2 = T1·ratio(n), n counting the readings since the motor was enabled."""
 
-    def __init__(self, motor, *, t1=0.4, ratio=lambda n: 1.5, offset=0.0, threaded=True):
+    def __init__(self, motor, *, t1=0.4, ratio=lambda n: 1.5, offset=0.0, threaded=True,
+                 connect_after=0):
         self.motor, self.t1, self.ratio, self.offset, self.threaded = motor, t1, ratio, offset, threaded
-        self.connected = True
+        self.connect_after = connect_after      # reads before the port opens (None: never)
+        self.connected = connect_after == 0
         self.counters = {}
         self.n_on = 0
+        self.reads = 0
 
     async def open(self):
         pass
@@ -85,6 +88,10 @@ class PlantMeter:
         pass
 
     async def read(self):
+        self.reads += 1
+        if not self.connected:
+            self.connected = self.connect_after is not None and self.reads > self.connect_after
+            return None
         if not (self.motor.enabled and self.threaded):
             return Reading(0.001 + self.offset, 0.002)
         self.n_on += 1
@@ -305,3 +312,22 @@ def test_headroom_and_the_wear_warning_reach_state_events_and_the_alarm_store(tm
     res = json.loads((only_test(tmp_path) / "result.json").read_text())["method"]
     assert res["warn_slot"] == ww.data["warn_slot"]
     assert analyze_file(str(only_test(tmp_path) / "log.csv.gz")).as_dict() == res
+
+
+def test_the_zero_check_waits_for_the_meter_port_then_starts(tmp_path):
+    """A gateway start: the meter's port opens 2 s after the start was accepted (it was locked or
+    not there yet). The zero check waits for it instead of judging the silence."""
+    st, motor, tap = make(tmp_path, meter_kw={"connect_after": 100})
+    run(st, 600)
+    k = kinds(tap.events)
+    assert EventType.START_FAILED not in k and EventType.TEST_STARTED in k, [e.data for e in tap.events]
+    assert motor.calls.index("enable") > 0
+
+
+def test_a_meter_port_that_never_opens_fails_the_start_after_the_timeout(tmp_path):
+    st, motor, tap = make(tmp_path, meter_kw={"connect_after": None})
+    run(st, 400)
+    failed = [e for e in tap.events if e.type == EventType.START_FAILED]
+    assert len(failed) == 1 and failed[0].data["reason"] == (
+        "zero check not possible: the meter's port is not open after 3 s"), failed
+    assert "enable" not in motor.calls and st.state.state == TState.IDLE

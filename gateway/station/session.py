@@ -55,6 +55,8 @@ class StartAttempt:
     controller: Controller
     source: str
     motor_enabled: bool = False      # the take-up was enabled for the spin-up
+    port_wait_slots: int = 0         # slots waited for the meter's port before the zero check
+    reason: str | None = None        # a failure found by the station (not by the sequence)
 
     @classmethod
     def begin(cls, plan: TestPlan, method_values: dict[str, Any], control: ControlParams,

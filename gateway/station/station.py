@@ -396,6 +396,14 @@ class Station:
         seq = att.seq
         if seq.phase == ZERO_CHECK:
             self._speed_cmd = 0.0
+            if not self.meter.connected and seq.spin_slots == 0 and att.reason is None:
+                # the meter's port is not open yet (a gateway start, a port coming back): the
+                # zero check waits for it, at most start_timeout, instead of judging silence
+                att.port_wait_slots += 1
+                if att.port_wait_slots * self.ts >= att.params.start_timeout:
+                    att.reason = (f"zero check not possible: the meter's port is not open after "
+                                  f"{att.params.start_timeout:g} s")
+                return math.nan, False
             seq.zero_slot(present, t1, t2)
             return math.nan, False
         if seq.phase != SPIN_UP:
@@ -448,7 +456,9 @@ class Station:
         att = self.starting
         if att is not None:
             ph = att.seq.phase
-            if ph == SPIN_UP and not att.motor_enabled:
+            if att.reason is not None:
+                await self._start_failed(att.reason)
+            elif ph == SPIN_UP and not att.motor_enabled:
                 self._enable_motor(att)
             elif ph == SETTLED:
                 self._begin_test(att)
