@@ -45,6 +45,8 @@ class Motor:
         self.enabled = False
         self.calls = []
         self.speeds_while_off = 0
+        self.turning_until = None      # the take-up runs down until this meter read (None: no status)
+        self.meter = None
 
     async def open(self):
         pass
@@ -65,7 +67,14 @@ class Motor:
         self.calls.append(f"stop:{reason}")
 
     async def read_status(self):
-        return None
+        if self.turning_until is None:
+            return None
+        return Status(100.0 if self.meter is None or self.meter.reads < self.turning_until else 0.0)
+
+
+class Status:
+    def __init__(self, rpm):
+        self.actual_rpm = rpm
 
 
 class PlantMeter:
@@ -89,6 +98,8 @@ class PlantMeter:
 
     async def read(self):
         self.reads += 1
+        if self.motor.turning_until is not None and self.reads < self.motor.turning_until:
+            return Reading(0.3, 0.45)          # the yarn is still under tension
         if not self.connected:
             self.connected = self.connect_after is not None and self.reads > self.connect_after
             return None
@@ -98,12 +109,14 @@ class PlantMeter:
         return Reading(self.t1, self.t1 * self.ratio(self.n_on))
 
 
-def make(tmp_path, meter_kw=None, method=None, t_end=100.0):
+def make(tmp_path, meter_kw=None, method=None, t_end=100.0, turning_until=None):
     motor = Motor()
     meter = PlantMeter(motor, **(meter_kw or {}))
+    motor.meter, motor.turning_until = meter, turning_until
     st = Station(station_id="ss", method={**FAST, **(method or {})}, control=ControlParams(),
                  meter=meter, stm32=motor, records_dir=str(tmp_path),
-                 default_plan=TestPlan("S-1", "I", 0.5, t_end), autostart=True)
+                 default_plan=TestPlan("S-1", "I", 0.5, t_end), autostart=True,
+                 idle_status_interval_s=0.0)
     vclock = VirtualClock(st.ts)
     st.clock_factory = lambda ts: vclock
     tap = Tap()
@@ -331,3 +344,23 @@ def test_a_meter_port_that_never_opens_fails_the_start_after_the_timeout(tmp_pat
     assert len(failed) == 1 and failed[0].data["reason"] == (
         "zero check not possible: the meter's port is not open after 3 s"), failed
     assert "enable" not in motor.calls and st.state.state == TState.IDLE
+
+
+def test_the_zero_check_waits_until_the_take_up_has_run_down(tmp_path):
+    """A restart right after a crash (or a start right after a stop): the take-up still turns and
+    the yarn is under tension for 2 s. The zero check measures the yarn at rest, not that."""
+    st, motor, tap = make(tmp_path, turning_until=100)
+    run(st, 700)
+    k = kinds(tap.events)
+    assert EventType.START_FAILED not in k and EventType.TEST_STARTED in k, [e.data for e in tap.events]
+    started = next(e for e in tap.events if e.type == EventType.TEST_STARTED)
+    assert abs(started.data["zero_offsets_n"]["T1"] - 0.001) < 1e-9
+
+
+def test_a_take_up_that_never_stops_fails_the_start(tmp_path):
+    st, motor, tap = make(tmp_path, turning_until=10**9)
+    run(st, 400)
+    failed = [e for e in tap.events if e.type == EventType.START_FAILED]
+    assert len(failed) == 1 and failed[0].data["reason"] == (
+        "zero check not possible: the take-up still turns after 3 s (100 rpm)"), failed
+    assert "enable" not in motor.calls

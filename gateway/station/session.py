@@ -55,7 +55,8 @@ class StartAttempt:
     controller: Controller
     source: str
     motor_enabled: bool = False      # the take-up was enabled for the spin-up
-    port_wait_slots: int = 0         # slots waited for the meter's port before the zero check
+    wait_slots: int = 0              # slots waited (meter port, take-up at rest) before the zero check
+    zero_begun: bool = False         # the zero check's window has begun
     reason: str | None = None        # a failure found by the station (not by the sequence)
 
     @classmethod

@@ -46,6 +46,13 @@ __all__ = ["Station", "TestPlan", "TestSession", "SlotStats"]
 
 log = logging.getLogger("hookwatch.station")
 
+#: the zero check (METHOD.md §3a) measures the yarn at rest: it begins once the take-up has been
+#: commanded off for REST_S and the STM32 reports no more than REST_RPM (a test stopped a moment
+#: ago, a gateway restarted after a crash: the yarn is still under tension while the take-up
+#: runs down)
+REST_S = 1.0
+REST_RPM = 1.0
+
 
 @dataclass
 class SlotStats:
@@ -113,6 +120,8 @@ class Station:
         self._stm32_task: asyncio.Task[Any] | None = None
         self._speed_act = math.nan
         self._speed_cmd = 0.0
+        self._k = 0                     # the loop's current slot
+        self._motor_off_k = 0           # loop slot of the last stop command to the take-up
         self._last_state_push = 0.0
         self._meter_was_ok: bool | None = None
         self._stm32_was_ok: bool | None = None
@@ -300,6 +309,7 @@ class Station:
             return
         self.starting = None
         self._speed_cmd = 0.0
+        self._motor_off_k = self._k
         await self._safe_stm32(self.stm32.stop(reason))
         st = self.state
         st.state = TestState.IDLE
@@ -318,6 +328,7 @@ class Station:
         if sess is None:
             return None
         mon = sess.monitor
+        self._motor_off_k = self._k
         await self._safe_stm32(self.stm32.stop(reason))
         if reason in ("completed", "protection stop"):
             res = mon.close()          # slots up to the planned end that never came: MISSING
@@ -350,6 +361,13 @@ class Station:
             log.error("%s: STM32 call failed: %s", self.id, e)
             return None
 
+    async def _poll_status(self) -> None:
+        """The STM32's status while the take-up is off (idle, before the zero check): its actual
+        speed (NaN when it does not answer)."""
+        st = await self._safe_stm32(self.stm32.read_status())
+        rpm = getattr(st, "actual_rpm", None) if st is not None else None
+        self._speed_act = float(rpm) if rpm is not None else math.nan
+
     async def _send_speed(self, rpm: float) -> None:
         st = await self._safe_stm32(self.stm32.set_speed(rpm))
         if st is not None:
@@ -366,8 +384,9 @@ class Station:
         sess = self.session
         q, mask, ratio, mu = 0, 0, None, None
         y, sat = math.nan, False
+        self._k = k
         if self.starting is not None:
-            y, sat = self._start_slot(self.starting, present, t1, t2)
+            y, sat = self._start_slot(self.starting, k, present, t1, t2)
         if sess is not None and sess.k_start is None:
             sess.k_start = k
         kt = k - sess.k_start if sess is not None and sess.k_start is not None else k
@@ -390,20 +409,29 @@ class Station:
         self.fanout.record(rec)
         return rec
 
-    def _start_slot(self, att: StartAttempt, present: bool, t1: float, t2: float) -> tuple[float, bool]:
+    def _start_slot(self, att: StartAttempt, k: int, present: bool, t1: float,
+                    t2: float) -> tuple[float, bool]:
         """One slot of the start sequence (§3a); the decisions it leads to are taken in
         :meth:`_after_slot`. Returns (y, saturated) of the controller (NaN while the motor is off)."""
         seq = att.seq
         if seq.phase == ZERO_CHECK:
             self._speed_cmd = 0.0
-            if not self.meter.connected and seq.spin_slots == 0 and att.reason is None:
-                # the meter's port is not open yet (a gateway start, a port coming back): the
-                # zero check waits for it, at most start_timeout, instead of judging silence
-                att.port_wait_slots += 1
-                if att.port_wait_slots * self.ts >= att.params.start_timeout:
-                    att.reason = (f"zero check not possible: the meter's port is not open after "
-                                  f"{att.params.start_timeout:g} s")
-                return math.nan, False
+            if not att.zero_begun and att.reason is None:
+                # the zero check judges the yarn at rest through an open port: it waits (at most
+                # start_timeout) for the meter's port and for the take-up to have run down
+                att.wait_slots += 1
+                port_ok = bool(self.meter.connected)
+                moving = math.isfinite(self._speed_act) and abs(self._speed_act) > REST_RPM
+                if port_ok and not moving and (k - self._motor_off_k) * self.ts >= REST_S:
+                    att.zero_begun = True
+                elif att.wait_slots * self.ts >= att.params.start_timeout:
+                    t = f"{att.params.start_timeout:g} s"
+                    att.reason = (f"zero check not possible: the meter's port is not open after {t}"
+                                  if not port_ok else f"zero check not possible: the take-up still "
+                                  f"turns after {t} ({self._speed_act:.0f} rpm)")
+                    return math.nan, False
+                else:
+                    return math.nan, False
             seq.zero_slot(present, t1, t2)
             return math.nan, False
         if seq.phase != SPIN_UP:
@@ -555,11 +583,13 @@ class Station:
                         self.stats.stm32_busy_skips += 1
                 await self._after_slot()
                 now = time.monotonic()
-                if not self.busy and now - last_idle_status >= self.idle_status_interval_s:
+                waiting = att is not None and self.starting is att and not att.zero_begun
+                if ((not self.busy or waiting) and now - last_idle_status
+                        >= (min(0.2, self.idle_status_interval_s) if waiting
+                            else self.idle_status_interval_s)):
                     last_idle_status = now
                     if self._stm32_task is None or self._stm32_task.done():
-                        self._stm32_task = asyncio.get_running_loop().create_task(
-                            self._safe_stm32(self.stm32.read_status()))
+                        self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
                 if now - self._last_state_push >= 1.0:
                     self._link_health()
                     self._push_state()
