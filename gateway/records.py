@@ -20,6 +20,7 @@ class TestState(enum.IntEnum):
     END_OF_LIFE = 3       # t_life found; the test runs on to its planned t_end
     COMPLETED = 4
     ABORTED = 5
+    STARTING = 6          # METHOD.md §3a: zero check and spin-up before slot 0 (nothing recorded)
 
 
 @dataclass(slots=True)
@@ -51,9 +52,12 @@ class AlarmState(str, enum.Enum):
 
 
 class EventType(str, enum.Enum):
-    TEST_STARTED = "test_started"
+    TEST_STARTING = "test_starting"      # a start was accepted: zero check, then spin-up (§3a)
+    START_FAILED = "start_failed"        # the start sequence refused or timed out (§3a): idle again
+    TEST_STARTED = "test_started"        # slot 0: the tension has settled (§3a)
     BASELINE = "baseline_established"
     END_OF_LIFE = "end_of_life"
+    WEAR_WARNING = "wear_warning"        # the §5a early warning (once per test, informative)
     PROTECTION_STOP = "protection_stop"
     TEST_ENDED = "test_ended"
     PORT_LOST = "port_lost"
@@ -96,6 +100,11 @@ class StationState:
     status: str | None = None          # the method's status once the test has ended
     end_reason: str | None = None      # why a test ended (completed, protection stop, command, restart)
     alarm: str = AlarmState.NONE.value  # an AlarmState value (gateway.station.alarms keeps it)
+    warning_alarm: str = AlarmState.NONE.value  # the §5a wear-warning alarm (lower priority)
+    headroom: float | None = None      # §5a h of the last post-baseline window with a value
+    t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
+    wear_warning: bool = False         # §5a early warning fired in this test
+    stopped: bool = False              # the last test was ended on purpose (STOPPED, §3)
     protection_stop: bool = False
     meter_ok: bool = False
     stm32_ok: bool = False

@@ -67,7 +67,7 @@ def add_arguments(ap):
 
 
 class _EndWatcher:
-    """An output that stops the station once its test has ended."""
+    """An output that stops the station once its test has ended (or its start failed, §3a)."""
 
     def __init__(self, stop: asyncio.Event):
         self.stop_ev = stop
@@ -85,7 +85,7 @@ class _EndWatcher:
         pass
 
     def on_event(self, ev):
-        if ev.type == EventType.TEST_ENDED and ev.test_id:
+        if (ev.type == EventType.TEST_ENDED and ev.test_id) or ev.type == EventType.START_FAILED:
             self.stop_ev.set()
 
 

@@ -129,9 +129,10 @@ def run(args) -> int:
                 break
             if args.exit_when_done:
                 sts = [r.station for r in runners]
-                if any(s is not None and s.monitor is not None for s in sts):
+                if any(s is not None and s.busy for s in sts):
                     started_any = True
-                elif started_any or all(s is not None and s.results for s in sts):
+                elif started_any or all(s is not None and (s.results or s.start_failures)
+                                        for s in sts):
                     break
     finally:
         sdnotify.stopping()
@@ -143,14 +144,19 @@ def run(args) -> int:
         for r in runners:
             if r.station is not None:
                 out[r.name]["results"] = r.station.results
+                out[r.name]["start_failures"] = r.station.start_failures
         with open(args.stats_json, "w") as f:
             json.dump(out, f, indent=1, default=str)
     for r in runners:
         if r.station is not None:
+            for f in r.station.start_failures:
+                print(f"{r.name}: start of {f['sample_id']} failed: {f['reason']}", flush=True)
             for res in r.station.results:
                 m = res["method"]
                 print(f"{r.name}: test {res['test_id']} {res['test_status']} ({res['end_reason']}): "
-                      f"status {m['status']}, t_life {m['t_life']}, mu_ss {m['mu_ss']}", flush=True)
+                      f"status {m['status']}"
+                      + (f" ({', '.join(m['stop_reasons'])})" if m.get("stop_reasons") else "")
+                      + f", t_life {m['t_life']}, mu_ss {m['mu_ss']}", flush=True)
     return 0
 
 

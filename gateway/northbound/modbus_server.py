@@ -350,6 +350,8 @@ class ModbusOutput:
             "protection_stop": bool(st.protection_stop), "meter_ok": bool(st.meter_ok),
             "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(st.mqtt_ok),
             "saturation": now - self._sat_t <= 1.0,
+            "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
+            "starting": st.state == TestState.STARTING,
         }
         v = {
             "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION,
@@ -362,7 +364,9 @@ class ModbusOutput:
             "valid_ratio": self._valid / self._slots if self._slots else math.nan,
             "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
             "t_life": st.t_life, "elapsed": self._elapsed, "slots": self._slots,
-            "valid_slots": self._valid,
+            "valid_slots": self._valid, "headroom": st.headroom, "t_cross": st.t_cross,
+            "warning_alarm": (R.ALARM_STATES.index(st.warning_alarm)
+                              if st.warning_alarm in R.ALARM_STATES else 0),
         }
         for (_, name), c in zip(REASONS, self._counts):
             v[f"count_{name.lower()}"] = c

@@ -114,15 +114,18 @@ class MqttOutput:
         if agg is None or agg.n == 0:
             return
         self._agg = Telemetry(now)
-        self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(),
-                                          agg.summary(now, self._test_id)))
+        st = self._last_state           # §5a: the headroom of the last window, as in `state`
+        summary = agg.summary(now, self._test_id, st.headroom if st is not None else None,
+                              st.t_cross if st is not None else None)
+        self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(), summary))
 
     def on_event(self, ev: Event) -> None:
         if ev.type == EventType.TEST_STARTED:
             self._test_id = ev.test_id
         if self._own_alarms:
             self.alarms.on_event(ev)
-        for msg in M.event_messages(self._base, ev, self._last_state, self.alarms.record):
+        for msg in M.event_messages(self._base, ev, self._last_state, self.alarms.record,
+                                    self.alarms.warning):
             self.pump.put(msg)
         if ev.type == EventType.TEST_ENDED and ev.test_id is not None and ev.test_id == self._test_id:
             self._test_id = None

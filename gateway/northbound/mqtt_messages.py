@@ -86,7 +86,10 @@ class Telemetry:
         self.speed_cmd = rec.speed_cmd
         self.speed_act = rec.speed_act
 
-    def summary(self, now: float, test_id: str | None) -> dict[str, Any]:
+    def summary(self, now: float, test_id: str | None, headroom: float | None = None,
+                t_cross: float | None = None) -> dict[str, Any]:
+        """The interval's figures; ``headroom`` and ``t_cross`` are the §5a figures of the last
+        complete window of the running test (the station's state)."""
         nr = self.n_read
         return {
             "test_id": test_id, "interval_s": round(now - self.t0, 3), "slots": self.n,
@@ -98,15 +101,19 @@ class Telemetry:
             "counts": {name: c for (_, name), c in zip(REASONS, self.counts)},
             "speed_cmd": self.speed_cmd, "speed_act": self.speed_act,
             "saturated_slots": self.n_sat, "saturation": self.n_sat > 0,
+            "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
         }
 
 
 
 def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
-    """The alarm store's record as the fields of the ``alarm/end_of_life`` message."""
+    """The alarm store's record as the fields of the ``alarm/end_of_life`` (or, for the wear
+    warning, ``alarm/warning``) message."""
     return {"state": "cleared" if rec.state == AlarmState.NONE else rec.state.value,
             "active": rec.active, "acknowledged": rec.acknowledged, "test_id": rec.test_id,
             "sample_id": rec.sample_id, "t_life": rec.t_life, "k_life": rec.k_life,
+            "warn_slot": rec.warn_slot, "t_warn": rec.t_warn, "headroom": rec.headroom,
+            "t_cross": rec.t_cross,
             "mu_ss": rec.mu_ss, "mu_th": rec.mu_th, "raised_at": rec.raised_at,
             "acknowledged_at": rec.acknowledged_at, "acknowledged_by": rec.acknowledged_by,
             "cleared_at": rec.cleared_at}
@@ -127,13 +134,22 @@ def alarm_message(base: str, station: str, t: float, rec: AlarmRecord) -> Messag
     return _message("alarm", base, lambda seq: schema.alarm_payload(seq, t, station, fields))
 
 
+def warning_message(base: str, station: str, t: float, rec: AlarmRecord) -> Message:
+    fields = alarm_fields(rec)
+    return _message("alarm_warning", base, lambda seq: schema.warning_payload(seq, t, station, fields))
+
+
 def event_messages(base: str, ev: Event, last_state: StationState | None,
-                   alarm: AlarmRecord) -> list[Message]:
-    """The messages of one event: the event itself, then the alarm (alarm events, as the alarm
-    store now has it) or the retained result (end of a test)."""
+                   alarm: AlarmRecord, warning: AlarmRecord | None = None) -> list[Message]:
+    """The messages of one event: the event itself, then the alarms (alarm events, as the alarm
+    store now has them: the wear warning only once it was ever raised) or the retained result
+    (end of a test)."""
     out = [_message("event", base, lambda seq: schema.event_payload(seq, ev), type=ev.type.value)]
     if ev.type in (EventType.END_OF_LIFE, EventType.ALARM_ACK, EventType.ALARM_CLEARED):
         out.append(alarm_message(base, ev.station, ev.wall_time, alarm))
+    if warning is not None and warning.raised and ev.type in (
+            EventType.WEAR_WARNING, EventType.ALARM_ACK, EventType.ALARM_CLEARED):
+        out.append(warning_message(base, ev.station, ev.wall_time, warning))
     elif ev.type == EventType.TEST_ENDED:
         out.append(_message("result", base, lambda seq: schema.result_payload(seq, ev, last_state)))
     return out
@@ -143,7 +159,8 @@ def state_key(st: StationState) -> tuple[Any, ...]:
     """What makes a new retained ``state`` message worth sending (not the elapsed time)."""
     return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
             st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
-            st.meter_ok, st.stm32_ok)
+            st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
+            st.warning_alarm)
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:

@@ -20,7 +20,7 @@ from ..records import AlarmState, CommandKind, TestState
 from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
-MAP_VERSION = 1
+MAP_VERSION = 2    # 2: headroom, t_cross, warning_alarm, status bits 10–12, test state 6 starting
 
 INPUT = "input"
 HOLDING = "holding"
@@ -70,6 +70,11 @@ STATUS_BITS: tuple[tuple[int, str, str], ...] = (
     (7, "mqtt_connected", "the gateway is connected to the MQTT broker"),
     (8, "saturation", "the control output was clamped during the last second"),
     (9, "writes_enabled", "this client may write the holding registers"),
+    (10, "wear_warning", "the §5a early warning fired in the current / last test (informative; "
+     "until a new test starts)"),
+    (11, "stopped", "the last test was ended on purpose (operator, PLC, MES stop or a clean "
+     "shutdown): STOPPED, not a dead meter"),
+    (12, "starting", "a start is in progress: zero check or spin-up before slot 0 (METHOD.md §3a)"),
 )
 STATUS_BIT = {name: bit for bit, name, _ in STATUS_BITS}
 
@@ -80,7 +85,7 @@ COMMAND_CODES: tuple[tuple[int, str, str], ...] = (
     (0, "none", "no command yet"),
     (1, "start", "start a test with `sample_id`, `grade`, `t_set`, `t_end` from the holding registers"),
     (2, "stop", "stop the running test (it ends as aborted)"),
-    (3, "ack", "acknowledge the end-of-life alarm"),
+    (3, "ack", "acknowledge the active alarms (end of life and wear warning)"),
     (4, "setpoint", "(input register only) the last command was a write of `t_set`"),
 )
 COMMAND_CODE = {name: code for code, name, _ in COMMAND_CODES}
@@ -113,6 +118,14 @@ INPUT_REGS = _layout(INPUT, [
     ("slots", "uint32", "slots", "slots of the current / last test"),
     ("valid_slots", "uint32", "slots", "valid slots of the current / last test"),
     *_reason_regs,
+    ("headroom", "float32", "", "wear headroom h of the last complete window with a value "
+     "(METHOD.md §5a): 1 at the baseline, 0 at the threshold μ_th, negative above; NaN before the "
+     "first window after the baseline. Informative: never changes the result"),
+    ("t_cross", "uint32", "s", "projected time from test start at which the recent trend of μ "
+     "reaches μ_th (§5a), rounded; 0 = no projection. It assumes the trend goes on; the "
+     "accelerated stage usually comes sooner"),
+    ("warning_alarm", "enum", "", "wear-warning alarm (priority 2, below the end of life): "
+     + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
     ("last_command", "enum", "", "last command carried out or refused: "
      + ", ".join(f"{c} {n}" for c, n, _ in COMMAND_CODES)),
     ("last_result", "uint16", "", "result of the last command: 0 ok, else the rejection code (table below)"),

@@ -20,7 +20,8 @@ from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
 #: version of the topic tree and payloads (every payload carries it as "schema")
-SCHEMA_VERSION = 2      # 2: `status` carries its own `session` counter instead of a `seq`
+SCHEMA_VERSION = 2      # 2: `status` carries its own `session` counter instead of a `seq`; state
+                        # test_state `starting`; §5a headroom/t_cross; the alarm/warning alarms
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,8 @@ STATUS_FIELDS = (
 )
 
 STATE_FIELDS = ENVELOPE + (
-    Field("test_state", "str", "idle, baseline_search, monitoring, end_of_life, completed, aborted"),
+    Field("test_state", "str", "idle, starting (zero check and spin-up before slot 0, METHOD.md "
+          "§3a), baseline_search, monitoring, end_of_life, completed, aborted"),
     Field("test_id", "str|null", "id of the current (or last) test"),
     Field("sample_id", "str|null", "sample under test"),
     Field("grade", "str|null", "needle grade of the sample"),
@@ -85,9 +87,18 @@ STATE_FIELDS = ENVELOPE + (
     Field("t_life", "float|null", "wear life found, s from test start (null until end of life)"),
     Field("elapsed_s", "float", "time since test start, s"),
     Field("status", "str|null", "the method's status once the test has ended"),
-    Field("end_reason", "str|null", "why the test ended (completed, protection stop, …)"),
+    Field("end_reason", "str|null", "why the test ended (completed, protection stop, stopped by "
+          "command, gateway shutdown, …) or the start failed (§3a)"),
     Field("alarm", "str", "end-of-life alarm: none, active, acknowledged"),
     Field("protection_stop", "bool", "the test was stopped by the protection rule (§3)"),
+    Field("stopped", "bool", "the test was ended on purpose (STOPPED, §3: a command or a clean "
+          "shutdown), not by a dead meter"),
+    Field("headroom", "float|null", "wear headroom h of the last complete window with a value "
+          "(§5a): 1 at the baseline, 0 at the threshold, negative above; informative"),
+    Field("t_cross", "float|null", "projected time (s from test start) at which the recent trend "
+          "of μ reaches μ_th (§5a), from the last window with a value; null: no projection"),
+    Field("wear_warning", "bool", "the §5a early warning fired in this test"),
+    Field("warning_alarm", "str", "wear-warning alarm (priority 2): none, active, acknowledged"),
     Field("meter_ok", "bool", "the tension meter answers"),
     Field("stm32_ok", "bool", "the motor controller answers"),
 )
@@ -106,6 +117,8 @@ TELEMETRY_FIELDS = ENVELOPE + (
     Field("speed_act", "float|null", "actual speed reported by the STM32, rpm"),
     Field("saturated_slots", "int", "slots in which the control output was clamped"),
     Field("saturation", "bool", "the control output was clamped at least once in the interval"),
+    Field("headroom", "float|null", "wear headroom of the last complete window (§5a), as in `state`"),
+    Field("t_cross", "float|null", "projected crossing of μ_th, s from test start (§5a), as in `state`"),
 )
 
 EVENT_FIELDS = ENVELOPE + (
@@ -115,22 +128,46 @@ EVENT_FIELDS = ENVELOPE + (
     Field("data", "object", "event-specific values, see the table of events"),
 )
 
-ALARM_FIELDS = ENVELOPE + (
-    Field("alarm", "str", "`end_of_life`"),
+#: the lifecycle fields both alarms share (the alarm store's AlarmRecord)
+_ALARM_STATE = (
     Field("state", "str", "`active` (raised, not acknowledged) → `acknowledged` → `cleared` "
           "(the hook was replaced and a new test started)"),
     Field("active", "bool", "true while the alarm is raised (active or acknowledged)"),
     Field("acknowledged", "bool", "true once someone acknowledged it"),
+)
+_ALARM_TIMES = (
+    Field("raised_at", "str|null", "UTC time the alarm was raised"),
+    Field("acknowledged_at", "str|null", "UTC time of the acknowledgement"),
+    Field("acknowledged_by", "str|null", "source of the acknowledgement (mqtt, plc:ADDR, cli)"),
+    Field("cleared_at", "str|null", "UTC time the alarm was cleared"),
+)
+
+ALARM_FIELDS = ENVELOPE + (
+    Field("alarm", "str", "`end_of_life`"),
+    Field("priority", "int", "1: the most urgent (the wear warning is 2)"),
+    *_ALARM_STATE,
     Field("test_id", "str|null", "the test that reached its end of life"),
     Field("sample_id", "str|null", "its sample"),
     Field("t_life", "float|null", "wear life, s from test start"),
     Field("k_life", "int|null", "slot of the end of life"),
     Field("mu_ss", "float|null", "baseline μ_ss"),
     Field("mu_th", "float|null", "threshold μ_th"),
-    Field("raised_at", "str|null", "UTC time the alarm was raised"),
-    Field("acknowledged_at", "str|null", "UTC time of the acknowledgement"),
-    Field("acknowledged_by", "str|null", "source of the acknowledgement (mqtt, plc:ADDR, cli)"),
-    Field("cleared_at", "str|null", "UTC time the alarm was cleared"),
+    *_ALARM_TIMES,
+)
+
+WARNING_FIELDS = ENVELOPE + (
+    Field("alarm", "str", "`warning`"),
+    Field("priority", "int", "2: below the end of life (1)"),
+    *_ALARM_STATE,
+    Field("test_id", "str|null", "the test whose headroom fell"),
+    Field("sample_id", "str|null", "its sample"),
+    Field("warn_slot", "int|null", "last slot of the window that completed the warning run (§5a)"),
+    Field("t_warn", "float|null", "time of the warning, s from test start ((warn_slot + 1)·Ts)"),
+    Field("headroom", "float|null", "the headroom of that window"),
+    Field("t_cross", "float|null", "the projection at that window, s from test start (null: none)"),
+    Field("mu_ss", "float|null", "baseline μ_ss"),
+    Field("mu_th", "float|null", "threshold μ_th"),
+    *_ALARM_TIMES,
 )
 
 #: values of `result.status` (the method's verdict, METHOD.md) and what each means for the MES
@@ -152,8 +189,9 @@ RESULT_FIELDS = ENVELOPE + (
     Field("t_set", "float|null", "its setpoint, N"),
     Field("test_status", "str", "completed or aborted"),
     Field("end_reason", "str", "completed, protection stop, stopped by command, gateway restart, …"),
-    Field("result", "object|null", "the method's result (status, t_life, mu_ss, mu_th, k_b, … — "
-          "the keys of `hookwatch analyze --json`); `result.status` is one of "
+    Field("result", "object|null", "the method's result (status, t_life, mu_ss, mu_th, k_b, "
+          "stop_reasons — `[\"STOPPED\"]` for a test ended on purpose —, headroom, warn_slot, "
+          "t_cross, … — the keys of `hookwatch analyze --json`); `result.status` is one of "
           + ", ".join(f"`{k}`" for k, _ in RESULT_STATUS) + " (see Results)"),
 )
 
@@ -191,6 +229,8 @@ TOPICS: tuple[Topic, ...] = (
           "one message per event, each exactly once (types below)", EVENT_FIELDS),
     Topic("alarm", "alarm/end_of_life", "publish", 1, True, True,
           "the end-of-life alarm and its lifecycle", ALARM_FIELDS),
+    Topic("alarm_warning", "alarm/warning", "publish", 1, True, True,
+          "the wear-warning alarm (§5a, priority 2) and its lifecycle", WARNING_FIELDS),
     Topic("result", "result", "publish", 1, True, True,
           "the result of the last test that ended", RESULT_FIELDS),
     Topic("reply", "reply", "publish", 1, False, True,
@@ -201,7 +241,7 @@ TOPICS: tuple[Topic, ...] = (
     Topic("cmd_stop", "cmd/stop", "subscribe", 1, False, False,
           "stop the running test (it ends as aborted)", CMD_SIMPLE_FIELDS),
     Topic("cmd_ack", "cmd/ack", "subscribe", 1, False, False,
-          "acknowledge the active end-of-life alarm", CMD_SIMPLE_FIELDS),
+          "acknowledge the active alarms (end of life and wear warning)", CMD_SIMPLE_FIELDS),
     Topic("cmd_setpoint", "cmd/setpoint", "subscribe", 1, False, False,
           "set the tension setpoint of the next test", CMD_SETPOINT_FIELDS),
     Topic("cmd_hook_replaced", "cmd/hook_replaced", "subscribe", 1, False, False,
@@ -212,13 +252,29 @@ TOPIC = {t.key: t for t in TOPICS}
 
 #: data keys of each event type (the `data` object of event/… messages)
 EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
+    EventType.TEST_STARTING: (("sample_id", "sample"), ("grade", "grade"), ("t_set", "setpoint, N"),
+                              ("t_end", "planned duration, s"), ("zero_check", "a zero check runs first"),
+                              ("start_timeout", "the start fails after this long, s")),
+    EventType.START_FAILED: (("reason", "why (`zero check failed: T1 0.061 N …`, `no tension after "
+                                        "30 s: T̄ 0.02 N …`, `channels swapped? …`, cancelled)"),
+                             ("sample_id", "sample"), ("t_set", "setpoint, N"),
+                             ("spin_up_s", "spin-up time before the failure, s"),
+                             ("zero_offsets_n", "the offsets found {T1, T2}, N (after a zero check)")),
     EventType.TEST_STARTED: (("sample_id", "sample"), ("grade", "grade"), ("t_set", "setpoint, N"),
-                             ("t_end", "planned duration, s")),
+                             ("t_end", "planned duration, s"), ("source", "who started it"),
+                             ("settle_s", "spin-up time until slot 0, s"),
+                             ("zero_offsets_n", "zero offsets {T1, T2}, N (information only)")),
     EventType.BASELINE: (("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
                          ("k_b", "slot of the baseline"), ("stable_first", "first slot of the stable segment")),
     EventType.END_OF_LIFE: (("k_life", "slot of the end of life"), ("t_life", "wear life, s"),
                             ("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
                             ("sample_id", "sample")),
+    EventType.WEAR_WARNING: (("warn_slot", "last slot of the warning run's last window"),
+                             ("t_warn", "its time, s from test start"), ("headroom", "headroom then"),
+                             ("t_cross", "projected crossing of μ_th, s (or null)"),
+                             ("h_warn", "the headroom bound"), ("n_warn", "windows needed"),
+                             ("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
+                             ("sample_id", "sample")),
     EventType.PROTECTION_STOP: (("stop_reasons", "unsafe reasons of the run that stopped the test"),),
     EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
                            ("source", "who ended it"), ("result", "the method's result")),
@@ -304,6 +360,8 @@ def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
             "mu_ss": st.mu_ss, "mu_th": st.mu_th, "k_b": st.k_b, "t_life": st.t_life,
             "elapsed_s": round(float(st.elapsed_s), 3), "status": st.status,
             "end_reason": st.end_reason, "alarm": st.alarm, "protection_stop": bool(st.protection_stop),
+            "stopped": bool(st.stopped), "headroom": st.headroom, "t_cross": st.t_cross,
+            "wear_warning": bool(st.wear_warning), "warning_alarm": st.warning_alarm,
             "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok)}
 
 
@@ -317,8 +375,13 @@ def event_payload(seq: int, ev: Event) -> dict[str, Any]:
 
 
 def alarm_payload(seq: int, t: float, station: str, alarm: dict[str, Any]) -> dict[str, Any]:
-    return {**_env(seq, t, station), "alarm": "end_of_life",
-            **{f.name: alarm.get(f.name) for f in ALARM_FIELDS[len(ENVELOPE) + 1:]}}
+    return {**_env(seq, t, station), "alarm": "end_of_life", "priority": 1,
+            **{f.name: alarm.get(f.name) for f in ALARM_FIELDS[len(ENVELOPE) + 2:]}}
+
+
+def warning_payload(seq: int, t: float, station: str, alarm: dict[str, Any]) -> dict[str, Any]:
+    return {**_env(seq, t, station), "alarm": "warning", "priority": 2,
+            **{f.name: alarm.get(f.name) for f in WARNING_FIELDS[len(ENVELOPE) + 2:]}}
 
 
 def result_payload(seq: int, ev: Event, st: StationState | None) -> dict[str, Any]:
@@ -356,12 +419,17 @@ def _examples() -> dict[str, dict[str, Any]]:
             "test_id": st.test_id, "interval_s": 1.0, "slots": 50, "t1": 0.4313, "t2": 0.5712,
             "tension": {"mean": 0.5012, "min": 0.4981, "max": 0.5047}, "mu": 0.2561,
             "valid_ratio": 0.98, "counts": {n: (1 if n == "JUMP" else 0) for n in REASON_NAMES},
-            "speed_cmd": 120.4, "speed_act": 120.1, "saturated_slots": 0, "saturation": False}),
+            "speed_cmd": 120.4, "speed_act": 120.1, "saturated_slots": 0, "saturation": False,
+            "headroom": -0.42, "t_cross": None}),
         "event": event_payload(1044, ev),
         "alarm": alarm_payload(1045, t, "st1", {
             "state": "active", "active": True, "acknowledged": False, "test_id": st.test_id,
             "sample_id": "S-0042", "t_life": 6930.5, "k_life": 346525, "mu_ss": 0.2213,
             "mu_th": 0.2545, "raised_at": iso_ms(t)}),
+        "alarm_warning": warning_payload(1040, t - 1380.0, "st1", {
+            "state": "active", "active": True, "acknowledged": False, "test_id": st.test_id,
+            "sample_id": "S-0042", "warn_slot": 275999, "t_warn": 5520.0, "headroom": 0.41,
+            "t_cross": 7040.5, "mu_ss": 0.2213, "mu_th": 0.2545, "raised_at": iso_ms(t - 1380.0)}),
         "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
                    "t_set": 0.5, "test_status": "completed", "end_reason": "completed",
                    "result": {"status": "failure", "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545}},
@@ -465,9 +533,15 @@ def render() -> str:
         "- The end-of-life alarm lifecycle: `active` (raised, unacknowledged) → `acknowledged` "
         "(cmd/ack, a PLC write or the CLI) → `cleared` (the hook was replaced and a new test "
         "started). Every transition is one retained message on `alarm/end_of_life`, so a MES "
-        "that connects late sees the current state. The alarm is kept in the station's alarm "
+        "that connects late sees the current state. The wear warning (METHOD.md §5a: the "
+        "headroom stayed under `h_warn` for `n_warn` windows) is a second alarm of lower "
+        "priority (2; end of life is 1) with the same lifecycle on `alarm/warning`, raised once "
+        "per test with the event `wear_warning`; one ack acknowledges both. It is informative: "
+        "it never changes a test's status or t_life, and its projection `t_cross` assumes the "
+        "recent trend goes on (the accelerated stage usually comes sooner). Both alarms are kept "
+        "in the station's alarm "
         "store (`alarm.json` in its records folder), which the PLC registers read as well: after a "
-        "gateway restart the alarm stands until the next test start clears it.",
+        "gateway restart the alarms stand until the next test start clears them.",
         "",
         "## Payloads",
         "",

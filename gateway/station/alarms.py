@@ -1,4 +1,9 @@
-"""The one alarm store: the end-of-life alarm of a station, kept on disk across restarts.
+"""The one alarm store: the alarms of a station, kept on disk across restarts.
+
+Two alarms, one lifecycle: ``end_of_life`` (priority 1, the most urgent: t_life was found) and
+``warning`` (priority 2: the §5a early warning — the headroom stayed under h_warn for n_warn
+windows; informative, it never changes the test's result). Each is raised by its event, both are
+acknowledged by one ACK and cleared when a new test starts.
 
 The station changes it (end of life → active, ACK → acknowledged, a new test → none) and every
 output reads it: the PLC through ``StationState.alarm``, MQTT through :attr:`AlarmStore.record`
@@ -23,6 +28,12 @@ from ..records import AlarmState, Event, EventType
 
 log = logging.getLogger("hookwatch.alarms")
 
+END_OF_LIFE = "end_of_life"
+WARNING = "warning"
+#: the alarm kinds and their priority (1 = most urgent; ISA-18.2 style): end of life outranks
+#: the wear warning
+PRIORITY = {END_OF_LIFE: 1, WARNING: 2}
+
 
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
@@ -32,7 +43,7 @@ def iso_ms(t: float) -> str:
 
 @dataclass(frozen=True)
 class AlarmRecord:
-    """The end-of-life alarm as it stands (also after it was cleared: what it was about)."""
+    """One alarm as it stands (also after it was cleared: what it was about)."""
     state: AlarmState = AlarmState.NONE
     raised: bool = False                 # False: there never was an alarm (nothing to publish)
     acknowledged: bool = False
@@ -46,6 +57,13 @@ class AlarmRecord:
     acknowledged_at: str | None = None
     acknowledged_by: str | None = None
     cleared_at: str | None = None
+    kind: str = END_OF_LIFE              # END_OF_LIFE or WARNING
+    priority: int = PRIORITY[END_OF_LIFE]
+    # the wear warning's figures (§5a); None for the end of life
+    warn_slot: int | None = None
+    t_warn: float | None = None
+    headroom: float | None = None
+    t_cross: float | None = None
 
     @property
     def active(self) -> bool:
@@ -57,13 +75,13 @@ class AlarmRecord:
         return d
 
     @classmethod
-    def from_json(cls, d: dict[str, Any]) -> AlarmRecord:
+    def from_json(cls, d: dict[str, Any], kind: str = END_OF_LIFE) -> AlarmRecord:
         state = AlarmState(d.get("alarm", "none"))
-        names = {f for f in cls.__dataclass_fields__ if f != "state"}
+        names = {f for f in cls.__dataclass_fields__ if f not in ("state", "kind", "priority")}
         kw = {k: v for k, v in d.items() if k in names}
         kw.setdefault("raised", state != AlarmState.NONE)
         kw.setdefault("acknowledged", state == AlarmState.ACKNOWLEDGED)
-        return cls(state=state, **kw)
+        return cls(state=state, kind=kind, priority=PRIORITY[kind], **kw)
 
 
 class AlarmStore:
@@ -72,12 +90,22 @@ class AlarmStore:
     def __init__(self, path: str | None, station_id: str = "") -> None:
         self.path = path
         self.station_id = station_id
-        self.record = AlarmRecord()
+        self.record = AlarmRecord()                                  # the end of life
+        self.warning = AlarmRecord(kind=WARNING, priority=PRIORITY[WARNING])   # the wear warning
         self.write_errors = 0
 
     @property
     def state(self) -> AlarmState:
+        """The end-of-life alarm's state."""
         return self.record.state
+
+    def records(self) -> list[AlarmRecord]:
+        """Both alarms, the most urgent first."""
+        return [self.record, self.warning]
+
+    def highest(self) -> AlarmRecord | None:
+        """The most urgent alarm that stands (active or acknowledged), or None."""
+        return next((r for r in self.records() if r.active), None)
 
     # -- persistence
     def restore(self) -> AlarmRecord:
@@ -86,10 +114,13 @@ class AlarmStore:
             return self.record
         try:
             with open(self.path, encoding="utf-8") as f:
-                self.record = AlarmRecord.from_json(json.load(f))
+                d = json.load(f)
+            self.record = AlarmRecord.from_json(d)
+            if isinstance(d.get(WARNING), dict):
+                self.warning = AlarmRecord.from_json(d[WARNING], WARNING)
         except FileNotFoundError:
             pass
-        except (OSError, ValueError, TypeError) as e:
+        except (OSError, ValueError, TypeError, AttributeError, KeyError) as e:
             log.error("%s: alarm state %s unreadable (%s); starting with none", self.station_id,
                       self.path, e)
         if self.record.active:
@@ -104,7 +135,7 @@ class AlarmStore:
             os.makedirs(os.path.dirname(self.path) or ".", exist_ok=True)
             tmp = self.path + ".tmp"
             with open(tmp, "w", encoding="utf-8") as f:
-                json.dump(self.record.as_json(), f)
+                json.dump({**self.record.as_json(), WARNING: self.warning.as_json()}, f)
             os.replace(tmp, self.path)
         except OSError as e:
             self.write_errors += 1
@@ -112,9 +143,23 @@ class AlarmStore:
                 log.error("%s: cannot keep the alarm state in %s: %s (the alarm stands in memory)",
                           self.station_id, self.path, e)
 
-    def _set(self, rec: AlarmRecord) -> None:
-        self.record = rec
+    def _set(self, rec: AlarmRecord | None = None, warning: AlarmRecord | None = None) -> None:
+        if rec is not None:
+            self.record = rec
+        if warning is not None:
+            self.warning = warning
         self._save()
+
+    @staticmethod
+    def _ack(rec: AlarmRecord, t: float, source: Any) -> AlarmRecord:
+        if rec.state != AlarmState.ACTIVE:
+            return rec
+        return replace(rec, state=AlarmState.ACKNOWLEDGED, raised=True, acknowledged=True,
+                       acknowledged_at=iso_ms(t), acknowledged_by=source)
+
+    @staticmethod
+    def _clear(rec: AlarmRecord, t: float) -> AlarmRecord:
+        return replace(rec, state=AlarmState.NONE, cleared_at=iso_ms(t)) if rec.active else rec
 
     # -- transitions (driven by the station's events)
     def on_event(self, ev: Event) -> None:
@@ -124,9 +169,15 @@ class AlarmStore:
                 state=AlarmState.ACTIVE, raised=True, acknowledged=False, test_id=ev.test_id,
                 sample_id=d.get("sample_id"), t_life=d.get("t_life"), k_life=d.get("k_life"),
                 mu_ss=d.get("mu_ss"), mu_th=d.get("mu_th"), raised_at=iso_ms(t)))
-        elif et == EventType.ALARM_ACK:
-            self._set(replace(self.record, state=AlarmState.ACKNOWLEDGED, raised=True,
-                              acknowledged=True, acknowledged_at=iso_ms(t),
-                              acknowledged_by=d.get("source")))
-        elif et == EventType.ALARM_CLEARED:
-            self._set(replace(self.record, state=AlarmState.NONE, cleared_at=iso_ms(t)))
+        elif et == EventType.WEAR_WARNING:
+            self._set(warning=AlarmRecord(
+                state=AlarmState.ACTIVE, raised=True, acknowledged=False, test_id=ev.test_id,
+                sample_id=d.get("sample_id"), raised_at=iso_ms(t), kind=WARNING,
+                priority=PRIORITY[WARNING], warn_slot=d.get("warn_slot"), t_warn=d.get("t_warn"),
+                headroom=d.get("headroom"), t_cross=d.get("t_cross"),
+                mu_ss=d.get("mu_ss"), mu_th=d.get("mu_th")))
+        elif et == EventType.ALARM_ACK:        # one ACK acknowledges every active alarm
+            src = d.get("source")
+            self._set(self._ack(self.record, t, src), self._ack(self.warning, t, src))
+        elif et == EventType.ALARM_CLEARED:    # a new test: every alarm is cleared
+            self._set(self._clear(self.record, t), self._clear(self.warning, t))

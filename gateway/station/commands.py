@@ -24,15 +24,16 @@ __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS
            "reject", "check_t_set", "check_sample_id", "check_grade", "check_t_end",
            "command_from_mapping", "validate", "StationLimits"]
 
-#: test states in which a test is running
-RUNNING = frozenset({TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE})
+#: test states in which a test is running (or starting: a stop cancels the start, §3a)
+RUNNING = frozenset({TestState.STARTING, TestState.BASELINE_SEARCH, TestState.MONITORING,
+                     TestState.END_OF_LIFE})
 
 #: rejection codes (served to PLCs in the "last command result" input register)
 REJECT_CODES: tuple[tuple[int, str, str], ...] = (
     (0, "OK", "accepted"),
     (1, "BUSY", "a test is already running; stop it first"),
     (2, "NOT_RUNNING", "no test is running"),
-    (3, "NO_ALARM", "no unacknowledged end-of-life alarm"),
+    (3, "NO_ALARM", "no unacknowledged alarm (end of life or wear warning)"),
     (4, "SAMPLE_ID", f"sample_id missing, too long (> {SAMPLE_ID_MAX}) or not printable ASCII"),
     (5, "T_SET", "t_set not a number or out of range"),
     (6, "GRADE", "grade not one of the station's grades"),
@@ -154,8 +155,8 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if not running:
             return reject(cmd, "NOT_RUNNING", "no test is running")
     elif cmd.kind == CommandKind.ACK:
-        if state.alarm != "active":
-            return reject(cmd, "NO_ALARM", "no unacknowledged end-of-life alarm")
+        if state.alarm != "active" and state.warning_alarm != "active":
+            return reject(cmd, "NO_ALARM", "no unacknowledged alarm (end of life or wear warning)")
     elif cmd.kind == CommandKind.SETPOINT:
         if running:
             return reject(cmd, "SETPOINT_LOCKED",

@@ -55,6 +55,8 @@ class ConsoleOutput:
         if ev.type == EventType.TEST_ENDED and "result" in ev.data and ev.data["result"]:
             r = ev.data["result"]
             d["status"] = r.get("status")
+            if r.get("stop_reasons"):                # e.g. STOPPED for a test ended on purpose (§3)
+                d["stop_reasons"] = "+".join(r["stop_reasons"])
             d["t_life"] = r.get("t_life")
         detail = ", ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in d.items())
         self._print(f"[{ev.station}] EVENT {ev.type.value}: {detail}")

@@ -254,6 +254,18 @@ class TestRecorder:
         _atomic_write(os.path.join(self.dir, META_NAME),
                       lambda f: yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True))
 
+    def update_meta(self, path: list[str], value: Any) -> None:
+        """Set one key of the sidecar (``["method", "end_slot"]``) and rewrite it atomically."""
+        d = self.meta
+        for k in path[:-1]:
+            d = d.setdefault(k, {})
+        d[path[-1]] = value
+        try:
+            self._write_meta()
+        except OSError as e:
+            self.write_errors += 1
+            log.error("%s: cannot rewrite the sidecar: %s", self.dir, e)
+
     def on_record(self, rec: SlotRecord) -> None:
         if not rec.present or self.closed:
             return  # §9: a slot without a row is MISSING

@@ -1,5 +1,10 @@
 """One test on a station: its plan, method monitor, controller and recorder, from start to end.
 
+Before slot 0 a :class:`StartAttempt` runs METHOD.md §3a (zero check with the motor off, spin-up
+with the loop closed); it records nothing. Once the tension has settled, its controller goes on
+into the :class:`TestSession` (the loop stays closed) and its settle time and zero offsets go into
+the sidecar (``start:``, information only).
+
 The station's slot loop owns at most one :class:`TestSession` at a time; the session's recorder
 is fed through :class:`RecorderOutput`, an ordinary output placed first in the station's fan-out.
 """
@@ -13,6 +18,7 @@ from .. import __version__
 from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams, build_params
+from ..method.start import StartSequence
 from ..records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
@@ -25,6 +31,35 @@ class TestPlan:
     t_set: float
     t_end: float
 
+
+
+def plan_params(plan: TestPlan, method_values: dict[str, Any], station_id: str) -> MethodParams:
+    """The method parameters of ``plan`` (the station's values with the plan's t_set and t_end)."""
+    values = dict(method_values)
+    values["t_set"] = plan.t_set
+    values["t_end"] = plan.t_end
+    return build_params(values, f"station {station_id}")
+
+
+@dataclass
+class StartAttempt:
+    """A start in progress (§3a): nothing of it is recorded; the station's state is STARTING."""
+    plan: TestPlan
+    params: MethodParams
+    seq: StartSequence
+    controller: Controller
+    source: str
+    motor_enabled: bool = False      # the take-up was enabled for the spin-up
+    wait_slots: int = 0              # slots waited (meter port, take-up at rest) before the zero check
+    zero_begun: bool = False         # the zero check's window has begun
+    reason: str | None = None        # a failure found by the station (not by the sequence)
+
+    @classmethod
+    def begin(cls, plan: TestPlan, method_values: dict[str, Any], control: ControlParams,
+              station_id: str, source: str) -> StartAttempt:
+        p = plan_params(plan, method_values, station_id)
+        return cls(plan=plan, params=p, seq=StartSequence(p),
+                   controller=Controller(control, plan.t_set), source=source)
 
 
 @dataclass
@@ -42,12 +77,12 @@ class TestSession:
     @classmethod
     def begin(cls, *, station_id: str, station_dir: str, plan: TestPlan,
               method_values: dict[str, Any], control: ControlParams, identity: dict[str, Any],
-              flush_interval_s: float, start_wall: float | None = None) -> TestSession:
-        """Build the method and controller of ``plan`` and open its test folder."""
-        values = dict(method_values)
-        values["t_set"] = plan.t_set
-        values["t_end"] = plan.t_end
-        p = build_params(values, f"station {station_id}")
+              flush_interval_s: float, start_wall: float | None = None,
+              controller: Controller | None = None,
+              start_info: dict[str, Any] | None = None) -> TestSession:
+        """Build the method of ``plan`` and open its test folder; ``controller`` is the one that ran
+        the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar."""
+        p = plan_params(plan, method_values, station_id)
         start_wall = time.time() if start_wall is None else start_wall
         # a folder of its own, created exclusively (two starts within one millisecond cannot share one)
         test_id, test_dir = new_test_dir(station_dir, plan.sample_id, start_wall)
@@ -59,9 +94,23 @@ class TestSession:
             "method": dict(p.as_dict()),
             "control": control.as_dict(),
         }
+        if start_info is not None:
+            meta["start"] = dict(start_info)
         rec = TestRecorder(test_dir, meta, flush_interval_s)
         return cls(test_id=test_id, plan=plan, params=p, monitor=StreamingMonitor(p),
-                   controller=Controller(control, plan.t_set), recorder=rec)
+                   controller=controller or Controller(control, plan.t_set), recorder=rec)
+
+    def end_on_purpose(self):
+        """§3: the test is ended before its planned end by a command or a clean shutdown. The
+        monitor ends after the slots pushed so far and ``end_slot`` goes into the sidecar's
+        ``method:`` section, so that `hookwatch analyze` of the log gives the same result."""
+        mon = self.monitor
+        if mon.finished:                  # a protection stop or the planned end came first
+            return mon.close()
+        end_slot = mon.k
+        res = mon.stop(end_slot)
+        self.recorder.update_meta(["method", "end_slot"], end_slot)
+        return res
 
 
 class RecorderOutput:

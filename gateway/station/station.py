@@ -7,8 +7,11 @@ Per slot k (deadline t0 + k·Ts on a monotonic clock):
   3. during a test, the streaming method core gates the slot and updates baseline/life;
   4. the slot record goes to the fan-out (recorder first, then MQTT, Modbus TCP, …).
 
-Test lifecycle (a :class:`TestSession`): idle → baseline search → monitoring → end of life (runs on
-to t_end) → completed | aborted (protection stop, operator stop, gateway restart). The end-of-life
+Test lifecycle: idle → starting (a :class:`StartAttempt`, METHOD.md §3a: zero check with the motor
+off, spin-up with the loop closed; nothing recorded; a refusal or a timeout is `start_failed` and
+idle again) → slot 0 once the tension has settled (a :class:`TestSession`) → baseline search →
+monitoring → end of life (runs on to t_end) → completed | aborted (protection stop; operator, PLC,
+MES stop or clean shutdown: `end_slot` in the sidecar, §3; gateway restart after a crash). The end-of-life
 alarm lives in the station's :class:`AlarmStore`. Everything here runs on the station's own loop;
 other threads reach it only through ``gateway.threadloop`` (commands: :meth:`Station.submit`;
 uplink changes: :meth:`Station.set_uplink`; reloads: :meth:`Station.reload_requested`).
@@ -27,21 +30,29 @@ from typing import Any
 from collections.abc import Callable, Coroutine
 
 from ..control import ControlParams, Controller
-from ..method.core import StreamingMonitor
+from ..method.core import SlotOut, StreamingMonitor
 from ..method.params import MethodParams
+from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
-from ..records import (AlarmState, Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
+from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
 from .alarms import AlarmStore
 from .clock import SlotClock
 from .commands import Rejection, validate
 from .fanout import Fanout
 from .recorder import TestRecorder, recover_incomplete, utc_iso
-from .session import RecorderOutput, TestPlan, TestSession
+from .session import RecorderOutput, StartAttempt, TestPlan, TestSession
 
 __all__ = ["Station", "TestPlan", "TestSession", "SlotStats"]
 
 log = logging.getLogger("hookwatch.station")
+
+#: the zero check (METHOD.md §3a) measures the yarn at rest: it begins once the take-up has been
+#: commanded off for REST_S and the STM32 reports no more than REST_RPM (a test stopped a moment
+#: ago, a gateway restarted after a crash: the yarn is still under tension while the take-up
+#: runs down)
+REST_S = 1.0
+REST_RPM = 1.0
 
 
 @dataclass
@@ -101,11 +112,17 @@ class Station:
         self.alarms = AlarmStore(os.path.join(self.station_dir, "alarm.json"), station_id)
         #: the running test, if any
         self.session: TestSession | None = None
+        #: the start in progress (§3a), if any: before slot 0, nothing recorded
+        self.starting: StartAttempt | None = None
+        #: starts that failed (§3a): {"sample_id", "reason", "source"}
+        self.start_failures: list[dict[str, Any]] = []
         self._recorder_out = RecorderOutput()
         self.fanout = Fanout(station_id, self.outputs, head=(self._recorder_out,))
         self._stm32_task: asyncio.Task[Any] | None = None
         self._speed_act = math.nan
         self._speed_cmd = 0.0
+        self._k = 0                     # the loop's current slot
+        self._motor_off_k = 0           # loop slot of the last stop command to the take-up
         self._last_state_push = 0.0
         self._meter_was_ok: bool | None = None
         self._stm32_was_ok: bool | None = None
@@ -134,11 +151,14 @@ class Station:
 
     @property
     def plan(self) -> TestPlan | None:
-        return self.session.plan if self.session is not None else None
+        """The plan of the running test, or of the start in progress."""
+        src = self.session or self.starting
+        return src.plan if src is not None else None
 
     @property
     def params(self) -> MethodParams | None:
-        return self.session.params if self.session is not None else None
+        src = self.session or self.starting
+        return src.params if src is not None else None
 
     @property
     def test_id(self) -> str | None:
@@ -148,6 +168,11 @@ class Station:
     def in_test(self) -> bool:
         return self.session is not None
 
+    @property
+    def busy(self) -> bool:
+        """A test is starting or running."""
+        return self.session is not None or self.starting is not None
+
     # ---------------------------------------------------------------- outputs
     def _emit_event(self, etype: EventType, k: int | None = None, **data: Any) -> Event:
         ev = Event(type=etype, station=self.id, wall_time=time.time(), test_id=self.test_id, k=k,
@@ -155,6 +180,7 @@ class Station:
         log.info("%s: %s %s", self.id, etype.value, data or "")
         self.alarms.on_event(ev)              # the alarm store first: outputs read it
         self.state.alarm = self.alarms.state.value
+        self.state.warning_alarm = self.alarms.warning.state.value
         self.fanout.event(ev)
         return ev
 
@@ -173,6 +199,7 @@ class Station:
 
     def _restore_alarm(self) -> None:
         rec = self.alarms.restore()
+        self.state.warning_alarm = self.alarms.warning.state.value
         if rec.active:
             st = self.state
             st.alarm = rec.state.value
@@ -198,9 +225,13 @@ class Station:
             self.start_test(TestPlan(sample_id=str(a["sample_id"]), grade=a.get("grade"),
                                      t_set=float(a["t_set"]),
                                      t_end=float(a.get("t_end") or (self.default_plan.t_end if self.default_plan
-                                                                    else self.limits.t_end_default_s))))
+                                                                    else self.limits.t_end_default_s))),
+                            source=cmd.source)
         elif cmd.kind == CommandKind.STOP:
-            await self.end_test("stopped by command", source=cmd.source)
+            if self.starting is not None:
+                await self._start_failed(f"start cancelled by command ({cmd.source})")
+            else:
+                await self.end_test("stopped by command", source=cmd.source)
         elif cmd.kind == CommandKind.ACK:
             self._emit_event(EventType.ALARM_ACK, source=cmd.source)
             self._push_state()
@@ -221,7 +252,7 @@ class Station:
         """A new configuration is ready (called on this station's loop, so no start can slip in
         between the check and the decision). Idle: ``apply()`` is called and the station stops
         (its runner rebuilds it from the new configuration); in a test: kept, False."""
-        if self.session is not None:
+        if self.busy:
             log.info("%s: in a test; keeps the parameters it started with", self.id)
             return False
         apply()
@@ -230,27 +261,75 @@ class Station:
         return True
 
     # ---------------------------------------------------------------- test lifecycle
-    def start_test(self, plan: TestPlan) -> None:
+    def start_test(self, plan: TestPlan, source: str = "station") -> None:
+        """Begin the start of a test (§3a): the zero check with the motor off (when ``zero_check``
+        is on), then the spin-up with the loop closed; slot 0 comes once the tension has settled
+        (:meth:`_begin_test`). Nothing is recorded before it."""
+        att = StartAttempt.begin(plan, self.method_values, self.control_params, self.id, source)
+        self.starting = att
+        st = self.state
+        if self.alarms.highest() is not None:        # a new test: the hook was replaced
+            self._emit_event(EventType.ALARM_CLEARED, reason="new test started")
+        st.state = TestState.STARTING
+        st.test_id, st.sample_id, st.grade = None, plan.sample_id, plan.grade
+        st.t_set, st.t_end = plan.t_set, plan.t_end
+        st.status = st.end_reason = None
+        self._emit_event(EventType.TEST_STARTING, sample_id=plan.sample_id, grade=plan.grade,
+                         t_set=plan.t_set, t_end=plan.t_end, zero_check=att.params.zero_check,
+                         start_timeout=att.params.start_timeout)
+        self._push_state()
+        if att.seq.phase == SPIN_UP:          # no zero check: the spin-up begins at once
+            self._enable_motor(att)
+
+    def _enable_motor(self, att: StartAttempt) -> None:
+        att.motor_enabled = True
+        asyncio.get_running_loop().create_task(self._safe_stm32(self.stm32.enable()))
+
+    def _begin_test(self, att: StartAttempt) -> None:
+        """The tension has settled: the next slot is the test's slot 0 (log, method, t_life clock)."""
+        plan = att.plan
+        info = att.seq.sidecar()
         sess = TestSession.begin(station_id=self.id, station_dir=self.station_dir, plan=plan,
                                  method_values=self.method_values, control=self.control_params,
-                                 identity=self.identity, flush_interval_s=self.flush_interval_s)
+                                 identity=self.identity, flush_interval_s=self.flush_interval_s,
+                                 controller=att.controller, start_info=info)
+        self.starting = None
         self.session = sess            # the test's slot 0 is the next slot the loop processes
         self._recorder_out.recorder = sess.recorder
         st = self.state
-        if self.alarms.state != AlarmState.NONE:
-            self._emit_event(EventType.ALARM_CLEARED, reason="new test started")
         st.state = TestState.BASELINE_SEARCH
         st.test_id, st.sample_id, st.grade = sess.test_id, plan.sample_id, plan.grade
         st.t_set, st.t_end = plan.t_set, plan.t_end
         st.mu_ss = st.mu_th = st.t_life = None
         st.k_b = None
         st.status = st.end_reason = None
-        st.protection_stop = False
+        st.protection_stop = st.stopped = False
+        st.headroom = st.t_cross = None
+        st.wear_warning = False
         st.elapsed_s = 0.0
         self._emit_event(EventType.TEST_STARTED, k=0, sample_id=plan.sample_id, grade=plan.grade,
-                         t_set=plan.t_set, t_end=plan.t_end)
+                         t_set=plan.t_set, t_end=plan.t_end, source=att.source, **info)
+
+    async def _start_failed(self, reason: str) -> None:
+        """The start is refused, timed out or cancelled (§3a): motor stopped, nothing recorded,
+        `start_failed` with the reason, idle again."""
+        att = self.starting
+        if att is None:
+            return
+        self.starting = None
+        self._speed_cmd = 0.0
+        self._motor_off_k = self._k
+        await self._safe_stm32(self.stm32.stop(reason))
+        st = self.state
+        st.state = TestState.IDLE
+        st.status = None
+        st.end_reason = reason
+        self.start_failures.append({"sample_id": att.plan.sample_id, "reason": reason,
+                                    "source": att.source})
+        self._emit_event(EventType.START_FAILED, reason=reason, sample_id=att.plan.sample_id,
+                         t_set=att.plan.t_set, spin_up_s=att.seq.spin_slots * self.ts,
+                         **({"zero_offsets_n": att.seq.offsets} if att.seq.offsets else {}))
         self._push_state()
-        asyncio.get_running_loop().create_task(self._safe_stm32(self.stm32.enable()))
 
     async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
         """End the running test (completed at t_end, or aborted) and write its result."""
@@ -258,8 +337,12 @@ class Station:
         if sess is None:
             return None
         mon = sess.monitor
+        self._motor_off_k = self._k
         await self._safe_stm32(self.stm32.stop(reason))
-        res = mon.close()              # slots up to the planned end that never came: MISSING
+        if reason in ("completed", "protection stop"):
+            res = mon.close()          # slots up to the planned end that never came: MISSING
+        else:                          # ended on purpose (§3): end_slot into the sidecar
+            res = sess.end_on_purpose()
         test_status = "completed" if reason == "completed" else "aborted"
         out = {"test_id": sess.test_id, "station": self.id, "test_status": test_status,
                "end_reason": reason, "closed_utc": utc_iso(), "method": res.as_dict(),
@@ -268,6 +351,7 @@ class Station:
         st.state = TestState.COMPLETED if test_status == "completed" else TestState.ABORTED
         st.status = res.status
         st.end_reason = reason
+        st.stopped = res.stop_reasons == ["STOPPED"]
         self._emit_event(EventType.TEST_ENDED, k=mon.k - 1, reason=reason, source=source,
                          test_status=test_status, result=res.as_dict())
         sess.recorder.close(out)
@@ -286,6 +370,13 @@ class Station:
             log.error("%s: STM32 call failed: %s", self.id, e)
             return None
 
+    async def _poll_status(self) -> None:
+        """The STM32's status while the take-up is off (idle, before the zero check): its actual
+        speed (NaN when it does not answer)."""
+        st = await self._safe_stm32(self.stm32.read_status())
+        rpm = getattr(st, "actual_rpm", None) if st is not None else None
+        self._speed_act = float(rpm) if rpm is not None else math.nan
+
     async def _send_speed(self, rpm: float) -> None:
         st = await self._safe_stm32(self.stm32.set_speed(rpm))
         if st is not None:
@@ -302,6 +393,9 @@ class Station:
         sess = self.session
         q, mask, ratio, mu = 0, 0, None, None
         y, sat = math.nan, False
+        self._k = k
+        if self.starting is not None:
+            y, sat = self._start_slot(self.starting, k, present, t1, t2)
         if sess is not None and sess.k_start is None:
             sess.k_start = k
         kt = k - sess.k_start if sess is not None and sess.k_start is not None else k
@@ -313,7 +407,7 @@ class Station:
             c = sess.controller.step(tm, speed)
             y, sat = c.y, c.saturated
             self._speed_cmd = c.u
-            self._handle_method_events(sess, out.events, kt)
+            self._handle_method_events(sess, out, kt)
         self.state.saturation = sat
         rec = SlotRecord(k=kt, t=round(kt * self.ts + min(lateness, self.ts / 2 - 1e-4), 4)
                          if sess is not None else k * self.ts,
@@ -324,11 +418,44 @@ class Station:
         self.fanout.record(rec)
         return rec
 
-    def _handle_method_events(self, sess: TestSession, events: list[str], kt: int) -> None:
+    def _start_slot(self, att: StartAttempt, k: int, present: bool, t1: float,
+                    t2: float) -> tuple[float, bool]:
+        """One slot of the start sequence (§3a); the decisions it leads to are taken in
+        :meth:`_after_slot`. Returns (y, saturated) of the controller (NaN while the motor is off)."""
+        seq = att.seq
+        if seq.phase == ZERO_CHECK:
+            self._speed_cmd = 0.0
+            if not att.zero_begun and att.reason is None:
+                # the zero check judges the yarn at rest through an open port: it waits (at most
+                # start_timeout) for the meter's port and for the take-up to have run down
+                att.wait_slots += 1
+                port_ok = bool(self.meter.connected)
+                moving = math.isfinite(self._speed_act) and abs(self._speed_act) > REST_RPM
+                if port_ok and not moving and (k - self._motor_off_k) * self.ts >= REST_S:
+                    att.zero_begun = True
+                elif att.wait_slots * self.ts >= att.params.start_timeout:
+                    t = f"{att.params.start_timeout:g} s"
+                    att.reason = (f"zero check not possible: the meter's port is not open after {t}"
+                                  if not port_ok else f"zero check not possible: the take-up still "
+                                  f"turns after {t} ({self._speed_act:.0f} rpm)")
+                    return math.nan, False
+                else:
+                    return math.nan, False
+            seq.zero_slot(present, t1, t2)
+            return math.nan, False
+        if seq.phase != SPIN_UP:
+            return math.nan, False
+        speed = self._speed_act if math.isfinite(self._speed_act) else self._speed_cmd
+        c = att.controller.step((t1 + t2) / 2.0 if present else None, speed)
+        self._speed_cmd = c.u
+        seq.spin_slot(present, t1, t2, c.y)
+        return c.y, c.saturated
+
+    def _handle_method_events(self, sess: TestSession, out: SlotOut, kt: int) -> None:
         mon = sess.monitor
         st = self.state
         st.elapsed_s = (kt + 1) * self.ts
-        for e in events:
+        for e in out.events:
             if e == "baseline":
                 st.state = TestState.MONITORING
                 st.mu_ss, st.mu_th, st.k_b = mon.mu_ss, mon.mu_th, mon.k_b
@@ -341,13 +468,41 @@ class Station:
                 self._emit_event(EventType.END_OF_LIFE, k=kt, k_life=mon.k_life, t_life=st.t_life,
                                  mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=sess.plan.sample_id)
                 self._push_state()
+            elif e == "window" and out.window is not None:
+                # §5a, informative: every window's headroom and projection reach the outputs
+                w = out.window
+                if w.headroom is not None:
+                    st.headroom, st.t_cross = w.headroom, w.t_cross
+                self._push_state()
+            elif e == "wear_warning":
+                st.wear_warning = True
+                wear = mon.wear
+                self._emit_event(EventType.WEAR_WARNING, k=kt, warn_slot=wear.warn_slot,
+                                 t_warn=(wear.warn_slot + 1) * self.ts, headroom=wear.headroom,
+                                 t_cross=wear.t_cross, h_warn=sess.params.h_warn,
+                                 n_warn=sess.params.n_warn, mu_ss=mon.mu_ss, mu_th=mon.mu_th,
+                                 sample_id=sess.plan.sample_id)
+                self._push_state()
             elif e == "protection_stop":
                 st.protection_stop = True
                 r = mon.result()
                 self._emit_event(EventType.PROTECTION_STOP, k=kt, stop_reasons=r.stop_reasons)
 
     async def _after_slot(self) -> None:
-        """Lifecycle decisions after a slot: protection stop, planned end."""
+        """Lifecycle decisions after a slot: the start sequence's, protection stop, planned end."""
+        att = self.starting
+        if att is not None:
+            ph = att.seq.phase
+            if att.reason is not None:
+                await self._start_failed(att.reason)
+            elif ph == SPIN_UP and not att.motor_enabled:
+                self._enable_motor(att)
+            elif ph == SETTLED:
+                self._begin_test(att)
+                self._push_state()
+            elif ph == FAILED:
+                await self._start_failed(att.seq.reason or "start failed")
+            return
         mon = self.monitor
         if mon is None:
             return
@@ -428,23 +583,29 @@ class Station:
                         self.stats.rtt.append(reading.rtt_s)
                 self._process(k, reading, lateness)
                 mon = self.monitor
-                if mon is not None and mon.stop_slot is None and not mon.finished:
+                att = self.starting
+                if ((mon is not None and mon.stop_slot is None and not mon.finished)
+                        or (att is not None and att.motor_enabled and att.seq.motor_on)):
                     if self._stm32_task is None or self._stm32_task.done():
                         self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
                     else:
                         self.stats.stm32_busy_skips += 1
                 await self._after_slot()
                 now = time.monotonic()
-                if self.monitor is None and now - last_idle_status >= self.idle_status_interval_s:
+                waiting = att is not None and self.starting is att and not att.zero_begun
+                if ((not self.busy or waiting) and now - last_idle_status
+                        >= (min(0.2, self.idle_status_interval_s) if waiting
+                            else self.idle_status_interval_s)):
                     last_idle_status = now
                     if self._stm32_task is None or self._stm32_task.done():
-                        self._stm32_task = asyncio.get_running_loop().create_task(
-                            self._safe_stm32(self.stm32.read_status()))
+                        self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
                 if now - self._last_state_push >= 1.0:
                     self._link_health()
                     self._push_state()
                 k += 1
         finally:
+            if self.starting is not None:
+                await self._start_failed("gateway shutdown before slot 0")
             if self.session is not None:
                 await self.end_test("gateway shutdown")
             if self._stm32_task is not None:

@@ -50,12 +50,17 @@ class LoopThread:
         self.loop.close()
 
 
+#: a fake meter is no plant (its tension is there with the motor off and does not follow the
+#: setpoint): no zero check, and a start settles on any tension near T_set (METHOD.md §3a)
+FAKE_PLANT_START = {"zero_check": False, "settle_band": 0.5, "settle_time": 0.2}
+
+
 def make_station(tmp_path, outputs, station_id="st1", **kw):
     from gateway.control import ControlParams
     from gateway.station.station import Station, TestPlan
 
-    return Station(station_id=station_id, method={}, control=ControlParams(), meter=FakeMeter(),
-                   stm32=FakeStm32(), records_dir=str(tmp_path / "records"), outputs=outputs,
+    return Station(station_id=station_id, method=dict(FAKE_PLANT_START), control=ControlParams(),
+                   meter=FakeMeter(), stm32=FakeStm32(), records_dir=str(tmp_path / "records"), outputs=outputs,
                    default_plan=TestPlan("S-0", "I", 0.5, 600.0), **kw)
 
 

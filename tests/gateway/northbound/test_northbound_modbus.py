@@ -108,7 +108,7 @@ def test_plc_starts_and_stops_a_test_through_the_command_path(plant):
     n0 = _cmd_status(port, 3)[2]
     rc, _, err = _write(port, 3, HR["command"].address, [1])
     assert rc == 0, err
-    assert s.monitor is not None
+    wait_for(lambda: s.monitor is not None, 10, what="slot 0 after the start sequence (§3a)")
     assert (s.plan.sample_id, s.plan.grade, s.plan.t_set) == ("PLC-77", "II", 0.45)
     assert _cmd_status(port, 3) == (1, 0, (n0 + 1) & 0xFFFF)
     wait_for(lambda: mbpoll(port, "-t", "3", "-r", str(IR["test_state"].address), unit=3)[1]

@@ -18,7 +18,7 @@ from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TState
 from kit.broker import Broker, Sub, pub
 from kit.certs import make_certs as _certs
-from kit.northbound import LoopThread, make_station
+from kit.northbound import LoopThread, RunningStation, make_station
 from kit.proc import stop_process
 from kit.tools import wait_for
 
@@ -261,8 +261,9 @@ def test_commands_over_mqtt_go_through_the_station_command_path(tmp_path):
         station = make_station(tmp_path, [])
         out = MqttOutput(settings(tmp_path, b.port), station)
         station.outputs.append(out)
+        run = None
         try:
-            lt.call(out.start())
+            run = RunningStation(lt, station)     # the slot loop runs the start sequence (§3a)
             wait_for(lambda: out.connected, 20, what="connected")
             sub.wait(lambda s: s.messages("status"), 20)
 
@@ -302,7 +303,8 @@ def test_commands_over_mqtt_go_through_the_station_command_path(tmp_path):
             assert res["test_status"] == "aborted" and res["sample_id"] == "S-9"
             assert list(res) == S.field_names("result")
         finally:
-            lt.call(out.stop())
+            if run is not None:
+                run.stop()
             lt.close()
             sub.stop()
 

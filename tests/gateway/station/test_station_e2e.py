@@ -49,6 +49,12 @@ def only_test(tmp_path, station):
     return dirs[0]
 
 
+def _settle_s(test_dir):
+    """The spin-up time before slot 0, from the sidecar (METHOD.md §3a)."""
+    with open(os.path.join(test_dir, "log.meta.yaml")) as f:
+        return yaml.safe_load(f)["start"]["settle_s"]
+
+
 def events(test_dir):
     with open(os.path.join(test_dir, "events.jsonl")) as f:
         return [json.loads(line) for line in f if line.strip()]
@@ -73,8 +79,11 @@ def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path)
     assert online["status"] == "failure", online
     # the online result is identical to `hookwatch analyze` of the log it recorded
     assert analyze_cli(os.path.join(d, "log.csv.gz")) == online
-    # t_life lies after the simulated onset of accelerated wear
-    assert online["t_life"] > truth["onset_run_s"], (online["t_life"], truth["onset_run_s"])
+    # t_life lies after the simulated onset of accelerated wear (the plant counts running time
+    # from the spin-up; the test's clock starts at slot 0, settle_s later: METHOD.md §3a)
+    settle = _settle_s(d)
+    assert online["t_life"] + settle > truth["onset_run_s"], (online["t_life"], settle,
+                                                              truth["onset_run_s"])
     assert online["t_life"] < 70
     stats = read_json(str(tmp_path / "stats.json"))["life"]
     assert stats["filled_ratio"] > 0.97, stats
@@ -191,14 +200,18 @@ def _trace(tmp_path):
 
 
 def test_vanished_meter_port_stops_motor_aborts_test_and_recovers(tmp_path):
-    d, res, sim_ev, gw = _run_fault(tmp_path, "vanish", "meter_port_vanish", at_s=6.0, duration_s=3.0,
-                                    run_s=16)
+    d, res, sim_ev, gw = _run_fault(tmp_path, "vanish", "meter_port_vanish", at_s=12.0, duration_s=3.0,
+                                    run_s=22)
     m = res["method"]
     assert res["test_status"] == "aborted" and res["end_reason"] == "protection stop", res
     assert m["status"] == "aborted" and m["stop_reasons"] == ["MISSING"], m
-    # the stop came 1 s (51 slots) into the loss, not before the port went away
+    # the stop came 1 s (51 slots) into the loss, not before the port went away. Slot 0 is in
+    # sim time the spin-up (settle_s, METHOD.md §3a) after the motor started, and the plant's
+    # first running (first_run_t) comes at most 0.5 s after the motor started
     on = next(e for e in sim_ev if e.get("event") == "fault_on")
-    assert m["stop_slot"] * 0.02 >= on["t"] - 1.0
+    truth = read_json(os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(d))), "truth.json"))
+    slot0_sim = truth["first_run_t"] - 0.5 + _settle_s(d)
+    assert slot0_sim + m["stop_slot"] * 0.02 >= on["t"] - 1.0, (slot0_sim, m["stop_slot"], on)
     kinds = [e["type"] for e in events(d)]
     assert "protection_stop" in kinds and "port_lost" in kinds
     # the motor was commanded to stop: the plant's speed falls to 0 after the stop
@@ -210,7 +223,7 @@ def test_vanished_meter_port_stops_motor_aborts_test_and_recovers(tmp_path):
 
 
 def test_yarn_break_makes_a_protection_stop(tmp_path):
-    d, res, sim_ev, _gw = _run_fault(tmp_path, "yarn", "yarn_break", at_s=6.0, duration_s=3.0, run_s=10)
+    d, res, sim_ev, _gw = _run_fault(tmp_path, "yarn", "yarn_break", at_s=12.0, duration_s=3.0, run_s=16)
     m = res["method"]
     assert res["end_reason"] == "protection stop" and m["status"] == "aborted", res
     assert "LOW_TENSION" in m["stop_reasons"], m

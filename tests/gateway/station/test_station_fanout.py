@@ -39,7 +39,9 @@ class Broken(Collect):
 
 
 def _station(tmp_path, outputs, plan=None):
-    return Station(station_id="fo", method={}, control=ControlParams(), meter=TimedMeter(slow=()),
+    # the timed meter is no plant: no zero check, a start settles at once (METHOD.md §3a)
+    return Station(station_id="fo", method={"zero_check": False, "settle_band": 0.5, "settle_time": 0.1},
+                   control=ControlParams(), meter=TimedMeter(slow=()),
                    stm32=QuietStm32(), records_dir=str(tmp_path), outputs=outputs,
                    default_plan=plan, autostart=plan is not None)
 
@@ -69,7 +71,7 @@ def test_a_failing_output_is_logged_once_counted_and_never_stops_the_station(tmp
     assert len(failed_lines) == 1
     assert any("Broken.record ×40" in r.getMessage() for r in caplog.records)
     # the recorder is an output like the others: the test it recorded reads back
-    assert [e.type for e in good.events][:1] == [EventType.TEST_STARTED]
+    assert [e.type for e in good.events][:2] == [EventType.TEST_STARTING, EventType.TEST_STARTED]
     assert st.results and st.results[0]["test_status"] == "completed"
 
 

@@ -1,0 +1,176 @@
+"""Issue 13 end to end (METHOD.md §3, §3a): `hookwatch sim` + `hookwatch run` as processes over
+pseudo-terminals — how a test really starts (zero check, spin-up, settle, timeout, swapped
+channels) and how a test stopped on purpose reads (`end_slot`, STOPPED, online == offline)."""
+import csv
+import json
+import os
+import time
+
+import pytest
+import yaml
+
+from conftest import ROOT
+from gateway.northbound import registers as R
+from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.northbound import mbpoll
+from kit.tools import free_port, require_tool
+
+pytestmark = pytest.mark.slow
+
+METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
+SCENARIOS = os.path.join(ROOT, "config", "scenarios")
+TUNED = {"dead_band_n": 0.01}
+METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}
+
+
+def scenario(tmp_path, name, *, plant=None, faults=(), t_end=70):
+    sc = {"description": f"test scenario {name}", "seed": 7, "meter": {"map": METER_MAP},
+          "stm32": {"watchdog_s": 0.2},
+          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600, **(plant or {})},
+          "method": {**METHOD, "t_end": t_end}, "faults": list(faults)}
+    p = tmp_path / f"{name}.yaml"
+    p.write_text(yaml.safe_dump(sc, sort_keys=False))
+    return str(p)
+
+
+def wait_exit(gw, timeout):
+    try:
+        return gw.p.wait(timeout)
+    except Exception:
+        gw.stop()
+        raise AssertionError(f"gateway did not finish in {timeout} s; log:\n{gw.log()}") from None
+
+
+def events(test_dir):
+    with open(os.path.join(test_dir, "events.jsonl")) as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def logged_events(gw, kind):
+    """The gateway's log lines of events of ``kind`` (`station: kind {data}`)."""
+    return [x for x in gw.log_all().splitlines() if f": {kind} " in x]
+
+
+def trace_speeds(path):
+    with open(path) as f:
+        return [(float(r["t"]), float(r["speed_rpm"])) for r in csv.DictReader(f)]
+
+
+def refused_start(tmp_path, sc, name, *, method=None, meter=None, run_s=None):
+    """Start a test on a plant where §3a refuses it; returns (gateway, wall seconds to exit,
+    plant trace)."""
+    trace = tmp_path / "trace.csv"
+    with virtual_station(tmp_path, sc, extra=["--trace", str(trace)]) as (_sim, links):
+        st = station_yaml(tmp_path, links, name=name, control=TUNED, method={**METHOD, **(method or {})},
+                          test={"t_end_s": 70}, meter=meter)
+        t0 = time.monotonic()
+        gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
+        assert wait_exit(gw, run_s or 90) == 0, gw.log()
+        took = time.monotonic() - t0
+        gw.stop()
+        time.sleep(0.5)             # the plant traces the motor after the stop
+    return gw, took, trace_speeds(trace)
+
+
+# ------------------------------------------------------------------------------------------------
+def test_slow_take_up_starts_after_settling_and_ends_in_failure_identical_offline(tmp_path):
+    """The shipped scenario: 6 s of slack yarn. Slot 0 at the start command aborted every test
+    (protection stop after 1 s of LOW_TENSION); with §3a the test starts once settled."""
+    sc = os.path.join(SCENARIOS, "start-slow-take-up.yaml")
+    with virtual_station(tmp_path, sc) as (_sim, links):
+        st = station_yaml(tmp_path, links, name="slow", control=TUNED, method=METHOD,
+                          test={"t_end_s": 70})
+        gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
+        assert wait_exit(gw, 180) == 0, gw.log()
+        gw.stop()
+    dirs = test_dirs(tmp_path, "slow")
+    assert len(dirs) == 1, dirs
+    d = dirs[0]
+    res = read_json(os.path.join(d, "result.json"))
+    online = res["method"]
+    assert res["test_status"] == "completed", res
+    assert online["status"] == "failure", online
+    assert online["reasons"]["LOW_TENSION"] < 50, online     # the slack is not in the test
+    assert online == analyze_cli(os.path.join(d, "log.csv.gz"))
+    with open(os.path.join(d, "log.meta.yaml")) as f:
+        meta = yaml.safe_load(f)
+    # the spin-up took the slack (6 s) and the settle time (2 s); the offsets are information
+    assert meta["start"]["settle_s"] >= 6.0 + 2.0, meta["start"]
+    assert abs(meta["start"]["zero_offsets_n"]["T1"]) <= 0.02, meta["start"]
+    assert "end_slot" not in meta["method"] or meta["method"]["end_slot"] is None
+    kinds = [e["type"] for e in events(d)]
+    assert kinds.count("test_started") == 1 and "protection_stop" not in kinds, kinds
+    started = next(e for e in events(d) if e["type"] == "test_started")
+    assert started["k"] == 0 and started["settle_s"] == meta["start"]["settle_s"]
+    assert len(logged_events(gw, "test_starting")) == 1, gw.log()
+
+
+def test_yarn_not_threaded_start_fails_within_the_timeout_motor_stopped_nothing_recorded(tmp_path):
+    sc = os.path.join(SCENARIOS, "start-not-threaded.yaml")
+    gw, took, speeds = refused_start(tmp_path, sc, "nothr", method={"start_timeout": 8})
+    assert test_dirs(tmp_path, "nothr") == []
+    failed = logged_events(gw, "start_failed")
+    assert len(failed) == 1 and "no tension after 8 s" in failed[0], gw.log()
+    assert "start of S-1 failed: no tension after 8 s" in "".join(gw.stdout_lines())
+    # 1 s of zero check + 8 s of spin-up, plus the process' own start and stop
+    assert took < 1 + 8 + 15, took
+    # the motor ran during the spin-up and was stopped after the failure
+    assert max(v for _t, v in speeds) > 10, speeds[-5:]
+    assert speeds[-1][1] < 1.0, speeds[-5:]
+
+
+def test_zero_offset_refuses_the_start_with_the_offset_motor_never_runs(tmp_path):
+    sc = os.path.join(SCENARIOS, "start-zero-offset.yaml")
+    gw, _took, speeds = refused_start(tmp_path, sc, "zoff")
+    assert test_dirs(tmp_path, "zoff") == []
+    failed = logged_events(gw, "start_failed")
+    assert len(failed) == 1 and "zero check failed: T1 0.0" in failed[0], gw.log()
+    assert "T2" not in failed[0].split("zero check failed:")[1].split("(")[0], failed[0]
+    assert max(v for _t, v in speeds) < 1.0
+
+
+def test_swapped_channels_refuse_the_start(tmp_path):
+    sc = scenario(tmp_path, "swap", faults=[{"at_s": 0, "duration_s": 600, "fault": "swap_channels"}])
+    gw, _took, speeds = refused_start(tmp_path, sc, "swap")
+    assert test_dirs(tmp_path, "swap") == []
+    failed = logged_events(gw, "start_failed")
+    assert len(failed) == 1 and "channels swapped? set meter.swap_channels" in failed[0], gw.log()
+    assert speeds[-1][1] < 1.0
+
+
+# ------------------------------------------------------------------------------------------------
+def test_a_plc_stop_mid_test_is_stopped_not_missing_and_identical_offline(tmp_path):
+    require_tool("mbpoll")
+    sc = scenario(tmp_path, "stop", t_end=600)
+    mport = free_port()
+    with virtual_station(tmp_path, sc) as (_sim, links):
+        st = station_yaml(tmp_path, links, name="stop", control=TUNED, method=METHOD,
+                          test={"t_end_s": 600},
+                          modbus_tcp={"enabled": True, "port": mport, "unit_id": 3,
+                                      "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}})
+        gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
+        t_wait = time.monotonic() + 60
+        d = None
+        while time.monotonic() < t_wait and d is None:
+            dirs = test_dirs(tmp_path, "stop")
+            d = dirs[0] if dirs else None
+            time.sleep(0.2)
+        assert d is not None, gw.log()
+        time.sleep(8.0)
+        rc, _v, err = mbpoll(mport, "-t", "4", "-r", str(R.HR["command"].address), unit=3, values=[2])
+        assert rc == 0, err
+        assert wait_exit(gw, 30) == 0, gw.log()
+        gw.stop()
+    res = read_json(os.path.join(d, "result.json"))
+    online = res["method"]
+    assert res["test_status"] == "aborted" and res["end_reason"] == "stopped by command", res
+    assert online["status"] == "aborted" and online["stop_reasons"] == ["STOPPED"], online
+    with open(os.path.join(d, "log.meta.yaml")) as f:
+        meta = yaml.safe_load(f)
+    assert meta["method"]["end_slot"] == online["n_slots"] == online["stop_slot"], (meta["method"], online)
+    assert 7.0 / 0.02 < online["n_slots"] < 30.0 / 0.02, online
+    assert online["reasons"]["MISSING"] < 0.03 * online["n_slots"], online
+    assert online == analyze_cli(os.path.join(d, "log.csv.gz"))
+    out = "".join(gw.stdout_lines())
+    # the line a person reads says STOPPED, not MISSING
+    assert "status aborted (STOPPED)" in out and "MISSING" not in out, out
