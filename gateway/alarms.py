@@ -36,14 +36,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from .records import AlarmState
 
-class AlarmState(str, enum.Enum):
-    NORMAL = "normal"
-    UNACKNOWLEDGED = "unacknowledged"
-    ACKNOWLEDGED = "acknowledged"
-    RTN_UNACKNOWLEDGED = "rtn_unacknowledged"
-    SHELVED = "shelved"
-    OUT_OF_SERVICE = "out_of_service"
+__all__ = ["AlarmState", "Priority", "AlarmDef", "ALARMS", "ANNUNCIATED", "SHELVE_MAX_S", "Alarm",
+           "AlarmError", "Transition", "from_station"]
 
 
 class Priority(enum.IntEnum):
@@ -63,9 +59,9 @@ class AlarmDef:
 
 #: the station's alarms
 ALARMS: dict[str, AlarmDef] = {
-    "end_of_life": AlarmDef("end_of_life", Priority.HIGH,
+    "end_of_life": AlarmDef("end_of_life", Priority.CRITICAL,
                             "the hook reached the end of its life (t_life found, METHOD.md §6)"),
-    "wear_warning": AlarmDef("wear_warning", Priority.MEDIUM,
+    "wear_warning": AlarmDef("wear_warning", Priority.HIGH,
                              "wear headroom below the early-warning level (METHOD.md §5a)"),
 }
 

@@ -44,11 +44,14 @@ class SlotRecord:
 
 
 class AlarmState(str, enum.Enum):
-    """The end-of-life alarm's states, the one definition (PLC enum register, MQTT, alarm store).
-    A later ISA-18.2 model replaces this enum and :mod:`gateway.station.alarms`."""
-    NONE = "none"                  # no alarm (or cleared: a new test started, the hook was replaced)
-    ACTIVE = "active"              # raised, not acknowledged
-    ACKNOWLEDGED = "acknowledged"  # acknowledged, still standing until a new test starts
+    """The ISA-18.2 alarm states, the one definition (PLC enum register, MQTT, Sparkplug, the alarm
+    store; the transitions are :mod:`gateway.alarms`). Enum order = PLC register value."""
+    NORMAL = "normal"                          # nothing to do (also: closed, the hook was replaced)
+    UNACKNOWLEDGED = "unacknowledged"          # new alarm, annunciated
+    ACKNOWLEDGED = "acknowledged"              # known, still standing (the worn hook is still in)
+    RTN_UNACKNOWLEDGED = "rtn_unacknowledged"  # returned to normal before anyone acknowledged
+    SHELVED = "shelved"                        # silenced by an operator until its expiry
+    OUT_OF_SERVICE = "out_of_service"          # taken out of service (a needle is being changed)
 
 
 class EventType(str, enum.Enum):
@@ -63,7 +66,11 @@ class EventType(str, enum.Enum):
     PORT_LOST = "port_lost"
     PORT_BACK = "port_back"
     ALARM_ACK = "alarm_acknowledged"
-    ALARM_CLEARED = "alarm_cleared"
+    ALARM_CLEARED = "alarm_cleared"            # a new test started or the hook was replaced: closed
+    ALARM_SHELVED = "alarm_shelved"
+    ALARM_UNSHELVED = "alarm_unshelved"        # by command or at the shelving's expiry
+    ALARM_OUT_OF_SERVICE = "alarm_out_of_service"
+    ALARM_IN_SERVICE = "alarm_in_service"
     COMMAND_REJECTED = "command_rejected"
     CONFIG_RELOADED = "config_reloaded"
 
@@ -99,8 +106,8 @@ class StationState:
     elapsed_s: float = 0.0
     status: str | None = None          # the method's status once the test has ended
     end_reason: str | None = None      # why a test ended (completed, protection stop, command, restart)
-    alarm: str = AlarmState.NONE.value  # an AlarmState value (gateway.station.alarms keeps it)
-    warning_alarm: str = AlarmState.NONE.value  # the §5a wear-warning alarm (lower priority)
+    alarm: str = AlarmState.NORMAL.value  # an AlarmState value (gateway.station.alarms keeps it)
+    warning_alarm: str = AlarmState.NORMAL.value  # the §5a wear-warning alarm (lower priority)
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
     wear_warning: bool = False         # §5a early warning fired in this test
@@ -118,6 +125,10 @@ class CommandKind(str, enum.Enum):
     ACK = "ack"
     SETPOINT = "setpoint"
     HOOK_REPLACED = "hook_replaced"    # the worn hook was replaced: closes its end-of-life alarm
+    SHELVE = "shelve"                  # shelve one alarm until an expiry (ISA-18.2)
+    UNSHELVE = "unshelve"
+    OUT_OF_SERVICE = "out_of_service"  # both alarms out of service while a needle is changed
+    IN_SERVICE = "in_service"
 
 
 @dataclass

@@ -471,7 +471,8 @@ class ConsoleServer:
         if st is None or loop is None:
             return self._reply(f, s, kind, Rejection(False, f"station {f.name} is not running", None,
                                                      CODE["NO_STATION"]))
-        if hook and getattr(getattr(st, "state", None), "alarm", "none") != "active":
+        if hook and getattr(getattr(st, "state", None), "alarm", "normal") not in ("unacknowledged",
+                                                                             "rtn_unacknowledged"):
             log.info("console: %s: hook replaced on %s (reported by %s; no alarm to acknowledge)",
                      f.name, f.name, s.user)
             return web.json_response({"ok": True, "reason": "", "code": 0})

@@ -64,7 +64,7 @@ from prometheus_client.exposition import generate_latest
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
 from .. import __version__
-from ..records import Event, SlotRecord, StationState, TestState
+from ..records import AlarmState, Event, SlotRecord, StationState, TestState
 
 log = logging.getLogger("hookwatch.metrics")
 
@@ -409,7 +409,7 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
             state.add_metric([s["station"], ts_.name.lower()], 1.0 if s["state"] == ts_.name.lower() else 0.0)
         running.add_metric([s["station"]], 1.0 if s["test_running"] else 0.0)
         warning.add_metric([s["station"]], 1.0 if s.get("warning") else 0.0)
-        for a in ("none", "active", "acknowledged"):
+        for a in (x.value for x in AlarmState):
             alarm.add_metric([s["station"], a], 1.0 if s["alarm"] == a else 0.0)
         for t, v in sorted(s["events"].items()):
             events.add_metric([s["station"], t], float(v))

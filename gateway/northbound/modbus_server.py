@@ -346,7 +346,8 @@ class ModbusOutput:
         running = st.state in (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE)
         flags = {
             "running": running, "baseline_found": st.mu_ss is not None,
-            "end_of_life": st.t_life is not None, "alarm_unacknowledged": st.alarm == "active",
+            "end_of_life": st.t_life is not None,
+            "alarm_unacknowledged": st.alarm in ("unacknowledged", "rtn_unacknowledged"),
             "protection_stop": bool(st.protection_stop), "meter_ok": bool(st.meter_ok),
             "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(st.mqtt_ok),
             "saturation": now - self._sat_t <= 1.0,

@@ -15,7 +15,7 @@ from typing import Any
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..records import AlarmState, CommandReply, Event, EventType, SlotRecord, StationState
+from ..records import CommandReply, Event, EventType, SlotRecord, StationState
 from ..station.alarms import AlarmRecord
 from ..station.commands import CODE
 from . import schema
@@ -109,8 +109,8 @@ class Telemetry:
 def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
     """The alarm store's record as the fields of the ``alarm/end_of_life`` (or, for the wear
     warning, ``alarm/warning``) message."""
-    return {"state": "cleared" if rec.state == AlarmState.NONE else rec.state.value,
-            "active": rec.active, "acknowledged": rec.acknowledged, "test_id": rec.test_id,
+    return {"state": rec.state.value, "active": rec.active, "condition": rec.condition,
+            "acknowledged": rec.acknowledged, "shelved_until": rec.shelved_until, "test_id": rec.test_id,
             "sample_id": rec.sample_id, "t_life": rec.t_life, "k_life": rec.k_life,
             "warn_slot": rec.warn_slot, "t_warn": rec.t_warn, "headroom": rec.headroom,
             "t_cross": rec.t_cross,
@@ -139,16 +139,24 @@ def warning_message(base: str, station: str, t: float, rec: AlarmRecord) -> Mess
     return _message("alarm_warning", base, lambda seq: schema.warning_payload(seq, t, station, fields))
 
 
+#: the events that change alarms (by command or by time)
+ALARM_EVENTS = (EventType.ALARM_ACK, EventType.ALARM_CLEARED, EventType.ALARM_SHELVED,
+                EventType.ALARM_UNSHELVED, EventType.ALARM_OUT_OF_SERVICE, EventType.ALARM_IN_SERVICE)
+
+
 def event_messages(base: str, ev: Event, last_state: StationState | None,
                    alarm: AlarmRecord, warning: AlarmRecord | None = None) -> list[Message]:
     """The messages of one event: the event itself, then the alarms (alarm events, as the alarm
     store now has them: the wear warning only once it was ever raised) or the retained result
     (end of a test)."""
     out = [_message("event", base, lambda seq: schema.event_payload(seq, ev), type=ev.type.value)]
-    if ev.type in (EventType.END_OF_LIFE, EventType.ALARM_ACK, EventType.ALARM_CLEARED):
+    changed = {tr.get("alarm") for tr in ev.data.get("transitions") or ()}
+    if ev.type == EventType.END_OF_LIFE or (ev.type in ALARM_EVENTS and (
+            "end_of_life" in changed or "transitions" not in ev.data)):
         out.append(alarm_message(base, ev.station, ev.wall_time, alarm))
-    if warning is not None and warning.raised and ev.type in (
-            EventType.WEAR_WARNING, EventType.ALARM_ACK, EventType.ALARM_CLEARED):
+    if warning is not None and (warning.raised or "wear_warning" in changed) and (
+            ev.type == EventType.WEAR_WARNING or (ev.type in ALARM_EVENTS and (
+                "wear_warning" in changed or "transitions" not in ev.data))):
         out.append(warning_message(base, ev.station, ev.wall_time, warning))
     elif ev.type == EventType.TEST_ENDED:
         out.append(_message("result", base, lambda seq: schema.result_payload(seq, ev, last_state)))

@@ -20,7 +20,8 @@ from ..records import AlarmState, CommandKind, TestState
 from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
-MAP_VERSION = 2    # 2: headroom, t_cross, warning_alarm, status bits 10–12, test state 6 starting
+MAP_VERSION = 3    # 3: alarm enums in ISA-18.2 states (0–5), command codes 5–7
+#                    2: headroom, t_cross, warning_alarm, status bits 10–12, test state 6 starting
 
 INPUT = "input"
 HOLDING = "holding"
@@ -63,7 +64,7 @@ STATUS_BITS: tuple[tuple[int, str, str], ...] = (
     (0, "running", "a test is running (baseline search, monitoring or end of life)"),
     (1, "baseline_found", "the baseline μ_ss of the current test is established"),
     (2, "end_of_life", "end of life latched for the current / last test (until a new test starts)"),
-    (3, "alarm_unacknowledged", "the end-of-life alarm is active and not acknowledged"),
+    (3, "alarm_unacknowledged", "the end-of-life alarm is unacknowledged or rtn_unacknowledged (ISA-18.2)"),
     (4, "protection_stop", "the last test was stopped by the protection rule"),
     (5, "meter_ok", "the tension meter answers"),
     (6, "stm32_ok", "the motor controller answers"),
@@ -87,6 +88,9 @@ COMMAND_CODES: tuple[tuple[int, str, str], ...] = (
     (2, "stop", "stop the running test (it ends as aborted)"),
     (3, "ack", "acknowledge the active alarms (end of life and wear warning)"),
     (4, "setpoint", "(input register only) the last command was a write of `t_set`"),
+    (5, "hook_replaced", "the worn hook was replaced: closes its alarms (ISA-18.2 `normal`)"),
+    (6, "out_of_service", "both alarms out of service while a needle is being changed"),
+    (7, "in_service", "return the alarms to service"),
 )
 COMMAND_CODE = {name: code for code, name, _ in COMMAND_CODES}
 
@@ -231,13 +235,16 @@ EXC_ILLEGAL_ADDRESS = 2
 EXC_ILLEGAL_VALUE = 3
 #: the command codes that are commands (holding register ``command``)
 COMMAND_KINDS = {COMMAND_CODE["start"]: CommandKind.START, COMMAND_CODE["stop"]: CommandKind.STOP,
-                 COMMAND_CODE["ack"]: CommandKind.ACK}
+                 COMMAND_CODE["ack"]: CommandKind.ACK, COMMAND_CODE["hook_replaced"]: CommandKind.HOOK_REPLACED,
+                 COMMAND_CODE["out_of_service"]: CommandKind.OUT_OF_SERVICE,
+                 COMMAND_CODE["in_service"]: CommandKind.IN_SERVICE}
 
 
 def check_holding(name: str, val: Any, limits: StationLimits) -> str | None:
     """Is ``val`` (decoded) allowed in holding register ``name``? None if yes, else why not."""
     if name == "command":
-        return None if val in COMMAND_KINDS else f"command code {val}; allowed: 1 start, 2 stop, 3 ack"
+        allowed = ", ".join(f"{c} {COMMAND_CODES[c][1]}" for c in sorted(COMMAND_KINDS))
+        return None if val in COMMAND_KINDS else f"command code {val}; allowed: {allowed}"
     if name == "t_set":
         return check_t_set(val, limits)
     if name == "grade":

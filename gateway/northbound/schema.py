@@ -15,12 +15,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..method.rules import REASON_NAMES
-from ..records import Event, EventType, StationState, TestState
+from ..records import AlarmState, Event, EventType, StationState, TestState
 from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
 #: version of the topic tree and payloads (every payload carries it as "schema")
-SCHEMA_VERSION = 2      # 2: `status` carries its own `session` counter instead of a `seq`; state
+SCHEMA_VERSION = 3      # 3: ISA-18.2 alarm states (normal, unacknowledged, acknowledged,
+                        # rtn_unacknowledged, shelved, out_of_service), alarm `condition` and
+                        # `shelved_until`, events' `transitions`, cmd/shelve|unshelve|out_of_service|in_service
+                        # 2: `status` carries its own `session` counter instead of a `seq`; state
                         # test_state `starting`; §5a headroom/t_cross; the alarm/warning alarms
 
 
@@ -89,7 +92,7 @@ STATE_FIELDS = ENVELOPE + (
     Field("status", "str|null", "the method's status once the test has ended"),
     Field("end_reason", "str|null", "why the test ended (completed, protection stop, stopped by "
           "command, gateway shutdown, …) or the start failed (§3a)"),
-    Field("alarm", "str", "end-of-life alarm: none, active, acknowledged"),
+    Field("alarm", "str", "end-of-life alarm, ISA-18.2 state: " + ", ".join(a.value for a in AlarmState)),
     Field("protection_stop", "bool", "the test was stopped by the protection rule (§3)"),
     Field("stopped", "bool", "the test was ended on purpose (STOPPED, §3: a command or a clean "
           "shutdown), not by a dead meter"),
@@ -98,7 +101,8 @@ STATE_FIELDS = ENVELOPE + (
     Field("t_cross", "float|null", "projected time (s from test start) at which the recent trend "
           "of μ reaches μ_th (§5a), from the last window with a value; null: no projection"),
     Field("wear_warning", "bool", "the §5a early warning fired in this test"),
-    Field("warning_alarm", "str", "wear-warning alarm (priority 2): none, active, acknowledged"),
+    Field("warning_alarm", "str", "wear-warning alarm (priority 2), ISA-18.2 state: "
+          + ", ".join(a.value for a in AlarmState)),
     Field("meter_ok", "bool", "the tension meter answers"),
     Field("stm32_ok", "bool", "the motor controller answers"),
 )
@@ -130,10 +134,13 @@ EVENT_FIELDS = ENVELOPE + (
 
 #: the lifecycle fields both alarms share (the alarm store's AlarmRecord)
 _ALARM_STATE = (
-    Field("state", "str", "`active` (raised, not acknowledged) → `acknowledged` → `cleared` "
-          "(the hook was replaced and a new test started)"),
-    Field("active", "bool", "true while the alarm is raised (active or acknowledged)"),
+    Field("state", "str", "ISA-18.2 state: `normal` → `unacknowledged` (raised) → `acknowledged` → "
+          "`normal` (closed: the hook was replaced or a new test started); `rtn_unacknowledged`, "
+          "`shelved` (until `shelved_until`), `out_of_service` (a needle is being changed)"),
+    Field("active", "bool", "true while the alarm stands in any state but `normal`"),
+    Field("condition", "bool", "true while the alarm's condition stands (the worn hook is in)"),
     Field("acknowledged", "bool", "true once someone acknowledged it"),
+    Field("shelved_until", "str|null", "UTC time a shelving expires (state `shelved`)"),
 )
 _ALARM_TIMES = (
     Field("raised_at", "str|null", "UTC time the alarm was raised"),
@@ -212,6 +219,10 @@ CMD_START_FIELDS = (
     Field("request_id", "str", "optional: echoed in the reply"),
 )
 CMD_SIMPLE_FIELDS = (Field("request_id", "str", "optional: echoed in the reply"),)
+CMD_UNSHELVE_FIELDS = (Field("alarm", "str", "`end_of_life` or `wear_warning`"), *CMD_SIMPLE_FIELDS)
+CMD_SHELVE_FIELDS = (*CMD_UNSHELVE_FIELDS[:1],
+                     Field("duration_s", "float", "how long, s (at most 43200: one 12 h shift)"),
+                     *CMD_SIMPLE_FIELDS)
 CMD_SETPOINT_FIELDS = (
     Field("t_set", "float", "required: setpoint of the next test, N (refused while a test runs)"),
     Field("request_id", "str", "optional: echoed in the reply"),
@@ -245,8 +256,16 @@ TOPICS: tuple[Topic, ...] = (
     Topic("cmd_setpoint", "cmd/setpoint", "subscribe", 1, False, False,
           "set the tension setpoint of the next test", CMD_SETPOINT_FIELDS),
     Topic("cmd_hook_replaced", "cmd/hook_replaced", "subscribe", 1, False, False,
-          "the worn hook was replaced: closes its end-of-life alarm (refused without one)",
+          "the worn hook was replaced: closes its alarms (refused without one)",
           CMD_SIMPLE_FIELDS),
+    Topic("cmd_shelve", "cmd/shelve", "subscribe", 1, False, False,
+          "shelve one annunciated alarm until `duration_s` from now (ISA-18.2)", CMD_SHELVE_FIELDS),
+    Topic("cmd_unshelve", "cmd/unshelve", "subscribe", 1, False, False,
+          "end the shelving of one alarm", CMD_UNSHELVE_FIELDS),
+    Topic("cmd_out_of_service", "cmd/out_of_service", "subscribe", 1, False, False,
+          "take both alarms out of service (a needle is being changed)", CMD_SIMPLE_FIELDS),
+    Topic("cmd_in_service", "cmd/in_service", "subscribe", 1, False, False,
+          "return the alarms to service", CMD_SIMPLE_FIELDS),
 )
 TOPIC = {t.key: t for t in TOPICS}
 
@@ -283,6 +302,12 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.ALARM_ACK: (("source", "who acknowledged (mqtt, plc:ADDR, cli)"),),
     EventType.ALARM_CLEARED: (("reason", "why (new test started, hook_replaced)"),
                               ("source", "who closed it (hook_replaced: mqtt, sparkplug, cli …)")),
+    EventType.ALARM_SHELVED: (("alarm", "end_of_life or wear_warning"), ("until", "expiry, epoch s"),
+                              ("source", "who shelved it")),
+    EventType.ALARM_UNSHELVED: (("alarm", "end_of_life or wear_warning"), ("source", "who (by command)"),
+                                ("expired", "true: the shelving ran out")),
+    EventType.ALARM_OUT_OF_SERVICE: (("source", "who took the alarms out of service"),),
+    EventType.ALARM_IN_SERVICE: (("source", "who returned them to service"),),
     EventType.COMMAND_REJECTED: (("command", "the command"), ("source", "where it came from"),
                                  ("reason", "why it was refused")),
     EventType.CONFIG_RELOADED: (),
@@ -408,7 +433,7 @@ def _examples() -> dict[str, dict[str, Any]]:
     t = 1772352000.02     # 2026-03-01T08:00:00.020Z
     st = StationState(station="st1", state=TestState.END_OF_LIFE, test_id="20260301T060000Z-S-0042",
                       sample_id="S-0042", grade="I", t_set=0.5, t_end=36000.0, mu_ss=0.2213,
-                      mu_th=0.2545, k_b=1500, t_life=6930.5, elapsed_s=7200.0, alarm="active",
+                      mu_th=0.2545, k_b=1500, t_life=6930.5, elapsed_s=7200.0, alarm="unacknowledged",
                       meter_ok=True, stm32_ok=True)
     ev = Event(EventType.END_OF_LIFE, "st1", t, st.test_id, 346525,
                {"k_life": 346525, "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545, "sample_id": "S-0042"})
@@ -423,11 +448,13 @@ def _examples() -> dict[str, dict[str, Any]]:
             "headroom": -0.42, "t_cross": None}),
         "event": event_payload(1044, ev),
         "alarm": alarm_payload(1045, t, "st1", {
-            "state": "active", "active": True, "acknowledged": False, "test_id": st.test_id,
+            "state": "unacknowledged", "active": True, "condition": True, "acknowledged": False,
+            "shelved_until": None, "test_id": st.test_id,
             "sample_id": "S-0042", "t_life": 6930.5, "k_life": 346525, "mu_ss": 0.2213,
             "mu_th": 0.2545, "raised_at": iso_ms(t)}),
         "alarm_warning": warning_payload(1040, t - 1380.0, "st1", {
-            "state": "active", "active": True, "acknowledged": False, "test_id": st.test_id,
+            "state": "unacknowledged", "active": True, "condition": True, "acknowledged": False,
+            "shelved_until": None, "test_id": st.test_id,
             "sample_id": "S-0042", "warn_slot": 275999, "t_warn": 5520.0, "headroom": 0.41,
             "t_cross": 7040.5, "mu_ss": 0.2213, "mu_th": 0.2545, "raised_at": iso_ms(t - 1380.0)}),
         "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
@@ -440,6 +467,10 @@ def _examples() -> dict[str, dict[str, Any]]:
         "cmd_ack": {"request_id": "r-19"},
         "cmd_setpoint": {"t_set": 0.6},
         "cmd_hook_replaced": {"request_id": "r-20"},
+        "cmd_shelve": {"alarm": "end_of_life", "duration_s": 1800, "request_id": "r-21"},
+        "cmd_unshelve": {"alarm": "end_of_life"},
+        "cmd_out_of_service": {"request_id": "r-22"},
+        "cmd_in_service": {"request_id": "r-23"},
     }
 
 
@@ -530,9 +561,18 @@ def render() -> str:
         "arrives after everything the broker received from that session. So a consumer may treat "
         "`online` as \"a backlog may follow\", never as \"everything before it was delivered\".",
         "",
-        "- The end-of-life alarm lifecycle: `active` (raised, unacknowledged) → `acknowledged` "
-        "(cmd/ack, a PLC write or the CLI) → `cleared` (the hook was replaced and a new test "
-        "started). Every transition is one retained message on `alarm/end_of_life`, so a MES "
+        "- Alarms follow ISA-18.2, the same states in MQTT (`alarm/…` `state`, `state` "
+        "`alarm`/`warning_alarm`), Sparkplug and the PLC (enum registers `alarm`, `warning_alarm`: "
+        + ", ".join(f"{i} `{a.value}`" for i, a in enumerate(AlarmState)) + "). The end of life: "
+        "`normal` → `unacknowledged` (raised) → `acknowledged` (cmd/ack, a PLC write or the CLI) → "
+        "`normal` (closed: cmd/hook_replaced, or a new test started; `closed_by` in the event's "
+        "transition). An alarm whose condition went before an ack is `rtn_unacknowledged` (an ack "
+        "makes it `normal`). cmd/shelve silences one annunciated alarm until `duration_s` from now "
+        "(`shelved`, `shelved_until`; back at the expiry or by cmd/unshelve); cmd/out_of_service "
+        "takes both alarms out of service while a needle is being changed (cmd/in_service or "
+        "cmd/hook_replaced end it). Every transition is in one event (`data.transitions`: `alarm`, "
+        "`hook`, `from`, `to`, `action`, `time`, `by`, `priority`) and one retained message on "
+        "`alarm/end_of_life` or `alarm/warning`, so a MES "
         "that connects late sees the current state. The wear warning (METHOD.md §5a: the "
         "headroom stayed under `h_warn` for `n_warn` windows) is a second alarm of lower "
         "priority (2; end of life is 1) with the same lifecycle on `alarm/warning`, raised once "

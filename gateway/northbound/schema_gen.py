@@ -14,7 +14,7 @@ import sys
 from typing import Any
 
 from ..method.rules import REASON_NAMES
-from ..records import TestState
+from ..records import AlarmState, TestState
 from ..station.commands import REJECT_CODES
 from . import schema as S
 
@@ -31,9 +31,11 @@ TIME_OR_NULL = {"anyOf": [TIME, {"type": "null"}]}
 ENUMS: dict[tuple[str | None, str], list[Any]] = {
     ("status", "status"): ["online", "offline"],
     ("state", "test_state"): [s.name.lower() for s in TestState],
-    ("state", "alarm"): ["none", "active", "acknowledged"],
+    ("state", "alarm"): [a.value for a in AlarmState],
+    ("state", "warning_alarm"): [a.value for a in AlarmState],
     ("alarm", "alarm"): ["end_of_life"],
-    ("alarm", "state"): ["active", "acknowledged", "cleared"],
+    ("alarm", "state"): [a.value for a in AlarmState],
+    ("alarm_warning", "state"): [a.value for a in AlarmState],
     ("result", "test_status"): ["completed", "aborted"],
     ("reply", "code"): [c for c, _n, _d in REJECT_CODES],
     ("event", "type"): [e.value for e in S.EVENT_DATA],

@@ -17,12 +17,13 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+from ..alarms import ALARMS, ANNUNCIATED, SHELVE_MAX_S
 from ..ports import SAMPLE_ID_MAX, T_END_MAX_S, StationLimits
-from ..records import Command, CommandKind, CommandReply, StationState, TestState
+from ..records import AlarmState, Command, CommandKind, CommandReply, EventType, StationState, TestState
 
 __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "Rejection",
            "reject", "check_t_set", "check_sample_id", "check_grade", "check_t_end",
-           "command_from_mapping", "validate", "StationLimits"]
+           "command_from_mapping", "validate", "StationLimits", "ALARM_COMMAND_EVENTS"]
 
 #: test states in which a test is running (or starting: a stop cancels the start, §3a)
 RUNNING = frozenset({TestState.STARTING, TestState.BASELINE_SEARCH, TestState.MONITORING,
@@ -41,6 +42,9 @@ REJECT_CODES: tuple[tuple[int, str, str], ...] = (
     (8, "SETPOINT_LOCKED", "the setpoint of a running test cannot change"),
     (9, "BAD_REQUEST", "malformed request (unknown command, unknown key, not JSON)"),
     (10, "NO_STATION", "the station did not answer (not running or busy)"),
+    (11, "ALARM", f"alarm not one of {', '.join(ALARMS)}"),
+    (12, "DURATION", f"duration_s not a number in (0, {SHELVE_MAX_S:.0f}] s"),
+    (13, "ALARM_STATE", "the alarm's ISA-18.2 state does not allow this command"),
 )
 CODE = {name: code for code, name, _ in REJECT_CODES}
 
@@ -51,7 +55,50 @@ COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
     CommandKind.ACK: (),
     CommandKind.SETPOINT: ("t_set",),
     CommandKind.HOOK_REPLACED: (),
+    CommandKind.SHELVE: ("alarm", "duration_s"),
+    CommandKind.UNSHELVE: ("alarm",),
+    CommandKind.OUT_OF_SERVICE: (),
+    CommandKind.IN_SERVICE: (),
 }
+
+#: the ISA-18.2 alarm commands and the station event each becomes (the alarm store applies it)
+ALARM_COMMAND_EVENTS: dict[CommandKind, EventType] = {
+    CommandKind.SHELVE: EventType.ALARM_SHELVED,
+    CommandKind.UNSHELVE: EventType.ALARM_UNSHELVED,
+    CommandKind.OUT_OF_SERVICE: EventType.ALARM_OUT_OF_SERVICE,
+    CommandKind.IN_SERVICE: EventType.ALARM_IN_SERVICE,
+}
+_ACKABLE = (AlarmState.UNACKNOWLEDGED.value, AlarmState.RTN_UNACKNOWLEDGED.value)
+
+
+def _alarm_states(state: StationState) -> dict[str, str]:
+    """The station's alarms by their ISA-18.2 name (gateway.alarms.ALARMS)."""
+    return {"end_of_life": state.alarm, "wear_warning": state.warning_alarm}
+
+
+def _check_alarm_command(cmd: Command, state: StationState) -> Rejection | None:
+    """shelve / unshelve / out_of_service / in_service against the alarms' ISA-18.2 states."""
+    a = cmd.args
+    states = _alarm_states(state)
+    if cmd.kind in (CommandKind.SHELVE, CommandKind.UNSHELVE):
+        name = a.get("alarm")
+        if name not in ALARMS:
+            return reject(cmd, "ALARM", f"alarm {name!r}: not one of {', '.join(ALARMS)}")
+        d = a.get("duration_s")
+        if cmd.kind == CommandKind.SHELVE:
+            if isinstance(d, bool) or not isinstance(d, (int, float)) or not 0 < d <= SHELVE_MAX_S:
+                return reject(cmd, "DURATION", f"duration_s {d!r}: a number in (0, {SHELVE_MAX_S:.0f}] s")
+            if states[name] not in {s.value for s in ANNUNCIATED}:
+                return reject(cmd, "ALARM_STATE", f"{name} is {states[name]}: only an annunciated "
+                              "alarm (unacknowledged, acknowledged, rtn_unacknowledged) can be shelved")
+        elif states[name] != AlarmState.SHELVED.value:
+            return reject(cmd, "ALARM_STATE", f"{name} is {states[name]}, not shelved")
+    elif cmd.kind == CommandKind.OUT_OF_SERVICE:
+        if all(v == AlarmState.OUT_OF_SERVICE.value for v in states.values()):
+            return reject(cmd, "ALARM_STATE", "the alarms are already out of service")
+    elif AlarmState.OUT_OF_SERVICE.value not in states.values():
+        return reject(cmd, "ALARM_STATE", "no alarm is out of service")
+    return None
 
 
 @dataclass
@@ -155,7 +202,7 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if not running:
             return reject(cmd, "NOT_RUNNING", "no test is running")
     elif cmd.kind == CommandKind.ACK:
-        if state.alarm != "active" and state.warning_alarm != "active":
+        if state.alarm not in _ACKABLE and state.warning_alarm not in _ACKABLE:
             return reject(cmd, "NO_ALARM", "no unacknowledged alarm (end of life or wear warning)")
     elif cmd.kind == CommandKind.SETPOINT:
         if running:
@@ -165,8 +212,10 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if err:
             return reject(cmd, "T_SET", err)
     elif cmd.kind == CommandKind.HOOK_REPLACED:
-        if state.alarm not in ("active", "acknowledged"):
-            return reject(cmd, "NO_ALARM", "no end-of-life alarm to close")
+        if state.alarm == AlarmState.NORMAL.value and state.warning_alarm == AlarmState.NORMAL.value:
+            return reject(cmd, "NO_ALARM", "no alarm of the hook to close")
+    elif cmd.kind in ALARM_COMMAND_EVENTS:
+        return _check_alarm_command(cmd, state)
     else:  # pragma: no cover - CommandKind is closed
         return reject(cmd, "BAD_REQUEST", f"command {cmd.kind!r} unknown")
     return None

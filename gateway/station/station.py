@@ -38,7 +38,7 @@ from ..records import (Command, CommandKind, CommandReply, Event, EventType, Slo
                        StationState, TestState)
 from .alarms import AlarmStore
 from .clock import SlotClock
-from .commands import Rejection, validate
+from .commands import ALARM_COMMAND_EVENTS, Rejection, validate
 from .fanout import Fanout
 from .recorder import TestRecorder, recover_incomplete, utc_iso
 from .session import RecorderOutput, StartAttempt, TestPlan, TestSession
@@ -199,6 +199,7 @@ class Station:
 
     def _restore_alarm(self) -> None:
         rec = self.alarms.restore()
+        self.state.alarm = rec.state.value
         self.state.warning_alarm = self.alarms.warning.state.value
         if rec.active:
             st = self.state
@@ -237,6 +238,14 @@ class Station:
             self._push_state()
         elif cmd.kind == CommandKind.HOOK_REPLACED:
             self._emit_event(EventType.ALARM_CLEARED, source=cmd.source, reason="hook_replaced")
+            self._push_state()
+        elif cmd.kind in ALARM_COMMAND_EVENTS:      # ISA-18.2 shelve / unshelve / out of service
+            data: dict[str, Any] = {"source": cmd.source}
+            if cmd.args.get("alarm") is not None:
+                data["alarm"] = str(cmd.args["alarm"])
+            if cmd.kind == CommandKind.SHELVE:
+                data["until"] = time.time() + float(cmd.args["duration_s"])
+            self._emit_event(ALARM_COMMAND_EVENTS[cmd.kind], **data)
             self._push_state()
         elif cmd.kind == CommandKind.SETPOINT:
             if self.default_plan is not None:
@@ -601,6 +610,8 @@ class Station:
                         self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
                 if now - self._last_state_push >= 1.0:
                     self._link_health()
+                    for name in self.alarms.expired(time.time()):   # a shelving ran out
+                        self._emit_event(EventType.ALARM_UNSHELVED, alarm=name, expired=True)
                     self._push_state()
                 k += 1
         finally:

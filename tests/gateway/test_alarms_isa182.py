@@ -67,7 +67,7 @@ def test_out_of_service_while_the_needle_is_changed():
 def test_priorities():
     assert ALARMS["end_of_life"].priority < ALARMS["wear_warning"].priority   # 1 is the highest
     a = Alarm("end_of_life")
-    assert a.activate(0.0)[0].priority == int(Priority.HIGH)
+    assert a.activate(0.0)[0].priority == int(Priority.CRITICAL)   # 1, as MQTT and the PLC show it
     with pytest.raises(AlarmError):
         Alarm("coffee_empty")
 

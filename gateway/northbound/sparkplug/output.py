@@ -141,7 +141,8 @@ class SparkplugOutput:
         if ev.type == EventType.END_OF_LIFE and self.rt is not None:
             d = ev.data
             self.rt.post(("update", self.s.device_id, {
-                **_alarm_values("active"),
+                **_alarm_values(next((tr["to"] for tr in reversed(d.get("transitions") or [])
+                                      if tr.get("alarm") == "end_of_life"), "unacknowledged")),
                 "Method/t_life": d.get("t_life"), "Method/mu_ss": d.get("mu_ss"),
                 "Method/mu_th": d.get("mu_th")}, False))
 

@@ -113,7 +113,7 @@ def test_slot_figures_histograms_links_and_state(endpoints):
     assert m[("hookwatch_station_state", (("state", "monitoring"), *lab))] == 1
     assert m[("hookwatch_station_state", (("state", "idle"), *lab))] == 0
     assert m[("hookwatch_test_running", lab)] == 1
-    assert m[("hookwatch_alarm", (("alarm", "none"), *lab))] == 1
+    assert m[("hookwatch_alarm", (("alarm", "normal"), *lab))] == 1   # ISA-18.2 state names
     assert m[("hookwatch_mu", lab)] == pytest.approx(0.2)
     assert m[("hookwatch_mu_ss", lab)] == pytest.approx(0.2)
     assert m[("hookwatch_mu_threshold", lab)] == pytest.approx(0.25)

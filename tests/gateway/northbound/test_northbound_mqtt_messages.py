@@ -25,10 +25,11 @@ def test_an_end_of_life_is_its_event_then_the_retained_alarm_from_the_store():
     alarm = json.loads(msgs[1].encode(42))
     assert list(alarm) == S.field_names("alarm")
     assert (alarm["seq"], alarm["state"], alarm["active"], alarm["t_life"], alarm["test_id"]) == (
-        42, "active", True, 0.18, "T-1")
+        42, "unacknowledged", True, 0.18, "T-1")   # ISA-18.2 (was "active")
     store.on_event(_ev(EventType.ALARM_CLEARED, reason="new test started"))
+    # ISA-18.2: closed is `normal` (was "cleared")
     cleared = M.alarm_message(BASE, "st1", time.time(), store.record).payload(43)
-    assert (cleared["state"], cleared["active"], cleared["test_id"]) == ("cleared", False, "T-1")
+    assert (cleared["state"], cleared["active"], cleared["test_id"]) == ("normal", False, "T-1")
 
 
 def test_the_end_of_a_test_carries_its_retained_result():

@@ -38,7 +38,7 @@ def test_alarm_restored_after_restart_then_acknowledged_then_cleared_by_a_new_te
     second = _station(tmp_path)
 
     async def ack(st):
-        assert st.state.alarm == "active" and st.state.t_life == 123.4
+        assert st.state.alarm == "unacknowledged" and st.state.t_life == 123.4   # ISA-18.2 (was "active")
         return await st.submit(Command(CommandKind.ACK, "plc:127.0.0.1"))
 
     reply = _run(second, before=ack)
@@ -55,6 +55,6 @@ def test_alarm_restored_after_restart_then_acknowledged_then_cleared_by_a_new_te
                                        {"sample_id": "S-2", "grade": "I", "t_set": 0.5}))
 
     assert _run(third, before=start).ok
-    assert third.state.alarm == "none"
+    assert third.state.alarm == "normal"   # ISA-18.2: closed (was "none")
     with open(tmp_path / "al" / "alarm.json") as f:
-        assert json.load(f)["alarm"] == "none"
+        assert json.load(f)["alarm"] == "normal"

@@ -318,10 +318,10 @@ def test_headroom_and_the_wear_warning_reach_state_events_and_the_alarm_store(tm
     assert any(s.wear_warning for s in states) and states[-1].wear_warning
     # the alarm store: the warning (priority 2) and the end of life (priority 1), both active
     w, eol = st.alarms.warning, st.alarms.record
-    assert w.state.value == "active" and w.priority == 2 and w.warn_slot == ww.data["warn_slot"]
-    assert eol.state.value == "active" and eol.priority == 1 and st.alarms.highest() is eol
+    assert w.state.value == "unacknowledged" and w.priority == 2 and w.warn_slot == ww.data["warn_slot"]
+    assert eol.state.value == "unacknowledged" and eol.priority == 1 and st.alarms.highest() is eol
     kept = json.loads((tmp_path / "ss" / "alarm.json").read_text())
-    assert kept["alarm"] == "active" and kept["warning"]["alarm"] == "active"
+    assert kept["alarm"] == "unacknowledged" and kept["warning"]["alarm"] == "unacknowledged"
     res = json.loads((only_test(tmp_path) / "result.json").read_text())["method"]
     assert res["warn_slot"] == ww.data["warn_slot"]
     assert analyze_file(str(only_test(tmp_path) / "log.csv.gz")).as_dict() == res
