@@ -313,6 +313,15 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.CONFIG_RELOADED: (),
 }
 
+#: the events that change alarms carry the ISA-18.2 transitions they caused (the alarm store
+#: writes them into the event): one item per alarm that changed
+_TRANSITIONS = ("transitions", "ISA-18.2 alarm transitions it caused: [{alarm, hook, from, to, action, "
+                "time, by, priority}] (absent when no alarm changed)")
+for _et in (EventType.END_OF_LIFE, EventType.WEAR_WARNING, EventType.ALARM_ACK, EventType.ALARM_CLEARED,
+            EventType.ALARM_SHELVED, EventType.ALARM_UNSHELVED, EventType.ALARM_OUT_OF_SERVICE,
+            EventType.ALARM_IN_SERVICE):
+    EVENT_DATA[_et] = (*EVENT_DATA[_et], _TRANSITIONS)
+
 _LEVEL_BAD = re.compile(r"[+#/\x00]")
 
 

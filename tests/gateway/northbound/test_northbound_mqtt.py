@@ -88,7 +88,8 @@ def test_alarm_lifecycle_and_payloads_as_documented(tmp_path):
             latency = asyncio.run(scenario())
             assert latency < 1.0, f"end of life → mosquitto_sub took {latency * 1e3:.0f} ms"
             alarms = [m[2] for m in sub.messages("alarm/end_of_life")]
-            assert [a["state"] for a in alarms] == ["active", "acknowledged", "cleared"]
+            # ISA-18.2 names (were active, acknowledged, cleared)
+            assert [a["state"] for a in alarms] == ["unacknowledged", "acknowledged", "normal"]
             for a in alarms:
                 assert list(a) == S.field_names("alarm")
                 assert a["schema"] == S.SCHEMA_VERSION and a["station"] == "st1"
@@ -121,7 +122,7 @@ def test_alarm_lifecycle_and_payloads_as_documented(tmp_path):
             late.wait(lambda s: s.messages("alarm/end_of_life") and s.messages("status")
                       and s.messages("state"), 20)
             r, _, a, _ = late.messages("alarm/end_of_life")[0]
-            assert r and a["state"] == "cleared"
+            assert r and a["state"] == "normal"
             assert late.messages("status")[0][2]["status"] == "offline"
             assert not late.messages("telemetry") and not late.messages("event/end_of_life")
         finally:
@@ -240,7 +241,7 @@ def test_broker_outage_and_gateway_restart_deliver_every_event_in_order_once(tmp
         ns = [m[2]["data"]["n"] for m in msgs if "/event/" in m[1]]
         assert ns == list(range(40)), ns
         alarm = [m for m in msgs if m[1].endswith("alarm/end_of_life")]
-        assert len(alarm) == 1 and alarm[0][2]["state"] == "active"
+        assert len(alarm) == 1 and alarm[0][2]["state"] == "unacknowledged"
         # the alarm comes right after its event
         i_ev = next(i for i, m in enumerate(msgs) if m[1].endswith("event/end_of_life"))
         assert msgs[i_ev + 1][1].endswith("alarm/end_of_life")
@@ -402,7 +403,7 @@ def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
 
     async def second():
         store = AlarmStore(path, "st1")
-        assert store.restore().state.value == "active"
+        assert store.restore().state.value == "unacknowledged"
         out = MqttOutput(settings(tmp_path, port), alarms=store)
         await out.start()
         emit(store, out, Event(EventType.ALARM_CLEARED, "st1", time.time(), None, None,
@@ -417,7 +418,7 @@ def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
         alarms = [json.loads(r.payload) for r in ob.pending(0, 100) if r.kind == "alarm"]
     finally:
         ob.close()
-    assert [a["state"] for a in alarms] == ["active", "cleared"]
+    assert [a["state"] for a in alarms] == ["unacknowledged", "normal"]   # ISA-18.2 names
     assert alarms[1]["test_id"] == "T-1" and alarms[1]["t_life"] == 0.18 and alarms[1]["cleared_at"]
 
 
