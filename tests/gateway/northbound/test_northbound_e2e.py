@@ -68,7 +68,7 @@ def test_end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
                 _r, topic, alarm, t_recv = got[0]
                 assert topic == f"{base}/alarm/end_of_life"
                 assert list(alarm) == S.field_names("alarm")
-                assert alarm["state"] == "active" and alarm["active"] and not alarm["acknowledged"]
+                assert alarm["state"] == "unacknowledged" and alarm["active"] and not alarm["acknowledged"]
                 latency = t_recv - parse_time(alarm["raised_at"])
                 print(f"end of life → mosquitto_sub: {latency * 1e3:.1f} ms")
                 assert latency < 0.5, latency
@@ -194,7 +194,7 @@ def test_broker_outage_during_a_life_with_a_gateway_restart(tmp_path):
             assert types.count(k) == 1, types
         assert types.count("test_started") == 2 and types.count("test_ended") == 2, types
         alarms = [m[2] for m in msgs if m[1].endswith("alarm/end_of_life")]
-        assert len(alarms) == 1 and alarms[0]["state"] == "active"
+        assert len(alarms) == 1 and alarms[0]["state"] == "unacknowledged"
         # one stream: strictly increasing seq once exact broker redeliveries are dropped
         seen, stream = set(), []
         for m in msgs:

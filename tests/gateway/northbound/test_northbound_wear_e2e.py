@@ -107,7 +107,7 @@ def test_wear_warning_reaches_mosquitto_sub_and_the_plc_bit_before_end_of_life(t
     # the warning alarm: retained, priority 2 (end of life is 1), same lifecycle
     wa = sub.messages("alarm/warning")
     assert wa and list(wa[0][2]) == S.field_names("alarm_warning")
-    assert wa[0][2]["state"] == "active" and wa[0][2]["priority"] == 2
+    assert wa[0][2]["state"] == "unacknowledged" and wa[0][2]["priority"] == 2
     assert wa[0][2]["warn_slot"] == data["warn_slot"]
     ea = sub.messages("alarm/end_of_life")
     assert ea and ea[0][2]["priority"] == 1
@@ -115,7 +115,7 @@ def test_wear_warning_reaches_mosquitto_sub_and_the_plc_bit_before_end_of_life(t
     states = [m[2] for m in sub.messages("state") if m[2]["headroom"] is not None]
     hs = [s["headroom"] for s in states]
     assert len(set(hs)) >= 3 and max(hs) > 0.8 and min(hs) < 0.8, hs
-    assert any(s["wear_warning"] and s["warning_alarm"] == "active" for s in states)
+    assert any(s["wear_warning"] and s["warning_alarm"] == "unacknowledged" for s in states)
     tel = [m[2] for m in sub.messages("telemetry") if m[2]["headroom"] is not None]
     assert tel and all(list(t) == S.field_names("telemetry") for t in tel)
     # the PLC: the wear_warning bit came on before the end_of_life bit
