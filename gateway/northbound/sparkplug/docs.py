@@ -177,8 +177,9 @@ during the replay loses the batch in flight (at most 50 payloads), not the rest 
 ## Device commands (DCMD)
 
 A DCMD names (or aliases) the writable metrics of the DBIRTH. `Device Control/Start Test`,
-`Stop Test`, `Acknowledge Alarm`, `Hook Replaced` set to true become the commands `start`,
-`stop`, `ack`, `hook_replaced` of the station's **one command path** (the same validation and
+`Stop Test`, `Acknowledge Alarm`, `Hook Replaced`, `Alarms Out Of Service`, `Alarms In Service`
+set to true become the commands `start`, `stop`, `ack`, `hook_replaced`, `out_of_service`,
+`in_service` (ISA-18.2, a needle being changed) of the station's **one command path** (the same validation and
 rejection codes as MQTT, the PLC and the CLI; `source` is `sparkplug`). `start` takes its
 arguments from `Device Control/Sample ID`, `Grade`, `Setpoint` and `Planned End` in the same
 DCMD. The outcome comes back as DDATA of `Device Control/Last Command` and

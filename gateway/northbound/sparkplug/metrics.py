@@ -63,13 +63,16 @@ START = "Device Control/Start Test"
 STOP = "Device Control/Stop Test"
 ACK = "Device Control/Acknowledge Alarm"
 HOOK_REPLACED = "Device Control/Hook Replaced"
+OUT_OF_SERVICE = "Device Control/Alarms Out Of Service"
+IN_SERVICE = "Device Control/Alarms In Service"
 ARG_SAMPLE_ID = "Device Control/Sample ID"
 ARG_GRADE = "Device Control/Grade"
 ARG_T_SET = "Device Control/Setpoint"
 ARG_T_END = "Device Control/Planned End"
 
 #: DCMD metric → command kind (gateway.records.CommandKind value)
-COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_replaced"}
+COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_replaced",
+            OUT_OF_SERVICE: "out_of_service", IN_SERVICE: "in_service"}
 #: DCMD argument metric → key of the command's arguments (gateway.station.commands.COMMAND_KEYS)
 COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end"}
 
@@ -122,6 +125,10 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef(ARG_GRADE, DataType.String, description="start argument: needle grade", writable=True),
     MetricDef(ARG_T_SET, DataType.Float, "N", "start argument: setpoint", writable=True),
     MetricDef(ARG_T_END, DataType.Double, "s", "start argument: planned duration", writable=True),
+    MetricDef(OUT_OF_SERVICE, DataType.Boolean, description="write true to take the alarms out of service "
+              "(ISA-18.2) while a needle is being changed", writable=True),
+    MetricDef(IN_SERVICE, DataType.Boolean, description="write true to return the alarms to service",
+              writable=True),
 )
 
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}
