@@ -9,20 +9,11 @@ import time
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.alarms import AlarmStore
 from gateway.station.commands import CODE, command_from_mapping
-from kit.fakes import Capture
+from kit.fakes import EventCapture
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import wait_for
 
-
-class Events(Capture):
-    """Capture (records) plus the events."""
-
-    def __init__(self):
-        super().__init__()
-        self.events = []
-
-    def on_event(self, ev):
-        self.events.append(ev)
+Events = EventCapture
 
 
 def _submit(st, kind, source="mqtt", **args):

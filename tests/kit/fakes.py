@@ -106,3 +106,14 @@ class Capture:
 
     def on_state(self, st):
         pass
+
+
+class EventCapture(Capture):
+    """Capture (records) plus the station's events."""
+
+    def __init__(self):
+        super().__init__()
+        self.events = []
+
+    def on_event(self, ev):
+        self.events.append(ev)

@@ -7,18 +7,9 @@ from gateway.control import ControlParams
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.commands import CODE
 from gateway.station.station import Station
-from kit.fakes import Capture, QuietStm32, TimedMeter
+from kit.fakes import EventCapture, QuietStm32, TimedMeter
 
-
-class Events(Capture):
-    """Capture (records) plus the events."""
-
-    def __init__(self):
-        super().__init__()
-        self.events = []
-
-    def on_event(self, ev):
-        self.events.append(ev)
+Events = EventCapture
 
 
 def test_hook_replaced_closes_the_alarm_and_is_refused_without_one(tmp_path):
