@@ -33,7 +33,7 @@ object)::
      "outbox": {"messages": 12 | null, "oldest_age_s": 3.5 | null,   # null: file unreadable
                 "dropped_telemetry": 0} | null,
      "plc": {"listen": "127.0.0.1:5020", "listening": true, "counters": {"reads": 9, ...}} | null,
-     "state": "monitoring", "test_running": true, "alarm": "none",
+     "state": "monitoring", "test_running": true, "alarm": "normal",
      "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null,
      "headroom": 0.4 | null, "t_cross": 5400.0 | null, "warning": false,    # METHOD.md §5a
      "events": {"port_lost": 1, ...}}
@@ -133,7 +133,7 @@ class StationFigures:
         self.t_cross: float | None = None
         self.warning = False
         self.state = TestState.IDLE
-        self.alarm = "none"
+        self.alarm = "normal"
         self.events: dict[str, int] = {}
 
 

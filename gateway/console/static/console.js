@@ -59,7 +59,12 @@
     return n ? `${fmt(100 * (s.filled || 0) / n, 2)} % filled, ${fmt(100 * (s.valid || 0) / n, 2)} % valid of ${n}` : "–";
   }
   function link(ok) { return ok == null ? "–" : ok ? '<span class="ok">ok</span>' : '<span class="bad">lost</span>'; }
-  function alarmBadge(a) { return a && a !== "none" ? `<span class="alarm-${esc(a)}">${esc(a)}</span>` : "none"; }
+  // ISA-18.2 states (gateway/records.py AlarmState); `alarm-active`: waits for an acknowledgement
+  function needsAck(a) { return a === "unacknowledged" || a === "rtn_unacknowledged"; }
+  function alarmBadge(a) {
+    return a && a !== "normal" && a !== "none"
+      ? `<span class="alarm-${esc(a)}${needsAck(a) ? " alarm-active" : ""}">${esc(a)}</span>` : "normal";
+  }
 
   function fleetPage() {
     main.innerHTML = `<div class="row"><h2 style="margin:0">Fleet</h2>
@@ -80,7 +85,7 @@
           <span>state</span><span class="state">${esc(s.state || (s.online ? "" : "offline"))}${s.sample_id ? " · " + esc(s.sample_id) : ""}</span>
           <span>μ now</span><span>${fmt(s.mu_now)} <small>(μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</small></span>
           <span>headroom</span><span>${headroomBar(s.headroom)}</span>
-          <span>alarm</span><span class="alarm">${alarmBadge(s.alarm)} ${s.alarm === "active" ? `<button class="ack" data-sid="${esc(s.station)}">acknowledge</button>` : ""}</span>
+          <span>alarm</span><span class="alarm">${alarmBadge(s.alarm)} ${needsAck(s.alarm) ? `<button class="ack" data-sid="${esc(s.station)}">acknowledge</button>` : ""}</span>
           <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
           <span>slots</span><span>${slotsText(s)}</span>
         </div>
