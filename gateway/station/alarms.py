@@ -199,8 +199,10 @@ class AlarmStore:
             else:
                 self.warning = base
         tr = a.activate(ev.wall_time, hook=ev.test_id)
+        if not a.acknowledged:                 # raised anew (not: still standing, acknowledged)
+            figures.update(acknowledged_at=None, acknowledged_by=None)
         return self._sync(kind, tr, raised=True, test_id=ev.test_id, raised_at=iso_ms(ev.wall_time),
-                          acknowledged_at=None, acknowledged_by=None, cleared_at=None, **figures)
+                          cleared_at=None, **figures)
 
     def _each(self, names: Any, fn: Any) -> list[Transition]:
         """Apply ``fn(model) -> transitions`` to the alarms named (all when None) that allow it."""
