@@ -10,19 +10,8 @@ from gateway.station.station import Station
 from kit.fakes import Capture, QuietStm32, TimedMeter
 
 
-class Events(Capture):
-    """Capture (records) plus the events."""
-
-    def __init__(self):
-        super().__init__()
-        self.events = []
-
-    def on_event(self, ev):
-        self.events.append(ev)
-
-
 def test_hook_replaced_closes_the_alarm_and_is_refused_without_one(tmp_path):
-    out = Events()
+    out = Capture()
     st = Station(station_id="hr", method={}, control=ControlParams(), meter=TimedMeter(slow=()),
                  stm32=QuietStm32(), records_dir=str(tmp_path), outputs=[out])
     st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, sample_id="S-1")
