@@ -106,3 +106,37 @@ def fleet_dir(tmp_path, **defaults):
     (fleet / "stations").mkdir(parents=True)
     (fleet / "fleet.yaml").write_text(yaml.safe_dump({"defaults": base}))
     return fleet
+
+
+#: the shipped ZN-S register map (tests' virtual meters and stations)
+METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
+#: method windows short enough for a compressed virtual life of about a minute
+SHORT_METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}
+
+
+def scenario_file(tmp_path, name, *, plant=None, faults=(), method=None, t_end=70):
+    """A scenario file in tmp_path (the shipped ones are for people; tests state what they need):
+    a compressed grade-I life at 0.5 N; ``method`` replaces the short windows + ``t_end``."""
+    sc = {"description": f"test scenario {name}", "seed": 7,
+          "meter": {"map": METER_MAP}, "stm32": {"watchdog_s": 0.2},
+          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600, **(plant or {})},
+          "method": method if method is not None else {**SHORT_METHOD, "t_end": t_end},
+          "faults": list(faults)}
+    p = tmp_path / f"{name}.yaml"
+    p.write_text(yaml.safe_dump(sc, sort_keys=False))
+    return str(p)
+
+
+def wait_exit(gw: Proc, timeout: float) -> int:
+    """The gateway's exit code; stopped and failed with its log when it runs longer."""
+    try:
+        return gw.p.wait(timeout)
+    except subprocess.TimeoutExpired:
+        gw.stop()
+        raise AssertionError(f"gateway did not finish in {timeout} s; log:\n{gw.log()}") from None
+
+
+def events(test_dir) -> list[dict]:
+    """The events.jsonl of a recorded test."""
+    with open(os.path.join(test_dir, "events.jsonl")) as f:
+        return [json.loads(line) for line in f if line.strip()]

@@ -88,9 +88,14 @@ class TimedMeter:
 
 
 class Capture:
-    """An output that keeps every slot record (the Output contract, nothing else)."""
+    """An output that keeps every slot record, event and state (the Output contract, nothing else)."""
+
     def __init__(self):
-        self.recs = []
+        self.records, self.events, self.states = [], [], []
+
+    @property
+    def recs(self):
+        return self.records
 
     async def start(self):
         pass
@@ -99,21 +104,11 @@ class Capture:
         pass
 
     def on_record(self, rec):
-        self.recs.append(rec)
-
-    def on_event(self, ev):
-        pass
-
-    def on_state(self, st):
-        pass
-
-
-class EventCapture(Capture):
-    """Capture (records) plus the station's events."""
-
-    def __init__(self):
-        super().__init__()
-        self.events = []
+        self.records.append(rec)
 
     def on_event(self, ev):
         self.events.append(ev)
+
+    def on_state(self, st):
+        self.states.append(st)
+

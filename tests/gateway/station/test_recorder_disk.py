@@ -9,16 +9,17 @@ import subprocess
 import time
 
 import pytest
-from test_station_e2e import TUNED, events, scenario
 
 from gateway.logio import read_log
 from gateway.records import Command, CommandKind, SlotRecord
 from gateway.station import recorder as recmod
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, new_test_dir
-from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.e2e import analyze_cli, events, read_json, run_gateway, scenario_file, station_yaml, test_dirs, virtual_station
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.smallfs import fill, small_tmpfs
 from kit.tools import wait_for
+
+TUNED = {"dead_band_n": 0.01}   # the virtual plant wants the finer dead band (as the station e2e tests)
 
 _rng = random.Random(5)
 
@@ -126,7 +127,7 @@ def _first_test_dir(tmp_path, station, timeout=30.0):
 
 @pytest.mark.slow
 def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
-    sc = scenario(tmp_path, "full", method={"t_end": 600})
+    sc = scenario_file(tmp_path, "full", method={"t_end": 600})
     with small_tmpfs(tmp_path / "records", "2m"), virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="full", control=TUNED, test={"t_end_s": 600})
         gw = run_gateway(tmp_path, st, "--start", "--duration", "40")
@@ -159,7 +160,7 @@ def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
 
 @pytest.mark.slow
 def test_station_folder_unwritable_mid_test_completes_and_keeps_its_result(tmp_path):
-    sc = scenario(tmp_path, "ro", method={"t_end": 10})
+    sc = scenario_file(tmp_path, "ro", method={"t_end": 10})
     with small_tmpfs(tmp_path / "records", "8m"), virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="ro", control=TUNED, test={"t_end_s": 10})
         gw = run_gateway(tmp_path, st, "--start", "--duration", "30")

@@ -4,43 +4,34 @@ import gzip
 import json
 import os
 import signal
-import subprocess
 import time
 
 import numpy as np
 import pytest
 import yaml
 
-from conftest import ROOT
 from gateway.logio import read_log
-from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.e2e import (
+    analyze_cli,
+    events,
+    read_json,
+    run_gateway,
+    scenario_file,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+    wait_exit,
+)
 
 pytestmark = pytest.mark.slow
 
-METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 # the virtual plant's tuned control: the paper's structure, a dead band of 0.01 N (the default
 # 0.02 N lets the mean settle anywhere within ±0.02 N of the setpoint)
 TUNED = {"dead_band_n": 0.01}
 
 
-def scenario(tmp_path, name, *, plant=None, faults=(), method=None):
-    """A scenario file in tmp_path (the shipped ones are for people; tests state what they need)."""
-    sc = {"description": f"test scenario {name}", "seed": 7,
-          "meter": {"map": METER_MAP}, "stm32": {"watchdog_s": 0.2},
-          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600, **(plant or {})},
-          "method": method or {"w_ss": 5, "w_hold": 20, "tau": 5, "t_end": 70},
-          "faults": list(faults)}
-    p = tmp_path / f"{name}.yaml"
-    p.write_text(yaml.safe_dump(sc, sort_keys=False))
-    return str(p)
 
 
-def wait_done(gw, timeout):
-    try:
-        return gw.p.wait(timeout)
-    except subprocess.TimeoutExpired:
-        gw.stop()
-        raise AssertionError(f"gateway did not finish in {timeout} s; log:\n{gw.log()}") from None
 
 
 def only_test(tmp_path, station):
@@ -55,21 +46,18 @@ def _settle_s(test_dir):
         return yaml.safe_load(f)["start"]["settle_s"]
 
 
-def events(test_dir):
-    with open(os.path.join(test_dir, "events.jsonl")) as f:
-        return [json.loads(line) for line in f if line.strip()]
 
 
 # ------------------------------------------------------------------------------------------------
 def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path):
-    sc = scenario(tmp_path, "life")
+    sc = scenario_file(tmp_path, "life")
     with virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="life", control=TUNED,
                           method={"w_ss": 5, "w_hold": 20, "tau": 5},
                           test={"t_end_s": 70})
         gw = run_gateway(tmp_path, st, "--start", "--exit-when-done",
                          "--stats-json", str(tmp_path / "stats.json"))
-        assert wait_done(gw, 150) == 0, gw.log()
+        assert wait_exit(gw, 150) == 0, gw.log()
         gw.stop()
         truth = read_json(links["truth"])
     d = only_test(tmp_path, "life")
@@ -132,12 +120,12 @@ def test_closed_loop_holds_setpoint_open_loop_wanders_notch_reduces_ripple(tmp_p
         for name, control in runs.items():
             sub = tmp_path / name
             sub.mkdir()
-            sc = scenario(sub, name, plant=plant, method={"t_end": duration})
+            sc = scenario_file(sub, name, plant=plant, method={"t_end": duration})
             _sim, links = stack.enter_context(virtual_station(sub, sc, seed=3))
             st = station_yaml(sub, links, name=name, control=control, test={"t_end_s": duration})
             procs[name] = (sub, run_gateway(sub, st, "--start", "--exit-when-done"))
         for _name, (_sub, gw) in procs.items():
-            assert wait_done(gw, duration + 60) == 0, gw.log()
+            assert wait_exit(gw, duration + 60) == 0, gw.log()
             gw.stop()
     out = {}
     for name, (sub, _gw) in procs.items():
@@ -176,7 +164,7 @@ def _speed_ripple(test_dir, t_from):
 
 # ------------------------------------------------------------------------------------------------
 def _run_fault(tmp_path, name, fault, at_s, duration_s, run_s):
-    sc = scenario(tmp_path, name, faults=[{"at_s": at_s, "duration_s": duration_s, "fault": fault}],
+    sc = scenario_file(tmp_path, name, faults=[{"at_s": at_s, "duration_s": duration_s, "fault": fault}],
                   method={"t_end": 60})
     ev_path = tmp_path / "sim-events.jsonl"
     with virtual_station(tmp_path, sc, extra=["--events", str(ev_path),
@@ -184,7 +172,7 @@ def _run_fault(tmp_path, name, fault, at_s, duration_s, run_s):
         st = station_yaml(tmp_path, links, name=name, control=TUNED, test={"t_end_s": 60})
         # the gateway runs on after the test has ended, to see the fault clear
         gw = run_gateway(tmp_path, st, "--start", "--duration", str(run_s))
-        assert wait_done(gw, run_s + 30) == 0, gw.log()
+        assert wait_exit(gw, run_s + 30) == 0, gw.log()
         gw.stop()
     d = only_test(tmp_path, name)
     with open(ev_path) as f:
@@ -231,7 +219,7 @@ def test_yarn_break_makes_a_protection_stop(tmp_path):
 
 
 def test_kill_9_then_restart_closes_the_test_as_aborted_and_keeps_the_data(tmp_path):
-    sc = scenario(tmp_path, "kill", method={"t_end": 600})
+    sc = scenario_file(tmp_path, "kill", method={"t_end": 600})
     with virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="kill", control=TUNED, test={"t_end_s": 600})
         gw = run_gateway(tmp_path, st, "--start", name="gw1")
@@ -260,7 +248,7 @@ def test_kill_9_then_restart_closes_the_test_as_aborted_and_keeps_the_data(tmp_p
         assert k.size >= 0.97 * (k[-1] + 1), (k.size, k[-1])
         # restart: the cut-off test is closed as aborted (gateway restart) with its partial result
         gw2 = run_gateway(tmp_path, st, "--duration", "2", name="gw2")
-        assert wait_done(gw2, 30) == 0, gw2.log()
+        assert wait_exit(gw2, 30) == 0, gw2.log()
         gw2.stop()
     res = read_json(os.path.join(d, "result.json"))
     assert res["test_status"] == "aborted" and res["end_reason"] == "gateway restart", res

@@ -7,30 +7,10 @@ import logging
 from gateway.control import ControlParams
 from gateway.records import EventType
 from gateway.station.station import Station, TestPlan
-from kit.fakes import QuietStm32, TimedMeter
+from kit.fakes import Capture, QuietStm32, TimedMeter
 
 
-class Collect:
-    def __init__(self):
-        self.records, self.events, self.states = [], [], []
-
-    async def start(self):
-        pass
-
-    async def stop(self):
-        pass
-
-    def on_record(self, rec):
-        self.records.append(rec)
-
-    def on_event(self, ev):
-        self.events.append(ev)
-
-    def on_state(self, st):
-        self.states.append(st)
-
-
-class Broken(Collect):
+class Broken(Capture):
     def on_record(self, rec):
         raise RuntimeError("broken output")
 
@@ -61,7 +41,7 @@ def _run(st, n, during=None):
 
 
 def test_a_failing_output_is_logged_once_counted_and_never_stops_the_station(tmp_path, caplog):
-    good = Collect()
+    good = Capture()
     st = _station(tmp_path, [Broken(), good], plan=TestPlan("S-1", "I", 0.5, 0.4))
     with caplog.at_level(logging.ERROR, logger="hookwatch.station"):
         _run(st, 40)
@@ -76,7 +56,7 @@ def test_a_failing_output_is_logged_once_counted_and_never_stops_the_station(tmp
 
 
 def test_uplink_state_and_config_reloaded_reach_the_outputs(tmp_path):
-    out = Collect()
+    out = Capture()
     st = _station(tmp_path, [out])
     st.reloaded = True
 

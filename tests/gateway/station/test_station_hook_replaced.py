@@ -7,13 +7,11 @@ from gateway.control import ControlParams
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.commands import CODE
 from gateway.station.station import Station
-from kit.fakes import EventCapture, QuietStm32, TimedMeter
-
-Events = EventCapture
+from kit.fakes import Capture, QuietStm32, TimedMeter
 
 
 def test_hook_replaced_closes_the_alarm_and_is_refused_without_one(tmp_path):
-    out = Events()
+    out = Capture()
     st = Station(station_id="hr", method={}, control=ControlParams(), meter=TimedMeter(slow=()),
                  stm32=QuietStm32(), records_dir=str(tmp_path), outputs=[out])
     st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, sample_id="S-1")

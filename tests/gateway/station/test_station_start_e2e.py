@@ -1,8 +1,7 @@
-"""Issue 13 end to end (METHOD.md §3, §3a): `hookwatch sim` + `hookwatch run` as processes over
+"""Issue 13 end to end (SHORT_METHOD.md §3, §3a): `hookwatch sim` + `hookwatch run` as processes over
 pseudo-terminals — how a test really starts (zero check, spin-up, settle, timeout, swapped
 channels) and how a test stopped on purpose reads (`end_slot`, STOPPED, online == offline)."""
 import csv
-import json
 import os
 import time
 
@@ -11,39 +10,31 @@ import yaml
 
 from conftest import ROOT
 from gateway.northbound import registers as R
-from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.e2e import (
+    SHORT_METHOD,
+    analyze_cli,
+    events,
+    read_json,
+    run_gateway,
+    scenario_file,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+    wait_exit,
+)
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool
 
 pytestmark = pytest.mark.slow
 
-METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 SCENARIOS = os.path.join(ROOT, "config", "scenarios")
 TUNED = {"dead_band_n": 0.01}
-METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}
 
 
-def scenario(tmp_path, name, *, plant=None, faults=(), t_end=70):
-    sc = {"description": f"test scenario {name}", "seed": 7, "meter": {"map": METER_MAP},
-          "stm32": {"watchdog_s": 0.2},
-          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600, **(plant or {})},
-          "method": {**METHOD, "t_end": t_end}, "faults": list(faults)}
-    p = tmp_path / f"{name}.yaml"
-    p.write_text(yaml.safe_dump(sc, sort_keys=False))
-    return str(p)
 
 
-def wait_exit(gw, timeout):
-    try:
-        return gw.p.wait(timeout)
-    except Exception:
-        gw.stop()
-        raise AssertionError(f"gateway did not finish in {timeout} s; log:\n{gw.log()}") from None
 
 
-def events(test_dir):
-    with open(os.path.join(test_dir, "events.jsonl")) as f:
-        return [json.loads(line) for line in f if line.strip()]
 
 
 def logged_events(gw, kind):
@@ -61,7 +52,7 @@ def refused_start(tmp_path, sc, name, *, method=None, meter=None, run_s=None):
     plant trace)."""
     trace = tmp_path / "trace.csv"
     with virtual_station(tmp_path, sc, extra=["--trace", str(trace)]) as (_sim, links):
-        st = station_yaml(tmp_path, links, name=name, control=TUNED, method={**METHOD, **(method or {})},
+        st = station_yaml(tmp_path, links, name=name, control=TUNED, method={**SHORT_METHOD, **(method or {})},
                           test={"t_end_s": 70}, meter=meter)
         t0 = time.monotonic()
         gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
@@ -78,7 +69,7 @@ def test_slow_take_up_starts_after_settling_and_ends_in_failure_identical_offlin
     (protection stop after 1 s of LOW_TENSION); with §3a the test starts once settled."""
     sc = os.path.join(SCENARIOS, "start-slow-take-up.yaml")
     with virtual_station(tmp_path, sc) as (_sim, links):
-        st = station_yaml(tmp_path, links, name="slow", control=TUNED, method=METHOD,
+        st = station_yaml(tmp_path, links, name="slow", control=TUNED, method=SHORT_METHOD,
                           test={"t_end_s": 70})
         gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
         assert wait_exit(gw, 180) == 0, gw.log()
@@ -130,7 +121,7 @@ def test_zero_offset_refuses_the_start_with_the_offset_motor_never_runs(tmp_path
 
 
 def test_swapped_channels_refuse_the_start(tmp_path):
-    sc = scenario(tmp_path, "swap", faults=[{"at_s": 0, "duration_s": 600, "fault": "swap_channels"}])
+    sc = scenario_file(tmp_path, "swap", faults=[{"at_s": 0, "duration_s": 600, "fault": "swap_channels"}])
     gw, _took, speeds = refused_start(tmp_path, sc, "swap")
     assert test_dirs(tmp_path, "swap") == []
     failed = logged_events(gw, "start_failed")
@@ -141,10 +132,10 @@ def test_swapped_channels_refuse_the_start(tmp_path):
 # ------------------------------------------------------------------------------------------------
 def test_a_plc_stop_mid_test_is_stopped_not_missing_and_identical_offline(tmp_path):
     require_tool("mbpoll")
-    sc = scenario(tmp_path, "stop", t_end=600)
+    sc = scenario_file(tmp_path, "stop", t_end=600)
     mport = free_port()
     with virtual_station(tmp_path, sc) as (_sim, links):
-        st = station_yaml(tmp_path, links, name="stop", control=TUNED, method=METHOD,
+        st = station_yaml(tmp_path, links, name="stop", control=TUNED, method=SHORT_METHOD,
                           test={"t_end_s": 600},
                           modbus_tcp={"enabled": True, "port": mport, "unit_id": 3,
                                       "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}})

@@ -9,11 +9,10 @@ import time
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.alarms import AlarmStore
 from gateway.station.commands import CODE, command_from_mapping
-from kit.fakes import EventCapture
+from kit.fakes import Capture
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import wait_for
 
-Events = EventCapture
 
 
 def _submit(st, kind, source="mqtt", **args):
@@ -32,7 +31,7 @@ def _trans(out):
 
 
 def test_the_isa_lifecycle_through_the_command_path_one_event_per_command(tmp_path):
-    out = Events()
+    out = Capture()
     st = make_station(tmp_path, [out], station_id="isa")
     _eol(st)
     assert st.state.alarm == "unacknowledged" and st.state.warning_alarm == "normal"
@@ -73,7 +72,7 @@ def test_the_isa_lifecycle_through_the_command_path_one_event_per_command(tmp_pa
 
 
 def test_alarm_commands_refused_with_reason_and_code(tmp_path):
-    out = Events()
+    out = Capture()
     st = make_station(tmp_path, [out], station_id="rej")
 
     def code(kind, **args):
@@ -101,7 +100,7 @@ def test_alarm_commands_refused_with_reason_and_code(tmp_path):
 
 
 def test_a_shelving_expires_in_the_running_station(tmp_path):
-    out = Events()
+    out = Capture()
     st = make_station(tmp_path, [out], station_id="exp")
     _eol(st)
     lt = LoopThread()
