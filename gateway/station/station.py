@@ -128,6 +128,7 @@ class Station:
         self._stm32_was_ok: bool | None = None
         self._uplinks: dict[str, bool] = {}
         self._stop_evt: asyncio.Event | None = None
+        self._closed = False
         self.clock: SlotClock | None = None
         #: makes the slot clock (a benchmark replaces it with a virtual clock that runs flat out)
         self.clock_factory: Callable[..., Any] = SlotClock
@@ -533,6 +534,48 @@ class Station:
     async def run(self, stop: asyncio.Event, max_slots: int | None = None) -> None:
         """Run the slot loop until ``stop`` is set (or ``max_slots`` have passed)."""
         self._stop_evt = stop
+        self._closed = False
+        try:
+            await self._run(stop, max_slots)
+        finally:
+            await self.close()
+
+    async def close(self) -> None:
+        """Close this instance completely, also after a crash at any point of :meth:`run`: the
+        running test (or start) is ended, the STM32 call awaited or cancelled, the take-up
+        stopped, both serial ports closed (their locks released) and every output that started
+        stopped (the PLC unit id unregistered, the MQTT client disconnected). Each step runs
+        even when an earlier one fails; a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
+
+        async def step(what: str, coro: Coroutine[Any, Any, Any]) -> None:
+            try:
+                await coro
+            except Exception:
+                log.exception("%s: closing: %s failed", self.id, what)
+
+        if self.starting is not None:
+            await step("start", self._start_failed("gateway shutdown before slot 0"))
+        if self.session is not None:
+            await step("test", self.end_test("gateway shutdown"))
+        self.starting = None
+        self.session = None
+        self._recorder_out.recorder = None
+        task = self._stm32_task
+        if task is not None and not task.done():
+            try:
+                await asyncio.wait_for(asyncio.shield(task), 0.5)
+            except (asyncio.TimeoutError, Exception):
+                task.cancel()
+        await step("stm32 stop", self._safe_stm32(self.stm32.stop("gateway shutdown")))
+        await step("meter port", self.meter.close())
+        await step("stm32 port", self.stm32.close())
+        await step("outputs", self.fanout.stop())
+        log.info("%s: slot stats %s", self.id, self.stats.summary())
+
+    async def _run(self, stop: asyncio.Event, max_slots: int | None) -> None:
         for d, res in recover_incomplete(self.station_dir):
             self._emit_event(EventType.TEST_ENDED, reason="gateway restart", test_status="aborted",
                              test_dir=d, result=res.get("method"))
@@ -559,62 +602,46 @@ class Station:
         clock = self.clock
         k = 0
         last_idle_status = 0.0
-        try:
-            while not stop.is_set() and (max_slots is None or k < max_slots):
-                lateness = await clock.wait_for(k)
-                if lateness > self.ts / 2:
-                    # overrun: the slots whose window has passed are MISSING; never shift the grid
-                    k_now = clock.slot_at(clock.clock())
-                    log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
-                                self.id, k, lateness * 1e3, max(0, k_now - k))
-                    for kk in range(k, k_now):
-                        self.stats.slots += 1
-                        self.stats.overrun_slots += 1
-                        self._process(kk, None, lateness)
-                        await self._after_slot()
-                    k = k_now
-                    continue
-                self.stats.lateness.append(lateness)
-                reading = await self.meter.read()
-                self.stats.slots += 1
-                if reading is not None:
-                    self.stats.filled += 1
-                    if reading.rtt_s is not None:
-                        self.stats.rtt.append(reading.rtt_s)
-                self._process(k, reading, lateness)
-                mon = self.monitor
-                att = self.starting
-                if ((mon is not None and mon.stop_slot is None and not mon.finished)
-                        or (att is not None and att.motor_enabled and att.seq.motor_on)):
-                    if self._stm32_task is None or self._stm32_task.done():
-                        self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
-                    else:
-                        self.stats.stm32_busy_skips += 1
-                await self._after_slot()
-                now = time.monotonic()
-                waiting = att is not None and self.starting is att and not att.zero_begun
-                if ((not self.busy or waiting) and now - last_idle_status
-                        >= (min(0.2, self.idle_status_interval_s) if waiting
-                            else self.idle_status_interval_s)):
-                    last_idle_status = now
-                    if self._stm32_task is None or self._stm32_task.done():
-                        self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
-                if now - self._last_state_push >= 1.0:
-                    self._link_health()
-                    self._push_state()
-                k += 1
-        finally:
-            if self.starting is not None:
-                await self._start_failed("gateway shutdown before slot 0")
-            if self.session is not None:
-                await self.end_test("gateway shutdown")
-            if self._stm32_task is not None:
-                try:
-                    await asyncio.wait_for(self._stm32_task, 0.5)
-                except (asyncio.TimeoutError, Exception):
-                    pass
-            await self._safe_stm32(self.stm32.stop("gateway shutdown"))
-            await self.meter.close()
-            await self.stm32.close()
-            await self.fanout.stop()
-            log.info("%s: slot stats %s", self.id, self.stats.summary())
+        while not stop.is_set() and (max_slots is None or k < max_slots):
+            lateness = await clock.wait_for(k)
+            if lateness > self.ts / 2:
+                # overrun: the slots whose window has passed are MISSING; never shift the grid
+                k_now = clock.slot_at(clock.clock())
+                log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
+                            self.id, k, lateness * 1e3, max(0, k_now - k))
+                for kk in range(k, k_now):
+                    self.stats.slots += 1
+                    self.stats.overrun_slots += 1
+                    self._process(kk, None, lateness)
+                    await self._after_slot()
+                k = k_now
+                continue
+            self.stats.lateness.append(lateness)
+            reading = await self.meter.read()
+            self.stats.slots += 1
+            if reading is not None:
+                self.stats.filled += 1
+                if reading.rtt_s is not None:
+                    self.stats.rtt.append(reading.rtt_s)
+            self._process(k, reading, lateness)
+            mon = self.monitor
+            att = self.starting
+            if ((mon is not None and mon.stop_slot is None and not mon.finished)
+                    or (att is not None and att.motor_enabled and att.seq.motor_on)):
+                if self._stm32_task is None or self._stm32_task.done():
+                    self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
+                else:
+                    self.stats.stm32_busy_skips += 1
+            await self._after_slot()
+            now = time.monotonic()
+            waiting = att is not None and self.starting is att and not att.zero_begun
+            if ((not self.busy or waiting) and now - last_idle_status
+                    >= (min(0.2, self.idle_status_interval_s) if waiting
+                        else self.idle_status_interval_s)):
+                last_idle_status = now
+                if self._stm32_task is None or self._stm32_task.done():
+                    self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
+            if now - self._last_state_push >= 1.0:
+                self._link_health()
+                self._push_state()
+            k += 1
