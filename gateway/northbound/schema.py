@@ -387,9 +387,11 @@ def warning_payload(seq: int, t: float, station: str, alarm: dict[str, Any]) -> 
 def result_payload(seq: int, ev: Event, st: StationState | None) -> dict[str, Any]:
     d = ev.data
     own = st if st is not None and ev.test_id is not None and st.test_id == ev.test_id else None
+    # a cut-off test closed at start-up is not the state's: its event carries its sidecar's figures
     return {**_env(seq, ev.wall_time, ev.station), "test_id": ev.test_id or d.get("test_dir"),
-            "sample_id": own.sample_id if own else None, "grade": own.grade if own else None,
-            "t_set": own.t_set if own else None, "test_status": d.get("test_status", "aborted"),
+            "sample_id": own.sample_id if own else d.get("sample_id"),
+            "grade": own.grade if own else d.get("grade"),
+            "t_set": own.t_set if own else d.get("t_set"), "test_status": d.get("test_status", "aborted"),
             "end_reason": d.get("reason", ""), "result": d.get("result")}
 
 

@@ -175,9 +175,12 @@ class Station:
         return self.session is not None or self.starting is not None
 
     # ---------------------------------------------------------------- outputs
-    def _emit_event(self, etype: EventType, k: int | None = None, **data: Any) -> Event:
-        ev = Event(type=etype, station=self.id, wall_time=time.time(), test_id=self.test_id, k=k,
-                   data=data)
+    def _emit_event(self, etype: EventType, k: int | None = None, *, of_test: str | None = None,
+                    **data: Any) -> Event:
+        """One event to the alarm store and every output; ``of_test``: the test it belongs to
+        when that is not the running one (a cut-off test closed at start-up)."""
+        ev = Event(type=etype, station=self.id, wall_time=time.time(),
+                   test_id=of_test if of_test is not None else self.test_id, k=k, data=data)
         log.info("%s: %s %s", self.id, etype.value, data or "")
         self.alarms.on_event(ev)              # the alarm store first: outputs read it
         self.state.alarm = self.alarms.state.value
@@ -577,8 +580,10 @@ class Station:
 
     async def _run(self, stop: asyncio.Event, max_slots: int | None) -> None:
         for d, res in recover_incomplete(self.station_dir):
-            self._emit_event(EventType.TEST_ENDED, reason="gateway restart", test_status="aborted",
-                             test_dir=d, result=res.get("method"))
+            self._emit_event(EventType.TEST_ENDED, of_test=res["test_id"], reason="gateway restart",
+                             test_status="aborted", test_dir=d, result=res.get("method"),
+                             sample_id=res.get("sample_id"), grade=res.get("grade"),
+                             t_set=res.get("t_set"))
         self._restore_alarm()
         await self.fanout.start()
         if self.reloaded:
