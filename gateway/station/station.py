@@ -36,6 +36,7 @@ from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
 from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
+from ..threadloop import call_soon_on
 from .alarms import AlarmStore
 from .clock import SlotClock
 from .commands import Rejection, validate
@@ -127,6 +128,7 @@ class Station:
         self._meter_was_ok: bool | None = None
         self._stm32_was_ok: bool | None = None
         self._uplinks: dict[str, bool] = {}
+        self._disks: dict[str, bool] = {}
         self._stop_evt: asyncio.Event | None = None
         self._closed = False
         self.clock: SlotClock | None = None
@@ -200,6 +202,31 @@ class Station:
         self._uplinks[name] = ok
         self.state.mqtt_ok = bool(self._uplinks.get("mqtt", False))
         self._push_state()
+
+    def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None:
+        """A store (``records``: the running test's recorder; ``outbox``: the MQTT outbox) reports
+        that its disk can (not) be written; on this loop (the outbox calls from its pump thread
+        through the thread hand-over). One ``disk_full``/``disk_ok`` event per transition of a
+        store; ``StationState.disk_ok`` is False while any store cannot write."""
+        if self._disks.get(store, True) == ok:
+            return
+        self._disks[store] = ok
+        info = dict(info or {})
+        data: dict[str, Any] = {"store": store, "reason": info.get("reason")}
+        if ok:
+            data.update({k: info[k] for k in ("duration_s", "lost_rows") if k in info})
+        self._emit_event(EventType.DISK_OK if ok else EventType.DISK_FULL, **data)
+        self.state.disk_ok = all(self._disks.values())
+        self._push_state()
+
+    def _watch_recorder_disk(self, rec: TestRecorder) -> None:
+        loop = asyncio.get_running_loop()
+        # called from inside the recorder's writes (within the fan-out): decided on the next turn
+        def on_disk_state(ok: bool, info: dict[str, Any]) -> None:
+            call_soon_on(loop, self.set_disk, "records", ok, info)
+        rec.on_disk_state = on_disk_state
+        self.set_disk("records", rec.disk_ok, {"reason": "the test folder cannot be written"}
+                      if not rec.disk_ok else {})
 
     def _restore_alarm(self) -> None:
         rec = self.alarms.restore()
@@ -300,6 +327,7 @@ class Station:
         self.starting = None
         self.session = sess            # the test's slot 0 is the next slot the loop processes
         self._recorder_out.recorder = sess.recorder
+        self._watch_recorder_disk(sess.recorder)
         st = self.state
         st.state = TestState.BASELINE_SEARCH
         st.test_id, st.sample_id, st.grade = sess.test_id, plan.sample_id, plan.grade
