@@ -7,6 +7,7 @@ outputs know the station only as a command sink and a state source. ``hookwatch 
 """
 from __future__ import annotations
 
+import importlib
 import os
 
 from drivers.stm32 import Stm32Link
@@ -50,9 +51,28 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     )
     if with_northbound:
         st.outputs.extend(northbound_outputs(cfg, st))
+    st.outputs.extend(plugin_outputs(cfg, st))
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs))
     return st
+
+
+#: extra outputs of a site (a historian, a test fixture): ``module:callable[,module:callable]``;
+#: each callable gets (cfg, station) and returns the outputs to add (``gateway.ports.Output``)
+PLUGINS_ENV = "HOOKWATCH_OUTPUTS"
+
+
+def plugin_outputs(cfg, station: Station) -> list[Output]:
+    """The outputs named in ``$HOOKWATCH_OUTPUTS`` (none when it is unset). A name that does not
+    import is an error at start-up, not a silently missing output."""
+    out: list[Output] = []
+    for spec in filter(None, (x.strip() for x in os.environ.get(PLUGINS_ENV, "").split(","))):
+        mod, _, attr = spec.partition(":")
+        if not mod or not attr:
+            raise ValueError(f"{PLUGINS_ENV}: {spec!r} is not module:callable")
+        factory = getattr(importlib.import_module(mod), attr)
+        out.extend(factory(cfg, station))
+    return out
 
 
 def build_console(cfgs: list) -> ConsoleServer | None:

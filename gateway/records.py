@@ -73,6 +73,8 @@ class EventType(str, enum.Enum):
     ALARM_IN_SERVICE = "alarm_in_service"
     COMMAND_REJECTED = "command_rejected"
     CONFIG_RELOADED = "config_reloaded"
+    DISK_FULL = "disk_full"              # the records' or the outbox's disk cannot be written
+    DISK_OK = "disk_ok"                  # … and can again (once per transition and store)
 
 
 @dataclass
@@ -117,6 +119,7 @@ class StationState:
     stm32_ok: bool = False
     mqtt_ok: bool = False
     saturation: bool = False
+    disk_ok: bool = True               # the records and the MQTT outbox can be written
 
 
 class CommandKind(str, enum.Enum):

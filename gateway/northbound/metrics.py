@@ -119,7 +119,7 @@ class Histogram:
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
-                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events")
+                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok")
 
     def __init__(self, station: str):
         self.station = station
@@ -132,6 +132,7 @@ class StationFigures:
         self.headroom: float | None = None
         self.t_cross: float | None = None
         self.warning = False
+        self.disk_ok = True
         self.state = TestState.IDLE
         self.alarm = "normal"
         self.events: dict[str, int] = {}
@@ -259,6 +260,7 @@ class MetricsOutput:
         f.headroom = getattr(st, "headroom", None)
         f.t_cross = getattr(st, "t_cross", None)
         f.warning = getattr(st, "warn_slot", None) is not None
+        f.disk_ok = bool(getattr(st, "disk_ok", True))
         if st.state not in _RUNNING:
             f.mu = None
 
@@ -294,7 +296,7 @@ class MetricsOutput:
             "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
             "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
             "t_cross": f.t_cross, "warning": f.warning,
-            "events": dict(f.events),
+            "events": dict(f.events), "disk_ok": f.disk_ok,
         }
 
 
@@ -404,6 +406,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
     alarm = GaugeMetricFamily(f"{p}_alarm", "end-of-life alarm state (1 for the current one)",
                               labels=["station", "alarm"])
     events = CounterMetricFamily(f"{p}_events", "station events by type", labels=["station", "type"])
+    disk = GaugeMetricFamily(f"{p}_disk_ok", "1 when the test records and the MQTT outbox can be "
+                             "written (0: a full or read-only disk)", labels=["station"])
     for s in snapshots:
         for ts_ in TestState:
             state.add_metric([s["station"], ts_.name.lower()], 1.0 if s["state"] == ts_.name.lower() else 0.0)
@@ -413,7 +417,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
             alarm.add_metric([s["station"], a], 1.0 if s["alarm"] == a else 0.0)
         for t, v in sorted(s["events"].items()):
             events.add_metric([s["station"], t], float(v))
-    out += [state, running, warning, alarm, events]
+        disk.add_metric([s["station"]], 1.0 if s.get("disk_ok", True) else 0.0)
+    out += [state, running, warning, alarm, events, disk]
 
     for key, name, doc in (("mu", "mu", "last valid friction coefficient μ of the running test"),
                            ("mu_ss", "mu_ss", "steady baseline μ_ss of the running test"),

@@ -353,6 +353,7 @@ class ModbusOutput:
             "saturation": now - self._sat_t <= 1.0,
             "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
             "starting": st.state == TestState.STARTING,
+            "disk_ok": bool(getattr(st, "disk_ok", True)),
         }
         v = {
             "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION,

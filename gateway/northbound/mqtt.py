@@ -89,6 +89,16 @@ class MqttOutput:
     # ================================================================ output (station loop)
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
+        set_disk = getattr(self.station, "set_disk", None)
+        if set_disk is not None:
+            # the outbox reports from the pump thread: handed over to the station's loop
+            loop = self.loop
+
+            def on_disk_state(ok: bool, info: dict[str, Any]) -> None:
+                call_soon_on(loop, set_disk, "outbox", ok, info)
+            self.outbox.on_disk_state = on_disk_state
+            if not self.outbox.disk_ok:
+                set_disk("outbox", False, {"reason": "the outbox cannot be written"})
         self.pump.start()
 
     async def stop(self) -> None:

@@ -168,7 +168,7 @@ def state_key(st: StationState) -> tuple[Any, ...]:
     return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
             st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
             st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
-            st.warning_alarm)
+            st.warning_alarm, getattr(st, "disk_ok", True))
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:

@@ -20,7 +20,7 @@ from ..records import AlarmState, CommandKind, TestState
 from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
-MAP_VERSION = 3    # 3: alarm enums in ISA-18.2 states (0–5), command codes 5–7
+MAP_VERSION = 3    # 3: alarm enums in ISA-18.2 states (0–5), command codes 5–7, status bit 13 disk_ok
 #                    2: headroom, t_cross, warning_alarm, status bits 10–12, test state 6 starting
 
 INPUT = "input"
@@ -76,6 +76,8 @@ STATUS_BITS: tuple[tuple[int, str, str], ...] = (
     (11, "stopped", "the last test was ended on purpose (operator, PLC, MES stop or a clean "
      "shutdown): STOPPED, not a dead meter"),
     (12, "starting", "a start is in progress: zero check or spin-up before slot 0 (METHOD.md §3a)"),
+    (13, "disk_ok", "the test records and the MQTT outbox can be written (0: a full or read-only "
+     "disk; the station runs on, see docs/limits.md)"),
 )
 STATUS_BIT = {name: bit for bit, name, _ in STATUS_BITS}
 

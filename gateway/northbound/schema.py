@@ -105,6 +105,8 @@ STATE_FIELDS = ENVELOPE + (
           + ", ".join(a.value for a in AlarmState)),
     Field("meter_ok", "bool", "the tension meter answers"),
     Field("stm32_ok", "bool", "the motor controller answers"),
+    Field("disk_ok", "bool", "the test records and the MQTT outbox can be written (false: a full "
+          "or read-only disk; see the disk_full event)"),
 )
 
 TELEMETRY_FIELDS = ENVELOPE + (
@@ -298,6 +300,9 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
                            ("source", "who ended it"), ("result", "the method's result")),
     EventType.PORT_LOST: (("port", "meter or stm32"),),
+    EventType.DISK_FULL: (("store", "records (the test's folder) or outbox (MQTT)"),
+                          ("reason", "the operating system's error")),
+    EventType.DISK_OK: (("store", "records or outbox"), ("reason", "the error it recovered from")),
     EventType.PORT_BACK: (("port", "meter or stm32"),),
     EventType.ALARM_ACK: (("source", "who acknowledged (mqtt, plc:ADDR, cli)"),),
     EventType.ALARM_CLEARED: (("reason", "why (new test started, hook_replaced)"),
@@ -396,7 +401,8 @@ def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
             "end_reason": st.end_reason, "alarm": st.alarm, "protection_stop": bool(st.protection_stop),
             "stopped": bool(st.stopped), "headroom": st.headroom, "t_cross": st.t_cross,
             "wear_warning": bool(st.wear_warning), "warning_alarm": st.warning_alarm,
-            "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok)}
+            "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok),
+            "disk_ok": bool(getattr(st, "disk_ok", True))}
 
 
 def telemetry_payload(seq: int, t: float, station: str, agg: dict[str, Any]) -> dict[str, Any]:
@@ -421,9 +427,11 @@ def warning_payload(seq: int, t: float, station: str, alarm: dict[str, Any]) -> 
 def result_payload(seq: int, ev: Event, st: StationState | None) -> dict[str, Any]:
     d = ev.data
     own = st if st is not None and ev.test_id is not None and st.test_id == ev.test_id else None
+    # a cut-off test closed at start-up is not the state's: its event carries its sidecar's figures
     return {**_env(seq, ev.wall_time, ev.station), "test_id": ev.test_id or d.get("test_dir"),
-            "sample_id": own.sample_id if own else None, "grade": own.grade if own else None,
-            "t_set": own.t_set if own else None, "test_status": d.get("test_status", "aborted"),
+            "sample_id": own.sample_id if own else d.get("sample_id"),
+            "grade": own.grade if own else d.get("grade"),
+            "t_set": own.t_set if own else d.get("t_set"), "test_status": d.get("test_status", "aborted"),
             "end_reason": d.get("reason", ""), "result": d.get("result")}
 
 

@@ -27,6 +27,8 @@ class Fanout:
         self.outputs = outputs
         self.head = tuple(head)
         self.failures: Counter[str] = Counter()
+        #: the outputs whose ``start()`` returned (only these are stopped)
+        self.started: list[Output] = []
 
     def all(self) -> list[Output]:
         return [*self.head, *self.outputs]
@@ -64,9 +66,12 @@ class Fanout:
         half-wired (its supervisor logs it and restarts the station after a back-off)."""
         for o in self.all():
             await o.start()
+            self.started.append(o)
 
     async def stop(self) -> None:
-        for o in self.all():
+        """Stop every output that started (also when a later one failed to start), each once."""
+        started, self.started = self.started, []
+        for o in started:
             try:
                 await o.stop()
             except Exception:

@@ -24,11 +24,18 @@ log = logging.getLogger("hookwatch.fleet")
 class StationRunner:
     """A station on its own :class:`ThreadLoop`, restarted when it crashes."""
 
-    def __init__(self, name: str, factory: Callable[[], Station], restart_backoff_s: float = 5.0,
-                 max_slots: int | None = None, on_started: Callable[[Station], None] | None = None):
+    def __init__(self, name: str, factory: Callable[[], Station], restart_backoff_s: float = 1.0,
+                 max_slots: int | None = None, on_started: Callable[[Station], None] | None = None,
+                 restart_backoff_max_s: float = 60.0, stable_after_s: float = 60.0):
         self.name = name
         self.factory = factory
+        #: the first restart comes after ``backoff`` s; each further crash in a row doubles it,
+        #: up to ``backoff_max``; an instance that ran ``stable_after_s`` resets the row
         self.backoff = restart_backoff_s
+        self.backoff_max = restart_backoff_max_s
+        self.stable_after_s = stable_after_s
+        #: crashes in a row (since the last instance that ran stable_after_s)
+        self.crash_streak = 0
         self.max_slots = max_slots
         self.on_started = on_started
         self.station: Station | None = None
@@ -66,7 +73,9 @@ class StationRunner:
             return
         reloaded = False
         while not self._stopping.is_set():
+            t_start = time.monotonic()
             try:
+                self.station = None
                 self.station = self.factory()
                 self.station.reloaded = reloaded
                 if self.on_started:
@@ -78,15 +87,41 @@ class StationRunner:
                     self._stop = asyncio.Event()
                     continue
                 return
-            except Exception as e:  # isolate: log, back off, restart this station only
-                self.crashes += 1
-                self.last_error = f"{type(e).__name__}: {e}"
-                log.exception("station %s crashed (%d); restarting in %.0f s", self.name,
-                              self.crashes, self.backoff)
-                try:
-                    await asyncio.wait_for(self._stop.wait(), self.backoff)
-                except asyncio.TimeoutError:
-                    pass
+            except Exception as e:  # isolate: close, log, back off, restart this station only
+                await self._after_crash(e, time.monotonic() - t_start)
+
+    def next_backoff(self, ran_s: float) -> float:
+        """The wait before the next restart: growing while the station crashes in a row."""
+        if ran_s >= self.stable_after_s:
+            self.crash_streak = 0
+        self.crash_streak += 1
+        return min(self.backoff_max, self.backoff * 2 ** (self.crash_streak - 1))
+
+    async def _after_crash(self, e: Exception, ran_s: float) -> None:
+        self.crashes += 1
+        self.last_error = f"{type(e).__name__}: {e}"
+        st = self.station
+        if st is not None:
+            # the crashed instance releases everything it holds (serial ports and their locks,
+            # its PLC unit id, its MQTT client, its tasks) before another one is built
+            try:
+                await st.close()
+            except Exception:
+                log.exception("station %s: closing the crashed instance failed", self.name)
+        self.station = None
+        delay = self.next_backoff(ran_s)
+        if self.crashes == 1:       # the traceback once; later crashes one line with the count
+            log.error("station %s crashed; closed; restarting in %.1f s", self.name, delay,
+                      exc_info=e)
+        else:
+            log.error("station %s crashed again (%d crashes, %d in a row): %s; closed; restarting "
+                      "in %.1f s", self.name, self.crashes, self.crash_streak, self.last_error,
+                      delay)
+        assert self._stop is not None
+        try:
+            await asyncio.wait_for(self._stop.wait(), delay)
+        except asyncio.TimeoutError:
+            pass
 
     def request_reload(self, factory: Callable[[], Station]) -> None:
         """A new configuration (any thread). The decision is taken on the station's own loop, so

@@ -434,6 +434,26 @@ def pending_results() -> dict[str, dict[str, Any]]:
         return dict(_pending_results)
 
 
+#: a sidecar larger than this is not read back (it is a few kB)
+SIDECAR_MAX_BYTES = 1 << 20
+
+
+def read_sidecar(test_dir: str) -> dict[str, Any]:
+    """The sidecar of a test folder as a dict; {} when it is missing, too large or unreadable
+    (a test cut off before its sidecar reached the disk)."""
+    path = os.path.join(test_dir, META_NAME)
+    try:
+        if os.path.getsize(path) > SIDECAR_MAX_BYTES:
+            return {}
+        with open(path, encoding="utf-8") as f:
+            meta = yaml.safe_load(f)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return {}
+    if not isinstance(meta, dict):
+        return {}
+    return {k: v for k, v in meta.items() if isinstance(v, (str, int, float, bool, type(None)))}
+
+
 def incomplete_tests(station_dir: str) -> list[str]:
     """Test folders of a station that have a log but no result (cut off by a crash or kill)."""
     out = []
@@ -457,7 +477,12 @@ def recover_incomplete(station_dir: str, reason: str = "gateway restart") -> lis
         if d in pend:               # closed by this process; its result is still being retried
             continue
         logp = os.path.join(d, LOG_NAME)
-        res: dict[str, Any] = {"test_status": "aborted", "end_reason": reason, "closed_utc": utc_iso()}
+        # who the test was: its sidecar (written at slot 0) names it; the folder name is its id
+        meta = read_sidecar(d)
+        res: dict[str, Any] = {"test_id": str(meta.get("test_id") or os.path.basename(d)),
+                               "sample_id": meta.get("sample_id"), "grade": meta.get("grade"),
+                               "t_set": meta.get("t_set"), "test_status": "aborted",
+                               "end_reason": reason, "closed_utc": utc_iso()}
         try:
             r = analyze_file(logp)
             res["method"] = r.as_dict()
@@ -467,8 +492,8 @@ def recover_incomplete(station_dir: str, reason: str = "gateway restart") -> lis
         write_result(d, res)
         try:
             with open(os.path.join(d, EVENTS_NAME), "a", encoding="utf-8") as f:
-                f.write(json.dumps({"utc": utc_iso(), "type": "test_ended", "reason": reason,
-                                    "status": "aborted"}) + "\n")
+                f.write(json.dumps({"utc": utc_iso(), "type": "test_ended", "test_id": res["test_id"],
+                                    "reason": reason, "status": "aborted"}) + "\n")
         except OSError:
             pass
         log.warning("%s: test was cut off; closed as aborted (%s)", d, reason)

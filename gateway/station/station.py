@@ -36,6 +36,7 @@ from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
 from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
+from ..threadloop import call_soon_on
 from .alarms import AlarmStore
 from .clock import SlotClock
 from .commands import ALARM_COMMAND_EVENTS, Rejection, validate
@@ -127,7 +128,9 @@ class Station:
         self._meter_was_ok: bool | None = None
         self._stm32_was_ok: bool | None = None
         self._uplinks: dict[str, bool] = {}
+        self._disks: dict[str, bool] = {}
         self._stop_evt: asyncio.Event | None = None
+        self._closed = False
         self.clock: SlotClock | None = None
         #: makes the slot clock (a benchmark replaces it with a virtual clock that runs flat out)
         self.clock_factory: Callable[..., Any] = SlotClock
@@ -174,9 +177,12 @@ class Station:
         return self.session is not None or self.starting is not None
 
     # ---------------------------------------------------------------- outputs
-    def _emit_event(self, etype: EventType, k: int | None = None, **data: Any) -> Event:
-        ev = Event(type=etype, station=self.id, wall_time=time.time(), test_id=self.test_id, k=k,
-                   data=data)
+    def _emit_event(self, etype: EventType, k: int | None = None, *, of_test: str | None = None,
+                    **data: Any) -> Event:
+        """One event to the alarm store and every output; ``of_test``: the test it belongs to
+        when that is not the running one (a cut-off test closed at start-up)."""
+        ev = Event(type=etype, station=self.id, wall_time=time.time(),
+                   test_id=of_test if of_test is not None else self.test_id, k=k, data=data)
         log.info("%s: %s %s", self.id, etype.value, data or "")
         self.alarms.on_event(ev)              # the alarm store first: outputs read it
         self.state.alarm = self.alarms.state.value
@@ -196,6 +202,31 @@ class Station:
         self._uplinks[name] = ok
         self.state.mqtt_ok = bool(self._uplinks.get("mqtt", False))
         self._push_state()
+
+    def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None:
+        """A store (``records``: the running test's recorder; ``outbox``: the MQTT outbox) reports
+        that its disk can (not) be written; on this loop (the outbox calls from its pump thread
+        through the thread hand-over). One ``disk_full``/``disk_ok`` event per transition of a
+        store; ``StationState.disk_ok`` is False while any store cannot write."""
+        if self._disks.get(store, True) == ok:
+            return
+        self._disks[store] = ok
+        info = dict(info or {})
+        data: dict[str, Any] = {"store": store, "reason": info.get("reason")}
+        if ok:
+            data.update({k: info[k] for k in ("duration_s", "lost_rows") if k in info})
+        self._emit_event(EventType.DISK_OK if ok else EventType.DISK_FULL, **data)
+        self.state.disk_ok = all(self._disks.values())
+        self._push_state()
+
+    def _watch_recorder_disk(self, rec: TestRecorder) -> None:
+        loop = asyncio.get_running_loop()
+        # called from inside the recorder's writes (within the fan-out): decided on the next turn
+        def on_disk_state(ok: bool, info: dict[str, Any]) -> None:
+            call_soon_on(loop, self.set_disk, "records", ok, info)
+        rec.on_disk_state = on_disk_state
+        self.set_disk("records", rec.disk_ok, {"reason": "the test folder cannot be written"}
+                      if not rec.disk_ok else {})
 
     def _restore_alarm(self) -> None:
         rec = self.alarms.restore()
@@ -305,6 +336,7 @@ class Station:
         self.starting = None
         self.session = sess            # the test's slot 0 is the next slot the loop processes
         self._recorder_out.recorder = sess.recorder
+        self._watch_recorder_disk(sess.recorder)
         st = self.state
         st.state = TestState.BASELINE_SEARCH
         st.test_id, st.sample_id, st.grade = sess.test_id, plan.sample_id, plan.grade
@@ -542,9 +574,53 @@ class Station:
     async def run(self, stop: asyncio.Event, max_slots: int | None = None) -> None:
         """Run the slot loop until ``stop`` is set (or ``max_slots`` have passed)."""
         self._stop_evt = stop
+        self._closed = False
+        try:
+            await self._run(stop, max_slots)
+        finally:
+            await self.close()
+
+    async def close(self) -> None:
+        """Close this instance completely, also after a crash at any point of :meth:`run`: the
+        running test (or start) is ended, the STM32 call awaited or cancelled, the take-up
+        stopped, both serial ports closed (their locks released) and every output that started
+        stopped (the PLC unit id unregistered, the MQTT client disconnected). Each step runs
+        even when an earlier one fails; a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
+
+        async def step(what: str, coro: Coroutine[Any, Any, Any]) -> None:
+            try:
+                await coro
+            except Exception:
+                log.exception("%s: closing: %s failed", self.id, what)
+
+        if self.starting is not None:
+            await step("start", self._start_failed("gateway shutdown before slot 0"))
+        if self.session is not None:
+            await step("test", self.end_test("gateway shutdown"))
+        self.starting = None
+        self.session = None
+        self._recorder_out.recorder = None
+        task = self._stm32_task
+        if task is not None and not task.done():
+            try:
+                await asyncio.wait_for(asyncio.shield(task), 0.5)
+            except (asyncio.TimeoutError, Exception):
+                task.cancel()
+        await step("stm32 stop", self._safe_stm32(self.stm32.stop("gateway shutdown")))
+        await step("meter port", self.meter.close())
+        await step("stm32 port", self.stm32.close())
+        await step("outputs", self.fanout.stop())
+        log.info("%s: slot stats %s", self.id, self.stats.summary())
+
+    async def _run(self, stop: asyncio.Event, max_slots: int | None) -> None:
         for d, res in recover_incomplete(self.station_dir):
-            self._emit_event(EventType.TEST_ENDED, reason="gateway restart", test_status="aborted",
-                             test_dir=d, result=res.get("method"))
+            self._emit_event(EventType.TEST_ENDED, of_test=res["test_id"], reason="gateway restart",
+                             test_status="aborted", test_dir=d, result=res.get("method"),
+                             sample_id=res.get("sample_id"), grade=res.get("grade"),
+                             t_set=res.get("t_set"))
         self._restore_alarm()
         await self.fanout.start()
         if self.reloaded:
@@ -568,64 +644,48 @@ class Station:
         clock = self.clock
         k = 0
         last_idle_status = 0.0
-        try:
-            while not stop.is_set() and (max_slots is None or k < max_slots):
-                lateness = await clock.wait_for(k)
-                if lateness > self.ts / 2:
-                    # overrun: the slots whose window has passed are MISSING; never shift the grid
-                    k_now = clock.slot_at(clock.clock())
-                    log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
-                                self.id, k, lateness * 1e3, max(0, k_now - k))
-                    for kk in range(k, k_now):
-                        self.stats.slots += 1
-                        self.stats.overrun_slots += 1
-                        self._process(kk, None, lateness)
-                        await self._after_slot()
-                    k = k_now
-                    continue
-                self.stats.lateness.append(lateness)
-                reading = await self.meter.read()
-                self.stats.slots += 1
-                if reading is not None:
-                    self.stats.filled += 1
-                    if reading.rtt_s is not None:
-                        self.stats.rtt.append(reading.rtt_s)
-                self._process(k, reading, lateness)
-                mon = self.monitor
-                att = self.starting
-                if ((mon is not None and mon.stop_slot is None and not mon.finished)
-                        or (att is not None and att.motor_enabled and att.seq.motor_on)):
-                    if self._stm32_task is None or self._stm32_task.done():
-                        self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
-                    else:
-                        self.stats.stm32_busy_skips += 1
-                await self._after_slot()
-                now = time.monotonic()
-                waiting = att is not None and self.starting is att and not att.zero_begun
-                if ((not self.busy or waiting) and now - last_idle_status
-                        >= (min(0.2, self.idle_status_interval_s) if waiting
-                            else self.idle_status_interval_s)):
-                    last_idle_status = now
-                    if self._stm32_task is None or self._stm32_task.done():
-                        self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
-                if now - self._last_state_push >= 1.0:
-                    self._link_health()
-                    for name in self.alarms.expired(time.time()):   # a shelving ran out
-                        self._emit_event(EventType.ALARM_UNSHELVED, alarm=name, expired=True)
-                    self._push_state()
-                k += 1
-        finally:
-            if self.starting is not None:
-                await self._start_failed("gateway shutdown before slot 0")
-            if self.session is not None:
-                await self.end_test("gateway shutdown")
-            if self._stm32_task is not None:
-                try:
-                    await asyncio.wait_for(self._stm32_task, 0.5)
-                except (asyncio.TimeoutError, Exception):
-                    pass
-            await self._safe_stm32(self.stm32.stop("gateway shutdown"))
-            await self.meter.close()
-            await self.stm32.close()
-            await self.fanout.stop()
-            log.info("%s: slot stats %s", self.id, self.stats.summary())
+        while not stop.is_set() and (max_slots is None or k < max_slots):
+            lateness = await clock.wait_for(k)
+            if lateness > self.ts / 2:
+                # overrun: the slots whose window has passed are MISSING; never shift the grid
+                k_now = clock.slot_at(clock.clock())
+                log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
+                            self.id, k, lateness * 1e3, max(0, k_now - k))
+                for kk in range(k, k_now):
+                    self.stats.slots += 1
+                    self.stats.overrun_slots += 1
+                    self._process(kk, None, lateness)
+                    await self._after_slot()
+                k = k_now
+                continue
+            self.stats.lateness.append(lateness)
+            reading = await self.meter.read()
+            self.stats.slots += 1
+            if reading is not None:
+                self.stats.filled += 1
+                if reading.rtt_s is not None:
+                    self.stats.rtt.append(reading.rtt_s)
+            self._process(k, reading, lateness)
+            mon = self.monitor
+            att = self.starting
+            if ((mon is not None and mon.stop_slot is None and not mon.finished)
+                    or (att is not None and att.motor_enabled and att.seq.motor_on)):
+                if self._stm32_task is None or self._stm32_task.done():
+                    self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
+                else:
+                    self.stats.stm32_busy_skips += 1
+            await self._after_slot()
+            now = time.monotonic()
+            waiting = att is not None and self.starting is att and not att.zero_begun
+            if ((not self.busy or waiting) and now - last_idle_status
+                    >= (min(0.2, self.idle_status_interval_s) if waiting
+                        else self.idle_status_interval_s)):
+                last_idle_status = now
+                if self._stm32_task is None or self._stm32_task.done():
+                    self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
+            if now - self._last_state_push >= 1.0:
+                self._link_health()
+                for name in self.alarms.expired(time.time()):   # a shelving ran out
+                    self._emit_event(EventType.ALARM_UNSHELVED, alarm=name, expired=True)
+                self._push_state()
+            k += 1

@@ -14,7 +14,6 @@ from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import wait_for
 
 
-
 def _submit(st, kind, source="mqtt", **args):
     return asyncio.run(st.submit(Command(kind, source, args)))
 
