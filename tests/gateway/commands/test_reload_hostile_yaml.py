@@ -45,7 +45,9 @@ def test_sighup_with_nul_byte_and_alias_bomb_is_refused_and_the_gateway_runs_on(
             wait_log(gw, "once the aliases are expanded")
             assert gw.p.poll() is None
             assert _rss_kb(gw.p.pid) < rss0 + 50_000      # the bomb took 1.6 GB before
-            f.write_text(good)                              # a good file reloads again
+            # a good file reloads again (a changed one: an unchanged file is nothing to reload for
+            # the fleet supervisor, which compares the effective configuration)
+            f.write_text(good + "test: {sample_id: S-after}\n")
             gw.p.send_signal(signal.SIGHUP)
             wait_log(gw, "idle: configuration reloaded")
         finally:

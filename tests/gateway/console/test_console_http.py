@@ -51,7 +51,7 @@ def test_console_http_auth_csrf_commands_lockout(tmp_path):
         assert st == 403 and "CSRF" in r["reason"]
         # with the token: the station's own validation answers, with the reason MQTT and PLC give
         st, r, _ = c.post("/api/station/loom-a/command", {"command": "ack"})
-        assert st == 409 and r["reason"] == "no unacknowledged end-of-life alarm" and r["code"] == 3
+        assert st == 409 and r["reason"] == "no unacknowledged alarm (end of life or wear warning)" and r["code"] == 3
         st, r, _ = c.post("/api/station/loom-a/command", {"command": "start", "sample_id": "X", "t_set": 0.5})
         assert st == 409 and r["code"] == 1 and "already running" in r["reason"]
         st, r, _ = c.post("/api/station/loom-a/command", {"command": "setpoint", "t_set": 99})
