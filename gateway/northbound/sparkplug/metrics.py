@@ -77,7 +77,7 @@ COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_repla
 COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end"}
 
 DEVICE_METRICS: tuple[MetricDef, ...] = (
-    MetricDef("Test/State", DataType.String, description="idle | baseline_search | monitoring | "
+    MetricDef("Test/State", DataType.String, description="idle | starting | baseline_search | monitoring | "
               "end_of_life | completed | aborted"),
     MetricDef("Test/ID", DataType.String),
     MetricDef("Test/Sample ID", DataType.String),

@@ -111,8 +111,13 @@ def test_prometheus_scrapes_a_running_gateway(tmp_path, prometheus):
                         for r in query(api, 'hookwatch_link_up{station="loom-m"}')}
 
             wait_for(lambda: links() == {"meter": "1", "stm32": "1"}, 20, "links up", plog)
-            running = query(api, 'hookwatch_test_running{station="loom-m"}')
-            assert running and running[0]["value"][1] == "1"
+            # the test runs from slot 0 on, after the start (METHOD.md §3a: zero check, spin-up),
+            # during which the station is `starting` and hookwatch_test_running still 0
+            wait_for(lambda: [r for r in query(api, 'hookwatch_test_running{station="loom-m"}')
+                              if r["value"][1] == "1"], 60, "test running", plog)
+            state = query(api, 'hookwatch_station_state{station="loom-m"} == 1')
+            assert [r["metric"]["state"] for r in state] in (
+                ["baseline_search"], ["monitoring"], ["end_of_life"]), state
 
             # and moving: slots counted between two queries (50 per second)
             def slots():

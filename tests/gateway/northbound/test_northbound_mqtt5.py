@@ -14,6 +14,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from gateway import records
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import Broker, Sub
 from kit.northbound import LoopThread, make_station
@@ -93,7 +94,9 @@ def test_commands_are_answered_on_the_response_topic_with_the_correlation_data(t
         topic, p, corr = mes.next()
         assert topic == "mes/replies/st1" and corr == b"\x00\x01corr-1"
         assert p["ok"] and p["command"] == "start" and p["request_id"] == "r1"
-        assert station.monitor is not None
+        # the start was applied: no slot loop runs here, so the test stays in its start (§3a)
+        assert station.starting is not None and station.plan.sample_id == "S-5"
+        assert station.state.state == records.TestState.STARTING
         # a refusal too; and a request without correlation data
         mes.request(f"{BASE}/cmd/start", '{"sample_id": "S-6", "t_set": 0.5}', "mes/replies/st1", b"c2")
         topic, p, corr = mes.next()

@@ -1,13 +1,14 @@
 """The MQTT pump is supervised (issue 12 item 1): a fault inside it (a callback raising, the outbox
 raising, the pump loop raising) no longer ends MQTT for the rest of the run. Through a real
-Mosquitto with mosquitto_sub as the MES and a real Station taking the commands: the link goes down
-and up again (StationState.mqtt_ok), and the test's later messages arrive in order, once."""
+Mosquitto with mosquitto_sub as the MES and a real Station running its slot loop (the §3a start
+sequence before slot 0) and taking the commands: the link goes down and up again
+(StationState.mqtt_ok), and the test's later messages arrive in order, once."""
 import logging
 import subprocess
 
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import Broker, Sub, pub
-from kit.northbound import LoopThread, make_station
+from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import require_tool, wait_for
 
 BASE = "hookwatch/lab/hall/l1/st1"
@@ -41,8 +42,9 @@ def test_a_failing_pump_restarts_and_loses_nothing(tmp_path, caplog):
         links: list[bool] = []
         on_link = pump.on_link
         pump.on_link = lambda ok: (links.append(ok), on_link(ok))
+        run = None
         try:
-            lt.call(out.start())
+            run = RunningStation(lt, station)     # the slot loop runs the start sequence (§3a)
             wait_for(lambda: station.state.mqtt_ok, 20, what="link up")
 
             def ask(name, payload):
@@ -59,6 +61,7 @@ def test_a_failing_pump_restarts_and_loses_nothing(tmp_path, caplog):
                 return sub.messages("reply")[n][2]
 
             assert ask("start", '{"sample_id": "S-1", "t_set": 0.5, "request_id": "go"}')["ok"]
+            sub.wait(lambda s: s.messages("event/test_started"), 20)     # slot 0 after the start
             # real hostile payloads (issue 12 item 1): refused, the pump does not even stumble
             for bad in ("[" * 200_000 + "]" * 200_000, '{"t_set": ' + "9" * 5000 + "}",
                         '{"sample_id": "' + "x" * 2_000_000 + '"}'):
@@ -109,6 +112,7 @@ def test_a_failing_pump_restarts_and_loses_nothing(tmp_path, caplog):
             assert len(lines) == 1 and "1 fault(s)" in lines[0] and "injected callback fault" in lines[0]
             assert pump.counters["pump_restarts"] == 3
         finally:
-            lt.call(out.stop())
+            if run is not None:
+                run.stop()                        # closes the station and its outputs
             lt.close()
             sub.stop()

@@ -116,10 +116,16 @@ def test_primary_host_sees_a_trustworthy_edge_node(tmp_path):
                     {"name": "Device Control/Setpoint", "float_value": 0.5}])
                 _, aliases = check_session(first)
 
-                def state_now():
-                    vs = values(host.all(since=mark), aliases, "Test/State")
-                    return vs and vs[-1][0] in ("baseline_search", "monitoring")
-                host.wait(state_now, 30, "Test/State baseline_search after the DCMD start")
+                # the start (METHOD.md §3a) first: `starting` during the zero check and the spin-up,
+                # then slot 0 and `baseline_search`; the start may take up to the method's
+                # start_timeout (30 s) before it succeeds or fails, so wait longer than that
+                def states():
+                    return [v[0] for v in values(host.all(since=mark), aliases, "Test/State")]
+                host.wait(lambda: "starting" in states(), 20, "Test/State starting after the DCMD start")
+                host.wait(lambda: states()[-1] != "starting", 60, "the end of the start (§3a)")
+                seen = states()
+                assert seen[-1] in ("baseline_search", "monitoring"), seen
+                assert seen.index("starting") < seen.index(seen[-1]), seen
                 host.wait(lambda: any(v[0] == 0 for v in values(host.all(since=mark), aliases,
                                                                 "Device Control/Last Result Code")),
                           20, "Last Result Code 0 (the start accepted)")
