@@ -125,8 +125,9 @@ class Station:
         self._k = 0                     # the loop's current slot
         self._motor_off_k = 0           # loop slot of the last stop command to the take-up
         self._last_state_push = 0.0
-        self._meter_was_ok: bool | None = None
-        self._stm32_was_ok: bool | None = None
+        #: the ports' last seen state and loss count (_link_health)
+        self._port_seen: dict[str, bool | None] = {"meter": None, "stm32": None}
+        self._port_lost_seen: dict[str, int] = {}
         self._uplinks: dict[str, bool] = {}
         self._disks: dict[str, bool] = {}
         self._stop_evt: asyncio.Event | None = None
@@ -554,20 +555,28 @@ class Station:
             await self.end_test("completed")
 
     def _link_health(self) -> None:
-        m_ok = bool(self.meter.connected)
-        s_ok = bool(self.stm32.connected)
+        """Port state to events and the station state, checked once a second. A port lost and back
+        between two checks (a meter gone for 0.5 s) still gives its ``port_lost``/``port_back``
+        pair: the drivers count every loss (``counters["port_lost"]``)."""
         changed = False
-        if m_ok != self._meter_was_ok:
-            if self._meter_was_ok is not None:
-                self._emit_event(EventType.PORT_BACK if m_ok else EventType.PORT_LOST, port="meter")
-            self._meter_was_ok = m_ok
-            changed = True
-        if s_ok != self._stm32_was_ok:
-            if self._stm32_was_ok is not None:
-                self._emit_event(EventType.PORT_BACK if s_ok else EventType.PORT_LOST, port="stm32")
-            self._stm32_was_ok = s_ok
-            changed = True
-        self.state.meter_ok, self.state.stm32_ok = m_ok, s_ok
+        for port, drv in (("meter", self.meter), ("stm32", self.stm32)):
+            ok = bool(drv.connected)
+            was = self._port_seen.get(port)
+            lost_n = int(drv.counters.get("port_lost", 0))
+            lost_before = self._port_lost_seen.get(port, lost_n)
+            if was is not None:
+                if ok != was:
+                    self._emit_event(EventType.PORT_BACK if ok else EventType.PORT_LOST, port=port)
+                elif ok and lost_n > lost_before:    # lost and back since the last check
+                    self._emit_event(EventType.PORT_LOST, port=port, brief=True,
+                                     times=lost_n - lost_before)
+                    self._emit_event(EventType.PORT_BACK, port=port, brief=True)
+            if ok != was:
+                changed = True
+            self._port_seen[port] = ok
+            self._port_lost_seen[port] = lost_n
+        self.state.meter_ok = self._port_seen["meter"]
+        self.state.stm32_ok = self._port_seen["stm32"]
         if changed:
             self._push_state()
 
