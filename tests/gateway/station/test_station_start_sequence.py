@@ -13,7 +13,7 @@ from gateway.control import ControlParams
 from gateway.records import Command, CommandKind, EventType
 from gateway.records import TestState as TState
 from gateway.station.station import Station, TestPlan
-from kit.fakes import Reading
+from kit.fakes import Capture, Reading
 
 THETA = math.radians(105.0)
 FAST = {"w_ss": 0.2, "w_hold": 0.4, "tau": 0.2, "settle_time": 0.5, "start_timeout": 3.0}
@@ -119,31 +119,11 @@ def make(tmp_path, meter_kw=None, method=None, t_end=100.0, turning_until=None):
                  idle_status_interval_s=0.0)
     vclock = VirtualClock(st.ts)
     st.clock_factory = lambda ts: vclock
-    tap = Tap()
+    tap = Capture()
     st.outputs.append(tap)
     return st, motor, tap
 
 
-class Tap:
-    """An output that keeps the events and states it is given."""
-
-    def __init__(self):
-        self.events, self.states = [], []
-
-    async def start(self):
-        pass
-
-    async def stop(self):
-        pass
-
-    def on_record(self, rec):
-        pass
-
-    def on_event(self, ev):
-        self.events.append(ev)
-
-    def on_state(self, s):
-        self.states.append(s)
 
 
 def run(st, max_slots, during=None):
