@@ -14,12 +14,15 @@ from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
 
 from .console.server import ConsoleServer, ConsoleSettings
-from .northbound.wiring import metrics_outputs, outputs_for
+from .northbound.metrics import MetricsRelay
+from .northbound.modbus_server import ModbusOutput
+from .northbound.wiring import metrics_outputs, modbus_settings, outputs_for
 from .ports import MeterPort, Output, Stm32Port
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.station import Station
 
-__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok"]
+__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok",
+           "served_by_supervisor", "shared_outputs", "station_facts"]
 
 
 def build_meter(cfg) -> MeterPort:
@@ -32,13 +35,19 @@ def build_stm32(cfg) -> Stm32Port:
     return Stm32Link.from_config(cfg.stm32)
 
 
-def northbound_outputs(cfg, station: Station) -> list[Output]:
-    """MQTT and Modbus TCP, as the ``mqtt:`` and ``modbus_tcp:`` sections enable them."""
-    return list(outputs_for(cfg, station))
+def northbound_outputs(cfg, station: Station, *, modbus: bool = True) -> list[Output]:
+    """MQTT and Modbus TCP, as the ``mqtt:`` and ``modbus_tcp:`` sections enable them (Modbus TCP
+    not when ``modbus`` is False: a fleet's supervisor serves it)."""
+    return list(outputs_for(cfg, station, modbus=modbus))
 
 
-def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: bool = True) -> Station:
-    """One station from its configuration: drivers, method, control, limits and outputs."""
+def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: bool = True,
+                  served_by_supervisor: frozenset[str] = frozenset()) -> Station:
+    """One station from its configuration: drivers, method, control, limits and outputs.
+
+    ``served_by_supervisor`` (a worker of ``hookwatch run FLEET_DIR``): ``"modbus"`` — no Modbus
+    TCP output here (the supervisor serves the station's unit from the IPC stream); ``"metrics"``
+    — the metrics output counts here but opens no endpoint (its snapshot goes over IPC)."""
     mv = method_values(cfg)
     ts = float(mv.get("ts", 0.02))
     st = Station(
@@ -50,10 +59,10 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
     )
     if with_northbound:
-        st.outputs.extend(northbound_outputs(cfg, st))
+        st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor))
     st.outputs.extend(plugin_outputs(cfg, st))
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
-    st.outputs.extend(metrics_outputs(cfg, st, st.outputs))
+    st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
     return st
 
 
@@ -83,3 +92,47 @@ def build_console(cfgs: list) -> ConsoleServer | None:
     return ConsoleServer(ConsoleSettings.from_config(cfgs[0]),
                          {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs},
                          mqtt_enabled={c.station.id: bool(c.mqtt.enabled) for c in cfgs})
+
+
+# ------------------------------------------------------------------------------------------------
+# a fleet's supervisor (``hookwatch run FLEET_DIR``): the shared outputs, fed over IPC
+
+
+def served_by_supervisor(cfg, *, console: bool, with_northbound: bool = True) -> frozenset[str]:
+    """What a fleet's supervisor serves for the station of ``cfg`` (its worker then streams what
+    those outputs need and serves none of them): its Modbus TCP unit, the console, its metrics."""
+    out = set()
+    if with_northbound and cfg.modbus_tcp.enabled:
+        out.add("modbus")
+    if console:
+        out.add("console")
+    if cfg.metrics.enabled:
+        out.add("metrics")
+    return frozenset(out)
+
+
+def station_facts(cfg) -> dict:
+    """What a station proxy in the supervisor knows of a station without running it: the slot
+    period, the command limits and the default test plan (``RemoteStation``'s keywords)."""
+    mv = method_values(cfg)
+    return {"ts": float(mv.get("ts", 0.02)), "limits": station_limits(cfg, mv),
+            "default_plan": default_plan(cfg)}
+
+
+def shared_outputs(cfg, station, console: ConsoleServer | None = None, *,
+                   with_northbound: bool = True) -> list[Output]:
+    """The outputs a fleet's supervisor runs for one station proxy (``station``: a
+    ``gateway.supervisor.remote.RemoteStation``): the same classes as in one process — the
+    station's unit on its Modbus TCP port (shared by every station that names it), its console
+    feed, and its metrics (the worker's snapshots on the supervisor's endpoint)."""
+    outs: list[Output] = []
+    modbus = None
+    if with_northbound and cfg.modbus_tcp.enabled:
+        modbus = ModbusOutput(modbus_settings(cfg), station)
+        outs.append(modbus)
+    if console is not None and station.id in console.feeds:
+        outs.append(console.output_for(station))
+    m = cfg.metrics
+    if m.enabled:
+        outs.append(MetricsRelay(station.id, m.host, int(m.port), ts=station.ts, modbus=modbus))
+    return outs

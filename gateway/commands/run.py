@@ -11,10 +11,11 @@ import time
 
 from .. import sdnotify
 from ..cli import CliError
-from ..compose import build_console, build_station, records_dir_ok
+from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_outputs, station_facts
 from ..config import ConfigError, load_fleet, load_station
 from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
+from ..supervisor.remote import RemoteFleet, RemoteStation
 from ..supervisor.supervisor import Supervisor
 
 HELP = "run one station (a YAML file) or a whole fleet (a config folder, one process per station)"
@@ -65,15 +66,6 @@ def _load(path: str):
 
 def _override(cfg, args):
     return apply_overrides(cfg, RunOptions.from_args(args))
-
-
-def _shared_modbus_ports(cfgs) -> list[int]:
-    """Modbus TCP ports that several stations share (one unit each): one process must serve them."""
-    seen: dict[int, int] = {}
-    for c in cfgs:
-        if c.modbus_tcp.enabled:
-            seen[int(c.modbus_tcp.port)] = seen.get(int(c.modbus_tcp.port), 0) + 1
-    return sorted(p for p, n in seen.items() if n > 1)
 
 
 def run(args) -> int:
@@ -203,6 +195,30 @@ def _setup_logging(level: str | None) -> None:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
 
+def _attach_shared(sup: Supervisor, remote: RemoteFleet, args, console) -> None:
+    """A station proxy with its shared outputs per running station of the supervisor (at start,
+    and after a SIGHUP: new stations get one, a station whose Modbus TCP or metrics settings
+    changed gets a new one, a removed station's is stopped)."""
+    log = logging.getLogger("hookwatch.run")
+    with_nb = not args.no_northbound
+    cfgs = {c.station.id: c for c in (_override(c, args) for _, c in sup.plan.accepted)}
+    for name, hub in sup.hubs.items():
+        cfg = cfgs.get(name)
+        if cfg is None or hub.worker is None or hub.worker.path not in sup.workers:
+            if name in remote.stations and (hub.worker is None or hub.worker.path not in sup.workers):
+                remote.remove(name)
+            continue
+        key = repr((cfg.modbus_tcp, cfg.metrics, with_nb))
+        if remote.keys.get(name) == key:
+            continue
+        if console is not None and name not in console.feeds:
+            log.warning("console: station %s was added after the start; it appears in the console "
+                        "after a restart of hookwatch run", name)
+        st = RemoteStation(hub, **station_facts(cfg))
+        st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb)
+        remote.add(st, key)
+
+
 def run_supervised(args) -> int:
     """A fleet folder, one worker process per station under this supervisor."""
     try:
@@ -216,30 +232,32 @@ def run_supervised(args) -> int:
     level = args.log_level or getattr(getattr(first, "logging", None), "level", None) or "info"
     _setup_logging(level)
     log = logging.getLogger("hookwatch.run")
-    shared = _shared_modbus_ports(cfgs)
-    one_place = [what for what, on in (("the operator console", any(c.console.enabled for c in cfgs)),
-                                       ("the metrics endpoint", any(c.metrics.enabled for c in cfgs)))
-                 if on]
-    if shared or one_place:
-        # the shared things (one Modbus TCP port with a unit per station, the console, the metrics
-        # endpoint) live in the supervisor only once its side serves the hubs (docs/runtime.md);
-        # until then such a fleet runs in one process
-        why = ([f"stations share Modbus TCP port(s) {', '.join(map(str, shared))}"] if shared else []) + one_place
-        log.warning("%s: the fleet runs in one process (--in-process)", "; ".join(why))
-        args.in_process = True
-        return run(args)
     opts = RunOptions.from_args(args)
     opts.log_level = level
-    sup = Supervisor(args.path, opts, watchdog_s=args.worker_watchdog, backoff_s=args.restart_backoff)
+    with_nb = not args.no_northbound
+    # the shared things live here, in the supervisor: the console, the Modbus TCP ports (one unit
+    # per station) and the metrics endpoint, fed by each worker over IPC (docs/runtime.md)
+    console = _console(cfgs)
+
+    def served(cfg) -> frozenset[str]:
+        return served_by_supervisor(cfg, console=console is not None, with_northbound=with_nb)
+
+    sup = Supervisor(args.path, opts, watchdog_s=args.worker_watchdog, backoff_s=args.restart_backoff,
+                     served_for=served)
+    remote = RemoteFleet()
     stop = threading.Event()
     reload_req = threading.Event()
     signal.signal(signal.SIGTERM, lambda s, f: stop.set())
     signal.signal(signal.SIGINT, lambda s, f: stop.set())
     signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
-    plan = sup.start()
+    plan = sup.start(spawn=False)
     if not plan.accepted:
         log.error("no station can run: every station file was refused")
+        if console is not None:
+            console.stop()
         return 1
+    _attach_shared(sup, remote, args, console)
+    sup.tick()
     t0 = time.monotonic()
     ready = False
     last_wd = 0.0
@@ -263,6 +281,7 @@ def run_supervised(args) -> int:
             if reload_req.is_set():
                 reload_req.clear()
                 sup.reload()
+                _attach_shared(sup, remote, args, console)
             if args.duration is not None and now - t0 >= args.duration:
                 break
             if args.exit_when_done:
@@ -273,6 +292,9 @@ def run_supervised(args) -> int:
     finally:
         sdnotify.stopping()
         sup.stop()
+        remote.stop()
+        if console is not None:
+            console.stop()
     out: dict = {}
     for name, h in sup.hubs.items():
         if h.refused:

@@ -362,3 +362,14 @@ class ConsoleOutput:
 
     def on_state(self, st: StationState) -> None:
         self._put(st)
+
+    # -- a station in a worker process, fed by the fleet supervisor (gateway/supervisor/remote.py)
+    def on_worker(self, up: bool, restarts: int = 0) -> None:
+        """The station's worker process came up or went down: the card shows it online/offline
+        and commands are refused while it is down."""
+        self.feed.station = self.station if up else None
+
+    def on_lost(self, n: int) -> None:
+        """``n`` slot records were lost before they reached this output (the IPC hand-over): the
+        console rebuilds the running test's curve from the recorder's log, as for its own losses."""
+        self.feed.dropped += int(n)

@@ -202,7 +202,7 @@ class MetricsOutput:
     """Station output feeding :class:`StationFigures`; registers the station on its endpoint."""
 
     def __init__(self, station, host: str = "127.0.0.1", port: int = 9620, *,
-                 mqtt=None, modbus=None):
+                 mqtt=None, modbus=None, serve: bool = True):
         self.station = station
         self.station_id = station.id
         self.host, self.port = host, int(port)
@@ -212,10 +212,14 @@ class MetricsOutput:
         self.mqtt = mqtt
         self.modbus = modbus
         self._outbox = OutboxGauge(mqtt.outbox.path) if mqtt is not None else None
+        #: False in a fleet worker: :meth:`snapshot` goes to the supervisor, which serves it
+        self.serve = serve
         self.endpoint: Endpoint | None = None
 
     # -- output protocol (station loop)
     async def start(self) -> None:
+        if not self.serve:
+            return
         self.endpoint = endpoint(self.host, self.port)
         self.endpoint.add_source(self.station_id, self.snapshot)
 
@@ -274,30 +278,105 @@ class MetricsOutput:
             if drv is not None:
                 links[name] = {"up": bool(getattr(drv, "connected", False)),
                                "counters": _counters(getattr(drv, "counters", None))}
-        outbox = plc = None
+        outbox = None
         if self.mqtt is not None and self._outbox is not None:     # set together in __init__
             links["mqtt"] = {"up": bool(self.mqtt.connected), "counters": _counters(self.mqtt.counters)}
             n, age = self._outbox.read()
             ob = getattr(self.mqtt, "outbox", None)
             outbox = {"messages": n, "oldest_age_s": age,
                       "dropped_telemetry": int(getattr(ob, "dropped_telemetry", 0))}
+        return figures_snapshot(f, self.station_id, self.ts, links=links, outbox=outbox,
+                                plc=plc_figures(self.modbus))
+
+
+def plc_figures(modbus) -> dict[str, Any] | None:
+    """The ``plc`` part of a snapshot: the Modbus TCP server a ``ModbusOutput`` serves on."""
+    if modbus is None:
+        return None
+    srv = getattr(modbus, "server", None)
+    store = getattr(srv, "store", None)
+    return {"listen": f"{modbus.s.host}:{modbus.s.port}",
+            "listening": bool(srv is not None and srv.listening.is_set()),
+            "counters": _counters(getattr(store, "counters", None))}
+
+
+def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: dict[str, Any],
+                     outbox: dict[str, Any] | None, plc: dict[str, Any] | None) -> dict[str, Any]:
+    """A snapshot (the shape in the module docstring) of ``f`` and the given link figures."""
+    state = f.state
+    return {
+        "v": SNAPSHOT_VERSION, "station": station_id, "time": time.time(), "ts": ts,
+        "slots": f.slots, "filled": f.filled, "overruns": f.overruns,
+        "lateness_s": f.lateness.snapshot(), "rtt_s": f.rtt.snapshot(),
+        "links": links, "outbox": outbox, "plc": plc,
+        "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
+        "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
+        "t_cross": f.t_cross, "warning": f.warning,
+        "events": dict(f.events), "disk_ok": f.disk_ok,
+    }
+
+
+class MetricsRelay:
+    """The supervisor's side of a fleet (``hookwatch run FLEET_DIR``): an output of a station
+    proxy (gateway/supervisor/remote.py) that serves the snapshots its worker sends (METRICS
+    frames, one a second) on this process' endpoint, with the counters of the Modbus TCP server
+    the supervisor runs for the station (``modbus``) and the worker's health:
+    ``hookwatch_station_up`` 0 and every link down while the worker is down or restarting, and
+    ``hookwatch_worker_restarts_total``. Counters start again with a restarted worker (a reset
+    that ``rate()`` handles)."""
+
+    def __init__(self, station_id: str, host: str = "127.0.0.1", port: int = 9620, *,
+                 ts: float = 0.02, modbus=None):
+        self.station_id = station_id
+        self.host, self.port = host, int(port)
+        self.ts = float(ts)
+        self.modbus = modbus
+        self.latest: dict[str, Any] | None = None
+        self.up = False
+        self.restarts = 0
+        self.endpoint: Endpoint | None = None
+
+    async def start(self) -> None:
+        self.endpoint = endpoint(self.host, self.port)
+        self.endpoint.add_source(self.station_id, self.snapshot)
+
+    async def stop(self) -> None:
+        if self.endpoint is not None:
+            ep, self.endpoint = self.endpoint, None
+            ep.remove_source(self.station_id, self.snapshot)
+
+    def on_record(self, rec: SlotRecord) -> None:
+        pass        # the worker counts its slots; its snapshot carries them
+
+    def on_event(self, ev: Event) -> None:
+        pass
+
+    def on_state(self, st: StationState) -> None:
+        pass
+
+    def on_metrics(self, snap: dict[str, Any]) -> None:
+        """A worker's snapshot (the reader thread of its IPC link)."""
+        self.latest = snap
+
+    def on_worker(self, up: bool, restarts: int = 0) -> None:
+        self.up = bool(up)
+        self.restarts = int(restarts)
+
+    def snapshot(self) -> dict[str, Any]:
+        snap = self.latest
+        if snap is None or snap.get("v") != SNAPSHOT_VERSION:
+            s = figures_snapshot(StationFigures(self.station_id), self.station_id, self.ts,
+                                 links={}, outbox=None, plc=None)
+        else:
+            s = dict(snap)
+        s["station"] = self.station_id
+        if not self.up:
+            s["links"] = {k: {**v, "up": False} for k, v in (s.get("links") or {}).items()}
+        s["up"] = self.up
+        s["restarts"] = self.restarts
         if self.modbus is not None:
-            srv = getattr(self.modbus, "server", None)
-            store = getattr(srv, "store", None)
-            plc = {"listen": f"{self.modbus.s.host}:{self.modbus.s.port}",
-                   "listening": bool(srv is not None and srv.listening.is_set()),
-                   "counters": _counters(getattr(store, "counters", None))}
-        state = f.state
-        return {
-            "v": SNAPSHOT_VERSION, "station": self.station_id, "time": time.time(), "ts": self.ts,
-            "slots": f.slots, "filled": f.filled, "overruns": f.overruns,
-            "lateness_s": f.lateness.snapshot(), "rtt_s": f.rtt.snapshot(),
-            "links": links, "outbox": outbox, "plc": plc,
-            "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
-            "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
-            "t_cross": f.t_cross, "warning": f.warning,
-            "events": dict(f.events), "disk_ok": f.disk_ok,
-        }
+            s["plc"] = plc_figures(self.modbus)
+        return s
 
 
 # ------------------------------------------------------------------------------------------------
@@ -419,6 +498,16 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
             events.add_metric([s["station"], t], float(v))
         disk.add_metric([s["station"]], 1.0 if s.get("disk_ok", True) else 0.0)
     out += [state, running, warning, alarm, events, disk]
+
+    sup = GaugeMetricFamily(f"{p}_station_up", "1 while the station's loop runs and reports (a "
+                            "fleet: its worker process is up)", labels=["station"])
+    restarts = CounterMetricFamily(f"{p}_worker_restarts", "restarts of the station's worker "
+                                   "process by the fleet supervisor", labels=["station"])
+    for s in snapshots:
+        sup.add_metric([s["station"]], 1.0 if s.get("up", True) else 0.0)
+        if "restarts" in s:
+            restarts.add_metric([s["station"]], float(s["restarts"]))
+    out += [sup, restarts]
 
     for key, name, doc in (("mu", "mu", "last valid friction coefficient μ of the running test"),
                            ("mu_ss", "mu_ss", "steady baseline μ_ss of the running test"),

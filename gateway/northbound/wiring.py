@@ -45,8 +45,8 @@ def modbus_settings(cfg):
     )
 
 
-def outputs_for(cfg, station) -> list:
-    """The northbound outputs of one station (MQTT, then Modbus TCP)."""
+def outputs_for(cfg, station, *, modbus: bool = True) -> list:
+    """The northbound outputs of one station (MQTT, then Modbus TCP unless ``modbus`` is False)."""
     outs: list = []
     mqtt_out = None
     if getattr(cfg, "mqtt", None) is not None and cfg.mqtt.enabled:
@@ -62,7 +62,7 @@ def outputs_for(cfg, station) -> list:
                       cfg.station.id, ms.outbox_path, e)
         else:
             outs.append(mqtt_out)
-    if getattr(cfg, "modbus_tcp", None) is not None and cfg.modbus_tcp.enabled:
+    if modbus and getattr(cfg, "modbus_tcp", None) is not None and cfg.modbus_tcp.enabled:
 
         # the MQTT link reaches the PLC through the station's state (StationState.mqtt_ok)
         outs.append(ModbusOutput(modbus_settings(cfg), station))
@@ -71,13 +71,14 @@ def outputs_for(cfg, station) -> list:
     return outs
 
 
-def metrics_outputs(cfg, station, outputs: list) -> list:
+def metrics_outputs(cfg, station, outputs: list, *, serve: bool = True) -> list:
     """The metrics output of a station (``metrics.enabled``), reading the MQTT outbox and the
-    PLC server counters of the station's other ``outputs``."""
+    PLC server counters of the station's other ``outputs``; with ``serve`` False it opens no
+    endpoint (a fleet worker: the supervisor serves its snapshots)."""
     m = getattr(cfg, "metrics", None)
     if m is None or not m.enabled:
         return []
 
     mqtt = next((o for o in outputs if isinstance(o, MqttOutput)), None)
     modbus = next((o for o in outputs if isinstance(o, ModbusOutput)), None)
-    return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus)]
+    return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus, serve=serve)]

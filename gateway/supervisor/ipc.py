@@ -22,9 +22,16 @@ type  name         body
                    *on the station's loop* (a stuck loop sends none: the supervisor's watchdog)
 3     STATE        the :class:`~gateway.records.StationState` as a mapping (enum → value)
 4     SLOTS        a summary of the last ``n`` slots: ``{k, n, filled, valid, mu_mean, t_mean,
-                   lateness_ms_max, rtt_ms_max, last: <the last SlotRecord as a mapping>}``
+                   lateness_ms_max, rtt_ms_max, last: <the last SlotRecord as a mapping>}``;
+                   when the supervisor serves outputs for the station (Modbus TCP, console) also
+                   ``rows``: every one of those ``n`` slot records as a list of the
+                   :data:`SLOT_COLUMNS` values, oldest first (no gap within a frame; a gap between
+                   frames means frames were dropped)
+8     METRICS      the station's metrics snapshot (``gateway/northbound/metrics.py``, shape
+                   ``SNAPSHOT_VERSION``) once a second, when the fleet has a metrics endpoint
 5     EVENT        :meth:`~gateway.records.Event.as_dict`
-6     REPLY        ``{id, ok, reason, request_id}`` to a COMMAND
+6     REPLY        ``{id, ok, reason, code, request_id}`` to a COMMAND (``code``: the rejection
+                   code of gateway/station/commands.py, 0 when accepted)
 7     FINAL        ``{stats, results}`` when the worker stops cleanly
 ====  ===========  ============================================================================
 
@@ -42,15 +49,19 @@ from __future__ import annotations
 import enum
 import json
 import math
+import operator
 import socket
 import struct
 import threading
-from dataclasses import asdict, is_dataclass
+from dataclasses import asdict, fields, is_dataclass
 from typing import Any
 
+from ..records import Event, EventType, SlotRecord, StationState, TestState
 from ..threadloop import Mailbox
 
-PROTO = 1
+PROTO = 2
+#: the columns of a SLOTS frame's ``rows``: the fields of :class:`~gateway.records.SlotRecord`
+SLOT_COLUMNS = tuple(f.name for f in fields(SlotRecord))
 HEADER = struct.Struct(">IB")
 MAX_BODY = 1 << 20
 
@@ -63,9 +74,49 @@ class FrameType(enum.IntEnum):
     EVENT = 5
     REPLY = 6
     FINAL = 7
+    METRICS = 8
     COMMAND = 16
     RELOAD = 17
     GO = 18
+
+
+#: SlotRecord fields that are floats (NaN on the wire is ``null``, and back)
+_NAN_FIELDS = frozenset(f.name for f in fields(SlotRecord)
+                        if f.type in ("float",) and f.name not in ("t",))
+_row_of = operator.attrgetter(*SLOT_COLUMNS)
+_STATE_FIELDS = frozenset(f.name for f in fields(StationState))
+
+
+def slot_row(rec: SlotRecord) -> tuple:
+    """One slot record as the values of :data:`SLOT_COLUMNS` (a SLOTS frame's ``rows``)."""
+    return _row_of(rec)
+
+
+def slot_from_row(row: list[Any]) -> SlotRecord:
+    """The slot record of one ``rows`` entry (``null`` floats back to NaN). Raises ValueError."""
+    if len(row) != len(SLOT_COLUMNS):
+        raise ValueError(f"slot row of {len(row)} values, expected {len(SLOT_COLUMNS)}")
+    d = dict(zip(SLOT_COLUMNS, row))
+    for name in _NAN_FIELDS:
+        if d[name] is None:
+            d[name] = math.nan
+    return SlotRecord(**d)
+
+
+def event_from_dict(d: dict[str, Any]) -> Event:
+    """The :class:`Event` of an EVENT frame (``Event.as_dict``). Raises ValueError/KeyError."""
+    data = {k: v for k, v in d.items() if k not in ("type", "station", "time", "test_id", "k")}
+    return Event(EventType(d["type"]), str(d["station"]), float(d["time"]), d.get("test_id"),
+                 d.get("k"), data)
+
+
+def state_from_dict(d: dict[str, Any]) -> StationState:
+    """The :class:`StationState` of a STATE frame (unknown keys are ignored: a newer worker)."""
+    kw = {k: v for k, v in d.items() if k in _STATE_FIELDS}
+    kw["state"] = TestState(int(kw.get("state", 0)))
+    if kw.get("elapsed_s") is None:
+        kw["elapsed_s"] = 0.0
+    return StationState(**kw)
 
 
 class ProtocolError(Exception):

@@ -33,11 +33,13 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 from ..compose import records_dir_ok
 from ..config import Issue
 from ..records import CommandReply
+from ..station.commands import CODE, Rejection
 from ..threadloop import Mailbox
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
 from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
@@ -48,6 +50,15 @@ log = logging.getLogger("hookwatch.supervisor")
 
 #: how many stream items (slot summaries, events) a hub keeps for late subscribers
 STREAM_LEN = 512
+
+
+class FrameSink(Protocol):
+    """Where a hub hands every frame of its worker (on the worker's reader thread: O(1), never
+    blocking) and the worker's ups and downs."""
+
+    def on_frame(self, ftype: FrameType, body: dict[str, Any]) -> None: ...
+
+    def on_worker(self, up: bool, restarts: int = 0) -> None: ...
 
 
 class StationHub:
@@ -76,6 +87,9 @@ class StationHub:
         self.results: list[dict[str, Any]] = []
         self.stats: dict[str, Any] | None = None
         self.worker: WorkerHandle | None = None
+        #: the station proxy of the supervisor's shared outputs (gateway/supervisor/remote.py):
+        #: gets every frame on the reader thread (:class:`FrameSink`), or None
+        self.sink: FrameSink | None = None
         self._subs: list[Mailbox[tuple[str, dict[str, Any]]]] = []
         self._lock = threading.Lock()
 
@@ -112,9 +126,25 @@ class StationHub:
         """Send a command (start, stop, ack, setpoint) to the station and wait for its reply."""
         w = self.worker
         if w is None or not w.running:
-            return CommandReply(False, f"station {self.name} is not running", request_id)
+            return Rejection(False, f"station {self.name} is not running", request_id, CODE["NO_STATION"])
         return w.command({"kind": kind, "args": args or {}, "source": source,
                           "request_id": request_id}, timeout)
+
+    def _sink(self, ftype: FrameType, body: dict[str, Any]) -> None:
+        sink = self.sink
+        if sink is not None:
+            try:
+                sink.on_frame(ftype, body)
+            except Exception:  # a broken shared output must not take the worker's link down
+                log.exception("%s: shared outputs failed on a %s frame", self.name, ftype.name)
+
+    def _worker(self, up: bool) -> None:
+        sink, w = self.sink, self.worker
+        if sink is not None:
+            try:
+                sink.on_worker(up, w.restarts if w is not None else 0)
+            except Exception:
+                log.exception("%s: shared outputs failed on a worker %s", self.name, "up" if up else "down")
 
     @property
     def in_test(self) -> bool:
@@ -143,6 +173,8 @@ class WorkerHandle:
         self.restarts = 0
         self.stopping = False
         self.fingerprint = ""
+        #: what the supervisor serves for this station (Modbus TCP unit, console, metrics)
+        self.served: frozenset[str] = frozenset()
         self._send_lock = threading.Lock()
         self._pending: dict[int, tuple[threading.Event, list[dict[str, Any]]]] = {}
 
@@ -156,7 +188,8 @@ class WorkerHandle:
         argv = [sys.executable, "-m", "gateway.supervisor.worker", self.path,
                 "--fd", str(child.fileno()), "--fleet-file", sup.plan.fleet_file or "",
                 "--phase", f"{self.phase:.4f}", "--options", sup.opts_json,
-                "--summary-every", str(sup.summary_every)]
+                "--summary-every", str(sup.summary_every),
+                "--served-by-supervisor", ",".join(sorted(self.served))]
         try:
             # systemd's notify socket is the supervisor's alone (NotifyAccess=main)
             env = {k: v for k, v in os.environ.items()
@@ -188,6 +221,7 @@ class WorkerHandle:
                 if frames is None:
                     break
                 for ftype, body in frames:
+                    hub._sink(ftype, body)
                     if ftype == FrameType.HEARTBEAT:
                         hub.heartbeat = body
                         hub.heartbeat_t = time.monotonic()
@@ -205,6 +239,7 @@ class WorkerHandle:
                             p[0].set()
                     elif ftype == FrameType.HELLO:
                         self.hello = True
+                        hub._worker(True)
                         if not self.sup.barrier:
                             self.go()
                     elif ftype == FrameType.FINAL:
@@ -215,6 +250,7 @@ class WorkerHandle:
         finally:
             for ev, _ in list(self._pending.values()):
                 ev.set()
+            hub._worker(False)
 
     def send(self, ftype: FrameType, body: dict[str, Any]) -> bool:
         s = self.sock
@@ -240,14 +276,19 @@ class WorkerHandle:
         rid = body.get("request_id")
         try:
             if not self.send(FrameType.COMMAND, {"id": fid, **body}):
-                return CommandReply(False, f"station {self.hub.name}: worker link down", rid)
+                return Rejection(False, f"station {self.hub.name}: worker link down", rid, CODE["NO_STATION"])
             ev.wait(timeout)
         finally:
             self._pending.pop(fid, None)
         if not slot:
-            return CommandReply(False, f"station {self.hub.name} did not answer within {timeout:g} s", rid)
+            return Rejection(False, f"station {self.hub.name} did not answer within {timeout:g} s", rid,
+                             CODE["NO_STATION"])
         r = slot[0]
-        return CommandReply(bool(r.get("ok")), str(r.get("reason") or ""), r.get("request_id"))
+        if r.get("ok"):
+            return CommandReply(True, str(r.get("reason") or ""), r.get("request_id"))
+        code = r.get("code")
+        return Rejection(False, str(r.get("reason") or ""), r.get("request_id"),
+                         int(code) if isinstance(code, int) and code else CODE["BAD_REQUEST"])
 
     def terminate(self) -> None:
         self.stopping = True
@@ -267,8 +308,12 @@ class Supervisor:
     def __init__(self, folder: str, opts: RunOptions, *, watchdog_s: float = 5.0,
                  backoff_s: float = 1.0, backoff_max_s: float = 60.0, hold_after: int = 5,
                  hold_s: float = 300.0, stable_s: float = 60.0, startup_s: float = 60.0,
-                 summary_every: int = 10) -> None:
+                 summary_every: int = 10,
+                 served_for: Callable[[Any], frozenset[str]] | None = None) -> None:
         self.folder = folder
+        #: what the supervisor's shared outputs serve for a station (its configuration → a subset
+        #: of modbus, console, metrics): its worker then streams what they need and serves none
+        self.served_for = served_for
         self.opts = opts
         self.opts_json = json.dumps(opts.as_dict())
         self.watchdog_s = watchdog_s
@@ -298,7 +343,10 @@ class Supervisor:
         hub.publish("supervisor", {"type": "station_refused", "station": r.name, "file": r.path,
                                    "reason": r.message(), "time": time.time()})
 
-    def start(self) -> FleetPlan:
+    def start(self, spawn: bool = True) -> FleetPlan:
+        """Read the fleet folder, make a hub per station and (``spawn``) start the first workers;
+        with ``spawn`` False the first :meth:`tick` starts them (the caller attaches its shared
+        outputs to the hubs in between, so they see every frame from the first HELLO on)."""
         self.t_start = time.monotonic()
         self.plan = plan = plan_fleet(self.folder)
         for path, cfg in list(plan.accepted):
@@ -311,7 +359,8 @@ class Supervisor:
         n = max(1, len(plan.accepted))
         for i, (path, cfg) in enumerate(plan.accepted):
             self._add(path, cfg, i / n)
-        self.tick()
+        if spawn:
+            self.tick()
         return plan
 
     def _add(self, path: str, cfg: Any, phase: float) -> None:
@@ -323,6 +372,7 @@ class Supervisor:
         hub.path = path
         w = WorkerHandle(self, hub, path, phase)
         w.fingerprint = fingerprint(apply_overrides(cfg, self.opts))
+        w.served = self.served_for(apply_overrides(cfg, self.opts)) if self.served_for else frozenset()
         hub.worker = w
         self.workers[path] = w          # started by tick(), a few at a time
 

@@ -24,33 +24,44 @@ from typing import Any
 
 from ..compose import build_station
 from ..config import ConfigError, load_station
+from ..northbound.metrics import MetricsOutput
 from ..records import Command, CommandKind, Event, SlotRecord, StationState
 from ..station.fleet import StationRunner
 from ..station.station import Station
 from ..threadloop import submit_to
 from .fleetcfg import RunOptions, apply_overrides
-from .ipc import PROTO, FrameChannel, FrameDecoder, FrameType, ProtocolError, read_frames
+from .ipc import PROTO, FrameChannel, FrameDecoder, FrameType, ProtocolError, read_frames, slot_row
 
 log = logging.getLogger("hookwatch.worker")
 
 #: one SLOTS frame per this many slots (0.2 s at 50 Hz)
 SUMMARY_EVERY = 10
 HEARTBEAT_S = 0.5
+#: one METRICS frame per this many heartbeats (1 s)
+METRICS_EVERY = 2
+#: what a supervisor may serve for its workers' stations (``--served-by-supervisor``)
+SERVED = ("modbus", "console", "metrics")
 
 
 class IpcOutput:
     """An :class:`~gateway.ports.Output` that sends a station's stream to the supervisor.
-    O(1) per slot, never blocks: frames go to a bounded :class:`FrameChannel`."""
+    O(1) per slot, never blocks: frames go to a bounded :class:`FrameChannel`. With ``rows``
+    (the supervisor serves the station's Modbus TCP unit or the console) every SLOTS frame also
+    carries the slot records it summarises, as lists of values (``ipc.SLOT_COLUMNS``)."""
 
-    def __init__(self, chan: FrameChannel, every: int = SUMMARY_EVERY) -> None:
+    def __init__(self, chan: FrameChannel, every: int = SUMMARY_EVERY, rows: bool = False) -> None:
         self.chan = chan
         self.every = max(1, int(every))
+        self.rows = rows
+        self._recs: list[SlotRecord] = []
         self._reset()
 
     def _reset(self) -> None:
         self._n = self._filled = self._valid = self._tn = 0
         self._mu = self._t = 0.0
         self._late = self._rtt = 0.0
+        if self._recs:
+            self._recs = []
 
     async def start(self) -> None:
         pass
@@ -60,6 +71,8 @@ class IpcOutput:
 
     def on_record(self, rec: SlotRecord) -> None:
         self._n += 1
+        if self.rows:
+            self._recs.append(rec)
         if rec.present:
             self._filled += 1
             self._t += (rec.t1 + rec.t2) * 0.5
@@ -72,12 +85,15 @@ class IpcOutput:
         if rec.lateness_s > self._late:
             self._late = rec.lateness_s
         if self._n >= self.every:
-            self.chan.send(FrameType.SLOTS, {
+            body = {
                 "k": rec.k, "n": self._n, "filled": self._filled, "valid": self._valid,
                 "mu_mean": self._mu / self._valid if self._valid else None,
                 "t_mean": self._t / self._tn if self._tn else None,
                 "lateness_ms_max": self._late * 1e3, "rtt_ms_max": self._rtt * 1e3,
-                "last": asdict(rec)})
+                "last": asdict(rec)}
+            if self.rows:
+                body["rows"] = [slot_row(r) for r in self._recs]
+            self.chan.send(FrameType.SLOTS, body)
             self._reset()
 
     def on_event(self, ev: Event) -> None:
@@ -89,14 +105,17 @@ class IpcOutput:
 
 class Worker:
     def __init__(self, sock: socket.socket, station_file: str, fleet_file: str | None,
-                 opts: RunOptions, phase: float = 0.0, summary_every: int = SUMMARY_EVERY) -> None:
+                 opts: RunOptions, phase: float = 0.0, summary_every: int = SUMMARY_EVERY,
+                 served: frozenset[str] = frozenset()) -> None:
         self.sock = sock
         self.station_file = station_file
         self.fleet_file = fleet_file
         self.opts = opts
         self.phase = phase
+        #: what the supervisor serves for this station: Modbus TCP unit, console, metrics
+        self.served = frozenset(served)
         self.chan = FrameChannel(sock, name="ipc-writer")
-        self.out = IpcOutput(self.chan, summary_every)
+        self.out = IpcOutput(self.chan, summary_every, rows=bool(self.served & {"modbus", "console"}))
         self.stop = threading.Event()
         self.go = threading.Event()
         self.station: Station | None = None
@@ -109,7 +128,8 @@ class Worker:
 
     def factory(self, cfg: Any) -> Callable[[], Station]:
         def make() -> Station:
-            st = build_station(cfg, outputs=[self.out], with_northbound=not self.opts.no_northbound)
+            st = build_station(cfg, outputs=[self.out], with_northbound=not self.opts.no_northbound,
+                               served_by_supervisor=self.served)
             st.slot_phase = self.phase
             return st
         return make
@@ -141,8 +161,9 @@ class Worker:
         self.stop.set()
         self.go.set()
 
-    def _reply(self, fid: Any, ok: bool, reason: str, request_id: Any = None) -> None:
-        self.chan.send(FrameType.REPLY, {"id": fid, "ok": ok, "reason": reason, "request_id": request_id})
+    def _reply(self, fid: Any, ok: bool, reason: str, request_id: Any = None, code: int = 0) -> None:
+        self.chan.send(FrameType.REPLY, {"id": fid, "ok": ok, "reason": reason, "code": code,
+                                         "request_id": request_id})
 
     def _command(self, body: dict[str, Any]) -> None:
         fid = body.get("id")
@@ -162,7 +183,7 @@ class Worker:
         def done(f: Any) -> None:
             try:
                 rep = f.result()
-                self._reply(fid, bool(rep.ok), rep.reason, rep.request_id)
+                self._reply(fid, bool(rep.ok), rep.reason, rep.request_id, int(getattr(rep, "code", 0) or 0))
             except Exception as e:  # the station's submit failed: an answer all the same
                 self._reply(fid, False, f"{type(e).__name__}: {e}", cmd.request_id)
         fut.add_done_callback(done)
@@ -189,6 +210,21 @@ class Worker:
             "results": len(self.results()),
             "dropped": self.chan.dropped, "crashes": r.crashes if r else 0})
 
+    def _metrics(self) -> None:
+        """The station's metrics snapshot to the supervisor (this thread, not the slot loop: the
+        snapshot reads the drivers' counters and the outbox file, as a scrape does)."""
+        r = self.runner
+        st = r.station if r is not None else None
+        m = next((o for o in (st.outputs if st is not None else ()) if isinstance(o, MetricsOutput)), None)
+        if m is None:
+            return
+        try:
+            snap = m.snapshot()
+        except Exception:  # a failed snapshot must not stop the heartbeat
+            log.exception("metrics snapshot failed")
+            return
+        self.chan.send(FrameType.METRICS, snap)
+
     def run(self) -> int:
         cfg = self.load()
         self.runner = r = StationRunner(cfg.station.id, self.factory(cfg), on_started=self._started)
@@ -200,12 +236,16 @@ class Worker:
             self.sock.close()
             return 0
         r.start()
+        n = 0
         while not self.stop.is_set() and r.tl.running:
             self.stop.wait(HEARTBEAT_S)
             try:
                 r.tl.call_soon(self._heartbeat)
             except RuntimeError:
                 break
+            n += 1
+            if "metrics" in self.served and n % METRICS_EVERY == 0:
+                self._metrics()
         clean = self.stop.is_set()
         r.request_stop()
         if r.tl.thread is not None:
@@ -231,6 +271,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--phase", type=float, default=0.0)
     ap.add_argument("--options", default="{}", help="hookwatch run's options as JSON")
     ap.add_argument("--summary-every", type=int, default=SUMMARY_EVERY)
+    ap.add_argument("--served-by-supervisor", default="", metavar="LIST",
+                    help="comma-separated: " + ", ".join(SERVED) + " — served by the supervisor "
+                         "from this worker's IPC stream, not in this process")
     args = ap.parse_args(argv)
     opts = RunOptions(**json.loads(args.options))
     logging.basicConfig(level=getattr(logging, (opts.log_level or "info").upper(), logging.INFO),
@@ -238,7 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     sys.setswitchinterval(0.0005)
     sock = socket.socket(fileno=args.fd)
-    w = Worker(sock, args.station_file, args.fleet_file or None, opts, args.phase, args.summary_every)
+    served = frozenset(x for x in args.served_by_supervisor.split(",") if x in SERVED)
+    w = Worker(sock, args.station_file, args.fleet_file or None, opts, args.phase, args.summary_every,
+               served)
     signal.signal(signal.SIGTERM, lambda s, f: w.stop.set())
     signal.signal(signal.SIGINT, lambda s, f: w.stop.set())
     signal.signal(signal.SIGHUP, signal.SIG_IGN)      # reloads come from the supervisor

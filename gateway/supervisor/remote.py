@@ -1,0 +1,217 @@
+"""A station as the supervisor sees it: the proxy that drives the shared outputs of a fleet.
+
+In ``hookwatch run FLEET_DIR`` every station runs in its own worker process, but the things a
+fleet shares stay in the supervisor: the Modbus TCP port with one unit per station, the operator
+console, the metrics endpoint. A :class:`RemoteStation` per station stands in for the
+:class:`~gateway.station.station.Station` those outputs were written for. It rebuilds the
+station's stream from its worker's IPC frames (:mod:`.ipc`: every
+:class:`~gateway.records.SlotRecord` from the SLOTS frames' ``rows``, every
+:class:`~gateway.records.Event`, every :class:`~gateway.records.StationState`, the METRICS
+snapshots) and calls the SAME output classes the in-process runtime uses (``ModbusOutput``,
+``ConsoleOutput``, ``MetricsRelay``), so register map, console and metrics have one definition
+in both modes.
+
+Threads: frames arrive on the hub's reader thread (one per worker, as a station has one loop)
+and the outputs' ``on_record``/``on_event``/``on_state`` run there (they are O(1), never
+blocking). The outputs' coroutines — ``start``/``stop`` and :meth:`RemoteStation.submit`, where
+their commands go — run on one supervisor loop (:class:`~gateway.threadloop.ThreadLoop`
+``fleet-outputs``); :meth:`submit` waits for the worker's REPLY in an executor thread
+(``StationHub.command`` blocks up to its timeout), so neither a server's loop nor a reader thread
+ever waits for a worker.
+
+A worker that is down (crashed, killed, restarting) is shown as down, not with stale values:
+its outputs get a state with every link down (PLC status bits ``meter_ok``, ``stm32_ok``,
+``mqtt_connected`` 0; the heartbeat register stops), ``on_worker(False)`` where an output has it
+(console: the station is offline; metrics: ``hookwatch_station_up`` 0), and commands are refused
+with ``NO_STATION``.
+"""
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+from typing import Any
+
+from ..ports import Output, StationLimits
+from ..records import Command, CommandReply, SlotRecord, StationState
+from ..station.commands import CODE, Rejection
+from ..threadloop import ThreadLoop
+from .ipc import FrameType, event_from_dict, slot_from_row, state_from_dict
+
+__all__ = ["COMMAND_TIMEOUT_S", "RemoteFleet", "RemoteStation"]
+
+log = logging.getLogger("hookwatch.supervisor")
+
+#: how long a command waits for its worker's reply (the PLC server waits 5 s for the station)
+COMMAND_TIMEOUT_S = 4.5
+
+
+class RemoteStation:
+    """The supervisor's stand-in of one station for the outputs it serves (see the module doc).
+
+    Attributes the outputs read of a station: ``id``, ``ts``, ``limits``, ``default_plan``,
+    ``state`` (latest :class:`StationState`), ``outputs``; ``submit(cmd)`` is the command sink."""
+
+    def __init__(self, hub: Any, *, ts: float = 0.02, limits: StationLimits | None = None,
+                 default_plan: Any = None) -> None:
+        self.hub = hub
+        self.id = hub.name
+        self.ts = float(ts)
+        self.limits = limits if limits is not None else StationLimits()
+        self.default_plan = default_plan
+        self.state = StationState(station=self.id)
+        self.outputs: list[Output] = []
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.up = False
+        self.last_k: int | None = None
+        #: slot records the IPC lost (frames dropped by a stalled supervisor), counted
+        self.lost = 0
+        self._failed: set[tuple[str, str]] = set()
+
+    # ------------------------------------------------------------ lifecycle (the outputs' loop)
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        for o in self.outputs:
+            try:
+                await o.start()
+            except Exception:  # one output that cannot start must not keep the others away
+                log.exception("%s: shared output %s did not start", self.id, type(o).__name__)
+        self.on_worker(False)           # down until its worker says HELLO
+        self.hub.sink = self
+
+    async def stop(self) -> None:
+        if self.hub.sink is self:
+            self.hub.sink = None
+        for o in self.outputs:
+            try:
+                await o.stop()
+            except Exception:
+                log.exception("%s: shared output %s did not stop cleanly", self.id, type(o).__name__)
+
+    # ------------------------------------------------------------ the command sink
+    async def submit(self, cmd: Command) -> CommandReply:
+        """A command for the station: to its worker (``StationHub.command``, off this loop)."""
+        if not self.up:
+            return Rejection(False, f"station {self.id} is not running (its worker is down)",
+                             cmd.request_id, CODE["NO_STATION"])
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(
+            None, lambda: self.hub.command(cmd.kind.value, dict(cmd.args), source=cmd.source,
+                                           request_id=cmd.request_id, timeout=COMMAND_TIMEOUT_S))
+
+    # ------------------------------------------------------------ frames (the hub's reader thread)
+    def on_frame(self, ftype: FrameType, body: dict[str, Any]) -> None:
+        if ftype == FrameType.SLOTS:
+            rows = body.get("rows")
+            if not isinstance(rows, list):
+                return
+            for row in rows:
+                try:
+                    rec = slot_from_row(row)
+                except (TypeError, ValueError) as e:
+                    self._bad("slot row", e)
+                    continue
+                self._record(rec)
+        elif ftype == FrameType.EVENT:
+            try:
+                ev = event_from_dict(body)
+            except (KeyError, TypeError, ValueError) as e:
+                self._bad("event", e)
+                return
+            self._each("on_event", ev)
+        elif ftype == FrameType.STATE:
+            try:
+                st = state_from_dict(body)
+            except (TypeError, ValueError) as e:
+                self._bad("state", e)
+                return
+            self.state = st
+            self._each("on_state", st)
+        elif ftype == FrameType.METRICS:
+            for o in self.outputs:
+                fn = getattr(o, "on_metrics", None)
+                if fn is not None:
+                    fn(body)
+
+    def _record(self, rec: SlotRecord) -> None:
+        last = self.last_k
+        if last is not None and rec.k > last + 1:
+            # frames were dropped between the worker and here: say so to outputs that can mend it
+            # (the console reads the test so far from the recorder's log)
+            n = rec.k - last - 1
+            self.lost += n
+            for o in self.outputs:
+                fn = getattr(o, "on_lost", None)
+                if fn is not None:
+                    fn(n)
+        self.last_k = rec.k
+        self._each("on_record", rec)
+
+    def on_worker(self, up: bool, restarts: int = 0) -> None:
+        """The worker came up (HELLO) or went down (its link closed)."""
+        self.up = bool(up)
+        self.last_k = None
+        if not up:
+            down = dataclasses.replace(self.state, meter_ok=False, stm32_ok=False, mqtt_ok=False)
+            self.state = down
+            self._each("on_state", down)
+        for o in self.outputs:
+            fn = getattr(o, "on_worker", None)
+            if fn is not None:
+                try:
+                    fn(self.up, restarts)
+                except Exception:
+                    log.exception("%s: %s.on_worker failed", self.id, type(o).__name__)
+
+    def _each(self, method: str, item: Any) -> None:
+        for o in self.outputs:
+            try:
+                getattr(o, method)(item)
+            except Exception:
+                key = (type(o).__name__, method)
+                if key not in self._failed:       # one traceback per output and kind, not 50 a second
+                    self._failed.add(key)
+                    log.exception("%s: shared output %s.%s failed", self.id, *key)
+
+    def _bad(self, what: str, e: Exception) -> None:
+        key = ("frame", what)
+        if key not in self._failed:
+            self._failed.add(key)
+            log.error("%s: a %s from the worker could not be read: %s", self.id, what, e)
+
+
+class RemoteFleet:
+    """The station proxies of one supervisor and the loop their outputs' coroutines run on."""
+
+    def __init__(self) -> None:
+        self.tl = ThreadLoop("fleet-outputs")
+        self.stations: dict[str, RemoteStation] = {}
+        #: per station, what its outputs were built from (rebuilt when it changes on SIGHUP)
+        self.keys: dict[str, str] = {}
+
+    def add(self, st: RemoteStation, key: str = "", timeout: float = 15.0) -> None:
+        """Start ``st``'s outputs and attach it to its hub (replacing an earlier proxy)."""
+        self.tl.start()
+        old = self.stations.pop(st.id, None)
+        if old is not None:
+            self.tl.submit(old.stop()).result(timeout)
+        self.stations[st.id] = st
+        self.keys[st.id] = key
+        self.tl.submit(st.start()).result(timeout)
+        w = st.hub.worker
+        if w is not None and w.hello and w.running:     # a worker already up (a rebuilt proxy)
+            st.on_worker(True, w.restarts)
+
+    def remove(self, name: str, timeout: float = 15.0) -> None:
+        st = self.stations.pop(name, None)
+        self.keys.pop(name, None)
+        if st is not None:
+            self.tl.submit(st.stop()).result(timeout)
+
+    def stop(self, timeout: float = 15.0) -> None:
+        for name in list(self.stations):
+            try:
+                self.remove(name, timeout)
+            except Exception as e:  # stopping goes on for the others
+                log.warning("%s: shared outputs did not stop: %s", name, e)
+        self.tl.stop(timeout)
