@@ -1,0 +1,175 @@
+"""Issue 16 item 1: the shared things of a fleet stay in the supervisor — one Modbus TCP port with
+one unit per station, the operator console, the metrics endpoint — fed by each station's worker
+process over the IPC. Real processes: one `hookwatch sim --count 3` hosting three virtual stations,
+`hookwatch run FLEET_DIR` (a supervisor and a worker per station), `mbpoll` as the PLC, plain HTTP
+as Prometheus and as the console's browser, `kill -9` of a worker."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import time
+import urllib.request
+
+import pytest
+import yaml
+from prometheus_client.parser import text_string_to_metric_families
+
+from conftest import ROOT, hookwatch_cmd
+from gateway.northbound import registers as R
+from kit.e2e import fleet_dir, run_gateway, wait_log
+from kit.northbound import mbpoll
+from kit.proc import Proc
+from kit.tools import free_port, require_tool, wait_for
+
+pytestmark = pytest.mark.slow
+
+NAMES = ("sim01", "sim02", "sim03")
+UNITS = {"sim01": 1, "sim02": 2, "sim03": 3}
+IR = R.IR
+STATUS = IR["status"].address
+LINK_BITS = (1 << R.STATUS_BIT["meter_ok"]) | (1 << R.STATUS_BIT["stm32_ok"])
+
+
+def _sim(tmp_path, n: int) -> tuple[Proc, str]:
+    """One `hookwatch sim --count n` (stations sim01…); its links under tmp_path/links/NAME/."""
+    with open(os.path.join(ROOT, "config", "scenarios", "quick.yaml")) as f:
+        sc = yaml.safe_load(f)
+    sc["meter"] = {"map": os.path.join(ROOT, "config", "meters", "zn-s.yaml")}
+    (tmp_path / "sc.yaml").write_text(yaml.safe_dump(sc))
+    links = tmp_path / "links"
+    p = Proc(hookwatch_cmd() + ["sim", str(tmp_path / "sc.yaml"), "--count", str(n), "--link-dir",
+                                str(links), "--duration", "600"], str(tmp_path / "sim.log"))
+    p.readline_until("ready:")
+    return p, str(links)
+
+
+def _fleet(tmp_path, links: str, mport: int, metrics_port: int, console_port: int):
+    fleet = fleet_dir(
+        tmp_path, test={"t_end_s": 600, "sample_id": "S-1", "grade": "I"},
+        modbus_tcp={"enabled": True, "port": mport,
+                    "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}},
+        metrics={"enabled": True, "port": metrics_port},
+        console={"enabled": True, "listen": [f"127.0.0.1:{console_port}"]})
+    for name in NAMES:
+        st = {"station": {"id": name}, "meter": {"port": os.path.join(links, name, "meter")},
+              "stm32": {"port": os.path.join(links, name, "stm32")},
+              "modbus_tcp": {"unit_id": UNITS[name]}}
+        if name != "sim03":              # sim03 waits for the PLC's start
+            st["test"] = {"autostart": True}
+        (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump(st))
+    return fleet
+
+
+def _u32(port: int, unit: int, name: str) -> int:
+    rc, v, err = mbpoll(port, "-t", "3:int", "-B", "-r", str(IR[name].address), unit=unit)
+    assert rc == 0, err
+    return v[IR[name].address]
+
+
+def _status(port: int, unit: int) -> int:
+    rc, v, err = mbpoll(port, "-t", "3", "-r", str(STATUS), unit=unit)
+    assert rc == 0, err
+    return v[STATUS]
+
+
+def _metrics(port: int) -> dict[tuple[str, str], float]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as r:
+        text = r.read().decode()
+    return {(s.name, s.labels.get("station", "")): s.value
+            for f in text_string_to_metric_families(text) for s in f.samples
+            if s.name in ("hookwatch_slots_total", "hookwatch_station_up", "hookwatch_worker_restarts_total")}
+
+
+def _fleet_api(port: int) -> dict[str, dict]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/fleet", timeout=5) as r:
+        return {s["station"]: s for s in json.load(r)["stations"]}
+
+
+def _pids(gw, name) -> list[int]:
+    return [int(p) for p in re.findall(rf"{name}: worker started \(pid (\d+)\)", gw.log_all())]
+
+
+def test_one_modbus_port_console_and_metrics_in_the_supervisor_kill_9_shows_down_then_back(tmp_path):
+    require_tool("mbpoll")
+    mport, metrics_port, console_port = free_port(), free_port(), free_port()
+    sim, links = _sim(tmp_path, 3)
+    gw = None
+    try:
+        fleet = _fleet(tmp_path, links, mport, metrics_port, console_port)
+        gw = run_gateway(tmp_path, str(fleet), "--restart-backoff", "3")
+        for name in NAMES:
+            wait_for(lambda n=name: _pids(gw, n), 30, 0.2, what=f"{name}: worker started")
+        pids = {n: _pids(gw, n)[0] for n in NAMES}
+        # really a process per station, and no fallback to one process
+        assert len(set(pids.values())) == 3 and gw.p.pid not in pids.values()
+        log = gw.log_all()
+        assert "runs in one process" not in log and "in-process" not in log, log
+        assert log.count("Modbus TCP server listening on") == 1
+        assert log.count("metrics for Prometheus on") == 1
+
+        # the PLC: each station's unit on the ONE port, its slot counter moving
+        wait_log(gw, "sim01: test_started", 40)
+        wait_log(gw, "sim02: test_started", 20)
+        first = {n: _u32(mport, UNITS[n], "slots") for n in ("sim01", "sim02")}
+        time.sleep(1.0)
+        for n in ("sim01", "sim02"):
+            assert _u32(mport, UNITS[n], "slots") >= first[n] + 25, n
+            assert _status(mport, UNITS[n]) & LINK_BITS == LINK_BITS, n
+        assert _u32(mport, 3, "slots") == 0
+        # a PLC start reaches sim03 (and only it)
+        rc, _, err = mbpoll(mport, "-t", "4", "-r", str(R.HR["command"].address), unit=3,
+                            values=[R.COMMAND_CODE["start"]])
+        assert rc == 0, err
+        wait_log(gw, "sim03: test_starting", 10)
+        rc, v, err = mbpoll(mport, "-t", "3", "-r", str(IR["last_command"].address), "-c", "2", unit=3)
+        assert rc == 0 and v[IR["last_command"].address] == R.COMMAND_CODE["start"], (v, err)
+        assert v[IR["last_command"].address + 1] == 0, v              # accepted
+        # a second start is refused by the station itself, its reason code reaches the PLC
+        rc, _, err = mbpoll(mport, "-t", "4", "-r", str(R.HR["command"].address), unit=3,
+                            values=[R.COMMAND_CODE["start"]])
+        assert rc != 0
+        rc, v, err = mbpoll(mport, "-t", "3", "-r", str(IR["last_command"].address), "-c", "2", unit=3)
+        assert rc == 0 and v[IR["last_command"].address + 1] != 0, v
+        wait_log(gw, "sim03: test_started", 30)
+        assert re.search(r"sim03: test_started .*'source': 'plc:127\.0\.0\.1'", gw.log_all())
+        assert gw.log_all().count(": test_starting") == 3           # sim01, sim02 (auto), sim03 (PLC)
+
+        # Prometheus: series labelled by each station, moving
+        m0 = _metrics(metrics_port)
+        for n in NAMES:
+            assert m0[("hookwatch_station_up", n)] == 1.0 and m0[("hookwatch_slots_total", n)] > 0, m0
+        # the console: every station, with a moving slot count for the ones in a test
+        cards = _fleet_api(console_port)
+        assert set(cards) == set(NAMES) and all(c["online"] for c in cards.values()), cards
+        wait_for(lambda: _fleet_api(console_port)["sim01"]["slots"] > cards["sim01"]["slots"] + 20, 5,
+                 0.2, what="the console's slot count moving")
+
+        # kill -9 of sim02's worker: down in its unit, its metrics and the console; back after
+        # the restart; the neighbours keep counting meanwhile
+        n1 = _u32(mport, 1, "slots")
+        os.kill(pids["sim02"], signal.SIGKILL)
+        wait_for(lambda: _metrics(metrics_port)[("hookwatch_station_up", "sim02")] == 0.0, 3, 0.1,
+                 what="hookwatch_station_up{sim02} 0")
+        assert _status(mport, 2) & LINK_BITS == 0
+        assert not _fleet_api(console_port)["sim02"]["online"]
+        assert _metrics(metrics_port)[("hookwatch_station_up", "sim01")] == 1.0
+        wait_for(lambda: len(_pids(gw, "sim02")) == 2, 20, 0.2, what="sim02 restarted")
+        wait_for(lambda: _metrics(metrics_port)[("hookwatch_station_up", "sim02")] == 1.0, 20, 0.2,
+                 what="hookwatch_station_up{sim02} 1 again")
+        wait_for(lambda: _status(mport, 2) & LINK_BITS == LINK_BITS, 20, 0.3,
+                 what="sim02's link bits back")
+        assert _fleet_api(console_port)["sim02"]["online"]
+        m1 = _metrics(metrics_port)
+        assert m1[("hookwatch_worker_restarts_total", "sim02")] == 1.0
+        assert m1[("hookwatch_worker_restarts_total", "sim01")] == 0.0
+        assert _u32(mport, 1, "slots") >= n1 + 100            # the neighbour never stopped
+        for n in ("sim01", "sim03"):
+            assert _pids(gw, n) == [pids[n]], n
+    finally:
+        if gw is not None:
+            rc = gw.stop()
+        sim.stop()
+    assert rc == 0, gw.log()
+    assert "Traceback" not in gw.log_all(), gw.log_all()[-4000:]
