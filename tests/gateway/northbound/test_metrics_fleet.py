@@ -31,7 +31,8 @@ def test_fleet_shares_the_endpoint_and_a_reload_keeps_counting(tmp_path):
             (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
                 "station": {"id": name}, "meter": {"port": links["meter"]},
                 "stm32": {"port": links["stm32"]}}))
-        gw = run_gateway(tmp_path, str(fleet))
+        # a fleet in ONE process (per process: tests/test_supervisor_shared_e2e.py)
+        gw = run_gateway(tmp_path, str(fleet), "--in-process")
         try:
             wait_log(gw, "metrics for Prometheus on", timeout=30)
             before = wait_for(lambda: (s := slots(mport)).keys() == set(STATIONS)
