@@ -328,8 +328,9 @@ class MetricsConfig:
                         "(docs/metrics.md)", kind="bool")
     host: str = key("127.0.0.1", "address to listen on (0.0.0.0: every interface; the endpoint has "
                     "no authentication)", kind="str")
-    port: int = key(9620, "TCP port; every station of one process shares the endpoint on the same "
-                    "host and port (one series set per station)", kind="int", lo=1, hi=65535)
+    port: int = key(9620, "TCP port; every station of a fleet (`hookwatch run DIR`) shares the "
+                    "endpoint on the same host and port (one series set per station)", kind="int",
+                    lo=1, hi=65535)
 
 
 @dataclass(frozen=True, kw_only=True)
