@@ -16,13 +16,14 @@ from drivers.zns import ZnsMeter
 from .console.server import ConsoleServer, ConsoleSettings
 from .northbound.metrics import MetricsRelay
 from .northbound.modbus_server import ModbusOutput
+from .northbound.sparkplug.output import settings_from_config as sparkplug_settings
 from .northbound.wiring import metrics_outputs, modbus_settings, outputs_for
 from .ports import MeterPort, Output, Stm32Port
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.station import Station
 
 __all__ = ["build_console", "build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok",
-           "served_by_supervisor", "shared_outputs", "station_facts"]
+           "served_by_supervisor", "shared_outputs", "shared_sparkplug_nodes", "station_facts"]
 
 
 def build_meter(cfg) -> MeterPort:
@@ -136,3 +137,16 @@ def shared_outputs(cfg, station, console: ConsoleServer | None = None, *,
     if m.enabled:
         outs.append(MetricsRelay(station.id, m.host, int(m.port), ts=station.ts, modbus=modbus))
     return outs
+
+
+def shared_sparkplug_nodes(cfgs: list) -> list[str]:
+    """Sparkplug edge nodes that several stations of ``cfgs`` share (same broker, group and edge
+    node: one MQTT session for all of them), as ``group/node`` names. Such a node must live in one
+    process: a fleet with one runs in one process (``hookwatch run`` says so)."""
+    seen: dict[tuple, list[str]] = {}
+    for c in cfgs:
+        if getattr(c, "sparkplug", None) is None or not c.sparkplug.enabled:
+            continue
+        s = sparkplug_settings(c)
+        seen.setdefault((tuple(s.servers), s.group_id, s.edge_node_id), []).append(c.station.id)
+    return sorted(f"{g}/{n}" for (_, g, n), ids in seen.items() if len(ids) > 1)

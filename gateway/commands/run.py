@@ -11,7 +11,15 @@ import time
 
 from .. import sdnotify
 from ..cli import CliError
-from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_outputs, station_facts
+from ..compose import (
+    build_console,
+    build_station,
+    records_dir_ok,
+    served_by_supervisor,
+    shared_outputs,
+    shared_sparkplug_nodes,
+    station_facts,
+)
 from ..config import ConfigError, load_fleet, load_station
 from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
@@ -232,6 +240,15 @@ def run_supervised(args) -> int:
     level = args.log_level or getattr(getattr(first, "logging", None), "level", None) or "info"
     _setup_logging(level)
     log = logging.getLogger("hookwatch.run")
+    nodes = [] if args.no_northbound else shared_sparkplug_nodes(cfgs)
+    if nodes:
+        # one Sparkplug edge node (one MQTT session, one bdSeq) serves several stations: it lives
+        # in one process, and the supervisor does not host Sparkplug nodes (docs/runtime.md)
+        log.warning("stations share the Sparkplug edge node(s) %s: the fleet runs in one process "
+                    "(--in-process); give each station its own sparkplug.edge_node_id for a process "
+                    "per station", ", ".join(nodes))
+        args.in_process = True
+        return run(args)
     opts = RunOptions.from_args(args)
     opts.log_level = level
     with_nb = not args.no_northbound

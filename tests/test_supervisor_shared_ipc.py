@@ -1,0 +1,151 @@
+"""The IPC that feeds a fleet's shared outputs (issue 16 item 1): every slot record, event and
+state of a worker crosses as strict JSON and comes back equal; a worker's stream drives a
+RemoteStation's outputs; a gap in the slot numbers is told to the outputs; a worker down turns
+the links off. The end-to-end proof with real processes is tests/test_supervisor_shared_e2e.py."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import socket
+import threading
+import time
+from dataclasses import asdict
+
+import yaml
+
+from gateway.compose import shared_sparkplug_nodes
+from gateway.config import load_fleet
+from gateway.records import Event, EventType, SlotRecord, StationState
+from gateway.records import TestState as TS
+from gateway.supervisor import ipc
+from gateway.supervisor.remote import RemoteStation
+from gateway.supervisor.worker import IpcOutput
+from kit.e2e import fleet_dir
+
+
+def _rec(k: int, **kw) -> SlotRecord:
+    d = dict(k=k, t=k * 0.02, present=True, t1=0.41, t2=0.63, q=1, mask=0, ratio=1.5, mu=0.21,
+             mean_filt=0.52, speed_cmd=120.0, speed_act=119.5, saturated=False, lateness_s=0.0004,
+             rtt_s=0.0046)
+    d.update(kw)
+    return SlotRecord(**d)
+
+
+def test_slot_records_events_and_states_cross_as_json_and_come_back_equal():
+    recs = [_rec(7), _rec(8, present=False, t1=math.nan, t2=math.nan, q=0, mask=1, ratio=None, mu=None,
+                           speed_act=math.nan, rtt_s=math.nan, saturated=True)]
+    frame = ipc.encode(ipc.FrameType.SLOTS, {"rows": [ipc.slot_row(r) for r in recs]})
+    ((ft, body),) = ipc.FrameDecoder().feed(frame)
+    assert ft == ipc.FrameType.SLOTS
+    back = [ipc.slot_from_row(r) for r in body["rows"]]
+    assert back[0] == recs[0]
+    b = back[1]
+    assert (b.k, b.present, b.q, b.mask, b.ratio, b.mu, b.saturated) == (8, False, 0, 1, None, None, True)
+    assert all(math.isnan(x) for x in (b.t1, b.t2, b.speed_act, b.rtt_s))
+    assert list(body["rows"][1]).count(None) >= 6                   # strict JSON: NaN is null
+    ev = Event(EventType.BASELINE, "st", 1764000000.5, "T-1", 123, {"mu_ss": 0.2, "k_b": 100})
+    assert ipc.event_from_dict(json.loads(json.dumps(ev.as_dict()))) == ev
+    st = StationState("st", state=TS.MONITORING, test_id="T-1", mu_ss=0.2, meter_ok=True)
+    ((_, wire),) = ipc.FrameDecoder().feed(ipc.encode(ipc.FrameType.STATE, asdict(st)))   # as the worker
+    assert ipc.state_from_dict({**wire, "a_newer_field": 1}) == st
+    try:
+        ipc.slot_from_row([1, 2, 3])
+        raise AssertionError("a short row must be refused")
+    except ValueError:
+        pass
+
+
+class _Capture:
+    def __init__(self):
+        self.items, self.worker, self.lost, self.metrics = [], [], [], []
+
+    async def start(self):
+        pass
+
+    async def stop(self):
+        pass
+
+    def on_record(self, rec):
+        self.items.append(rec)
+
+    def on_event(self, ev):
+        self.items.append(ev)
+
+    def on_state(self, st):
+        self.items.append(st)
+
+    def on_worker(self, up, restarts=0):
+        self.worker.append((up, restarts))
+
+    def on_lost(self, n):
+        self.lost.append(n)
+
+    def on_metrics(self, snap):
+        self.metrics.append(snap)
+
+
+class _Hub:
+    name = "st"
+    sink = None
+    worker = None
+
+
+def test_a_workers_stream_over_a_real_socket_drives_the_proxys_outputs():
+    """IpcOutput (worker side) → FrameChannel → socketpair → decoder → RemoteStation → outputs."""
+    a, b = socket.socketpair()
+    chan = ipc.FrameChannel(a)
+    out = IpcOutput(chan, every=10, rows=True)
+    proxy = RemoteStation(_Hub())
+    cap = _Capture()
+    proxy.outputs = [cap]
+    got: list = []
+
+    def read():
+        dec = ipc.FrameDecoder()
+        while True:
+            frames = ipc.read_frames(b, dec)
+            if frames is None:
+                return
+            for ft, body in frames:
+                got.append(ft)
+                proxy.on_frame(ft, body)
+    th = threading.Thread(target=read)
+    th.start()
+    proxy.on_worker(True, 0)
+    out.on_state(StationState("st", state=TS.BASELINE_SEARCH, meter_ok=True, stm32_ok=True))
+    for k in range(20):
+        out.on_record(_rec(k))
+    out.on_event(Event(EventType.TEST_STARTED, "st", time.time(), "T-1", 0, {"t_set": 0.5}))
+    for k in range(40, 50):                 # slots 20…39 lost between worker and supervisor
+        out.on_record(_rec(k))
+    chan.send(ipc.FrameType.METRICS, {"v": 1, "station": "st", "slots": 50})
+    chan.flush()
+    a.close()
+    th.join(5)
+    b.close()
+    recs = [x for x in cap.items if isinstance(x, SlotRecord)]
+    assert [r.k for r in recs] == list(range(20)) + list(range(40, 50))
+    assert recs[3] == _rec(3)
+    assert cap.lost == [20] and proxy.lost == 20
+    assert any(isinstance(x, Event) and x.type == EventType.TEST_STARTED for x in cap.items)
+    assert proxy.state.state == TS.BASELINE_SEARCH and proxy.state.meter_ok
+    assert cap.metrics == [{"v": 1, "station": "st", "slots": 50}]
+    # the worker goes down: the outputs see every link off and the proxy refuses commands
+    proxy.on_worker(False, 1)
+    assert cap.worker[-1] == (False, 1)
+    assert not proxy.state.meter_ok and not proxy.state.stm32_ok and cap.items[-1] is proxy.state
+    assert got.count(ipc.FrameType.SLOTS) == 3
+
+
+def test_stations_sharing_a_sparkplug_edge_node_are_found(tmp_path):
+    """Such a node is one MQTT session for several stations: the fleet runs in one process."""
+    fleet = fleet_dir(tmp_path, sparkplug={"enabled": True})
+    for name in ("a", "b"):
+        (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
+            "station": {"id": name}, "meter": {"port": f"/dev/tty-{name}-m"},
+            "stm32": {"port": f"/dev/tty-{name}-s"}}))
+    cfgs = load_fleet(str(fleet))
+    assert shared_sparkplug_nodes(cfgs) == ["lab/hall-l1"]
+    os.remove(fleet / "stations" / "b.yaml")
+    assert shared_sparkplug_nodes(load_fleet(str(fleet))) == []
