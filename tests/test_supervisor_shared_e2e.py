@@ -21,6 +21,8 @@ from gateway.northbound import registers as R
 from kit.e2e import fleet_dir, run_gateway, wait_log
 from kit.northbound import mbpoll
 from kit.proc import Proc
+from kit.prometheus import prometheus, query  # noqa: F401 (prometheus: a fixture)
+from kit.prometheus import wait_for as prom_wait
 from kit.tools import free_port, require_tool, wait_for
 
 pytestmark = pytest.mark.slow
@@ -173,3 +175,46 @@ def test_one_modbus_port_console_and_metrics_in_the_supervisor_kill_9_shows_down
         sim.stop()
     assert rc == 0, gw.log()
     assert "Traceback" not in gw.log_all(), gw.log_all()[-4000:]
+
+
+def test_prometheus_scrapes_the_supervisor_with_a_series_per_worker_station(tmp_path, prometheus):  # noqa: F811
+    """Debian's real Prometheus scrapes the fleet's one endpoint (in the supervisor): target up,
+    every station's series present and moving at 50 slots/s, each station up, no restarts."""
+    metrics_port = free_port()
+    sim, links = _sim(tmp_path, 2)
+    gw = None
+    try:
+        fleet = fleet_dir(tmp_path, metrics={"enabled": True, "port": metrics_port})
+        names = ("sim01", "sim02")
+        for name in names:
+            (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
+                "station": {"id": name}, "meter": {"port": os.path.join(links, name, "meter")},
+                "stm32": {"port": os.path.join(links, name, "stm32")}}))
+        gw = run_gateway(tmp_path, str(fleet))
+        wait_log(gw, "metrics for Prometheus on", 30)
+        api = prometheus(f"127.0.0.1:{metrics_port}")
+        plog = lambda: (tmp_path / "prometheus.log").read_text()[-3000:] + "\n" + gw.log()  # noqa: E731
+        prom_wait(lambda: [r for r in query(api, 'up{job="hookwatch"}') if r["value"][1] == "1"], 60,
+                  "target up", plog)
+
+        def per_station(promql):
+            return {r["metric"]["station"]: float(r["value"][1]) for r in query(api, promql)}
+
+        prom_wait(lambda: per_station("hookwatch_station_up") == {n: 1.0 for n in names}, 30,
+                  "both stations up", plog)
+        assert per_station("hookwatch_worker_restarts_total") == {n: 0.0 for n in names}
+        prom_wait(lambda: set(per_station('hookwatch_link_up{link="meter"}')) == set(names), 20,
+                  "meter links", plog)
+        time.sleep(5)
+        for n in names:
+            window = query(api, f'hookwatch_slots_total{{station="{n}"}}[6s]')[0]["values"]
+            assert len(window) >= 3, window
+            (t0, v0), (t1, v1) = window[0], window[-1]
+            assert 40 <= (float(v1) - float(v0)) / (t1 - t0) <= 60, (n, window)
+        pids = {n: _pids(gw, n) for n in names}
+        assert all(len(p) == 1 for p in pids.values()) and len({p[0] for p in pids.values()}) == 2
+        assert "runs in one process" not in gw.log_all()
+    finally:
+        if gw is not None:
+            gw.stop()
+        sim.stop()

@@ -1,85 +1,18 @@
 """Metrics scraped by Debian's real Prometheus server while `hookwatch run` runs against
 `hookwatch sim` (processes talking over pseudo-terminals; everything on loopback)."""
-import json
 import os
 import subprocess
 import time
-import urllib.parse
-import urllib.request
 
-import pytest
 import yaml
 
 from conftest import ROOT
 from kit.e2e import run_gateway, station_yaml, virtual_station, wait_log
+from kit.prometheus import RULES, prometheus, query, series, wait_for  # noqa: F401 (prometheus: a fixture)
 from kit.tools import free_port, require_tool
 
-RULES = os.path.join(ROOT, "deploy", "prometheus", "hookwatch-rules.yml")
 
-
-def query(api: str, promql: str) -> list[dict]:
-    url = f"{api}/api/v1/query?" + urllib.parse.urlencode({"query": promql})
-    with urllib.request.urlopen(url, timeout=5) as r:
-        body = json.load(r)
-    assert body["status"] == "success", body
-    return body["data"]["result"]
-
-
-def series(api: str, match: str) -> list[dict]:
-    url = f"{api}/api/v1/series?" + urllib.parse.urlencode({"match[]": match})
-    with urllib.request.urlopen(url, timeout=5) as r:
-        body = json.load(r)
-    assert body["status"] == "success", body
-    return body["data"]
-
-
-def wait_for(fn, timeout: float, what: str, log=lambda: ""):
-    t_end = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < t_end:
-        try:
-            last = fn()
-            if last:
-                return last
-        except OSError as e:      # Prometheus not listening yet
-            last = e
-        time.sleep(0.5)
-    raise AssertionError(f"{what}: last answer {last!r}\n{log()}")
-
-
-@pytest.fixture
-def prometheus(tmp_path):
-    """Start Prometheus on a free loopback port; yields (start(target), api url)."""
-    binary = require_tool("prometheus")
-    procs = []
-
-    def start(target: str) -> str:
-        port = free_port()
-        conf = tmp_path / "prometheus.yml"
-        conf.write_text(yaml.safe_dump({
-            "global": {"scrape_interval": "1s", "scrape_timeout": "900ms", "evaluation_interval": "1s"},
-            "rule_files": [RULES],
-            "scrape_configs": [{"job_name": "hookwatch", "static_configs": [{"targets": [target]}]}],
-        }))
-        log = open(tmp_path / "prometheus.log", "w")
-        p = subprocess.Popen([binary, f"--config.file={conf}", f"--web.listen-address=127.0.0.1:{port}",
-                              f"--storage.tsdb.path={tmp_path / 'tsdb'}", "--log.level=warn"],
-                             stdout=log, stderr=subprocess.STDOUT)
-        procs.append((p, log))
-        return f"http://127.0.0.1:{port}"
-
-    yield start
-    for p, log in procs:
-        p.terminate()
-        try:
-            p.wait(15)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-        log.close()
-
-
-def test_prometheus_scrapes_a_running_gateway(tmp_path, prometheus):
+def test_prometheus_scrapes_a_running_gateway(tmp_path, prometheus):  # noqa: F811 (the fixture)
     mport = free_port()
     with virtual_station(tmp_path, "config/scenarios/quick.yaml") as (_sim, links):
         path = station_yaml(tmp_path, links, name="loom-m", method={"w_ss": 5, "w_hold": 20, "tau": 5})
