@@ -22,6 +22,7 @@ from gateway.supervisor import ipc
 from gateway.supervisor.remote import RemoteStation
 from gateway.supervisor.worker import IpcOutput
 from kit.e2e import fleet_dir
+from kit.fakes import Capture
 
 
 def _rec(k: int, **kw) -> SlotRecord:
@@ -56,24 +57,12 @@ def test_slot_records_events_and_states_cross_as_json_and_come_back_equal():
         pass
 
 
-class _Capture:
+class _Capture(Capture):
+    """Capture, plus the hooks a station proxy calls where an output has them."""
+
     def __init__(self):
-        self.items, self.worker, self.lost, self.metrics = [], [], [], []
-
-    async def start(self):
-        pass
-
-    async def stop(self):
-        pass
-
-    def on_record(self, rec):
-        self.items.append(rec)
-
-    def on_event(self, ev):
-        self.items.append(ev)
-
-    def on_state(self, st):
-        self.items.append(st)
+        super().__init__()
+        self.worker, self.lost, self.metrics = [], [], []
 
     def on_worker(self, up, restarts=0):
         self.worker.append((up, restarts))
@@ -124,17 +113,17 @@ def test_a_workers_stream_over_a_real_socket_drives_the_proxys_outputs():
     a.close()
     th.join(5)
     b.close()
-    recs = [x for x in cap.items if isinstance(x, SlotRecord)]
+    recs = cap.records
     assert [r.k for r in recs] == list(range(20)) + list(range(40, 50))
     assert recs[3] == _rec(3)
     assert cap.lost == [20] and proxy.lost == 20
-    assert any(isinstance(x, Event) and x.type == EventType.TEST_STARTED for x in cap.items)
+    assert [e.type for e in cap.events] == [EventType.TEST_STARTED]
     assert proxy.state.state == TS.BASELINE_SEARCH and proxy.state.meter_ok
     assert cap.metrics == [{"v": 1, "station": "st", "slots": 50}]
     # the worker goes down: the outputs see every link off and the proxy refuses commands
     proxy.on_worker(False, 1)
     assert cap.worker[-1] == (False, 1)
-    assert not proxy.state.meter_ok and not proxy.state.stm32_ok and cap.items[-1] is proxy.state
+    assert not proxy.state.meter_ok and not proxy.state.stm32_ok and cap.states[-1] is proxy.state
     assert got.count(ipc.FrameType.SLOTS) == 3
 
 

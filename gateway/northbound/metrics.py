@@ -198,7 +198,27 @@ class OutboxGauge:
             self.close_locked()
 
 
-class MetricsOutput:
+class _EndpointSource:
+    """A station's snapshot source on the endpoint of (``host``, ``port``) while started."""
+    station_id: str
+    host: str
+    port: int
+    endpoint: Endpoint | None
+
+    def snapshot(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    async def start(self) -> None:
+        self.endpoint = endpoint(self.host, self.port)
+        self.endpoint.add_source(self.station_id, self.snapshot)
+
+    async def stop(self) -> None:
+        if self.endpoint is not None:
+            ep, self.endpoint = self.endpoint, None
+            ep.remove_source(self.station_id, self.snapshot)
+
+
+class MetricsOutput(_EndpointSource):
     """Station output feeding :class:`StationFigures`; registers the station on its endpoint."""
 
     def __init__(self, station, host: str = "127.0.0.1", port: int = 9620, *,
@@ -218,15 +238,11 @@ class MetricsOutput:
 
     # -- output protocol (station loop)
     async def start(self) -> None:
-        if not self.serve:
-            return
-        self.endpoint = endpoint(self.host, self.port)
-        self.endpoint.add_source(self.station_id, self.snapshot)
+        if self.serve:
+            await super().start()
 
     async def stop(self) -> None:
-        if self.endpoint is not None:
-            ep, self.endpoint = self.endpoint, None
-            ep.remove_source(self.station_id, self.snapshot)
+        await super().stop()
         if self._outbox is not None:
             self._outbox.close()
 
@@ -316,7 +332,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
     }
 
 
-class MetricsRelay:
+class MetricsRelay(_EndpointSource):
     """The supervisor's side of a fleet (``hookwatch run FLEET_DIR``): an output of a station
     proxy (gateway/supervisor/remote.py) that serves the snapshots its worker sends (METRICS
     frames, one a second) on this process' endpoint, with the counters of the Modbus TCP server
@@ -335,15 +351,6 @@ class MetricsRelay:
         self.up = False
         self.restarts = 0
         self.endpoint: Endpoint | None = None
-
-    async def start(self) -> None:
-        self.endpoint = endpoint(self.host, self.port)
-        self.endpoint.add_source(self.station_id, self.snapshot)
-
-    async def stop(self) -> None:
-        if self.endpoint is not None:
-            ep, self.endpoint = self.endpoint, None
-            ep.remove_source(self.station_id, self.snapshot)
 
     def on_record(self, rec: SlotRecord) -> None:
         pass        # the worker counts its slots; its snapshot carries them
