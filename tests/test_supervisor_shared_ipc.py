@@ -108,13 +108,16 @@ def test_a_workers_stream_over_a_real_socket_drives_the_proxys_outputs():
     out.on_event(Event(EventType.TEST_STARTED, "st", time.time(), "T-1", 0, {"t_set": 0.5}))
     for k in range(40, 50):                 # slots 20…39 lost between worker and supervisor
         out.on_record(_rec(k))
+    for k in range(50, 53):                 # a state in mid-batch: the 3 slots before it go first
+        out.on_record(_rec(k))
+    out.on_state(StationState("st", state=TS.BASELINE_SEARCH, meter_ok=True, stm32_ok=True, mu_ss=0.2))
     chan.send(ipc.FrameType.METRICS, {"v": 1, "station": "st", "slots": 50})
     chan.flush()
     a.close()
     th.join(5)
     b.close()
     recs = cap.records
-    assert [r.k for r in recs] == list(range(20)) + list(range(40, 50))
+    assert [r.k for r in recs] == list(range(20)) + list(range(40, 53))
     assert recs[3] == _rec(3)
     assert cap.lost == [20] and proxy.lost == 20
     assert [e.type for e in cap.events] == [EventType.TEST_STARTED]
@@ -124,7 +127,8 @@ def test_a_workers_stream_over_a_real_socket_drives_the_proxys_outputs():
     proxy.on_worker(False, 1)
     assert cap.worker[-1] == (False, 1)
     assert not proxy.state.meter_ok and not proxy.state.stm32_ok and cap.states[-1] is proxy.state
-    assert got.count(ipc.FrameType.SLOTS) == 3
+    F = ipc.FrameType
+    assert got == [F.STATE, F.SLOTS, F.SLOTS, F.EVENT, F.SLOTS, F.SLOTS, F.STATE, F.METRICS], got
 
 
 def test_stations_sharing_a_sparkplug_edge_node_are_found(tmp_path):

@@ -26,7 +26,9 @@ type  name         body
                    when the supervisor serves outputs for the station (Modbus TCP, console) also
                    ``rows``: every one of those ``n`` slot records as a list of the
                    :data:`SLOT_COLUMNS` values, oldest first (no gap within a frame; a gap between
-                   frames means frames were dropped)
+                   frames means frames were dropped); then a frame is also sent before each EVENT
+                   and STATE with the slots so far (``n`` < 10), so records, events and states
+                   arrive in the order the station produced them
 8     METRICS      the station's metrics snapshot (``gateway/northbound/metrics.py``, shape
                    ``SNAPSHOT_VERSION``) once a second, when the fleet has a metrics endpoint
 5     EVENT        :meth:`~gateway.records.Event.as_dict`

@@ -85,21 +85,33 @@ class IpcOutput:
         if rec.lateness_s > self._late:
             self._late = rec.lateness_s
         if self._n >= self.every:
-            body = {
-                "k": rec.k, "n": self._n, "filled": self._filled, "valid": self._valid,
-                "mu_mean": self._mu / self._valid if self._valid else None,
-                "t_mean": self._t / self._tn if self._tn else None,
-                "lateness_ms_max": self._late * 1e3, "rtt_ms_max": self._rtt * 1e3,
-                "last": asdict(rec)}
-            if self.rows:
-                body["rows"] = [slot_row(r) for r in self._recs]
-            self.chan.send(FrameType.SLOTS, body)
-            self._reset()
+            self._flush(rec)
+
+    def _flush(self, rec: SlotRecord) -> None:
+        body = {
+            "k": rec.k, "n": self._n, "filled": self._filled, "valid": self._valid,
+            "mu_mean": self._mu / self._valid if self._valid else None,
+            "t_mean": self._t / self._tn if self._tn else None,
+            "lateness_ms_max": self._late * 1e3, "rtt_ms_max": self._rtt * 1e3,
+            "last": asdict(rec)}
+        if self.rows:
+            body["rows"] = [slot_row(r) for r in self._recs]
+        self.chan.send(FrameType.SLOTS, body)
+        self._reset()
+
+    def _in_order(self) -> None:
+        # with rows, the supervisor's outputs must see records, events and states in the order
+        # the station gave them (a test_started after its slot's records, not before the idle
+        # slots of the same batch): the slots so far go first, as a shorter SLOTS frame
+        if self.rows and self._recs:
+            self._flush(self._recs[-1])
 
     def on_event(self, ev: Event) -> None:
+        self._in_order()
         self.chan.send(FrameType.EVENT, ev.as_dict())
 
     def on_state(self, st: StationState) -> None:
+        self._in_order()
         self.chan.send(FrameType.STATE, asdict(st))
 
 
