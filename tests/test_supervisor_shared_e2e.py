@@ -218,3 +218,45 @@ def test_prometheus_scrapes_the_supervisor_with_a_series_per_worker_station(tmp_
         if gw is not None:
             gw.stop()
         sim.stop()
+
+
+def test_sighup_adds_and_removes_units_on_the_shared_port(tmp_path):
+    """SIGHUP in a fleet with a shared Modbus TCP port: a new station file gets its worker AND its
+    unit on the port the supervisor holds (the port never closes); a removed file's unit goes."""
+    require_tool("mbpoll")
+    mport = free_port()
+    sim, links = _sim(tmp_path, 3)
+    gw = None
+    try:
+        fleet = fleet_dir(tmp_path, test={"t_end_s": 600, "sample_id": "S-1", "autostart": True},
+                          modbus_tcp={"enabled": True, "port": mport})
+
+        def add(name):
+            (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
+                "station": {"id": name}, "meter": {"port": os.path.join(links, name, "meter")},
+                "stm32": {"port": os.path.join(links, name, "stm32")},
+                "modbus_tcp": {"unit_id": UNITS[name]}}))
+        add("sim01")
+        add("sim02")
+        gw = run_gateway(tmp_path, str(fleet))
+        wait_log(gw, "sim02: test_started", 40)
+        rc, _, err = mbpoll(mport, "-t", "3", "-r", str(STATUS), unit=3)
+        assert rc != 0                                   # no station on unit 3 yet
+        add("sim03")
+        os.remove(fleet / "stations" / "sim01.yaml")
+        gw.p.send_signal(signal.SIGHUP)
+        wait_log(gw, "sim03: test_started", 40)
+        first = _u32(mport, 3, "slots")
+        wait_for(lambda: _u32(mport, 3, "slots") >= first + 25, 5, 0.3, what="unit 3 counting")
+        assert _status(mport, 3) & LINK_BITS == LINK_BITS
+        wait_for(lambda: mbpoll(mport, "-t", "3", "-r", str(STATUS), unit=1)[0] != 0, 10, 0.3,
+                 what="unit 1 gone with its station file")
+        n2 = _u32(mport, 2, "slots")
+        wait_for(lambda: _u32(mport, 2, "slots") >= n2 + 25, 5, 0.3, what="unit 2 counting on")
+        assert _pids(gw, "sim02") and len(_pids(gw, "sim02")) == 1
+        assert gw.log_all().count("Modbus TCP server listening on") == 1
+    finally:
+        if gw is not None:
+            gw.stop()
+        sim.stop()
+    assert "Traceback" not in gw.log_all(), gw.log_all()[-4000:]
