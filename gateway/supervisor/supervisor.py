@@ -16,9 +16,10 @@ socketpair, and then only supervises:
   parameters); a broken file keeps its running station; new files start, removed files stop.
 
 Per station the supervisor keeps a :class:`StationHub`: the latest state, the last slot summary,
-a bounded stream of slot summaries and events, and a command path back to the station. These are
-the hook points for the outputs that stay in the supervisor process (the shared Modbus TCP port
-with one unit per station, the web console, the metrics endpoint): see docs/runtime.md.
+a bounded stream of slot summaries and events, and a command path back to the station. The
+outputs that stay in the supervisor process (the Modbus TCP ports with one unit per station, the
+web console, the metrics endpoint) hang on it through a station proxy (``hub.sink``, a
+:class:`~gateway.supervisor.remote.RemoteStation`): see docs/runtime.md.
 """
 from __future__ import annotations
 
