@@ -222,14 +222,16 @@ def test_prometheus_scrapes_the_supervisor_with_a_series_per_worker_station(tmp_
 
 def test_sighup_adds_and_removes_units_on_the_shared_port(tmp_path):
     """SIGHUP in a fleet with a shared Modbus TCP port: a new station file gets its worker AND its
-    unit on the port the supervisor holds (the port never closes); a removed file's unit goes."""
+    unit on the port the supervisor holds (the port never closes) and its console card; a removed
+    file's unit goes, its card shows it offline."""
     require_tool("mbpoll")
-    mport = free_port()
+    mport, console_port = free_port(), free_port()
     sim, links = _sim(tmp_path, 3)
     gw = None
     try:
         fleet = fleet_dir(tmp_path, test={"t_end_s": 600, "sample_id": "S-1", "autostart": True},
-                          modbus_tcp={"enabled": True, "port": mport})
+                          modbus_tcp={"enabled": True, "port": mport},
+                          console={"enabled": True, "listen": [f"127.0.0.1:{console_port}"]})
 
         def add(name):
             (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
@@ -255,6 +257,12 @@ def test_sighup_adds_and_removes_units_on_the_shared_port(tmp_path):
         wait_for(lambda: _u32(mport, 2, "slots") >= n2 + 25, 5, 0.3, what="unit 2 counting on")
         assert _pids(gw, "sim02") and len(_pids(gw, "sim02")) == 1
         assert gw.log_all().count("Modbus TCP server listening on") == 1
+        # the console: the new station's card with a moving slot count; the removed one offline
+        cards = _fleet_api(console_port)
+        assert set(cards) == {"sim01", "sim02", "sim03"} and cards["sim03"]["online"], cards
+        assert not cards["sim01"]["online"]
+        wait_for(lambda: _fleet_api(console_port)["sim03"]["slots"] > cards["sim03"]["slots"] + 20, 5,
+                 0.2, what="sim03's slot count moving in the console")
     finally:
         if gw is not None:
             gw.stop()

@@ -207,7 +207,6 @@ def _attach_shared(sup: Supervisor, remote: RemoteFleet, args, console) -> None:
     """A station proxy with its shared outputs per running station of the supervisor (at start,
     and after a SIGHUP: new stations get one, a station whose Modbus TCP or metrics settings
     changed gets a new one, a removed station's is stopped)."""
-    log = logging.getLogger("hookwatch.run")
     with_nb = not args.no_northbound
     cfgs = {c.station.id: c for c in (_override(c, args) for _, c in sup.plan.accepted)}
     for name, hub in sup.hubs.items():
@@ -220,8 +219,7 @@ def _attach_shared(sup: Supervisor, remote: RemoteFleet, args, console) -> None:
         if remote.keys.get(name) == key:
             continue
         if console is not None and name not in console.feeds:
-            log.warning("console: station %s was added after the start; it appears in the console "
-                        "after a restart of hookwatch run", name)
+            console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled))
         st = RemoteStation(hub, **station_facts(cfg))
         st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb)
         remote.add(st, key)

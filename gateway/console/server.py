@@ -116,6 +116,7 @@ class ConsoleServer:
         """``stations``: station id → its records folder (recorder.dir/<id>); ``mqtt_enabled``:
         stations that report over MQTT (the others show no MQTT link)."""
         self.settings = settings
+        self.ts = ts
         self.records = dict(stations)
         self.feeds = {name: StationFeed(name, ts) for name in stations}
         for name, on in (mqtt_enabled or {}).items():
@@ -140,6 +141,21 @@ class ConsoleServer:
     def output_for(self, station) -> ConsoleOutput:
         """The station output that feeds this console (one per Station object)."""
         return ConsoleOutput(self.feeds[station.id], station)
+
+    def add_station(self, name: str, records_dir: str, mqtt_enabled: bool = False,
+                    timeout: float = 10.0) -> None:
+        """A station that joined while the console runs (a fleet's SIGHUP with a new station
+        file): its feed is added on the console's loop, where every handler reads the feeds."""
+        async def add() -> None:
+            if name in self.feeds:
+                return
+            feed = StationFeed(name, self.ts)
+            feed.mqtt_enabled = bool(mqtt_enabled)
+            self.records = {**self.records, name: records_dir}
+            self.clients = {**self.clients, name: set()}
+            self.feeds = {**self.feeds, name: feed}
+        if self.tl.running:
+            self.tl.submit(add()).result(timeout)
 
     def start(self, timeout: float = 10.0) -> list[str]:
         """Start the thread and listen; returns the URLs. A port in use is logged, not raised."""
