@@ -268,3 +268,50 @@ def test_sighup_adds_and_removes_units_on_the_shared_port(tmp_path):
             gw.stop()
         sim.stop()
     assert "Traceback" not in gw.log_all(), gw.log_all()[-4000:]
+
+
+def test_a_stalled_supervisor_never_delays_a_station(tmp_path):
+    """The consumer of the IPC (the supervisor with its shared outputs) stops for 6 s (SIGSTOP):
+    the workers' stations fill their slots all the same (their frames wait or are dropped, the
+    slot loop never waits), nobody is killed by the watchdog, and the supervisor resumes serving."""
+    mport, metrics_port = free_port(), free_port()
+    sim, links = _sim(tmp_path, 2)
+    gw = None
+    stats = tmp_path / "stats.json"
+    try:
+        fleet = fleet_dir(tmp_path, test={"t_end_s": 25, "sample_id": "S-1", "autostart": True},
+                          modbus_tcp={"enabled": True, "port": mport},
+                          metrics={"enabled": True, "port": metrics_port})
+        for name in ("sim01", "sim02"):
+            (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
+                "station": {"id": name}, "meter": {"port": os.path.join(links, name, "meter")},
+                "stm32": {"port": os.path.join(links, name, "stm32")},
+                "modbus_tcp": {"unit_id": UNITS[name]}}))
+        gw = run_gateway(tmp_path, str(fleet), "--exit-when-done", "--stats-json", str(stats))
+        wait_log(gw, "sim02: test_started", 40)
+        wait_log(gw, "sim01: test_started", 10)
+        pids = {n: _pids(gw, n) for n in ("sim01", "sim02")}
+        before = _metrics(metrics_port)
+        os.kill(gw.p.pid, signal.SIGSTOP)
+        time.sleep(6)
+        os.kill(gw.p.pid, signal.SIGCONT)
+        # serving again, with the slots counted meanwhile (the worker's own counters)
+        after = wait_for(lambda: (m := _metrics(metrics_port))[("hookwatch_slots_total", "sim01")]
+                         >= before[("hookwatch_slots_total", "sim01")] + 250 and m, 10, 0.2,
+                         what="metrics after the stall")
+        assert after[("hookwatch_station_up", "sim02")] == 1.0
+        assert _u32(mport, 2, "slots") > 0
+        assert gw.p.wait(90) == 0, gw.log()
+    finally:
+        if gw is not None:
+            gw.stop()
+        sim.stop()
+    log = gw.log_all()
+    assert "supervisor did not run for" in log and "killed (SIGKILL)" not in log, log[-3000:]
+    assert {n: _pids(gw, n) for n in pids} == pids
+    st = json.loads(stats.read_text())
+    for n in pids:
+        assert st[n]["filled_ratio"] >= 0.99, (n, st[n])
+        (res,) = st[n]["results"]
+        assert res["test_status"] == "completed", res
+        assert res["method"]["reasons"]["MISSING"] <= 0.01 * res["method"]["n_slots"], res

@@ -51,6 +51,10 @@ log = logging.getLogger("hookwatch.supervisor")
 
 #: how many stream items (slot summaries, events) a hub keeps for late subscribers
 STREAM_LEN = 512
+#: a gap between two ticks longer than this is a stall of the supervisor itself …
+STALL_S = 2.0
+#: … after which the worker watchdog waits this long (the readers catch up on the heartbeats)
+GRACE_S = 2.0
 
 
 class FrameSink(Protocol):
@@ -333,6 +337,9 @@ class Supervisor:
         self.hubs: dict[str, StationHub] = {}
         self.workers: dict[str, WorkerHandle] = {}        # by station file path
         self._retired: list[WorkerHandle] = []             # removed or renamed, stopping
+        self._last_tick = 0.0
+        #: no watchdog kill before this time (after a stall of the supervisor itself)
+        self._grace_until = 0.0
 
     # ------------------------------------------------------------ start
     def refuse(self, r: Refused, reload: bool = False) -> None:
@@ -384,6 +391,13 @@ class Supervisor:
     # ------------------------------------------------------------ supervision
     def tick(self, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
+        if self._last_tick and now - self._last_tick > STALL_S:
+            # the supervisor itself did not run (stopped, swapped out, starved): the workers'
+            # heartbeats wait unread in the sockets; let the readers catch up before judging them
+            log.warning("supervisor did not run for %.1f s; worker watchdog paused %.0f s",
+                        now - self._last_tick, GRACE_S)
+            self._grace_until = now + GRACE_S
+        self._last_tick = now
         # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
         # opening) costs about a second of CPU, and N at once would starve the running stations
         starting = sum(1 for w in self.workers.values() if w.running and not w.hello)
@@ -414,7 +428,7 @@ class Supervisor:
                 continue                     # loaded, waiting at the start barrier
             age = now - max(w.hub.heartbeat_t, w.go_t, w.started_at)
             limit = self.watchdog_s if w.go_t else self.startup_s
-            if age > limit and not w.stopping:
+            if age > limit and not w.stopping and now >= self._grace_until:
                 log.error("%s: worker pid %d silent for %.1f s (stuck loop?): killed (SIGKILL)",
                           name, w.proc.pid, age)
                 w.hub.publish("supervisor", {"type": "worker_stuck", "station": name,
