@@ -88,7 +88,7 @@ class IpcOutput:
             self._flush(rec)
 
     def _flush(self, rec: SlotRecord) -> None:
-        body = {
+        body: dict[str, Any] = {
             "k": rec.k, "n": self._n, "filled": self._filled, "valid": self._valid,
             "mu_mean": self._mu / self._valid if self._valid else None,
             "t_mean": self._t / self._tn if self._tn else None,
