@@ -1,6 +1,7 @@
 """`hookwatch run STATION.yaml | CONFIG_DIR`: the gateway's main job."""
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -21,6 +22,7 @@ from ..compose import (
     station_facts,
 )
 from ..config import ConfigError, load_fleet, load_station
+from ..osprio import MAX_PRIORITY
 from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
 from ..supervisor.remote import RemoteFleet, RemoteStation
@@ -33,6 +35,16 @@ DESCRIPTION = (HELP + ". Polls the meter at 50 Hz, closes the tension loop throu
                "the configuration of stations that are not in a test. A fleet folder runs each station in its "
                "own worker process under a supervisor (restart with back-off, watchdog); "
                "--in-process keeps every station in this one process.")
+
+
+def _rt_priority(text: str) -> int:
+    try:
+        p = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 1 <= p <= MAX_PRIORITY:
+        raise argparse.ArgumentTypeError(f"{p} is outside 1–{MAX_PRIORITY}")
+    return p
 
 
 def add_arguments(ap):
@@ -50,6 +62,11 @@ def add_arguments(ap):
     ap.add_argument("--log-level", default=None, help="debug, info, warning, error")
     ap.add_argument("--in-process", action="store_true",
                     help="a fleet: every station in this one process (threads), as for small boxes")
+    ap.add_argument("--realtime", type=_rt_priority, default=None, metavar="PRIO",
+                    help="run each station's slot-loop thread under SCHED_FIFO at PRIO "
+                         f"(1–{MAX_PRIORITY}) where permitted (root, CAP_SYS_NICE or "
+                         "LimitRTPRIO=); otherwise a warning and normal scheduling "
+                         "(docs/runtime.md, 'Real-time priority')")
     ap.add_argument("--worker-watchdog", type=float, default=5.0, metavar="S",
                     help="a fleet: a worker silent this long is killed and restarted (default 5)")
     ap.add_argument("--restart-backoff", type=float, default=1.0, metavar="S",
@@ -95,7 +112,8 @@ def run(args) -> int:
     console = _console(cfgs)
     runners = []
     for i, c in enumerate(cfgs):
-        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs), console)))
+        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs), console),
+                                    rt_priority=args.realtime or 0))
     fleet = Fleet(runners)
     stop = threading.Event()
     reload_req = threading.Event()

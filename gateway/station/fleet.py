@@ -13,6 +13,7 @@ import threading
 import time
 from typing import Any, Callable, Coroutine, TypeVar
 
+from ..osprio import realtime_thread
 from ..threadloop import ThreadLoop
 from .station import Station
 
@@ -26,8 +27,11 @@ class StationRunner:
 
     def __init__(self, name: str, factory: Callable[[], Station], restart_backoff_s: float = 1.0,
                  max_slots: int | None = None, on_started: Callable[[Station], None] | None = None,
-                 restart_backoff_max_s: float = 60.0, stable_after_s: float = 60.0):
+                 restart_backoff_max_s: float = 60.0, stable_after_s: float = 60.0,
+                 rt_priority: int = 0):
         self.name = name
+        #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/osprio.py)
+        self.rt_priority = rt_priority
         self.factory = factory
         #: the first restart comes after ``backoff`` s; each further crash in a row doubles it,
         #: up to ``backoff_max``; an instance that ran ``stable_after_s`` resets the row
@@ -69,6 +73,13 @@ class StationRunner:
 
     async def _supervise(self) -> None:
         self._stop = asyncio.Event()
+        if self.rt_priority:
+            why = realtime_thread(self.rt_priority)
+            if why is None:
+                log.info("%s: slot loop runs at SCHED_FIFO priority %d", self.name, self.rt_priority)
+            else:
+                log.warning("%s: slot loop at normal priority: SCHED_FIFO %d %s", self.name,
+                            self.rt_priority, why)
         if self._stopping.is_set():
             return
         reloaded = False

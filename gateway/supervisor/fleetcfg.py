@@ -28,6 +28,8 @@ class RunOptions:
     records_dir: str | None = None
     no_northbound: bool = False
     log_level: str | None = None
+    #: SCHED_FIFO priority of each station's slot-loop thread (None: normal scheduling)
+    realtime: int | None = None
 
     @classmethod
     def from_args(cls, args: Any) -> RunOptions:

@@ -239,7 +239,8 @@ class Worker:
 
     def run(self) -> int:
         cfg = self.load()
-        self.runner = r = StationRunner(cfg.station.id, self.factory(cfg), on_started=self._started)
+        self.runner = r = StationRunner(cfg.station.id, self.factory(cfg), on_started=self._started,
+                                           rt_priority=self.opts.realtime or 0)
         threading.Thread(target=self._reader, name="ipc-reader", daemon=True).start()
         self.chan.send(FrameType.HELLO, {"station": cfg.station.id, "pid": os.getpid(), "proto": PROTO})
         self.go.wait()

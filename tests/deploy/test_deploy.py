@@ -95,7 +95,9 @@ def _unit_settings(text):
 def test_unit_contract(unit):
     s = _unit_settings(read("systemd", unit))
     target = "/etc/hookwatch/stations/%i.yaml" if "@" in unit else "/etc/hookwatch"
-    assert s["ExecStart"] == [f"{INSTALLED} run {target}"]
+    # the slot loops run under SCHED_FIFO 20, which the unprivileged user may ask for up to the limit
+    assert s["ExecStart"] == [f"{INSTALLED} run {target} --realtime 20"]
+    assert s["LimitRTPRIO"] == ["20"]
     assert f"{INSTALLED} check --quiet {target}" in s["ExecStartPre"][0]
     for key, value in (("Type", "notify"), ("Restart", "on-failure"), ("User", "hookwatch"),
                        ("SupplementaryGroups", "dialout"), ("NoNewPrivileges", "yes"),

@@ -1,0 +1,48 @@
+"""Real-time scheduling for a station's slot-loop thread (Linux ``SCHED_FIFO``).
+
+A station's slot loop sleeps almost all of each 20 ms slot and must wake within a millisecond of
+its deadline. Under the default scheduler (CFS) a wake-up waits behind whatever else is runnable on
+the box — other stations' workers, their twins, a console scrape — which is what makes the p99
+lateness of a full box. With ``SCHED_FIFO`` the slot thread preempts every normal thread the moment
+its timer fires, and, being asleep 95 % of the time, costs the others nothing.
+
+Only the calling thread is switched (Linux schedules threads, not processes): the MQTT, IPC and
+console threads of the same process stay normal. Permitted for root, ``CAP_SYS_NICE``, or up to
+``RLIMIT_RTPRIO`` (systemd: ``LimitRTPRIO=``) for other users. A slot loop stuck in a busy loop at
+this priority still leaves the kernel's real-time throttling share (5 %) and the other core to the
+rest of the box, and the supervisor's watchdog kills it after 5 s without a heartbeat.
+"""
+from __future__ import annotations
+
+import os
+
+#: the highest priority ``hookwatch run --realtime`` accepts (leave the top to the kernel's threads)
+MAX_PRIORITY = 49
+
+
+def realtime_thread(priority: int) -> str | None:
+    """Put the calling thread under ``SCHED_FIFO`` at ``priority`` (1…:data:`MAX_PRIORITY`).
+
+    Returns None on success, else why not (the thread keeps its normal scheduling)."""
+    if not 1 <= priority <= MAX_PRIORITY:
+        return f"priority {priority} outside 1…{MAX_PRIORITY}"
+    setter = getattr(os, "sched_setscheduler", None)
+    if setter is None:
+        return "this platform has no SCHED_FIFO"
+    try:
+        setter(0, os.SCHED_FIFO, os.sched_param(priority))   # 0: the calling thread (Linux)
+    except PermissionError:
+        return ("not permitted (needs root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ "
+                f"{priority}: systemd LimitRTPRIO={priority})")
+    except OSError as e:
+        return str(e)
+    return None
+
+
+def thread_policy() -> str:
+    """The calling thread's scheduling policy, as a word (for logs and tests)."""
+    getter = getattr(os, "sched_getscheduler", None)
+    if getter is None:
+        return "unknown"
+    pol = getter(0)
+    return {os.SCHED_OTHER: "other", os.SCHED_FIFO: "fifo", os.SCHED_RR: "rr"}.get(pol, str(pol))
