@@ -10,12 +10,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import os
 import time
 from typing import Any
 
 from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...records import Event, EventType, SlotRecord, StationState
+from ..broker_settings import broker_kwargs
 from . import client as _client
 from . import metrics as M
 from .client import SparkplugSettings
@@ -173,17 +173,8 @@ def settings_from_config(cfg) -> SparkplugSettings:
     sp, st = cfg.sparkplug, cfg.station
     group = sp.group_id or st.site or "hookwatch"
     node = sp.edge_node_id or "-".join(x for x in (st.area, st.line) if x) or "edge"
-    password = None
-    if sp.password_env:
-        password = os.environ.get(sp.password_env)
-        if password is None:
-            log.error("station %s: sparkplug.password_env: environment variable %s is not set; "
-                      "connecting without a password", st.id, sp.password_env)
     return SparkplugSettings(
-        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id,
-        servers=[(sp.host, int(sp.port))], client_id=sp.client_id, keepalive_s=int(sp.keepalive_s),
-        username=sp.username, password=password, tls_enabled=bool(sp.tls.enabled), ca_file=sp.tls.ca_file,
-        cert_file=sp.tls.cert_file, key_file=sp.tls.key_file, primary_host_id=sp.primary_host_id,
-        data_interval_s=float(sp.data_interval_s),
+        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id, **broker_kwargs(sp),
+        primary_host_id=sp.primary_host_id, data_interval_s=float(sp.data_interval_s),
         store_path=sp.store_path or _client.default_store(cfg.recorder.dir, group, node),
         history_budget_bytes=int(float(sp.history_budget_mb) * 1024 * 1024))
