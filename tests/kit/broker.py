@@ -10,6 +10,7 @@ outside the tree are not checked here; a message with the gateway's envelope (``
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import getpass
 import json
@@ -200,3 +201,40 @@ def pub(port: int, topic: str, payload: str, *, retain: bool = False, qos: int =
     if retain:
         argv.append("-r")
     subprocess.run(argv, check=True, timeout=20)
+
+
+@contextlib.contextmanager
+def station_on_broker(tmp_path, base: str, station_id: str, *, modbus_port: int | None = None):
+    """A station running on its own loop with its MQTT output on a fresh Mosquitto (the MES is a
+    :class:`Sub` on ``base/#``) and, with ``modbus_port``, its Modbus TCP server (unit 1, writes
+    from loopback: the PLC is mbpoll). Yields (broker, sub, station, loop thread) once both answer."""
+    from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
+    from gateway.northbound.mqtt import MqttOutput, MqttSettings
+    from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
+
+    lt = LoopThread()
+    with Broker(tmp_path) as b:
+        sub = Sub(b.port, base + "/#")
+        st = make_station(tmp_path, [], station_id=station_id)
+        out = MqttOutput(MqttSettings(station_id=station_id, base_topic=base, port=b.port,
+                                      outbox_path=str(tmp_path / "outbox.sqlite"),
+                                      reconnect_min_s=0.2, reconnect_max_s=1.0), st)
+        st.outputs.append(out)
+        if modbus_port is not None:
+            st.outputs.append(ModbusOutput(ModbusSettings(station_id, port=modbus_port, unit_id=1,
+                                                          writes_enabled=True,
+                                                          allowed_clients=("127.0.0.0/8",)), st))
+        run = None
+        try:
+            run = RunningStation(lt, st)
+            wait_for(lambda: out.connected, 20, what="connected")
+            if modbus_port is not None:
+                wait_for(lambda: mbpoll(modbus_port, "-t", "3", "-r", "1")[0] == 0, 20, what="modbus up")
+            yield b, sub, st, lt
+        finally:
+            if run is not None:
+                run.stop()
+            lt.close()
+            if modbus_port is not None:
+                shutdown_all()
+            sub.stop()

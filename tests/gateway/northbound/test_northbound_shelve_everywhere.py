@@ -12,14 +12,12 @@ import datetime as dt
 import time
 
 from gateway.northbound import registers as R
-from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
-from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.northbound.sparkplug import metrics as SM
 from gateway.northbound.sparkplug.client import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from gateway.records import EventType
 from gateway.station.commands import CODE
-from kit.broker import Broker, Sub
+from kit.broker import Broker, station_on_broker
 from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
 from kit.sparkplug_host import PrimaryHost, metric_value
 from kit.tools import free_port, require_tool, wait_for
@@ -52,75 +50,55 @@ def plc_write(port, name, value):
 def test_plc_shelves_and_unshelves_the_wear_warning_seen_by_mqtt_and_the_registers(tmp_path):
     require_tool("mbpoll")
     mport = free_port()
-    lt = LoopThread()
-    with Broker(tmp_path) as b:
-        sub = Sub(b.port, BASE + "/#")
-        st = make_station(tmp_path, [], station_id="shelf")
-        out = MqttOutput(MqttSettings(station_id="shelf", base_topic=BASE, port=b.port,
-                                      outbox_path=str(tmp_path / "outbox.sqlite"),
-                                      reconnect_min_s=0.2, reconnect_max_s=1.0), st)
-        st.outputs.append(out)
-        st.outputs.append(ModbusOutput(ModbusSettings("shelf", port=mport, unit_id=1, writes_enabled=True,
-                                                      allowed_clients=("127.0.0.0/8",)), st))
-        run = None
-        try:
-            run = RunningStation(lt, st)
-            wait_for(lambda: out.connected, 20, what="connected")
-            wait_for(lambda: mbpoll(mport, "-t", "3", "-r", "1")[0] == 0, 20, what="modbus up")
-            lt.call(wear_warning(st))
-            wait_for(lambda: R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged", 10,
-                     what="the PLC sees the wear warning")
+    with station_on_broker(tmp_path, BASE, "shelf", modbus_port=mport) as (_b, sub, st, lt):
+        lt.call(wear_warning(st))
+        wait_for(lambda: R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged", 10,
+                 what="the PLC sees the wear warning")
 
-            # refused before anything changes: a duration beyond one shift (exception 03) …
-            rc, _, err = plc_write(mport, "shelve_duration", 50_000)
-            assert rc != 0 and "Illegal data value" in err, err
-            # … and through the command path: no alarm selected → exception 04, code ALARM
-            rc, _, err = plc_write(mport, "shelve_duration", 600)
-            assert rc == 0, err
-            rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["shelve"])
-            assert rc != 0, "a shelve without an alarm must be refused"
-            assert plc_read(mport, "last_command") == R.COMMAND_CODE["shelve"]
-            assert plc_read(mport, "last_result") == CODE["ALARM"]
-            assert R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged"
+        # refused before anything changes: a duration beyond one shift (exception 03) …
+        rc, _, err = plc_write(mport, "shelve_duration", 50_000)
+        assert rc != 0 and "Illegal data value" in err, err
+        # … and through the command path: no alarm selected → exception 04, code ALARM
+        rc, _, err = plc_write(mport, "shelve_duration", 600)
+        assert rc == 0, err
+        rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["shelve"])
+        assert rc != 0, "a shelve without an alarm must be refused"
+        assert plc_read(mport, "last_command") == R.COMMAND_CODE["shelve"]
+        assert plc_read(mport, "last_result") == CODE["ALARM"]
+        assert R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged"
 
-            # the shelve: alarm_select 2 (wear_warning), 600 s, code 8
-            assert R.ALARM_SELECT[2 - 1] == "wear_warning"
-            rc, _, err = plc_write(mport, "alarm_select", 2)
-            assert rc == 0, err
-            t0 = time.time()
-            rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["shelve"])
-            assert rc == 0, err
-            assert plc_read(mport, "last_result") == 0
-            wait_for(lambda: R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "shelved", 10,
-                     what="the PLC register shows shelved")
-            assert R.ALARM_STATES[plc_read(mport, "alarm")] == "normal"      # only the selected alarm
-            w = sub.wait(lambda s: [m for m in s.messages("alarm/warning") if m[2]["state"] == "shelved"],
-                         20, what="alarm/warning shelved")[-1]
-            p = w[2]
-            assert p["alarm"] == "warning" and p["priority"] == 2 and p["condition"] is True
-            until = dt.datetime.strptime(p["shelved_until"], "%Y-%m-%dT%H:%M:%S.%fZ").replace(
-                tzinfo=dt.UTC).timestamp()
-            assert abs(until - (t0 + 600)) < 5, (p["shelved_until"], t0)
-            ev = sub.wait(lambda s: s.messages("event/alarm_shelved"), 20)[-1][2]
-            tr = ev["data"]["transitions"]
-            assert [(t["alarm"], t["from"], t["to"]) for t in tr] == [("wear_warning", "unacknowledged",
-                                                                       "shelved")]
-            assert tr[0]["by"].startswith("plc:")
+        # the shelve: alarm_select 2 (wear_warning), 600 s, code 8
+        assert R.ALARM_SELECT[2 - 1] == "wear_warning"
+        rc, _, err = plc_write(mport, "alarm_select", 2)
+        assert rc == 0, err
+        t0 = time.time()
+        rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["shelve"])
+        assert rc == 0, err
+        assert plc_read(mport, "last_result") == 0
+        wait_for(lambda: R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "shelved", 10,
+                 what="the PLC register shows shelved")
+        assert R.ALARM_STATES[plc_read(mport, "alarm")] == "normal"      # only the selected alarm
+        w = sub.wait(lambda s: [m for m in s.messages("alarm/warning") if m[2]["state"] == "shelved"],
+                     20, what="alarm/warning shelved")[-1]
+        p = w[2]
+        assert p["alarm"] == "warning" and p["priority"] == 2 and p["condition"] is True
+        until = dt.datetime.strptime(p["shelved_until"], "%Y-%m-%dT%H:%M:%S.%fZ").replace(
+            tzinfo=dt.UTC).timestamp()
+        assert abs(until - (t0 + 600)) < 5, (p["shelved_until"], t0)
+        ev = sub.wait(lambda s: s.messages("event/alarm_shelved"), 20)[-1][2]
+        tr = ev["data"]["transitions"]
+        assert [(t["alarm"], t["from"], t["to"]) for t in tr] == [("wear_warning", "unacknowledged",
+                                                                   "shelved")]
+        assert tr[0]["by"].startswith("plc:")
 
-            # unshelve: code 9 with the same selection
-            rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["unshelve"])
-            assert rc == 0, err
-            wait_for(lambda: R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged", 10,
-                     what="unshelved in the register")
-            sub.wait(lambda s: s.messages("alarm/warning")[-1][2]["state"] == "unacknowledged", 20,
-                     what="alarm/warning unshelved")
-            assert sub.messages("alarm/warning")[-1][2]["shelved_until"] is None
-        finally:
-            if run is not None:
-                run.stop()
-            sub.stop()
-            lt.close()
-            shutdown_all()
+        # unshelve: code 9 with the same selection
+        rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["unshelve"])
+        assert rc == 0, err
+        wait_for(lambda: R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged", 10,
+                 what="unshelved in the register")
+        sub.wait(lambda s: s.messages("alarm/warning")[-1][2]["state"] == "unacknowledged", 20,
+                 what="alarm/warning unshelved")
+        assert sub.messages("alarm/warning")[-1][2]["shelved_until"] is None
 
 
 def test_sparkplug_host_sees_the_wear_warning_and_shelves_it_by_dcmd(tmp_path):
