@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..method.rules import REASON_NAMES
-from ..records import AlarmState, Event, EventType, StationState, TestState
+from ..records import AlarmState, CommandKind, Event, EventType, StationState, TestState
 from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
@@ -205,7 +205,8 @@ RESULT_FIELDS = ENVELOPE + (
 )
 
 REPLY_FIELDS = ENVELOPE + (
-    Field("command", "str", "the command answered (start, stop, ack, setpoint, or the unknown name)"),
+    Field("command", "str", "the command answered (" + ", ".join(k.value for k in CommandKind)
+          + ", or the unknown name)"),
     Field("request_id", "str|null", "the request_id of the command, if it had one"),
     Field("source", "str", "`mqtt`"),
     Field("ok", "bool", "true: carried out; false: refused, nothing was done"),
