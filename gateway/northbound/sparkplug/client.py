@@ -332,8 +332,8 @@ class NodeRuntime:
         except (SecretError, OSError, ValueError) as e:     # ssl.SSLError is an OSError
             self.counters["tls_errors"] += 1
             if self.counters["tls_errors"] == 1:
-                log.error("sparkplug %s: TLS / credentials set-up failed (%s); retrying, data is held",
-                          s.edge_node_id, e)
+                log.error("sparkplug %s: TLS set-up failed or the password cannot be read (%s); retrying, "
+                          "data is held", s.edge_node_id, e)
             self._client = None
             self.node.connect_failed()
             self._persist_bdseq()
