@@ -22,10 +22,6 @@ from .client import SparkplugSettings
 
 log = logging.getLogger("hookwatch.sparkplug")
 
-#: the store's alarm kinds (gateway.station.alarms) → the model's alarm names (gateway.alarms.ALARMS)
-_STORE_KIND = {"end_of_life": "end_of_life", "wear_warning": "warning"}
-
-
 def _alarm_values(name: str, value: str, shelved_until: float | None = None) -> dict[str, Any]:
     """The metrics of one alarm (``name`` of gateway.alarms.ALARMS) in ISA-18.2 state ``value``;
     ``shelved_until`` (s since the epoch) is shown only while the alarm is shelved."""
@@ -40,10 +36,9 @@ def _alarm_values(name: str, value: str, shelved_until: float | None = None) -> 
 
 
 def _shelved_until(station: Any, name: str) -> float | None:
-    """When the station's alarm store shelved alarm ``name`` until (None: not known / not shelved)."""
-    models = getattr(getattr(station, "alarms", None), "models", None)
-    a = models.get(_STORE_KIND[name]) if isinstance(models, dict) else None
-    return getattr(a, "shelved_until", None)
+    """When the station's alarm store shelved alarm ``name`` until (None: not shelved / no store)."""
+    store = getattr(station, "alarms", None)
+    return store.shelved_until(name) if store is not None else None
 
 
 def state_values(st: StationState, station: Any = None) -> dict[str, Any]:
