@@ -171,3 +171,26 @@ def test_sparkplug_host_sees_the_wear_warning_and_shelves_it_by_dcmd(tmp_path):
         host.close()
         lt.close()
         b.stop()
+
+
+def test_the_register_map_gives_shelve_and_unshelve_their_arguments():
+    from gateway.ports import StationLimits
+    from gateway.records import CommandKind
+
+    lim = StationLimits(full_scale=10.0, sat_ratio=0.98, grades=("A",))
+    hr = [0] * R.HOLDING_SIZE
+    assert R.COMMAND_KINDS[R.COMMAND_CODE["shelve"]] == CommandKind.SHELVE
+    assert R.COMMAND_KINDS[R.COMMAND_CODE["unshelve"]] == CommandKind.UNSHELVE
+    for word_order in ("big", "little"):
+        p = R.plan_write(hr, HR["alarm_select"].address,
+                         [1] + R.encode_value(HR["shelve_duration"], 3600, word_order), word_order, lim)
+        assert p.exception is None, p.reason
+        assert R.command_args(CommandKind.SHELVE, p.new, word_order, ()) == {"alarm": "end_of_life",
+                                                                            "duration_s": 3600.0}
+        assert R.command_args(CommandKind.UNSHELVE, p.new, word_order, ()) == {"alarm": "end_of_life"}
+    # nothing selected: no alarm argument (the command path refuses it with code ALARM)
+    assert R.command_args(CommandKind.SHELVE, hr, "big", ()) == {"duration_s": 0.0}
+    assert R.command_args(CommandKind.STOP, hr, "big", ()) == {}
+    assert R.plan_write(hr, HR["alarm_select"].address, [3], "big", lim).exception == R.EXC_ILLEGAL_VALUE
+    # added at the end: the addresses of map version 3 did not move
+    assert HR["alarm_select"].address > HR["sample_id"].address and R.MAP_VERSION == 3
