@@ -40,7 +40,8 @@ def test_a_bad_message_through_mosquitto_fails_the_receiving_test(tmp_path):
         sub = Sub(b.port, BASE + "/#")
         try:
             bad = dict(json.loads(S.encode(S._examples()["alarm_warning"])), priority="high")
-            pub(b.port, f"{BASE}/alarm/warning", json.dumps(bad))
+            # retained (as the gateway's alarm/warning is): it arrives whenever the Sub subscribed
+            pub(b.port, f"{BASE}/alarm/warning", json.dumps(bad), retain=True)
             with pytest.raises(SchemaViolation, match=r"alarm/warning.*alarm_warning\.json at priority"):
                 sub.wait(lambda s: s.messages("alarm/warning"), 20)
         finally:
