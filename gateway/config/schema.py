@@ -234,41 +234,49 @@ class MqttOutboxConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
-class MqttConfig:
+class BrokerConfig:
+    """The broker connection keys both MQTT sections share (`mqtt:` and `sparkplug:`); one
+    definition, read by gateway.northbound.broker_settings.broker_kwargs. A section redeclares a
+    key only to say something of its own about it (the key keeps its place)."""
+    enabled: bool = key(False, "connect to the broker", kind="bool")
+    host: str = key("127.0.0.1", "broker host", kind="str")
+    port: int = key(1883, "broker port", kind="int", lo=1, hi=65535)
+    client_id: str | None = key(None, "MQTT client ID; must be unique on the broker", kind="str",
+                                nullable=True, null_means="derived from the station / node")
+    keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
+    username: str | None = key(None, "broker user", kind="str", nullable=True, null_means="anonymous")
+    password_env: str | None = key(None, "name of the environment variable that holds the broker "
+                                   "password (e.g. set by the unit's `EnvironmentFile=`)",
+                                   kind="envvar", nullable=True, null_means="no password")
+    tls: MqttTlsConfig = section(MqttTlsConfig, "TLS to the broker")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MqttConfig(BrokerConfig):
     enabled: bool = key(False, "report telemetry, events and results over MQTT and accept commands",
                         kind="bool")
     host: str = key("127.0.0.1", "broker host (normally the edge broker on this box, which bridges "
                     "to the plant's central broker)", kind="str")
-    port: int = key(1883, "broker port", kind="int", lo=1, hi=65535)
     prefix: str = key("hookwatch", "first level(s) of every topic", kind="topic")
     client_id: str | None = key(None, "MQTT client ID; must be unique on the broker", kind="str",
                                 nullable=True, null_means="`hookwatch-<station id>`")
-    keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
     protocol: str = key("auto", "MQTT protocol version: `auto` connects with MQTT 5 and falls back to "
                         "3.1.1 when the broker refuses it; with MQTT 5 a command is answered on its "
                         "Response Topic with its Correlation Data, with 3.1.1 on `reply`", kind="enum",
                         choices=("auto", "5", "3.1.1"))
-    username: str | None = key(None, "broker user", kind="str", nullable=True,
-                               null_means="anonymous")
-    password_env: str | None = key(None, "name of the environment variable that holds the broker "
-                                   "password (e.g. set by the unit's `EnvironmentFile=`)",
-                                   kind="envvar", nullable=True, null_means="no password")
     password_file: str | None = key(None, "file whose first line is the broker password (mode "
                                     "0600, owned by the hookwatch user)", kind="path",
                                     nullable=True, null_means="no password")
-    tls: MqttTlsConfig = section(MqttTlsConfig, "TLS to the broker")
     telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
                                       kind="float", unit="s", lo=0.1, hi=3600.0)
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
 
 
 @dataclass(frozen=True, kw_only=True)
-class SparkplugConfig:
+class SparkplugConfig(BrokerConfig):
     enabled: bool = key(False, "publish the station as a Sparkplug B 3.0 device of its edge node "
                         "(docs/sparkplug.md); alongside or instead of the JSON tree of `mqtt:`",
                         kind="bool")
-    host: str = key("127.0.0.1", "broker host", kind="str")
-    port: int = key(1883, "broker port", kind="int", lo=1, hi=65535)
     group_id: str | None = key(None, "Sparkplug group ID", kind="ident", nullable=True,
                                null_means="`station.site`")
     edge_node_id: str | None = key(None, "Sparkplug edge node ID; stations of one process with the "
@@ -284,11 +292,6 @@ class SparkplugConfig:
                                       "connected")
     client_id: str | None = key(None, "MQTT client ID of the edge node", kind="str", nullable=True,
                                 null_means="`hookwatch-spb-<group>-<edge node>`")
-    username: str | None = key(None, "broker user", kind="str", nullable=True, null_means="anonymous")
-    password_env: str | None = key(None, "environment variable holding the broker password",
-                                   kind="envvar", nullable=True, null_means="no password")
-    keepalive_s: int = key(30, "MQTT keep-alive interval", kind="int", unit="s", lo=5, hi=3600)
-    tls: MqttTlsConfig = section(MqttTlsConfig, "TLS to the broker")
     data_interval_s: float = key(1.0, "one DDATA of the measured values (slot aggregates) this "
                                  "often; state changes are sent as they happen", kind="float",
                                  unit="s", lo=0.1, hi=3600.0)

@@ -414,9 +414,7 @@ class ModbusOutput:
         if plan.wrote("command"):
             code = int(plan.value("command"))   # the command register reads 0 (docs/registers.md)
             kind = R.COMMAND_KINDS[code]
-            args: dict[str, Any] = {}
-            if kind == CommandKind.START:
-                args = R.start_args(u.hr, self.word_order, self.grades)
+            args = R.command_args(kind, u.hr, self.word_order, self.grades)
             if not await self._submit(Command(kind, f"plc:{peer}", args), code, u):
                 return ExcCodes.DEVICE_FAILURE
         return None

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +30,7 @@ from paho.mqtt.properties import Properties
 from ..threadloop import Mailbox
 from . import mqtt_messages as M
 from . import schema
+from .broker_settings import BrokerSettings, SecretError
 from .outbox import Outbox, Row
 
 log = logging.getLogger("hookwatch.mqtt")
@@ -53,51 +53,18 @@ PROTOCOLS = ("auto", "5", "3.1.1")
 Response = tuple[str, bytes | None]
 
 
-class SecretError(Exception):
-    pass
-
-
 @dataclass
-class MqttSettings:
-    """What the MQTT output needs (built from a station's `mqtt:` section by wiring.py)."""
+class MqttSettings(BrokerSettings):
+    """What the MQTT output needs (built from a station's `mqtt:` section by wiring.py); the broker
+    connection (host, port, credentials, TLS, back-off) is the shared :class:`BrokerSettings`."""
     station_id: str
     base_topic: str
-    host: str = "127.0.0.1"
-    port: int = 1883
-    client_id: str | None = None
-    keepalive_s: int = 30
     protocol: str = "auto"            # auto (MQTT 5, 3.1.1 if the broker refuses it), 5, 3.1.1
-    username: str | None = None
-    password_env: str | None = None
-    password_file: str | None = None
-    tls_enabled: bool = False
-    ca_file: str | None = None
-    cert_file: str | None = None
-    key_file: str | None = None
     telemetry_interval_s: float = 1.0
     outbox_path: str = "outbox.sqlite"
     telemetry_budget_bytes: int = 50 * 1024 * 1024
     window: int = 16                  # messages in flight at most
-    poll_s: float = 0.02              # network loop wait when connected (bounds the latency)
-    reconnect_min_s: float = 1.0
-    reconnect_max_s: float = 10.0
     drain_on_stop_s: float = 2.0      # on a clean stop, time allowed to deliver what is pending
-
-    def password(self) -> str | None:
-        if self.password_env:
-            v = os.environ.get(self.password_env)
-            if v is None:
-                raise SecretError(f"mqtt.password_env: environment variable {self.password_env} is not set")
-            return v
-        if self.password_file:
-            try:
-                with open(self.password_file, encoding="utf-8") as f:
-                    return f.read().rstrip("\r\n")
-            except OSError as e:
-                raise SecretError(f"mqtt.password_file {self.password_file!r}: {e.strerror}") from None
-        return None
-
-
 
 
 class MqttPump:
@@ -298,10 +265,7 @@ class MqttPump:
                         protocol=paho.MQTTv5 if self.v5 else paho.MQTTv311)
         c.max_inflight_messages_set(max(1, s.window))
         c.max_queued_messages_set(0)
-        if s.username:
-            c.username_pw_set(s.username, s.password())
-        if s.tls_enabled:
-            c.tls_set(ca_certs=s.ca_file, certfile=s.cert_file, keyfile=s.key_file)
+        s.apply(c)
         st = self._status_topic
         c.will_set(st, self._status(False), qos=1, retain=True)
         c.on_connect = self._on_connect

@@ -14,6 +14,7 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
+from ..alarms import ALARMS, SHELVE_MAX_S
 from ..method.rules import REASONS
 from ..ports import StationLimits
 from ..records import AlarmState, CommandKind, TestState
@@ -93,8 +94,13 @@ COMMAND_CODES: tuple[tuple[int, str, str], ...] = (
     (5, "hook_replaced", "the worn hook was replaced: closes its alarms (ISA-18.2 `normal`)"),
     (6, "out_of_service", "both alarms out of service while a needle is being changed"),
     (7, "in_service", "return the alarms to service"),
+    (8, "shelve", "shelve the alarm in `alarm_select` for `shelve_duration` s (ISA-18.2; only an "
+     "annunciated alarm: unacknowledged, acknowledged or rtn_unacknowledged)"),
+    (9, "unshelve", "end the shelving of the alarm in `alarm_select`"),
 )
 COMMAND_CODE = {name: code for code, name, _ in COMMAND_CODES}
+#: values of the holding register `alarm_select`: 0 none, then the alarms of gateway.alarms.ALARMS
+ALARM_SELECT: tuple[str, ...] = tuple(ALARMS)
 
 _reason_regs = [(f"count_{name.lower()}", "uint32", "slots",
                  f"slots of the current / last test with reason {name}") for _, name in REASONS]
@@ -138,9 +144,13 @@ INPUT_REGS = _layout(INPUT, [
     ("command_count", "uint16", "", "commands processed (accepted or refused), wrapping at 65535"),
 ])
 
+#: command codes a PLC may write (all but 0 none and 4 setpoint, which is a write of `t_set`)
+_WRITABLE_CODES = [(c, n) for c, n, _ in COMMAND_CODES if n not in ("none", "setpoint")]
+
 HOLDING_REGS = _layout(HOLDING, [
-    ("command", "uint16", "", "write a command code to execute it: 1 start, 2 stop, 3 ack; reads 0",
-     "1, 2, 3"),
+    ("command", "uint16", "", "write a command code to execute it ("
+     + ", ".join(f"{c} {n}" for c, n in _WRITABLE_CODES) + ", see Command codes); reads 0",
+     ", ".join(str(c) for c, _ in _WRITABLE_CODES)),
     ("t_set", "float32", "N", "tension setpoint of the next test; writing it is the `setpoint` command "
      "(refused while a test runs); `start` uses it", "(0, 0.98 · meter full scale) N"),
     ("grade", "uint16", "", "needle grade of the next test: 0 none, i = the station's i-th grade "
@@ -149,6 +159,11 @@ HOLDING_REGS = _layout(HOLDING, [
      "0 … 2592000"),
     ("sample_id", "string", "", f"sample ID of the next test, up to {SAMPLE_ID_MAX} ASCII characters, "
      "two per register (first character in the high byte), padded with 0", "printable ASCII, 0-padded"),
+    ("alarm_select", "enum", "", "the alarm the next `shelve` / `unshelve` command acts on: 0 none, "
+     + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_SELECT, 1)),
+     "0 … " + str(len(ALARM_SELECT))),
+    ("shelve_duration", "uint32", "s", "how long the next `shelve` command shelves the alarm, s "
+     f"(at most {SHELVE_MAX_S:.0f}: one 12 h shift)", f"0 … {SHELVE_MAX_S:.0f}"),
 ])
 
 INPUT_SIZE = INPUT_REGS[-1].address + INPUT_REGS[-1].count
@@ -239,7 +254,8 @@ EXC_ILLEGAL_VALUE = 3
 COMMAND_KINDS = {COMMAND_CODE["start"]: CommandKind.START, COMMAND_CODE["stop"]: CommandKind.STOP,
                  COMMAND_CODE["ack"]: CommandKind.ACK, COMMAND_CODE["hook_replaced"]: CommandKind.HOOK_REPLACED,
                  COMMAND_CODE["out_of_service"]: CommandKind.OUT_OF_SERVICE,
-                 COMMAND_CODE["in_service"]: CommandKind.IN_SERVICE}
+                 COMMAND_CODE["in_service"]: CommandKind.IN_SERVICE,
+                 COMMAND_CODE["shelve"]: CommandKind.SHELVE, COMMAND_CODE["unshelve"]: CommandKind.UNSHELVE}
 
 
 def check_holding(name: str, val: Any, limits: StationLimits) -> str | None:
@@ -254,6 +270,11 @@ def check_holding(name: str, val: Any, limits: StationLimits) -> str | None:
         return None if 0 <= val <= n else f"grade {val}; allowed: 0 … {n}"
     if name == "t_end":
         return None if val == 0 else check_t_end(val, limits.t_end_max_s)
+    if name == "alarm_select":
+        n = len(ALARM_SELECT)
+        return None if 0 <= val <= n else f"alarm_select {val}; allowed: 0 … {n}"
+    if name == "shelve_duration":
+        return None if 0 <= val <= SHELVE_MAX_S else f"shelve_duration {val} s; allowed: 0 … {SHELVE_MAX_S:.0f}"
     if name == "sample_id":
         text = decode_sample_id(val)
         if text is None:
@@ -334,6 +355,23 @@ def start_args(hr: list[int] | tuple[int, ...], word_order: str, grades: tuple[s
         args["grade"] = grades[g - 1]
     if t_end:
         args["t_end"] = float(t_end)
+    return args
+
+
+def command_args(kind: CommandKind, hr: list[int] | tuple[int, ...], word_order: str,
+                 grades: tuple[str, ...]) -> dict[str, Any]:
+    """The arguments of command ``kind`` from the staged holding registers (the keys of
+    gateway.station.commands.COMMAND_KEYS; its ``validate`` judges them like any other source's)."""
+    if kind == CommandKind.START:
+        return start_args(hr, word_order, grades)
+    args: dict[str, Any] = {}
+    if kind in (CommandKind.SHELVE, CommandKind.UNSHELVE):
+        sel = int(hr[HR["alarm_select"].address])
+        if 1 <= sel <= len(ALARM_SELECT):
+            args["alarm"] = ALARM_SELECT[sel - 1]
+        if kind == CommandKind.SHELVE:
+            r = HR["shelve_duration"]
+            args["duration_s"] = float(decode_value(r, list(hr[r.address:r.address + r.count]), word_order))
     return args
 
 
@@ -437,6 +475,12 @@ def render(station: dict[str, Any] | None = None) -> str:
         "To start a test: write `sample_id`, `grade`, `t_end` (optional) and `t_set`, then 1 to "
         "`command`. Read `last_command`, `last_result` and `command_count` to see the outcome.",
         "",
+        "To shelve an alarm (ISA-18.2): write `alarm_select` (1 end_of_life, 2 wear_warning) and "
+        "`shelve_duration` (s), then 8 to `command`; 9 with `alarm_select` unshelves it. The alarm "
+        "states are in `alarm` and `warning_alarm` (4 shelved); the shelving ends by itself at its "
+        "expiry. A refused shelve (no alarm selected: 11, duration 0 or too long: 12, an alarm "
+        "that is not annunciated: 13) answers exception 04 and leaves the code in `last_result`.",
+        "",
         "## Command codes",
         "",
         "| code | command | meaning |",
@@ -462,6 +506,10 @@ def render(station: dict[str, Any] | None = None) -> str:
         "# set the setpoint of the next test to 0.5 N, then start it",
         f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4:float -B -r {HR['t_set'].address} 127.0.0.1 0.5",
         f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4 -r {HR['command'].address} 127.0.0.1 1",
+        "# shelve the wear warning (alarm_select 2) for one hour",
+        f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4 -r {HR['alarm_select'].address} 127.0.0.1 2",
+        f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4:int -B -r {HR['shelve_duration'].address} 127.0.0.1 3600",
+        f"mbpoll -m tcp -p 5020 -a 1 -0 -t 4 -r {HR['command'].address} 127.0.0.1 8",
         "```",
         "",
     ]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..method.rules import REASON_NAMES
-from ..records import AlarmState, Event, EventType, StationState, TestState
+from ..records import AlarmState, CommandKind, Event, EventType, StationState, TestState
 from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
@@ -205,7 +205,8 @@ RESULT_FIELDS = ENVELOPE + (
 )
 
 REPLY_FIELDS = ENVELOPE + (
-    Field("command", "str", "the command answered (start, stop, ack, setpoint, or the unknown name)"),
+    Field("command", "str", "the command answered (" + ", ".join(k.value for k in CommandKind)
+          + ", or the unknown name)"),
     Field("request_id", "str|null", "the request_id of the command, if it had one"),
     Field("source", "str", "`mqtt`"),
     Field("ok", "bool", "true: carried out; false: refused, nothing was done"),
@@ -587,7 +588,10 @@ def render() -> str:
         "makes it `normal`). cmd/shelve silences one annunciated alarm until `duration_s` from now "
         "(`shelved`, `shelved_until`; back at the expiry or by cmd/unshelve); cmd/out_of_service "
         "takes both alarms out of service while a needle is being changed (cmd/in_service or "
-        "cmd/hook_replaced end it). Every transition is in one event (`data.transitions`: `alarm`, "
+        "cmd/hook_replaced end it). Every one of these commands can come from the PLC as well "
+        "(command codes 3, 5–9; shelve / unshelve with `alarm_select` and `shelve_duration`, "
+        "docs/registers.md) and from a Sparkplug host (DCMD `Device Control/…`, docs/sparkplug.md), "
+        "through the same validation. Every transition is in one event (`data.transitions`: `alarm`, "
         "`hook`, `from`, `to`, `action`, `time`, `by`, `priority`) and one retained message on "
         "`alarm/end_of_life` or `alarm/warning`, so a MES "
         "that connects late sees the current state. The wear warning (METHOD.md §5a: the "

@@ -5,6 +5,7 @@ import logging
 import os
 
 from . import schema
+from .broker_settings import broker_kwargs
 from .metrics import MetricsOutput
 from .modbus_server import ModbusOutput, ModbusSettings
 from .mqtt import MqttOutput, MqttSettings
@@ -18,17 +19,13 @@ def mqtt_settings(cfg):
     m = cfg.mqtt
     sid = cfg.station.id
     st = cfg.station
-    tls = m.tls
     ob = m.outbox
     path = ob.path or os.path.join(cfg.recorder.dir, sid, "outbox.sqlite")
     return MqttSettings(
         station_id=sid,
         base_topic=schema.base_topic(m.prefix, getattr(st, "site", ""), getattr(st, "area", ""),
                                      getattr(st, "line", ""), sid),
-        host=m.host, port=int(m.port), client_id=m.client_id, keepalive_s=int(m.keepalive_s),
-        protocol=m.protocol,
-        username=m.username, password_env=m.password_env, password_file=m.password_file,
-        tls_enabled=bool(tls.enabled), ca_file=tls.ca_file, cert_file=tls.cert_file, key_file=tls.key_file,
+        protocol=m.protocol, **broker_kwargs(m),
         telemetry_interval_s=float(m.telemetry_interval_s), outbox_path=path,
         telemetry_budget_bytes=int(float(ob.telemetry_budget_mb) * 1024 * 1024),
     )

@@ -122,6 +122,12 @@ class AlarmStore:
         """The most urgent alarm that stands (any state but normal), or None."""
         return next((r for r in self.records() if r.active), None)
 
+    def shelved_until(self, name: str) -> float | None:
+        """When the shelving of alarm ``name`` (a model name, gateway.alarms.ALARMS) expires, s since
+        the epoch; None unless it is shelved."""
+        a = self.models.get(KIND_OF.get(name, name))
+        return a.shelved_until if a is not None and a.state == AlarmState.SHELVED else None
+
     def expired(self, now: float) -> list[str]:
         """The model names of the alarms whose shelving has expired at ``now``."""
         return [a.name for a in self.models.values()

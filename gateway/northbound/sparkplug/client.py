@@ -20,14 +20,15 @@ import os
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
 from ... import __version__
 from ...records import Command, CommandKind
+from ..broker_settings import BrokerSettings, SecretError
 from ..outbox import Outbox, Row
 from .node import Disconnect, EdgeNode, MemoryBuffer, Publish, Submit
 
@@ -38,29 +39,26 @@ QUEUE_MAX = 10_000
 
 
 @dataclass
-class SparkplugSettings:
+class SparkplugSettings(BrokerSettings):
+    """What an edge node needs (built from a station's `sparkplug:` section by output.py); the broker
+    connection is the shared :class:`BrokerSettings` (``servers`` defaults to its host and port)."""
     group_id: str
     edge_node_id: str
     device_id: str
-    servers: list[tuple[str, int]] = field(default_factory=lambda: [("127.0.0.1", 1883)])
-    client_id: str | None = None
-    keepalive_s: int = 30
-    username: str | None = None
-    password: str | None = None
-    tls_enabled: bool = False
-    ca_file: str | None = None
-    cert_file: str | None = None
-    key_file: str | None = None
+    servers: list[tuple[str, int]] | None = None
     primary_host_id: str | None = None
     data_interval_s: float = 1.0
     store_path: str = "sparkplug.sqlite"
     history_budget_bytes: int = 50 * 1024 * 1024
-    reconnect_min_s: float = 1.0
-    reconnect_max_s: float = 10.0
-    poll_s: float = 0.02
     #: the first CONNECT waits this long after the first station attached, so that the stations of
     #: a fleet starting together get their DBIRTHs right after the NBIRTH
     gather_s: float = 0.5
+
+    section: ClassVar[str] = "sparkplug"
+
+    def __post_init__(self) -> None:
+        if not self.servers:
+            self.servers = [(self.host, int(self.port))]
 
     def node_key(self) -> tuple:
         return (tuple(self.servers), self.group_id, self.edge_node_id)
@@ -329,20 +327,18 @@ class NodeRuntime:
                         client_id=s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}",
                         clean_session=True, protocol=paho.MQTTv311)
         c.max_queued_messages_set(0)
-        if s.username:
-            c.username_pw_set(s.username, s.password)
-        if s.tls_enabled:
-            try:
-                c.tls_set(ca_certs=s.ca_file, certfile=s.cert_file, keyfile=s.key_file)
-            except (OSError, ValueError) as e:     # ssl.SSLError is an OSError
-                self.counters["tls_errors"] += 1
-                if self.counters["tls_errors"] == 1:
-                    log.error("sparkplug %s: TLS set-up failed (%s); retrying, data is held", s.edge_node_id, e)
-                self._client = None
-                self.node.connect_failed()
-                self._persist_bdseq()
-                self._retry()
-                return
+        try:
+            s.apply(c)                  # credentials and TLS
+        except (SecretError, OSError, ValueError) as e:     # ssl.SSLError is an OSError
+            self.counters["tls_errors"] += 1
+            if self.counters["tls_errors"] == 1:
+                log.error("sparkplug %s: TLS set-up failed or the password cannot be read (%s); retrying, "
+                          "data is held", s.edge_node_id, e)
+            self._client = None
+            self.node.connect_failed()
+            self._persist_bdseq()
+            self._retry()
+            return
         c.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect

@@ -174,15 +174,25 @@ during the replay loses the batch in flight (at most 50 payloads), not the rest 
     "server. It does NOT reboot the box, restart the gateway or touch a station or its running test: a test rig "
     "is never stopped by a SCADA write |\n"
     """
+## Alarms
+
+Both alarms of a station (gateway/alarms.py, ISA-18.2) have the same metrics in their folder,
+`Alarm/End Of Life/…` (priority 1) and `Alarm/Wear Warning/…` (the §5a early warning, priority
+2): `State`, `Active`, `Priority` and `Shelved Until` (DateTime, null unless shelved), all in
+the DBIRTH and as DDATA whenever they change — the same states the PLC reads in `alarm` /
+`warning_alarm` and MQTT publishes on `alarm/end_of_life` / `alarm/warning`.
+
 ## Device commands (DCMD)
 
 A DCMD names (or aliases) the writable metrics of the DBIRTH. `Device Control/Start Test`,
-`Stop Test`, `Acknowledge Alarm`, `Hook Replaced`, `Alarms Out Of Service`, `Alarms In Service`
-set to true become the commands `start`, `stop`, `ack`, `hook_replaced`, `out_of_service`,
-`in_service` (ISA-18.2, a needle being changed) of the station's **one command path** (the same validation and
-rejection codes as MQTT, the PLC and the CLI; `source` is `sparkplug`). `start` takes its
-arguments from `Device Control/Sample ID`, `Grade`, `Setpoint` and `Planned End` in the same
-DCMD. The outcome comes back as DDATA of `Device Control/Last Command` and
+`Stop Test`, `Acknowledge Alarm`, `Hook Replaced`, `Alarms Out Of Service`, `Alarms In Service`,
+`Shelve Alarm`, `Unshelve Alarm` set to true become the commands `start`, `stop`, `ack`,
+`hook_replaced`, `out_of_service`, `in_service` (ISA-18.2, a needle being changed), `shelve`,
+`unshelve` of the station's **one command path** (the same validation and rejection codes as MQTT,
+the PLC and the CLI; `source` is `sparkplug`). `start` takes its arguments from
+`Device Control/Sample ID`, `Grade`, `Setpoint` and `Planned End` in the same DCMD; `shelve` from
+`Device Control/Alarm` (`end_of_life` or `wear_warning`) and `Device Control/Shelve Duration` (s),
+`unshelve` from `Device Control/Alarm`. The outcome comes back as DDATA of `Device Control/Last Command` and
 `Device Control/Last Result Code` (0 accepted, else the rejection code of docs/mqtt.md).
 """)
 

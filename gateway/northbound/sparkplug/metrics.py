@@ -65,16 +65,42 @@ ACK = "Device Control/Acknowledge Alarm"
 HOOK_REPLACED = "Device Control/Hook Replaced"
 OUT_OF_SERVICE = "Device Control/Alarms Out Of Service"
 IN_SERVICE = "Device Control/Alarms In Service"
+SHELVE = "Device Control/Shelve Alarm"
+UNSHELVE = "Device Control/Unshelve Alarm"
 ARG_SAMPLE_ID = "Device Control/Sample ID"
 ARG_GRADE = "Device Control/Grade"
 ARG_T_SET = "Device Control/Setpoint"
 ARG_T_END = "Device Control/Planned End"
+ARG_ALARM = "Device Control/Alarm"
+ARG_DURATION = "Device Control/Shelve Duration"
+
+#: the station's alarms as Sparkplug metric folders: ISA-18.2 name (gateway.alarms.ALARMS) → folder
+ALARM_FOLDERS = {"end_of_life": "Alarm/End Of Life", "wear_warning": "Alarm/Wear Warning"}
 
 #: DCMD metric → command kind (gateway.records.CommandKind value)
 COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_replaced",
-            OUT_OF_SERVICE: "out_of_service", IN_SERVICE: "in_service"}
+            OUT_OF_SERVICE: "out_of_service", IN_SERVICE: "in_service", SHELVE: "shelve",
+            UNSHELVE: "unshelve"}
 #: DCMD argument metric → key of the command's arguments (gateway.station.commands.COMMAND_KEYS)
-COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end"}
+COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end",
+                ARG_ALARM: "alarm", ARG_DURATION: "duration_s"}
+
+
+def _alarm_metrics(name: str, what: str) -> tuple[MetricDef, ...]:
+    """State, Active, Priority of one alarm (the same for each; Shelved Until is appended later)."""
+    folder = ALARM_FOLDERS[name]
+    return (
+        MetricDef(f"{folder}/State", DataType.String, description=f"{what} alarm, ISA-18.2: normal | "
+                  "unacknowledged | acknowledged | rtn_unacknowledged | shelved | out_of_service "
+                  "(gateway/alarms.py)"),
+        MetricDef(f"{folder}/Active", DataType.Boolean, description="the alarm is standing (annunciated)"),
+        MetricDef(f"{folder}/Priority", DataType.Int32, description="ISA-18.2 priority, 1 critical … 4 low"),
+    )
+
+
+def _shelved_metric(name: str) -> MetricDef:
+    return MetricDef(f"{ALARM_FOLDERS[name]}/Shelved Until", DataType.DateTime, "ms",
+                     "UTC time (ms since the epoch) the shelving expires; null unless shelved")
 
 DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef("Test/State", DataType.String, description="idle | starting | baseline_search | monitoring | "
@@ -91,11 +117,7 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef("Method/mu_ss", DataType.Double, "", "steady-state friction coefficient μ_ss"),
     MetricDef("Method/mu_th", DataType.Double, "", "end-of-life threshold (1+δ)·μ_ss"),
     MetricDef("Method/t_life", DataType.Double, "s", "wear life: start of the persistent exceedance"),
-    MetricDef("Alarm/End Of Life/State", DataType.String, description="ISA-18.2: normal | unacknowledged | "
-              "acknowledged | rtn_unacknowledged | shelved | out_of_service (gateway/alarms.py)"),
-    MetricDef("Alarm/End Of Life/Active", DataType.Boolean, description="the alarm is standing (annunciated)"),
-    MetricDef("Alarm/End Of Life/Priority", DataType.Int32, description="ISA-18.2 priority, 1 critical … "
-              "4 low"),
+    *_alarm_metrics("end_of_life", "end-of-life"),
     MetricDef("Status/Protection Stop", DataType.Boolean),
     MetricDef("Status/Meter OK", DataType.Boolean, description="Modbus RTU link to the tension meter"),
     MetricDef("Status/STM32 OK", DataType.Boolean, description="serial link to the motor controller"),
@@ -117,8 +139,8 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef(START, DataType.Boolean, description="write true (with the argument metrics) to start a test",
               writable=True),
     MetricDef(STOP, DataType.Boolean, description="write true to stop the running test", writable=True),
-    MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the end-of-life alarm",
-              writable=True),
+    MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the unacknowledged alarms (end "
+              "of life and wear warning)", writable=True),
     MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced",
               writable=True),
     MetricDef(ARG_SAMPLE_ID, DataType.String, description="start argument: sample ID", writable=True),
@@ -129,6 +151,17 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
               "(ISA-18.2) while a needle is being changed", writable=True),
     MetricDef(IN_SERVICE, DataType.Boolean, description="write true to return the alarms to service",
               writable=True),
+    # appended after the metrics above so that their aliases (base + index) stay what they were
+    *_alarm_metrics("wear_warning", "wear-warning (§5a early warning)"),
+    _shelved_metric("end_of_life"),
+    _shelved_metric("wear_warning"),
+    MetricDef(SHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm` and `Device "
+              "Control/Shelve Duration`) to shelve one annunciated alarm (ISA-18.2)", writable=True),
+    MetricDef(UNSHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm`) to end the "
+              "shelving of one alarm", writable=True),
+    MetricDef(ARG_ALARM, DataType.String, description="shelve / unshelve argument: `end_of_life` or "
+              "`wear_warning`", writable=True),
+    MetricDef(ARG_DURATION, DataType.Double, "s", "shelve argument: how long, (0, 43200] s", writable=True),
 )
 
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}

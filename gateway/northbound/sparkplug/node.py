@@ -22,6 +22,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ...records import CommandKind
+from ...station.commands import COMMAND_KEYS
 from . import metrics as M
 from .sparkplug_b_pb2 import Payload
 
@@ -524,8 +526,9 @@ class EdgeNode:
             args = {M.COMMAND_ARGS[k]: v for k, v in vals.items() if k in M.COMMAND_ARGS and v is not None}
             subs: list[Publish | Disconnect | Submit] = []
             for name, kind in M.COMMANDS.items():
-                if vals.get(name) is True:
-                    subs.append(Submit(dev.device_id, kind, args if kind == "start" else {}))
+                if vals.get(name) is True:      # each command takes the arguments it knows
+                    keys = COMMAND_KEYS[CommandKind(kind)]
+                    subs.append(Submit(dev.device_id, kind, {k: v for k, v in args.items() if k in keys}))
             return subs
         self.counters["ignored_commands"] += 1
         return []

@@ -10,38 +10,47 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-import os
 import time
 from typing import Any
 
 from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...records import Event, EventType, SlotRecord, StationState
+from ..broker_settings import broker_kwargs
 from . import client as _client
+from . import metrics as M
 from .client import SparkplugSettings
 
 log = logging.getLogger("hookwatch.sparkplug")
 
-#: ISA-18.2 priority of the end-of-life alarm
-EOL_PRIORITY = int(ALARMS["end_of_life"].priority)
-
-
-def _alarm_values(value: str) -> dict[str, Any]:
+def _alarm_values(name: str, value: str, shelved_until: float | None = None) -> dict[str, Any]:
+    """The metrics of one alarm (``name`` of gateway.alarms.ALARMS) in ISA-18.2 state ``value``;
+    ``shelved_until`` (s since the epoch) is shown only while the alarm is shelved."""
     try:
         s = from_station(value)
     except ValueError:
         s = AlarmState.NORMAL
-    return {"Alarm/End Of Life/State": s.value, "Alarm/End Of Life/Active": s in ANNUNCIATED,
-            "Alarm/End Of Life/Priority": EOL_PRIORITY}
+    folder = M.ALARM_FOLDERS[name]
+    until = int(round(shelved_until * 1000)) if s == AlarmState.SHELVED and shelved_until else None
+    return {f"{folder}/State": s.value, f"{folder}/Active": s in ANNUNCIATED,
+            f"{folder}/Priority": int(ALARMS[name].priority), f"{folder}/Shelved Until": until}
 
 
-def state_values(st: StationState) -> dict[str, Any]:
-    """The device metrics that follow the station's state."""
+def _shelved_until(station: Any, name: str) -> float | None:
+    """When the station's alarm store shelved alarm ``name`` until (None: not shelved / no store)."""
+    store = getattr(station, "alarms", None)
+    return store.shelved_until(name) if store is not None else None
+
+
+def state_values(st: StationState, station: Any = None) -> dict[str, Any]:
+    """The device metrics that follow the station's state (the shelving expiries from ``station``'s
+    alarm store, when given)."""
     return {
         "Test/State": st.state.name.lower(), "Test/ID": st.test_id, "Test/Sample ID": st.sample_id,
         "Test/Grade": st.grade, "Test/Setpoint": st.t_set, "Test/Planned End": st.t_end,
         "Test/Status": st.status, "Test/End Reason": st.end_reason,
         "Method/mu_ss": st.mu_ss, "Method/mu_th": st.mu_th, "Method/t_life": st.t_life,
-        **_alarm_values(st.alarm),
+        **_alarm_values("end_of_life", st.alarm, _shelved_until(station, "end_of_life")),
+        **_alarm_values("wear_warning", st.warning_alarm, _shelved_until(station, "wear_warning")),
         "Status/Protection Stop": st.protection_stop, "Status/Meter OK": st.meter_ok,
         "Status/STM32 OK": st.stm32_ok,
     }
@@ -96,7 +105,7 @@ class SparkplugOutput:
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
         st = getattr(self.station, "state", None)
-        self._last = state_values(st) if st is not None else {}
+        self._last = state_values(st, self.station) if st is not None else {}
         self.rt = _client.attach(self.s, self)
         self.rt.post(("up", self.s.device_id, dict(self._last)))
 
@@ -127,7 +136,7 @@ class SparkplugOutput:
         self.rt.post(("update", self.s.device_id, agg.values(), True))
 
     def on_state(self, st: StationState) -> None:
-        vals = state_values(st)
+        vals = state_values(st, self.station)
         changed = {k: v for k, v in vals.items() if self._last.get(k, _NONE) != v}
         if st.elapsed_s and st.test_id:
             changed["Test/Elapsed"] = round(st.elapsed_s, 3)
@@ -136,15 +145,19 @@ class SparkplugOutput:
             self.rt.post(("update", self.s.device_id, changed, False))
 
     def on_event(self, ev: Event) -> None:
-        # the alarm and test metrics follow the state pushed with each event; an end of life is
-        # reported at once, with its numbers, even before the next state push
-        if ev.type == EventType.END_OF_LIFE and self.rt is not None:
-            d = ev.data
-            self.rt.post(("update", self.s.device_id, {
-                **_alarm_values(next((tr["to"] for tr in reversed(d.get("transitions") or [])
-                                      if tr.get("alarm") == "end_of_life"), "unacknowledged")),
-                "Method/t_life": d.get("t_life"), "Method/mu_ss": d.get("mu_ss"),
-                "Method/mu_th": d.get("mu_th")}, False))
+        # the alarm and test metrics follow the state pushed with each event; an end of life or a
+        # wear warning is reported at once, with its numbers, even before the next state push
+        if ev.type not in (EventType.END_OF_LIFE, EventType.WEAR_WARNING) or self.rt is None:
+            return
+        d = ev.data
+        name = "end_of_life" if ev.type == EventType.END_OF_LIFE else "wear_warning"
+        vals = _alarm_values(name, next((tr["to"] for tr in reversed(d.get("transitions") or [])
+                                         if tr.get("alarm") == name), "unacknowledged"),
+                             _shelved_until(self.station, name))
+        vals.update({"Method/mu_ss": d.get("mu_ss"), "Method/mu_th": d.get("mu_th")})
+        if name == "end_of_life":
+            vals["Method/t_life"] = d.get("t_life")
+        self.rt.post(("update", self.s.device_id, vals, False))
 
 
 _NONE = object()
@@ -155,17 +168,8 @@ def settings_from_config(cfg) -> SparkplugSettings:
     sp, st = cfg.sparkplug, cfg.station
     group = sp.group_id or st.site or "hookwatch"
     node = sp.edge_node_id or "-".join(x for x in (st.area, st.line) if x) or "edge"
-    password = None
-    if sp.password_env:
-        password = os.environ.get(sp.password_env)
-        if password is None:
-            log.error("station %s: sparkplug.password_env: environment variable %s is not set; "
-                      "connecting without a password", st.id, sp.password_env)
     return SparkplugSettings(
-        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id,
-        servers=[(sp.host, int(sp.port))], client_id=sp.client_id, keepalive_s=int(sp.keepalive_s),
-        username=sp.username, password=password, tls_enabled=bool(sp.tls.enabled), ca_file=sp.tls.ca_file,
-        cert_file=sp.tls.cert_file, key_file=sp.tls.key_file, primary_host_id=sp.primary_host_id,
-        data_interval_s=float(sp.data_interval_s),
+        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id, **broker_kwargs(sp),
+        primary_host_id=sp.primary_host_id, data_interval_s=float(sp.data_interval_s),
         store_path=sp.store_path or _client.default_store(cfg.recorder.dir, group, node),
         history_budget_bytes=int(float(sp.history_budget_mb) * 1024 * 1024))

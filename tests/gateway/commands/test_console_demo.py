@@ -11,6 +11,7 @@ import time
 import urllib.request
 
 from conftest import ROOT, hookwatch_cmd
+from kit.broker import check_message
 from kit.e2e import Proc, read_json, station_yaml
 from kit.tools import require_tool
 
@@ -47,6 +48,10 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
         q = subprocess.run(["mosquitto_sub"] + shlex.split(sub) + ["-W", "4"], capture_output=True,
                            text=True, timeout=30)
         assert "/demo/status" in q.stdout and "/demo/telemetry" in q.stdout, q.stdout + q.stderr
+        for ln in q.stdout.splitlines():        # `-v`: topic, space, payload; each valid for its topic
+            topic, _, payload = ln.partition(" ")
+            bad = check_message(topic, payload)
+            assert bad is None, bad
         assert demo.p.wait(180) == 0, demo.log()
     finally:
         demo.stop()

@@ -20,7 +20,7 @@ from gateway.northbound.cmdparse import (
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.records import Command, CommandKind
 from gateway.station.commands import Rejection
-from kit.broker import Broker, Sub
+from kit.broker import Broker, Sub, check_message
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import wait_for
 
@@ -123,6 +123,7 @@ class Cmds:
         self.replies: list[dict] = []
         self.sizes: list[int] = []
         self.status: list[str] = []
+        self.bad: list[str] = []
         self.cv = threading.Condition()
         self.c.on_message = self._msg
         self.c.connect("127.0.0.1", port)
@@ -130,7 +131,10 @@ class Cmds:
         self.c.loop_start()
 
     def _msg(self, c, u, m):
+        bad = check_message(m.topic, m.payload)     # pure: fine on paho's thread; raised in ask()
         with self.cv:
+            if bad:
+                self.bad.append(bad)
             if m.topic.endswith("/status"):
                 self.status.append(json.loads(m.payload).get("status"))
             else:
@@ -145,6 +149,7 @@ class Cmds:
         with self.cv:
             assert self.cv.wait_for(lambda: len(self.replies) > n, timeout), (name, payload[:80])
             assert len(self.replies) == n + 1
+            assert not self.bad, self.bad[0]
             return self.replies[n], self.sizes[n]
 
     def close(self):

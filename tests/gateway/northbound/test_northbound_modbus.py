@@ -145,7 +145,7 @@ def _events(station):
 
 @pytest.mark.parametrize("name,values,typ", [
     ("t_set", [9.0], "4:float"), ("t_set", [0.0], "4:float"), ("t_set", [-1.0], "4:float"),
-    ("grade", [7], "4"), ("command", [9], "4"), ("command", [0], "4"),
+    ("grade", [7], "4"), ("command", [99], "4"), ("command", [0], "4"),
     ("t_end", [0x0FFF, 0xFFFF], "4"), ("sample_id", [0x0101], "4"), ("sample_id", [0x4100, 0x4141], "4"),
 ])
 def test_out_of_range_writes_get_exception_03_and_change_nothing(plant, name, values, typ):

@@ -16,7 +16,7 @@ from paho.mqtt.properties import Properties
 
 from gateway import records
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
-from kit.broker import Broker, Sub
+from kit.broker import Broker, Sub, check_message
 from kit.northbound import LoopThread, make_station
 from kit.tools import free_port, wait_for
 
@@ -29,8 +29,10 @@ class Mes:
     def __init__(self, port: int, reply_filter: str):
         self.got: queue.Queue = queue.Queue()
         self.c = paho.Client(CallbackAPIVersion.VERSION2, client_id="mes-v5", protocol=paho.MQTTv5)
-        self.c.on_message = lambda c, u, m: self.got.put(
-            (m.topic, json.loads(m.payload), getattr(m.properties, "CorrelationData", None)))
+        self.bad: list[str] = []     # schema violations (checked on the test's thread, in next())
+        self.c.on_message = lambda c, u, m: (
+            self.bad.extend(filter(None, [check_message(m.topic, m.payload, "reply")])),
+            self.got.put((m.topic, json.loads(m.payload), getattr(m.properties, "CorrelationData", None))))
         subscribed = threading.Event()
         self.c.on_subscribe = lambda *a: subscribed.set()
         self.c.connect("127.0.0.1", port)
@@ -48,7 +50,9 @@ class Mes:
         self.c.publish(topic, payload, qos=1, properties=props).wait_for_publish(10)
 
     def next(self, timeout: float = 20.0):
-        return self.got.get(timeout=timeout)
+        got = self.got.get(timeout=timeout)
+        assert not self.bad, self.bad[0]
+        return got
 
     def close(self) -> None:
         self.c.disconnect()

@@ -34,7 +34,7 @@ def test_out_of_range_values_and_addresses_are_refused_before_anything_changes()
     assert R.plan_write(hr, HR["t_set"].address + 1, [0], "big", LIM).exception == R.EXC_ILLEGAL_ADDRESS
     assert R.plan_write(hr, R.HOLDING_SIZE, [0], "big", LIM).exception == R.EXC_ILLEGAL_ADDRESS
     assert R.plan_write(hr, HR["grade"].address, [3], "big", LIM).exception == R.EXC_ILLEGAL_VALUE
-    assert R.plan_write(hr, HR["command"].address, [9], "big", LIM).exception == R.EXC_ILLEGAL_VALUE
+    assert R.plan_write(hr, HR["command"].address, [99], "big", LIM).exception == R.EXC_ILLEGAL_VALUE
     assert R.plan_write(hr, HR["sample_id"].address, [0x0101], "big", LIM).exception == R.EXC_ILLEGAL_VALUE
 
 

@@ -30,7 +30,7 @@ def key_of(topic: str) -> str:
     if rest.startswith("event/"):
         return "event"
     if rest.startswith("alarm/"):
-        return "alarm"
+        return "alarm_warning" if rest == "alarm/warning" else "alarm"
     if rest.startswith("cmd/"):
         return "cmd_" + rest[4:]
     return rest
