@@ -20,7 +20,7 @@ import os
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import paho.mqtt.client as paho
@@ -45,7 +45,7 @@ class SparkplugSettings(BrokerSettings):
     group_id: str
     edge_node_id: str
     device_id: str
-    servers: list[tuple[str, int]] | None = None
+    servers: list[tuple[str, int]] = field(default_factory=list)
     primary_host_id: str | None = None
     data_interval_s: float = 1.0
     store_path: str = "sparkplug.sqlite"
