@@ -18,6 +18,7 @@ from conftest import ROOT, hookwatch_cmd
 from gateway.supervisor.fleetcfg import RunOptions
 from gateway.supervisor.supervisor import Supervisor
 from kit.e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station, wait_log
+from kit.tools import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -182,6 +183,9 @@ def test_commands_flow_back_and_a_stuck_worker_is_killed_and_restarted(tmp_path)
             w = hub.worker
             pid = w.proc.pid
             os.kill(pid, signal.SIGSTOP)
+            # kill() only queues the stop: wait until the kernel shows the process stopped, so
+            # that the command below cannot be answered in the moment before
+            wait_for(lambda: _proc_state(pid) in ("T", "t"), 5, 0.01, what="worker stopped")
             t0 = time.monotonic()
             r4 = hub.command("ack", timeout=0.5)
             assert not r4.ok and "did not answer within 0.5 s" in r4.reason
@@ -255,3 +259,8 @@ def test_fleet_unit_notify_follows_the_workers(tmp_path):
     assert not during, (t_stop, t_restart, beats)
     assert len([t for t in beats if t > t_restart]) >= 2, (t_restart, beats)
     assert "n1: worker pid" in gw.log_all() and "stuck loop?" in gw.log_all()
+
+
+def _proc_state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]
