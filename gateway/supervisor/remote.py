@@ -1,20 +1,22 @@
 """A station as the supervisor sees it: the proxy that drives the shared outputs of a fleet.
 
 In ``hookwatch run FLEET_DIR`` every station runs in its own worker process, but the things a
-fleet shares stay in the supervisor: the Modbus TCP port with one unit per station, the operator
-console, the metrics endpoint. A :class:`RemoteStation` per station stands in for the
+fleet shares stay in the supervisor: the Modbus TCP port with one unit per station, the Sparkplug
+edge nodes with a device per station, the operator console, the metrics endpoint. A
+:class:`RemoteStation` per station stands in for the
 :class:`~gateway.station.station.Station` those outputs were written for. It rebuilds the
 station's stream from its worker's IPC frames (:mod:`.ipc`: every
 :class:`~gateway.records.SlotRecord` from the SLOTS frames' ``rows``, every
 :class:`~gateway.records.Event`, every :class:`~gateway.records.StationState`, the METRICS
 snapshots) and calls the SAME output classes the in-process runtime uses (``ModbusOutput``,
-``ConsoleOutput``, ``MetricsRelay``), so register map, console and metrics have one definition
-in both modes.
+``SparkplugOutput`` as :class:`SparkplugDevice`, ``ConsoleOutput``, ``MetricsRelay``), so register
+map, Sparkplug metric set, console and metrics have one definition in both modes.
 
 Threads: frames arrive on the hub's reader thread (one per worker, as a station has one loop)
 and the outputs' ``on_record``/``on_event``/``on_state`` run there (they are O(1), never
 blocking). The outputs' coroutines — ``start``/``stop`` and :meth:`RemoteStation.submit`, where
-their commands go — run on one supervisor loop (:class:`~gateway.threadloop.ThreadLoop`
+their commands go (a PLC write, a console button, a Sparkplug DCMD from its node's thread) — run
+on one supervisor loop (:class:`~gateway.threadloop.ThreadLoop`
 ``fleet-outputs``); :meth:`submit` waits for the worker's REPLY in an executor thread
 (``StationHub.command`` blocks up to its timeout), so neither a server's loop nor a reader thread
 ever waits for a worker.
@@ -22,8 +24,8 @@ ever waits for a worker.
 A worker that is down (crashed, killed, restarting) is shown as down, not with stale values:
 its outputs get a state with every link down (PLC status bits ``meter_ok``, ``stm32_ok``,
 ``mqtt_connected`` 0; the heartbeat register stops), ``on_worker(False)`` where an output has it
-(console: the station is offline; metrics: ``hookwatch_station_up`` 0), and commands are refused
-with ``NO_STATION``.
+(console: the station is offline; metrics: ``hookwatch_station_up`` 0; Sparkplug: a DDEATH of
+its device, a DBIRTH when its worker is back), and commands are refused with ``NO_STATION``.
 """
 from __future__ import annotations
 
