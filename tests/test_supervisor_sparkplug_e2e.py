@@ -14,10 +14,9 @@ import pytest
 import yaml
 
 from kit.broker import Broker
-from kit.e2e import fleet_dir, run_gateway, wait_log
+from kit.e2e import fleet_dir, run_gateway, sim_fleet, wait_log, worker_pids
 from kit.sparkplug_host import PrimaryHost, metric_value
 from kit.tools import wait_for
-from test_supervisor_shared_e2e import _pids, _sim
 
 pytestmark = pytest.mark.slow
 
@@ -45,7 +44,7 @@ def _bdseq(msg) -> int:
 def test_fleet_shares_one_edge_node_in_the_supervisor_kill_9_is_a_ddeath(tmp_path):
     b = Broker(tmp_path).start()
     host = PrimaryHost(b.port, "unused", GROUP, tmp_path)
-    sim, links = _sim(tmp_path, 2)
+    sim, links = sim_fleet(tmp_path, 2)
     gw = None
     rc = None
     try:
@@ -56,8 +55,8 @@ def test_fleet_shares_one_edge_node_in_the_supervisor_kill_9_is_a_ddeath(tmp_pat
                 "stm32": {"port": os.path.join(links, name, "stm32")}}))
         gw = run_gateway(tmp_path, str(fleet), "--restart-backoff", "1")
         for name in NAMES:
-            wait_for(lambda n=name: _pids(gw, n), 30, 0.2, what=f"{name}: worker started")
-        pids = {n: _pids(gw, n)[0] for n in NAMES}
+            wait_for(lambda n=name: worker_pids(gw, n), 30, 0.2, what=f"{name}: worker started")
+        pids = {n: worker_pids(gw, n)[0] for n in NAMES}
         # a process per station, the supervisor apart, and no fallback to one process
         assert len(set(pids.values())) == 2 and gw.p.pid not in pids.values()
 
@@ -103,7 +102,7 @@ def test_fleet_shares_one_edge_node_in_the_supervisor_kill_9_is_a_ddeath(tmp_pat
         os.kill(pids["sim02"], signal.SIGKILL)
         host.wait(lambda: _count(host, "DDEATH", "sim02", mark), 10, "sim02's DDEATH")
         dd = next(i for i, m in enumerate(host.all(since=mark)) if m.kind == "DDEATH") + mark
-        wait_for(lambda: len(_pids(gw, "sim02")) == 2, 20, 0.2, what="sim02 restarted")
+        wait_for(lambda: len(worker_pids(gw, "sim02")) == 2, 20, 0.2, what="sim02 restarted")
         host.wait(lambda: _count(host, "DBIRTH", "sim02", dd), 20, "sim02's DBIRTH after its restart")
         reborn = next(i for i, m in enumerate(host.all(since=dd)) if m.kind == "DBIRTH") + dd
         host.wait(lambda: _count(host, "DDATA", "sim02", reborn) >= 3, 10, "sim02's DDATA again")
@@ -114,7 +113,7 @@ def test_fleet_shares_one_edge_node_in_the_supervisor_kill_9_is_a_ddeath(tmp_pat
         # sim01's data went on while sim02 was down, and nothing of sim02 between death and birth
         assert _count(host, "DDATA", "sim01", dd) - _count(host, "DDATA", "sim01", reborn) >= 3
         assert not [m for m in host.all(since=dd)[:reborn - dd] if m.device == "sim02" and m.kind == "DDATA"]
-        assert _pids(gw, "sim01") == [pids["sim01"]]
+        assert worker_pids(gw, "sim01") == [pids["sim01"]]
         _seq_ok(host.all())           # still the one session: seq runs on through death and birth
         assert since_kill and all(m.qos == 0 and not m.retain for m in since_kill)
     finally:
