@@ -142,7 +142,7 @@ def shared_outputs(cfg, station, console: ConsoleServer | None = None, *,
     if with_northbound and cfg.modbus_tcp.enabled:
         modbus = ModbusOutput(modbus_settings(cfg), station)
         outs.append(modbus)
-    if with_northbound and "sparkplug" in served_by_supervisor(cfg, console=False):
+    if with_northbound and cfg.sparkplug.enabled:
         outs.append((sparkplug_device or SparkplugOutput)(sparkplug_settings(cfg), station))
     if console is not None and station.id in console.feeds:
         outs.append(console.output_for(station))
