@@ -16,6 +16,7 @@ from drivers.zns import ZnsMeter
 from .console.server import ConsoleServer, ConsoleSettings
 from .northbound.metrics import MetricsRelay
 from .northbound.modbus_server import ModbusOutput
+from .northbound.sparkplug.output import SparkplugOutput
 from .northbound.sparkplug.output import settings_from_config as sparkplug_settings
 from .northbound.wiring import metrics_outputs, modbus_settings, outputs_for
 from .ports import MeterPort, Output, Stm32Port
@@ -36,10 +37,11 @@ def build_stm32(cfg) -> Stm32Port:
     return Stm32Link.from_config(cfg.stm32)
 
 
-def northbound_outputs(cfg, station: Station, *, modbus: bool = True) -> list[Output]:
-    """MQTT and Modbus TCP, as the ``mqtt:`` and ``modbus_tcp:`` sections enable them (Modbus TCP
-    not when ``modbus`` is False: a fleet's supervisor serves it)."""
-    return list(outputs_for(cfg, station, modbus=modbus))
+def northbound_outputs(cfg, station: Station, *, modbus: bool = True, sparkplug: bool = True) -> list[Output]:
+    """MQTT, Modbus TCP and Sparkplug, as the ``mqtt:``, ``modbus_tcp:`` and ``sparkplug:``
+    sections enable them (Modbus TCP not when ``modbus`` is False, the Sparkplug device not when
+    ``sparkplug`` is False: a fleet's supervisor serves them)."""
+    return list(outputs_for(cfg, station, modbus=modbus, sparkplug=sparkplug))
 
 
 def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: bool = True,
@@ -47,8 +49,9 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     """One station from its configuration: drivers, method, control, limits and outputs.
 
     ``served_by_supervisor`` (a worker of ``hookwatch run FLEET_DIR``): ``"modbus"`` — no Modbus
-    TCP output here (the supervisor serves the station's unit from the IPC stream); ``"metrics"``
-    — the metrics output counts here but opens no endpoint (its snapshot goes over IPC)."""
+    TCP output here (the supervisor serves the station's unit from the IPC stream); ``"sparkplug"``
+    — no Sparkplug device here (the supervisor hosts the edge node); ``"metrics"`` — the metrics
+    output counts here but opens no endpoint (its snapshot goes over IPC)."""
     mv = method_values(cfg)
     ts = float(mv.get("ts", 0.02))
     st = Station(
@@ -60,7 +63,8 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
     )
     if with_northbound:
-        st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor))
+        st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor,
+                                             sparkplug="sparkplug" not in served_by_supervisor))
     st.outputs.extend(plugin_outputs(cfg, st))
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
@@ -101,10 +105,14 @@ def build_console(cfgs: list) -> ConsoleServer | None:
 
 def served_by_supervisor(cfg, *, console: bool, with_northbound: bool = True) -> frozenset[str]:
     """What a fleet's supervisor serves for the station of ``cfg`` (its worker then streams what
-    those outputs need and serves none of them): its Modbus TCP unit, the console, its metrics."""
+    those outputs need and serves none of them): its Modbus TCP unit, its Sparkplug device (every
+    edge node lives in the supervisor, shared by several stations or not), the console, its
+    metrics."""
     out = set()
     if with_northbound and cfg.modbus_tcp.enabled:
         out.add("modbus")
+    if with_northbound and getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
+        out.add("sparkplug")
     if console:
         out.add("console")
     if cfg.metrics.enabled:
@@ -121,16 +129,21 @@ def station_facts(cfg) -> dict:
 
 
 def shared_outputs(cfg, station, console: ConsoleServer | None = None, *,
-                   with_northbound: bool = True) -> list[Output]:
+                   with_northbound: bool = True, sparkplug_device=None) -> list[Output]:
     """The outputs a fleet's supervisor runs for one station proxy (``station``: a
     ``gateway.supervisor.remote.RemoteStation``): the same classes as in one process — the
-    station's unit on its Modbus TCP port (shared by every station that names it), its console
-    feed, and its metrics (the worker's snapshots on the supervisor's endpoint)."""
+    station's unit on its Modbus TCP port (shared by every station that names it), its Sparkplug
+    device on its edge node (shared by every station that names the same broker, group and node;
+    ``sparkplug_device``: the ``SparkplugOutput`` class to build, the supervisor's own whose device
+    follows its worker), its console feed, and its metrics (the worker's snapshots on the
+    supervisor's endpoint)."""
     outs: list[Output] = []
     modbus = None
     if with_northbound and cfg.modbus_tcp.enabled:
         modbus = ModbusOutput(modbus_settings(cfg), station)
         outs.append(modbus)
+    if with_northbound and cfg.sparkplug.enabled:
+        outs.append((sparkplug_device or SparkplugOutput)(sparkplug_settings(cfg), station))
     if console is not None and station.id in console.feeds:
         outs.append(console.output_for(station))
     m = cfg.metrics
@@ -141,8 +154,8 @@ def shared_outputs(cfg, station, console: ConsoleServer | None = None, *,
 
 def shared_sparkplug_nodes(cfgs: list) -> list[str]:
     """Sparkplug edge nodes that several stations of ``cfgs`` share (same broker, group and edge
-    node: one MQTT session for all of them), as ``group/node`` names. Such a node must live in one
-    process: a fleet with one runs in one process (``hookwatch run`` says so)."""
+    node: one MQTT session for all of them), as ``group/node`` names. In a fleet's supervisor such
+    a node is one session with a device per station (``hookwatch run`` names them at start)."""
     seen: dict[tuple, list[str]] = {}
     for c in cfgs:
         if getattr(c, "sparkplug", None) is None or not c.sparkplug.enabled:

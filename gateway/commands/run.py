@@ -25,7 +25,7 @@ from ..config import ConfigError, load_fleet, load_station
 from ..osprio import MAX_PRIORITY
 from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
-from ..supervisor.remote import RemoteFleet, RemoteStation
+from ..supervisor.remote import RemoteFleet, RemoteStation, SparkplugDevice
 from ..supervisor.supervisor import Supervisor
 
 HELP = "run one station (a YAML file) or a whole fleet (a config folder, one process per station)"
@@ -223,8 +223,8 @@ def _setup_logging(level: str | None) -> None:
 
 def _attach_shared(sup: Supervisor, remote: RemoteFleet, args, console) -> None:
     """A station proxy with its shared outputs per running station of the supervisor (at start,
-    and after a SIGHUP: new stations get one, a station whose Modbus TCP or metrics settings
-    changed gets a new one, a removed station's is stopped)."""
+    and after a SIGHUP: new stations get one, a station whose Modbus TCP, Sparkplug or metrics
+    settings changed gets a new one, a removed station's is stopped)."""
     with_nb = not args.no_northbound
     cfgs = {c.station.id: c for c in (_override(c, args) for _, c in sup.plan.accepted)}
     for name, hub in sup.hubs.items():
@@ -233,13 +233,13 @@ def _attach_shared(sup: Supervisor, remote: RemoteFleet, args, console) -> None:
             if name in remote.stations and (hub.worker is None or hub.worker.path not in sup.workers):
                 remote.remove(name)
             continue
-        key = repr((cfg.modbus_tcp, cfg.metrics, with_nb))
+        key = repr((cfg.modbus_tcp, cfg.sparkplug, cfg.metrics, with_nb))
         if remote.keys.get(name) == key:
             continue
         if console is not None and name not in console.feeds:
             console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled))
         st = RemoteStation(hub, **station_facts(cfg))
-        st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb)
+        st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb, sparkplug_device=SparkplugDevice)
         remote.add(st, key)
 
 
@@ -258,18 +258,16 @@ def run_supervised(args) -> int:
     log = logging.getLogger("hookwatch.run")
     nodes = [] if args.no_northbound else shared_sparkplug_nodes(cfgs)
     if nodes:
-        # one Sparkplug edge node (one MQTT session, one bdSeq) serves several stations: it lives
-        # in one process, and the supervisor does not host Sparkplug nodes (docs/runtime.md)
-        log.warning("stations share the Sparkplug edge node(s) %s: the fleet runs in one process "
-                    "(--in-process); give each station its own sparkplug.edge_node_id for a process "
-                    "per station", ", ".join(nodes))
-        args.in_process = True
-        return run(args)
+        # one Sparkplug edge node (one MQTT session, one bdSeq) with a device per station: the
+        # supervisor hosts it, fed by the stations' proxies (docs/runtime.md)
+        log.info("Sparkplug edge node(s) %s: one session in the supervisor, a device per station",
+                 ", ".join(nodes))
     opts = RunOptions.from_args(args)
     opts.log_level = level
     with_nb = not args.no_northbound
     # the shared things live here, in the supervisor: the console, the Modbus TCP ports (one unit
-    # per station) and the metrics endpoint, fed by each worker over IPC (docs/runtime.md)
+    # per station), the Sparkplug edge nodes (a device per station) and the metrics endpoint, fed
+    # by each worker over IPC (docs/runtime.md)
     console = _console(cfgs)
 
     def served(cfg) -> frozenset[str]:

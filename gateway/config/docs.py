@@ -43,8 +43,8 @@ def render() -> str:
         "",
         "A **fleet folder** (on a box: `/etc/hookwatch`) holds `fleet.yaml` and one file per station, "
         "`stations/<id>.yaml`. `hookwatch run DIR` runs every station of the folder, each in its own "
-        "worker process under one supervisor that serves the Modbus TCP ports, the console and the "
-        "metrics endpoint (docs/runtime.md; `--in-process`: all in one process); "
+        "worker process under one supervisor that serves the Modbus TCP ports, the Sparkplug edge nodes, "
+        "the console and the metrics endpoint (docs/runtime.md; `--in-process`: all in one process); "
         "`hookwatch run DIR/stations/<id>.yaml` (the `hookwatch@<id>` unit) runs one.",
         "",
         f"- `fleet.yaml` has one section, `defaults:` (its keys: {', '.join(FLEET_KEYS)}), written like "

@@ -279,8 +279,9 @@ class SparkplugConfig(BrokerConfig):
                         kind="bool")
     group_id: str | None = key(None, "Sparkplug group ID", kind="ident", nullable=True,
                                null_means="`station.site`")
-    edge_node_id: str | None = key(None, "Sparkplug edge node ID; stations of one process with the "
-                                   "same group and edge node share one node (one MQTT session)",
+    edge_node_id: str | None = key(None, "Sparkplug edge node ID; stations of one gateway (a fleet's "
+                                   "supervisor, or one process) with the same broker, group and edge "
+                                   "node share one node (one MQTT session, a device per station)",
                                    kind="ident", nullable=True,
                                    null_means="`<station.area>-<station.line>`")
     device_id: str | None = key(None, "Sparkplug device ID of this station", kind="ident",

@@ -42,8 +42,9 @@ def modbus_settings(cfg):
     )
 
 
-def outputs_for(cfg, station, *, modbus: bool = True) -> list:
-    """The northbound outputs of one station (MQTT, then Modbus TCP unless ``modbus`` is False)."""
+def outputs_for(cfg, station, *, modbus: bool = True, sparkplug: bool = True) -> list:
+    """The northbound outputs of one station (MQTT, then Modbus TCP unless ``modbus`` is False,
+    then its Sparkplug device unless ``sparkplug`` is False: a fleet's supervisor hosts it)."""
     outs: list = []
     mqtt_out = None
     if getattr(cfg, "mqtt", None) is not None and cfg.mqtt.enabled:
@@ -63,7 +64,7 @@ def outputs_for(cfg, station, *, modbus: bool = True) -> list:
 
         # the MQTT link reaches the PLC through the station's state (StationState.mqtt_ok)
         outs.append(ModbusOutput(modbus_settings(cfg), station))
-    if getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
+    if sparkplug and getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
         outs.append(SparkplugOutput(settings_from_config(cfg), station))
     return outs
 

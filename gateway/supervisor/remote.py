@@ -1,20 +1,22 @@
 """A station as the supervisor sees it: the proxy that drives the shared outputs of a fleet.
 
 In ``hookwatch run FLEET_DIR`` every station runs in its own worker process, but the things a
-fleet shares stay in the supervisor: the Modbus TCP port with one unit per station, the operator
-console, the metrics endpoint. A :class:`RemoteStation` per station stands in for the
+fleet shares stay in the supervisor: the Modbus TCP port with one unit per station, the Sparkplug
+edge nodes with a device per station, the operator console, the metrics endpoint. A
+:class:`RemoteStation` per station stands in for the
 :class:`~gateway.station.station.Station` those outputs were written for. It rebuilds the
 station's stream from its worker's IPC frames (:mod:`.ipc`: every
 :class:`~gateway.records.SlotRecord` from the SLOTS frames' ``rows``, every
 :class:`~gateway.records.Event`, every :class:`~gateway.records.StationState`, the METRICS
 snapshots) and calls the SAME output classes the in-process runtime uses (``ModbusOutput``,
-``ConsoleOutput``, ``MetricsRelay``), so register map, console and metrics have one definition
-in both modes.
+``SparkplugOutput`` as :class:`SparkplugDevice`, ``ConsoleOutput``, ``MetricsRelay``), so register
+map, Sparkplug metric set, console and metrics have one definition in both modes.
 
 Threads: frames arrive on the hub's reader thread (one per worker, as a station has one loop)
 and the outputs' ``on_record``/``on_event``/``on_state`` run there (they are O(1), never
 blocking). The outputs' coroutines — ``start``/``stop`` and :meth:`RemoteStation.submit`, where
-their commands go — run on one supervisor loop (:class:`~gateway.threadloop.ThreadLoop`
+their commands go (a PLC write, a console button, a Sparkplug DCMD from its node's thread) — run
+on one supervisor loop (:class:`~gateway.threadloop.ThreadLoop`
 ``fleet-outputs``); :meth:`submit` waits for the worker's REPLY in an executor thread
 (``StationHub.command`` blocks up to its timeout), so neither a server's loop nor a reader thread
 ever waits for a worker.
@@ -22,23 +24,27 @@ ever waits for a worker.
 A worker that is down (crashed, killed, restarting) is shown as down, not with stale values:
 its outputs get a state with every link down (PLC status bits ``meter_ok``, ``stm32_ok``,
 ``mqtt_connected`` 0; the heartbeat register stops), ``on_worker(False)`` where an output has it
-(console: the station is offline; metrics: ``hookwatch_station_up`` 0), and commands are refused
-with ``NO_STATION``.
+(console: the station is offline; metrics: ``hookwatch_station_up`` 0; Sparkplug: a DDEATH of
+its device, a DBIRTH when its worker is back), and commands are refused with ``NO_STATION``.
 """
 from __future__ import annotations
 
 import asyncio
 import dataclasses
 import logging
+import threading
+import time
 from typing import Any
 
+from ..northbound.sparkplug import client as sparkplug_client
+from ..northbound.sparkplug.output import SparkplugOutput, state_values
 from ..ports import Output, StationLimits
 from ..records import Command, CommandReply, SlotRecord, StationState
 from ..station.commands import CODE, Rejection
 from ..threadloop import ThreadLoop
 from .ipc import FrameType, event_from_dict, slot_from_row, state_from_dict
 
-__all__ = ["COMMAND_TIMEOUT_S", "RemoteFleet", "RemoteStation"]
+__all__ = ["COMMAND_TIMEOUT_S", "RemoteFleet", "RemoteStation", "SparkplugDevice"]
 
 log = logging.getLogger("hookwatch.supervisor")
 
@@ -178,6 +184,60 @@ class RemoteStation:
         if key not in self._failed:
             self._failed.add(key)
             log.error("%s: a %s from the worker could not be read: %s", self.id, what, e)
+
+
+class SparkplugDevice(SparkplugOutput):
+    """A station proxy's Sparkplug device on an edge node of the supervisor (see the module doc).
+
+    The same output as in one process (metric set, aggregation, commands through the station's
+    ``submit``), with one difference: the device lives while its WORKER does. ``start`` attaches
+    the station to its node (one :class:`~gateway.northbound.sparkplug.client.NodeRuntime` per
+    broker, group and edge node in the supervisor: stations sharing a node share its session,
+    its bdSeq and its Will) without a device; ``on_worker(True)`` (HELLO) brings the device up —
+    a DBIRTH with the station's current values once the node is born — and ``on_worker(False)``
+    (its worker crashed, was killed or is restarting) takes it down: a DDEATH, the node and the
+    other stations' devices going on. Nothing of a down worker is published (no stale values)."""
+
+    def __init__(self, settings, station=None) -> None:
+        super().__init__(settings, station)
+        self.up = False
+        self._up_lock = threading.Lock()
+
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.rt = sparkplug_client.attach(self.s, self)     # the device is born with its worker
+
+    async def stop(self) -> None:
+        with self._up_lock:
+            self.up = False
+        await super().stop()
+
+    def on_worker(self, up: bool, restarts: int = 0) -> None:
+        with self._up_lock:
+            if bool(up) == self.up or self.rt is None:
+                return
+            self.up = bool(up)
+            if up:
+                self._agg = None
+                st = getattr(self.station, "state", None)
+                self._last = state_values(st) if st is not None else {}
+                self.rt.post(("up", self.s.device_id, dict(self._last)))
+            else:
+                self._flush(time.monotonic())
+                self._agg = None
+                self.rt.post(("down", self.s.device_id))
+
+    def on_record(self, rec: SlotRecord) -> None:
+        if self.up:
+            super().on_record(rec)
+
+    def on_state(self, st: StationState) -> None:
+        if self.up:
+            super().on_state(st)
+
+    def on_event(self, ev: Any) -> None:
+        if self.up:
+            super().on_event(ev)
 
 
 class RemoteFleet:

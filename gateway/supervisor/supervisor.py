@@ -18,8 +18,9 @@ socketpair, and then only supervises:
 Per station the supervisor keeps a :class:`StationHub`: the latest state, the last slot summary,
 a bounded stream of slot summaries and events, and a command path back to the station. The
 outputs that stay in the supervisor process (the Modbus TCP ports with one unit per station, the
-web console, the metrics endpoint) hang on it through a station proxy (``hub.sink``, a
-:class:`~gateway.supervisor.remote.RemoteStation`): see docs/runtime.md.
+Sparkplug edge nodes with a device per station, the web console, the metrics endpoint) hang on
+it through a station proxy (``hub.sink``, a :class:`~gateway.supervisor.remote.RemoteStation`):
+see docs/runtime.md.
 """
 from __future__ import annotations
 
@@ -178,7 +179,7 @@ class WorkerHandle:
         self.restarts = 0
         self.stopping = False
         self.fingerprint = ""
-        #: what the supervisor serves for this station (Modbus TCP unit, console, metrics)
+        #: what the supervisor serves for this station (Modbus TCP unit, Sparkplug device, console, metrics)
         self.served: frozenset[str] = frozenset()
         self._send_lock = threading.Lock()
         self._pending: dict[int, tuple[threading.Event, list[dict[str, Any]]]] = {}
@@ -317,7 +318,7 @@ class Supervisor:
                  served_for: Callable[[Any], frozenset[str]] | None = None) -> None:
         self.folder = folder
         #: what the supervisor's shared outputs serve for a station (its configuration → a subset
-        #: of modbus, console, metrics): its worker then streams what they need and serves none
+        #: of modbus, sparkplug, console, metrics): its worker then streams what they need and serves none
         self.served_for = served_for
         self.opts = opts
         self.opts_json = json.dumps(opts.as_dict())

@@ -40,14 +40,17 @@ HEARTBEAT_S = 0.5
 #: one METRICS frame per this many heartbeats (1 s)
 METRICS_EVERY = 2
 #: what a supervisor may serve for its workers' stations (``--served-by-supervisor``)
-SERVED = ("modbus", "console", "metrics")
+SERVED = ("modbus", "console", "metrics", "sparkplug")
+#: served things that need every slot record (the others live on the summaries and snapshots)
+ROW_SERVED = frozenset({"modbus", "console", "sparkplug"})
 
 
 class IpcOutput:
     """An :class:`~gateway.ports.Output` that sends a station's stream to the supervisor.
     O(1) per slot, never blocks: frames go to a bounded :class:`FrameChannel`. With ``rows``
-    (the supervisor serves the station's Modbus TCP unit or the console) every SLOTS frame also
-    carries the slot records it summarises, as lists of values (``ipc.SLOT_COLUMNS``)."""
+    (the supervisor serves the station's Modbus TCP unit, the console or its Sparkplug device)
+    every SLOTS frame also carries the slot records it summarises, as lists of values
+    (``ipc.SLOT_COLUMNS``)."""
 
     def __init__(self, chan: FrameChannel, every: int = SUMMARY_EVERY, rows: bool = False) -> None:
         self.chan = chan
@@ -124,10 +127,10 @@ class Worker:
         self.fleet_file = fleet_file
         self.opts = opts
         self.phase = phase
-        #: what the supervisor serves for this station: Modbus TCP unit, console, metrics
+        #: what the supervisor serves for this station: Modbus TCP unit, console, metrics, Sparkplug device
         self.served = frozenset(served)
         self.chan = FrameChannel(sock, name="ipc-writer")
-        self.out = IpcOutput(self.chan, summary_every, rows=bool(self.served & {"modbus", "console"}))
+        self.out = IpcOutput(self.chan, summary_every, rows=bool(self.served & ROW_SERVED))
         self.stop = threading.Event()
         self.go = threading.Event()
         self.station: Station | None = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import subprocess
 import time
 
@@ -140,3 +141,21 @@ def events(test_dir) -> list[dict]:
     """The events.jsonl of a recorded test."""
     with open(os.path.join(test_dir, "events.jsonl")) as f:
         return [json.loads(line) for line in f if line.strip()]
+
+
+def sim_fleet(tmp_path, n: int) -> tuple[Proc, str]:
+    """One `hookwatch sim --count n` (stations sim01…); its links under tmp_path/links/NAME/."""
+    with open(os.path.join(ROOT, "config", "scenarios", "quick.yaml")) as f:
+        sc = yaml.safe_load(f)
+    sc["meter"] = {"map": METER_MAP}
+    (tmp_path / "sc.yaml").write_text(yaml.safe_dump(sc))
+    links = tmp_path / "links"
+    p = Proc(hookwatch_cmd() + ["sim", str(tmp_path / "sc.yaml"), "--count", str(n), "--link-dir",
+                                str(links), "--duration", "600"], str(tmp_path / "sim.log"))
+    p.readline_until("ready:")
+    return p, str(links)
+
+
+def worker_pids(gw: Proc, name: str) -> list[int]:
+    """The pids of station ``name``'s worker processes so far, from a fleet supervisor's log."""
+    return [int(p) for p in re.findall(rf"{name}: worker started \(pid (\d+)\)", gw.log_all())]

@@ -88,7 +88,8 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "(after data of others), as do stations whose stored history is replayed after a restart "
      "before they run again"),
     ("tck-id-operational-behavior-device-ddeath", "DDEATH when a device is lost", "yes",
-     "when its station stops (e2e: clean stop)"),
+     "when its station stops (e2e: clean stop); in a fleet when its worker process is down, "
+     "DBIRTH when it is back (e2e: kill -9 of a worker)"),
     ("tck-id-operational-behavior-data-publish-dbirth-change, tck-id-principles-rbe-recommended",
      "DDATA only on change (report by exception)", "partial",
      "state, alarm and test metrics by exception; the measured values (tension, μ, speed) are "
@@ -128,8 +129,10 @@ and needs only the `protobuf` runtime).
 | edge node ID | `sparkplug.edge_node_id` | `<station.area>-<station.line>` |
 | device ID | `sparkplug.device_id` | `station.id` (one device per station) |
 
-Stations of one gateway process with the same broker, group and edge node share **one** edge
-node (one MQTT session, one bdSeq, one seq counter); each is a device of it.
+Stations of one gateway with the same broker, group and edge node share **one** edge
+node (one MQTT session, one bdSeq, one seq counter); each is a device of it. In a fleet
+(`hookwatch run FLEET_DIR`) the nodes live in the supervisor, each station's device fed by its
+worker process (docs/runtime.md "Sparkplug in a fleet").
 
 ## Session
 

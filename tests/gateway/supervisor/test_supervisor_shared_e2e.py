@@ -16,11 +16,11 @@ import pytest
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
-from conftest import ROOT, hookwatch_cmd
 from gateway.northbound import registers as R
 from kit.e2e import fleet_dir, run_gateway, wait_log
+from kit.e2e import sim_fleet as _sim
+from kit.e2e import worker_pids as _pids
 from kit.northbound import mbpoll
-from kit.proc import Proc
 from kit.prometheus import prometheus, query  # noqa: F401 (prometheus: a fixture)
 from kit.prometheus import wait_for as prom_wait
 from kit.tools import free_port, require_tool, wait_for
@@ -32,19 +32,6 @@ UNITS = {"sim01": 1, "sim02": 2, "sim03": 3}
 IR = R.IR
 STATUS = IR["status"].address
 LINK_BITS = (1 << R.STATUS_BIT["meter_ok"]) | (1 << R.STATUS_BIT["stm32_ok"])
-
-
-def _sim(tmp_path, n: int) -> tuple[Proc, str]:
-    """One `hookwatch sim --count n` (stations sim01…); its links under tmp_path/links/NAME/."""
-    with open(os.path.join(ROOT, "config", "scenarios", "quick.yaml")) as f:
-        sc = yaml.safe_load(f)
-    sc["meter"] = {"map": os.path.join(ROOT, "config", "meters", "zn-s.yaml")}
-    (tmp_path / "sc.yaml").write_text(yaml.safe_dump(sc))
-    links = tmp_path / "links"
-    p = Proc(hookwatch_cmd() + ["sim", str(tmp_path / "sc.yaml"), "--count", str(n), "--link-dir",
-                                str(links), "--duration", "600"], str(tmp_path / "sim.log"))
-    p.readline_until("ready:")
-    return p, str(links)
 
 
 def _fleet(tmp_path, links: str, mport: int, metrics_port: int, console_port: int):
@@ -87,10 +74,6 @@ def _metrics(port: int) -> dict[tuple[str, str], float]:
 def _fleet_api(port: int) -> dict[str, dict]:
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/fleet", timeout=5) as r:
         return {s["station"]: s for s in json.load(r)["stations"]}
-
-
-def _pids(gw, name) -> list[int]:
-    return [int(p) for p in re.findall(rf"{name}: worker started \(pid (\d+)\)", gw.log_all())]
 
 
 def test_one_modbus_port_console_and_metrics_in_the_supervisor_kill_9_shows_down_then_back(tmp_path):

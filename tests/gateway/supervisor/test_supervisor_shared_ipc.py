@@ -132,7 +132,7 @@ def test_a_workers_stream_over_a_real_socket_drives_the_proxys_outputs():
 
 
 def test_stations_sharing_a_sparkplug_edge_node_are_found(tmp_path):
-    """Such a node is one MQTT session for several stations: the fleet runs in one process."""
+    """Such a node is one MQTT session for several stations (in the supervisor, a device per station)."""
     fleet = fleet_dir(tmp_path, sparkplug={"enabled": True})
     for name in ("a", "b"):
         (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
