@@ -39,7 +39,8 @@ from typing import Any
 from ..northbound.sparkplug import client as sparkplug_client
 from ..northbound.sparkplug.output import SparkplugOutput, state_values
 from ..ports import Output, StationLimits
-from ..records import Command, CommandReply, SlotRecord, StationState
+from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
+from ..station.alarms import KIND_OF, MODEL_NAME
 from ..station.commands import CODE, Rejection
 from ..threadloop import ThreadLoop
 from .ipc import FrameType, event_from_dict, slot_from_row, state_from_dict
@@ -52,11 +53,35 @@ log = logging.getLogger("hookwatch.supervisor")
 COMMAND_TIMEOUT_S = 4.5
 
 
+class RemoteAlarms:
+    """What the supervisor knows of a station's alarm store beyond its :class:`StationState`: when
+    each alarm's shelving expires (from the station's ``alarm_shelved`` events). The worker's store
+    stays the truth: readers show the expiry only while the state says ``shelved``."""
+
+    def __init__(self) -> None:
+        self._until: dict[str, float] = {}
+
+    def on_event(self, ev: Event) -> None:
+        if ev.type != EventType.ALARM_SHELVED:
+            return
+        until = ev.data.get("until")
+        if until is None:
+            return
+        name = ev.data.get("alarm")
+        for n in ([name] if isinstance(name, str) else list(MODEL_NAME.values())):
+            self._until[KIND_OF.get(n, n)] = float(until)
+
+    def shelved_until(self, name: str) -> float | None:
+        """The expiry of the last shelving of alarm ``name`` (a model or kind name), s since the epoch."""
+        return self._until.get(KIND_OF.get(name, name))
+
+
 class RemoteStation:
     """The supervisor's stand-in of one station for the outputs it serves (see the module doc).
 
     Attributes the outputs read of a station: ``id``, ``ts``, ``limits``, ``default_plan``,
-    ``state`` (latest :class:`StationState`), ``outputs``; ``submit(cmd)`` is the command sink."""
+    ``state`` (latest :class:`StationState`), ``alarms`` (:class:`RemoteAlarms`), ``outputs``;
+    ``submit(cmd)`` is the command sink."""
 
     def __init__(self, hub: Any, *, ts: float = 0.02, limits: StationLimits | None = None,
                  default_plan: Any = None) -> None:
@@ -66,6 +91,7 @@ class RemoteStation:
         self.limits = limits if limits is not None else StationLimits()
         self.default_plan = default_plan
         self.state = StationState(station=self.id)
+        self.alarms = RemoteAlarms()
         self.outputs: list[Output] = []
         self.loop: asyncio.AbstractEventLoop | None = None
         self.up = False
@@ -124,6 +150,7 @@ class RemoteStation:
             except (KeyError, TypeError, ValueError) as e:
                 self._bad("event", e)
                 return
+            self.alarms.on_event(ev)
             self._each("on_event", ev)
         elif ftype == FrameType.STATE:
             try:

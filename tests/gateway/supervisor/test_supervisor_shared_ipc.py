@@ -16,6 +16,7 @@ import yaml
 
 from gateway.compose import shared_sparkplug_nodes
 from gateway.config import load_fleet
+from gateway.northbound.sparkplug.output import state_values
 from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TS
 from gateway.supervisor import ipc
@@ -142,3 +143,25 @@ def test_stations_sharing_a_sparkplug_edge_node_are_found(tmp_path):
     assert shared_sparkplug_nodes(cfgs) == ["lab/hall-l1"]
     os.remove(fleet / "stations" / "b.yaml")
     assert shared_sparkplug_nodes(load_fleet(str(fleet))) == []
+
+
+def test_a_shelving_reaches_the_supervisors_sparkplug_values_only_while_shelved():
+    """The supervisor has no alarm store: the expiry of a shelving comes from the station's
+    alarm_shelved event; the state (the worker's store) decides whether it is shown."""
+    def state_to_dict(st):               # as the worker sends it (its STATE frame) and JSON carries it
+        return json.loads(json.dumps(asdict(st), default=str))
+
+    proxy = RemoteStation(_Hub())
+    until = 1_790_000_000.25
+    ev = Event(EventType.ALARM_SHELVED, "st", until - 600, data={"alarm": "wear_warning", "until": until,
+                                                                  "source": "plc:127.0.0.1"})
+    proxy.on_frame(ipc.FrameType.EVENT, json.loads(json.dumps(ev.as_dict())))
+    proxy.on_frame(ipc.FrameType.STATE, state_to_dict(StationState(station="st", warning_alarm="shelved",
+                                                                   alarm="unacknowledged")))
+    v = state_values(proxy.state, proxy)
+    assert v["Alarm/Wear Warning/State"] == "shelved"
+    assert v["Alarm/Wear Warning/Shelved Until"] == round(until * 1000)
+    assert v["Alarm/End Of Life/Shelved Until"] is None          # the other alarm was not shelved
+    # unshelved: the state says so, the old expiry is no longer shown
+    proxy.on_frame(ipc.FrameType.STATE, state_to_dict(StationState(station="st")))
+    assert state_values(proxy.state, proxy)["Alarm/Wear Warning/Shelved Until"] is None
