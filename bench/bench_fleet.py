@@ -6,7 +6,7 @@ each, in process-per-station mode (a supervisor and N workers, the default) and/
 the gateway's CPU (supervisor + workers) per station, the simulators' CPU, the largest worker RSS.
 
     bench/bench_fleet.py [--counts 1 2 4 8] [--duration 60] [--modes process inprocess]
-                         [--sim-exe OTHER/hookwatch --one-sim]
+                         [--sim-exe OTHER/hookwatch --one-sim] [--realtime 20]
 """
 from __future__ import annotations
 
@@ -28,6 +28,8 @@ from bench_station import EXE, proc_cpu_rss  # noqa: E402
 #: the virtual twins' program (``--sim-exe``) and whether one process hosts them all (``--one-sim``)
 SIM_EXE: str | None = None
 WARMUP_S = 6.0
+#: `hookwatch run --realtime PRIO` (the shipped systemd units use 20); None: normal scheduling
+REALTIME: int | None = None
 ONE_SIM = True
 
 
@@ -122,6 +124,8 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
     work, fleet, sims = make_fleet(n, f"hw-bench-fleet{n}-", one_sim=ONE_SIM, sim_exe=SIM_EXE)
     stats = os.path.join(work, "stats.json")
     extra = ["--in-process"] if mode == "inprocess" else []
+    if REALTIME:
+        extra += ["--realtime", str(REALTIME)]
     gw = subprocess.Popen([EXE, "run", fleet, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning", *extra], stdout=subprocess.DEVNULL,
                           stderr=subprocess.DEVNULL)
@@ -160,7 +164,10 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
     ok_st = [s for s in st.values() if s and "filled_ratio" in s]
     filled = [s["filled_ratio"] for s in ok_st] or [0.0]
     p99 = [s["lateness_ms_p99"] for s in ok_st] or [float("inf")]
-    out = {"stations": n, "mode": mode, "duration_s": duration, "reported": len(ok_st),
+    missing = sorted(((s.get("slots", 0) - s.get("filled", 0)), name) for name, s in st.items()
+                     if s and "filled_ratio" in s)
+    out = {"stations": n, "mode": mode, "duration_s": duration, "realtime": REALTIME,
+           "worst_missing": missing[-1] if missing else None, "reported": len(ok_st),
            "worst_filled_pct": 100 * min(filled), "worst_lateness_ms_p99": max(p99),
            "gateway_cpu_pct": 100 * c_gw / wall, "gateway_cpu_pct_per_station": 100 * c_gw / wall / n,
            "sims_cpu_pct": 100 * (c_sim - c_sim0) / wall,
@@ -175,6 +182,7 @@ def run_fleet(n: int, duration: float, mode: str = "process") -> dict:
           f"{out['sims_cpu_pct']:.0f} % (of one core), RSS {out['rss_mb_worker_max']:.0f} MB/worker, "
           f"supervisor {out['rss_mb_supervisor']:.0f} MB"
           + (f" {out['supervisor_cpu_pct']:.1f} % CPU" if mode == "process" else "")
+          + (f", SCHED_FIFO {REALTIME}" if REALTIME else "")
           + f", load {load:.1f}  {'OK' if ok else 'over goal'}", flush=True)
     out["ok"] = ok
     return out
@@ -188,11 +196,16 @@ def main():
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--json", help="append the figures to this JSON-lines file")
     ap.add_argument("--sim-exe", help="the `hookwatch` whose `sim` plays the twins (default: this one)")
+    ap.add_argument("--realtime", type=int, metavar="PRIO",
+                    help="run the gateway with --realtime PRIO (SCHED_FIFO slot loops; the systemd "
+                         "units use 20)")
     ap.add_argument("--sim-per-station", action="store_true",
                     help="one `hookwatch sim` process per twin (default: one `sim --count N` for all)")
     args = ap.parse_args()
     global SIM_EXE, ONE_SIM
     SIM_EXE, ONE_SIM = args.sim_exe, not args.sim_per_station
+    global REALTIME
+    REALTIME = args.realtime
     best = {m: 0 for m in args.modes}
     for n in args.counts:
         for mode in args.modes:          # the two modes back to back: a ratio from one run

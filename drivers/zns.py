@@ -35,6 +35,7 @@ import contextlib
 import logging
 import math
 import os
+import select
 import time
 from typing import Any
 
@@ -44,6 +45,16 @@ from gateway.ports import MeterReading
 
 from .crc import crc16_modbus
 from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, load_map
+
+_HANGUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
+
+
+def _hung_up(fd: int) -> bool:
+    """The port reports a hang-up or an error now (a pty whose other end closed, an adapter
+    unplugged): one poll(2) with no wait, only after an empty read."""
+    p = select.poll()
+    p.register(fd, select.POLLIN)
+    return any(ev & _HANGUP for _, ev in p.poll(0))
 
 log = logging.getLogger("hookwatch.meter")
 
@@ -214,9 +225,11 @@ class ZnsMeter:
 
     # ------------------------------------------------------------------ receiving
     def _read_chunk(self, readable: bool) -> bytes:
-        """What the OS holds for us now (b'' if nothing); a read error is the port going away,
-        and so is an empty read when the loop said the port is readable (hang-up). (With VMIN 0,
-        as pyserial sets it, an empty read otherwise just means no data.)"""
+        """What the OS holds for us now (b'' if nothing); a read error is the port going away, and
+        so is an empty read when the port reports a hang-up. (With VMIN 0, as pyserial sets it, an
+        empty read otherwise just means no data — also when the loop said "readable": under load
+        the loop can run a readiness callback after :meth:`_drain` in the same turn has already
+        taken the bytes, and that stale event is no hang-up.)"""
         fd = self._fd
         if fd is None:
             return b""
@@ -227,7 +240,7 @@ class ZnsMeter:
         except OSError as e:
             self._port_lost(e)
             return b""
-        if not data and readable:
+        if not data and readable and _hung_up(fd):
             self._port_lost("end of file")
         return data
 

@@ -285,3 +285,29 @@ def test_pymodbus_rtt_at_19200(meter_proc):
     wire = m.map.poll_time_s()
     # no hidden inter-character waits: the fast reads are within 2 ms of the wire time
     assert wire <= p10 < wire + 0.002 and med < wire + 0.005
+
+
+def test_a_stale_readiness_event_is_no_hang_up_a_real_one_is(meter_proc):
+    """Under load the event loop can run the port's readiness callback after a drain in the same
+    turn has taken the bytes: the read is then empty although the loop said "readable". That is
+    not the port going away (it made a loaded fleet log `port lost (end of file)` every second and
+    lose slots); an empty read with a hang-up reported by the port is (the meter process ends)."""
+    mp = meter_proc("--value", "0.7,0.8")
+
+    async def main():
+        m = ZnsMeter.from_config(cfg(mp.path))
+        await m.open()
+        try:
+            for _ in range(5):
+                await read_ok(m)
+                m._on_readable()        # the stale event: nothing to read, and no hang-up
+                assert m.connected, m.counters
+            assert m.counters["port_lost"] == 0
+            mp.stop()                   # the meter's process ends: its pty master closes
+            assert await wait_until(lambda: not m.connected, 3.0), m.counters
+            return dict(m.counters)
+        finally:
+            await m.close()
+
+    counters = asyncio.run(main())
+    assert counters["port_lost"] == 1
