@@ -9,6 +9,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Any
 
 from .. import sdnotify
 from ..cli import CliError
@@ -158,13 +159,15 @@ def run(args) -> int:
         if console is not None:
             console.stop()
     if args.stats_json:
-        out = {r.name: (r.station.stats.summary() if r.station else None) for r in runners}
+        out: dict[str, dict[str, Any] | None] = {}
         for r in runners:
-            if r.station is not None:
-                out[r.name]["results"] = r.station.results
-                out[r.name]["start_failures"] = r.station.start_failures
-        with open(args.stats_json, "w") as f:
-            json.dump(out, f, indent=1, default=str)
+            if r.station is None:
+                out[r.name] = None
+                continue
+            out[r.name] = dict(r.station.stats.summary(), results=r.station.results,
+                               start_failures=r.station.start_failures)
+        with open(args.stats_json, "w") as fh:
+            json.dump(out, fh, indent=1, default=str)
     for r in runners:
         if r.station is not None:
             for f in r.station.start_failures:

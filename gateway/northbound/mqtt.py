@@ -29,8 +29,8 @@ from ..station.alarms import AlarmStore
 from ..station.commands import CODE, Rejection
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
-from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
 from .cmdparse import RejectionLimiter, clip, parse_command, rejected_event_data
+from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
 

@@ -14,8 +14,9 @@ out-of-range register write with exception 03 before anything changes.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 from ..alarms import ALARMS, ANNUNCIATED, SHELVE_MAX_S
 from ..ports import SAMPLE_ID_MAX, T_END_MAX_S, StationLimits

@@ -32,7 +32,7 @@ class ConsoleOutput:
     def on_record(self, rec: SlotRecord) -> None:
         self._n += 1
         self._rec = rec
-        if rec.q:
+        if rec.q and rec.mu is not None:
             self._valid += 1
             self._mu += rec.mu
         if rec.present:

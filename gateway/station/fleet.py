@@ -11,7 +11,8 @@ import concurrent.futures
 import logging
 import threading
 import time
-from typing import Any, Callable, Coroutine, TypeVar
+from collections.abc import Callable, Coroutine
+from typing import Any, TypeVar
 
 from ..osprio import realtime_thread
 from ..threadloop import ThreadLoop
@@ -131,7 +132,7 @@ class StationRunner:
         assert self._stop is not None
         try:
             await asyncio.wait_for(self._stop.wait(), delay)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             pass
 
     def request_reload(self, factory: Callable[[], Station]) -> None:

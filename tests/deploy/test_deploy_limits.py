@@ -4,8 +4,8 @@ import os
 import re
 
 from conftest import ROOT
-from gateway.northbound.modbus_tcp import server as S
 from gateway.northbound.cmdparse import MAX_DEPTH, MAX_PAYLOAD_BYTES
+from gateway.northbound.modbus_tcp import server as S
 from gateway.northbound.outbox import RESERVE_MAX_ROWS
 from gateway.station.recorder import MAX_PENDING_ROWS
 
