@@ -93,15 +93,20 @@ def wire(args, pythonpath: str | None = None) -> dict:
     gw = subprocess.Popen([EXE, "run", st, "--start", "--duration", str(args.duration),
                            "--stats-json", stats, "--log-level", "warning"],
                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    # CPU is counted from the end of the warm-up (imports, ports, the §3a start sequence) on
     cpu0, _ = proc_cpu_rss(gw.pid)
-    t0 = time.monotonic()
+    t_start = t0 = time.monotonic()
     rss = []
+    warm = args.warmup <= 0
     while gw.poll() is None:
         time.sleep(1.0)
         try:
             c, r = proc_cpu_rss(gw.pid)
             if r <= 0:          # the process has exited (a zombie has no resident pages)
                 break
+            if not warm and time.monotonic() - t_start >= args.warmup:
+                warm, cpu0, t0 = True, c, time.monotonic()
+                continue
             cpu = c
             rss.append(r)
             wall = time.monotonic() - t0
@@ -269,6 +274,8 @@ def main():
     w = sub.add_parser("wire")
     w.add_argument("--baud", type=int, default=115200)
     w.add_argument("--duration", type=float, default=600.0)
+    w.add_argument("--warmup", type=float, default=15.0,
+                   help="seconds before the CPU is counted (start-up excluded; 0: from the start)")
     w.add_argument("--revs", nargs="*", default=None, help="git revisions of the gateway to compare")
     w.add_argument("--rounds", type=int, default=1)
     m = sub.add_parser("memory")

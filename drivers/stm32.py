@@ -14,6 +14,15 @@ lock object, a whole ACK read in one chunk is checked and decoded straight from 
 streaming parser handles everything else: split frames, garbage, NAKs), and while commands flow
 the keep-alive's wake-up is pushed out from the transmit path instead of waking the loop.
 
+Posted speed commands (the station's per-slot SET_SPEED): :meth:`Stm32Link.post_speed` writes the
+frame and returns at once; the port is taken off the event loop's watch list meanwhile, so the
+ACK arriving ~3 ms later does not wake the process; :meth:`Stm32Link.collect` (called in the next
+slot, when the process is awake anyway) reads it from the port without waiting. A missing ACK is
+counted (``timeouts`` and ``failed``), a NAK as ``naks``; no retry — the next slot's command is
+the retry. Any awaited exchange (ENABLE, STOP, READ_STATUS, the keep-alive) first collects a
+posted command and watches the port again. This saves one process wake-up per slot, the largest
+single CPU cost of a slot on a loaded 2-core box.
+
 A vanished port (read/write error, hang-up) sets ``connected = False``; calls then return None at
 once, and a background task reopens the port every ``reopen_s`` (0.5 s).
 
@@ -63,6 +72,7 @@ _LOST = object()
 #: an ACK frame starts with these three bytes (start, LEN of its payload)
 _ACK_HEAD = bytes((0xA5, 0x5A, ACK_LEN - 7))
 _ACK_TYPE = int(Cmd.ACK)
+_SET_SPEED = int(Cmd.SET_SPEED)
 #: the status inside an ACK frame: after start (2), LEN, SEQ, type and the request's command
 _ACK_STATUS = struct.Struct("<iiHBHH")
 _ACK_STATUS_AT = 6
@@ -164,6 +174,9 @@ class Stm32Link:
         self._turns: deque[asyncio.Future] = deque()   # callers waiting for the link, in order
         self._waiter: tuple[int, int, asyncio.Future] | None = None
         self._min_attempt: dict[int, float] = {}
+        self._watching = False               # the port is on the event loop's reader list
+        self._posted: tuple[int, float] | None = None    # (seq, time sent) of a posted SET_SPEED
+        self._posted_reply: Reply | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task | None = None
         # the supervisor's nap: its future (resolved early by _poke), its timer and wake-up time
@@ -213,6 +226,7 @@ class Stm32Link:
         os.set_blocking(fd, False)
         self._parser.reset()
         self._ev_loop().add_reader(fd, self._on_readable)
+        self._watching = True
         self.connected = True
         log.info("stm32 %s: open at %d baud", self.port, self.baud)
         return True
@@ -224,6 +238,8 @@ class Stm32Link:
         return self._loop
 
     def _release(self) -> None:
+        self._posted = None
+        self._watching = False
         if self._fd is not None and self._loop is not None:
             try:
                 self._loop.remove_reader(self._fd)
@@ -279,6 +295,9 @@ class Stm32Link:
         if not data:
             self._port_lost("hang-up")
             return
+        self._ingest(data)
+
+    def _ingest(self, data: bytes) -> None:
         if not self._parser.pending:
             rep = fast_ack(data)        # the usual case: one whole ACK in one read
             if rep is not None:
@@ -304,8 +323,95 @@ class Stm32Link:
         w = self._waiter
         if w is not None and rep.seq == w[0] and rep.request == w[1] and not w[2].done():
             w[2].set_result(rep)
-        else:
-            self.counters["stale"] += 1     # a late reply to an exchange that timed out
+            return
+        p = self._posted
+        if p is not None and rep.seq == p[0] and rep.request == _SET_SPEED and self._posted_reply is None:
+            self._posted_reply = rep
+            return
+        self.counters["stale"] += 1     # a late reply to an exchange that timed out
+
+    # ------------------------------------------------------------------ posted speed commands
+    def post_speed(self, rpm: float) -> bool:
+        """SET_SPEED without waiting for the ACK (see the module doc); never blocks, never
+        raises. False (not sent) while another exchange holds the link, the port is gone, the
+        speed is not a finite number or the write would block."""
+        loop, fd = self._loop, self._fd
+        if not self.connected or self._busy or fd is None or loop is None:
+            return False
+        try:
+            payload = speed_payload(float(rpm))
+        except (TypeError, ValueError):
+            self.counters["failed"] += 1
+            log.warning("stm32 %s: set_speed(%r) not sent: not a finite number", self.port, rpm)
+            return False
+        if self._posted is not None:
+            self.collect()
+            if self._fd is None:
+                return False
+        if self._watching:
+            try:
+                loop.remove_reader(fd)
+            except Exception:   # a closed loop: nothing to watch anyway
+                pass
+            self._watching = False
+        if self._parser.pending:
+            self._deliver(self._parser.flush())    # the line was idle: no partial frame is real
+        seq = self._next_seq()
+        try:
+            os.write(fd, _frame(seq, _SET_SPEED, payload))
+        except BlockingIOError:
+            self.counters["failed"] += 1
+            return False
+        except OSError as e:
+            self._port_lost(e)
+            return False
+        now = self._last_tx = loop.time()
+        self.counters["sent"] += 1
+        self._posted = (seq, now)
+        self._posted_reply = None
+        if self._nap_h is not None and self._nap_at - now < _KEEPALIVE_PUSH_S:
+            self._push_nap(now + self.keepalive_interval_s)
+        return True
+
+    def collect(self) -> Status | None:
+        """The status from the ACK of the command :meth:`post_speed` sent, read from the port
+        without waiting; None if nothing is posted or no valid ACK has come (counted)."""
+        p = self._posted
+        if p is None:
+            return None
+        fd = self._fd
+        while fd is not None and self._posted_reply is None:
+            try:
+                data = os.read(fd, 4096)
+            except BlockingIOError:
+                break
+            except OSError as e:
+                self._port_lost(e)
+                return None
+            if not data:        # VMIN 0: nothing there (a hang-up shows as an error)
+                break
+            self._ingest(data)
+            fd = self._fd
+        rep, self._posted, self._posted_reply = self._posted_reply, None, None
+        if rep is None:
+            self.counters["timeouts"] += 1
+            self.counters["failed"] += 1
+            return None
+        if not rep.ok:
+            self.counters["naks"] += 1
+            self.last_nak = rep
+            log.warning("stm32 %s: SET_SPEED refused: %s", self.port, getattr(rep.error, "name", rep.error))
+            return None
+        self.counters["acked"] += 1
+        return self._accept_status(rep.status)
+
+    def _watch(self) -> None:
+        """Before an awaited exchange: a posted command collected, the port watched again."""
+        if self._posted is not None:
+            self.collect()
+        if not self._watching and self._fd is not None and self._loop is not None:
+            self._loop.add_reader(self._fd, self._on_readable)
+            self._watching = True
 
     # ------------------------------------------------------------------ exchange
     def _next_seq(self) -> int:
@@ -345,6 +451,10 @@ class Stm32Link:
         try:
             if not self.connected:
                 return None
+            if not self._watching:
+                self._watch()
+                if self._fd is None:
+                    return None
             t0 = loop.time()
             deadline = t0 + self.budget_s
             c = int(cmd)
@@ -428,10 +538,16 @@ class Stm32Link:
                 return None
         if rep is None or not rep.ok or rep.status is None:    # an ACK always carries a status
             return None
-        if rep.status.enabled != self._was_enabled:
+        return self._accept_status(rep.status)
+
+    def _accept_status(self, st: Status | None) -> Status | None:
+        if st is None:
+            return None
+        self.last_status = st
+        if st.enabled != self._was_enabled:
             self._poke()            # the keep-alive starts or stops
-        self._was_enabled = rep.status.enabled
-        return rep.status
+        self._was_enabled = st.enabled
+        return st
 
     # ------------------------------------------------------------------ API
     async def enable(self) -> Status | None:

@@ -99,3 +99,66 @@ def test_steady_traffic_no_keepalive_silence_keepalive():
     assert during == 0
     assert after >= 3                       # every 0.15 s (half of the 0.3 s watchdog)
     assert st.enabled and not st.watchdog_tripped
+
+
+def test_posted_speed_commands_collected_without_waiting():
+    async def body(link):
+        await link.stop("gateway start")
+        await link.enable()
+        got = []
+        for i in range(30):                  # as the station: post, next slot collect
+            assert link.post_speed(100.0 + i)
+            assert not link._watching        # the ACK does not wake the loop
+            await asyncio.sleep(0.02)
+            got.append(link.collect())
+        acked_before = link.counters["acked"]
+        st = await link.read_status()        # an awaited exchange watches the port again
+        return got, acked_before, st, dict(link.counters), link._watching
+
+    got, acked_before, st, c, watching = run(_with_virtual_stm32(body))
+    assert all(s is not None for s in got)
+    assert [s.command_rpm for s in got] == [100.0 + i for i in range(30)]
+    assert st.command_rpm == 129.0 and watching
+    assert c["timeouts"] == 0 and c["stale"] == 0 and c["failed"] == 0 and acked_before >= 32
+
+
+def test_posted_command_lost_reply_busy_link_and_a_pending_post_before_an_exchange():
+    async def body(link, vs):
+        await link.stop("gateway start")
+        await link.enable()
+        out = {}
+        vs.faults.drop_next_replies = 1
+        assert link.post_speed(80.0)
+        await asyncio.sleep(0.03)
+        out["lost"] = (link.collect(), link.counters["timeouts"], link.counters["failed"])
+        # a post while an awaited exchange holds the link is refused (the slot counts a skip)
+        t = asyncio.create_task(link.read_status())
+        await asyncio.sleep(0)
+        out["busy"] = link.post_speed(90.0)
+        await t
+        # a post not yet collected when an exchange comes: collected first, not stale
+        assert link.post_speed(95.0)
+        await asyncio.sleep(0.02)
+        st = await link.stop("completed")
+        out["after"] = (link.last_status.command_rpm if link.last_status else None, st.enabled,
+                        link.counters["stale"], link.collect())
+        out["nan"] = link.post_speed(float("nan"))
+        return out
+
+    async def main():
+        vs = VirtualStm32(Stm32Firmware(0.3), SimpleMotor(tau_s=0.05), link=LoopbackLink())
+        await vs.start()
+        link = Stm32Link(vs.device, timeout_s=0.05, watchdog_s=0.3)
+        await link.open()
+        try:
+            return await body(link, vs)
+        finally:
+            await link.close()
+            await vs.stop()
+
+    out = run(main())
+    assert out["lost"] == (None, 1, 1)
+    assert out["busy"] is False
+    rpm, enabled, stale, again = out["after"]
+    assert rpm == 0.0 and not enabled and stale == 0 and again is None
+    assert out["nan"] is False

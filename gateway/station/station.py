@@ -2,10 +2,14 @@
 
 Per slot k (deadline t0 + k·Ts on a monotonic clock):
   1. poll the meter (its reading belongs to slot k; none → MISSING);
-  2. the controller computes the speed command; it is handed to the station's one STM32 sender
-     task through a one-slot "latest value" box (:class:`LatestValue`: the slot loop never
-     waits for the STM32; a command still waiting while a newer one comes is replaced, never
-     queued, and counted in ``SlotStats.stm32_busy_skips``);
+  2. the controller computes the speed command. An STM32 port that can post it
+     (:class:`~gateway.ports.Stm32PostingPort`, the real driver) gets it written at once, and
+     its reply is collected after the next slot's poll, when the process is awake anyway (no
+     wake-up of its own); any other port gets it through the station's one STM32 sender task and
+     a one-slot "latest value" box (:class:`LatestValue`). Either way the slot loop never waits
+     for the STM32, and a command that cannot go out (the link busy with another exchange, or
+     replaced in the box by a newer one: never queued) is counted in
+     ``SlotStats.stm32_busy_skips``;
   3. during a test, the streaming method core gates the slot and updates baseline/life;
   4. the slot record goes to the fan-out (recorder first, then MQTT, Modbus TCP, …).
 
@@ -35,7 +39,8 @@ from ..control import ControlParams, Controller
 from ..method.core import SlotOut, StreamingMonitor
 from ..method.params import MethodParams
 from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
-from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
+from ..ports import (MeterPort, MeterReading, Output, StationLimits, Stm32PostingPort, Stm32Port,
+                     Stm32Status)
 from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
 from ..threadloop import call_soon_on
@@ -174,6 +179,8 @@ class Station:
         self._stm32_box = LatestValue()
         self._stm32_sender_task: asyncio.Task[None] | None = None
         self._stm32_busy = False        # the sender has a job on the link
+        #: the STM32 port posts the speed command without waiting (the real driver)
+        self._stm32_post = isinstance(stm32, Stm32PostingPort)
         self._speed_act = math.nan
         self._speed_cmd = 0.0
         self._k = 0                     # the loop's current slot
@@ -480,6 +487,23 @@ class Station:
         if st is not None:
             self._speed_act = float(st.actual_rpm)
 
+    def _post_speed(self, rpm: float) -> bool:
+        try:
+            return bool(self.stm32.post_speed(rpm))      # type: ignore[attr-defined]
+        except Exception as e:  # a driver must not raise, but never let it kill the loop
+            log.error("%s: STM32 post failed: %s", self.id, e)
+            return False
+
+    def _collect_speed(self) -> None:
+        """The reply to the speed command posted in the previous slot (if any, without waiting)."""
+        try:
+            st = self.stm32.collect()                    # type: ignore[attr-defined]
+        except Exception as e:
+            log.error("%s: STM32 collect failed: %s", self.id, e)
+            return
+        if st is not None:
+            self._speed_act = float(st.actual_rpm)
+
     async def _stm32_sender(self) -> None:
         """The one STM32 sender: takes the newest job from the box, one at a time, for the
         station's lifetime (no task per slot)."""
@@ -757,6 +781,8 @@ class Station:
                 continue
             self.stats.lateness.append(lateness)
             reading = await self.meter.read()
+            if self._stm32_post:
+                self._collect_speed()
             self.stats.slots += 1
             if reading is not None:
                 self.stats.filled += 1
@@ -767,7 +793,10 @@ class Station:
             att = self.starting
             if ((mon is not None and mon.stop_slot is None and not mon.finished)
                     or (att is not None and att.motor_enabled and att.seq.motor_on)):
-                if self._stm32_box.put(self._speed_cmd):     # never waits for the link
+                if self._stm32_post:
+                    if not self._post_speed(self._speed_cmd):   # the link busy or gone
+                        self.stats.stm32_busy_skips += 1
+                elif self._stm32_box.put(self._speed_cmd):     # never waits for the link
                     self.stats.stm32_busy_skips += 1
             await self._after_slot()
             now = time.monotonic()
