@@ -7,7 +7,9 @@ drivers — the gateway's meter driver (drivers/zns.py) and STM32 link (drivers/
           CPU of the same loop idling the same slots) / exchanges. With ``--old-rev REV`` the meter
           driver and the STM32 link of that git revision are measured in the same run,
           alternating. The STM32 is stopped (no keep-alive traffic) while the idle loop and the
-          meter are measured and enabled for the SET_SPEED runs, as in a running test.
+          meter are measured and enabled for the SET_SPEED runs, as in a running test; the
+          posted form (post_speed, its ACK collected in the next slot, as the station does) is
+          measured beside the awaited set_speed.
 pure    — the real Station loop (gateway/station/station.py) on a virtual clock flat out with
           in-memory plant ports (as `bench_station.py memory`), its parts timed by wrapping the
           class methods: method (StreamingMonitor.push), controller (Controller.step), recorder
@@ -82,7 +84,8 @@ def drivers(args) -> None:
     old_stm = _old_driver(args.old_rev, "stm32") if args.old_rev else None
     cfg = SimpleNamespace(port=os.path.join(links, "meter"), map=None, baud=115200, unit_id=None,
                           parity=None, timeout_s=0.015, swap_channels=False)
-    res: dict[str, list[float]] = {"idle": [], "meter (lean RTU)": [], "stm32 set_speed": []}
+    res: dict[str, list[float]] = {"idle": [], "meter (lean RTU)": [], "stm32 set_speed": [],
+                                   "stm32 post_speed + collect": []}
     if old:
         res[f"meter ({args.old_rev})"] = []
         res[f"stm32 set_speed ({args.old_rev})"] = []
@@ -105,6 +108,13 @@ def drivers(args) -> None:
             async def speed():
                 await link.set_speed(150.0)
             res[key].append(await _slots(n, speed) / n)
+            if hasattr(link, "post_speed"):
+                # as the station: the command posted, its reply collected in the next slot
+                async def post():
+                    link.collect()
+                    link.post_speed(150.0)
+                res[key.replace("set_speed", "post_speed + collect")].append(await _slots(n, post) / n)
+                link.collect()
             await link.stop("bench")
             await link.close()
             print(f"  {key}: {link.counters}", flush=True)

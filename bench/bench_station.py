@@ -187,6 +187,18 @@ class PlantStm32:
         self.plant.set_command(rpm)
         return _Status(self.plant.speed_rpm)
 
+    def post_speed(self, rpm):
+        """As the real driver (drivers/stm32.py): the command now, its reply with the next slot."""
+        self.plant.set_command(rpm)
+        self._posted = True
+        return True
+
+    def collect(self):
+        if not getattr(self, "_posted", False):
+            return None
+        self._posted = False
+        return _Status(self.plant.speed_rpm)
+
     async def stop(self, reason=""):
         self.plant.set_command(0.0)
         self.plant.enable(False)

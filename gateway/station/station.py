@@ -71,7 +71,8 @@ class SlotStats:
     overrun_slots: int = 0
     lateness: deque = field(default_factory=lambda: deque(maxlen=200_000))
     rtt: deque = field(default_factory=lambda: deque(maxlen=200_000))
-    #: STM32 commands never sent: replaced by a newer one while the link was still busy
+    #: speed commands never sent: replaced in the sender's box by a newer one, or not postable
+    #: (the link busy with another exchange, or its port gone)
     stm32_busy_skips: int = 0
 
     def summary(self) -> dict[str, Any]:
