@@ -338,11 +338,8 @@ class Stm32Link:
         loop, fd = self._loop, self._fd
         if not self.connected or self._busy or fd is None or loop is None:
             return False
-        try:
-            payload = speed_payload(float(rpm))
-        except (TypeError, ValueError):
-            self.counters["failed"] += 1
-            log.warning("stm32 %s: set_speed(%r) not sent: not a finite number", self.port, rpm)
+        payload = self._speed_payload(rpm)
+        if payload is None:
             return False
         if self._posted is not None:
             self.collect()
@@ -563,12 +560,17 @@ class Stm32Link:
         self._want_enabled = False          # no keep-alive from now on, whatever the answer
         return await self._status(Cmd.DISABLE, attempts=3)
 
-    async def set_speed(self, rpm: float) -> Status | None:
+    def _speed_payload(self, rpm: float) -> bytes | None:
         try:
-            payload = speed_payload(float(rpm))
+            return speed_payload(float(rpm))
         except (TypeError, ValueError):
             self.counters["failed"] += 1
             log.warning("stm32 %s: set_speed(%r) not sent: not a finite number", self.port, rpm)
+            return None
+
+    async def set_speed(self, rpm: float) -> Status | None:
+        payload = self._speed_payload(rpm)
+        if payload is None:
             return None
         return await self._status(Cmd.SET_SPEED, payload)
 

@@ -4,11 +4,11 @@ one comes is replaced (never queued behind the one on the wire) and counted; a S
 command not yet sent. The station runs on a virtual clock flat out; the STM32 port is held on the
 wire by the test."""
 import asyncio
-import math
 
 from gateway.control import ControlParams
 from gateway.station.station import LatestValue, Station, TestPlan
-from kit.fakes import Reading
+from kit.fakes import FakeMeter
+from kit.vclock import VirtualClock
 
 FAST = {"w_ss": 0.2, "w_hold": 0.4, "tau": 0.2, "settle_time": 0.1, "start_timeout": 3.0,
         "zero_check": False}
@@ -33,35 +33,13 @@ def test_latest_value_newest_wins_and_counts_the_replaced():
     assert asyncio.run(main()) == 2
 
 
-class VirtualClock:
-    def __init__(self, ts):
-        self.ts, self.now = ts, 0.0
-        self.clock = lambda: self.now
-
-    def slot_at(self, t):
-        return int(math.floor(t / self.ts + 0.5))
-
-    async def wait_for(self, k, spin_s=0.0):
-        self.now = k * self.ts
-        await asyncio.sleep(0)
-        return 0.0
-
-
-class Meter:
-    connected = True
-
-    def __init__(self):
-        self.counters, self.reads = {}, 0
-
-    async def open(self):
-        pass
-
-    async def close(self):
-        pass
+class Meter(FakeMeter):
+    """The kit's constant meter, counting its reads."""
+    reads = 0
 
     async def read(self):
         self.reads += 1
-        return Reading(0.4, 0.6)
+        return await super().read()
 
 
 class HeldStm32:
@@ -99,14 +77,21 @@ class HeldStm32:
             self.on_wire -= 1
 
 
-def test_the_slot_loop_never_waits_for_the_stm32_and_the_newest_command_wins(tmp_path):
+def _station(tmp_path, name):
+    """A station whose test starts at once (no zero check), on the virtual clock, with the held
+    STM32 port (a fake without post_speed: the sender box path)."""
     meter = Meter()
     stm = HeldStm32(meter)
-    st = Station(station_id="snd", method=FAST, control=ControlParams(), meter=meter, stm32=stm,
+    st = Station(station_id=name, method=FAST, control=ControlParams(), meter=meter, stm32=stm,
                  records_dir=str(tmp_path), default_plan=TestPlan("S-1", "I", 0.5, 100.0),
                  autostart=True)
-    vclock = VirtualClock(st.ts)
-    st.clock_factory = lambda ts: vclock
+    st.clock_factory = VirtualClock
+    assert not st._stm32_post
+    return st, meter, stm
+
+
+def test_the_slot_loop_never_waits_for_the_stm32_and_the_newest_command_wins(tmp_path):
+    st, meter, stm = _station(tmp_path, "snd")
     seen = {}
 
     async def main():
@@ -145,13 +130,7 @@ def test_the_slot_loop_never_waits_for_the_stm32_and_the_newest_command_wins(tmp
 
 
 def test_a_stop_withdraws_a_speed_command_not_yet_sent(tmp_path):
-    meter = Meter()
-    stm = HeldStm32(meter)
-    st = Station(station_id="snd2", method=FAST, control=ControlParams(), meter=meter, stm32=stm,
-                 records_dir=str(tmp_path), default_plan=TestPlan("S-2", "I", 0.5, 100.0),
-                 autostart=True)
-    vclock = VirtualClock(st.ts)
-    st.clock_factory = lambda ts: vclock
+    st, meter, stm = _station(tmp_path, "snd2")
 
     async def main():
         stop = asyncio.Event()
