@@ -8,8 +8,9 @@ drivers — the gateway's meter driver (drivers/zns.py) and STM32 link (drivers/
           driver and the STM32 link of that git revision are measured in the same run,
           alternating. The STM32 is stopped (no keep-alive traffic) while the idle loop and the
           meter are measured and enabled for the SET_SPEED runs, as in a running test; the
-          posted form (post_speed, its ACK collected in the next slot, as the station does) is
-          measured beside the awaited set_speed.
+          posted form (post_speed, its ACK collected in the next slot, as the station does) and
+          the sender-task form (a LatestValue box feeding one task that awaits set_speed) are
+          measured beside the inline awaited set_speed.
 pure    — the real Station loop (gateway/station/station.py) on a virtual clock flat out with
           in-memory plant ports (as `bench_station.py memory`), its parts timed by wrapping the
           class methods: method (StreamingMonitor.push), controller (Controller.step), recorder
@@ -85,7 +86,7 @@ def drivers(args) -> None:
     cfg = SimpleNamespace(port=os.path.join(links, "meter"), map=None, baud=115200, unit_id=None,
                           parity=None, timeout_s=0.015, swap_channels=False)
     res: dict[str, list[float]] = {"idle": [], "meter (lean RTU)": [], "stm32 set_speed": [],
-                                   "stm32 post_speed + collect": []}
+                                   "stm32 set_speed via sender box": [], "stm32 post_speed + collect": []}
     if old:
         res[f"meter ({args.old_rev})"] = []
         res[f"stm32 set_speed ({args.old_rev})"] = []
@@ -115,6 +116,21 @@ def drivers(args) -> None:
                     link.post_speed(150.0)
                 res[key.replace("set_speed", "post_speed + collect")].append(await _slots(n, post) / n)
                 link.collect()
+                # the station's other form: one long-lived sender task fed through the box
+                from gateway.station.station import LatestValue
+                box = LatestValue()
+
+                async def sender():
+                    while True:
+                        await link.set_speed(await box.get())
+                task = asyncio.get_running_loop().create_task(sender())
+
+                async def hand_over():
+                    box.put(150.0)
+                res[key.replace("set_speed", "set_speed via sender box")].append(
+                    await _slots(n, hand_over) / n)
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
             await link.stop("bench")
             await link.close()
             print(f"  {key}: {link.counters}", flush=True)
