@@ -5,7 +5,12 @@ drivers — the gateway's meter driver (drivers/zns.py) and STM32 link (drivers/
           `hookwatch sim` over pseudo-terminals (115200 baud), one exchange per 20 ms slot, as in
           the station: CPU of this process per exchange = (process CPU while exchanging − process
           CPU of the same loop idling the same slots) / exchanges. With ``--old-rev REV`` the meter
-          driver of that git revision (pymodbus' client) is measured in the same run, alternating.
+          driver and the STM32 link of that git revision are measured in the same run,
+          alternating. The STM32 is stopped (no keep-alive traffic) while the idle loop and the
+          meter are measured and enabled for the SET_SPEED runs, as in a running test; the
+          posted form (post_speed, its ACK collected in the next slot, as the station does) and
+          the sender-task form (a LatestValue box feeding one task that awaits set_speed) are
+          measured beside the inline awaited set_speed.
 pure    — the real Station loop (gateway/station/station.py) on a virtual clock flat out with
           in-memory plant ports (as `bench_station.py memory`), its parts timed by wrapping the
           class methods: method (StreamingMonitor.push), controller (Controller.step), recorder
@@ -37,17 +42,17 @@ EXE = os.path.join(os.path.dirname(sys.executable), "hookwatch")
 SLOT = 0.02
 
 
-def _old_zns(rev: str):
-    """drivers/zns.py of git revision ``rev`` as module drivers._zns_old (its relative imports
-    resolve in the drivers package)."""
-    src = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:drivers/zns.py"], capture_output=True,
+def _old_driver(rev: str, name: str):
+    """drivers/<name>.py of git revision ``rev`` as module drivers._<name>_old (its relative
+    imports resolve in the drivers package)."""
+    src = subprocess.run(["git", "-C", ROOT, "show", f"{rev}:drivers/{name}.py"], capture_output=True,
                          text=True, check=True).stdout
-    path = os.path.join(tempfile.mkdtemp(prefix="zns-old-"), "zns_old.py")
+    path = os.path.join(tempfile.mkdtemp(prefix=f"{name}-old-"), f"{name}_old.py")
     with open(path, "w") as f:
         f.write(src)
-    spec = importlib.util.spec_from_file_location("drivers._zns_old", path)
+    spec = importlib.util.spec_from_file_location(f"drivers._{name}_old", path)
     mod = importlib.util.module_from_spec(spec)
-    sys.modules["drivers._zns_old"] = mod
+    sys.modules[f"drivers._{name}_old"] = mod
     spec.loader.exec_module(mod)
     return mod
 
@@ -76,12 +81,15 @@ def drivers(args) -> None:
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     for _ in range(2):
         sim.stdout.readline()
-    old = _old_zns(args.old_rev) if args.old_rev else None
+    old = _old_driver(args.old_rev, "zns") if args.old_rev else None
+    old_stm = _old_driver(args.old_rev, "stm32") if args.old_rev else None
     cfg = SimpleNamespace(port=os.path.join(links, "meter"), map=None, baud=115200, unit_id=None,
                           parity=None, timeout_s=0.015, swap_channels=False)
-    res: dict[str, list[float]] = {"idle": [], "meter (lean RTU)": [], "stm32 set_speed": []}
+    res: dict[str, list[float]] = {"idle": [], "meter (lean RTU)": [], "stm32 set_speed": [],
+                                   "stm32 set_speed via sender box": [], "stm32 post_speed + collect": []}
     if old:
-        res[f"meter (pymodbus, {args.old_rev})"] = []
+        res[f"meter ({args.old_rev})"] = []
+        res[f"stm32 set_speed ({args.old_rev})"] = []
 
     async def main():
         new_m = ZnsMeter.from_config(cfg)
@@ -91,8 +99,42 @@ def drivers(args) -> None:
             old_m = old.ZnsMeter.from_config(cfg)
         stm = Stm32Link(os.path.join(links, "stm32"), watchdog_s=0.2)
         await stm.open()
-        await stm.enable()
+        await stm.stop("bench")
         n = args.slots
+
+        async def speed_run(link, key):
+            await link.open()
+            await link.enable()
+
+            async def speed():
+                await link.set_speed(150.0)
+            res[key].append(await _slots(n, speed) / n)
+            if hasattr(link, "post_speed"):
+                # as the station: the command posted, its reply collected in the next slot
+                async def post():
+                    link.collect()
+                    link.post_speed(150.0)
+                res[key.replace("set_speed", "post_speed + collect")].append(await _slots(n, post) / n)
+                link.collect()
+                # the station's other form: one long-lived sender task fed through the box
+                from gateway.station.station import LatestValue
+                box = LatestValue()
+
+                async def sender():
+                    while True:
+                        await link.set_speed(await box.get())
+                task = asyncio.get_running_loop().create_task(sender())
+
+                async def hand_over():
+                    box.put(150.0)
+                res[key.replace("set_speed", "set_speed via sender box")].append(
+                    await _slots(n, hand_over) / n)
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+            await link.stop("bench")
+            await link.close()
+            print(f"  {key}: {link.counters}", flush=True)
+
         for _ in range(args.runs):
             res["idle"].append(await _slots(n, None) / n)
             m_ok = [0]
@@ -106,15 +148,17 @@ def drivers(args) -> None:
 
                 async def read_old():
                     await old_m.read()
-                res[f"meter (pymodbus, {args.old_rev})"].append(await _slots(n, read_old) / n)
+                res[f"meter ({args.old_rev})"].append(await _slots(n, read_old) / n)
                 await old_m.close()
                 await new_m.open()
 
-            async def speed():
-                await stm.set_speed(150.0)
-            res["stm32 set_speed"].append(await _slots(n, speed) / n)
-            print(f"  run: meter ok {m_ok[0]}/{n}; stm32 {stm.counters}", flush=True)
-        await stm.stop("bench")
+            print(f"  run: meter ok {m_ok[0]}/{n}", flush=True)
+            await stm.close()
+            await speed_run(stm, "stm32 set_speed")
+            if old_stm is not None:
+                await speed_run(old_stm.Stm32Link(os.path.join(links, "stm32"), watchdog_s=0.2),
+                                f"stm32 set_speed ({args.old_rev})")
+            await stm.open()
         await stm.close()
         await new_m.close()
 

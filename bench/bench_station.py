@@ -10,7 +10,12 @@ memory — a compressed 10-hour test (1.8 M slots at the paper's method defaults
 
     bench/bench_station.py wire --baud 115200 --duration 600
     bench/bench_station.py wire --baud 19200 --duration 600
+    bench/bench_station.py wire --duration 90 --revs main HEAD --rounds 3
     bench/bench_station.py memory [--hours 10]
+
+``--revs`` runs the gateway of each git revision in turn (its tree exported to a temporary folder
+and put first on PYTHONPATH; the simulator is always the working tree's), ``--rounds`` times,
+alternating, and prints the median gateway CPU per revision: before/after in one run.
 """
 from __future__ import annotations
 
@@ -45,7 +50,16 @@ def proc_cpu_rss(pid: int) -> tuple[float, float]:
     return cpu, rss
 
 
-def wire(args) -> dict:
+def export_rev(rev: str) -> str:
+    """The tree of git revision ``rev`` in a temporary folder (for PYTHONPATH)."""
+    d = tempfile.mkdtemp(prefix=f"hw-rev-{rev.replace('/', '_')}-")
+    arch = subprocess.run(["git", "-C", ROOT, "archive", rev, "gateway", "drivers", "config"],
+                          capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", d], input=arch, check=True)
+    return d
+
+
+def wire(args, pythonpath: str | None = None) -> dict:
     import yaml
 
     work = tempfile.mkdtemp(prefix="hw-bench-station-")
@@ -73,18 +87,26 @@ def wire(args) -> dict:
     with open(st, "w") as f:
         yaml.safe_dump(cfg, f)
     stats = os.path.join(work, "stats.json")
+    env = dict(os.environ)
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
     gw = subprocess.Popen([EXE, "run", st, "--start", "--duration", str(args.duration),
                            "--stats-json", stats, "--log-level", "warning"],
-                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    # CPU is counted from the end of the warm-up (imports, ports, the §3a start sequence) on
     cpu0, _ = proc_cpu_rss(gw.pid)
-    t0 = time.monotonic()
+    t_start = t0 = time.monotonic()
     rss = []
+    warm = args.warmup <= 0
     while gw.poll() is None:
         time.sleep(1.0)
         try:
             c, r = proc_cpu_rss(gw.pid)
             if r <= 0:          # the process has exited (a zombie has no resident pages)
                 break
+            if not warm and time.monotonic() - t_start >= args.warmup:
+                warm, cpu0, t0 = True, c, time.monotonic()
+                continue
             cpu = c
             rss.append(r)
             wall = time.monotonic() - t0
@@ -96,13 +118,15 @@ def wire(args) -> dict:
     sim.stdout.close()
     with open(stats) as f:
         s = json.load(f)["bench"]
-    out = {"baud": args.baud, "duration_s": args.duration, "slots": s["slots"],
+    out = {"rev": getattr(args, "rev", None), "load": os.getloadavg()[0],
+           "baud": args.baud, "duration_s": args.duration, "slots": s["slots"],
            "filled_pct": 100.0 * s["filled_ratio"], "overrun_slots": s["overrun_slots"],
            "lateness_ms_p50": s["lateness_ms_p50"], "lateness_ms_p99": s["lateness_ms_p99"],
            "lateness_ms_max": s["lateness_ms_max"], "rtt_ms_median": s["rtt_ms_median"],
            "cpu_pct": 100.0 * (cpu - cpu0) / wall, "rss_mb_first": rss[2] if len(rss) > 2 else math.nan,
            "rss_mb_last": rss[-1] if rss else math.nan}
-    print(f"wire @ {args.baud} baud, {args.duration:.0f} s: {out['slots']} slots, filled "
+    print(f"{out['rev'] or 'worktree'}: load {out['load']:.2f}, "
+          f"wire @ {args.baud} baud, {args.duration:.0f} s: {out['slots']} slots, filled "
           f"{out['filled_pct']:.3f} % (goal ≥ 99.9 %), overrun {out['overrun_slots']}, lateness "
           f"p50 {out['lateness_ms_p50']:.3f} / p99 {out['lateness_ms_p99']:.3f} / max "
           f"{out['lateness_ms_max']:.2f} ms (goal p99 ≤ 2 ms), meter RTT median "
@@ -161,6 +185,18 @@ class PlantStm32:
 
     async def set_speed(self, rpm):
         self.plant.set_command(rpm)
+        return _Status(self.plant.speed_rpm)
+
+    def post_speed(self, rpm):
+        """As the real driver (drivers/stm32.py): the command now, its reply with the next slot."""
+        self.plant.set_command(rpm)
+        self._posted = True
+        return True
+
+    def collect(self):
+        if not getattr(self, "_posted", False):
+            return None
+        self._posted = False
         return _Status(self.plant.speed_rpm)
 
     async def stop(self, reason=""):
@@ -250,14 +286,34 @@ def main():
     w = sub.add_parser("wire")
     w.add_argument("--baud", type=int, default=115200)
     w.add_argument("--duration", type=float, default=600.0)
+    w.add_argument("--warmup", type=float, default=15.0,
+                   help="seconds before the CPU is counted (start-up excluded; 0: from the start)")
+    w.add_argument("--revs", nargs="*", default=None, help="git revisions of the gateway to compare")
+    w.add_argument("--rounds", type=int, default=1)
     m = sub.add_parser("memory")
     m.add_argument("--hours", type=float, default=10.0)
     ap.add_argument("--json", help="append the figures to this JSON-lines file")
     args = ap.parse_args()
-    out = wire(args) if args.mode == "wire" else memory(args)
+    if args.mode == "wire" and args.revs:
+        import statistics
+        paths = {rev: export_rev(rev) for rev in args.revs}
+        cpu: dict[str, list[float]] = {rev: [] for rev in args.revs}
+        outs = []
+        for _ in range(args.rounds):
+            for rev in args.revs:
+                args.rev = rev
+                o = wire(args, paths[rev])
+                cpu[rev].append(o["cpu_pct"])
+                outs.append(o)
+        for rev, v in cpu.items():
+            print(f"{rev}: gateway CPU median {statistics.median(v):.2f} % of a core "
+                  f"(runs: {', '.join(f'{x:.2f}' for x in v)})", flush=True)
+    else:
+        outs = [wire(args) if args.mode == "wire" else memory(args)]
     if args.json:
         with open(args.json, "a") as f:
-            f.write(json.dumps(out) + "\n")
+            for out in outs:
+                f.write(json.dumps(out) + "\n")
 
 
 if __name__ == "__main__":

@@ -3,10 +3,25 @@ the event loop and never raises.
 
 The port is opened with pyserial (settings, exclusive lock) and then served non-blocking: the
 loop's ``add_reader`` feeds a streaming :class:`FrameParser`, requests are written with
-``os.write`` (a UART's kernel buffer takes a 11-byte frame at once). One exchange at a time (an
-asyncio lock): a fresh sequence number per command, a reply timeout ``timeout_s``, ``retries``
-with the *same* sequence number (the firmware answers a duplicate again without acting twice) as
-long as they fit in the call's budget ``budget_s`` (just under one 20 ms slot).
+``os.write`` (a UART's kernel buffer takes a 11-byte frame at once). One exchange at a time (a
+busy flag; a concurrent caller waits its turn in FIFO order): a fresh sequence number per
+command, a reply timeout ``timeout_s``, ``retries`` with the *same* sequence number (the firmware
+answers a duplicate again without acting twice) as long as they fit in the call's budget
+``budget_s`` (just under one 20 ms slot).
+
+Lean on the hot path (issue 16, ``bench/bench_slot_cpu.py``): the uncontended exchange takes no
+lock object, a whole ACK read in one chunk is checked and decoded straight from the bytes (the
+streaming parser handles everything else: split frames, garbage, NAKs), and while commands flow
+the keep-alive's wake-up is pushed out from the transmit path instead of waking the loop.
+
+Posted speed commands (the station's per-slot SET_SPEED): :meth:`Stm32Link.post_speed` writes the
+frame and returns at once; the port is taken off the event loop's watch list meanwhile, so the
+ACK arriving ~3 ms later does not wake the process; :meth:`Stm32Link.collect` (called in the next
+slot, when the process is awake anyway) reads it from the port without waiting. A missing ACK is
+counted (``timeouts`` and ``failed``), a NAK as ``naks``; no retry — the next slot's command is
+the retry. Any awaited exchange (ENABLE, STOP, READ_STATUS, the keep-alive) first collects a
+posted command and watches the port again. This saves one process wake-up per slot, the largest
+single CPU cost of a slot on a loaded 2-core box.
 
 A vanished port (read/write error, hang-up) sets ``connected = False``; calls then return None at
 once, and a background task reopens the port every ``reopen_s`` (0.5 s).
@@ -14,8 +29,9 @@ once, and a background task reopens the port every ``reopen_s`` (0.5 s).
 Keep-alive: the same background task guarantees the firmware watchdog never trips in normal
 operation. While the firmware reports ``enabled`` it sends a PING whenever no frame went out for
 half the watchdog period (the smaller of the configured and the firmware-reported one). The
-station's own traffic (SET_SPEED every slot) normally keeps it from ever firing;
-``keepalive()`` does the same check on demand.
+station's own traffic (SET_SPEED every slot) normally keeps it from ever firing (and, since every
+frame sent pushes the check out, from even waking up); ``keepalive()`` does the same check on
+demand.
 """
 from __future__ import annotations
 
@@ -25,19 +41,23 @@ import math
 import os
 import random
 import statistics
+import struct
 from collections import deque
 from typing import Any
 
+from .crc import crc16_modbus
 from .stm32_protocol import (
+    ACK_LEN,
     DEFAULT_BAUD,
+    RPM_SCALE,
     Cmd,
+    Flag,
     FrameParser,
     ProtocolError,
     Reply,
     Status,
     StopReason,
     decode_reply,
-    encode_frame,
     exchange_time_s,
     speed_payload,
     watchdog_payload,
@@ -48,6 +68,64 @@ log = logging.getLogger("hookwatch.stm32")
 _TIMEOUT = object()
 _CRC_BAD = object()
 _LOST = object()
+
+#: an ACK frame starts with these three bytes (start, LEN of its payload)
+_ACK_HEAD = bytes((0xA5, 0x5A, ACK_LEN - 7))
+_ACK_TYPE = int(Cmd.ACK)
+_SET_SPEED = int(Cmd.SET_SPEED)
+#: the status inside an ACK frame: after start (2), LEN, SEQ, type and the request's command
+_ACK_STATUS = struct.Struct("<iiHBHH")
+_ACK_STATUS_AT = 6
+#: the keep-alive's wake-up is pushed out by a frame sent when it would come within this time
+_KEEPALIVE_PUSH_S = 0.05
+_flag_cache: dict[int, Flag] = {}
+_reason_cache: dict[int, StopReason | int] = {}
+
+
+def _flags(v: int) -> Flag:
+    f = _flag_cache.get(v)
+    if f is None:
+        f = Flag(v)
+        if len(_flag_cache) < 1024:
+            _flag_cache[v] = f
+    return f
+
+
+def _stop_reason(v: int) -> StopReason | int:
+    r = _reason_cache.get(v)
+    if r is None:
+        try:
+            r = StopReason(v)
+        except ValueError:
+            r = v
+        _reason_cache[v] = r        # one byte: at most 256 entries
+    return r
+
+
+def fast_ack(data: bytes) -> Reply | None:
+    """``data`` is exactly one whole ACK frame with a good CRC: its Reply (equal to what
+    FrameParser + decode_reply give), else None (then the streaming parser decides)."""
+    if len(data) != ACK_LEN or data[4] != _ACK_TYPE or not data.startswith(_ACK_HEAD):
+        return None
+    c = crc16_modbus(memoryview(data)[2:ACK_LEN - 2])
+    if data[ACK_LEN - 2] != (c & 0xFF) or data[ACK_LEN - 1] != (c >> 8):
+        return None
+    act, cmd, flags, reason, wd, rxe = _ACK_STATUS.unpack_from(data, _ACK_STATUS_AT)
+    return Reply(data[3], True, data[5],
+                 status=Status(act / RPM_SCALE, cmd / RPM_SCALE, bool(flags & Flag.ENABLED),
+                               _flags(flags), _stop_reason(reason), wd, rxe))
+
+
+def _frame(seq: int, cmd: int, payload: bytes) -> bytes:
+    """encode_frame without its argument checks (the link's own commands are valid)."""
+    body = bytes((len(payload), seq, cmd)) + payload
+    c = crc16_modbus(body)
+    return b"\xA5\x5A" + body + bytes((c & 0xFF, c >> 8))
+
+
+def _set_none(fut: asyncio.Future) -> None:
+    if not fut.done():
+        fut.set_result(None)
 
 
 def stop_reason_code(reason: str | int | StopReason = "") -> StopReason:
@@ -92,11 +170,19 @@ class Stm32Link:
         self._fd: int | None = None
         self._parser = FrameParser()
         self._seq = random.randrange(256)   # a restarted gateway does not repeat the last seq
-        self._lock: asyncio.Lock | None = None
+        self._busy = False                   # an exchange holds the link
+        self._turns: deque[asyncio.Future] = deque()   # callers waiting for the link, in order
         self._waiter: tuple[int, int, asyncio.Future] | None = None
+        self._min_attempt: dict[int, float] = {}
+        self._watching = False               # the port is on the event loop's reader list
+        self._posted: tuple[int, float] | None = None    # (seq, time sent) of a posted SET_SPEED
+        self._posted_reply: Reply | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task | None = None
-        self._wake: asyncio.Event | None = None
+        # the supervisor's nap: its future (resolved early by _poke), its timer and wake-up time
+        self._nap: asyncio.Future | None = None
+        self._nap_h: asyncio.TimerHandle | None = None
+        self._nap_at = 0.0
         self._closed = False
         self._last_tx = 0.0
         self._was_enabled = False
@@ -116,8 +202,6 @@ class Stm32Link:
     # ------------------------------------------------------------------ port
     async def open(self) -> None:
         self._loop = asyncio.get_running_loop()
-        self._lock = asyncio.Lock()
-        self._wake = asyncio.Event()
         self._closed = False
         self._try_open()
         if self._task is None:
@@ -142,6 +226,7 @@ class Stm32Link:
         os.set_blocking(fd, False)
         self._parser.reset()
         self._ev_loop().add_reader(fd, self._on_readable)
+        self._watching = True
         self.connected = True
         log.info("stm32 %s: open at %d baud", self.port, self.baud)
         return True
@@ -153,6 +238,8 @@ class Stm32Link:
         return self._loop
 
     def _release(self) -> None:
+        self._posted = None
+        self._watching = False
         if self._fd is not None and self._loop is not None:
             try:
                 self._loop.remove_reader(self._fd)
@@ -174,8 +261,7 @@ class Stm32Link:
         log.warning("stm32 %s: port lost (%s); reopening every %.1f s", self.port, why, self.reopen_s)
         self._release()
         self._resolve(_LOST)
-        if self._wake is not None:
-            self._wake.set()
+        self._poke()
 
     async def close(self) -> None:
         self._closed = True
@@ -209,6 +295,14 @@ class Stm32Link:
         if not data:
             self._port_lost("hang-up")
             return
+        self._ingest(data)
+
+    def _ingest(self, data: bytes) -> None:
+        if not self._parser.pending:
+            rep = fast_ack(data)        # the usual case: one whole ACK in one read
+            if rep is not None:
+                self._take(rep)
+                return
         crc_before = self._parser.crc_errors
         self._deliver(self._parser.feed(data))
         if self._parser.crc_errors != crc_before:
@@ -223,36 +317,157 @@ class Stm32Link:
                 self.counters["bad_replies"] += 1
                 log.debug("stm32 %s: %s", self.port, e)
                 continue
-            w = self._waiter
-            if w is not None and rep.seq == w[0] and rep.request == w[1] and not w[2].done():
-                w[2].set_result(rep)
-            else:
-                self.counters["stale"] += 1     # a late reply to an exchange that timed out
+            self._take(rep)
+
+    def _take(self, rep: Reply) -> None:
+        w = self._waiter
+        if w is not None and rep.seq == w[0] and rep.request == w[1] and not w[2].done():
+            w[2].set_result(rep)
+            return
+        p = self._posted
+        if p is not None and rep.seq == p[0] and rep.request == _SET_SPEED and self._posted_reply is None:
+            self._posted_reply = rep
+            return
+        self.counters["stale"] += 1     # a late reply to an exchange that timed out
+
+    # ------------------------------------------------------------------ posted speed commands
+    def post_speed(self, rpm: float) -> bool:
+        """SET_SPEED without waiting for the ACK (see the module doc); never blocks, never
+        raises. False (not sent) while another exchange holds the link, the port is gone, the
+        speed is not a finite number or the write would block."""
+        loop, fd = self._loop, self._fd
+        if not self.connected or self._busy or fd is None or loop is None:
+            return False
+        payload = self._speed_payload(rpm)
+        if payload is None:
+            return False
+        if self._posted is not None:
+            self.collect()
+            if self._fd is None:
+                return False
+        if self._watching:
+            try:
+                loop.remove_reader(fd)
+            except Exception:   # a closed loop: nothing to watch anyway
+                pass
+            self._watching = False
+        if self._parser.pending:
+            self._deliver(self._parser.flush())    # the line was idle: no partial frame is real
+        seq = self._next_seq()
+        try:
+            os.write(fd, _frame(seq, _SET_SPEED, payload))
+        except BlockingIOError:
+            self.counters["failed"] += 1
+            return False
+        except OSError as e:
+            self._port_lost(e)
+            return False
+        now = self._last_tx = loop.time()
+        self.counters["sent"] += 1
+        self._posted = (seq, now)
+        self._posted_reply = None
+        if self._nap_h is not None and self._nap_at - now < _KEEPALIVE_PUSH_S:
+            self._push_nap(now + self.keepalive_interval_s)
+        return True
+
+    def collect(self) -> Status | None:
+        """The status from the ACK of the command :meth:`post_speed` sent, read from the port
+        without waiting; None if nothing is posted or no valid ACK has come (counted)."""
+        p = self._posted
+        if p is None:
+            return None
+        fd = self._fd
+        while fd is not None and self._posted_reply is None:
+            try:
+                data = os.read(fd, 4096)
+            except BlockingIOError:
+                break
+            except OSError as e:
+                self._port_lost(e)
+                return None
+            if not data:        # VMIN 0: nothing there (a hang-up shows as an error)
+                break
+            self._ingest(data)
+            fd = self._fd
+        rep, self._posted, self._posted_reply = self._posted_reply, None, None
+        if rep is None:
+            self.counters["timeouts"] += 1
+            self.counters["failed"] += 1
+            return None
+        if not rep.ok:
+            self.counters["naks"] += 1
+            self.last_nak = rep
+            log.warning("stm32 %s: SET_SPEED refused: %s", self.port, getattr(rep.error, "name", rep.error))
+            return None
+        self.counters["acked"] += 1
+        return self._accept_status(rep.status)
+
+    def _watch(self) -> None:
+        """Before an awaited exchange: a posted command collected, the port watched again."""
+        if self._posted is not None:
+            self.collect()
+        if not self._watching and self._fd is not None and self._loop is not None:
+            self._loop.add_reader(self._fd, self._on_readable)
+            self._watching = True
 
     # ------------------------------------------------------------------ exchange
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFF
         return self._seq
 
+    async def _wait_turn(self) -> None:
+        """Wait until the exchange in progress (and those queued before us) are done; the link
+        is then handed to us (``_busy`` stays set)."""
+        fut = self._ev_loop().create_future()
+        self._turns.append(fut)
+        try:
+            await fut
+        except asyncio.CancelledError:
+            if fut.done() and not fut.cancelled():
+                self._hand_on()          # handed the link, then cancelled: pass it on
+            raise
+
+    def _hand_on(self) -> None:
+        """The exchange is done: the link to the next caller waiting, or free."""
+        turns = self._turns
+        while turns:
+            f = turns.popleft()
+            if not f.done():
+                f.set_result(None)
+                return
+        self._busy = False
+
     async def _exchange(self, cmd: Cmd, payload: bytes = b"") -> Reply | None:
         loop = self._loop
-        if not self.connected or self._lock is None or loop is None:
+        if not self.connected or loop is None:
             return None
-        async with self._lock:
+        if self._busy:
+            await self._wait_turn()
+        else:
+            self._busy = True
+        try:
             if not self.connected:
                 return None
+            if not self._watching:
+                self._watch()
+                if self._fd is None:
+                    return None
             t0 = loop.time()
             deadline = t0 + self.budget_s
-            min_attempt = exchange_time_s(cmd, self.baud) + 0.001
-            self._deliver(self._parser.flush())    # the line was idle: no partial frame is real
+            c = int(cmd)
+            min_attempt = self._min_attempt.get(c)
+            if min_attempt is None:
+                min_attempt = self._min_attempt[c] = exchange_time_s(cmd, self.baud) + 0.001
+            if self._parser.pending:
+                self._deliver(self._parser.flush())    # the line was idle: no partial frame is real
             seq = self._next_seq()
-            frame = encode_frame(seq, cmd, payload)
+            frame = _frame(seq, c, payload)
             attempt = 0
             try:
                 while True:
                     fut = loop.create_future()
-                    self._waiter = (seq, int(cmd), fut)
-                    if self._fd is None:     # released while the lock was awaited
+                    self._waiter = (seq, c, fut)
+                    if self._fd is None:     # released while we waited for our turn
                         return None
                     try:
                         os.write(self._fd, frame)
@@ -261,10 +476,12 @@ class Stm32Link:
                     except OSError as e:
                         self._port_lost(e)
                         return None
-                    self._last_tx = loop.time()
+                    now = self._last_tx = loop.time()
                     self.counters["sent"] += 1
-                    wait = max(0.0, min(self.timeout_s, deadline - loop.time()))
-                    h = loop.call_later(wait, self._timeout_flush, fut)
+                    if self._nap_h is not None and self._nap_at - now < _KEEPALIVE_PUSH_S:
+                        self._push_nap(now + self.keepalive_interval_s)
+                    wait = min(self.timeout_s, deadline - now)
+                    h = loop.call_at(now + (wait if wait > 0.0 else 0.0), self._timeout_flush, fut)
                     try:
                         res = await fut
                     finally:
@@ -292,6 +509,8 @@ class Stm32Link:
                     self.counters["retries"] += 1
             finally:
                 self._waiter = None
+        finally:
+            self._hand_on()
 
     def _timeout_flush(self, fut: asyncio.Future) -> None:
         if fut.done():
@@ -316,10 +535,16 @@ class Stm32Link:
                 return None
         if rep is None or not rep.ok or rep.status is None:    # an ACK always carries a status
             return None
-        if self._wake is not None and rep.status.enabled != self._was_enabled:
-            self._wake.set()        # the keep-alive starts or stops
-        self._was_enabled = rep.status.enabled
-        return rep.status
+        return self._accept_status(rep.status)
+
+    def _accept_status(self, st: Status | None) -> Status | None:
+        if st is None:
+            return None
+        self.last_status = st
+        if st.enabled != self._was_enabled:
+            self._poke()            # the keep-alive starts or stops
+        self._was_enabled = st.enabled
+        return st
 
     # ------------------------------------------------------------------ API
     async def enable(self) -> Status | None:
@@ -335,12 +560,17 @@ class Stm32Link:
         self._want_enabled = False          # no keep-alive from now on, whatever the answer
         return await self._status(Cmd.DISABLE, attempts=3)
 
-    async def set_speed(self, rpm: float) -> Status | None:
+    def _speed_payload(self, rpm: float) -> bytes | None:
         try:
-            payload = speed_payload(float(rpm))
+            return speed_payload(float(rpm))
         except (TypeError, ValueError):
             self.counters["failed"] += 1
             log.warning("stm32 %s: set_speed(%r) not sent: not a finite number", self.port, rpm)
+            return None
+
+    async def set_speed(self, rpm: float) -> Status | None:
+        payload = self._speed_payload(rpm)
+        if payload is None:
             return None
         return await self._status(Cmd.SET_SPEED, payload)
 
@@ -377,9 +607,9 @@ class Stm32Link:
 
     async def keepalive(self) -> Status | None:
         """PING if the firmware is enabled and nothing went out for half the watchdog period."""
-        if not self.armed or self._loop is None or self._lock is None:
+        if not self.armed or self._loop is None:
             return None
-        if self._loop.time() - self._last_tx < self.keepalive_interval_s or self._lock.locked():
+        if self._loop.time() - self._last_tx < self.keepalive_interval_s or self._busy:
             return None     # recent traffic (or an exchange in progress) feeds the watchdog
         self.counters["keepalives"] += 1
         return await self._status(Cmd.PING)
@@ -405,19 +635,40 @@ class Stm32Link:
                     delay = min(max(0.002, due - loop.time()), 0.5)
                 else:
                     delay = 0.5
-                wake = self._wake     # set by open() (a second open() replaces it)
-                if wake is None:
-                    return
-                wake.clear()
-                try:
-                    await asyncio.wait_for(wake.wait(), delay)
-                except TimeoutError:
-                    pass
+                await self._nap_for(loop, delay)
             except asyncio.CancelledError:
                 raise
             except Exception:
                 log.exception("stm32 %s: supervisor", self.port)
                 await asyncio.sleep(self.reopen_s)
+
+    async def _nap_for(self, loop: asyncio.AbstractEventLoop, delay: float) -> None:
+        """The supervisor's wait: ``delay`` s, or until :meth:`_poke`; a frame sent meanwhile
+        may push the wake-up out (:meth:`_push_nap`), so steady traffic never wakes it."""
+        fut = self._nap = loop.create_future()
+        self._nap_at = loop.time() + delay
+        self._nap_h = loop.call_at(self._nap_at, _set_none, fut)
+        try:
+            await fut
+        finally:
+            if self._nap_h is not None:
+                self._nap_h.cancel()
+            self._nap = self._nap_h = None
+
+    def _push_nap(self, at: float) -> None:
+        fut, loop = self._nap, self._loop
+        if fut is None or fut.done() or loop is None or self._nap_h is None:
+            return
+        self._nap_h.cancel()
+        self._nap_at = at
+        self._nap_h = loop.call_at(at, _set_none, fut)
+
+    def _poke(self) -> None:
+        """Wake the supervisor now (port lost, the firmware's enabled state changed). A poke
+        while it is not napping is not needed: it re-reads the state before every nap."""
+        fut = self._nap
+        if fut is not None and not fut.done():
+            fut.set_result(None)
 
     # ------------------------------------------------------------------ figures
     def rtt_summary(self) -> dict[str, float]:

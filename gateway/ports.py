@@ -71,6 +71,17 @@ class Stm32Port(Protocol):
     async def close(self) -> None: ...
 
 
+@runtime_checkable
+class Stm32PostingPort(Protocol):
+    """An STM32 port that can also post the per-slot speed command without waiting for its reply
+    (``drivers/stm32.py``): ``post_speed`` writes it now and never blocks (False: not sent);
+    ``collect`` gives the reply's status later without waiting (None: none came, counted by the
+    port). The station uses it when its STM32 port has it, otherwise awaited ``set_speed``."""
+
+    def post_speed(self, rpm: float) -> bool: ...
+    def collect(self) -> Stm32Status | None: ...
+
+
 # ----------------------------------------------------------------------------- outputs
 class Output(Protocol):
     """Fed by the slot loop, on the station's loop. ``on_*`` are O(1) and never block; an

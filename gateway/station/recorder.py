@@ -19,6 +19,7 @@ import os
 import re
 import threading
 import time
+from array import array
 from typing import Any, Callable
 
 import yaml
@@ -45,6 +46,75 @@ def _f(x: float | None) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
         return "nan"
     return repr(float(x))
+
+
+#: one log row (LOG_COLUMNS), formatted once per flush for all rows of the interval: ``%r`` of a
+#: float is its repr (the shortest exact form; ``nan`` for NaN, as :func:`_f`), ``%.3f`` of NaN is
+#: ``nan``; q and mask as ``str()``, saturated as 0/1 — byte for byte the per-row form before
+ROW_FORMAT = "%.4f,%r,%r,%.3f,%.3f,%d,%s,%s,%r,%r\n"
+_NAN = math.nan
+
+
+def _num(x: Any) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError, OverflowError):
+        return _NAN
+
+
+class _Columns:
+    """The rows of one flush interval, kept as columns (floats in ``array('d')``): per slot only
+    appends; the text is made once per flush (:meth:`take`)."""
+
+    __slots__ = ("k", "t", "t1", "t2", "speed_cmd", "speed_act", "saturated", "q", "mask", "mu",
+                 "mean_filt")
+
+    def __init__(self) -> None:
+        self.k: list[int] = []
+        self.t, self.t1, self.t2 = array("d"), array("d"), array("d")
+        self.speed_cmd, self.speed_act = array("d"), array("d")
+        self.saturated: list[Any] = []
+        self.q: list[Any] = []
+        self.mask: list[Any] = []
+        self.mu, self.mean_filt = array("d"), array("d")
+
+    def __len__(self) -> int:
+        return len(self.k)
+
+    def add(self, rec: SlotRecord) -> None:
+        n = len(self.k)
+        try:
+            self.t.append(rec.t)
+            self.t1.append(rec.t1)
+            self.t2.append(rec.t2)
+            self.speed_cmd.append(rec.speed_cmd)
+            self.speed_act.append(rec.speed_act)
+            mu = rec.mu
+            self.mu.append(_NAN if mu is None else mu)
+            mf = rec.mean_filt
+            self.mean_filt.append(_NAN if mf is None else mf)
+        except (TypeError, ValueError, OverflowError):
+            # a value that is no float (None where a number belongs): the row is kept with NaN
+            self._cut(n)
+            for name in ("t", "t1", "t2", "speed_cmd", "speed_act", "mu", "mean_filt"):
+                getattr(self, name).append(_num(getattr(rec, name)))
+        self.saturated.append(rec.saturated)
+        self.q.append(rec.q)
+        self.mask.append(rec.mask)
+        self.k.append(rec.k)        # last: len(k) counts the complete rows
+
+    def _cut(self, n: int) -> None:
+        for name in ("t", "t1", "t2", "speed_cmd", "speed_act", "mu", "mean_filt"):
+            del getattr(self, name)[n:]
+
+    def take(self) -> tuple[list[str], list[int]]:
+        """(rows as text, their slots); the columns are empty afterwards."""
+        fmt = ROW_FORMAT
+        rows = [fmt % r for r in zip(self.t, self.t1, self.t2, self.speed_cmd, self.speed_act,
+                                     self.saturated, self.q, self.mask, self.mu, self.mean_filt)]
+        ks = self.k
+        self.__init__()
+        return rows, ks
 
 
 _fsync_pool = None
@@ -159,6 +229,7 @@ class TestRecorder:
         self._off = 0
         self._buf: list[str] = [",".join(LOG_COLUMNS) + "\n"]
         self._buf_k: list[int] = [-1]       # slot of each buffered row (-1: the header)
+        self._cols = _Columns()             # rows since the last flush, not yet text
         self._ev_fd = os.open(os.path.join(test_dir, EVENTS_NAME), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         self._ev_off = os.fstat(self._ev_fd).st_size
         self._ev_pending: list[str] = []
@@ -269,11 +340,7 @@ class TestRecorder:
     def on_record(self, rec: SlotRecord) -> None:
         if not rec.present or self.closed:
             return  # §9: a slot without a row is MISSING
-        self._buf.append(
-            f"{rec.t:.4f},{_f(rec.t1)},{_f(rec.t2)},{rec.speed_cmd:.3f},"
-            f"{'nan' if math.isnan(rec.speed_act) else format(rec.speed_act, '.3f')},"
-            f"{int(rec.saturated)},{rec.q},{rec.mask},{_f(rec.mu)},{_f(rec.mean_filt)}\n")
-        self._buf_k.append(rec.k)
+        self._cols.add(rec)     # formatted at the flush, all rows of the interval at once
         self.rows += 1
         if self._clock() - self._last_flush >= self._flush_every:
             self.flush()
@@ -304,6 +371,10 @@ class TestRecorder:
         now = self._clock()
         self._last_flush = now
         ok = True
+        if self._cols:
+            rows, ks = self._cols.take()
+            self._buf += rows
+            self._buf_k += ks
         if self._buf:
             block = gzip.compress("".join(self._buf).encode(), compresslevel=5, mtime=0)
             try:

@@ -2,8 +2,14 @@
 
 Per slot k (deadline t0 + k·Ts on a monotonic clock):
   1. poll the meter (its reading belongs to slot k; none → MISSING);
-  2. the controller computes the speed command; it is sent to the STM32 in the background
-     (a separate serial port: it overlaps with the next poll, so both fit in the slot);
+  2. the controller computes the speed command. An STM32 port that can post it
+     (:class:`~gateway.ports.Stm32PostingPort`, the real driver) gets it written at once, and
+     its reply is collected after the next slot's poll, when the process is awake anyway (no
+     wake-up of its own); any other port gets it through the station's one STM32 sender task and
+     a one-slot "latest value" box (:class:`LatestValue`). Either way the slot loop never waits
+     for the STM32, and a command that cannot go out (the link busy with another exchange, or
+     replaced in the box by a newer one: never queued) is counted in
+     ``SlotStats.stm32_busy_skips``;
   3. during a test, the streaming method core gates the slot and updates baseline/life;
   4. the slot record goes to the fan-out (recorder first, then MQTT, Modbus TCP, …).
 
@@ -33,7 +39,8 @@ from ..control import ControlParams, Controller
 from ..method.core import SlotOut, StreamingMonitor
 from ..method.params import MethodParams
 from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
-from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32Status
+from ..ports import (MeterPort, MeterReading, Output, StationLimits, Stm32PostingPort, Stm32Port,
+                     Stm32Status)
 from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
                        StationState, TestState)
 from ..threadloop import call_soon_on
@@ -64,6 +71,8 @@ class SlotStats:
     overrun_slots: int = 0
     lateness: deque = field(default_factory=lambda: deque(maxlen=200_000))
     rtt: deque = field(default_factory=lambda: deque(maxlen=200_000))
+    #: speed commands never sent: replaced in the sender's box by a newer one, or not postable
+    #: (the link busy with another exchange, or its port gone)
     stm32_busy_skips: int = 0
 
     def summary(self) -> dict[str, Any]:
@@ -79,6 +88,54 @@ class SlotStats:
                 "lateness_ms_max": lat[-1] * 1e3 if lat else math.nan,
                 "rtt_ms_median": statistics.median(self.rtt) * 1e3 if self.rtt else math.nan,
                 "stm32_busy_skips": self.stm32_busy_skips}
+
+
+#: the job "read the STM32's status" in the sender's box (otherwise the box holds a speed, rpm)
+_READ_STATUS = object()
+
+
+class LatestValue:
+    """A one-slot "latest value" hand-over between coroutines of one event loop: :meth:`put`
+    never blocks and replaces a value not yet taken (it returns True then, and counts it in
+    ``superseded``); :meth:`get` waits for a value and takes it. Nothing ever queues: a consumer
+    that is slow only ever finds the newest value."""
+
+    __slots__ = ("_value", "_full", "_waiter", "superseded")
+
+    def __init__(self) -> None:
+        self._value: Any = None
+        self._full = False
+        self._waiter: asyncio.Future[None] | None = None
+        self.superseded = 0
+
+    @property
+    def empty(self) -> bool:
+        return not self._full
+
+    def put(self, value: Any) -> bool:
+        replaced = self._full
+        if replaced:
+            self.superseded += 1
+        self._value, self._full = value, True
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+        return replaced
+
+    def clear(self) -> None:
+        """Drop a value not yet taken (not counted: withdrawn, not superseded)."""
+        self._value, self._full = None, False
+
+    async def get(self) -> Any:
+        while not self._full:
+            w = self._waiter = asyncio.get_running_loop().create_future()
+            try:
+                await w
+            finally:
+                self._waiter = None
+        v = self._value
+        self._value, self._full = None, False
+        return v
 
 
 class Station:
@@ -119,7 +176,12 @@ class Station:
         self.start_failures: list[dict[str, Any]] = []
         self._recorder_out = RecorderOutput()
         self.fanout = Fanout(station_id, self.outputs, head=(self._recorder_out,))
-        self._stm32_task: asyncio.Task[Any] | None = None
+        #: the one STM32 sender (started by run()) and its box: a speed (rpm) or _READ_STATUS
+        self._stm32_box = LatestValue()
+        self._stm32_sender_task: asyncio.Task[None] | None = None
+        self._stm32_busy = False        # the sender has a job on the link
+        #: the STM32 port posts the speed command without waiting (the real driver)
+        self._stm32_post = isinstance(stm32, Stm32PostingPort)
         self._speed_act = math.nan
         self._speed_cmd = 0.0
         self._k = 0                     # the loop's current slot
@@ -361,6 +423,7 @@ class Station:
         self.starting = None
         self._speed_cmd = 0.0
         self._motor_off_k = self._k
+        self._stm32_box.clear()         # no speed command after the STOP
         await self._safe_stm32(self.stm32.stop(reason))
         st = self.state
         st.state = TestState.IDLE
@@ -380,6 +443,7 @@ class Station:
             return None
         mon = sess.monitor
         self._motor_off_k = self._k
+        self._stm32_box.clear()         # no speed command after the STOP
         await self._safe_stm32(self.stm32.stop(reason))
         if reason in ("completed", "protection stop"):
             res = mon.close()          # slots up to the planned end that never came: MISSING
@@ -423,6 +487,57 @@ class Station:
         st = await self._safe_stm32(self.stm32.set_speed(rpm))
         if st is not None:
             self._speed_act = float(st.actual_rpm)
+
+    def _post_speed(self, rpm: float) -> bool:
+        try:
+            return bool(self.stm32.post_speed(rpm))      # type: ignore[attr-defined]
+        except Exception as e:  # a driver must not raise, but never let it kill the loop
+            log.error("%s: STM32 post failed: %s", self.id, e)
+            return False
+
+    def _collect_speed(self) -> None:
+        """The reply to the speed command posted in the previous slot (if any, without waiting)."""
+        try:
+            st = self.stm32.collect()                    # type: ignore[attr-defined]
+        except Exception as e:
+            log.error("%s: STM32 collect failed: %s", self.id, e)
+            return
+        if st is not None:
+            self._speed_act = float(st.actual_rpm)
+
+    async def _stm32_sender(self) -> None:
+        """The one STM32 sender: takes the newest job from the box, one at a time, for the
+        station's lifetime (no task per slot)."""
+        box = self._stm32_box
+        while True:
+            job = await box.get()
+            self._stm32_busy = True
+            try:
+                if job is _READ_STATUS:
+                    await self._poll_status()
+                else:
+                    await self._send_speed(job)
+            finally:
+                self._stm32_busy = False
+
+    async def _stop_stm32_sender(self, grace_s: float = 0.5) -> None:
+        """The box emptied, a job on the link given up to ``grace_s`` to finish, the sender
+        ended."""
+        task, self._stm32_sender_task = self._stm32_sender_task, None
+        self._stm32_box.clear()
+        if task is None:
+            return
+        t_end = time.monotonic() + grace_s
+        while self._stm32_busy and not task.done() and time.monotonic() < t_end:
+            await asyncio.sleep(0.005)
+        task.cancel()
+        try:
+            await task
+        except (asyncio.CancelledError, Exception):
+            pass
+
+    def _stm32_idle(self) -> bool:
+        return not self._stm32_busy and self._stm32_box.empty
 
     def _process(self, k: int, reading: MeterReading | None, lateness: float) -> SlotRecord:
         """Everything after the poll of slot k (pure computation plus buffered output)."""
@@ -612,12 +727,7 @@ class Station:
         self.starting = None
         self.session = None
         self._recorder_out.recorder = None
-        task = self._stm32_task
-        if task is not None and not task.done():
-            try:
-                await asyncio.wait_for(asyncio.shield(task), 0.5)
-            except (asyncio.TimeoutError, Exception):
-                task.cancel()
+        await step("stm32 sender", self._stop_stm32_sender())
         await step("stm32 stop", self._safe_stm32(self.stm32.stop("gateway shutdown")))
         await step("meter port", self.meter.close())
         await step("stm32 port", self.stm32.close())
@@ -638,6 +748,9 @@ class Station:
         await self.stm32.open()
         # make sure the motor is stopped when the gateway starts
         await self._safe_stm32(self.stm32.stop("gateway start"))
+        if self._stm32_sender_task is None:
+            self._stm32_sender_task = asyncio.get_running_loop().create_task(
+                self._stm32_sender(), name=f"{self.id} stm32 sender")
         if self.default_plan is not None and self.autostart:
             self.start_test(self.default_plan)
         self._link_health()
@@ -669,6 +782,8 @@ class Station:
                 continue
             self.stats.lateness.append(lateness)
             reading = await self.meter.read()
+            if self._stm32_post:
+                self._collect_speed()
             self.stats.slots += 1
             if reading is not None:
                 self.stats.filled += 1
@@ -679,9 +794,10 @@ class Station:
             att = self.starting
             if ((mon is not None and mon.stop_slot is None and not mon.finished)
                     or (att is not None and att.motor_enabled and att.seq.motor_on)):
-                if self._stm32_task is None or self._stm32_task.done():
-                    self._stm32_task = asyncio.get_running_loop().create_task(self._send_speed(self._speed_cmd))
-                else:
+                if self._stm32_post:
+                    if not self._post_speed(self._speed_cmd):   # the link busy or gone
+                        self.stats.stm32_busy_skips += 1
+                elif self._stm32_box.put(self._speed_cmd):     # never waits for the link
                     self.stats.stm32_busy_skips += 1
             await self._after_slot()
             now = time.monotonic()
@@ -690,8 +806,8 @@ class Station:
                     >= (min(0.2, self.idle_status_interval_s) if waiting
                         else self.idle_status_interval_s)):
                 last_idle_status = now
-                if self._stm32_task is None or self._stm32_task.done():
-                    self._stm32_task = asyncio.get_running_loop().create_task(self._poll_status())
+                if self._stm32_idle():
+                    self._stm32_box.put(_READ_STATUS)
             if now - self._last_state_push >= 1.0:
                 self._link_health()
                 for name in self.alarms.expired(time.time()):   # a shelving ran out

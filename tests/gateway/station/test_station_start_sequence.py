@@ -14,26 +14,10 @@ from gateway.records import Command, CommandKind, EventType
 from gateway.records import TestState as TState
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, Reading
+from kit.vclock import VirtualClock
 
 THETA = math.radians(105.0)
 FAST = {"w_ss": 0.2, "w_hold": 0.4, "tau": 0.2, "settle_time": 0.5, "start_timeout": 3.0}
-
-
-class VirtualClock:
-    """Time jumps to each deadline: the loop runs flat out (as bench/bench_station.py)."""
-
-    def __init__(self, ts):
-        self.ts = ts
-        self.now = 0.0
-        self.clock = lambda: self.now
-
-    def slot_at(self, t):
-        return int(math.floor(t / self.ts + 0.5))
-
-    async def wait_for(self, k, spin_s=0.0):
-        self.now = k * self.ts
-        await asyncio.sleep(0)
-        return 0.0
 
 
 class Motor:
