@@ -62,6 +62,7 @@ from .stm32_protocol import (
     speed_payload,
     watchdog_payload,
 )
+from .ttyio import hung_up
 
 log = logging.getLogger("hookwatch.stm32")
 
@@ -293,7 +294,8 @@ class Stm32Link:
             self._port_lost(e)
             return
         if not data:
-            self._port_lost("hang-up")
+            if hung_up(self._fd):    # else a stale readiness event: the bytes were read already
+                self._port_lost("hang-up")
             return
         self._ingest(data)
 

@@ -35,7 +35,6 @@ import contextlib
 import logging
 import math
 import os
-import select
 import time
 from typing import Any
 
@@ -44,17 +43,8 @@ import serial
 from gateway.ports import MeterReading
 
 from .crc import crc16_modbus
+from .ttyio import hung_up
 from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, load_map
-
-_HANGUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
-
-
-def _hung_up(fd: int) -> bool:
-    """The port reports a hang-up or an error now (a pty whose other end closed, an adapter
-    unplugged): one poll(2) with no wait, only after an empty read."""
-    p = select.poll()
-    p.register(fd, select.POLLIN)
-    return any(ev & _HANGUP for _, ev in p.poll(0))
 
 log = logging.getLogger("hookwatch.meter")
 
@@ -240,7 +230,7 @@ class ZnsMeter:
         except OSError as e:
             self._port_lost(e)
             return b""
-        if not data and readable and _hung_up(fd):
+        if not data and readable and hung_up(fd):
             self._port_lost("end of file")
         return data
 

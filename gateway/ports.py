@@ -42,10 +42,14 @@ class MeterReading:
 
 @runtime_checkable
 class Stm32Status(Protocol):
-    """What the STM32 reports (``drivers.stm32_protocol.Status`` is one)."""
-    actual_rpm: float
-    command_rpm: float
-    enabled: bool
+    """What the STM32 reports (``drivers.stm32_protocol.Status``, a frozen dataclass, is one):
+    read-only to its users."""
+    @property
+    def actual_rpm(self) -> float: ...
+    @property
+    def command_rpm(self) -> float: ...
+    @property
+    def enabled(self) -> bool: ...
 
 
 class MeterPort(Protocol):

@@ -20,7 +20,8 @@ import re
 import threading
 import time
 from array import array
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import yaml
 
@@ -38,7 +39,7 @@ RESULT_NAME = "result.json"
 
 def utc_iso(ts: float | None = None) -> str:
     ts = time.time() if ts is None else ts
-    return _dt.datetime.fromtimestamp(ts, _dt.timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return _dt.datetime.fromtimestamp(ts, _dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _f(x: float | None) -> str:
@@ -70,6 +71,10 @@ class _Columns:
                  "mean_filt")
 
     def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        """Empty columns (new objects: the taken ones stay with the caller)."""
         self.k: list[int] = []
         self.t, self.t1, self.t2 = array("d"), array("d"), array("d")
         self.speed_cmd, self.speed_act = array("d"), array("d")
@@ -113,7 +118,7 @@ class _Columns:
         rows = [fmt % r for r in zip(self.t, self.t1, self.t2, self.speed_cmd, self.speed_act,
                                      self.saturated, self.q, self.mask, self.mu, self.mean_filt)]
         ks = self.k
-        self.__init__()
+        self.clear()
         return rows, ks
 
 
@@ -311,7 +316,7 @@ class TestRecorder:
         hdr = self._buf[0] if keep_header else None
         del self._buf[:over]
         del self._buf_k[:over]
-        if keep_header and self._buf_k[:1] != [-1]:
+        if hdr is not None and self._buf_k[:1] != [-1]:
             self._buf.insert(0, hdr)
             self._buf_k.insert(0, -1)
         if ks:
@@ -527,7 +532,7 @@ def read_sidecar(test_dir: str) -> dict[str, Any]:
 
 def incomplete_tests(station_dir: str) -> list[str]:
     """Test folders of a station that have a log but no result (cut off by a crash or kill)."""
-    out = []
+    out: list[str] = []
     if not os.path.isdir(station_dir):
         return out
     for name in sorted(os.listdir(station_dir)):

@@ -31,18 +31,16 @@ import os
 import statistics
 import time
 from collections import deque
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field, replace
 from typing import Any
-from collections.abc import Callable, Coroutine
 
-from ..control import ControlParams, Controller
+from ..control import Controller, ControlParams
 from ..method.core import SlotOut, StreamingMonitor
 from ..method.params import MethodParams
 from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK
-from ..ports import (MeterPort, MeterReading, Output, StationLimits, Stm32PostingPort, Stm32Port,
-                     Stm32Status)
-from ..records import (Command, CommandKind, CommandReply, Event, EventType, SlotRecord,
-                       StationState, TestState)
+from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port, Stm32PostingPort, Stm32Status
+from ..records import Command, CommandKind, CommandReply, Event, EventType, SlotRecord, StationState, TestState
 from ..threadloop import call_soon_on
 from .alarms import AlarmStore
 from .clock import SlotClock
@@ -431,9 +429,9 @@ class Station:
         st.end_reason = reason
         self.start_failures.append({"sample_id": att.plan.sample_id, "reason": reason,
                                     "source": att.source})
+        extra: dict[str, Any] = {"zero_offsets_n": att.seq.offsets} if att.seq.offsets else {}
         self._emit_event(EventType.START_FAILED, reason=reason, sample_id=att.plan.sample_id,
-                         t_set=att.plan.t_set, spin_up_s=att.seq.spin_slots * self.ts,
-                         **({"zero_offsets_n": att.seq.offsets} if att.seq.offsets else {}))
+                         t_set=att.plan.t_set, spin_up_s=att.seq.spin_slots * self.ts, **extra)
         self._push_state()
 
     async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
@@ -619,7 +617,7 @@ class Station:
                 self._emit_event(EventType.BASELINE, k=kt, mu_ss=mon.mu_ss, mu_th=mon.mu_th,
                                  k_b=mon.k_b, stable_first=mon.stable_first)
                 self._push_state()
-            elif e == "end_of_life":
+            elif e == "end_of_life" and mon.k_life is not None:
                 st.state = TestState.END_OF_LIFE
                 st.t_life = mon.k_life * self.ts
                 self._emit_event(EventType.END_OF_LIFE, k=kt, k_life=mon.k_life, t_life=st.t_life,
@@ -631,9 +629,8 @@ class Station:
                 if w.headroom is not None:
                     st.headroom, st.t_cross = w.headroom, w.t_cross
                 self._push_state()
-            elif e == "wear_warning":
+            elif e == "wear_warning" and (wear := mon.wear) is not None and wear.warn_slot is not None:
                 st.wear_warning = True
-                wear = mon.wear
                 self._emit_event(EventType.WEAR_WARNING, k=kt, warn_slot=wear.warn_slot,
                                  t_warn=(wear.warn_slot + 1) * self.ts, headroom=wear.headroom,
                                  t_cross=wear.t_cross, h_warn=sess.params.h_warn,
@@ -690,8 +687,8 @@ class Station:
                 changed = True
             self._port_seen[port] = ok
             self._port_lost_seen[port] = lost_n
-        self.state.meter_ok = self._port_seen["meter"]
-        self.state.stm32_ok = self._port_seen["stm32"]
+        self.state.meter_ok = bool(self._port_seen["meter"])
+        self.state.stm32_ok = bool(self._port_seen["stm32"])
         if changed:
             self._push_state()
 

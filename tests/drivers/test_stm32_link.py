@@ -342,3 +342,26 @@ def test_virtual_stm32_accepts_the_simulator_call_form(tmp_path):
         assert dev.firmware.watchdog_ms == wd
     dev = VirtualStm32(m, str(tmp_path / "x"), watchdog_s=0.3, baud=57600)
     assert dev.firmware.watchdog_ms == 300 and dev.baud == 57600
+
+
+def test_a_stale_readiness_event_is_no_hang_up_a_real_one_is(tmp_path):
+    """An empty read after a readiness event whose bytes another read already took (a loaded
+    loop) keeps the link; the simulator's process ending (its pty master closes) is a hang-up."""
+    async def main():
+        async with sim_process(tmp_path) as sim:
+            link = Stm32Link(sim.link, timeout_s=0.05)
+            await link.open()
+            try:
+                for _ in range(5):
+                    assert await link.stop("test") is not None
+                    link._on_readable()          # the stale event: nothing to read, no hang-up
+                    assert link.connected, link.counters
+                sim.proc.terminate()
+                await sim.proc.wait()
+                assert await poll(lambda: not link.connected, timeout=3.0), link.counters
+            finally:
+                await link.close()
+            return dict(link.counters)
+
+    counters = asyncio.run(main())
+    assert counters["port_lost"] == 1, counters
