@@ -12,6 +12,9 @@ import yaml
 
 from gateway.logio import read_log
 from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
     analyze_cli,
     events,
     read_json,
@@ -50,11 +53,11 @@ def _settle_s(test_dir):
 
 # ------------------------------------------------------------------------------------------------
 def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path):
-    sc = scenario_file(tmp_path, "life")
+    sc = scenario_file(tmp_path, "life", plant={"time_scale": QUICK_SCALE},
+                       method={**QUICK_METHOD, "t_end": QUICK_END})
     with virtual_station(tmp_path, sc) as (_sim, links):
-        st = station_yaml(tmp_path, links, name="life", control=TUNED,
-                          method={"w_ss": 5, "w_hold": 20, "tau": 5},
-                          test={"t_end_s": 70})
+        st = station_yaml(tmp_path, links, name="life", control=TUNED, method=QUICK_METHOD,
+                          test={"t_end_s": QUICK_END})
         gw = run_gateway(tmp_path, st, "--start", "--exit-when-done",
                          "--stats-json", str(tmp_path / "stats.json"))
         assert wait_exit(gw, 150) == 0, gw.log()
@@ -72,7 +75,7 @@ def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path)
     settle = _settle_s(d)
     assert online["t_life"] + settle > truth["onset_run_s"], (online["t_life"], settle,
                                                               truth["onset_run_s"])
-    assert online["t_life"] < 70
+    assert online["t_life"] < QUICK_END
     stats = read_json(str(tmp_path / "stats.json"))["life"]
     assert stats["filled_ratio"] > 0.97, stats
     kinds = [e["type"] for e in events(d)]
