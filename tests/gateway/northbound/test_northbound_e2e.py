@@ -14,7 +14,16 @@ from gateway.northbound import registers as R
 from gateway.northbound import schema as S
 from gateway.records import EventType
 from kit.broker import Broker, Sub, pub
-from kit.e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
+    read_json,
+    run_gateway,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+)
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool, wait_for
 
@@ -26,11 +35,11 @@ METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}
 IR = R.IR
 
 
-def scenario(tmp_path, name, t_end=70):
+def scenario(tmp_path, name, t_end=70, time_scale=600, method=METHOD):
     sc = {"description": f"test scenario {name}", "seed": 7, "meter": {"map": METER_MAP},
           "stm32": {"watchdog_s": 0.2},
-          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600},
-          "method": {**METHOD, "t_end": t_end}, "faults": []}
+          "plant": {"grade": "I", "t_set": 0.5, "time_scale": time_scale},
+          "method": {**method, "t_end": t_end}, "faults": []}
     p = tmp_path / f"{name}.yaml"
     p.write_text(yaml.safe_dump(sc, sort_keys=False))
     return str(p)
@@ -48,15 +57,16 @@ def live(sub, suffix=None):
 
 def test_end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
     require_tool("mbpoll")
-    sc = scenario(tmp_path, "life")
+    # the kit's twice-compressed life: the end of life ~23 s after slot 0, the test ends at 35 s
+    sc = scenario(tmp_path, "life", t_end=QUICK_END, time_scale=QUICK_SCALE, method=QUICK_METHOD)
     mport = free_port()
     with Broker(tmp_path) as b:
         sub = Sub(b.port, "hookwatch/#")
         gw = None
         try:
             with virtual_station(tmp_path, sc) as (_sim, links):
-                st = station_yaml(tmp_path, links, name="nb", control=TUNED, method=METHOD,
-                                  test={"t_end_s": 70},
+                st = station_yaml(tmp_path, links, name="nb", control=TUNED, method=QUICK_METHOD,
+                                  test={"t_end_s": QUICK_END},
                                   mqtt={"enabled": True, "port": b.port},
                                   modbus_tcp={"enabled": True, "port": mport, "unit_id": 2,
                                               "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}})
