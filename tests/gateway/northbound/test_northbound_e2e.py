@@ -1,6 +1,7 @@
 """Issue 5 end to end: `hookwatch sim` + `hookwatch run` with MQTT (real Mosquitto, mosquitto_sub)
 and Modbus TCP (mbpoll) — the end-of-life alarm of a compressed life, a PLC acknowledging it, the
-Last Will, and a broker outage with a gateway restart during a life."""
+Last Will, and a broker outage with a gateway restart during a life. One test: the end-of-life
+bench runs on its own broker while the outage bench waits out its outage (minutes of idle time)."""
 import datetime as dt
 import os
 import signal
@@ -55,7 +56,10 @@ def live(sub, suffix=None):
             and not m[1].endswith("/probe")]
 
 
-def test_end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
+def end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
+    """A bench of its own (broker, virtual station, gateway with MQTT and Modbus TCP): the
+    end-of-life alarm at mosquitto_sub, the PLC reads it and acknowledges it, the result, and the
+    Last Will after kill -9."""
     require_tool("mbpoll")
     # the kit's twice-compressed life: the end of life ~23 s after slot 0, the test ends at 35 s
     sc = scenario(tmp_path, "life", t_end=QUICK_END, time_scale=QUICK_SCALE, method=QUICK_METHOD)
@@ -140,10 +144,14 @@ def test_end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
             sub.stop()
 
 
-def test_broker_outage_during_a_life_with_a_gateway_restart(tmp_path):
+def test_broker_outage_during_a_life_with_a_gateway_restart_and_meanwhile_an_end_of_life_alarm(
+        tmp_path):
     """The broker is down for a long while during a life; the gateway is killed and restarted
     once meanwhile. When the broker returns the MES receives every event and the alarm, in
-    order, none twice (HOOKWATCH_E2E_OUTAGE_S: minimum outage, default 180 s: "several minutes")."""
+    order, none twice (HOOKWATCH_E2E_OUTAGE_S: minimum outage, default 180 s: "several minutes").
+    Meanwhile, in the outage's idle wait, a second bench on its own broker proves the end-of-life
+    alarm at mosquitto_sub, the PLC's acknowledgement and the Last Will
+    (:func:`end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will`)."""
     min_outage = float(os.environ.get("HOOKWATCH_E2E_OUTAGE_S", "180"))
     sc = scenario(tmp_path, "life", t_end=70)
     b = Broker(tmp_path, persistent=True).start()
@@ -179,6 +187,9 @@ def test_broker_outage_during_a_life_with_a_gateway_restart(tmp_path):
                                 return True
                 return False
             wait_for(eol_recorded, 180, interval=0.5, what="the end of life (recorded)")
+            # the outage goes on: the second bench fits in it (~45 s of the ~110 s left)
+            (tmp_path / "eol").mkdir()
+            end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path / "eol")
             time.sleep(max(2.0, min_outage - (time.monotonic() - t_down)))
             b.start()
             sub.wait(lambda s: s.messages("alarm/end_of_life") and len(
