@@ -122,6 +122,19 @@ QUICK_METHOD = {"w_ss": 2, "w_hold": 8, "tau": 2}
 QUICK_END = 35
 
 
+def quick_scenario(tmp_path, shipped: str) -> str:
+    """A copy of the shipped scenario ``config/scenarios/<shipped>`` in tmp_path with its life
+    compressed to the QUICK_* values (its plant otherwise as shipped)."""
+    with open(os.path.join(ROOT, "config", "scenarios", shipped)) as f:
+        sc = yaml.safe_load(f)
+    sc["meter"]["map"] = METER_MAP
+    sc["plant"]["time_scale"] = QUICK_SCALE
+    sc["method"] = {**QUICK_METHOD, "t_end": QUICK_END}
+    path = tmp_path / shipped
+    path.write_text(yaml.safe_dump(sc, sort_keys=False))
+    return str(path)
+
+
 def scenario_file(tmp_path, name, *, plant=None, faults=(), method=None, t_end=70):
     """A scenario file in tmp_path (the shipped ones are for people; tests state what they need):
     a compressed grade-I life at 0.5 N; ``method`` replaces the short windows + ``t_end``."""

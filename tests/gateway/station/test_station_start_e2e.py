@@ -11,13 +11,12 @@ import yaml
 from conftest import ROOT
 from gateway.northbound import registers as R
 from kit.e2e import (
-    METER_MAP,
     QUICK_END,
     QUICK_METHOD,
-    QUICK_SCALE,
     SHORT_METHOD,
     analyze_cli,
     events,
+    quick_scenario,
     read_json,
     run_gateway,
     scenario_file,
@@ -73,14 +72,8 @@ def test_slow_take_up_starts_after_settling_and_ends_in_failure_identical_offlin
     (protection stop after 1 s of LOW_TENSION); with §3a the test starts once settled. Its plant
     as shipped (the slack is running seconds, not wear), its life compressed twice more (the
     kit's QUICK_*: the end of life after ~23 s of test instead of ~53 s)."""
-    with open(os.path.join(SCENARIOS, "start-slow-take-up.yaml")) as f:
-        shipped = yaml.safe_load(f)
-    shipped["meter"]["map"] = METER_MAP
-    shipped["plant"]["time_scale"] = QUICK_SCALE
-    shipped["method"] = {**QUICK_METHOD, "t_end": QUICK_END}
-    sc = tmp_path / "start-slow-take-up.yaml"
-    sc.write_text(yaml.safe_dump(shipped))
-    with virtual_station(tmp_path, str(sc)) as (_sim, links):
+    sc = quick_scenario(tmp_path, "start-slow-take-up.yaml")
+    with virtual_station(tmp_path, sc) as (_sim, links):
         st = station_yaml(tmp_path, links, name="slow", control=TUNED, method=QUICK_METHOD,
                           test={"t_end_s": QUICK_END})
         gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
