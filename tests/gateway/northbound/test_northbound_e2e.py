@@ -1,6 +1,7 @@
 """Issue 5 end to end: `hookwatch sim` + `hookwatch run` with MQTT (real Mosquitto, mosquitto_sub)
 and Modbus TCP (mbpoll) — the end-of-life alarm of a compressed life, a PLC acknowledging it, the
-Last Will, and a broker outage with a gateway restart during a life."""
+Last Will, and a broker outage with a gateway restart during a life. One test: the end-of-life
+bench runs on its own broker while the outage bench waits out its outage (minutes of idle time)."""
 import datetime as dt
 import os
 import signal
@@ -14,7 +15,16 @@ from gateway.northbound import registers as R
 from gateway.northbound import schema as S
 from gateway.records import EventType
 from kit.broker import Broker, Sub, pub
-from kit.e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
+    read_json,
+    run_gateway,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+)
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool, wait_for
 
@@ -26,11 +36,11 @@ METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}
 IR = R.IR
 
 
-def scenario(tmp_path, name, t_end=70):
+def scenario(tmp_path, name, t_end=70, time_scale=600, method=METHOD):
     sc = {"description": f"test scenario {name}", "seed": 7, "meter": {"map": METER_MAP},
           "stm32": {"watchdog_s": 0.2},
-          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600},
-          "method": {**METHOD, "t_end": t_end}, "faults": []}
+          "plant": {"grade": "I", "t_set": 0.5, "time_scale": time_scale},
+          "method": {**method, "t_end": t_end}, "faults": []}
     p = tmp_path / f"{name}.yaml"
     p.write_text(yaml.safe_dump(sc, sort_keys=False))
     return str(p)
@@ -46,17 +56,21 @@ def live(sub, suffix=None):
             and not m[1].endswith("/probe")]
 
 
-def test_end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
+def end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
+    """A bench of its own (broker, virtual station, gateway with MQTT and Modbus TCP): the
+    end-of-life alarm at mosquitto_sub, the PLC reads it and acknowledges it, the result, and the
+    Last Will after kill -9."""
     require_tool("mbpoll")
-    sc = scenario(tmp_path, "life")
+    # the kit's twice-compressed life: the end of life ~23 s after slot 0, the test ends at 35 s
+    sc = scenario(tmp_path, "life", t_end=QUICK_END, time_scale=QUICK_SCALE, method=QUICK_METHOD)
     mport = free_port()
     with Broker(tmp_path) as b:
         sub = Sub(b.port, "hookwatch/#")
         gw = None
         try:
             with virtual_station(tmp_path, sc) as (_sim, links):
-                st = station_yaml(tmp_path, links, name="nb", control=TUNED, method=METHOD,
-                                  test={"t_end_s": 70},
+                st = station_yaml(tmp_path, links, name="nb", control=TUNED, method=QUICK_METHOD,
+                                  test={"t_end_s": QUICK_END},
                                   mqtt={"enabled": True, "port": b.port},
                                   modbus_tcp={"enabled": True, "port": mport, "unit_id": 2,
                                               "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}})
@@ -130,10 +144,14 @@ def test_end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
             sub.stop()
 
 
-def test_broker_outage_during_a_life_with_a_gateway_restart(tmp_path):
+def test_broker_outage_during_a_life_with_a_gateway_restart_and_meanwhile_an_end_of_life_alarm(
+        tmp_path):
     """The broker is down for a long while during a life; the gateway is killed and restarted
     once meanwhile. When the broker returns the MES receives every event and the alarm, in
-    order, none twice (HOOKWATCH_E2E_OUTAGE_S: minimum outage, default 180 s: "several minutes")."""
+    order, none twice (HOOKWATCH_E2E_OUTAGE_S: minimum outage, default 180 s: "several minutes").
+    Meanwhile, in the outage's idle wait, a second bench on its own broker proves the end-of-life
+    alarm at mosquitto_sub, the PLC's acknowledgement and the Last Will
+    (:func:`end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will`)."""
     min_outage = float(os.environ.get("HOOKWATCH_E2E_OUTAGE_S", "180"))
     sc = scenario(tmp_path, "life", t_end=70)
     b = Broker(tmp_path, persistent=True).start()
@@ -169,6 +187,9 @@ def test_broker_outage_during_a_life_with_a_gateway_restart(tmp_path):
                                 return True
                 return False
             wait_for(eol_recorded, 180, interval=0.5, what="the end of life (recorded)")
+            # the outage goes on: the second bench fits in it (~45 s of the ~110 s left)
+            (tmp_path / "eol").mkdir()
+            end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path / "eol")
             time.sleep(max(2.0, min_outage - (time.monotonic() - t_down)))
             b.start()
             sub.wait(lambda s: s.messages("alarm/end_of_life") and len(

@@ -13,7 +13,17 @@ from conftest import ROOT
 from gateway.northbound import registers as R
 from gateway.northbound import schema as S
 from kit.broker import Broker, Sub
-from kit.e2e import analyze_cli, read_json, run_gateway, station_yaml, test_dirs, virtual_station
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
+    analyze_cli,
+    read_json,
+    run_gateway,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+)
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool
 
@@ -21,18 +31,20 @@ pytestmark = pytest.mark.slow
 
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 TUNED = {"dead_band_n": 0.01}
-# short windows for a one-minute life; the warning after 2 windows under h 0.8
-METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5, "n_warn": 2, "h_warn": 0.8}
+# the kit's twice-compressed life and its windows (2 s); the warning after 2 windows under h 0.8
+METHOD = {**QUICK_METHOD, "n_warn": 2, "h_warn": 0.8}
 IR = R.IR
 
 
 def scenario(tmp_path):
-    """The one-minute life with a slow accelerated stage (rise_tau_s 6000 life-s = 10 s here), so
-    that the headroom falls over several windows before μ crosses μ_th."""
+    """The kit's twice-compressed life with a slow accelerated stage (rise_tau_s 6000 life-s = 5 s
+    here, 2.5 windows of 2 s; the h 0.8 → 0 rise takes ~6 s), so that the headroom falls over
+    several windows before μ crosses μ_th."""
     sc = {"description": "slow accelerated wear", "seed": 7, "meter": {"map": METER_MAP},
           "stm32": {"watchdog_s": 0.2},
-          "plant": {"grade": "I", "t_set": 0.5, "time_scale": 600, "wear": {"rise_tau_s": 6000}},
-          "method": {"w_ss": 5, "w_hold": 20, "tau": 5, "t_end": 70}, "faults": []}
+          "plant": {"grade": "I", "t_set": 0.5, "time_scale": QUICK_SCALE,
+                    "wear": {"rise_tau_s": 6000}},
+          "method": {**QUICK_METHOD, "t_end": QUICK_END}, "faults": []}
     p = tmp_path / "wear.yaml"
     p.write_text(yaml.safe_dump(sc, sort_keys=False))
     return str(p)
@@ -77,7 +89,8 @@ def test_wear_warning_reaches_mosquitto_sub_and_the_plc_bit_before_end_of_life(t
         try:
             with virtual_station(tmp_path, sc) as (_sim, links):
                 st = station_yaml(tmp_path, links, name="wear", control=TUNED, method=METHOD,
-                                  test={"t_end_s": 70}, mqtt={"enabled": True, "port": b.port},
+                                  test={"t_end_s": QUICK_END},
+                                  mqtt={"enabled": True, "port": b.port},
                                   modbus_tcp={"enabled": True, "port": mport, "unit_id": 2})
                 gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
                 sub.wait(lambda s: [m for m in s.messages("status") if m[2].get("status") == "online"],

@@ -10,7 +10,17 @@ import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from kit.e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
+    analyze_cli,
+    fleet_dir,
+    read_json,
+    run_gateway,
+    test_dirs,
+    virtual_station,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -23,14 +33,15 @@ def _scenario(path, seed):
     path.write_text(yaml.safe_dump({
         "description": "fleet test life", "seed": seed, "meter": {"map": METER_MAP},
         "stm32": {"watchdog_s": 0.2},
-        "plant": {"grade": "I" if seed % 2 else "II", "t_set": 0.5, "time_scale": 600},
-        "method": {"w_ss": 5, "w_hold": 20, "tau": 5, "t_end": 70}, "faults": []}))
+        "plant": {"grade": "I" if seed % 2 else "II", "t_set": 0.5, "time_scale": QUICK_SCALE},
+        "method": {**QUICK_METHOD, "t_end": QUICK_END}, "faults": []}))
     return str(path)
 
 
 def test_four_stations_one_process_one_meter_killed(tmp_path):
-    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01},
-                      test={"t_end_s": 70, "autostart": True})
+    # the kit's twice-compressed lives (Grade I and II): each ends in failure before QUICK_END
+    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01}, method=QUICK_METHOD,
+                      test={"t_end_s": QUICK_END, "autostart": True})
     with contextlib.ExitStack() as stack:
         sims = {}
         for i, name in enumerate(STATIONS):
@@ -49,7 +60,7 @@ def test_four_stations_one_process_one_meter_killed(tmp_path):
         gw = run_gateway(tmp_path, str(fleet), "--exit-when-done", "--stats-json", str(stats))
         # mid-test, the victim's virtual station dies with both its ports: its meter is gone
         import time
-        time.sleep(25)
+        time.sleep(15)        # slot 0 comes ~7 s after the start; the tests end at ~42 s
         victim = sims[VICTIM][0]
         victim.p.send_signal(signal.SIGKILL)
         victim.p.wait(10)

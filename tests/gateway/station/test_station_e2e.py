@@ -12,6 +12,9 @@ import yaml
 
 from gateway.logio import read_log
 from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
     analyze_cli,
     events,
     read_json,
@@ -50,11 +53,11 @@ def _settle_s(test_dir):
 
 # ------------------------------------------------------------------------------------------------
 def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path):
-    sc = scenario_file(tmp_path, "life")
+    sc = scenario_file(tmp_path, "life", plant={"time_scale": QUICK_SCALE},
+                       method={**QUICK_METHOD, "t_end": QUICK_END})
     with virtual_station(tmp_path, sc) as (_sim, links):
-        st = station_yaml(tmp_path, links, name="life", control=TUNED,
-                          method={"w_ss": 5, "w_hold": 20, "tau": 5},
-                          test={"t_end_s": 70})
+        st = station_yaml(tmp_path, links, name="life", control=TUNED, method=QUICK_METHOD,
+                          test={"t_end_s": QUICK_END})
         gw = run_gateway(tmp_path, st, "--start", "--exit-when-done",
                          "--stats-json", str(tmp_path / "stats.json"))
         assert wait_exit(gw, 150) == 0, gw.log()
@@ -72,7 +75,7 @@ def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path)
     settle = _settle_s(d)
     assert online["t_life"] + settle > truth["onset_run_s"], (online["t_life"], settle,
                                                               truth["onset_run_s"])
-    assert online["t_life"] < 70
+    assert online["t_life"] < QUICK_END
     stats = read_json(str(tmp_path / "stats.json"))["life"]
     assert stats["filled_ratio"] > 0.97, stats
     kinds = [e["type"] for e in events(d)]
@@ -81,9 +84,9 @@ def test_compressed_life_ends_in_failure_identical_to_offline_analysis(tmp_path)
 
 
 # ------------------------------------------------------------------------------------------------
-def _mean_tension(log_path, t_from):
+def _mean_tension(log_path, t_from, t_to):
     lg = read_log(log_path)
-    keep = lg.t >= t_from
+    keep = (lg.t >= t_from) & (lg.t < t_to)
     return lg.t[keep], (lg.t1[keep] + lg.t2[keep]) / 2.0
 
 
@@ -107,7 +110,8 @@ def test_closed_loop_holds_setpoint_open_loop_wanders_notch_reduces_ripple(tmp_p
     loop at the operating-point speed, closed loop without the notch (the paper's Fig. 8)."""
     duration = 75.0
     settle = 20.0
-    plant = {"time_scale": 1, "drift": {"sine_amp": 0.08, "sine_period_s": 50.0},
+    drift_period = 50.0
+    plant = {"time_scale": 1, "drift": {"sine_amp": 0.08, "sine_period_s": drift_period},
              "ripple": {"amplitude": 0.12}}
     runs = {
         "closed": {**TUNED},
@@ -128,14 +132,29 @@ def test_closed_loop_holds_setpoint_open_loop_wanders_notch_reduces_ripple(tmp_p
             assert wait_exit(gw, duration + 60) == 0, gw.log()
             gw.stop()
     out = {}
-    for name, (sub, _gw) in procs.items():
+    for name, (sub, gw) in procs.items():
         d = only_test(sub, name)
+        # each run recorded its whole planned test: a run cut short (a protection stop after a
+        # stall of its 50 Hz loop on a loaded machine) ends its log with the tension falling to
+        # the pretension and would pose as a control error of the mean below
+        res = read_json(os.path.join(d, "result.json"))
+        assert res["test_status"] == "completed" and res["end_reason"] == "completed", (name, res,
+                                                                                       gw.log())
         lg = read_log(os.path.join(d, "log.csv.gz"))
-        t, tm = _mean_tension(os.path.join(d, "log.csv.gz"), settle)
+        # the mean over exactly one period of the plant's drift sine (50 s: [20, 70] s after slot
+        # 0): the loop lags the drift, so the tension sits on the side of the dead band the drift
+        # pushes it to (±0.01 N, half a period each); a window of a non-integer number of periods
+        # weights one side more. The drift's phase at slot 0 depends on when the run started.
+        t, tm = _mean_tension(os.path.join(d, "log.csv.gz"), settle, settle + drift_period)
         sm = _one_second_means(t, tm)
         out[name] = {"mean": float(tm.mean()), "std_1s": float(sm.std()), "lg": lg, "dir": d}
     closed, opened, nonotch = out["closed"], out["open"], out["nonotch"]
-    assert abs(closed["mean"] - 0.5) <= 0.01, closed["mean"]
+    # with a dead band e_d the incremental PID only bounds the mean of the filtered feedback to
+    # within e_d (+ Δu/(Ki·T), < 0.001 N here) of the setpoint: 0.01 N is the tuned dead band.
+    # The controller has no bias beyond it at any drift phase (tests/test_control_drift_bias.py:
+    # this plant and controller in one process, |mean − 0.5| ≤ 0.0025 N); a mean further off means
+    # the loop did not run as specified (feedback or commands lost), not a window effect
+    assert abs(closed["mean"] - 0.5) <= TUNED["dead_band_n"], closed["mean"]
     assert opened["std_1s"] >= 3 * closed["std_1s"], (opened["std_1s"], closed["std_1s"])
     # the notch measurably reduces the speed command's ripple at the ripple frequency, measured
     # in the same window of plant time as before the §3a start sequence: [settle, duration] s
