@@ -57,7 +57,11 @@ def test_four_stations_one_process_one_meter_killed(tmp_path):
                              capture_output=True, text=True, cwd=ROOT, timeout=60)
         assert chk.returncode == 0, chk.stdout + chk.stderr
         stats = tmp_path / "stats.json"
-        gw = run_gateway(tmp_path, str(fleet), "--exit-when-done", "--stats-json", str(stats))
+        # as deployed (the systemd units): slot loops under SCHED_FIFO 20 where permitted (root
+        # here in CI); the ≥ 99.9 % goal below is the product's on a box, not a race with the
+        # other processes of a loaded test machine
+        gw = run_gateway(tmp_path, str(fleet), "--exit-when-done", "--stats-json", str(stats),
+                         "--realtime", "20")
         # mid-test, the victim's virtual station dies with both its ports: its meter is gone
         import time
         time.sleep(15)        # slot 0 comes ~7 s after the start; the tests end at ~42 s
