@@ -11,7 +11,7 @@
    then the time until a page shows its curve: the HTTP snapshot (GET /api/station/<id>) and, when
    Playwright and /usr/bin/chromium are there, a real browser from navigation to a drawn curve.
 
-    bench/bench_console.py [--duration 60] [--runs 2] [--skip-slots] [--skip-long]
+    bench/bench_console.py [--duration 60] [--runs 2] [--skip-slots] [--skip-long] [--realtime 20] [--in-process]
 """
 from __future__ import annotations
 
@@ -35,6 +35,9 @@ sys.path.insert(0, ROOT)
 
 from bench_fleet import make_fleet, stop_sims_read  # noqa: E402
 from bench_station import EXE, proc_cpu_rss  # noqa: E402
+
+#: extra options of `hookwatch run` (--realtime PRIO, --in-process)
+RUN_EXTRA: list[str] = []
 
 
 def console_cpu(base: str) -> float:
@@ -86,7 +89,8 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
                                    {"console": {"enabled": True, "listen": [f"127.0.0.1:{port}"]}})
     stats = os.path.join(work, "stats.json")
     gw = subprocess.Popen([EXE, "run", fleet, "--duration", str(duration), "--stats-json", stats,
-                           "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                           "--log-level", "warning", *RUN_EXTRA], stdout=subprocess.DEVNULL,
+                          stderr=subprocess.DEVNULL)
     base = f"http://127.0.0.1:{port}"
     t_end = time.monotonic() + 20
     while time.monotonic() < t_end:
@@ -124,7 +128,7 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
            "gateway_cpu_pct": 100 * (c1 - c0) / wall, "console_cpu_pct": 100 * (k1 - k0) / wall,
            "messages": sum(c.messages for c in cl), "bytes": sum(c.bytes for c in cl)}
     print(f"{clients:2d} clients: worst p99 lateness {out['worst_lateness_ms_p99']:.2f} ms, worst filled "
-          f"{out['worst_filled_pct']:.3f} %, gateway CPU {out['gateway_cpu_pct']:.1f} %, console thread "
+          f"{out['worst_filled_pct']:.3f} %, gateway CPU {out['gateway_cpu_pct']:.1f} % (the supervisor's, in process mode), console thread "
           f"{out['console_cpu_pct']:.1f} % of a core; clients got {out['messages']} messages "
           f"({out['bytes'] / 1e3:.0f} kB)", flush=True)
     return out
@@ -209,7 +213,13 @@ def main():
     ap.add_argument("--skip-slots", action="store_true")
     ap.add_argument("--skip-long", action="store_true")
     ap.add_argument("--json", help="append the figures to this JSON-lines file")
+    ap.add_argument("--realtime", type=int, metavar="PRIO", help="hookwatch run --realtime PRIO")
+    ap.add_argument("--in-process", action="store_true",
+                    help="hookwatch run --in-process (default: a worker per station, the console "
+                         "in the supervisor)")
     args = ap.parse_args()
+    RUN_EXTRA.extend((["--realtime", str(args.realtime)] if args.realtime else [])
+                     + (["--in-process"] if args.in_process else []))
     results = []
     if not args.skip_long:
         results.append({"long": long_test()})
