@@ -128,7 +128,8 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
            "gateway_cpu_pct": 100 * (c1 - c0) / wall, "console_cpu_pct": 100 * (k1 - k0) / wall,
            "messages": sum(c.messages for c in cl), "bytes": sum(c.bytes for c in cl)}
     print(f"{clients:2d} clients: worst p99 lateness {out['worst_lateness_ms_p99']:.2f} ms, worst filled "
-          f"{out['worst_filled_pct']:.3f} %, gateway CPU {out['gateway_cpu_pct']:.1f} % (the supervisor's, in process mode), console thread "
+          f"{out['worst_filled_pct']:.3f} %, gateway CPU {out['gateway_cpu_pct']:.1f} % "
+          f"(the supervisor's, in process mode), console thread "
           f"{out['console_cpu_pct']:.1f} % of a core; clients got {out['messages']} messages "
           f"({out['bytes'] / 1e3:.0f} kB)", flush=True)
     return out
