@@ -17,7 +17,18 @@ import yaml
 from conftest import ROOT, hookwatch_cmd
 from gateway.supervisor.fleetcfg import RunOptions
 from gateway.supervisor.supervisor import Supervisor
-from kit.e2e import analyze_cli, fleet_dir, read_json, run_gateway, test_dirs, virtual_station, wait_log
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    QUICK_SCALE,
+    analyze_cli,
+    fleet_dir,
+    read_json,
+    run_gateway,
+    test_dirs,
+    virtual_station,
+    wait_log,
+)
 from kit.tools import wait_for
 
 pytestmark = pytest.mark.slow
@@ -25,22 +36,26 @@ pytestmark = pytest.mark.slow
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 
 
-def _scenario(path, seed):
-    """The one-minute life of config/scenarios/quick.yaml with its own seed (and grade)."""
+def _scenario(path, seed, quick=False):
+    """The one-minute life of config/scenarios/quick.yaml with its own seed (and grade);
+    ``quick``: compressed twice more (the kit's QUICK_SCALE)."""
     with open(os.path.join(ROOT, "config", "scenarios", "quick.yaml")) as f:
         sc = yaml.safe_load(f)
     sc.update(seed=seed, meter={"map": METER_MAP})
+    if quick:
+        sc["plant"]["time_scale"] = QUICK_SCALE
     sc["plant"]["grade"] = "I" if seed % 2 else "II"
     path.write_text(yaml.safe_dump(sc))
     return str(path)
 
 
-def _stations(stack, tmp_path, fleet, names, seed0=21, **station):
+def _stations(stack, tmp_path, fleet, names, seed0=21, quick=False, **station):
     sims = {}
     for i, name in enumerate(names):
         sub = tmp_path / name
         sub.mkdir()
-        sims[name] = stack.enter_context(virtual_station(sub, _scenario(sub / "sc.yaml", seed0 + i)))
+        sims[name] = stack.enter_context(virtual_station(sub, _scenario(sub / "sc.yaml", seed0 + i,
+                                                                        quick)))
         links = sims[name][1]
         (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
             "station": {"id": name}, "meter": {"port": links["meter"]},
@@ -63,13 +78,16 @@ def _wait_pids(gw, name, n, timeout=30.0) -> list[int]:
 
 
 def test_killed_worker_restarts_neighbours_fill_their_slots_broken_file_refused(tmp_path):
-    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01}, test={"t_end_s": 70, "autostart": True})
+    # the kit's twice-compressed lives: end of life ~23 s (Grade I) / less (Grade II) after slot 0,
+    # before QUICK_END; the victim's second test runs QUICK_END s after its restart
+    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01}, method=QUICK_METHOD,
+                      test={"t_end_s": QUICK_END, "autostart": True})
     names = ("st-a", "st-b", "st-c")
     victim = "st-b"
     broken = fleet / "stations" / "st-x.yaml"
     broken.write_text("station: {id: st-x}\nmeter: {port: /dev/ttyX, baud: 12345}\nstm32: {port: /dev/ttyY}\n")
     with contextlib.ExitStack() as stack:
-        _stations(stack, tmp_path, fleet, names)
+        _stations(stack, tmp_path, fleet, names, quick=True)
         chk = subprocess.run(hookwatch_cmd() + ["check", "--skip-local", str(fleet)],
                              capture_output=True, text=True, cwd=ROOT, timeout=60)
         assert chk.returncode == 1, chk.stdout + chk.stderr
@@ -80,7 +98,7 @@ def test_killed_worker_restarts_neighbours_fill_their_slots_broken_file_refused(
             wait_log(gw, f"{victim}: test_started", timeout=30)
             pids = {n: _wait_pids(gw, n, 1)[0] for n in names}
             assert len(set(pids.values())) == 3 and gw.p.pid not in pids.values()
-            time.sleep(15)
+            time.sleep(8)             # mid-test: slot 0 came, the baseline is being searched
             os.kill(pids[victim], signal.SIGKILL)
             new = _wait_pids(gw, victim, 2)[1]
             assert new != pids[victim]
