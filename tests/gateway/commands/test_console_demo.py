@@ -44,7 +44,7 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
                                    "--console-port", "0", "--plc-port", "0", "--mqtt-port", "0"],
                 str(tmp_path / "demo.log"))
     try:
-        url = demo.readline_until("console :", timeout=400).split()[2]
+        url = demo.readline_until("console :", timeout=400).split()[0]
         # the console opens on the demo station's page (μ(t) live), not on the fleet
         assert re.match(r"^http://127\.0\.0\.1:\d+/#/station/demo$", url), url
         url = url.split("#")[0]
@@ -107,8 +107,8 @@ def test_an_interrupted_demo_exits_non_zero(tmp_path):
                                    "--t-end", str(QUICK_END), "--every", "1", "--no-console", "--no-northbound"],
                 str(tmp_path / "demo.log"))
     try:
-        demo.readline_until("EVENT test_started", timeout=120)
-        demo.readline_until("monitoring", timeout=120)
+        demo.readline_until("[demo] EVENT test_started", timeout=120)
+        demo.readline_until("[demo] t=", timeout=120)
         demo.p.send_signal(signal.SIGINT)
         rc = demo.p.wait(60)
     finally:
