@@ -112,7 +112,8 @@ kill $sim; wait $sim || true
     old_target = os.readlink(os.path.join(opt, "venv"))
     r = _offline(f"{release}/install.sh --root {root}")
     assert "upgraded" in r.stderr and "kept" in r.stderr, r.stderr
-    assert open(fleet).read().endswith("# edited on site\n")
+    with open(fleet) as f:
+        assert f.read().endswith("# edited on site\n")
     assert os.path.isfile(res_path) and os.path.isfile(station)
     assert os.readlink(os.path.join(opt, "venv")) != old_target
     assert not os.path.exists(os.path.join(opt, old_target))      # the old venv is gone, not piled up
