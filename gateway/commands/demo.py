@@ -189,7 +189,6 @@ def run(args) -> int:
     import dataclasses
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     # as in `hookwatch run`: the slot loop must not wait 5 ms for the GIL behind the console,
     # the PLC server or paho
     sys.setswitchinterval(0.0005)
