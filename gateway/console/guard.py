@@ -66,9 +66,10 @@ class HostAllow:
             mapped = getattr(local, "ipv4_mapped", None)
             return mapped is not None and ip == mapped
         if name in LOCAL_NAMES or name.endswith(".localhost"):
-            return local is not None and (local.is_loopback or
-                                          bool(getattr(local, "ipv4_mapped", None)
-                                               and local.ipv4_mapped.is_loopback))
+            if local is None:
+                return False
+            mapped = getattr(local, "ipv4_mapped", None)
+            return local.is_loopback or (mapped is not None and mapped.is_loopback)
         return False
 
 

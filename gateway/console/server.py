@@ -44,8 +44,8 @@ from ..records import Command, CommandKind
 from ..station.commands import CODE, Rejection, command_from_mapping
 from ..threadloop import ThreadLoop
 from . import auth
-from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
 from .feed import ConsoleOutput, StationFeed, series_from_log
+from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
 
 log = logging.getLogger("hookwatch.console")
 
