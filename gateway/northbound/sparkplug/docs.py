@@ -197,13 +197,15 @@ is ignored every time, and the node goes on waiting for a good one.
 | input | limit | key |
 |---|---|---|
 | STATE payload | 1024 bytes, checked before decoding | `sparkplug.state_max_bytes` |
-| STATE JSON | nesting ≤ 2 (scanned on the bytes before `json.loads`), numbers ≤ 32 characters, no NaN/Infinity, ≤ 8 keys of ≤ 32 characters, no duplicate key; `online` a boolean, `timestamp` an integer 0 … 2⁶³−1 | fixed |
+| STATE JSON | nesting ≤ 2, numbers ≤ 32 characters, ≤ 8 keys of ≤ 32 characters (below) | fixed |
 | NCMD / DCMD payload | 16384 bytes, checked before the protobuf decoder | `sparkplug.max_command_bytes` |
 | metrics per NCMD / DCMD | 64 | `sparkplug.max_command_metrics` |
 | metric name, string value | 256 characters | `sparkplug.max_string_chars` |
 | births (Rebirth requests) | one per 2 s; later requests coalesced into one | `sparkplug.rebirth_min_interval_s` |
 | STATE timestamp ahead of the node's clock | 300 s, then taken as "now" | `sparkplug.state_future_skew_s` |
 
+The STATE nesting is counted on the bytes before `json.loads` runs; NaN, Infinity and a key given
+twice are refused; `online` must be a JSON boolean and `timestamp` a JSON integer 0 … 2⁶³−1.
 The values a DCMD carries (sample ID, setpoint …) are then checked by the station's one command
 path like every other command.
 
