@@ -248,12 +248,8 @@ class NodeRuntime:
                                   "(the broker sends the NDEATH) and restarts in %.1f s, stored data stays "
                                   "in %s", self.s.edge_node_id, self.counters["crashes"], self._crash_backoff,
                                   self.s.store_path)
-                    try:
-                        self._abort()
-                    except Exception:  # noqa: BLE001 - the client may be half built
-                        self._client = None
-                        self._sock = False
-                        self.node.disconnected()
+                    self._abort_quietly()
+                    self.node.disconnected()
                     pause = self._crash_backoff
                     self._crash_backoff = min(max(self.s.reconnect_max_s, CRASH_BACKOFF_MIN_S),
                                               self._crash_backoff * 2)
@@ -261,9 +257,20 @@ class NodeRuntime:
                     if self._stop.wait(pause):
                         break
         finally:
-            self._close(clean=True)
+            try:
+                self._close(clean=True)
+            except Exception:  # noqa: BLE001 - stopping: the broker sends the Will instead
+                log.exception("sparkplug %s: closing the session failed", self.s.edge_node_id)
+                self._abort_quietly()
             if self.outbox is not None:
                 self.outbox.close()
+
+    def _abort_quietly(self) -> None:
+        try:
+            self._abort()
+        except Exception:  # noqa: BLE001 - a broken client: dropped
+            self._client = None
+            self._sock = False
 
     def _run(self) -> None:
         while True:

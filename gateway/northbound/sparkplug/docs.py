@@ -149,7 +149,8 @@ worker process (docs/runtime.md "Sparkplug in a fleet").
    primary host, `spBv1.0/STATE/<primary_host_id>`.
 3. Without a primary host it publishes NBIRTH (seq 0, the same bdSeq) and a DBIRTH per station
    at once; with one it waits for the host's STATE `{"online": true, "timestamp": <ms>}` (a STATE
-   whose timestamp is older than the last one seen is ignored).
+   whose timestamp is older than the last one seen in this session is ignored: STATE timestamps
+   below).
 4. Live data: DDATA by alias only, seq +1 per message (255 → 0), QoS 0.
 5. STATE `online: false`: the node publishes its NDEATH, disconnects and connects to the **next
    server** of `sparkplug.servers` (the same one when only one is configured; next bdSeq), and
