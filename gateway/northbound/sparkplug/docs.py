@@ -3,6 +3,9 @@ below: ``python -m gateway.northbound.sparkplug.docs > docs/sparkplug.md`` (a te
 current)."""
 from __future__ import annotations
 
+import dataclasses
+
+from ...config.schema import SparkplugConfig
 from . import metrics as M
 
 #: (statement ID of the Sparkplug 3.0 specification, what it asks, status, how / where / proof)
@@ -182,7 +185,7 @@ tck-id-operational-behavior-edge-node-termination-host-offline-timestamp):
   the host out.
 - Within a session, a STATE (online or offline) older than the last one accepted is ignored
   (counted `stale_state`): a stale offline STATE never ends the session.
-- A timestamp more than `sparkplug.state_future_skew_s` (300 s) ahead of the node's clock is
+- A timestamp more than `sparkplug.state_future_skew_s` (@state_future_skew_s@ s) ahead of the node's clock is
   accepted but remembered as the node's clock at receipt (counted `future_state`, logged), so a
   host whose clock once ran years ahead cannot make its later, correctly dated STATEs look stale:
   its `online: false` still ends the session, its `online: true` still brings the births.
@@ -197,13 +200,13 @@ is ignored every time, and the node goes on waiting for a good one.
 
 | input | limit | key |
 |---|---|---|
-| STATE payload | 1024 bytes, checked before decoding | `sparkplug.state_max_bytes` |
+| STATE payload | @state_max_bytes@ bytes, checked before decoding | `sparkplug.state_max_bytes` |
 | STATE JSON | nesting ≤ 2, numbers ≤ 32 characters, ≤ 8 keys of ≤ 32 characters (below) | fixed |
-| NCMD / DCMD payload | 16384 bytes, checked before the protobuf decoder | `sparkplug.max_command_bytes` |
-| metrics per NCMD / DCMD | 64 | `sparkplug.max_command_metrics` |
-| metric name, string value | 256 characters | `sparkplug.max_string_chars` |
-| births (Rebirth requests) | one per 2 s; later requests coalesced into one | `sparkplug.rebirth_min_interval_s` |
-| STATE timestamp ahead of the node's clock | 300 s, then taken as "now" | `sparkplug.state_future_skew_s` |
+| NCMD / DCMD payload | @max_command_bytes@ bytes, checked before the protobuf decoder | `sparkplug.max_command_bytes` |
+| metrics per NCMD / DCMD | @max_command_metrics@ | `sparkplug.max_command_metrics` |
+| metric name, string value | @max_string_chars@ characters | `sparkplug.max_string_chars` |
+| births (Rebirth requests) | one per @rebirth_min_interval_s@ s; later requests coalesced into one | `sparkplug.rebirth_min_interval_s` |
+| STATE timestamp ahead of the node's clock | @state_future_skew_s@ s, then taken as "now" | `sparkplug.state_future_skew_s` |
 
 The STATE nesting is counted on the bytes before `json.loads` runs; NaN, Infinity and a key given
 twice are refused; `online` must be a JSON boolean and `timestamp` a JSON integer 0 … 2⁶³−1.
@@ -268,8 +271,16 @@ def _metric_table(defs, alias) -> list[str]:
     return out
 
 
+def _with_defaults(text: str) -> str:
+    """``@key@`` → the default of ``sparkplug.<key>`` (one definition: the schema)."""
+    for f in dataclasses.fields(SparkplugConfig):
+        if isinstance(f.default, (int, float)) and not isinstance(f.default, bool):
+            text = text.replace(f"@{f.name}@", f"{f.default:g}")
+    return text
+
+
 def render() -> str:
-    lines = [HEAD.rstrip("\n"), "", "## Node metrics (NBIRTH)", ""]
+    lines = [_with_defaults(HEAD).rstrip("\n"), "", "## Node metrics (NBIRTH)", ""]
     na = M.node_aliases()
     lines += _metric_table(M.NODE_METRICS, lambda i, d: str(na[d.name]) if d.name in na else "none")
     lines += ["", "## Device metrics (DBIRTH: every metric; DDATA: by alias)", "",
