@@ -205,8 +205,8 @@ is ignored every time, and the node goes on waiting for a good one.
 | NCMD / DCMD payload | @max_command_bytes@ bytes, checked before the protobuf decoder | `sparkplug.max_command_bytes` |
 | metrics per NCMD / DCMD | @max_command_metrics@ | `sparkplug.max_command_metrics` |
 | metric name, string value | @max_string_chars@ characters | `sparkplug.max_string_chars` |
-| births (Rebirth requests) | one per @rebirth_min_interval_s@ s; later requests coalesced into one | `sparkplug.rebirth_min_interval_s` |
-| STATE timestamp ahead of the node's clock | @state_future_skew_s@ s, then taken as "now" | `sparkplug.state_future_skew_s` |
+| births | one per @rebirth_min_interval_s@ s, Rebirths coalesced | `sparkplug.rebirth_min_interval_s` |
+| STATE time ahead of the node | @state_future_skew_s@ s, then "now" | `sparkplug.state_future_skew_s` |
 
 The STATE nesting is counted on the bytes before `json.loads` runs; NaN, Infinity and a key given
 twice are refused; `online` must be a JSON boolean and `timestamp` a JSON integer 0 … 2⁶³−1.
