@@ -96,3 +96,22 @@ def test_lockout_attempt_counts_before_the_check_and_forgives_success():
     assert lk.attempt(limits) == 0
     now[0] += 61
     assert lk.locked("ua:1 alice", "a:1") == 0
+
+
+def test_limits_doc_names_each_console_key_with_its_default():
+    """docs/limits.md lists each console bound with its key and the schema's default."""
+    import dataclasses
+    import os
+
+    from conftest import ROOT
+    from gateway.config.schema import ConsoleConfig
+
+    with open(os.path.join(ROOT, "docs", "limits.md"), encoding="utf-8") as f:
+        text = f.read()
+    section = text.split("### Operator console", 1)[1].split("\n### ", 1)[0]
+    defaults = {f.name: f.default for f in dataclasses.fields(ConsoleConfig)}
+    for k in ("lockout_attempts", "login_failures_per_address", "report_jobs", "report_queue",
+              "stream_connects_per_address", "stream_connects_total"):
+        assert f"`console.{k}` ({defaults[k]}" in section, k
+    assert f"`console.lockout_s` ({defaults['lockout_s']:g} s)" in section
+    assert "`console.allowed_hosts` (default none)" in section and defaults["allowed_hosts"] == ()
