@@ -386,10 +386,29 @@ class ConsoleConfig:
                                   choices=("local", "all", "none"))
     session_ttl_s: float = key(28800.0, "a login lasts this long without activity", kind="float",
                                unit="s", lo=60.0, hi=7 * 86400.0)
-    lockout_attempts: int = key(5, "failed logins of one user or client address before a lockout",
-                                kind="int", lo=1, hi=100)
-    lockout_s: float = key(300.0, "how long a lockout lasts", kind="float", unit="s", lo=1.0,
-                           hi=86400.0)
+    lockout_attempts: int = key(5, "failed logins of one user from one client address (within "
+                                "lockout_s) before that pair is locked out; another address is "
+                                "not affected", kind="int", lo=1, hi=100)
+    lockout_s: float = key(300.0, "how long a lockout lasts (and the window failures are "
+                           "counted in)", kind="float", unit="s", lo=1.0, hi=86400.0)
+    login_failures_per_address: int = key(20, "failed logins from one client address, any user "
+                                           "(within lockout_s), before the address is locked out",
+                                           kind="int", lo=1, hi=10000)
+    allowed_hosts: tuple[str, ...] = key((), "host names the console answers in the HTTP Host "
+                                         "header besides the addresses it listens on (and "
+                                         "`localhost` on a loopback address); other names get "
+                                         "HTTP 421 (DNS rebinding)", kind="str_list")
+    report_jobs: int = key(1, "report processes (Fig. 7 of a test, campaign reports) running at "
+                           "once", kind="int", lo=1, hi=16)
+    report_queue: int = key(8, "report requests waiting for a process; beyond, HTTP 503 with "
+                            "Retry-After (requests for the same figure share one process)",
+                            kind="int", lo=0, hi=256)
+    stream_connects_per_address: int = key(30, "live-stream (SSE) connects per minute from one "
+                                           "client address; beyond, HTTP 429 with Retry-After",
+                                           kind="int", lo=1, hi=10000, unit="1/min")
+    stream_connects_total: int = key(120, "live-stream (SSE) connects per minute from all "
+                                     "clients together; beyond, HTTP 429 with Retry-After",
+                                     kind="int", lo=1, hi=100000, unit="1/min")
 
 
 @dataclass(frozen=True, kw_only=True)
