@@ -485,7 +485,7 @@ class ConsoleServer:
             if st is not None and loop is not None:
                 name = cmd.reason.split(":", 1)[0]
                 call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, source))
-            return self._reply(f, s, "command", cmd)
+            return self._reply(f, s, "command", cmd, status=400)
         kind = cmd.kind.value
         hook = cmd.kind == CommandKind.HOOK_REPLACED
         if hook:        # the console's hook_replaced: acknowledges the alarm (docs/console.md)
@@ -508,7 +508,9 @@ class ConsoleServer:
             log.info("console: %s: hook replaced, alarm acknowledged by %s", f.name, s.user)
         return self._reply(f, s, kind, reply)
 
-    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply) -> web.Response:
+    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply, status: int = 409) -> web.Response:
+        """The answer: 200 accepted; 409 refused by the station; 400 refused by the intake (the
+        request itself is malformed); ``reason`` and ``code`` as over MQTT and the PLC."""
         code = getattr(reply, "code", 0 if reply.ok else CODE["BAD_REQUEST"])
         if reply.ok:
             log.info("console: command %s on %s by %s: accepted", kind, f.name, s.user)
@@ -516,7 +518,7 @@ class ConsoleServer:
             self._refusal_log.warning(("command", kind, int(code)), "console: command %s on %s by %s: refused: %s",
                                       kind, f.name, s.user, reply.reason)
         return web.json_response({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
-                                 status=200 if reply.ok else 409)
+                                 status=200 if reply.ok else status)
 
     # ----------------------------------------------------------------- campaign
     async def h_campaign_run(self, request):

@@ -6,9 +6,9 @@ import asyncio
 import json
 import time
 
+from gateway.northbound.cmdparse import intake
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.alarms import AlarmStore
-from gateway.northbound.cmdparse import intake
 from gateway.station.commands import CODE
 from kit.fakes import Capture
 from kit.northbound import LoopThread, RunningStation, make_station
