@@ -76,8 +76,8 @@ class RefusalWindow:
     """Per kind: the first refusal of a window is reported at once, the rest counted; the count is
     reported when the window ends. Pure: every call takes the time ``now``."""
 
-    def __init__(self, window_s: float = WINDOW_S, max_kinds: int = MAX_KINDS):
-        self.window_s = float(window_s)
+    def __init__(self, window_s: float | None = None, max_kinds: int = MAX_KINDS):
+        self.window_s = float(WINDOW_S if window_s is None else window_s)
         self.max_kinds = int(max_kinds)
         self._kinds: dict[Hashable, _Kind] = {}
 
@@ -120,7 +120,7 @@ class RateLog:
     message of the kind with ``×N in the last 60 s``). ``msg % args`` is only formatted when
     logged: give client text through :func:`clip`/:func:`safe`."""
 
-    def __init__(self, logger: logging.Logger, window_s: float = WINDOW_S,
+    def __init__(self, logger: logging.Logger, window_s: float | None = None,
                  clock: Callable[[], float] = time.monotonic):
         self.logger = logger
         self.clock = clock

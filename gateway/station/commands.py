@@ -22,7 +22,7 @@ from typing import Any
 
 from ..alarms import ALARMS, ANNUNCIATED, SHELVE_MAX_S
 from ..ports import SAMPLE_ID_MAX, T_END_MAX_S, StationLimits
-from ..ratelog import WINDOW_S, RefusalWindow, clip
+from ..ratelog import RefusalWindow, clip
 from ..records import AlarmState, Command, CommandKind, CommandReply, EventType, StationState, TestState
 
 __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "Rejection",
@@ -214,7 +214,7 @@ class RefusalGate:
     station's validation refuses never reaches ``Station.submit`` (which would report it alone);
     a command it accepts is submitted as before. ``Station`` itself is not changed."""
 
-    def __init__(self, station: Any, window_s: float = WINDOW_S):
+    def __init__(self, station: Any, window_s: float | None = None):
         self.station = station
         self._w = RefusalWindow(window_s)
         self._timer: asyncio.TimerHandle | None = None
