@@ -1,7 +1,7 @@
 """Issue 21: Sparkplug DCMD commands go through the one bounded intake of every door. A real
 Mosquitto and the independent primary host (tests/kit/sparkplug_host.py, its own protoc build):
 a Setpoint sent as a String metric ("0.6") or a Shelve Duration as a Boolean is refused (code 9),
-a 1 MB Sample ID is refused and never echoed into DDATA, a Sample ID with a newline gets the
+a long Sample ID is refused and never echoed into DDATA, a Sample ID with a newline gets the
 station's code 4 with the value escaped; a well-typed start is carried out."""
 from gateway.northbound.sparkplug.client import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
@@ -51,15 +51,19 @@ def test_dcmd_metrics_are_typed_and_bounded_like_every_other_door(tmp_path):
                            {"name": "Device Control/Setpoint", "string_value": "0.6"}])
         assert code == 9 and "must be a number" in text, text
         assert st.starting is None and st.monitor is None
-        # a 1 MB Sample ID: refused, the DDATA that reports it stays small
-        text, code = send([start, {"name": "Device Control/Sample ID", "string_value": "X" * 1_000_000},
+        # a 200-character Sample ID (within the inbound bounds of the Sparkplug door): refused by the
+        # intake, the DDATA that reports it stays small
+        text, code = send([start, {"name": "Device Control/Sample ID", "string_value": "X" * 200},
                            {"name": "Device Control/Setpoint", "float_value": 0.5}])
-        assert code == 9 and len(text) < 300, len(text)
-        assert all(len(x.p.SerializeToString()) < 2000 for x in host.all("DDATA"))
+        assert code == 9 and len(text) < 300 and "X" * 60 not in text, text
+        # a 1 MB Sample ID: dropped before decoding (the door's inbound bounds), never echoed
+        host.command(TOPIC, [start, {"name": "Device Control/Sample ID", "string_value": "X" * 1_000_000},
+                             {"name": "Device Control/Setpoint", "float_value": 0.5}])
         # a newline in the Sample ID: the station's code 4, the value escaped
         text, code = send([start, {"name": "Device Control/Sample ID", "string_value": "S-1\nFORGED"},
                            {"name": "Device Control/Setpoint", "float_value": 0.5}])
         assert code == 4 and "\n" not in text, text
+        assert all(len(x.p.SerializeToString()) < 2000 for x in host.all("DDATA"))
         # a Boolean where a duration belongs
         text, code = send([{"name": "Device Control/Shelve Alarm", "boolean_value": True},
                            {"name": "Device Control/Alarm", "string_value": "end_of_life"},
