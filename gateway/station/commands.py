@@ -1,10 +1,18 @@
-"""The one validation of commands, shared by every source (CLI, MQTT, PLC over Modbus TCP).
+"""The one validation of commands, shared by every source (CLI, MQTT, PLC over Modbus TCP, the
+console, Sparkplug); what a door received is first made a Command by the one bounded intake
+(gateway/northbound/cmdparse.py ``intake``).
 
 ``validate(cmd, limits, state)`` returns ``None`` when the command may be carried out, else a
 :class:`Rejection` (a :class:`CommandReply` with ``ok=False``, a human reason naming the field,
 the value and what is allowed, and a numeric ``code`` for PLCs). The same bad request gets the
 same reason and code whichever door it came through; ``Station.submit`` emits the same
 ``command_rejected`` event for all of them.
+
+Every door hands its commands over with :func:`submit` (and reports a request its intake refused
+with :func:`refused`): the station's :class:`RefusalGate` turns refusals into bounded
+``command_rejected`` events — once per kind (door, command, code) per minute, with the ``count``
+— so a flood of refused commands is a few events and log lines, not one each
+(``Station.submit`` is unchanged and still validates every command it gets).
 
 The limits are a :class:`gateway.ports.StationLimits`, built once from the station's configuration
 (full scale, saturation ratio, grades). Value rules (``check_t_set``, ``check_sample_id``,
