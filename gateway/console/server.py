@@ -127,8 +127,6 @@ class ConsoleServer:
         self.tl = ThreadLoop("console")
         self.sessions = auth.Sessions(settings.session_ttl_s)
         self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
-        #: refused commands: one log line per kind per minute, with the count
-        self._refusal_log = RateLog(log)
         self.clients: dict[str, set[_Client]] = {n: set() for n in stations}
         self.urls: list[str] = []
         self.dropped_clients = 0
@@ -463,6 +461,9 @@ class ConsoleServer:
             if c.dropped and request.transport is not None:
                 request.transport.close()
         return resp
+
+    #: refused commands: one log line per kind per minute, with the count (gateway/ratelog.py)
+    _refusal_log = RateLog(log)
 
     async def h_command(self, request):
         """A command from the console: the body through the one bounded intake
