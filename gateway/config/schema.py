@@ -267,6 +267,11 @@ class MqttConfig(BrokerConfig):
     password_file: str | None = key(None, "file whose first line is the broker password (mode "
                                     "0600, owned by the hookwatch user)", kind="path",
                                     nullable=True, null_means="no password")
+    reply_prefix: str | None = key(None, "MQTT 5: a command's Response Topic is obeyed only below "
+                                   "this topic (`<reply_prefix>/…`); any other goes to `reply` and is "
+                                   "counted, so a client allowed only `cmd/…` cannot make the gateway "
+                                   "publish elsewhere", kind="topic", nullable=True,
+                                   null_means="`<base>/reply` (the station's own reply topic)")
     telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
                                       kind="float", unit="s", lo=0.1, hi=3600.0)
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")

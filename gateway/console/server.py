@@ -40,9 +40,12 @@ from typing import Any
 
 from aiohttp import web
 
+from ..northbound.cmdparse import intake, rejected_event_data
+from ..ratelog import RateLog
 from ..records import Command, CommandKind
-from ..station.commands import CODE, Rejection, command_from_mapping
-from ..threadloop import ThreadLoop
+from ..station import commands as C
+from ..station.commands import CODE, Rejection
+from ..threadloop import ThreadLoop, call_soon_on
 from . import auth
 from .feed import ConsoleOutput, StationFeed, series_from_log
 from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
@@ -517,31 +520,35 @@ class ConsoleServer:
                 request.transport.close()
         return resp
 
+    #: refused commands: one log line per kind per minute, with the count (gateway/ratelog.py)
+    _refusal_log = RateLog(log)
+
     async def h_command(self, request):
+        """A command from the console: the body through the one bounded intake
+        (gateway/northbound/cmdparse.py: size, depth, strict types, bounded strings), then the
+        station's validation through its refusal gate (bounded ``command_rejected`` events)."""
         try:
             f = self._feed(request)
-            data = await self._json_body(request)
+            body = await request.read()
         except _HttpError as e:
             return _err(e.status, e.reason)
+        except web.HTTPRequestEntityTooLarge:
+            return _err(413, f"request body larger than {MAX_BODY} bytes")
         s = self._session(request)
         if s is None:
             return _err(401, "log in first")
-        kind = data.pop("command", None)
         source = f"console:{s.user}"
-        if not isinstance(kind, str):
-            return self._reply(f, s, "?", Rejection(False, "command: missing (start, stop, ack, setpoint, "
-                                                    "hook_replaced)", None, CODE["BAD_REQUEST"]))
-        hook = kind == "hook_replaced"
-        if hook:
-            if data:
-                return self._reply(f, s, kind, Rejection(False, "hook_replaced: takes no keys", None,
-                                                         CODE["BAD_REQUEST"]))
-            cmd: Any = Command(CommandKind.ACK, source)
-        else:
-            cmd = command_from_mapping(kind, data, source)
-        if isinstance(cmd, Rejection):
-            return self._reply(f, s, kind, cmd)
+        cmd = intake(None, body, source)
         st, loop = f.station, f.loop
+        if isinstance(cmd, Rejection):
+            if st is not None and loop is not None:
+                name = cmd.reason.split(":", 1)[0]
+                call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, source))
+            return self._reply(f, s, "command", cmd, status=400)
+        kind = cmd.kind.value
+        hook = cmd.kind == CommandKind.HOOK_REPLACED
+        if hook:        # the console's hook_replaced: acknowledges the alarm (docs/console.md)
+            cmd = Command(CommandKind.ACK, source, {}, cmd.request_id)
         if st is None or loop is None:
             return self._reply(f, s, kind, Rejection(False, f"station {f.name} is not running", None,
                                                      CODE["NO_STATION"]))
@@ -551,7 +558,7 @@ class ConsoleServer:
                      f.name, f.name, s.user)
             return web.json_response({"ok": True, "reason": "", "code": 0})
         try:
-            fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
+            fut = asyncio.run_coroutine_threadsafe(C.submit(st, cmd), loop)
             reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
         except (TimeoutError, RuntimeError) as e:
             reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,
@@ -560,14 +567,17 @@ class ConsoleServer:
             log.info("console: %s: hook replaced, alarm acknowledged by %s", f.name, s.user)
         return self._reply(f, s, kind, reply)
 
-    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply) -> web.Response:
+    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply, status: int = 409) -> web.Response:
+        """The answer: 200 accepted; 409 refused by the station; 400 refused by the intake (the
+        request itself is malformed); ``reason`` and ``code`` as over MQTT and the PLC."""
         code = getattr(reply, "code", 0 if reply.ok else CODE["BAD_REQUEST"])
         if reply.ok:
             log.info("console: command %s on %s by %s: accepted", kind, f.name, s.user)
         else:
-            log.warning("console: command %s on %s by %s: refused: %s", kind, f.name, s.user, reply.reason)
+            self._refusal_log.warning(("command", kind, int(code)), "console: command %s on %s by %s: refused: %s",
+                                      kind, f.name, s.user, reply.reason)
         return web.json_response({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
-                                 status=200 if reply.ok else 409)
+                                 status=200 if reply.ok else status)
 
     # ----------------------------------------------------------------- campaign
     async def h_campaign_run(self, request):
