@@ -93,6 +93,7 @@ class ZnsMeter:
         self.rs485: Any = rs485 if rs485 is not None and getattr(rs485, "enabled", False) else None
         self.rs485_error: str | None = None
         self.low_latency = False
+        self.last_failure: str | None = None   # why the latest read gave nothing (None: it gave a reading)
         self.map = meter_map
         self.timeout_s = float(timeout_s)
         self.swap_channels = bool(swap_channels)      # applied by the station
@@ -214,6 +215,30 @@ class ZnsMeter:
             log.error("meter %s: meter.rs485: %s; the port is used without it", self.port, err)
         self.rs485_error = err
 
+    def settings_text(self) -> str:
+        """Where and how the meter is asked: ``/dev/… at 115200 8N1, unit 1``."""
+        m = self.map
+        return f"{self.port} at {m.baud} {m.bytesize}{self._parity_used}{m.stopbits}, unit {self._unit}"
+
+    def diagnosis(self) -> str | None:
+        """One sentence on why the latest read gave no reading (None after a good one), naming the
+        port and its settings — what a silent meter looks like to an operator."""
+        why, where = self.last_failure, self.settings_text()
+        if why is None:
+            return None
+        if why in ("timeout", "stale"):
+            return f"meter not answering on {where}"
+        if why in ("not_connected", "port_lost"):
+            return f"meter port {self.port} is not open (unplugged, or a wrong path)"
+        if why == "garbage":
+            return (f"the bytes on {where} are no reply of this unit (another unit ID or baud, or the "
+                    "adapter's own echo: meter.local_echo)")
+        if why == "crc":
+            return f"replies on {where} fail their CRC (wiring, termination or baud)"
+        if why == "exception":
+            return f"the meter on {where} answers Modbus exception {self.last_exception_code:02d}"
+        return f"the meter on {where} gives no usable reading ({why})"
+
     def _start_reopen(self) -> None:
         if self._closed or self._loop is None:
             return
@@ -306,6 +331,7 @@ class ZnsMeter:
         """One poll. Reading or None (counted); never raises, never takes longer than timeout_s."""
         if not self.connected or self._fd is None:
             self.counters["not_connected"] += 1
+            self.last_failure = "not_connected"
             self._start_reopen()
             return None
         if self._pending:                 # a concurrent caller: one transaction at a time
@@ -336,6 +362,7 @@ class ZnsMeter:
             timer = loop.call_at(loop.time() + self.timeout_s, self._fail_now, "timeout")
             why = await fut
             rtt = time.monotonic() - t0
+            self.last_failure = None if why == "ok" else why
             if why == "ok":
                 return self._result(rtt)
             if why == "exception":
@@ -377,6 +404,7 @@ class ZnsMeter:
         if rtt < self._min_reply_s:
             # faster than the wire can carry request and reply: the late answer to an earlier read
             self.counters["stale_replies"] += 1
+            self.last_failure = "stale"
             return None
         rx = self._rx
         regs = [(rx[i] << 8) | rx[i + 1] for i in range(3, 3 + 2 * self._count, 2)]
@@ -384,10 +412,12 @@ class ZnsMeter:
             ch1, ch2 = self.map.decode(regs)
         except DecodeError as e:
             self.counters["decode_errors"] += 1
+            self.last_failure = "decode"
             log.debug("meter %s: %s", self.port, e)
             return None
         if not (math.isfinite(ch1) and math.isfinite(ch2)):
             self.counters["decode_errors"] += 1
+            self.last_failure = "decode"
             return None
         self.counters["reads_ok"] += 1
         self.last_rtt_s = rtt
