@@ -44,8 +44,8 @@ SCAN_BAUDS: tuple[int, ...] = (115200, 57600, 38400, 19200, 9600)
 #: unit IDs `--scan` tries (the configured one first)
 SCAN_UNITS: tuple[int, ...] = tuple(range(1, 17))
 #: a read's timeout beyond the wire time of request and reply (the probe is not the slot loop)
-METER_MARGIN_S = 0.1
-SCAN_MARGIN_S = 0.03
+METER_MARGIN_S = 0.25
+SCAN_MARGIN_S = 0.1
 BROKER_TIMEOUT_S = 5.0
 STM32_ATTEMPTS = 3
 SLOT_S = 0.02
@@ -86,16 +86,48 @@ class MeterAnswer:
     kind: str                        # ok | no_reply | port | exception | decode
     detail: str = ""
     ch: tuple[float, float] | None = None
+    echo: bool | None = None         # the adapter handed our own request back (None: nothing came)
 
 
-def read_meter(port: str, m: MeterMap, *, baud: int, unit: int, parity: str, timeout_s: float,
-               local_echo: bool = False) -> MeterAnswer:
-    """One read of the map's block through pymodbus' serial client (a fresh client, closed after)."""
+def read_meter(port: str, m: MeterMap, *, baud: int, unit: int, parity: str, timeout_s: float) -> MeterAnswer:
+    """One read of the map's block through pymodbus' serial client (a fresh client, closed after).
+    The client's framer reads past an echo of our request by itself; the raw bytes are watched
+    (``trace_packet``) to say whether the adapter echoes, which our own driver must be told
+    (``meter.local_echo``)."""
     _quiet_pymodbus()
     if "://" not in port and not os.path.exists(port):
         return MeterAnswer(False, "port", "no such device")
+    a, echo = _traced_read(port, m, baud=baud, unit=unit, parity=parity, timeout_s=timeout_s)
+    if echo and not a.ok:
+        # the framer does not always find the reply behind the echo: skip the echo as it comes
+        a, _ = _traced_read(port, m, baud=baud, unit=unit, parity=parity, timeout_s=timeout_s, skip_echo=True)
+    return MeterAnswer(a.ok, a.kind, a.detail, a.ch, echo=echo)
+
+
+def _traced_read(port: str, m: MeterMap, *, baud: int, unit: int, parity: str, timeout_s: float,
+                 skip_echo: bool = False) -> tuple[MeterAnswer, bool | None]:
+    sent: list[bytes] = []
+    rx: list[bytes] = []
+
+    def trace(sending: bool, data: bytes) -> bytes:
+        (sent if sending else rx).append(bytes(data))
+        return data
+
     c = ModbusSerialClient(port, baudrate=baud, bytesize=m.bytesize, parity=parity, stopbits=m.stopbits,
-                           timeout=timeout_s, retries=0, handle_local_echo=local_echo)
+                           timeout=timeout_s, retries=0, trace_packet=trace, handle_local_echo=skip_echo)
+    try:
+        a = _read_once(c, m, unit)
+    finally:
+        c.close()
+    echo = None
+    if sent and rx:
+        first = next((b for b in rx if len(b) >= 3), rx[0])
+        n = min(len(first), len(sent[0]))
+        echo = first[:n] == sent[0][:n]
+    return a, echo
+
+
+def _read_once(c: ModbusSerialClient, m: MeterMap, unit: int) -> MeterAnswer:
     try:
         if not c.connect():
             return MeterAnswer(False, "port", "cannot be opened")
@@ -119,11 +151,9 @@ def read_meter(port: str, m: MeterMap, *, baud: int, unit: int, parity: str, tim
         return MeterAnswer(True, "ok", ch=ch)
     except (OSError, serial.SerialException) as e:
         return MeterAnswer(False, "port", str(e))
-    finally:
-        c.close()
 
 
-def scan_meter(port: str, m: MeterMap, parity: str, local_echo: bool = False,
+def scan_meter(port: str, m: MeterMap, parity: str,
                bauds: Iterable[int] = SCAN_BAUDS, units: Iterable[int] = SCAN_UNITS,
                ) -> tuple[int, int, MeterAnswer] | None:
     """(baud, unit, answer) where the meter answered, trying the configured baud and unit first."""
@@ -132,7 +162,7 @@ def scan_meter(port: str, m: MeterMap, parity: str, local_echo: bool = False,
     for b in order_b:
         t = m.with_overrides(baud=b).poll_time_s() + SCAN_MARGIN_S
         for u in order_u:
-            a = read_meter(port, m, baud=b, unit=u, parity=parity, timeout_s=t, local_echo=local_echo)
+            a = read_meter(port, m, baud=b, unit=u, parity=parity, timeout_s=t)
             if a.kind == "port":
                 return None
             if a.kind != "no_reply":             # an answer, even an exception, is the meter
@@ -151,7 +181,7 @@ def probe_meter(meter_cfg: Any, *, scan: bool = False, sysfs: str = "/sys") -> l
     out: list[Finding] = []
     local_echo = bool(getattr(meter_cfg, "local_echo", False))
     a = read_meter(port, m, baud=m.baud, unit=m.unit_id, parity=parity,
-                   timeout_s=m.poll_time_s() + METER_MARGIN_S, local_echo=local_echo)
+                   timeout_s=m.poll_time_s() + METER_MARGIN_S)
     if a.ok and a.ch is not None:
         out.append(Finding("meter", True, f"meter answered on {where}: channel 1 {a.ch[0]:.3f} N, "
                                           f"channel 2 {a.ch[1]:.3f} N."))
@@ -167,7 +197,7 @@ def probe_meter(meter_cfg: Any, *, scan: bool = False, sysfs: str = "/sys") -> l
                            f"({a.detail}): check meter.map against the meter's manual."))
     else:
         hint = ("run `hookwatch check --probe --scan` to find its baud and unit ID" if not scan else "")
-        found = scan_meter(port, m, parity, local_echo) if scan else None
+        found = scan_meter(port, m, parity) if scan else None
         if found is not None:
             b, u, fa = found
             keys = ", ".join(f"meter.{k}: {v}" for k, v, c in (("baud", b, m.baud), ("unit_id", u, m.unit_id))
@@ -182,6 +212,11 @@ def probe_meter(meter_cfg: Any, *, scan: bool = False, sysfs: str = "/sys") -> l
         else:
             out.append(Finding("meter", False, f"meter not answering on {where}: check the meter's "
                                f"power and A/B wiring, its baud and unit ID; {hint}."))
+    if a.echo is not None and a.echo != local_echo:
+        out.append(Finding("meter", False, f"the adapter on {port} hands our own request back before "
+                           "the reply (echo on a 2-wire bus): set meter.local_echo: true." if a.echo else
+                           f"meter.local_echo is set but the adapter on {port} does not echo: set "
+                           "meter.local_echo: false."))
     out += _latency_findings(port, m, float(getattr(meter_cfg, "timeout_s", 0.015)), sysfs)
     rs = getattr(meter_cfg, "rs485", None)
     if rs is not None and getattr(rs, "enabled", False):
