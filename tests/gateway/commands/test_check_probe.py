@@ -92,11 +92,20 @@ def test_a_broker_that_refuses_the_password_and_a_taken_port(sim, tmp_path):
         assert (f"mqtt broker 127.0.0.1:{b.port} refused user 'hw' (") in out, out
         assert "check mqtt.username and the password" in out
         assert f"modbus_tcp: 127.0.0.1:{busy} is already in use by another program" in out, out
-        # the right password and a free port: all OK
+        # the right password and a free port: all OK (and the Sparkplug section's broker too)
         path = station(tmp, links, "broker2", mqtt=mqtt, modbus_tcp={"enabled": True, "port": free, "unit_id": 1})
-        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret"})
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+        cfg["sparkplug"] = {**mqtt, "password_env": "HW_PROBE_SPB"}
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret", "HW_PROBE_SPB": "nope"})
+        assert rc == 1 and f"sparkplug broker 127.0.0.1:{b.port} refused user 'hw'" in out, out
+        assert "check sparkplug.username" in out
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret", "HW_PROBE_SPB": "s3cret"})
         assert rc == 0, out
         assert f"mqtt broker 127.0.0.1:{b.port} accepted user 'hw'." in out
+        assert f"sparkplug broker 127.0.0.1:{b.port} accepted user 'hw'." in out
         assert f"modbus_tcp: 127.0.0.1:{free} is free to listen on." in out
     taken.close()
     # the broker gone: cannot be reached
@@ -124,6 +133,25 @@ def test_an_echoing_adapter_needs_local_echo(tmp_path):
         assert rc == 1 and "set meter.local_echo: false." in out, out
 
 
+def test_the_latency_timer_of_a_usb_adapter_is_judged_against_the_slot(tmp_path):
+    # the sysfs layout of an FTDI adapter (no FTDI on this machine): 16 ms fails, 1 ms passes
+    from types import SimpleNamespace
+
+    from gateway.commission.probe import _latency_findings, meter_map_of
+
+    d = tmp_path / "sys" / "class" / "tty" / "ttyUSB3" / "device"
+    d.mkdir(parents=True)
+    m = meter_map_of(SimpleNamespace(map=None, baud=None, unit_id=None, parity=None))
+    for ms, ok in ((16, False), (1, True)):
+        (d / "latency_timer").write_text(f"{ms}\n")
+        f, = _latency_findings("/dev/ttyUSB3", m, 0.015, str(tmp_path / "sys"))
+        assert f.ok is ok, f
+    (d / "latency_timer").write_text("16\n")
+    f, = _latency_findings("/dev/ttyUSB3", m, 0.015, str(tmp_path / "sys"))
+    assert "holds received bytes for 16 ms" in f.text and "99-hookwatch.rules" in f.text
+    assert _latency_findings("/dev/pts/3", m, 0.015, str(tmp_path / "sys")) == []
+
+
 def test_a_silent_meter_at_run_time_is_named_with_its_port_and_settings(sim, tmp_path):
     _, links = sim
     path = station_yaml(tmp_path, links, name="silent", meter={"unit_id": 9})
@@ -133,3 +161,15 @@ def test_a_silent_meter_at_run_time_is_named_with_its_port_and_settings(sim, tmp
         assert "zero check" in gw.log()
     finally:
         gw.stop()
+
+
+def test_the_probe_limits_are_documented_as_they_are():
+    from conftest import ROOT
+    from gateway.commission import probe as P
+
+    with open(os.path.join(ROOT, "docs", "limits.md"), encoding="utf-8") as f:
+        text = f.read()
+    assert ", ".join(map(str, P.SCAN_BAUDS)) in text
+    assert f"unit IDs {P.SCAN_UNITS[0]}–{P.SCAN_UNITS[-1]}" in text
+    assert f"wire time + {P.METER_MARGIN_S:g} s" in text and f"wire time + {P.SCAN_MARGIN_S:g} s" in text
+    assert f"{P.STM32_ATTEMPTS} PINGs" in text and f"CONNACK within {P.BROKER_TIMEOUT_S:g} s" in text
