@@ -6,8 +6,8 @@
   the latency timer of a USB serial adapter (FTDI) against the slot; the kernel's RS-485 mode
   when ``meter.rs485`` asks for it;
 - the STM32: a PING through the project's own link driver (drivers/stm32.py);
-- each configured broker (``mqtt:``, ``sparkplug:``): TCP connect, CONNECT with the station's
-  user, password and TLS, and the broker's CONNACK;
+- each configured broker (``mqtt:``, ``sparkplug:`` and every member of its server set): TCP
+  connect, CONNECT with the station's user, password and TLS, and the broker's CONNACK;
 - the Modbus TCP, console and metrics ports: free to listen on.
 
 Every result is a :class:`Finding`: one plain sentence, a failure's ending with its fix. Bounded:
@@ -35,6 +35,7 @@ from drivers.stm32 import Stm32Link
 from drivers.ttyio import latency_timer_ms, latency_timer_path, set_rs485
 from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
 
+from ..config.schema import parse_server
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
 
 log = logging.getLogger("hookwatch.probe")
@@ -298,9 +299,22 @@ class _SparkplugBroker(BrokerSettings):
 _Settings: dict[str, type[BrokerSettings]] = {"mqtt": BrokerSettings, "sparkplug": _SparkplugBroker}
 
 
-def probe_broker(name: str, section: Any) -> Finding:
-    """Connect and authenticate to the broker of ``section`` (``mqtt`` or ``sparkplug``)."""
-    s = _Settings[name](**broker_kwargs(section))
+def broker_addresses(name: str, section: Any) -> list[tuple[str, int]]:
+    """The brokers a section connects to: host:port, or each of a Sparkplug server set."""
+    servers = getattr(section, "servers", None) if name == "sparkplug" else None
+    if not servers:
+        return [(section.host, int(section.port))]
+    out = [hp for hp in (parse_server(str(x), int(section.port)) for x in servers) if hp is not None]
+    return out or [(section.host, int(section.port))]
+
+
+def probe_broker(name: str, section: Any, address: tuple[str, int] | None = None) -> Finding:
+    """Connect and authenticate to the broker of ``section`` (``mqtt`` or ``sparkplug``), or to
+    ``address`` with that section's credentials (a member of a Sparkplug server set)."""
+    kw = broker_kwargs(section)
+    if address is not None:
+        kw["host"], kw["port"] = address
+    s = _Settings[name](**kw)
     where = f"{s.host}:{s.port}"
     c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"hookwatch-check-{os.getpid()}",
                     protocol=mqtt.MQTTv311)
@@ -400,10 +414,11 @@ def probe_station(cfg: Any, *, scan: bool = False, sysfs: str = "/sys",
         sec = getattr(cfg, name)
         if not sec.enabled:
             continue
-        kb = (name, sec.host, int(sec.port), sec.username)
-        if kb not in seen:
-            seen.add(kb)
-            out.append(probe_broker(name, sec))
+        for host, port in broker_addresses(name, sec):
+            kb = (name, host, port, sec.username)
+            if kb not in seen:
+                seen.add(kb)
+                out.append(probe_broker(name, sec, (host, port)))
     for key, host, port in listen_ports(cfg):
         kl = ("listen", host, port)
         if kl not in seen:

@@ -106,6 +106,15 @@ def test_a_broker_that_refuses_the_password_and_a_taken_port(sim, tmp_path):
         assert rc == 0, out
         assert f"mqtt broker 127.0.0.1:{b.port} accepted user 'hw'." in out
         assert f"sparkplug broker 127.0.0.1:{b.port} accepted user 'hw'." in out
+        # a Sparkplug server set: every member is asked
+        nobody = free_port()
+        cfg["sparkplug"]["servers"] = [f"127.0.0.1:{b.port}", f"127.0.0.1:{nobody}"]
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret", "HW_PROBE_SPB": "s3cret"})
+        assert rc == 1, out
+        assert f"sparkplug broker 127.0.0.1:{b.port} accepted user 'hw'." in out
+        assert f"sparkplug broker 127.0.0.1:{nobody} cannot be reached" in out, out
         assert f"modbus_tcp: 127.0.0.1:{free} is free to listen on." in out
     taken.close()
     # the broker gone: cannot be reached
