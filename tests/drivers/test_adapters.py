@@ -133,3 +133,34 @@ def test_scenario_rejects_bad_adapter_options(tmp_path, bad):
     with pytest.raises(ScenarioError) as e:
         load_scenario(scenario(tmp_path, "bad", **bad))
     assert "meter." + next(iter(bad)) in str(e.value)
+
+
+def test_the_gateway_on_an_echoing_adapter_starts_a_test_only_with_local_echo(tmp_path):
+    """End to end: `hookwatch run --start` against the virtual station playing an echoing adapter.
+    Without meter.local_echo every read is garbage and the zero check fails, naming the port and
+    the option; with it the zero check passes and the test starts."""
+    from kit.e2e import events, run_gateway, scenario_file, station_yaml, test_dirs, wait_log
+    from kit.tools import wait_for
+
+    sc = scenario_file(tmp_path, "echo")
+    with open(sc) as f:
+        data = yaml.safe_load(f)
+    data["meter"]["echo"] = True
+    with open(sc, "w") as f:
+        yaml.safe_dump(data, f)
+    with virtual_station(tmp_path, sc) as (_p, links):
+        gw = run_gateway(tmp_path, station_yaml(tmp_path, links, name="echo0"), "--start", name="gw0")
+        try:
+            wait_log(gw, "start_failed", timeout=60)
+            assert f"the bytes on {links['meter']} at 115200 8N1, unit 1 are no reply" in gw.log(), gw.log()
+            assert "meter.local_echo" in gw.log()
+        finally:
+            gw.stop()
+        gw = run_gateway(tmp_path, station_yaml(tmp_path, links, name="echo1", meter={"local_echo": True}),
+                         "--start", name="gw1")
+        try:
+            wait_for(lambda: any(e["type"] == "test_started" for d in test_dirs(tmp_path, "echo1")
+                                 for e in events(d)), 60, what=f"the test to start; log:\n{gw.log()}")
+            assert "start_failed" not in gw.log()
+        finally:
+            gw.stop()
