@@ -32,6 +32,7 @@ from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
 from drivers.stm32 import Stm32Link
+from drivers.stm32_protocol import Cmd, exchange_time_s
 from drivers.ttyio import latency_timer_ms, latency_timer_path, set_rs485
 from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
 
@@ -272,6 +273,23 @@ async def _ping(stm32_cfg: Any) -> tuple[bool, str]:
         await link.close()
 
 
+def stm32_latency_finding(stm32_cfg: Any, sysfs: str = "/sys") -> Finding | None:
+    """The latency timer of a USB adapter on the STM32 link against its reply timeout."""
+    port = stm32_cfg.port
+    lt = latency_timer_ms(port, sysfs)
+    if lt is None:
+        return None
+    timeout_s = float(stm32_cfg.timeout_s)
+    arrive = exchange_time_s(Cmd.SET_SPEED, int(stm32_cfg.baud)) + lt / 1000.0
+    if arrive > timeout_s:
+        return Finding("stm32", False, f"the USB adapter behind {port} holds received bytes for {lt} ms "
+                       f"(its latency timer): an ACK would come {arrive * 1e3:.1f} ms after the command, "
+                       f"against the {timeout_s * 1e3:.0f} ms stm32.timeout_s; install "
+                       f"deploy/udev/99-hookwatch.rules (sets 1 ms) or run `echo 1 > "
+                       f"{latency_timer_path(port, sysfs)}`.")
+    return Finding("stm32", True, f"the USB adapter behind {port} has a {lt} ms latency timer.")
+
+
 def probe_stm32(stm32_cfg: Any) -> Finding:
     port = stm32_cfg.port
     if "://" not in port and not os.path.exists(port):
@@ -410,6 +428,9 @@ def probe_station(cfg: Any, *, scan: bool = False, sysfs: str = "/sys",
     seen = set() if seen is None else seen
     out = probe_meter(cfg.meter, scan=scan, sysfs=sysfs)
     out.append(probe_stm32(cfg.stm32))
+    lat = stm32_latency_finding(cfg.stm32, sysfs)
+    if lat is not None:
+        out.append(lat)
     for name in ("mqtt", "sparkplug"):
         sec = getattr(cfg, name)
         if not sec.enabled:

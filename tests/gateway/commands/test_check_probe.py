@@ -61,6 +61,14 @@ def test_a_wrong_unit_is_found_by_the_scan(sim):
     assert "set meter.unit_id: 1." in out, out
 
 
+def test_rs485_mode_on_a_pty_is_reported(sim):
+    tmp, links = sim
+    rc, out, _ = check("--probe", station(tmp, links, "rs485", meter={"rs485": {"enabled": True}}))
+    assert rc == 1, out
+    assert f"meter.rs485: {links['meter']}: the port refuses the kernel's RS-485 mode" in out, out
+    assert "remove the `rs485:` section" in out
+
+
 def test_a_dead_port(sim, tmp_path):
     _, links = sim
     dead = {"meter": str(tmp_path / "gone-meter"), "stm32": str(tmp_path / "gone-stm32")}
@@ -78,20 +86,31 @@ def test_a_broker_that_refuses_the_password_and_a_taken_port(sim, tmp_path):
     b = Broker(tmp_path)
     b.conf.write_text(b.conf.read_text().replace("allow_anonymous true", "allow_anonymous false")
                       + f"password_file {passwd}\n")
-    taken = socket.socket()
-    taken.bind(("127.0.0.1", 0))
-    taken.listen(1)
-    busy = taken.getsockname()[1]
+    taken = []
+    for _ in range(3):          # held by "another program": Modbus TCP, metrics, console
+        t = socket.socket()
+        t.bind(("127.0.0.1", 0))
+        t.listen(1)
+        taken.append(t)
+    busy, busy_metrics, busy_console = (t.getsockname()[1] for t in taken)
     free = free_port()
     with b:
         mqtt = {"enabled": True, "port": b.port, "username": "hw", "password_env": "HW_PROBE_PW"}
         path = station(tmp, links, "broker", mqtt=mqtt,
                        modbus_tcp={"enabled": True, "port": busy, "unit_id": 1})
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+        cfg["metrics"] = {"enabled": True, "port": busy_metrics}
+        cfg["console"] = {"enabled": True, "listen": [f"127.0.0.1:{busy_console}"]}
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
         rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "wrong"})
         assert rc == 1, out
         assert (f"mqtt broker 127.0.0.1:{b.port} refused user 'hw' (") in out, out
         assert "check mqtt.username and the password" in out
         assert f"modbus_tcp: 127.0.0.1:{busy} is already in use by another program" in out, out
+        assert f"metrics: 127.0.0.1:{busy_metrics} is already in use" in out, out
+        assert f"console.listen: 127.0.0.1:{busy_console} is already in use" in out, out
         # the right password and a free port: all OK (and the Sparkplug section's broker too)
         path = station(tmp, links, "broker2", mqtt=mqtt, modbus_tcp={"enabled": True, "port": free, "unit_id": 1})
         with open(path) as f:
@@ -116,7 +135,8 @@ def test_a_broker_that_refuses_the_password_and_a_taken_port(sim, tmp_path):
         assert f"sparkplug broker 127.0.0.1:{b.port} accepted user 'hw'." in out
         assert f"sparkplug broker 127.0.0.1:{nobody} cannot be reached" in out, out
         assert f"modbus_tcp: 127.0.0.1:{free} is free to listen on." in out
-    taken.close()
+    for t in taken:
+        t.close()
     # the broker gone: cannot be reached
     rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret"})
     assert rc == 1 and f"mqtt broker 127.0.0.1:{b.port} cannot be reached" in out, out
@@ -159,6 +179,16 @@ def test_the_latency_timer_of_a_usb_adapter_is_judged_against_the_slot(tmp_path)
     f, = _latency_findings("/dev/ttyUSB3", m, 0.015, str(tmp_path / "sys"))
     assert "holds received bytes for 16 ms" in f.text and "99-hookwatch.rules" in f.text
     assert _latency_findings("/dev/pts/3", m, 0.015, str(tmp_path / "sys")) == []
+    # the STM32 link's ACK against its 10 ms timeout
+    from gateway.commission.probe import stm32_latency_finding
+
+    stm = SimpleNamespace(port="/dev/ttyUSB3", baud=115200, timeout_s=0.01)
+    f = stm32_latency_finding(stm, str(tmp_path / "sys"))
+    assert not f.ok and "stm32.timeout_s" in f.text
+    (d / "latency_timer").write_text("1\n")
+    assert stm32_latency_finding(stm, str(tmp_path / "sys")).ok
+    assert stm32_latency_finding(SimpleNamespace(port="/dev/pts/4", baud=115200, timeout_s=0.01),
+                                 str(tmp_path / "sys")) is None
 
 
 def test_a_silent_meter_at_run_time_is_named_with_its_port_and_settings(sim, tmp_path):
