@@ -155,6 +155,23 @@ class StationInfo:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Rs485Config:
+    enabled: bool = key(False, "put the meter's port into the kernel's RS-485 mode (TIOCSRS485): the "
+                        "UART driver switches the transceiver's direction with RTS around each request. "
+                        "Only for a board UART wired to an RS-485 transceiver (e.g. a Raspberry Pi or "
+                        "i.MX UART); a USB–RS-485 adapter switches direction itself — leave this off",
+                        kind="bool")
+    rts_on_send: str = key("high", "RTS level while sending (the transceiver's DE is usually active "
+                           "high)", kind="enum", choices=("high", "low"))
+    rts_after_send: str = key("low", "RTS level after sending (receiving)", kind="enum",
+                              choices=("high", "low"))
+    delay_before_send_s: float = key(0.0, "RTS raised this long before the first bit", kind="float",
+                                     unit="s", lo=0.0, hi=0.1)
+    delay_after_send_s: float = key(0.0, "RTS kept this long after the last bit", kind="float",
+                                    unit="s", lo=0.0, hi=0.1)
+
+
+@dataclass(frozen=True, kw_only=True)
 class MeterConfig:
     port: str = key(doc="serial port of the USB–RS-485 adapter on the ZN-S tension meter's bus",
                     kind="port", example="/dev/hookwatch/loom-01-meter")
@@ -172,6 +189,10 @@ class MeterConfig:
                            lo=0.0, hi=1.0, lo_open=True)
     swap_channels: bool = key(False, "true when the meter's channel 1 is the outgoing (T2) side, "
                               "i.e. the yarn runs through the meter the other way round", kind="bool")
+    local_echo: bool = key(False, "the adapter hears its own transmission on the 2-wire bus (echo "
+                           "on, or a transceiver whose receiver stays enabled): the echo of each "
+                           "request is checked and discarded before the reply", kind="bool")
+    rs485: Rs485Config = section(Rs485Config, "the kernel's RS-485 mode, for a board UART")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -14,7 +14,9 @@ event loop, so PLC traffic never runs on a station's loop.
   address is listed (an address or a network, e.g. ``10.10.5.0/24``); every value is checked against the
   register map and the shared command rules (gateway/station/commands.py) before anything changes
   (exception 03 when out of range); commands go to ``station.submit`` on the station's own loop
-  (source ``plc:<address>``), a refused command answers exception 04 with its reason code in ``last_result``.
+  (source ``plc:<address>``), a refused command answers the exception its reason code maps to
+  (``registers.refusal_exception``: 06 busy, 03 refused value, 04 only when the station failed to
+  answer) with the reason code in ``last_result``.
 - The client address of a request is the connection's peer address.
 """
 from __future__ import annotations
@@ -48,6 +50,8 @@ log = logging.getLogger("hookwatch.modbus")
 #: input registers served from the command status (not from the station's image)
 CMD_BASE = R.IR["last_command"].address
 CMD_REGS = 3
+#: input registers after the command status (from the station's image again)
+TAIL_BASE = CMD_BASE + CMD_REGS
 STATUS_ADDR = R.IR["status"].address
 WRITES_BIT = 1 << R.STATUS_BIT["writes_enabled"]
 LIVE_UPDATE_S = 0.1
@@ -70,6 +74,7 @@ class Unit:
         self.ir: list[int] = [0] * CMD_BASE
         self.hr: list[int] = [0] * R.HOLDING_SIZE
         self.cmd_regs: list[int] = [0] * CMD_REGS
+        self.tail: list[int] = [0] * (R.INPUT_SIZE - TAIL_BASE)
         self.lock = asyncio.Lock()      # writes of one unit are applied one at a time
 
     def may_write(self, peer: str | None) -> bool:
@@ -79,6 +84,10 @@ class Unit:
         o = self.owner
         return ("writes allowed only from " + ", ".join(sorted(o.allowed_clients))
                 if o.writes_enabled else "writes disabled")
+
+    def input_image(self) -> list[int]:
+        """The whole input table: the station's image with the command status in its place."""
+        return self.ir + self.cmd_regs + self.tail
 
     def decorate_input(self, regs: list[int], address: int, peer: str | None) -> list[int]:
         """The status word's ``writes_enabled`` bit is per client."""
@@ -372,6 +381,7 @@ class ModbusOutput:
             "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
             "t_life": st.t_life, "elapsed": self._elapsed, "slots": self._slots,
             "valid_slots": self._valid, "headroom": st.headroom, "t_cross": st.t_cross,
+            "run_sample_id": st.sample_id or "", "run_test_id": st.test_id or "",
             "warning_alarm": (R.ALARM_STATES.index(st.warning_alarm)
                               if st.warning_alarm in R.ALARM_STATES else 0),
         }
@@ -386,7 +396,7 @@ class ModbusOutput:
         if u is None:
             return
         img = R.encode_table(R.INPUT_REGS, R.INPUT_SIZE, self.values(now), self.word_order)
-        u.ir = img[:CMD_BASE]
+        u.ir, u.tail = img[:CMD_BASE], img[TAIL_BASE:]
 
     def _initial_holding(self) -> list[int]:
         plan = self.station.default_plan if self.station is not None else None
@@ -415,14 +425,14 @@ class ModbusOutput:
             reply = await self._submit(intake(CommandKind.SETPOINT.value, {"t_set": t_set}, f"plc:{peer}"),
                                        R.COMMAND_CODE["setpoint"], u)
             if not reply:
-                return ExcCodes.DEVICE_FAILURE
+                return ExcCodes(R.refusal_exception(u.cmd_regs[1]))
             u.hr = R.apply_register(u.hr, plan.new, "t_set")
         if plan.wrote("command"):
             code = int(plan.value("command"))   # the command register reads 0 (docs/registers.md)
             kind = R.COMMAND_KINDS[code]
             args = R.command_args(kind, u.hr, self.word_order, self.grades)
             if not await self._submit(intake(kind.value, args, f"plc:{peer}"), code, u):
-                return ExcCodes.DEVICE_FAILURE
+                return ExcCodes(R.refusal_exception(u.cmd_regs[1]))
         return None
 
     async def _submit(self, cmd: Command | Rejection, code: int, u: Unit) -> bool:
