@@ -155,6 +155,23 @@ class StationInfo:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Rs485Config:
+    enabled: bool = key(False, "put the meter's port into the kernel's RS-485 mode (TIOCSRS485): the "
+                        "UART driver switches the transceiver's direction with RTS around each request. "
+                        "Only for a board UART wired to an RS-485 transceiver (e.g. a Raspberry Pi or "
+                        "i.MX UART); a USB–RS-485 adapter switches direction itself — leave this off",
+                        kind="bool")
+    rts_on_send: str = key("high", "RTS level while sending (the transceiver's DE is usually active "
+                           "high)", kind="enum", choices=("high", "low"))
+    rts_after_send: str = key("low", "RTS level after sending (receiving)", kind="enum",
+                              choices=("high", "low"))
+    delay_before_send_s: float = key(0.0, "RTS raised this long before the first bit", kind="float",
+                                     unit="s", lo=0.0, hi=0.1)
+    delay_after_send_s: float = key(0.0, "RTS kept this long after the last bit", kind="float",
+                                    unit="s", lo=0.0, hi=0.1)
+
+
+@dataclass(frozen=True, kw_only=True)
 class MeterConfig:
     port: str = key(doc="serial port of the USB–RS-485 adapter on the ZN-S tension meter's bus",
                     kind="port", example="/dev/hookwatch/loom-01-meter")
@@ -172,6 +189,10 @@ class MeterConfig:
                            lo=0.0, hi=1.0, lo_open=True)
     swap_channels: bool = key(False, "true when the meter's channel 1 is the outgoing (T2) side, "
                               "i.e. the yarn runs through the meter the other way round", kind="bool")
+    local_echo: bool = key(False, "the adapter hears its own transmission on the 2-wire bus (echo "
+                           "on, or a transceiver whose receiver stays enabled): the echo of each "
+                           "request is checked and discarded before the reply", kind="bool")
+    rs485: Rs485Config = section(Rs485Config, "the kernel's RS-485 mode, for a board UART")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -287,6 +308,11 @@ class MqttConfig(BrokerConfig):
     password_file: str | None = key(None, "file whose first line is the broker password (mode "
                                     "0600, owned by the hookwatch user)", kind="path",
                                     nullable=True, null_means="no password")
+    reply_prefix: str | None = key(None, "MQTT 5: a command's Response Topic is obeyed only below "
+                                   "this topic (`<reply_prefix>/…`); any other goes to `reply` and is "
+                                   "counted, so a client allowed only `cmd/…` cannot make the gateway "
+                                   "publish elsewhere", kind="topic", nullable=True,
+                                   null_means="`<base>/reply` (the station's own reply topic)")
     telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
                                       kind="float", unit="s", lo=0.1, hi=3600.0)
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
@@ -322,6 +348,31 @@ class SparkplugConfig(BrokerConfig):
     history_budget_mb: float = key(50.0, "measured values kept while the host is offline; the "
                                    "oldest are dropped (counted) beyond it — state and alarm "
                                    "changes are never dropped", kind="float", unit="MB", lo=0.1)
+    servers: tuple[str, ...] | None = key(None, "the Sparkplug server set (3.0 §8.2), as `host:port` "
+                                          "(`host` alone: `port`); the node connects to the first, and "
+                                          "moves to the next on `Node Control/Next Server`, when the "
+                                          "primary host's STATE goes offline, or when a server cannot "
+                                          "be reached", kind="str_list", nullable=True,
+                                          null_means="`[<host>:<port>]`")
+    rebirth_min_interval_s: float = key(2.0, "at most one birth (NBIRTH and the DBIRTHs) per this "
+                                        "interval: `Node Control/Rebirth` requests inside it are "
+                                        "coalesced into one rebirth when it has passed", kind="float",
+                                        unit="s", lo=0.0, hi=3600.0)
+    max_command_bytes: int = key(16384, "largest NCMD / DCMD payload decoded; a larger one is "
+                                 "ignored (counted, logged)", kind="int", unit="bytes", lo=256,
+                                 hi=1048576)
+    max_command_metrics: int = key(64, "most metrics in one NCMD / DCMD; more: the payload is "
+                                   "ignored (counted, logged)", kind="int", lo=1, hi=4096)
+    max_string_chars: int = key(256, "longest metric name or string value in an NCMD / DCMD; "
+                                "longer: the payload is ignored (counted, logged)", kind="int",
+                                lo=16, hi=65536)
+    state_max_bytes: int = key(1024, "largest STATE payload of the primary host parsed; a larger "
+                               "one is ignored (counted, logged)", kind="int", unit="bytes", lo=64,
+                               hi=65536)
+    state_future_skew_s: float = key(300.0, "a STATE timestamp further than this ahead of the "
+                                     "node's clock is accepted but taken as the node's \"now\" "
+                                     "(docs/sparkplug.md, STATE timestamps)", kind="float", unit="s",
+                                     lo=0.0, hi=31536000.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -381,10 +432,29 @@ class ConsoleConfig:
                                   choices=("local", "all", "none"))
     session_ttl_s: float = key(28800.0, "a login lasts this long without activity", kind="float",
                                unit="s", lo=60.0, hi=7 * 86400.0)
-    lockout_attempts: int = key(5, "failed logins of one user or client address before a lockout",
-                                kind="int", lo=1, hi=100)
-    lockout_s: float = key(300.0, "how long a lockout lasts", kind="float", unit="s", lo=1.0,
-                           hi=86400.0)
+    lockout_attempts: int = key(5, "failed logins of one user from one client address (within "
+                                "lockout_s) before that pair is locked out; another address is "
+                                "not affected", kind="int", lo=1, hi=100)
+    lockout_s: float = key(300.0, "how long a lockout lasts (and the window failures are "
+                           "counted in)", kind="float", unit="s", lo=1.0, hi=86400.0)
+    login_failures_per_address: int = key(20, "failed logins from one client address, any user "
+                                           "(within lockout_s), before the address is locked out",
+                                           kind="int", lo=1, hi=10000)
+    allowed_hosts: tuple[str, ...] = key((), "host names the console answers in the HTTP Host "
+                                         "header besides the addresses it listens on (and "
+                                         "`localhost` on a loopback address); other names get "
+                                         "HTTP 421 (DNS rebinding)", kind="str_list")
+    report_jobs: int = key(1, "report processes (Fig. 7 of a test, campaign reports) running at "
+                           "once", kind="int", lo=1, hi=16)
+    report_queue: int = key(8, "report requests waiting for a process; beyond, HTTP 503 with "
+                            "Retry-After (requests for the same figure share one process)",
+                            kind="int", lo=0, hi=256)
+    stream_connects_per_address: int = key(30, "live-stream (SSE) connects per minute from one "
+                                           "client address; beyond, HTTP 429 with Retry-After",
+                                           kind="int", lo=1, hi=10000, unit="1/min")
+    stream_connects_total: int = key(120, "live-stream (SSE) connects per minute from all "
+                                     "clients together; beyond, HTTP 429 with Retry-After",
+                                     kind="int", lo=1, hi=100000, unit="1/min")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -609,6 +679,54 @@ def _ports(cfg, r):
                 "STM32 need one serial port each")
 
 
+def parse_server(item: str, default_port: int) -> tuple[str, int] | None:
+    """``host:port``, ``host``, ``[v6]:port`` or ``[v6]`` → (host, port); None if malformed."""
+    item = item.strip()
+    host, port = item, default_port
+    if item.startswith("["):
+        end = item.find("]")
+        if end < 0:
+            return None
+        host, rest = item[1:end], item[end + 1:]
+        if rest:
+            if not rest.startswith(":"):
+                return None
+            port_s = rest[1:]
+            if not port_s.isdigit():
+                return None
+            port = int(port_s)
+    elif item.count(":") == 1:
+        host, port_s = item.split(":")
+        if not port_s.isdigit():
+            return None
+        port = int(port_s)
+    elif ":" in item:
+        return None             # a bare IPv6 address needs brackets: [::1]:1883
+    if not host or any(c.isspace() for c in host) or not 1 <= port <= 65535:
+        return None
+    return host, port
+
+
+def _servers(cfg, r):
+    sp = cfg.sparkplug
+    if sp.servers is None:
+        return
+    if not sp.servers:
+        r.error(("sparkplug", "servers"), "an empty server set; list at least one `host:port`, or "
+                "leave the key out to use sparkplug.host and port")
+        return
+    seen = set()
+    for i, item in enumerate(sp.servers):
+        hp = parse_server(item, int(sp.port))
+        if hp is None:
+            r.error(("sparkplug", "servers"), f"item {i + 1} ({item!r}) is not `host:port` (port 1 … "
+                    "65535; an IPv6 address in brackets: `[::1]:1883`)")
+        elif hp in seen:
+            r.error(("sparkplug", "servers"), f"item {i + 1} ({item!r}) is listed twice")
+        else:
+            seen.add(hp)
+
+
 def _control(cfg, r):
     c = cfg.control
     if c.open_loop_rpm > c.n_max_rpm:
@@ -633,6 +751,7 @@ RULES: tuple[Rule, ...] = (
     Rule("`mqtt.tls.cert_file` and `key_file` go together.", _tls),
     Rule("`test.grade` is one of `grades`; `grades` has no duplicates.", _grade),
     Rule("`meter.port` and `stm32.port` differ.", _ports),
+    Rule("`sparkplug.servers`: each `host:port` (or `host`, on `sparkplug.port`), none twice.", _servers),
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
          "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
          _control),

@@ -655,7 +655,9 @@ class Station:
                 self._begin_test(att)
                 self._push_state()
             elif ph == FAILED:
-                await self._start_failed(att.seq.reason or "start failed")
+                # a silent meter is named with its port and settings (drivers/zns.py diagnosis)
+                note = getattr(self.meter, "diagnosis", lambda: None)()
+                await self._start_failed((att.seq.reason or "start failed") + (f": {note}" if note else ""))
             return
         mon = self.monitor
         if mon is None:

@@ -217,7 +217,7 @@ def test_logrotate_rotates_the_results_files(tmp_path):
 # ------------------------------------------------------------------------------------ udev
 
 UDEV_KEY = re.compile(r'^(?P<key>[A-Z_]+)(\{(?P<attr>[^}]+)\})?(?P<op>==|!=|\+=|:=|=)"(?P<val>[^"]*)"$')
-UDEV_KEYS = {"ACTION", "SUBSYSTEM", "SUBSYSTEMS", "KERNEL", "KERNELS", "ATTRS", "ATTR", "ENV",
+UDEV_KEYS = {"ACTION", "SUBSYSTEM", "SUBSYSTEMS", "KERNEL", "KERNELS", "ATTRS", "ATTR", "ENV", "DRIVERS",
              "SYMLINK", "GROUP", "MODE", "OWNER", "GOTO", "LABEL", "TAG"}
 
 
@@ -256,6 +256,24 @@ def test_udev_rules_name_every_port_of_the_shipped_fleet():
             links.add("/dev/" + link)
     ports = {p for c in load_fleet(os.path.join(ROOT, "config")) for p in (c.meter.port, c.stm32.port)}
     assert ports <= links, ports - links
+
+
+def test_udev_rules_set_the_ftdi_latency_timer_to_1_ms():
+    """The FTDI default of 16 ms delivers a meter reply after the 15 ms meter timeout."""
+    rules = _udev_rules(read("udev", "99-hookwatch.rules"))
+    found = []
+    for n, rule in rules:
+        keys = {(k, a): (op, v) for k, a, op, v in rule}
+        if ("ATTR", "latency_timer") in keys:
+            assert keys[("ATTR", "latency_timer")] == ("=", "1"), n
+            assert keys[("SUBSYSTEM", None)] == ("==", "usb-serial"), n
+            assert keys[("DRIVERS", None)] == ("==", "ftdi_sio"), n
+            assert keys[("ACTION", None)] == ("==", "add"), n
+            found.append(n)
+    assert len(found) == 1
+    # before the jump that skips everything but tty devices
+    skip = next(n for n, rule in rules if ("SUBSYSTEM", None, "!=", "tty") in rule)
+    assert found[0] < skip
 
 
 def test_udevadm_verify_where_available():
