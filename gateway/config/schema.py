@@ -225,12 +225,32 @@ class TestConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class RetentionConfig:
+    max_age_days: float | None = key(None, "completed tests older than this are pruned (whole test "
+                                     "folders, oldest first)", kind="float", unit="d", lo=1.0, hi=36500.0,
+                                     nullable=True, null_means="no age limit")
+    max_total_mb: float | None = key(None, "the station's records may take at most this much disk; "
+                                     "beyond it the oldest completed tests are pruned", kind="float",
+                                     unit="MB", lo=1.0, hi=1e9, nullable=True, null_means="no size budget")
+    min_free_percent: float = key(10.0, "while the records' file system has less free space than this, "
+                                  "the oldest completed tests are pruned (0: off)", kind="float",
+                                  unit="%", lo=0.0, hi=90.0)
+    keep_last: int = key(20, "the newest this many completed tests of the station are never pruned",
+                         kind="int", lo=1, hi=100000)
+    interval_s: float = key(600.0, "how often the records are checked (also after every test end)",
+                            kind="float", unit="s", lo=10.0, hi=86400.0)
+
+
+@dataclass(frozen=True, kw_only=True)
 class RecorderConfig:
     dir: str = key("/var/lib/hookwatch/records", "where tests are recorded: "
                    "`<dir>/<station>/<test_id>/` (log.csv.gz, log.meta.yaml, events.jsonl, result.json)",
                    kind="path")
     flush_interval_s: float = key(1.0, "the log is flushed to disk this often; a power cut loses at "
                                   "most this much", kind="float", unit="s", lo=0.05, hi=60.0)
+    retention: RetentionConfig = section(RetentionConfig, "record retention: which completed tests are "
+                                         "pruned so that the disk never fills (never the running test, "
+                                         "never one whose result has not left the outbox)")
 
 
 @dataclass(frozen=True, kw_only=True)
