@@ -39,9 +39,10 @@ from typing import Any
 
 from aiohttp import web
 
+from ..ports import StationView
 from ..records import Command, CommandKind
 from ..station.commands import CODE, Rejection, command_from_mapping
-from ..threadloop import ThreadLoop
+from ..threadloop import ThreadLoop, submit_to
 from . import auth
 from .feed import ConsoleOutput, StationFeed, series_from_log
 
@@ -138,7 +139,7 @@ class ConsoleServer:
         self.error: str | None = None
 
     # ----------------------------------------------------------------- lifecycle (any thread)
-    def output_for(self, station) -> ConsoleOutput:
+    def output_for(self, station: StationView) -> ConsoleOutput:
         """The station output that feeds this console (one per Station object)."""
         return ConsoleOutput(self.feeds[station.id], station)
 
@@ -493,7 +494,9 @@ class ConsoleServer:
                      f.name, f.name, s.user)
             return web.json_response({"ok": True, "reason": "", "code": 0})
         try:
-            fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
+            fut = submit_to(loop, st.submit(cmd))      # the one hand-over (gateway/threadloop.py)
+            if fut is None:
+                raise RuntimeError("its loop is closed")
             reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
         except (TimeoutError, RuntimeError) as e:
             reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,

@@ -32,7 +32,7 @@ from typing import Any
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..ports import CommandSink, StationLimits
+from ..ports import CommandSink, StationLimits, StationView
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
 from ..station.commands import CODE, check_sample_id
 from ..threadloop import submit_to
@@ -233,7 +233,7 @@ class ModbusSettings:
 class ModbusOutput:
     """Station output serving one station on a shared Modbus TCP server."""
 
-    def __init__(self, settings: ModbusSettings, station=None):
+    def __init__(self, settings: ModbusSettings, station: StationView | None = None):
         self.s = settings
         self.station_id = settings.station_id
         self.station = station

@@ -12,7 +12,7 @@
 Beside it, each in its own module: the start sequence (:mod:`.starting`, a pure state machine),
 the test's transitions (:mod:`.lifecycle`), the one place the state changes and events leave
 (:mod:`.status`), ports/uplinks/disks (:mod:`.health`), the command table (:mod:`.dispatch`).
-The end-of-life alarm lives in the station's :class:`~.alarms.AlarmStore`. Everything here runs on
+The end-of-life alarm lives in the station's :class:`~.alarm_store.AlarmStore`. Everything here runs on
 the station's own loop; other threads reach it only through ``gateway.threadloop`` (commands:
 :meth:`Station.submit`; uplink changes: :meth:`Station.set_uplink`; reloads:
 :meth:`Station.reload_requested`).
@@ -32,7 +32,7 @@ from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
-from .alarms import AlarmStore
+from .alarm_store import AlarmStore
 from .clock import SlotClock, SlotStats
 from .commands import Rejection, validate
 from .dispatch import HANDLERS
@@ -169,7 +169,7 @@ class Station:
         return self.session is not None or self.starting is not None
 
     def _emit_event(self, etype: EventType, k: int | None = None, **data: Any) -> Event:
-        return self.board.emit(etype, k, **data)
+        return self.board.emit(etype, k, **data)    # (tests and tools: the board's emit/push)
 
     def _push_state(self) -> None:
         self.board.push()
@@ -283,11 +283,9 @@ class Station:
         # the grid starts after the start-up work (files, fsync), so slot 0 is not already late;
         # stations of one process are spread over the slot (slot_phase) so their deadlines do
         # not all fall at the same instant and queue behind each other
-        if self.clock_factory is SlotClock:
-            now = time.monotonic()
-            self.clock = SlotClock(self.ts, t0=now + (self.slot_phase * self.ts - now) % self.ts)
-        else:
-            self.clock = self.clock_factory(self.ts)
+        now = time.monotonic()
+        self.clock = (SlotClock(self.ts, t0=now + (self.slot_phase * self.ts - now) % self.ts)
+                      if self.clock_factory is SlotClock else self.clock_factory(self.ts))
         clock, tests, link, stats = self.clock, self.tests, self.link, self.stats
         k = 0
         last_idle_status = 0.0

@@ -18,7 +18,7 @@ from typing import Any
 
 from ..method.core import SlotOut
 from ..records import Event, EventType, StationState, TestState
-from .alarms import AlarmStore
+from .alarm_store import AlarmStore
 from .fanout import Fanout
 from .session import TestPlan, TestSession
 

@@ -7,7 +7,7 @@ import json
 import time
 
 from gateway.records import Command, CommandKind, EventType
-from gateway.station.alarms import AlarmStore
+from gateway.station.alarm_store import AlarmStore
 from gateway.station.commands import CODE, command_from_mapping
 from kit.fakes import Capture
 from kit.northbound import LoopThread, RunningStation, make_station
