@@ -298,11 +298,9 @@ def test_the_station_and_its_proxy_are_station_views():
     assert "Fanout(" in src              # the proxy feeds its outputs through the station's fan-out
 
 
-#: direct run_coroutine_threadsafe calls still allowed, each with the branch that removes it
+#: where asyncio.run_coroutine_threadsafe may be called (a module added here says why)
 HANDOVER_ALLOWED = {
     "gateway.threadloop": "the one hand-over",
-    # branch doors-sparkplug moves the Sparkplug DCMD path onto threadloop.submit_to
-    "gateway.northbound.sparkplug.client": "branch doors-sparkplug removes it",
 }
 
 

@@ -33,10 +33,13 @@ from typing import Any
 from .. import __version__
 from ..method.rules import REASONS
 from ..ports import CommandSink, StationLimits, StationView
+from ..ratelog import RateLog, safe
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
-from ..station.commands import CODE, check_sample_id
-from ..threadloop import submit_to
+from ..station import commands as C
+from ..station.commands import CODE, Rejection, check_sample_id
+from ..threadloop import call_soon_on, submit_to
 from . import registers as R
+from .cmdparse import intake, rejected_event_data
 from .modbus_tcp.pdu import Exc as ExcCodes
 from .modbus_tcp.server import ModbusTcpServer, Pacer, Store
 
@@ -264,6 +267,8 @@ class ModbusOutput:
         self._elapsed = 0.0
         self._slots = self._valid = 0
         self._counts = [0] * len(REASONS)
+        #: refused writes and commands: one log line per kind per minute, with the count
+        self.refusal_log = RateLog(log)
 
     source = "plc"
 
@@ -400,13 +405,14 @@ class ModbusOutput:
         if plan.exception is not None:
             if plan.decoded:
                 (name, val), = plan.decoded
-                log.info("%s: PLC %s wrote %s=%r: %s", self.station_id, peer, name, val, plan.reason)
+                self.refusal_log.info(("write", name, int(plan.exception)), "%s: PLC %s wrote %s=%s: %s",
+                                      self.station_id, peer, name, safe(val), plan.reason)
             return ExcCodes(plan.exception)
         # staging values first, then the setpoint, then the command
         u.hr = list(plan.staged)
         if plan.wrote("t_set"):
             t_set = float(f"{plan.value('t_set'):.7g}")
-            reply = await self._submit(Command(CommandKind.SETPOINT, f"plc:{peer}", {"t_set": t_set}),
+            reply = await self._submit(intake(CommandKind.SETPOINT.value, {"t_set": t_set}, f"plc:{peer}"),
                                        R.COMMAND_CODE["setpoint"], u)
             if not reply:
                 return ExcCodes.DEVICE_FAILURE
@@ -415,26 +421,40 @@ class ModbusOutput:
             code = int(plan.value("command"))   # the command register reads 0 (docs/registers.md)
             kind = R.COMMAND_KINDS[code]
             args = R.command_args(kind, u.hr, self.word_order, self.grades)
-            if not await self._submit(Command(kind, f"plc:{peer}", args), code, u):
+            if not await self._submit(intake(kind.value, args, f"plc:{peer}"), code, u):
                 return ExcCodes.DEVICE_FAILURE
         return None
 
-    async def _submit(self, cmd: Command, code: int, u: Unit) -> bool:
+    async def _submit(self, cmd: Command | Rejection, code: int, u: Unit) -> bool:
+        """``cmd`` as the intake made it (gateway/northbound/cmdparse.py) to the station through
+        its refusal gate; the result code goes to ``last_result``. A refusal is logged once per
+        kind per minute with the count (and the station's ``command_rejected`` events likewise)."""
         st, loop = self.sink, self.loop
         result = CODE["NO_STATION"]
         ok = False
-        fut = submit_to(loop, st.submit(cmd)) if st is not None else None
-        if fut is not None:
+        name = next((n for c, n, _ in R.COMMAND_CODES if c == code), "command")
+        if isinstance(cmd, Rejection):
+            if st is not None and loop is not None:
+                call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, "plc"))
+            fut = None
+            result = int(cmd.code)
+            self.refusal_log.info(("command", name, result), "%s: PLC command %s refused: %s",
+                                  self.station_id, name, cmd.reason)
+        else:
+            fut = submit_to(loop, C.submit(st, cmd)) if st is not None else None
+        if fut is not None and isinstance(cmd, Command):
             try:
                 reply = await asyncio.wait_for(asyncio.wrap_future(fut), COMMAND_TIMEOUT_S)
                 ok = bool(reply.ok)
                 result = 0 if ok else int(getattr(reply, "code", 0) or CODE["BAD_REQUEST"])
                 if not ok:
-                    log.info("%s: PLC command %s from %s refused: %s", self.station_id, cmd.kind.value,
-                             cmd.source, reply.reason)
+                    self.refusal_log.info(("command", cmd.kind.value, result),
+                                          "%s: PLC command %s from %s refused: %s", self.station_id,
+                                          cmd.kind.value, cmd.source, reply.reason)
             except (TimeoutError, RuntimeError, Exception) as e:
-                log.error("%s: PLC command %s: station did not answer (%s)", self.station_id,
-                          cmd.kind.value, type(e).__name__)
+                self.refusal_log.log(("no_answer", cmd.kind.value), logging.ERROR,
+                                     "%s: PLC command %s: station did not answer (%s)", self.station_id,
+                                     cmd.kind.value, type(e).__name__)
         n = (u.cmd_regs[2] + 1) & 0xFFFF
         u.cmd_regs = [code, result, n]
         return ok

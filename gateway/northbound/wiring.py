@@ -29,6 +29,7 @@ def mqtt_settings(cfg):
         protocol=m.protocol, **broker_kwargs(m),
         telemetry_interval_s=float(m.telemetry_interval_s), outbox_path=path,
         telemetry_budget_bytes=int(float(ob.telemetry_budget_mb) * 1024 * 1024),
+        reply_prefix=getattr(m, "reply_prefix", None),
     )
 
 

@@ -237,8 +237,7 @@ class SparkplugDevice(SparkplugOutput):
             self.up = bool(up)
             if up:
                 self._agg = None
-                st = getattr(self.station, "state", None)
-                self._last = state_values(st) if st is not None else {}
+                self._last = state_values(self.station.state) if self.station is not None else {}
                 self.rt.post(("up", self.s.device_id, dict(self._last)))
             else:
                 self._flush(time.monotonic())

@@ -6,9 +6,10 @@ import asyncio
 import json
 import time
 
+from gateway.northbound.cmdparse import intake
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.alarm_store import AlarmStore
-from gateway.station.commands import CODE, command_from_mapping
+from gateway.station.commands import CODE
 from kit.fakes import Capture
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import wait_for
@@ -35,7 +36,7 @@ def test_the_isa_lifecycle_through_the_command_path_one_event_per_command(tmp_pa
     _eol(st)
     assert st.state.alarm == "unacknowledged" and st.state.warning_alarm == "normal"
     # shelve: an MQTT payload through the same parser and validation
-    cmd = command_from_mapping("shelve", {"alarm": "end_of_life", "duration_s": 600}, "mqtt")
+    cmd = intake("shelve", {"alarm": "end_of_life", "duration_s": 600}, "mqtt")
     t0 = time.time()
     assert asyncio.run(st.submit(cmd)).ok
     assert st.state.alarm == "shelved"
@@ -94,7 +95,7 @@ def test_alarm_commands_refused_with_reason_and_code(tmp_path):
     rej = [e for e in out.events if e.type == EventType.COMMAND_REJECTED]
     assert len(rej) == 10 and all(not e.data.get("transitions") for e in rej)
     assert st.state.alarm == "out_of_service"
-    bad = command_from_mapping("shelve", {"alarm": "end_of_life", "until": 5}, "mqtt")
+    bad = intake("shelve", {"alarm": "end_of_life", "until": 5}, "mqtt")
     assert not bad.ok and bad.code == CODE["BAD_REQUEST"]
 
 
