@@ -311,3 +311,33 @@ def test_one_thread_to_loop_hand_over():
              for n in ast.walk(t)
              if isinstance(n, ast.Attribute) and n.attr == "run_coroutine_threadsafe"]
     assert stray == []
+
+
+def _state_writes(tree: ast.Module) -> list[str]:
+    """Assignments to a field of a ``….state`` (directly, or through a local alias of it)."""
+    out = []
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        aliases = {t.id for n in ast.walk(fn) if isinstance(n, ast.Assign)
+                   and isinstance(n.value, ast.Attribute) and n.value.attr == "state"
+                   for t in n.targets if isinstance(t, ast.Name)}
+        for n in ast.walk(fn):
+            targets = (n.targets if isinstance(n, ast.Assign)
+                       else [n.target] if isinstance(n, (ast.AugAssign, ast.AnnAssign)) else [])
+            for tg in targets:
+                if isinstance(tg, ast.Attribute) and (
+                        (isinstance(tg.value, ast.Attribute) and tg.value.attr == "state")
+                        or (isinstance(tg.value, ast.Name) and tg.value.id in aliases)):
+                    out.append(f"{n.lineno} {ast.unparse(tg)}")
+    return out
+
+
+def test_the_station_state_changes_in_one_place():
+    """In gateway/station/ only the StatusBoard (status.py) writes StationState fields; the others
+    call its ``update`` or one of its named transitions."""
+    bad = [f"{m}:{w}" for m, t in TREES.items()
+           if _in(m, ("gateway.station",)) and m != "gateway.station.status" for w in _state_writes(t)]
+    assert bad == []
+    old = "def f(self):\n    st = self.state\n    st.alarm = 1\n    self.state.test_id = None\n"
+    assert _state_writes(ast.parse(old)) == ["3 st.alarm", "4 self.state.test_id"]
