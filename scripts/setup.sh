@@ -24,6 +24,9 @@ if [ "${1:-}" = "--tools" ]; then
   want systemd-analyze systemd
   want logrotate logrotate /usr/sbin/logrotate
   want openssl openssl
+  # the offline-release test cuts the network with unshare -n and brings its loopback up with ip
+  want ip iproute2 /usr/sbin/ip
+  want unshare util-linux
   want prometheus prometheus
   # the console's browser tests: Playwright (PyPI, test extras) drives Debian's chromium
   [ -x /usr/bin/chromium ] || need+=(chromium)
