@@ -40,6 +40,6 @@ stamp=.venv/.hookwatch-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null 2>&1 || true
   .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]' 2>&1 | grep -v '^WARNING: Location' >&2 || true
-  .venv/bin/python -c 'import gateway, drivers, numpy, pymodbus, paho.mqtt' 
+  .venv/bin/python -c 'import gateway, drivers, numpy, pymodbus, paho.mqtt, pyarrow.csv, isal.isal_zlib'
   touch "$stamp"
 fi
