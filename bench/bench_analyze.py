@@ -6,6 +6,7 @@ the reference it replaced, vs. reading a binary companion), the same on a log in
 own 10-column format, and the streaming form's cost per slot. Medians over several runs; the load
 average is printed with each figure because the machine is shared."""
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -39,18 +40,27 @@ sys.exit(cli.main(sys.argv[1:]))
 """
 
 
+CPU: dict[str, list[float]] = {"fast": [], "ref": []}
+
+
 def cli_cold(log: str, runs: int) -> tuple[list[float], list[float], str]:
-    """(fast, reference) wall times of `hookwatch analyze --json`, interleaved run by run."""
+    """(fast, reference) wall times of `hookwatch analyze --json`, interleaved run by run; the
+    CPU seconds (user + sys, all threads) of each run go to CPU (less sensitive to the load)."""
     exe = os.path.join(os.path.dirname(sys.executable), "hookwatch")
     folder = os.path.dirname(log)
     before = sorted(os.listdir(folder))
     fast, ref, out = [], [], None
+    CPU["fast"].clear()
+    CPU["ref"].clear()
     for _ in range(runs):
-        for cmd, times in (([exe], fast), ([sys.executable, "-c", REFERENCE_CLI], ref)):
+        for cmd, times, key in (([exe], fast, "fast"), ([sys.executable, "-c", REFERENCE_CLI], ref, "ref")):
+            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
             p = subprocess.run(cmd + ["analyze", log, "--json"], capture_output=True, text=True,
                                cwd=os.path.dirname(HERE))
             times.append(time.perf_counter() - t0)
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            CPU[key].append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
             assert p.returncode == 0, p.stderr
             assert out is None or p.stdout == out, "results differ"
             out = p.stdout
@@ -180,6 +190,8 @@ def main(runs: int = 7) -> None:
           f"  [goal ≤ 1.0 s]; nothing written beside the log: yes   [{load()}]")
     print(f"  same runs, reference parse (zlib + numpy): {med(rt)}; ratio of medians "
           f"{statistics.median(rt) / statistics.median(ct):.2f}×; same result: yes")
+    print(f"  CPU seconds per run (user+sys, all threads): fast median {statistics.median(CPU['fast']):.3f} s, "
+          f"reference {statistics.median(CPU['ref']):.3f} s")
     print("  result:", out.strip()[:160], "…")
     stage_times(log, 5)
     parse_candidates(log, 5)
@@ -188,6 +200,8 @@ def main(runs: int = 7) -> None:
     ct, rt, _ = cli_cold(rlog, runs)
     print(f"analyze recorder-format 10 h log, cold: {med(ct)} over {runs} runs; reference parse "
           f"{med(rt)}; ratio {statistics.median(rt) / statistics.median(ct):.2f}×   [{load()}]")
+    print(f"  CPU seconds per run: fast median {statistics.median(CPU['fast']):.3f} s, "
+          f"reference {statistics.median(CPU['ref']):.3f} s")
     parse_candidates(rlog, 3)
 
     from gateway.analysis import params_for
