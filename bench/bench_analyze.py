@@ -197,8 +197,8 @@ def main(runs: int = 7) -> None:
     parse_candidates(log, 5)
     print(f"[{load()}] recorder-format 10-hour log {os.path.getsize(rlog) / 1e6:.1f} MB .csv.gz "
           "(10 columns, T1/T2 as repr)")
-    ct, rt, _ = cli_cold(rlog, runs)
-    print(f"analyze recorder-format 10 h log, cold: {med(ct)} over {runs} runs; reference parse "
+    ct, rt, _ = cli_cold(rlog, 3)
+    print(f"analyze recorder-format 10 h log, cold: {med(ct)} over 3 runs; reference parse "
           f"{med(rt)}; ratio {statistics.median(rt) / statistics.median(ct):.2f}×   [{load()}]")
     print(f"  CPU seconds per run: fast median {statistics.median(CPU['fast']):.3f} s, "
           f"reference {statistics.median(CPU['ref']):.3f} s")
