@@ -4,19 +4,25 @@ A log is ``NAME.csv`` or ``NAME.csv.gz`` with a header line and columns ``t``, `
 (further columns are ignored); its metadata is ``NAME.meta.yaml`` beside it.
 
 Reading never writes anything beside a log (issue 22): a large log is parsed fast instead of
-cached. Gunzip runs in ISA-L (``isal``, ≈ 3× zlib's inflate, same output: on any ISA-L error the
-member is inflated again by zlib, whose result and message are the reference) and the three
-columns are parsed by Arrow's multi-threaded CSV reader (``pyarrow.csv``; its float conversion is
-correctly rounded — bit-identical to ``float()`` of the decimal text, checked on 820 k awkward
-tokens incl. exact halfway cases, and tests/gateway/test_logio_fast.py compares it with the
-reference parse on every method vector). Anything Arrow will not take exactly as numpy does
-(a quoted field, ragged rows, an empty field, ``nan(…)``, non-UTF-8 text, a missing package)
-falls back to the reference parser (numpy's loadtxt, forked over two cores for large bodies),
-which also finds and names the bad row. Why not the binary companion/cache: it would hold exact
-float64s (≥ 11.6 B/row compressed, 2.2× the .csv.gz, see bench/README.md), must be validated and
-written by someone, and helps only logs the station recorded; the fast parse helps every log and
-leaves the records folder as the recorder wrote it. A ``NAME.colcache`` left by older versions is
-ignored (never read, never deleted: deleting it is safe).
+cached. Gunzip runs in ISA-L (``isal``: ≈ 2× zlib's inflate, same bytes; a cut-off or corrupt file
+goes through the lenient member loop, and on any ISA-L error zlib inflates it again, whose result
+and message are the reference) and the three columns are parsed by Arrow's multi-threaded CSV
+reader (``pyarrow.csv``, 3–9× numpy here; its float conversion is correctly rounded —
+bit-identical to ``float()`` of the decimal text, checked on 820 k awkward tokens incl. exact
+halfway cases; tests/gateway/test_logio_fast.py compares it with the reference parse on every
+method vector and a recorder-written log). Anything Arrow will not take exactly as numpy does (a
+quoted field, ragged rows, an empty field, ``nan(…)``, non-UTF-8 text, a missing package) falls
+back to the reference parser (numpy's loadtxt, forked over two cores for large bodies), which
+also finds and names the bad row.
+
+Why not a binary companion (or the old cache): exact float64 columns compress to 11.6 B/row for
+a 3-decimal log (2.2× its .csv.gz, decoding about as slowly as this whole read) and 7.8 B/row for
+the recorder's own 10-column format (0.25× its .csv.gz, ≈ 10× faster than reading it: the next
+step for the station's own logs, written once by the recorder at close, see bench/README.md); it
+must be written by someone and validated, and helps only logs the station recorded; the fast
+parse helps every log and leaves the records folder as the recorder wrote it. A
+``NAME.colcache`` left by older versions is ignored (never read, never deleted: deleting it is
+safe).
 """
 from __future__ import annotations
 
