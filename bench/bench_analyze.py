@@ -84,6 +84,10 @@ def parse_candidates(log: str, runs: int) -> None:
     nl = body.index(b"\n")
     ncols = body[:nl].count(b",") + 1
     ref_parse = logio._parse_reference
+    # the reference as it ran before issue 22 (forked over two cores): pyarrow is loaded in this
+    # process, which the product then treats as threaded (no fork); the forked child here only
+    # runs numpy and exits, never touching Arrow's idle pool
+    logio._may_fork = lambda: (os.cpu_count() or 1) > 1
     text = body.decode()
     fast_cols = None
     for _ in range(runs):

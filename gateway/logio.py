@@ -30,6 +30,7 @@ import csv
 import io
 import math
 import os
+import sys
 import threading
 import warnings
 import zlib
@@ -243,6 +244,13 @@ def _parse_forked(body: str, n_values: int) -> np.ndarray | None:
 PARALLEL_PARSE_BYTES = 8 << 20
 
 
+def _may_fork() -> bool:
+    """Fork only from a single-threaded process (forking a threaded one can deadlock the child);
+    Arrow's thread pool, once started, is invisible to `threading`: no fork after it either."""
+    return (hasattr(os, "fork") and (os.cpu_count() or 1) > 1 and threading.active_count() == 1
+            and "pyarrow" not in sys.modules)
+
+
 def _parse_fast(body: str, ncols: int, cols: list[int]) -> np.ndarray | None:
     """The common case, fast: every row has exactly ``ncols`` numeric fields. Returns None when
     that does not hold (the careful parser then finds what is wrong)."""
@@ -250,9 +258,7 @@ def _parse_fast(body: str, ncols: int, cols: list[int]) -> np.ndarray | None:
     nrows = body.count("\n") + 1
     n_values = nrows * ncols
     flat = None
-    # fork only from a single-threaded process (forking a threaded one can deadlock the child)
-    if (len(body) > PARALLEL_PARSE_BYTES and hasattr(os, "fork") and (os.cpu_count() or 1) > 1
-            and threading.active_count() == 1):
+    if len(body) > PARALLEL_PARSE_BYTES and _may_fork():
         flat = _parse_forked(body, n_values)
     if flat is None:
         flat = _fromstring(body)
