@@ -57,6 +57,6 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
     echo "setup: pip install failed (log: .venv/pip-install.log)" >&2
     exit 1
   fi
-  .venv/bin/python -c 'import gateway, drivers, numpy, pymodbus, paho.mqtt' 
+  .venv/bin/python -c 'import gateway, drivers, numpy, pymodbus, paho.mqtt, pyarrow.csv, isal.isal_zlib'
   touch "$stamp"
 fi
