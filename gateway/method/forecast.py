@@ -140,3 +140,20 @@ class Forecaster:
         out = ForecastOut(j, last, t, e10, e50, e90, pe, h, tc, run, tuple(reasons), warning)
         self.last = out
         return out
+
+
+def last_forecast_time(t: float, window_s: float) -> float | None:
+    """The last forecast time (a window's end, §5b) at or before t, or None before the first."""
+    n = int((t + 1e-9 * max(1.0, t)) // window_s)
+    return None if n < 1 else n * window_s
+
+
+def band_at_half_life(t_life: float, mean: float, sd: float, lead: float,
+                      window_s: float) -> PriorForecast | None:
+    """The forecast from the prior at the last forecast time at or before t_life / 2 (for the
+    report's and the bench's check: how often t_life falls inside [e10, e90] at half of its
+    life); None without such a time or without a prior (sd ≤ 0)."""
+    t = last_forecast_time(t_life / 2.0, window_s)
+    if t is None or not sd > 0:
+        return None
+    return prior_forecast(t, mean, sd, lead)
