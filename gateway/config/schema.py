@@ -361,6 +361,31 @@ class SparkplugConfig(BrokerConfig):
     history_budget_mb: float = key(50.0, "measured values kept while the host is offline; the "
                                    "oldest are dropped (counted) beyond it — state and alarm "
                                    "changes are never dropped", kind="float", unit="MB", lo=0.1)
+    servers: tuple[str, ...] | None = key(None, "the Sparkplug server set (3.0 §8.2), as `host:port` "
+                                          "(`host` alone: `port`); the node connects to the first, and "
+                                          "moves to the next on `Node Control/Next Server`, when the "
+                                          "primary host's STATE goes offline, or when a server cannot "
+                                          "be reached", kind="str_list", nullable=True,
+                                          null_means="`[<host>:<port>]`")
+    rebirth_min_interval_s: float = key(2.0, "at most one birth (NBIRTH and the DBIRTHs) per this "
+                                        "interval: `Node Control/Rebirth` requests inside it are "
+                                        "coalesced into one rebirth when it has passed", kind="float",
+                                        unit="s", lo=0.0, hi=3600.0)
+    max_command_bytes: int = key(16384, "largest NCMD / DCMD payload decoded; a larger one is "
+                                 "ignored (counted, logged)", kind="int", unit="bytes", lo=256,
+                                 hi=1048576)
+    max_command_metrics: int = key(64, "most metrics in one NCMD / DCMD; more: the payload is "
+                                   "ignored (counted, logged)", kind="int", lo=1, hi=4096)
+    max_string_chars: int = key(256, "longest metric name or string value in an NCMD / DCMD; "
+                                "longer: the payload is ignored (counted, logged)", kind="int",
+                                lo=16, hi=65536)
+    state_max_bytes: int = key(1024, "largest STATE payload of the primary host parsed; a larger "
+                               "one is ignored (counted, logged)", kind="int", unit="bytes", lo=64,
+                               hi=65536)
+    state_future_skew_s: float = key(300.0, "a STATE timestamp further than this ahead of the "
+                                     "node's clock is accepted but taken as the node's \"now\" "
+                                     "(docs/sparkplug.md, STATE timestamps)", kind="float", unit="s",
+                                     lo=0.0, hi=31536000.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -661,6 +686,54 @@ def _ports(cfg, r):
                 "STM32 need one serial port each")
 
 
+def parse_server(item: str, default_port: int) -> tuple[str, int] | None:
+    """``host:port``, ``host``, ``[v6]:port`` or ``[v6]`` → (host, port); None if malformed."""
+    item = item.strip()
+    host, port = item, default_port
+    if item.startswith("["):
+        end = item.find("]")
+        if end < 0:
+            return None
+        host, rest = item[1:end], item[end + 1:]
+        if rest:
+            if not rest.startswith(":"):
+                return None
+            port_s = rest[1:]
+            if not port_s.isdigit():
+                return None
+            port = int(port_s)
+    elif item.count(":") == 1:
+        host, port_s = item.split(":")
+        if not port_s.isdigit():
+            return None
+        port = int(port_s)
+    elif ":" in item:
+        return None             # a bare IPv6 address needs brackets: [::1]:1883
+    if not host or any(c.isspace() for c in host) or not 1 <= port <= 65535:
+        return None
+    return host, port
+
+
+def _servers(cfg, r):
+    sp = cfg.sparkplug
+    if sp.servers is None:
+        return
+    if not sp.servers:
+        r.error(("sparkplug", "servers"), "an empty server set; list at least one `host:port`, or "
+                "leave the key out to use sparkplug.host and port")
+        return
+    seen = set()
+    for i, item in enumerate(sp.servers):
+        hp = parse_server(item, int(sp.port))
+        if hp is None:
+            r.error(("sparkplug", "servers"), f"item {i + 1} ({item!r}) is not `host:port` (port 1 … "
+                    "65535; an IPv6 address in brackets: `[::1]:1883`)")
+        elif hp in seen:
+            r.error(("sparkplug", "servers"), f"item {i + 1} ({item!r}) is listed twice")
+        else:
+            seen.add(hp)
+
+
 def _control(cfg, r):
     c = cfg.control
     if c.open_loop_rpm > c.n_max_rpm:
@@ -687,6 +760,7 @@ RULES: tuple[Rule, ...] = (
     Rule("`forecast.priors` names only grades of `grades`, each grade and T_set (±0.001 N) once.",
          _forecast),
     Rule("`meter.port` and `stm32.port` differ.", _ports),
+    Rule("`sparkplug.servers`: each `host:port` (or `host`, on `sparkplug.port`), none twice.", _servers),
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
          "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
          _control),

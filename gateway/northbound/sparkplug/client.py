@@ -10,13 +10,22 @@ bounded queue (``post``), never blocking their slot loop; paho's callbacks run o
 Each connection attempt takes the next bdSeq, persists it (kill -9 safe: a WAL commit), and
 builds a new client whose Will is the NDEATH with that bdSeq, QoS 1, not retained, set before
 CONNECT.
+
+The thread is supervised: a bad payload is counted and logged (:mod:`.inbound`, one line per kind
+per minute) and never ends the session; anything else that escapes ends the session *uncleanly*
+(the socket is dropped without DISCONNECT, so the broker publishes the Will: the host always gets
+an NDEATH) and a new session starts after a back-off. Commands reach a station's loop through the
+one thread→loop hand-over (:func:`gateway.threadloop.submit_to`).
+
+``servers`` is the Sparkplug 3.0 server set (§8.2): ``Node Control/Next Server``, the primary
+host's STATE going offline and a server that cannot be reached move the node to the next one.
 """
 from __future__ import annotations
 
-import asyncio
 import collections
 import logging
 import os
+import socket
 import sqlite3
 import threading
 import time
@@ -28,14 +37,18 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from ... import __version__
 from ...records import Command, CommandKind
+from ...threadloop import submit_to
 from ..broker_settings import BrokerSettings, SecretError
 from ..outbox import Outbox, Row
+from .inbound import BadInputLog, InboundLimits
 from .node import Disconnect, EdgeNode, MemoryBuffer, Publish, Submit
 
 log = logging.getLogger("hookwatch.sparkplug")
 
 #: inputs waiting for the node thread at most (beyond: the oldest telemetry update is dropped)
 QUEUE_MAX = 10_000
+#: the first pause after the node thread failed (doubling up to reconnect_max_s)
+CRASH_BACKOFF_MIN_S = 0.5
 
 
 @dataclass
@@ -53,6 +66,14 @@ class SparkplugSettings(BrokerSettings):
     #: the first CONNECT waits this long after the first station attached, so that the stations of
     #: a fleet starting together get their DBIRTHs right after the NBIRTH
     gather_s: float = 0.5
+    #: at most one birth per this interval; Rebirth requests inside it are coalesced into one
+    rebirth_min_interval_s: float = 2.0
+    max_command_bytes: int = 16384
+    max_command_metrics: int = 64
+    max_string_chars: int = 256
+    state_max_bytes: int = 1024
+    #: a STATE timestamp further ahead of this node's clock is taken as "now" (docs/sparkplug.md)
+    state_future_skew_s: float = 300.0
 
     section: ClassVar[str] = "sparkplug"
 
@@ -155,8 +176,12 @@ class NodeRuntime:
         except (OSError, sqlite3.Error) as e:
             log.error("sparkplug %s/%s: store %s unusable (%s): data is held in memory only and bdSeq "
                       "restarts at 0", s.group_id, s.edge_node_id, s.store_path, e)
+        limits = InboundLimits(max_payload_bytes=int(s.max_command_bytes), max_metrics=int(s.max_command_metrics),
+                               max_string_chars=int(s.max_string_chars), state_max_bytes=int(s.state_max_bytes))
         self.node = EdgeNode(s.group_id, s.edge_node_id, primary_host_id=s.primary_host_id,
-                             last_bdseq=last, software=f"hookwatch {__version__}")
+                             last_bdseq=last, software=f"hookwatch {__version__}", limits=limits,
+                             rebirth_min_interval_ms=int(round(s.rebirth_min_interval_s * 1000)),
+                             state_future_skew_ms=int(round(s.state_future_skew_s * 1000)))
         self.node.buffer = OutboxBuffer(self.outbox) if self.outbox is not None else MemoryBuffer()
         self.outputs: dict[str, Any] = {}          # device id → SparkplugOutput
         self._q: collections.deque = collections.deque()
@@ -172,6 +197,9 @@ class NodeRuntime:
         self._disconnect: Disconnect | None = None
         self._qos1: list = []              # QoS 1 publishes (NDEATH) not yet acknowledged
         self.counters: dict[str, int] = collections.Counter()
+        self._badlog = BadInputLog()
+        self._badlog_t = 0.0
+        self._crash_backoff = CRASH_BACKOFF_MIN_S
 
     # ------------------------------------------------------------------ any thread
     def post(self, item: tuple) -> None:
@@ -203,29 +231,46 @@ class NodeRuntime:
         return int(time.time() * 1000)
 
     def _main(self) -> None:
-        """Supervised: a failure is logged and counted, the session restarts after a pause."""
+        """Supervised: a failure is logged and counted, the session ends without DISCONNECT (the
+        broker sends the Will, the NDEATH) and a new one starts after a back-off (doubling from
+        CRASH_BACKOFF_MIN_S to ``reconnect_max_s``, reset by a session that lives a minute)."""
         try:
             while True:
+                started = time.monotonic()
                 try:
                     self._run()
                     break
                 except Exception:
                     self.counters["crashes"] += 1
-                    log.exception("sparkplug %s: node thread failed (%d so far); restarting the session, "
-                                  "stored data stays in %s", self.s.edge_node_id, self.counters["crashes"],
+                    if time.monotonic() - started > 60.0:
+                        self._crash_backoff = CRASH_BACKOFF_MIN_S
+                    log.exception("sparkplug %s: node thread failed (%d so far); the session is dropped "
+                                  "(the broker sends the NDEATH) and restarts in %.1f s, stored data stays "
+                                  "in %s", self.s.edge_node_id, self.counters["crashes"], self._crash_backoff,
                                   self.s.store_path)
-                    try:
-                        self._close(clean=False)
-                    except Exception:  # noqa: BLE001 - the client may be half built
-                        self._client = None
-                        self._sock = False
-                        self.node.disconnected()
-                    if self._stop.wait(min(self.s.reconnect_max_s, 5.0)):
+                    self._abort_quietly()
+                    self.node.disconnected()
+                    pause = self._crash_backoff
+                    self._crash_backoff = min(max(self.s.reconnect_max_s, CRASH_BACKOFF_MIN_S),
+                                              self._crash_backoff * 2)
+                    self._next_attempt = time.monotonic()
+                    if self._stop.wait(pause):
                         break
         finally:
-            self._close(clean=True)
+            try:
+                self._close(clean=True)
+            except Exception:  # noqa: BLE001 - stopping: the broker sends the Will instead
+                log.exception("sparkplug %s: closing the session failed", self.s.edge_node_id)
+                self._abort_quietly()
             if self.outbox is not None:
                 self.outbox.close()
+
+    def _abort_quietly(self) -> None:
+        try:
+            self._abort()
+        except Exception:  # noqa: BLE001 - a broken client: dropped
+            self._client = None
+            self._sock = False
 
     def _run(self) -> None:
         while True:
@@ -234,6 +279,7 @@ class NodeRuntime:
             if self._stop.is_set():
                 self._inputs()
                 break
+            self._housekeeping()
             if self._sock:
                 if self.node.replaying and self.node.publishing:
                     pubs, keys = self.node.drain(self._now())
@@ -253,6 +299,26 @@ class NodeRuntime:
                     self._connect()
                 else:
                     self._wake.wait(min(0.1, self._next_attempt - now))
+
+    def _housekeeping(self) -> None:
+        """The coalesced rebirth when it is due; the rate-limited lines about bad inputs."""
+        if self._sock:
+            self._act(self.node.tick(self._now()))
+        self._log_bad()
+        now = time.monotonic()
+        if now - self._badlog_t >= 1.0:
+            self._badlog_t = now
+            for line in self._badlog.due(now):
+                log.warning("sparkplug %s: %s", self.s.edge_node_id, line)
+
+    def _log_bad(self) -> None:
+        if not self.node.bad:
+            return
+        now = time.monotonic()
+        for kind, reason in self.node.take_bad():
+            line = self._badlog.note(kind, reason, now)
+            if line is not None:
+                log.warning("sparkplug %s: %s", self.s.edge_node_id, line)
 
     def _inputs(self) -> None:
         while True:
@@ -303,9 +369,8 @@ class NodeRuntime:
                                                self._now()))
             return
         cmd = Command(ck, "sparkplug", dict(sub.args))
-        try:
-            fut = asyncio.run_coroutine_threadsafe(out.station.submit(cmd), out.loop)
-        except RuntimeError:
+        fut = submit_to(out.loop, out.station.submit(cmd))
+        if fut is None:
             self.post(("result", sub.device_id, sub.kind, False, 10, "the station is not running"))
             return
 
@@ -353,6 +418,8 @@ class NodeRuntime:
             self._client = None
             self.node.connect_failed()          # no CONNECT packet was sent: bdSeq not used
             self._persist_bdseq()
+            if len(s.servers) > 1:              # the server set: try the next one (§8.2)
+                self._server = (self._server + 1) % len(s.servers)
             self._retry()
             return
         self._sock = True
@@ -374,8 +441,28 @@ class NodeRuntime:
 
     def _lost(self, why: str) -> None:
         log.warning("sparkplug %s: connection lost (%s)", self.s.edge_node_id, why)
-        self._close(clean=False)
+        self._abort()
         self._retry()
+
+    def _abort(self) -> None:
+        """End the session without DISCONNECT: the broker publishes the Will (the NDEATH)."""
+        c, self._client = self._client, None
+        was = self._sock
+        self._sock = False
+        self._qos1 = []
+        if c is not None:
+            if was:
+                try:
+                    sock = c.socket()
+                    if isinstance(sock, socket.socket):      # ssl.SSLSocket is one too
+                        sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+            try:
+                c.loop(timeout=0.01)        # paho notices the closed socket and closes it
+            except Exception:  # noqa: BLE001 - a broken client: it is dropped anyway
+                pass
+        self.node.disconnected()
 
     def _planned_disconnect(self, d: Disconnect) -> None:
         self._disconnect = None
@@ -397,6 +484,10 @@ class NodeRuntime:
         while self._sock and time.monotonic() < t_end and (c.want_write() or self._unacked(c)):
             if c.loop(timeout=0.05) != paho.MQTT_ERR_SUCCESS:
                 break
+        if self._sock and self._unacked(c):
+            # the NDEATH is not acknowledged: no DISCONNECT, so that the broker sends the Will
+            self._abort()
+            return
         self._sock = False
         try:
             c.disconnect()
@@ -433,11 +524,21 @@ class NodeRuntime:
             self._retry()
 
     def _on_message(self, client, userdata, msg) -> None:
-        now = self._now()
-        if msg.topic == self.node.state_topic():
-            self._act(self.node.host_state(msg.payload, now))
-        else:
-            self._act(self.node.command(msg.topic, msg.payload, now))
+        """Whatever arrives: handled within bounds (bad payloads are counted by the node); an
+        error of our own here is counted and logged, the message dropped, the session goes on."""
+        try:
+            now = self._now()
+            if msg.topic == self.node.state_topic():
+                self._act(self.node.host_state(msg.payload, now))
+            else:
+                self._act(self.node.command(msg.topic, msg.payload, now))
+        except Exception as e:  # noqa: BLE001 - one message must not end the session
+            self.counters["message_errors"] += 1
+            line = self._badlog.note("internal", f"{type(e).__name__}: {str(e)[:120]}", time.monotonic())
+            if line is not None:
+                log.error("sparkplug %s: handling a message on %.80s failed: %s", self.s.edge_node_id,
+                          msg.topic, line, exc_info=True)
+        self._log_bad()
 
 
 def _pub_args(p: Publish) -> tuple:

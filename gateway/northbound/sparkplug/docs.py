@@ -3,6 +3,9 @@ below: ``python -m gateway.northbound.sparkplug.docs > docs/sparkplug.md`` (a te
 current)."""
 from __future__ import annotations
 
+import dataclasses
+
+from ...config.schema import SparkplugConfig
 from . import metrics as M
 
 #: (statement ID of the Sparkplug 3.0 specification, what it asks, status, how / where / proof)
@@ -44,15 +47,18 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
     ("tck-id-message-flow-edge-node-birth-publish-phid-wait (-id, -online, -timestamp), "
      "tck-id-operational-behavior-edge-node-birth-sequence-wait",
      "with a primary host: births only after its STATE online, newer-or-equal timestamp", "yes",
-     "unit tests (an older STATE is ignored); e2e"),
+     "compared within one MQTT session (see STATE timestamps); unit tests (an older STATE is "
+     "ignored, one from the future cannot lock the host out); e2e"),
     ("tck-id-operational-behavior-edge-node-termination-host-offline (-timestamp), "
      "tck-id-message-flow-edge-node-birth-publish-phid-offline",
-     "STATE offline (not older): NDEATH, disconnect", "yes", "e2e: NDEATH, then nothing until online"),
+     "STATE offline (not older): NDEATH, disconnect", "yes", "e2e: NDEATH, then nothing until online; "
+     "an offline STATE older than the session's last STATE is ignored (unit test)"),
     ("tck-id-operational-behavior-edge-node-termination-host-offline-reconnect, "
      "tck-id-operational-behavior-primary-application-state-with-multiple-servers-walk",
-     "then connect to the next MQTT server", "partial",
-     "one server is configured today (`sparkplug.host`/`port`); the runtime walks a server list "
-     "(`SparkplugSettings.servers`) but the configuration has no list yet"),
+     "then connect to the next MQTT server", "yes",
+     "`sparkplug.servers` (the server set, §8.2; default `[host:port]`): STATE offline, "
+     "`Node Control/Next Server` and a server that cannot be reached move the node to the next one; "
+     "e2e over two Mosquittos (test_sparkplug_doors_e2e.py)"),
     ("tck-id-topics-nbirth-mqtt, -dbirth-mqtt, -ddata-mqtt, -ddeath-mqtt",
      "NBIRTH, DBIRTH, DDATA, DDEATH at QoS 0, not retained", "yes", "e2e checks qos/retain"),
     ("tck-id-topics-nbirth-seq-num, tck-id-payloads-sequence-num-incrementing, "
@@ -77,7 +83,9 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "DDATA by alias only, without name and datatype", "yes", "e2e and unit test"),
     ("tck-id-operational-behavior-data-commands-ncmd-rebirth-*, -rebirth-action-1/2/3",
      "on an NCMD Rebirth: NBIRTH (same bdSeq) and every DBIRTH, nothing in between", "yes",
-     "e2e: NCMD → NBIRTH seq 0, same bdSeq, DBIRTH"),
+     "e2e: NCMD → NBIRTH seq 0, same bdSeq, DBIRTH; at most one birth per "
+     "`sparkplug.rebirth_min_interval_s`, later requests coalesced into one (e2e: 3,000 Rebirth "
+     "NCMDs → a bounded number of births)"),
     ("tck-id-operational-behavior-data-commands-dcmd-*", "DCMD writes metrics of the DBIRTH", "yes",
      "by name or alias; start/stop/ack/hook replaced go through the station's one command path; "
      "e2e: a DCMD start starts a test, `Device Control/Last Result Code` 0"),
@@ -144,11 +152,66 @@ worker process (docs/runtime.md "Sparkplug in a fleet").
    primary host, `spBv1.0/STATE/<primary_host_id>`.
 3. Without a primary host it publishes NBIRTH (seq 0, the same bdSeq) and a DBIRTH per station
    at once; with one it waits for the host's STATE `{"online": true, "timestamp": <ms>}` (a STATE
-   whose timestamp is older than the last one seen is ignored).
+   whose timestamp is older than the last one seen in this session is ignored: STATE timestamps
+   below).
 4. Live data: DDATA by alias only, seq +1 per message (255 → 0), QoS 0.
-5. STATE `online: false`: the node publishes its NDEATH, disconnects and connects again (next
-   bdSeq), and waits for the host: from then on data is **held**.
+5. STATE `online: false`: the node publishes its NDEATH, disconnects and connects to the **next
+   server** of `sparkplug.servers` (the same one when only one is configured; next bdSeq), and
+   waits for the host: from then on data is **held**.
 6. A station that stops: DDEATH. The last station of the node: NDEATH (before DISCONNECT).
+7. Any other end of a session (a lost connection, an error inside the node) closes the socket
+   **without** DISCONNECT, so the broker publishes the Will: the host always gets an NDEATH. The
+   node's thread is supervised: after an internal error it starts a new session after a back-off
+   (0.5 s doubling up to the reconnect back-off's 10 s) and publishes on; stored data stays in the
+   store.
+
+## Server set (Sparkplug 3.0 §8.2)
+
+`sparkplug.servers: [mqtt-a:1883, mqtt-b:1883]` lists the MQTT servers of the node (`host` alone
+uses `sparkplug.port`; without the key the set is `[<host>:<port>]`, the old form). The node
+connects to the first; it moves to the next (round robin) on `Node Control/Next Server`, when
+the primary host's STATE on the current server goes offline, and when a server cannot be
+reached. Each server carries its own retained STATE of the host: the node waits for
+`online: true` on the server it is connected to.
+
+## STATE timestamps
+
+The rule (tck-id-message-flow-edge-node-birth-publish-phid-wait-timestamp,
+tck-id-operational-behavior-edge-node-termination-host-offline-timestamp):
+
+- A STATE is compared with the last STATE accepted **in the same MQTT session** only; at each
+  CONNECT the comparison starts afresh (the retained STATE a server delivers after SUBSCRIBE is
+  that server's current word). Nothing seen before a reconnect, or on another server, can lock
+  the host out.
+- Within a session, a STATE (online or offline) older than the last one accepted is ignored
+  (counted `stale_state`): a stale offline STATE never ends the session.
+- A timestamp more than `sparkplug.state_future_skew_s` (@state_future_skew_s@ s) ahead of the node's clock is
+  accepted but remembered as the node's clock at receipt (counted `future_state`, logged), so a
+  host whose clock once ran years ahead cannot make its later, correctly dated STATEs look stale:
+  its `online: false` still ends the session, its `online: true` still brings the births.
+
+## Inbound limits
+
+Everything the node receives is parsed within bounds (`gateway/northbound/sparkplug/inbound.py`);
+a payload outside them is **ignored and counted**, and logged at most once per kind (`state`,
+`ncmd`, `dcmd`, `topic`) per minute with the count since the previous line. It never ends the
+session or the node's thread — a hostile **retained** STATE that comes back at every reconnect
+is ignored every time, and the node goes on waiting for a good one.
+
+| input | limit | key |
+|---|---|---|
+| STATE payload | @state_max_bytes@ bytes, checked before decoding | `sparkplug.state_max_bytes` |
+| STATE JSON | nesting ≤ 2, numbers ≤ 32 characters, ≤ 8 keys of ≤ 32 characters (below) | fixed |
+| NCMD / DCMD payload | @max_command_bytes@ bytes, checked before the protobuf decoder | `sparkplug.max_command_bytes` |
+| metrics per NCMD / DCMD | @max_command_metrics@ | `sparkplug.max_command_metrics` |
+| metric name, string value | @max_string_chars@ characters | `sparkplug.max_string_chars` |
+| births | one per @rebirth_min_interval_s@ s, Rebirths coalesced | `sparkplug.rebirth_min_interval_s` |
+| STATE time ahead of the node | @state_future_skew_s@ s, then "now" | `sparkplug.state_future_skew_s` |
+
+The STATE nesting is counted on the bytes before `json.loads` runs; NaN, Infinity and a key given
+twice are refused; `online` must be a JSON boolean and `timestamp` a JSON integer 0 … 2⁶³−1.
+The values a DCMD carries (sample ID, setpoint …) are then checked by the station's one command
+path like every other command.
 
 ## Store and forward
 
@@ -208,8 +271,16 @@ def _metric_table(defs, alias) -> list[str]:
     return out
 
 
+def _with_defaults(text: str) -> str:
+    """``@key@`` → the default of ``sparkplug.<key>`` (one definition: the schema)."""
+    for f in dataclasses.fields(SparkplugConfig):
+        if isinstance(f.default, (int, float)) and not isinstance(f.default, bool):
+            text = text.replace(f"@{f.name}@", f"{f.default:g}")
+    return text
+
+
 def render() -> str:
-    lines = [HEAD.rstrip("\n"), "", "## Node metrics (NBIRTH)", ""]
+    lines = [_with_defaults(HEAD).rstrip("\n"), "", "## Node metrics (NBIRTH)", ""]
     na = M.node_aliases()
     lines += _metric_table(M.NODE_METRICS, lambda i, d: str(na[d.name]) if d.name in na else "none")
     lines += ["", "## Device metrics (DBIRTH: every metric; DDATA: by alias)", "",

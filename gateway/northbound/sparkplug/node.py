@@ -8,6 +8,11 @@ Inputs (method calls, each with the time in ms where it matters):
 Outputs: :class:`Publish` (topic, payload bytes, qos, retain), :class:`Disconnect`,
 :class:`Submit` (a device command for the station's one command path) — returned as lists.
 
+Everything received is parsed within bounds (:mod:`.inbound`); a bad payload is counted
+(``counters["bad_<kind>"]``) and noted in :attr:`EdgeNode.bad` for the caller's rate-limited log,
+never raised. STATE timestamps follow the rule of :meth:`EdgeNode.host_state`; rebirths are
+rate-limited (:meth:`EdgeNode.rebirth`, :meth:`EdgeNode.tick`).
+
 Store and forward: while no primary host is online (or no connection), device data goes to a
 :class:`Buffer` as DDATA payloads whose metrics carry ``is_historical = true`` and their original
 timestamps; when the host is online again, after NBIRTH and the DBIRTHs, :meth:`EdgeNode.drain`
@@ -17,7 +22,6 @@ See docs/sparkplug.md for the rules implemented (with the specification's statem
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -25,6 +29,7 @@ from typing import Any, Protocol
 from ...records import CommandKind
 from ...station.commands import COMMAND_KEYS
 from . import metrics as M
+from .inbound import BadInput, InboundLimits, parse_payload, parse_state
 from .sparkplug_b_pb2 import Payload
 
 NAMESPACE = "spBv1.0"
@@ -156,7 +161,9 @@ class EdgeNode:
     """One Sparkplug edge node hosting stations as devices (see the module docstring)."""
 
     def __init__(self, group_id: str, edge_node_id: str, *, primary_host_id: str | None = None,
-                 last_bdseq: int | None = None, software: str = "hookwatch", replay_batch: int = 50):
+                 last_bdseq: int | None = None, software: str = "hookwatch", replay_batch: int = 50,
+                 limits: InboundLimits | None = None, rebirth_min_interval_ms: int = 2000,
+                 state_future_skew_ms: int = 300_000):
         for what, v in (("group_id", group_id), ("edge_node_id", edge_node_id)):
             if not valid_id(v):
                 raise ValueError(f"sparkplug.{what} {v!r}: must be non-empty without '/', '+' or '#'")
@@ -178,12 +185,21 @@ class EdgeNode:
         self.node_born = False
         self.host_online = primary_host_id is None
         self.host_ts = -1
+        self.limits = limits or InboundLimits()
+        self.rebirth_min_interval_ms = int(rebirth_min_interval_ms)
+        self.state_future_skew_ms = int(state_future_skew_ms)
+        self._last_birth_ms: int | None = None
+        self.rebirth_pending = False
+        #: bad inputs not yet taken by the caller (kind, reason), at most BAD_MAX kept
+        self.bad: list[tuple[str, str]] = []
         self.devices: dict[str, Device] = {}
         self.buffer: Buffer = MemoryBuffer()
         self._replaying = False
         self._dirty: dict[str, set[str]] = {}
         self.counters: dict[str, int] = {"stored": 0, "replayed": 0, "births": 0, "rebirths": 0,
-                                         "ignored_commands": 0}
+                                         "ignored_commands": 0, "rebirths_coalesced": 0,
+                                         "bad_state": 0, "bad_ncmd": 0, "bad_dcmd": 0, "bad_topic": 0,
+                                         "stale_state": 0, "future_state": 0}
         self._node_alias = M.node_aliases()
 
     # ------------------------------------------------------------------ topics
@@ -234,9 +250,22 @@ class EdgeNode:
         m.long_value = self.bdseq
         return Publish(self.topic("NDEATH"), p.SerializeToString(), QOS_DEATH, False)
 
+    def _bad(self, e: BadInput) -> None:
+        self.counters[f"bad_{e.kind}"] = self.counters.get(f"bad_{e.kind}", 0) + 1
+        self.counters["ignored_commands"] += 1
+        if len(self.bad) < BAD_MAX:
+            self.bad.append((e.kind, e.reason))
+
+    def take_bad(self) -> list[tuple[str, str]]:
+        """The bad inputs noted since the last call (for the caller's rate-limited log)."""
+        out, self.bad = self.bad, []
+        return out
+
     def connected_ok(self, now_ms: int) -> list[Publish]:
         self.connected = True
         self.node_born = False
+        # STATE timestamps are compared within one MQTT session only (see host_state)
+        self.host_ts = -1
         if self.host_id is not None:
             # wait for the host's retained STATE before any birth
             self.host_online = False
@@ -251,18 +280,36 @@ class EdgeNode:
             d.born = False
 
     def host_state(self, payload: bytes, now_ms: int) -> list[Publish | Disconnect]:
-        """``spBv1.0/STATE/<host_id>`` in the 3.0 form ``{"online": bool, "timestamp": ms}``."""
+        """``spBv1.0/STATE/<host_id>`` in the 3.0 form ``{"online": bool, "timestamp": ms}``.
+
+        The timestamp rule (docs/sparkplug.md "STATE timestamps"):
+
+        - timestamps are compared with the last STATE accepted **in this MQTT session** only (reset
+          at each CONNECT: the retained STATE a server delivers after SUBSCRIBE is that server's
+          current word, so nothing seen before a reconnect or on another server can lock the host
+          out);
+        - a STATE older than the last one accepted in the session is ignored (counted
+          ``stale_state``): tck-id-message-flow-edge-node-birth-publish-phid-wait-timestamp and
+          tck-id-operational-behavior-edge-node-termination-host-offline-timestamp;
+        - a timestamp more than ``state_future_skew_ms`` ahead of the node's clock is accepted
+          (counted ``future_state``) but remembered as the node's clock at receipt, so that it
+          cannot make the host's later, correctly dated STATE look stale.
+        """
         try:
-            doc = json.loads(payload.decode("utf-8"))
-            online = doc["online"]
-            ts = int(doc["timestamp"])
-            if not isinstance(online, bool):
-                raise TypeError("online is not a boolean")
-        except (UnicodeDecodeError, ValueError, KeyError, TypeError):
-            self.counters["ignored_commands"] += 1
+            online, ts = parse_state(payload, self.limits)
+        except BadInput as e:
+            self._bad(e)
             return []
         if ts < self.host_ts:
+            self.counters["stale_state"] += 1
             return []              # an older STATE than one already seen: ignored
+        if ts > now_ms + self.state_future_skew_ms:
+            self.counters["future_state"] += 1
+            if len(self.bad) < BAD_MAX:
+                self.bad.append(("future_state", f"STATE timestamp {ts} is more than "
+                                 f"{self.state_future_skew_ms} ms ahead of this node's clock {now_ms}; "
+                                 "taken as now"))
+            ts = max(int(now_ms), self.host_ts)
         self.host_ts = ts
         if online and not self.host_online:
             self.host_online = True
@@ -271,12 +318,13 @@ class EdgeNode:
         elif not online and self.host_online:
             self.host_online = False
             if self.connected and self.node_born:
-                # the host is gone: end this session cleanly and wait (reconnected) for it
+                # the host is gone: end this session (NDEATH first) and connect to the next server
+                # of the set (tck-id-operational-behavior-edge-node-termination-host-offline-reconnect)
                 out: list[Publish | Disconnect] = [self.ndeath()]
                 self.node_born = False
                 for d in self.devices.values():
                     d.born = False
-                out.append(Disconnect("primary host offline"))
+                out.append(Disconnect("primary host offline", next_server=True))
                 return out
         return []
 
@@ -314,6 +362,8 @@ class EdgeNode:
             _properties(m, d)
         self.node_born = True
         self.counters["births"] += 1
+        self._last_birth_ms = int(now_ms)
+        self.rebirth_pending = False
         return Publish(self.topic("NBIRTH"), p.SerializeToString())
 
     def dbirth(self, dev: Device, now_ms: int) -> Publish:
@@ -341,9 +391,32 @@ class EdgeNode:
             out.extend(self._bury_stopped(now_ms))
         return out
 
+    def _birth_due(self, now_ms: int) -> bool:
+        last = self._last_birth_ms
+        return last is None or now_ms < last or now_ms - last >= self.rebirth_min_interval_ms
+
     def rebirth(self, now_ms: int) -> list[Publish]:
-        """Node Control/Rebirth: NBIRTH (same bdSeq, seq 0) and every DBIRTH again."""
+        """Node Control/Rebirth: NBIRTH (same bdSeq, seq 0) and every DBIRTH again — at most one
+        birth per ``rebirth_min_interval_ms``: a request inside that interval is coalesced into
+        one pending rebirth, carried out by :meth:`tick` when the interval has passed."""
         if not (self.connected and self.host_online):
+            return []
+        if not self._birth_due(now_ms):
+            if self.rebirth_pending:
+                self.counters["rebirths_coalesced"] += 1
+            self.rebirth_pending = True
+            return []
+        self.counters["rebirths"] += 1
+        return self._births(now_ms)
+
+    def tick(self, now_ms: int) -> list[Publish]:
+        """Called often by the runtime: the pending (coalesced) rebirth once it is due."""
+        if not self.rebirth_pending:
+            return []
+        if not (self.connected and self.host_online and self.node_born):
+            self.rebirth_pending = False       # the next session's births carry everything
+            return []
+        if not self._birth_due(now_ms):
             return []
         self.counters["rebirths"] += 1
         return self._births(now_ms)
@@ -485,13 +558,21 @@ class EdgeNode:
 
     # ------------------------------------------------------------------ commands
     def command(self, topic: str, payload: bytes, now_ms: int) -> list[Publish | Disconnect | Submit]:
-        """An NCMD or DCMD; metrics by name or by alias. Unknown or malformed ones are counted."""
+        """An NCMD or DCMD; metrics by name or by alias. Bad payloads (beyond the limits of
+        :class:`InboundLimits`, undecodable) are counted and noted, unknown metrics counted."""
         parts = topic.split("/")
-        p = Payload()
+        if len(parts) == 4 and parts[2] == "NCMD" and topic == self.topic("NCMD"):
+            kind = "ncmd"
+        elif len(parts) == 5 and parts[2] == "DCMD" and topic.startswith(self.topic("DCMD") + "/"):
+            kind = "dcmd"
+        else:
+            self._bad(BadInput("topic", f"a message on {topic[:80]!r}, which is not a command topic "
+                               "of this node"))
+            return []
         try:
-            p.ParseFromString(payload)
-        except Exception:   # noqa: BLE001 - protobuf raises DecodeError and others on garbage
-            self.counters["ignored_commands"] += 1
+            p = parse_payload(kind, payload, self.limits)
+        except BadInput as e:
+            self._bad(e)
             return []
         if len(parts) == 4 and parts[2] == "NCMD":
             by_alias = {a: n for n, a in self._node_alias.items()}
@@ -525,10 +606,10 @@ class EdgeNode:
                     self.counters["ignored_commands"] += 1
             args = {M.COMMAND_ARGS[k]: v for k, v in vals.items() if k in M.COMMAND_ARGS and v is not None}
             subs: list[Publish | Disconnect | Submit] = []
-            for name, kind in M.COMMANDS.items():
+            for name, ck in M.COMMANDS.items():
                 if vals.get(name) is True:      # each command takes the arguments it knows
-                    keys = COMMAND_KEYS[CommandKind(kind)]
-                    subs.append(Submit(dev.device_id, kind, {k: v for k, v in args.items() if k in keys}))
+                    keys = COMMAND_KEYS[CommandKind(ck)]
+                    subs.append(Submit(dev.device_id, ck, {k: v for k, v in args.items() if k in keys}))
             return subs
         self.counters["ignored_commands"] += 1
         return []
@@ -542,4 +623,6 @@ class EdgeNode:
 
 
 _MISSING = object()
+#: bad inputs kept for the caller between two takes (the counters count them all)
+BAD_MAX = 64
 _DEVICE_INDEX = {d.name: i for i, d in enumerate(M.DEVICE_METRICS)}

@@ -40,3 +40,42 @@ def test_bad_values_are_refused_with_the_line(tmp_path, bad):
     with pytest.raises(ConfigError) as e:
         station(tmp_path, f"sparkplug:\n  enabled: true\n  {bad}\n")
     assert "sparkplug." in str(e.value) and "s.yaml:" in str(e.value)
+
+
+def test_server_set_and_the_new_limits(tmp_path):
+    cfg = station(tmp_path, "sparkplug: {enabled: true, host: mqtt-a, port: 1884}\n")
+    assert settings_from_config(cfg).servers == [("mqtt-a", 1884)]          # the old form
+    cfg = station(tmp_path, """\
+        sparkplug:
+          enabled: true
+          port: 1884
+          servers: [mqtt-a:1883, mqtt-b, "[fd00::7]:8883"]
+          rebirth_min_interval_s: 5
+          max_command_bytes: 4096
+          max_command_metrics: 16
+          max_string_chars: 64
+          state_max_bytes: 512
+          state_future_skew_s: 60
+        """)
+    s = settings_from_config(cfg)
+    assert s.servers == [("mqtt-a", 1883), ("mqtt-b", 1884), ("fd00::7", 8883)]
+    assert (s.rebirth_min_interval_s, s.max_command_bytes, s.max_command_metrics, s.max_string_chars,
+            s.state_max_bytes, s.state_future_skew_s) == (5.0, 4096, 16, 64, 512, 60.0)
+    from gateway.northbound.sparkplug.client import NodeRuntime
+    rt = NodeRuntime(s)
+    try:
+        assert rt.node.limits.max_payload_bytes == 4096 and rt.node.rebirth_min_interval_ms == 5000
+        assert rt.node.state_future_skew_ms == 60_000 and rt.node.limits.state_max_bytes == 512
+    finally:
+        rt.stop()
+        if rt.outbox is not None:
+            rt.outbox.close()
+
+
+@pytest.mark.parametrize("bad", ["servers: []", "servers: ['a:0']", "servers: ['a:b']", "servers: ['::1']",
+                                 "servers: ['a:1883', 'a']", "max_command_metrics: 0",
+                                 "state_max_bytes: 10", "rebirth_min_interval_s: -1"])
+def test_bad_server_sets_and_limits_are_refused(tmp_path, bad):
+    with pytest.raises(ConfigError) as e:
+        station(tmp_path, f"sparkplug:\n  enabled: true\n  {bad}\n")
+    assert "sparkplug." in str(e.value) and "s.yaml:" in str(e.value)

@@ -23,6 +23,7 @@ def state(online: bool, ts: int) -> bytes:
 
 
 def online_node(**kw) -> EdgeNode:
+    kw.setdefault("rebirth_min_interval_ms", 0)     # the rate limit: test_sparkplug_inbound.py
     n = EdgeNode("plant-a", "hall-2-line-3", primary_host_id="scada", **kw)
     n.connecting()
     n.device_up("loom-01", {"Test/State": "idle"}, 1)
@@ -90,6 +91,9 @@ def test_host_offline_holds_data_and_replays_historical_in_order():
     for i in range(120):
         assert n.device_update("loom-01", {"Tension/T1": float(i)}, 100 + i) == []
     assert len(n.buffer) == 120
+    # STATE timestamps are compared within one session: the retained offline STATE this session
+    # starts with, then an older online one, which is ignored
+    assert n.host_state(state(False, 45), 39) == []
     assert n.host_state(state(True, 5), 40) == []       # older than the last STATE seen: ignored
     outs = n.host_state(state(True, 50), 300)
     assert kinds(outs) == ["NBIRTH", "DBIRTH"] and n.replaying
