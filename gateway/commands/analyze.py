@@ -6,6 +6,7 @@ import sys
 
 from ..analysis import AnalysisError, analyze_log, parse_overrides
 from ..cli import CliError
+from ..logio import LogError, read_meta, sidecar_prior
 from ..method.params import PARAMS
 
 HELP = "analyse recorded logs (METHOD.md §9 CSV) and print their wear-life results"
@@ -51,6 +52,8 @@ def run(args) -> int:
             d["warn_s"] = None if res.warn_slot is None else (res.warn_slot + 1) * p.ts
             d["warn_by"] = None if res.warn_reasons is None else "+".join(res.warn_reasons)
             d["lead"] = p.lead
+            d["prior"] = sidecar_prior({**log_meta(path), "method": {
+                "prior_mean": p.prior_mean, "prior_sd": p.prior_sd}})
             rows.append(d)
     if rows:
         _table(rows)
@@ -104,7 +107,18 @@ def _forecast_line(r) -> str:
     if r["end_p50"] is None:
         out.append("no forecast from a prior (no prior_mean/prior_sd, or no complete window)")
     else:
+        pr = r["prior"]
+        src = "" if pr.source is None else f", from {pr.source}" + ("" if pr.n is None else f", n {pr.n}")
+        out.append(f"prior {pr.mean:.0f} ± {pr.sd:.0f} s{src}")
         out.append(f"forecast at the last window: end {r['end_p10']:.0f} / {r['end_p50']:.0f} / "
                    f"{r['end_p90']:.0f} s (10/50/90 %), P(end within {r['lead']:g} s) "
                    f"{r['p_end']:.3f}")
     return "; ".join(out)
+
+
+def log_meta(path: str) -> dict:
+    """The sidecar for display (the analysis has read it already; {} when it cannot be read)."""
+    try:
+        return read_meta(path)
+    except LogError:
+        return {}

@@ -152,5 +152,5 @@ def test_cli_table_shows_the_forecast_from_a_prior():
     assert p.returncode == 0, p.stderr
     row = p.stdout.splitlines()[1].split()
     assert row[-6:] == ["-0.506", "2520.00", "prior", "-", "3421", "1.000"]
-    assert "early warning at 2520.00 s (slot 125999; due by prior)" in p.stdout
+    assert "early warning at 2520.00 s (slot 125999; due by prior); prior 3300 ± 150 s;" in p.stdout
     assert "end 3346 / 3421 / 3559 s (10/50/90 %), P(end within 600 s) 1.000" in p.stdout

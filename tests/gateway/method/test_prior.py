@@ -133,3 +133,18 @@ method: {lead: 7200, p_due: 0.2}
 def test_bad_priors_are_clear_validation_errors(tmp_path, text, words):
     with pytest.raises(ConfigError, match=words):
         load_station(write(tmp_path / "s.yaml", MINIMAL + text + "\n"))
+
+
+def test_sidecar_prior_reads_the_new_keys_leniently():
+    from gateway.logio import sidecar_prior
+    meta = {"method": {"t_set": 0.5, "prior_mean": 3300.0, "prior_sd": 150}, "prior_source": "history",
+            "prior_n": 4}
+    p = sidecar_prior(meta)
+    assert (p.mean, p.sd, p.source, p.n) == (3300.0, 150.0, "history", 4)
+    for bad in ({"prior_sd": 0}, {"prior_sd": -1}, {"prior_sd": None}, {"prior_mean": "x"},
+                {"prior_mean": float("nan")}, {"prior_sd": True}):
+        m = {**meta, "method": {**meta["method"], **bad}}
+        assert sidecar_prior(m).mean is None and sidecar_prior(m).source is None
+    assert sidecar_prior({}).mean is None and sidecar_prior({"method": "junk"}).mean is None
+    q = sidecar_prior({**meta, "prior_source": "guess", "prior_n": -2})
+    assert (q.mean, q.source, q.n) == (3300.0, None, None)
