@@ -301,12 +301,14 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
                         grades=("I", "II"), setpoints=(0.5, 0.7, 0.9), reps: int = 3,
                         control_s: float = 7200.0, control_every: int = 10, seed0: int = 100) -> list[str]:
     """The example campaign: 2 grades × 3 setpoints × 3 samples from the virtual bench, lives
-    compressed ``time_scale``× (method windows w_ss 10 s, w_hold 60 s, tau 10 s), in the
+    compressed ``time_scale``× (method windows w_ss 10 s, w_hold 60 s, tau 10 s; the lead
+    3600 s and the life prior of the paper's Table 4 divided by time_scale), in the
     gateway's folder layout; a wear table; an open-loop and a closed-loop log for Fig. 8 (two
     hours each, long enough for the drift to leave the controller's dead band; every 10th slot
     written)."""
     import yaml
 
+    from drivers.sim.plant import TABLE4_LIFE
     from gateway.method.core import analyze_readings
     from gateway.method.params import build_params
 
@@ -319,14 +321,19 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
                 sid = f"{g}-{int(round(sp * 10)):02d}-{r:02d}"
                 seed = seed0 + i
                 t, a, b, truth = plant_run(g, sp, seed, t_end, time_scale)
-                method = {"t_set": sp, "t_end": t_end, "w_ss": 10, "w_hold": 60, "tau": 10}
+                # the life prior a plant would configure (forecast.priors): the paper's Table 4
+                # for the grade and setpoint, compressed like the lives (METHOD.md §5b, §7a)
+                pm, psd = TABLE4_LIFE[(g, sp)]
+                method = {"t_set": sp, "t_end": t_end, "w_ss": 10, "w_hold": 60, "tau": 10,
+                          "lead": 3600.0 / time_scale, "prior_mean": round(pm / time_scale, 3),
+                          "prior_sd": round(psd / time_scale, 3)}
                 test_id = f"20260105T{8 + (i * 7) // 60:02d}{(i * 7) % 60:02d}00Z-{sid}"
                 d = os.path.join(root, PLANT_STATION, test_id)
                 log = os.path.join(d, "log.csv.gz")
                 write_log_plain(log, t, a, b)
                 meta = {"station": PLANT_STATION, "test_id": test_id, "sample_id": sid, "grade": g,
                         "t_set": sp, "software": "bench/gen_campaign.py (virtual bench, offline)",
-                        "method": method, "control": {"mode": "closed"},
+                        "prior_source": "config", "prior_n": 3, "method": method, "control": {"mode": "closed"},
                         "sim": {"seed": seed, "time_scale": time_scale,
                                 "table_life_s": round(truth["table_life_s"], 1),
                                 "true_crossing_s": round(truth["cross_run_s"], 2),
