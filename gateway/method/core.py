@@ -122,7 +122,9 @@ class SlotOut:
     #: early warning: the first due window, at most once per test, never at or after k_det)
     events: list[str] = field(default_factory=list)
     window: WindowOut | None = None   # the post-baseline window that ended with this slot
-    forecast: ForecastOut | None = None   # the §5b forecast at the end of this slot's window
+    #: the §5b forecast at the end of this slot's window; with "wear_warning" it is the warning
+    #: (``forecast.warning`` true) and carries its reasons (``forecast.reasons``)
+    forecast: ForecastOut | None = None
 
 
 class StreamingMonitor:

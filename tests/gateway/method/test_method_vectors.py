@@ -154,3 +154,30 @@ def test_cli_table_shows_the_forecast_from_a_prior():
     assert row[-6:] == ["-0.506", "2520.00", "prior", "-", "3421", "1.000"]
     assert "early warning at 2520.00 s (slot 125999; due by prior); prior 3300 ± 150 s;" in p.stdout
     assert "end 3346 / 3421 / 3559 s (10/50/90 %), P(end within 600 s) 1.000" in p.stdout
+
+
+@pytest.mark.parametrize("name", ["v1_failure", "v6_prior"])
+def test_streamed_forecasts_equal_the_batch_forecasts_at_every_window(name):
+    """METHOD.md §5b online: every forecast time's e10/e50/e90, P, headroom, t_cross, reasons and
+    the warning, as the runtime gets them (SlotOut.forecast), equal the batch form's."""
+    from gateway.method import StreamingMonitor
+    from gateway.method.core import gate_and_baseline, life_detail
+    log = read_log(os.path.join(VECTORS, name + ".csv.gz"))
+    p = params_for(log.meta, {}, name)
+    s = to_slots(log.t, log.t1, log.t2, p)
+    mon = StreamingMonitor(p)
+    online = []
+    for k in range(s.present.size):
+        out = mon.push(bool(s.present[k]), float(s.t1[k]), float(s.t2[k]))
+        if out.forecast is not None:
+            online.append(out.forecast)
+        if "wear_warning" in out.events:
+            assert out.forecast.warning and out.forecast.reasons
+    res, _, offline = life_detail(gate_and_baseline(s, p))
+    assert online == offline
+    k_det = res.k_life + p.n_tau - 1
+    assert offline[-1].last_slot < k_det <= offline[-1].last_slot + p.n_ss
+    assert [f.last_slot for f in online if f.warning] == [expected(name)["warn_slot"]]
+    if name == "v6_prior":
+        assert all(f.p_end is not None and f.e10 <= f.e50 <= f.e90 for f in online)
+        assert [f.p_end for f in online] == sorted(f.p_end for f in online)   # P grows with t
