@@ -62,7 +62,7 @@ from .stm32_protocol import (
     speed_payload,
     watchdog_payload,
 )
-from .ttyio import hung_up
+from .ttyio import hung_up, set_low_latency
 
 log = logging.getLogger("hookwatch.stm32")
 
@@ -189,6 +189,7 @@ class Stm32Link:
         self._was_enabled = False
         self._want_enabled = False
         self._open_error_logged = False
+        self.low_latency = False             # the kernel took low-latency mode for the port
 
     @classmethod
     def from_config(cls, cfg) -> Stm32Link:
@@ -223,6 +224,8 @@ class Stm32Link:
             return False
         self._open_error_logged = False
         self._ser = ser
+        # a USB adapter's driver hands received bytes over at once (a pty refuses: logged at debug)
+        self.low_latency = set_low_latency(ser, self.port, log)
         fd = self._fd = ser.fileno()
         os.set_blocking(fd, False)
         self._parser.reset()

@@ -25,6 +25,13 @@ PDU object and a transaction record per request) cost ≈ 0.4 ms of CPU per read
 a station's slot budget (bench/bench_slot_cpu.py); the one exchange this driver needs is ~150
 lines. pyserial opens and configures the port (baud, parity, stop bits).
 
+Real adapters (``docs/protocols/zn-s.md``, "Adapters"): the port is put into low-latency mode
+where the kernel offers it (a pty refuses it: logged once at debug); ``local_echo`` checks and
+discards the echo of our own request that an adapter on a 2-wire bus may hand back before the reply
+(as pymodbus' ``handle_local_echo``; a wrong echo counts as ``garbage``); ``rs485`` puts a board
+UART into the kernel's RS-485 mode (TIOCSRS485, RTS direction control) — a port that refuses it is
+logged as an error once (``rs485_error`` says why) and used as it is.
+
 Channel swapping is the station's business (``meter.swap_channels``), not the driver's.
 Details and timings: ``docs/protocols/zn-s.md``.
 """
@@ -43,7 +50,7 @@ import serial
 from gateway.ports import MeterReading
 
 from .crc import crc16_modbus
-from .ttyio import hung_up
+from .ttyio import hung_up, set_low_latency, set_rs485
 from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, load_map
 
 log = logging.getLogger("hookwatch.meter")
@@ -78,8 +85,15 @@ def build_request(unit: int, fc: int, address: int, count: int) -> bytes:
 
 class ZnsMeter:
     def __init__(self, port: str, meter_map: MeterMap, *, timeout_s: float = DEFAULT_TIMEOUT_S,
-                 swap_channels: bool = False, reopen_interval_s: float = REOPEN_INTERVAL_S):
+                 swap_channels: bool = False, reopen_interval_s: float = REOPEN_INTERVAL_S,
+                 local_echo: bool = False, rs485: Any = None):
         self.port = port
+        self.local_echo = bool(local_echo)
+        #: the ``meter.rs485`` section (enabled, rts_on_send, rts_after_send, delay_*_s) or None
+        self.rs485: Any = rs485 if rs485 is not None and getattr(rs485, "enabled", False) else None
+        self.rs485_error: str | None = None
+        self.low_latency = False
+        self.last_failure: str | None = None   # why the latest read gave nothing (None: it gave a reading)
         self.map = meter_map
         self.timeout_s = float(timeout_s)
         self.swap_channels = bool(swap_channels)      # applied by the station
@@ -97,6 +111,7 @@ class ZnsMeter:
         # the open transaction
         self._pending = False
         self._rx = bytearray()
+        self._echo_left = 0                  # bytes of our own request still to come back (local_echo)
         self._fail: asyncio.Future | None = None
         fc, self._address, self._count = meter_map.read_block
         self._fc = fc
@@ -120,7 +135,9 @@ class ZnsMeter:
         timeout = getattr(meter_cfg, "timeout_s", None)
         return cls(meter_cfg.port, m,
                    timeout_s=DEFAULT_TIMEOUT_S if timeout is None else float(timeout),
-                   swap_channels=bool(getattr(meter_cfg, "swap_channels", False)))
+                   swap_channels=bool(getattr(meter_cfg, "swap_channels", False)),
+                   local_echo=bool(getattr(meter_cfg, "local_echo", False)),
+                   rs485=getattr(meter_cfg, "rs485", None))
 
     # ------------------------------------------------------------------ lifecycle
     async def open(self) -> None:
@@ -175,8 +192,11 @@ class ZnsMeter:
             log.debug("meter %s: open failed: %r", self.port, e)
             return False
         loop = self._loop or asyncio.get_running_loop()
+        self.low_latency = set_low_latency(ser, self.port, log)
         try:
             fd = ser.fileno()
+            if self.rs485 is not None:
+                self._set_rs485(fd)
             os.set_blocking(fd, False)
             loop.add_reader(fd, self._on_readable)
         except (OSError, ValueError) as e:
@@ -187,6 +207,37 @@ class ZnsMeter:
         self._ser, self._fd = ser, fd
         self.connected = True
         return True
+
+    def _set_rs485(self, fd: int) -> None:
+        r = self.rs485
+        err = set_rs485(fd, r.rts_on_send, r.rts_after_send, r.delay_before_send_s, r.delay_after_send_s)
+        if err and err != self.rs485_error:
+            log.error("meter %s: meter.rs485: %s; the port is used without it", self.port, err)
+        self.rs485_error = err
+
+    def settings_text(self) -> str:
+        """Where and how the meter is asked: ``/dev/… at 115200 8N1, unit 1``."""
+        m = self.map
+        return f"{self.port} at {m.baud} {m.bytesize}{self._parity_used}{m.stopbits}, unit {self._unit}"
+
+    def diagnosis(self) -> str | None:
+        """One sentence on why the latest read gave no reading (None after a good one), naming the
+        port and its settings — what a silent meter looks like to an operator."""
+        why, where = self.last_failure, self.settings_text()
+        if why is None:
+            return None
+        if why in ("timeout", "stale"):
+            return f"meter not answering on {where}"
+        if why in ("not_connected", "port_lost"):
+            return f"meter port {self.port} is not open (unplugged, or a wrong path)"
+        if why == "garbage":
+            return (f"the bytes on {where} are no reply of this unit (another unit ID or baud, or the "
+                    "adapter's own echo: meter.local_echo)")
+        if why == "crc":
+            return f"replies on {where} fail their CRC (wiring, termination or baud)"
+        if why == "exception":
+            return f"the meter on {where} answers Modbus exception {self.last_exception_code:02d}"
+        return f"the meter on {where} gives no usable reading ({why})"
 
     def _start_reopen(self) -> None:
         if self._closed or self._loop is None:
@@ -241,6 +292,17 @@ class ZnsMeter:
         if not self._pending:
             self.counters["late_bytes"] += 1
             return
+        if self._echo_left:
+            # the echo of our own request comes first: check and drop it
+            k = min(self._echo_left, len(data))
+            at = len(self._request) - self._echo_left
+            if data[:k] != self._request[at:at + k]:
+                self._fail_now("garbage")
+                return
+            self._echo_left -= k
+            data = data[k:]
+            if not data:
+                return
         rx = self._rx
         rx += data
         fc = self._fc
@@ -269,6 +331,7 @@ class ZnsMeter:
         """One poll. Reading or None (counted); never raises, never takes longer than timeout_s."""
         if not self.connected or self._fd is None:
             self.counters["not_connected"] += 1
+            self.last_failure = "not_connected"
             self._start_reopen()
             return None
         if self._pending:                 # a concurrent caller: one transaction at a time
@@ -280,6 +343,7 @@ class ZnsMeter:
         if self._fd is None:             # lost while draining
             return None
         self._rx.clear()
+        self._echo_left = len(self._request) if self.local_echo else 0
         fut = self._fail = loop.create_future()
         self._pending = True
         timer = None
@@ -298,6 +362,7 @@ class ZnsMeter:
             timer = loop.call_at(loop.time() + self.timeout_s, self._fail_now, "timeout")
             why = await fut
             rtt = time.monotonic() - t0
+            self.last_failure = None if why == "ok" else why
             if why == "ok":
                 return self._result(rtt)
             if why == "exception":
@@ -339,6 +404,7 @@ class ZnsMeter:
         if rtt < self._min_reply_s:
             # faster than the wire can carry request and reply: the late answer to an earlier read
             self.counters["stale_replies"] += 1
+            self.last_failure = "stale"
             return None
         rx = self._rx
         regs = [(rx[i] << 8) | rx[i + 1] for i in range(3, 3 + 2 * self._count, 2)]
@@ -346,10 +412,12 @@ class ZnsMeter:
             ch1, ch2 = self.map.decode(regs)
         except DecodeError as e:
             self.counters["decode_errors"] += 1
+            self.last_failure = "decode"
             log.debug("meter %s: %s", self.port, e)
             return None
         if not (math.isfinite(ch1) and math.isfinite(ch2)):
             self.counters["decode_errors"] += 1
+            self.last_failure = "decode"
             return None
         self.counters["reads_ok"] += 1
         self.last_rtt_s = rtt

@@ -11,6 +11,10 @@ busy-wait of 1.5 ms per reply cost 7–10 % of a core per meter). The tensions a
 the request has completed on the simulated wire, or up to ``SAMPLE_EARLY_S`` (1 ms) before it
 (the plant steps 2 ms; this keeps the event loop's timer granularity out of the reply timing).
 
+A request sent at another baud than the meter's is line noise to a real meter: the pty carries
+the client's line settings (its termios speed, read through the master), and a request written at
+another speed is dropped unanswered (counted as ``wrong_baud``), as on a real bus.
+
 Framing: function codes 3, 4 and 6 are 8 bytes, 16 is 9 + byte count; anything else is framed by
 the 3.5-character silence (1.75 ms above 19200 baud). Frames with a bad CRC or for another unit are
 ignored (counted). Served: FC 3 and 4 (same register image: the map's read block); exceptions
@@ -32,6 +36,7 @@ import logging
 import math
 import os
 import sys
+import termios
 import threading
 import time
 from collections import deque
@@ -158,6 +163,20 @@ class MeterFaults:
     extra_delay_s: float = 0.0      # added to the honest reply time
 
 
+@dataclass
+class AdapterPlay:
+    """The USB–RS-485 adapter between the bus and the gateway, as the scenario plays it.
+
+    ``echo``: the adapter hears its own transmission on the 2-wire bus and hands it back: every
+    byte the gateway writes comes back to it, as it leaves on the wire, before the meter's reply.
+    ``latency_s``: the adapter's latency timer (FTDI: 16 ms by default): a short packet (a reply
+    is 9 bytes, far below the 62 that fill a USB packet) waits in the chip until the timer
+    expires; modelled as its worst case, every received chunk reaching the gateway that much
+    after its last byte. 0: a board UART, or an FTDI whose timer udev set to 1 ms (then 0.001)."""
+    echo: bool = False
+    latency_s: float = 0.0
+
+
 def silence_s(baud: int) -> float:
     """Modbus RTU inter-frame silence t3.5 (fixed 1.75 ms above 19200 baud)."""
     return 3.5 * 11 / baud if baud <= 19200 else 0.00175
@@ -171,11 +190,12 @@ class VirtualMeter:
         # a pty by default; any link with PtyLink's interface (drivers.sim.loopback) may be given
         self.link = link if link is not None else PtyLink(link_path)
         self.faults = MeterFaults()
+        self.adapter = AdapterPlay()
         self.writer = writer or ReplyWriter.shared()
         self._gen = 0                      # bumped on detach: replies of an older pty are dropped
         self.counters = {"requests": 0, "replies": 0, "exceptions": 0, "bad_crc": 0,
                          "other_unit": 0, "dropped": 0, "garbage": 0, "late_replies": 0,
-                         "value_errors": 0}
+                         "value_errors": 0, "echoed_bytes": 0, "wrong_baud": 0}
         self.reply_lateness: deque[float] = deque(maxlen=10_000)   # write time − due time, s
         self._loop: asyncio.AbstractEventLoop | None = None
         self._reading_fd: int | None = None
@@ -186,6 +206,7 @@ class VirtualMeter:
         self._timers: set[asyncio.TimerHandle] = set()
         fc, start, count = meter_map.read_block
         self._start, self._count = start, count
+        self._speed = getattr(termios, f"B{meter_map.baud}", None)
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -248,6 +269,16 @@ class VirtualMeter:
         if not data:
             return
         now = time.monotonic()
+        if not self._client_speed_ok():
+            # sent at another baud: noise on the bus, never a request
+            self.counters["wrong_baud"] += 1
+            self._buf.clear()
+            return
+        if self.adapter.echo:
+            # our bytes come back as they leave on the wire (and through the adapter's timer)
+            due = now + self.map.wire_time_s(len(data)) + max(0.0, self.adapter.latency_s)
+            gen = self._gen
+            self.writer.submit(due, lambda: self._send_echo(data, gen))
         t35 = silence_s(self.map.baud)
         if self._buf and now - self._t_last > t35:
             # the rest of an old frame never came: a new frame starts here
@@ -263,6 +294,18 @@ class VirtualMeter:
             self._silence = None
         if self._buf:
             self._silence = self._ev_loop().call_at(now + t35, self._on_silence)
+
+    def _client_speed_ok(self) -> bool:
+        """The client set the meter's baud on its end of the pty (True where that cannot be read:
+        a loopback link, or a rate termios has no constant for)."""
+        fd = self.link.master
+        if self._speed is None or fd is None or not isinstance(self.link, PtyLink):
+            return True
+        try:
+            attrs = termios.tcgetattr(fd)
+        except (termios.error, OSError):
+            return True
+        return attrs[5] == self._speed
 
     def _expected_len(self) -> int | None:
         b = self._buf
@@ -373,9 +416,17 @@ class VirtualMeter:
                     body += int(r).to_bytes(2, "big")
                 reply = with_crc(bytes(body))
         due = (t_req_end + self.map.turnaround_s + self.map.wire_time_s(len(reply))
-               + max(0.0, float(self.faults.extra_delay_s)))
+               + max(0.0, float(self.faults.extra_delay_s)) + max(0.0, self.adapter.latency_s))
         gen = self._gen
         self.writer.submit(due, lambda: self._send(reply, due, gen))
+
+    def _send_echo(self, data: bytes, gen: int) -> None:
+        """On the writer thread: the adapter hands our own request back."""
+        with self.writer.lock:
+            if gen != self._gen:
+                return
+            n = self.link.write(data)
+        self.counters["echoed_bytes"] += max(0, n)
 
     def _send(self, reply: bytes, due: float, gen: int) -> None:
         """On the writer thread, at ``due``."""

@@ -48,7 +48,7 @@ FAULT_KINDS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
 FAULT_KEYS = ("at_s", "duration_s", "fault", "note")
 TOP_KEYS = ("description", "seed", "duration_s", "meter", "stm32", "plant", "method", "control",
             "faults")
-METER_KEYS = ("map", "baud", "unit_id")
+METER_KEYS = ("map", "baud", "unit_id", "echo", "latency_timer_ms")
 STM32_KEYS = ("watchdog_s", "baud")
 PLANT_TOP = ("grade", "t_set", "time_scale", "step_s", "theta_deg", "trace_every_s", "threaded")
 
@@ -129,6 +129,8 @@ class Scenario:
     meter_map: str | None = None        # path of the register map (None: the packaged default)
     baud: int | None = None
     unit_id: int | None = None
+    echo: bool = False                  # the adapter hands our own request back (2-wire bus)
+    latency_timer_ms: float = 0.0       # the adapter's latency timer (FTDI default 16; 0: a UART)
     watchdog_s: float = 0.2
     stm32_baud: int = 115200
     plant: PlantParams = field(default_factory=PlantParams)
@@ -343,6 +345,10 @@ def scenario_from_dict(data: Any, path: str = "<scenario>") -> Scenario:
     unit = meter.get("unit_id")
     if unit is not None:
         unit = _number(where, "meter.unit_id", unit, 1.0, True, 247.0, integer=True)
+    echo = meter.get("echo", False)
+    if not isinstance(echo, bool):
+        raise _bad(where, "meter.echo", echo, "true or false")
+    latency = _number(where, "meter.latency_timer_ms", meter.get("latency_timer_ms", 0.0), 0.0, True, 255.0)
     stm = _mapping(where, "stm32", data.get("stm32"))
     _unknown(where, "stm32.", stm, STM32_KEYS)
     wd = _number(where, "stm32.watchdog_s", stm.get("watchdog_s", 0.2), WATCHDOG_MS_MIN / 1000.0,
@@ -354,7 +360,8 @@ def scenario_from_dict(data: Any, path: str = "<scenario>") -> Scenario:
     control = _control(where, _mapping(where, "control", data.get("control")))
     faults = _faults(where, data.get("faults"))
     return Scenario(path=path, seed=seed, description=desc, duration_s=duration, meter_map=mpath,
-                    baud=baud, unit_id=unit, watchdog_s=wd, stm32_baud=sbaud, plant=plant, faults=faults,
+                    baud=baud, unit_id=unit, echo=echo, latency_timer_ms=latency,
+                    watchdog_s=wd, stm32_baud=sbaud, plant=plant, faults=faults,
                     method=method, control=control)
 
 

@@ -153,6 +153,8 @@ class SimStation:
             self.plant.trace_enabled = True
         self.t0 = self.clock()
         self.meter = VirtualMeter(self.meter_map, self._source, os.path.join(self.link_dir, "meter"))
+        self.meter.adapter.echo = self.scenario.echo
+        self.meter.adapter.latency_s = self.scenario.latency_timer_ms / 1000.0
         self.stm32 = VirtualStm32(Stm32Firmware(self.scenario.watchdog_s),
                                   LiveMotor(self.plant, self.now),
                                   os.path.join(self.link_dir, "stm32"),

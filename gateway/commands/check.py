@@ -1,12 +1,16 @@
 """`hookwatch check PATH...`: validate station files and fleet folders and check that they can
 work before anything runs (bus time at the configured baud, clashes across the fleet, physical
-sense). Exit 0: no errors (warnings allowed); 1: errors; 2: usage (no such path, no stations)."""
+sense). ``--probe`` then asks the hardware and services themselves (gateway/commission/probe.py:
+the meter through pymodbus' client, the STM32, the brokers, the listening ports; ``--scan`` finds
+a meter's baud and unit ID). Exit 0: no errors (warnings allowed); 1: errors or a failed probe;
+2: usage (no such path, no stations)."""
 from __future__ import annotations
 
 import os
 import sys
 
 from ..cli import CliError
+from ..commission.probe import probe_station
 from ..config import cross_issues, station_files, validate_fleet, validate_station
 from ..config.checks import budget_text, bus_budget, feasibility
 
@@ -24,6 +28,13 @@ def add_arguments(ap):
                     help="skip the checks that depend on this machine (serial ports present, folders "
                          "writable, secrets set): for checking a configuration elsewhere than where it runs")
     ap.add_argument("-q", "--quiet", action="store_true", help="print problems and the summary only")
+    ap.add_argument("--probe", action="store_true",
+                    help="also ask the hardware and services: read both meter channels once (pymodbus' "
+                         "client), PING the STM32, connect and log in to each broker, check that the "
+                         "Modbus TCP, console and metrics ports are free; stop the running gateway first")
+    ap.add_argument("--scan", action="store_true",
+                    help="with --probe: when the meter does not answer, try the usual bauds and unit "
+                         "IDs and say where it answered")
 
 
 def _collect(paths):
@@ -129,9 +140,29 @@ def run(args) -> int:
     n = len(loaded)
     print(f"{n} station{'s' * (n != 1)}: {n - bad_stations} OK, {bad_stations} with errors; "
           f"{n_err} error{'s' * (n_err != 1)}, {n_warn} warning{'s' * (n_warn != 1)}", file=out)
-    if n_err or bad_stations or (args.strict and n_warn):
+    probe_failed = _probe(loaded, args, out) if args.probe or args.scan else 0
+    if n_err or bad_stations or probe_failed or (args.strict and n_warn):
         return 1
     return 0
+
+
+def _probe(loaded, args, out) -> int:
+    """Probe every station whose file is valid; the failures' count."""
+    failed = 0
+    seen: set = set()
+    for ld in loaded:
+        name = f"station {ld.name}" if ld.name else ld.path
+        if ld.cfg is None:
+            print(f"probe {name}: skipped (the file has errors)", file=out)
+            continue
+        print(f"probe {name}:", file=out)
+        for f in probe_station(ld.cfg, scan=args.scan, seen=seen):
+            failed += not f.ok
+            if f.ok and args.quiet:
+                continue
+            print(f"  {f}", file=out)
+    print(f"probe: {'all OK' if not failed else f'{failed} failed'}", file=out)
+    return failed
 
 
 def _counts(e: int, w: int) -> str:

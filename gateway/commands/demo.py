@@ -35,7 +35,7 @@ from ..northbound import schema as mqtt_schema
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
-from ..station.console import ConsoleOutput
+from ..station.terminal import TerminalOutput
 
 HELP = "run hookwatch on its built-in default: a simulated loom station through a compressed needle life"
 DESCRIPTION = HELP + (". Starts `hookwatch sim` on the demo scenario, runs the station against its "
@@ -180,15 +180,15 @@ def _demo_console(cfg, work: str, port: int):
     urls = console.start()
     if not urls:
         return None, None
-    print(f"console : {urls[0]}  (reading is open; to acknowledge log in as demo / {password})", flush=True)
-    return console, urls[0]
+    url = f"{urls[0].rstrip('/')}/#/station/{cfg.station.id}"
+    print(f"console : {url}  (μ(t) live; reading is open; to acknowledge log in as demo / {password})", flush=True)
+    return console, url
 
 
 def run(args) -> int:
     import dataclasses
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     # as in `hookwatch run`: the slot loop must not wait 5 ms for the GIL behind the console,
     # the PLC server or paho
     sys.setswitchinterval(0.0005)
@@ -243,7 +243,7 @@ def run(args) -> int:
 
         async def main():
             stop = asyncio.Event()
-            outs: list[Output] = [ConsoleOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
+            outs: list[Output] = [TerminalOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
             st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
             if console is not None:
                 st.outputs.append(console.output_for(st))
@@ -266,7 +266,7 @@ def run(args) -> int:
             console.stop()
         _stop_proc(broker)
     if not st.results:
-        print("hookwatch demo: no test was completed", file=sys.stderr)
+        print(f"hookwatch demo: no test was completed (files under {work})", file=sys.stderr)
         return 1
     res = st.results[-1]
     m = res["method"]
@@ -274,24 +274,32 @@ def run(args) -> int:
     log_path = os.path.join(test_dir, "log.csv.gz")
     off = analyze_file(log_path).as_dict()
     same = off == m
-    print()
-    print(f"test {res['test_id']}: {res['test_status']} ({res['end_reason']})")
-    print(f"  online : status {m['status']}, μ_ss {m['mu_ss']}, μ_th {m['mu_th']}, t_life {m['t_life']} s, "
-          f"valid {m['n_valid']}/{m['n_slots']} slots")
-    print(f"  offline: `hookwatch analyze {log_path}` gives "
-          f"{'the identical result' if same else 'A DIFFERENT RESULT: ' + json.dumps(off)}")
     onset = None
     try:
         with open(links["truth"]) as f:
             onset = json.load(f).get("onset_run_s")
     except (OSError, ValueError):
         pass
+    completed = res["test_status"] == "completed"
     print()
-    print("  " + _plain_words(m, ended, onset, float(st.method_values.get("tau", 60.0)), st.ts))
-    print(f"  recorded: {test_dir}/ (log.csv.gz, log.meta.yaml, events.jsonl, result.json)")
+    print(f"test {res['test_id']}: " + _plain_words(m, ended, onset, float(st.method_values.get("tau", 60.0)),
+                                                     st.ts, same, completed, res.get("end_reason")))
+    print(f"  online : {m['status']}, μ_ss {_num(m['mu_ss'], 4)}, μ_th {_num(m['mu_th'], 4)}, "
+          f"t_life {_num(m['t_life'], 1)} s, valid {m['n_valid']} of {m['n_slots']} slots")
+    print(f"  offline: hookwatch analyze {log_path}"
+          f"\n           {'gives the identical result' if same else 'GIVES A DIFFERENT RESULT: ' + json.dumps(off)}")
+    print(f"  records: {test_dir}/ (log.csv.gz, log.meta.yaml, events.jsonl, result.json)")
     fig = _fig7(test_dir, os.path.join(work, "report"))
     print(f"  Fig. 7 : {fig}" if fig else "  Fig. 7 : not written (see hookwatch report)")
+    print(f"  files  : everything the demo wrote is under {work} (remove it with: rm -r {work})")
+    if not completed:
+        print(f"hookwatch demo: the test did not complete ({res.get('end_reason')})", file=sys.stderr)
+        return 1
     return 0 if same else 1
+
+
+def _num(v: float | None, digits: int) -> str:
+    return "–" if v is None else f"{v:.{digits}f}"
 
 
 class _EolWatcher(_EndWatcher):
@@ -305,20 +313,24 @@ class _EolWatcher(_EndWatcher):
             self.ended["k_detect"] = ev.k
 
 
-def _plain_words(m: dict, ended: dict, onset: float | None, tau: float, ts: float) -> str:
-    """What happened, in one sentence, from the real numbers."""
+def _plain_words(m: dict, ended: dict, onset: float | None, tau: float, ts: float, same: bool,
+                 completed: bool, end_reason: str | None) -> str:
+    """What happened, in one sentence, from the real numbers (rounded as a person reads them)."""
+    agrees = "offline analysis of the recorded log agrees" if same else "OFFLINE ANALYSIS DISAGREES"
     t_life = m.get("t_life")
+    if not completed:
+        return f"the test did not complete ({end_reason}); {agrees}"
     if t_life is None:
         return (f"no end of life within the test (status {m.get('status')})"
-                + (f"; simulated wear onset {onset:.1f} s" if onset is not None else ""))
-    parts = [f"end of life at {t_life:.1f} s after the start"]
-    if onset is not None:
-        parts.append(f"simulated wear onset {onset:.1f} s")
+                + (f"; simulated wear onset {onset:.1f} s" if onset is not None else "") + f"; {agrees}")
+    parts = [f"the hook reached its end of life {t_life:.1f} s after the start"]
     k = ended.get("k_detect")
     if k is not None:
         t_det = (k + 1) * ts
-        parts.append(f"detected {t_det - t_life:.0f} s later (at {t_det:.1f} s), as the {tau:g} s "
-                     f"persistence requires")
+        parts.append(f"detected {t_det - t_life:.1f} s later (the {tau:g} s persistence)")
+    if onset is not None:
+        parts.append(f"the simulated wear began to accelerate at {onset:.1f} s")
+    parts.append(agrees)
     return "; ".join(parts)
 
 

@@ -73,7 +73,6 @@ def run(args) -> int:
 
     logging.basicConfig(level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     count = getattr(args, "count", None)
     try:
         if args.seed is not None and args.seed < 0:

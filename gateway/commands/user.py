@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import getpass
+import grp
 import os
+import stat
 import sys
 
 from ..cli import CliError
@@ -37,6 +39,31 @@ def _users_file(args) -> str:
     return c.console.users_file or os.path.join(c.recorder.dir, "console-users.json")
 
 
+#: the service's group (deploy/sysusers.d): the users file must be readable by it
+SERVICE_GROUP = "hookwatch"
+
+
+def share_with_service(path: str) -> str | None:
+    """Make the users file readable by the service whoever ran the command: group = the service
+    group where it exists, else the group of the folder the file is in (the service's state folder);
+    mode 0640 (never world-readable: the file holds password hashes). Returns a warning or None."""
+    gid: int | str = SERVICE_GROUP
+    try:
+        try:
+            gid = grp.getgrnam(SERVICE_GROUP).gr_gid
+        except KeyError:
+            gid = os.stat(os.path.dirname(os.path.abspath(path))).st_gid
+        st = os.stat(path)
+        if st.st_gid != gid:
+            os.chown(path, -1, gid)   # root may; a member of the group may; else PermissionError
+        if stat.S_IMODE(st.st_mode) != 0o640:
+            os.chmod(path, 0o640)
+    except OSError as e:
+        return (f"{path}: could not give it to group {gid} with mode 0640 "
+                f"({e.strerror}); the service may not read it: chgrp {SERVICE_GROUP} {path}; chmod 640 {path}")
+    return None
+
+
 def run(args) -> int:
 
     path = _users_file(args)
@@ -50,6 +77,9 @@ def run(args) -> int:
         if args.action == "remove":
             if not auth.remove_user(path, args.name):
                 raise CliError(f"no user {args.name!r} in {path}", 1)
+            warning = share_with_service(path)
+            if warning:
+                print(f"warning: {warning}", file=sys.stderr)
             print(f"user {args.name} removed from {path}")
             return 0
         if args.password_stdin:
@@ -61,5 +91,8 @@ def run(args) -> int:
         new = auth.add_user(path, args.name, pw)
     except auth.UsersError as e:
         raise CliError(str(e), 1) from None
+    warning = share_with_service(path)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
     print(f"user {args.name} {'added to' if new else 'updated in'} {path}")
     return 0

@@ -67,7 +67,7 @@ def render() -> str:
         "config/stations/loom-02.yaml:14: meter.baud: 'fast' is not an integer; allowed: one of "
         + ", ".join(str(b) for b in S.METER_BAUDS) + ", or null",
         "config/stations/loom-02.yaml:9: meter.buad: unknown key; did you mean 'baud'? (keys of "
-        "meter: port, map, baud, unit_id, parity, timeout_s, swap_channels)",
+        "meter: port, map, baud, unit_id, parity, timeout_s, swap_channels, local_echo, rs485)",
         "```",
         "",
         "A minimal station file (everything else from `fleet.yaml` or the defaults below):",

@@ -159,6 +159,23 @@ class StationInfo:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Rs485Config:
+    enabled: bool = key(False, "put the meter's port into the kernel's RS-485 mode (TIOCSRS485): the "
+                        "UART driver switches the transceiver's direction with RTS around each request. "
+                        "Only for a board UART wired to an RS-485 transceiver (e.g. a Raspberry Pi or "
+                        "i.MX UART); a USB–RS-485 adapter switches direction itself — leave this off",
+                        kind="bool")
+    rts_on_send: str = key("high", "RTS level while sending (the transceiver's DE is usually active "
+                           "high)", kind="enum", choices=("high", "low"))
+    rts_after_send: str = key("low", "RTS level after sending (receiving)", kind="enum",
+                              choices=("high", "low"))
+    delay_before_send_s: float = key(0.0, "RTS raised this long before the first bit", kind="float",
+                                     unit="s", lo=0.0, hi=0.1)
+    delay_after_send_s: float = key(0.0, "RTS kept this long after the last bit", kind="float",
+                                    unit="s", lo=0.0, hi=0.1)
+
+
+@dataclass(frozen=True, kw_only=True)
 class MeterConfig:
     port: str = key(doc="serial port of the USB–RS-485 adapter on the ZN-S tension meter's bus",
                     kind="port", example="/dev/hookwatch/loom-01-meter")
@@ -176,6 +193,10 @@ class MeterConfig:
                            lo=0.0, hi=1.0, lo_open=True)
     swap_channels: bool = key(False, "true when the meter's channel 1 is the outgoing (T2) side, "
                               "i.e. the yarn runs through the meter the other way round", kind="bool")
+    local_echo: bool = key(False, "the adapter hears its own transmission on the 2-wire bus (echo "
+                           "on, or a transceiver whose receiver stays enabled): the echo of each "
+                           "request is checked and discarded before the reply", kind="bool")
+    rs485: Rs485Config = section(Rs485Config, "the kernel's RS-485 mode, for a board UART")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -263,12 +284,32 @@ class ForecastConfig:
 
 
 @dataclass(frozen=True, kw_only=True)
+class RetentionConfig:
+    max_age_days: float | None = key(None, "completed tests older than this are pruned (whole test "
+                                     "folders, oldest first)", kind="float", unit="d", lo=1.0, hi=36500.0,
+                                     nullable=True, null_means="no age limit")
+    max_total_mb: float | None = key(None, "the station's records may take at most this much disk; "
+                                     "beyond it the oldest completed tests are pruned", kind="float",
+                                     unit="MB", lo=1.0, hi=1e9, nullable=True, null_means="no size budget")
+    min_free_percent: float = key(10.0, "while the records' file system has less free space than this, "
+                                  "the oldest completed tests are pruned (0: off)", kind="float",
+                                  unit="%", lo=0.0, hi=90.0)
+    keep_last: int = key(20, "the newest this many completed tests of the station are never pruned",
+                         kind="int", lo=1, hi=100000)
+    interval_s: float = key(600.0, "how often the records are checked (also after every test end)",
+                            kind="float", unit="s", lo=10.0, hi=86400.0)
+
+
+@dataclass(frozen=True, kw_only=True)
 class RecorderConfig:
     dir: str = key("/var/lib/hookwatch/records", "where tests are recorded: "
                    "`<dir>/<station>/<test_id>/` (log.csv.gz, log.meta.yaml, events.jsonl, result.json)",
                    kind="path")
     flush_interval_s: float = key(1.0, "the log is flushed to disk this often; a power cut loses at "
                                   "most this much", kind="float", unit="s", lo=0.05, hi=60.0)
+    retention: RetentionConfig = section(RetentionConfig, "record retention: which completed tests are "
+                                         "pruned so that the disk never fills (never the running test, "
+                                         "never one whose result has not left the outbox)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -326,6 +367,11 @@ class MqttConfig(BrokerConfig):
     password_file: str | None = key(None, "file whose first line is the broker password (mode "
                                     "0600, owned by the hookwatch user)", kind="path",
                                     nullable=True, null_means="no password")
+    reply_prefix: str | None = key(None, "MQTT 5: a command's Response Topic is obeyed only below "
+                                   "this topic (`<reply_prefix>/…`); any other goes to `reply` and is "
+                                   "counted, so a client allowed only `cmd/…` cannot make the gateway "
+                                   "publish elsewhere", kind="topic", nullable=True,
+                                   null_means="`<base>/reply` (the station's own reply topic)")
     telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
                                       kind="float", unit="s", lo=0.1, hi=3600.0)
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
@@ -445,10 +491,29 @@ class ConsoleConfig:
                                   choices=("local", "all", "none"))
     session_ttl_s: float = key(28800.0, "a login lasts this long without activity", kind="float",
                                unit="s", lo=60.0, hi=7 * 86400.0)
-    lockout_attempts: int = key(5, "failed logins of one user or client address before a lockout",
-                                kind="int", lo=1, hi=100)
-    lockout_s: float = key(300.0, "how long a lockout lasts", kind="float", unit="s", lo=1.0,
-                           hi=86400.0)
+    lockout_attempts: int = key(5, "failed logins of one user from one client address (within "
+                                "lockout_s) before that pair is locked out; another address is "
+                                "not affected", kind="int", lo=1, hi=100)
+    lockout_s: float = key(300.0, "how long a lockout lasts (and the window failures are "
+                           "counted in)", kind="float", unit="s", lo=1.0, hi=86400.0)
+    login_failures_per_address: int = key(20, "failed logins from one client address, any user "
+                                           "(within lockout_s), before the address is locked out",
+                                           kind="int", lo=1, hi=10000)
+    allowed_hosts: tuple[str, ...] = key((), "host names the console answers in the HTTP Host "
+                                         "header besides the addresses it listens on (and "
+                                         "`localhost` on a loopback address); other names get "
+                                         "HTTP 421 (DNS rebinding)", kind="str_list")
+    report_jobs: int = key(1, "report processes (Fig. 7 of a test, campaign reports) running at "
+                           "once", kind="int", lo=1, hi=16)
+    report_queue: int = key(8, "report requests waiting for a process; beyond, HTTP 503 with "
+                            "Retry-After (requests for the same figure share one process)",
+                            kind="int", lo=0, hi=256)
+    stream_connects_per_address: int = key(30, "live-stream (SSE) connects per minute from one "
+                                           "client address; beyond, HTTP 429 with Retry-After",
+                                           kind="int", lo=1, hi=10000, unit="1/min")
+    stream_connects_total: int = key(120, "live-stream (SSE) connects per minute from all "
+                                     "clients together; beyond, HTTP 429 with Retry-After",
+                                     kind="int", lo=1, hi=100000, unit="1/min")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -12,9 +12,15 @@ be raised later without invalidating existing users.
 
 Sessions live in memory only (a gateway restart logs everyone out): a random 256-bit token in an
 HttpOnly, SameSite=Strict cookie (Secure under TLS), plus a separate random CSRF token that every
-POST must echo in the ``X-CSRF-Token`` header. Failed logins are counted per user name and per
-client address; after ``lockout_attempts`` failures within ``lockout_s`` further attempts are
-refused for ``lockout_s`` without checking the password.
+POST must echo in the ``X-CSRF-Token`` header.
+
+Lockout (:meth:`Lockout.attempt`): every login attempt is counted *before* its password is
+checked, in the same step as the check of the lockout (nothing runs in between), so a burst of
+concurrent logins gets no more tries than a sequence. Attempts are counted per (client address,
+user name): ``lockout_attempts`` failures within ``lockout_s`` lock that pair for ``lockout_s`` —
+a stranger at another address cannot lock the operator out; and per client address for any
+user: ``login_failures_per_address`` failures lock the address. A successful login takes its
+own count back and clears its pair.
 """
 from __future__ import annotations
 
@@ -204,3 +210,33 @@ class Lockout:
     def succeeded(self, *keys: str) -> None:
         for k in keys:
             self._fail.pop(k, None)
+
+    def attempt(self, limits: dict[str, int]) -> float:
+        """Check and count one attempt in one step: the seconds left of the longest lockout
+        among the keys (nothing counted), or 0 after counting the attempt as a failure of every
+        key (a key with ``n`` failures within the window is locked — the n-th attempt itself
+        still gets its answer). :meth:`forgive` takes it back when the password was right."""
+        left = self.locked(*limits)
+        if left > 0:
+            return left
+        now = self.clock()
+        if len(self._fail) > self.max_keys:
+            self._fail.clear()
+        for k, n in limits.items():
+            lst = [t for t in self._fail.get(k, []) if now - t < self.lockout_s]
+            lst.append(now)
+            self._fail[k] = lst
+            if len(lst) >= n:
+                self._until[k] = now + self.lockout_s
+        return 0.0
+
+    def forgive(self, clear: tuple[str, ...] = (), one: tuple[str, ...] = ()) -> None:
+        """A login succeeded: forget the failures (and lockout) of ``clear``, and the one
+        attempt counted for each of ``one``."""
+        for k in clear:
+            self._fail.pop(k, None)
+            self._until.pop(k, None)
+        for k in one:
+            lst = self._fail.get(k)
+            if lst:
+                lst.pop()

@@ -27,6 +27,7 @@ import hmac
 import ipaddress
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -39,11 +40,16 @@ from typing import Any
 
 from aiohttp import web
 
+from ..northbound.cmdparse import intake, rejected_event_data
+from ..ports import StationView
+from ..ratelog import RateLog
 from ..records import Command, CommandKind
-from ..station.commands import CODE, Rejection, command_from_mapping
-from ..threadloop import ThreadLoop
+from ..station import commands as C
+from ..station.commands import CODE, Rejection
+from ..threadloop import ThreadLoop, call_soon_on, submit_to
 from . import auth
 from .feed import ConsoleOutput, StationFeed, series_from_log
+from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
 
 log = logging.getLogger("hookwatch.console")
 
@@ -58,6 +64,8 @@ WRITE_TIMEOUT_S = 10.0
 SEND_BUFFER = 16 * 1024
 #: most live (SSE) clients at once
 MAX_CLIENTS = 64
+#: deepest JSON nesting ([ and {) a request body may have
+MAX_JSON_DEPTH = 16
 #: how often the console drains the hand-overs and sends changes
 TICK_S = 0.25
 COOKIE = "hw_session"
@@ -69,7 +77,9 @@ DOWNLOADS = {"log.csv.gz": "application/gzip", "log.meta.yaml": "text/yaml; char
 class ConsoleSettings:
     def __init__(self, *, listen=("127.0.0.1:8080",), cert_file=None, key_file=None,
                  users_file: str, read_without_login="local", session_ttl_s=28800.0,
-                 lockout_attempts=5, lockout_s=300.0):
+                 lockout_attempts=5, lockout_s=300.0, login_failures_per_address=20,
+                 allowed_hosts=(), report_jobs=1, report_queue=8, stream_connects_per_address=30,
+                 stream_connects_total=120):
         self.listen = tuple(listen)
         self.cert_file, self.key_file = cert_file, key_file
         self.users_file = users_file
@@ -77,6 +87,12 @@ class ConsoleSettings:
         self.session_ttl_s = float(session_ttl_s)
         self.lockout_attempts = int(lockout_attempts)
         self.lockout_s = float(lockout_s)
+        self.login_failures_per_address = int(login_failures_per_address)
+        self.allowed_hosts = tuple(allowed_hosts)
+        self.report_jobs = int(report_jobs)
+        self.report_queue = int(report_queue)
+        self.stream_connects_per_address = int(stream_connects_per_address)
+        self.stream_connects_total = int(stream_connects_total)
 
     @classmethod
     def from_config(cls, cfg) -> ConsoleSettings:
@@ -85,7 +101,11 @@ class ConsoleSettings:
         return cls(listen=c.listen, cert_file=c.tls.cert_file, key_file=c.tls.key_file,
                    users_file=users, read_without_login=c.read_without_login,
                    session_ttl_s=c.session_ttl_s, lockout_attempts=c.lockout_attempts,
-                   lockout_s=c.lockout_s)
+                   lockout_s=c.lockout_s, login_failures_per_address=c.login_failures_per_address,
+                   allowed_hosts=c.allowed_hosts, report_jobs=c.report_jobs,
+                   report_queue=c.report_queue,
+                   stream_connects_per_address=c.stream_connects_per_address,
+                   stream_connects_total=c.stream_connects_total)
 
 
 def parse_listen(addr: str) -> tuple[str, int]:
@@ -124,6 +144,11 @@ class ConsoleServer:
         self.tl = ThreadLoop("console")
         self.sessions = auth.Sessions(settings.session_ttl_s)
         self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
+        self.hosts = HostAllow(settings.allowed_hosts, (parse_listen(a)[0] for a in settings.listen))
+        self.reports = ReportPool(settings.report_jobs, settings.report_queue)
+        self.stream_rate = RateBound(settings.stream_connects_per_address)
+        self.stream_rate_all = RateBound(settings.stream_connects_total)
+        self.refusals = LogLimit(log)
         self.clients: dict[str, set[_Client]] = {n: set() for n in stations}
         self.urls: list[str] = []
         self.dropped_clients = 0
@@ -131,14 +156,13 @@ class ConsoleServer:
         self._runner: web.AppRunner | None = None
         self._tick_task: asyncio.Task | None = None
         self._cache = tempfile.mkdtemp(prefix="hookwatch-console-")
-        self._fig_locks: dict[str, asyncio.Lock] = {}
         self._campaign_busy = False
         self._campaign_n = 0
         self._rebuilding: set[str] = set()
         self.error: str | None = None
 
     # ----------------------------------------------------------------- lifecycle (any thread)
-    def output_for(self, station) -> ConsoleOutput:
+    def output_for(self, station: StationView) -> ConsoleOutput:
         """The station output that feeds this console (one per Station object)."""
         return ConsoleOutput(self.feeds[station.id], station)
 
@@ -179,7 +203,8 @@ class ConsoleServer:
     # ----------------------------------------------------------------- on the console loop
     async def _start(self) -> list[str]:
         app = self.make_app()
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0,
+                                     logger=ServerLog(log, self.refusals))
         await self._runner.setup()
         ctx = None
         if self.settings.cert_file and self.settings.key_file:
@@ -203,6 +228,7 @@ class ConsoleServer:
     async def _stop(self) -> None:
         if self._tick_task is not None:
             self._tick_task.cancel()
+        self.reports.cancel_all()
         for cs in self.clients.values():
             for c in list(cs):
                 c.dropped = True
@@ -312,12 +338,28 @@ class ConsoleServer:
             return True
         return self._session(request) is not None
 
+    def _host_ok(self, request) -> bool:
+        sock = request.transport.get_extra_info("sockname") if request.transport else None
+        return self.hosts.allowed(request.headers.get("Host"), sock[0] if sock else None)
+
+    def _refuse(self, request, status: int, kind: str, reason: str,
+                headers: dict | None = None) -> web.Response:
+        """A client error: a short answer, and one WARNING line per kind a minute (no traceback)."""
+        self.refusals.warn(kind, "%s %s from %s refused (%d): %s", request.method,
+                           _cut(request.path), request.remote, status, reason)
+        return _err(status, reason, headers)
+
     @web.middleware
     async def _guard(self, request, handler):
         path = request.path
+        if not self._host_ok(request):
+            self.refusals.warn("host", "request for host %r from %s refused (421): not the console's "
+                               "address nor in console.allowed_hosts", _cut(request.headers.get("Host", "")),
+                               request.remote)
+            return _err(421, "this console does not answer for that host name (console.allowed_hosts)")
         if request.method == "POST":
             if request.content_length is not None and request.content_length > MAX_BODY:
-                return _err(413, f"request body larger than {MAX_BODY} bytes")
+                return self._refuse(request, 413, "too large", f"request body larger than {MAX_BODY} bytes")
             origin = request.headers.get("Origin")
             if origin and origin.split("://", 1)[-1] != request.host:
                 return _err(403, "cross-origin request refused")
@@ -339,16 +381,26 @@ class ConsoleServer:
         return resp
 
     async def _json_body(self, request) -> dict:
+        """The JSON object of a request; a client error (logged once a minute per kind) as
+        :class:`_HttpError` with 400, 413 or 415 — never a 500."""
+        def bad(status: int, kind: str, reason: str) -> _HttpError:
+            self.refusals.warn(kind, "%s %s from %s refused (%d): %s", request.method,
+                               _cut(request.path), request.remote, status, reason)
+            return _HttpError(status, reason)
+        if request.content_type != "application/json":
+            raise bad(415, "content type", "request body must be application/json")
         try:
             body = await request.read()
         except web.HTTPRequestEntityTooLarge:
-            raise _HttpError(413, f"request body larger than {MAX_BODY} bytes") from None
+            raise bad(413, "too large", f"request body larger than {MAX_BODY} bytes") from None
+        if _json_depth(body) > MAX_JSON_DEPTH:
+            raise bad(400, "deep JSON", f"JSON nested deeper than {MAX_JSON_DEPTH} levels")
         try:
             data = json.loads(body.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError):
-            raise _HttpError(400, "request body is not JSON") from None
+        except (UnicodeDecodeError, ValueError, RecursionError):
+            raise bad(400, "bad JSON", "request body is not JSON") from None
         if not isinstance(data, dict):
-            raise _HttpError(400, "request body must be a JSON object")
+            raise bad(400, "bad JSON", "request body must be a JSON object")
         return data
 
     # ----------------------------------------------------------------- handlers
@@ -383,14 +435,19 @@ class ConsoleServer:
                 or len(pw) > auth.PASSWORD_MAX:
             return _err(400, "user and password required")
         remote = request.remote or "?"
-        left = self.lockout.locked("u:" + user, "a:" + remote)
+        # checked and counted in one step (no await in between): a burst gets no more tries
+        pair, addr = f"ua:{remote} {user}", f"a:{remote}"
+        left = self.lockout.attempt({pair: self.settings.lockout_attempts,
+                                     addr: self.settings.login_failures_per_address})
         if left > 0:
-            log.warning("console: login of %r from %s refused: locked out (%.0f s left)", user, remote, left)
+            self.refusals.warn("locked out " + remote, "login of %r from %s refused: locked out "
+                               "(%.0f s left)", user, remote, left)
             return _err(429, f"too many failed logins; try again in {left:.0f} s",
                         headers={"Retry-After": str(int(left) + 1)})
         try:
             users = auth.load_users(self.settings.users_file)
         except auth.UsersError as e:
+            self.lockout.forgive(one=(pair, addr))
             log.error("console: %s", e)
             return _err(500, "users file unreadable; see the gateway log")
         entry = users.get(user)
@@ -402,10 +459,9 @@ class ConsoleServer:
         else:
             ok = await loop.run_in_executor(None, auth.verify_password, pw, entry)
         if not ok:
-            self.lockout.failed("u:" + user, "a:" + remote)
-            log.warning("console: failed login of %r from %s", user, remote)
+            self.refusals.warn("failed login " + remote, "failed login of %r from %s", user, remote)
             return _err(401, "wrong user or password")
-        self.lockout.succeeded("u:" + user, "a:" + remote)
+        self.lockout.forgive(clear=(pair,), one=(addr,))
         self.sessions.drop(request.cookies.get(COOKIE))
         token, s = self.sessions.create(user, remote)
         log.info("console: %s logged in from %s", user, remote)
@@ -432,6 +488,12 @@ class ConsoleServer:
             f = self._feed(request)
         except _HttpError as e:
             return _err(e.status, e.reason)
+        # connect churn is bounded per address and in all: each connect costs a snapshot
+        wait = self.stream_rate.take(request.remote or "?") or self.stream_rate_all.take()
+        if wait > 0:
+            return self._refuse(request, 429, "stream rate", "too many live-stream connects; "
+                                f"try again in {math.ceil(wait)} s",
+                                headers={"Retry-After": str(math.ceil(wait))})
         if sum(len(c) for c in self.clients.values()) >= MAX_CLIENTS:
             return _err(503, f"too many live clients (at most {MAX_CLIENTS})")
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",
@@ -459,31 +521,35 @@ class ConsoleServer:
                 request.transport.close()
         return resp
 
+    #: refused commands: one log line per kind per minute, with the count (gateway/ratelog.py)
+    _refusal_log = RateLog(log)
+
     async def h_command(self, request):
+        """A command from the console: the body through the one bounded intake
+        (gateway/northbound/cmdparse.py: size, depth, strict types, bounded strings), then the
+        station's validation through its refusal gate (bounded ``command_rejected`` events)."""
         try:
             f = self._feed(request)
-            data = await self._json_body(request)
+            body = await request.read()
         except _HttpError as e:
             return _err(e.status, e.reason)
+        except web.HTTPRequestEntityTooLarge:
+            return _err(413, f"request body larger than {MAX_BODY} bytes")
         s = self._session(request)
         if s is None:
             return _err(401, "log in first")
-        kind = data.pop("command", None)
         source = f"console:{s.user}"
-        if not isinstance(kind, str):
-            return self._reply(f, s, "?", Rejection(False, "command: missing (start, stop, ack, setpoint, "
-                                                    "hook_replaced)", None, CODE["BAD_REQUEST"]))
-        hook = kind == "hook_replaced"
-        if hook:
-            if data:
-                return self._reply(f, s, kind, Rejection(False, "hook_replaced: takes no keys", None,
-                                                         CODE["BAD_REQUEST"]))
-            cmd: Any = Command(CommandKind.ACK, source)
-        else:
-            cmd = command_from_mapping(kind, data, source)
-        if isinstance(cmd, Rejection):
-            return self._reply(f, s, kind, cmd)
+        cmd = intake(None, body, source)
         st, loop = f.station, f.loop
+        if isinstance(cmd, Rejection):
+            if st is not None and loop is not None:
+                name = cmd.reason.split(":", 1)[0]
+                call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, source))
+            return self._reply(f, s, "command", cmd, status=400)
+        kind = cmd.kind.value
+        hook = cmd.kind == CommandKind.HOOK_REPLACED
+        if hook:        # the console's hook_replaced: acknowledges the alarm (docs/console.md)
+            cmd = Command(CommandKind.ACK, source, {}, cmd.request_id)
         if st is None or loop is None:
             return self._reply(f, s, kind, Rejection(False, f"station {f.name} is not running", None,
                                                      CODE["NO_STATION"]))
@@ -493,7 +559,9 @@ class ConsoleServer:
                      f.name, f.name, s.user)
             return web.json_response({"ok": True, "reason": "", "code": 0})
         try:
-            fut = asyncio.run_coroutine_threadsafe(st.submit(cmd), loop)
+            fut = submit_to(loop, C.submit(st, cmd))   # the one hand-over (gateway/threadloop.py)
+            if fut is None:
+                raise RuntimeError("its loop is closed")
             reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
         except (TimeoutError, RuntimeError) as e:
             reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,
@@ -502,14 +570,17 @@ class ConsoleServer:
             log.info("console: %s: hook replaced, alarm acknowledged by %s", f.name, s.user)
         return self._reply(f, s, kind, reply)
 
-    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply) -> web.Response:
+    def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply, status: int = 409) -> web.Response:
+        """The answer: 200 accepted; 409 refused by the station; 400 refused by the intake (the
+        request itself is malformed); ``reason`` and ``code`` as over MQTT and the PLC."""
         code = getattr(reply, "code", 0 if reply.ok else CODE["BAD_REQUEST"])
         if reply.ok:
             log.info("console: command %s on %s by %s: accepted", kind, f.name, s.user)
         else:
-            log.warning("console: command %s on %s by %s: refused: %s", kind, f.name, s.user, reply.reason)
+            self._refusal_log.warning(("command", kind, int(code)), "console: command %s on %s by %s: refused: %s",
+                                      kind, f.name, s.user, reply.reason)
         return web.json_response({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
-                                 status=200 if reply.ok else 409)
+                                 status=200 if reply.ok else status)
 
     # ----------------------------------------------------------------- campaign
     async def h_campaign_run(self, request):
@@ -534,18 +605,17 @@ class ConsoleServer:
                                            os.path.join(base, "in"))
             if n == 0:
                 return _err(409, "no ended tests in the chosen stations")
-            p = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "gateway.cli", "report", os.path.join(base, "in"), "--out",
-                os.path.join(base, "out"), "-q", "--jobs", "1", stdout=asyncio.subprocess.DEVNULL,
-                stderr=asyncio.subprocess.PIPE, preexec_fn=lambda: os.nice(10))
             try:
-                _, err = await asyncio.wait_for(p.communicate(), 600)
-            except TimeoutError:
-                p.kill()
-                await p.wait()
+                rc, err = await self.reports.run("campaign:" + cid, lambda: _report_process(
+                    [os.path.join(base, "in"), "--out", os.path.join(base, "out")], 600))
+            except Busy as e:
+                return self._refuse(request, 503, "report queue", "too many reports being made; "
+                                    f"try again in {e.retry_after} s",
+                                    headers={"Retry-After": str(e.retry_after)})
+            if rc is None:
                 return _err(504, "the report took longer than 10 minutes")
             if not os.path.isfile(os.path.join(base, "out", "report.html")):
-                return _err(500, "no report: " + err.decode(errors="replace")[-300:])
+                return _err(500, "no report: " + err)
         finally:
             self._campaign_busy = False
         log.info("console: campaign report %s over %s (%d tests) by %s", cid, ", ".join(stations), n,
@@ -597,6 +667,14 @@ class ConsoleServer:
             "Content-Type": DOWNLOADS[name],
             "Content-Disposition": f'attachment; filename="{tid}-{name}"'})
 
+    async def _fig7_job(self, td: str, out: str) -> tuple[str | None, str]:
+        png = _find_png(out)
+        if png is not None:
+            return png, ""
+        rc, err = await _report_process([td, "--out", out], 120)
+        png = _find_png(out)
+        return png, ("timeout" if rc is None else err)
+
     async def h_fig7(self, request):
         try:
             td = self._test_dir(request)
@@ -606,25 +684,38 @@ class ConsoleServer:
             return _err(409, "the test is still running; its figure comes when it has ended")
         key = request.match_info["sid"] + "__" + os.path.basename(td)
         out = os.path.join(self._cache, key)
-        lock = self._fig_locks.setdefault(key, asyncio.Lock())
-        async with lock:
-            png = _find_png(out)
+        png = _find_png(out)
+        if png is None:
+            # the report runs as its own process at low priority (no figure delays a slot), at
+            # most console.report_jobs at once; requests for the same figure share its process
+            try:
+                png, why = await self.reports.run("fig7:" + key, lambda: self._fig7_job(td, out))
+            except Busy as e:
+                return self._refuse(request, 503, "report queue", "too many reports being made; "
+                                    f"try again in {e.retry_after} s",
+                                    headers={"Retry-After": str(e.retry_after)})
             if png is None:
-                # the report runs as its own process at low priority: no figure delays a slot
-                p = await asyncio.create_subprocess_exec(
-                    sys.executable, "-m", "gateway.cli", "report", td, "--out", out, "-q", "--jobs", "1",
-                    stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
-                    preexec_fn=lambda: os.nice(10))
-                try:
-                    _, err = await asyncio.wait_for(p.communicate(), 120)
-                except TimeoutError:
-                    p.kill()
-                    await p.wait()
-                    return _err(504, "the figure took too long")
-                png = _find_png(out)
-                if png is None:
-                    return _err(500, "no figure: " + err.decode(errors="replace")[-300:])
+                return _err(504 if why == "timeout" else 500, "the figure took too long"
+                            if why == "timeout" else "no figure: " + why)
         return web.FileResponse(png, headers={"Content-Type": "image/png"})
+
+
+async def _report_process(args: list[str], timeout_s: float) -> tuple[int | None, str]:
+    """Run ``hookwatch report`` as a child at low priority: (exit code or None on timeout, the
+    end of its stderr). The child is killed when it runs too long or the caller is cancelled."""
+    p = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "gateway.cli", "report", *args, "-q", "--jobs", "1",
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE,
+        preexec_fn=lambda: os.nice(10))
+    try:
+        _, err = await asyncio.wait_for(p.communicate(), timeout_s)
+    except (TimeoutError, asyncio.CancelledError) as e:
+        p.kill()
+        await asyncio.shield(p.wait())
+        if isinstance(e, asyncio.CancelledError):
+            raise
+        return None, ""
+    return p.returncode, err.decode(errors="replace")[-300:]
 
 
 def _link_or_copy(src: str, dst: str) -> None:
@@ -712,6 +803,37 @@ class _HttpError(Exception):
     def __init__(self, status: int, reason: str):
         super().__init__(reason)
         self.status, self.reason = status, reason
+
+
+def _cut(text: str, n: int = 60) -> str:
+    """Client text quoted in a log line: at most ``n`` characters, no control characters."""
+    t = "".join(ch if ch.isprintable() else "?" for ch in str(text)[:n])
+    return t if len(text) <= n else f"{t}… ({len(text)} chars)"
+
+
+def _json_depth(body: bytes) -> int:
+    """The deepest nesting of ``[``/``{`` in JSON bytes (strings skipped), counted before parsing."""
+    depth = deepest = 0
+    in_str = esc = False
+    for b in body:
+        if in_str:
+            if esc:
+                esc = False
+            elif b == 0x5C:          # backslash
+                esc = True
+            elif b == 0x22:          # "
+                in_str = False
+        elif b == 0x22:
+            in_str = True
+        elif b in (0x5B, 0x7B):
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > MAX_JSON_DEPTH:
+                    return deepest
+        elif b in (0x5D, 0x7D):
+            depth -= 1
+    return deepest
 
 
 def _err(status: int, reason: str, headers: dict | None = None) -> web.Response:

@@ -1,32 +1,55 @@
-"""Bounded command intake: raw bytes of a command request → a :class:`Command` or a
-:class:`Rejection` with its code. Pure: no I/O, no clock (the limiter takes the time as an argument).
+"""The one bounded command intake: a raw command from ANY door → a :class:`Command` for the
+station's validation, or a :class:`Rejection` with its code. Pure: no I/O, no clock.
 
-Used by MQTT (``cmd/<name>`` payloads) and meant for every later text door (the web console).
+:func:`intake` is the single entry point, used by every source of commands:
+
+- MQTT: ``cmd/<name>`` topics, the payload as bytes (JSON object);
+- the web console: ``POST /api/station/<id>/command``, the body as bytes (JSON object with the
+  command name under ``command``);
+- Sparkplug B: the DCMD metrics of a command, as a mapping of argument names to values (their
+  Sparkplug types are kept: a String metric is a ``str``, a Double a ``float``);
+- the PLC: the arguments decoded from the holding registers, as a mapping;
+- the CLI and the supervisor's command channel: a mapping.
+
 Every input is bounded *before* it can cost anything:
 
-- the payload is at most :data:`MAX_PAYLOAD_BYTES` (checked on the bytes);
+- a payload is at most :data:`MAX_PAYLOAD_BYTES` (checked on the bytes);
 - nesting of ``[``/``{`` is at most :data:`MAX_DEPTH` (counted by a scan of the bytes, outside
   strings, before ``json.loads`` could recurse);
 - a number literal has at most :data:`MAX_NUMBER_CHARS` characters (``json.loads`` hooks: a
   400-digit ``t_set`` is refused, it never reaches ``float()``); NaN/Infinity are refused;
 - a string has at most :data:`MAX_STRING_CHARS` characters, an object at most :data:`MAX_KEYS`
   keys of at most :data:`MAX_KEY_CHARS` characters; duplicate keys are refused;
-- numeric fields (``t_set``, ``t_end``) must be JSON numbers: the string ``"0.6"`` is refused;
-  text fields (``sample_id``, ``grade``, ``request_id``) must be strings.
+- types are strict, whatever the door: numeric fields (``t_set``, ``t_end``, ``duration_s``) must
+  be numbers — not the string ``"0.6"``, not a boolean — and finite; text fields (``sample_id``,
+  ``grade``, ``alarm``, ``request_id``) must be strings of printable ASCII (0x20–0x7E);
+  ``sample_id`` at most :data:`SAMPLE_ID_MAX` characters (code 4, as the station says it),
+  ``request_id`` at most :data:`REQUEST_ID_MAX`;
+- a value that is a list or an object is refused; unknown keys are refused.
 
-Nothing the client sent is echoed back longer than :data:`ECHO_CHARS` characters (:func:`clip`):
-replies, ``command_rejected`` events and log lines stay small whatever comes in (no amplification).
-Every refusal here has code 9 (BAD_REQUEST); :func:`rejected_event_data` gives the data of the
-``command_rejected`` event (docs/mqtt.md) and :class:`RejectionLimiter` bounds how many such events
-a flood of bad requests can produce (each request still gets its reply).
+Nothing the client sent is echoed back longer than :data:`ECHO_CHARS` characters
+(:func:`gateway.ratelog.clip`, one line, control characters escaped): replies,
+``command_rejected`` events, Sparkplug metrics and log lines stay small whatever comes in.
+Refusals here have code 9 (BAD_REQUEST), or 4 (SAMPLE_ID) for a sample ID that is not one;
+:func:`rejected_event_data` gives the data of the ``command_rejected`` event (docs/mqtt.md), and
+the station's refusal gate (gateway/station/commands.py) bounds how many such events a flood
+produces.
 """
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Mapping
 from typing import Any
 
+from ..ratelog import ECHO_CHARS, clip, safe
 from ..records import Command, CommandKind
-from ..station.commands import CODE, COMMAND_KEYS, Rejection
+from ..station.commands import CODE, COMMAND_KEYS, SAMPLE_ID_MAX, Rejection, check_sample_id
+
+__all__ = ["intake", "parse_command", "rejected_event_data", "clip", "safe", "nesting_depth", "bad",
+           "ECHO_CHARS", "MAX_PAYLOAD_BYTES", "MAX_DEPTH", "MAX_NUMBER_CHARS", "MAX_STRING_CHARS",
+           "MAX_KEYS", "MAX_KEY_CHARS", "MAX_NAME_CHARS", "REQUEST_ID_MAX", "SAMPLE_ID_MAX",
+           "NUMERIC_FIELDS", "TEXT_FIELDS", "COMMAND_KEY"]
 
 MAX_PAYLOAD_BYTES = 4096
 MAX_DEPTH = 4
@@ -35,24 +58,18 @@ MAX_STRING_CHARS = 64
 MAX_KEYS = 16
 MAX_KEY_CHARS = 32
 MAX_NAME_CHARS = 32
-#: longest piece of client input quoted in a reason
-ECHO_CHARS = 40
+REQUEST_ID_MAX = 64
+#: an integer argument larger than this (in magnitude) is refused (a float of it is not exact)
+MAX_INT = 2 ** 53
+#: the key that names the command in a body that carries it (the web console)
+COMMAND_KEY = "command"
 
-NUMERIC_FIELDS = frozenset({"t_set", "t_end"})
-TEXT_FIELDS = frozenset({"sample_id", "grade", "request_id"})
+NUMERIC_FIELDS = frozenset({"t_set", "t_end", "duration_s"})
+TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id"})
 
 
 class _Refused(ValueError):
     pass
-
-
-def clip(value: Any, n: int = ECHO_CHARS) -> str:
-    """``repr`` of client input, cut to about ``n`` characters (with the full length named)."""
-    r = repr(value)
-    if len(r) <= n:
-        return r
-    size = len(value) if isinstance(value, (str, bytes)) else len(r)
-    return f"{r[:n]}… ({size} chars)"
 
 
 def nesting_depth(data: bytes, limit: int) -> int:
@@ -100,26 +117,31 @@ def _pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
         if k in out:
             raise _Refused(f"key {clip(k)} given twice")
         if isinstance(v, str) and len(v) > MAX_STRING_CHARS:
-            raise _Refused(f"{k}: a string of {len(v)} characters; at most {MAX_STRING_CHARS}")
+            raise _Refused(f"{safe(k)}: a string of {len(v)} characters; at most {MAX_STRING_CHARS}")
         out[k] = v
     return out
 
 
-def bad(name: str, reason: str, request_id: str | None = None) -> Rejection:
-    return Rejection(False, f"{name}: {reason}", request_id, CODE["BAD_REQUEST"])
+def bad(name: str, reason: str, request_id: str | None = None, code: str = "BAD_REQUEST") -> Rejection:
+    return Rejection(False, f"{name}: {reason}", request_id, CODE[code])
 
 
-def parse_command(name: str, payload: bytes, source: str = "mqtt") -> Command | Rejection:
-    """The command ``name`` (the last topic level) with its request ``payload`` (JSON object
-    bytes; empty means ``{}``) → a Command for the station's validation, or a code-9 Rejection."""
-    if not isinstance(name, str) or len(name) > MAX_NAME_CHARS:
-        name = clip(name, MAX_NAME_CHARS)
-    try:
-        kind = CommandKind(name)
-    except ValueError:
-        kinds = ", ".join(k.value for k in CommandKind)
-        return bad("command", f"{clip(name)} unknown; allowed: {kinds}")
-    name = kind.value
+def _printable(s: str) -> bool:
+    return all(0x20 <= ord(c) <= 0x7E for c in s)
+
+
+def _kind(name: Any) -> CommandKind | Rejection:
+    if isinstance(name, str) and len(name) <= MAX_NAME_CHARS:
+        try:
+            return CommandKind(name)
+        except ValueError:
+            pass
+    kinds = ", ".join(k.value for k in CommandKind)
+    return bad("command", f"{clip(name, MAX_NAME_CHARS)} unknown; allowed: {kinds}")
+
+
+def _decode(name: str, payload: bytes | bytearray | memoryview) -> dict[str, Any] | Rejection:
+    """Bounded JSON: bytes → a dict of scalars' parents, or a code-9 Rejection."""
     if len(payload) > MAX_PAYLOAD_BYTES:
         return bad(name, f"payload of {len(payload)} bytes; at most {MAX_PAYLOAD_BYTES}")
     try:
@@ -127,67 +149,119 @@ def parse_command(name: str, payload: bytes, source: str = "mqtt") -> Command | 
     except UnicodeDecodeError:
         return bad(name, "payload is not UTF-8 JSON")
     if not text:
-        obj: Any = {}
-    else:
-        d = nesting_depth(text.encode(), MAX_DEPTH)
-        if d > MAX_DEPTH:
-            return bad(name, f"payload nested deeper than {MAX_DEPTH} levels")
-        try:
-            obj = json.loads(text, parse_int=lambda s: _num(s, int), parse_float=lambda s: _num(s, float),
-                             parse_constant=_const, object_pairs_hook=_pairs)
-        except _Refused as e:
-            return bad(name, str(e))
-        except (json.JSONDecodeError, RecursionError, ValueError) as e:
-            return bad(name, f"payload is not JSON: {clip(str(e), 80)}")
-        if isinstance(obj, str) and len(obj) > MAX_STRING_CHARS:
-            return bad(name, f"payload must be a JSON object, got a string of {len(obj)} characters")
+        return {}
+    if nesting_depth(text.encode(), MAX_DEPTH) > MAX_DEPTH:
+        return bad(name, f"payload nested deeper than {MAX_DEPTH} levels")
+    try:
+        obj = json.loads(text, parse_int=lambda s: _num(s, int), parse_float=lambda s: _num(s, float),
+                         parse_constant=_const, object_pairs_hook=_pairs)
+    except _Refused as e:
+        return bad(name, str(e))
+    except (json.JSONDecodeError, RecursionError, ValueError) as e:
+        return bad(name, f"payload is not JSON: {clip(str(e), 80)}")
+    if isinstance(obj, str):
+        return bad(name, f"payload must be a JSON object, got a string of {len(obj)} characters")
     if not isinstance(obj, dict):
         return bad(name, f"payload must be a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def _request_id(obj: Mapping[Any, Any]) -> str | None | Rejection:
     rid = obj.get("request_id")
-    if rid is not None and not isinstance(rid, str):
-        rid = clip(rid, MAX_STRING_CHARS)
+    if rid is None:
+        return None
+    if not isinstance(rid, str) or not 0 < len(rid) <= REQUEST_ID_MAX or not _printable(rid):
+        return bad("request_id", f"{clip(rid)}: a string of 1 to {REQUEST_ID_MAX} printable ASCII characters")
+    return rid
+
+
+def _check_value(name: str, k: str, v: Any, rid: str | None) -> Rejection | None:
+    """Strict types, whatever the door: the same value is refused the same way everywhere."""
+    if isinstance(v, (list, tuple, dict, set, bytes, bytearray)):
+        return bad(name, f"{k}: a {type(v).__name__} is not allowed here", rid)
+    if k in NUMERIC_FIELDS:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            return bad(name, f"{k}: {clip(v)} must be a number (not text, not true/false)", rid)
+        if isinstance(v, int) and abs(v) > MAX_INT:
+            return bad(name, f"{k}: an integer of {len(str(abs(v)))} digits is not allowed", rid)
+        if not math.isfinite(v):
+            return bad(name, f"{k}: {clip(v)} must be a finite number", rid)
+    elif k in TEXT_FIELDS:
+        if not isinstance(v, str):
+            return bad(name, f"{k}: {clip(v)} must be a string", rid)
+        if len(v) > MAX_STRING_CHARS:
+            return bad(name, f"{k}: a string of {len(v)} characters; at most {MAX_STRING_CHARS}", rid)
+        if k == "sample_id":
+            err = check_sample_id(v)
+            if err:
+                return Rejection(False, f"{name}: {err}", rid, CODE["SAMPLE_ID"])
+        elif not _printable(v):
+            return bad(name, f"{k}: {clip(v)}: only printable ASCII characters (0x20–0x7E) are allowed", rid)
+    return None
+
+
+def intake(name: Any, raw: bytes | bytearray | memoryview | Mapping[Any, Any] | None,
+           source: str) -> Command | Rejection:
+    """THE intake of every door: the command ``name`` with its raw arguments ``raw`` → a Command
+    for the station's validation (``Station.submit``), or a Rejection (code 9, or 4 for a sample ID
+    that is not one). ``raw`` is the JSON object as bytes (MQTT, console; empty means ``{}``) or a
+    mapping of argument names to values (Sparkplug, PLC, CLI). ``name=None``: the name is the
+    object's ``command`` key (the console's body)."""
+    if name is not None:
+        kind = _kind(name)
+        if isinstance(kind, Rejection):
+            return kind
+        label = kind.value
+    else:
+        label = "command"
+    if raw is None:
+        obj: Any = {}
+    elif isinstance(raw, (bytes, bytearray, memoryview)):
+        obj = _decode(label, raw)
+        if isinstance(obj, Rejection):
+            return obj
+    elif isinstance(raw, Mapping):
+        if len(raw) > MAX_KEYS:
+            return bad(label, f"{len(raw)} arguments; at most {MAX_KEYS}")
+        obj = raw
+    else:
+        return bad(label, f"arguments must be an object, got {type(raw).__name__}")
+    for k in obj:
+        if not isinstance(k, str) or len(k) > MAX_KEY_CHARS:
+            return bad(label, f"key {clip(k)}: a name of at most {MAX_KEY_CHARS} characters")
+    if name is None:
+        kind = _kind(obj.get(COMMAND_KEY))
+        if isinstance(kind, Rejection):
+            return kind
+        obj = {k: v for k, v in obj.items() if k != COMMAND_KEY}
+    assert isinstance(kind, CommandKind)
+    name = kind.value
+    rid = _request_id(obj)
+    if isinstance(rid, Rejection):
+        return bad(name, rid.reason)
     allowed = COMMAND_KEYS[kind]
     unknown = sorted(k for k in obj if k not in allowed and k != "request_id")
     if unknown:
         return bad(name, f"unknown key(s) {', '.join(clip(k) for k in unknown[:4])}; allowed: "
                    f"{', '.join(allowed + ('request_id',))}", rid)
+    args: dict[str, Any] = {}
     for k in allowed:
-        if k not in obj or obj[k] is None:
+        v = obj.get(k)
+        if v is None:
             continue
-        v = obj[k]
-        if k in NUMERIC_FIELDS and (isinstance(v, bool) or not isinstance(v, (int, float))):
-            return bad(name, f"{k}: {clip(v)} must be a JSON number", rid)
-        if k in TEXT_FIELDS and not isinstance(v, str):
-            return bad(name, f"{k}: {clip(v)} must be a JSON string", rid)
-    args = {k: obj[k] for k in allowed if k in obj}
+        err = _check_value(name, k, v, rid)
+        if err is not None:
+            return err
+        args[k] = v
     return Command(kind, source, args, rid)
 
 
-def rejected_event_data(command: str, rejection: Rejection, source: str) -> dict[str, Any]:
+def parse_command(name: str, payload: bytes, source: str = "mqtt") -> Command | Rejection:
+    """The MQTT door's call of :func:`intake`: ``cmd/<name>`` with its payload bytes."""
+    return intake(name, payload, source)
+
+
+def rejected_event_data(command: Any, rejection: Rejection, source: str) -> dict[str, Any]:
     """Data of the ``command_rejected`` event for an intake refusal (docs/mqtt.md, Events)."""
-    return {"command": clip(command, MAX_NAME_CHARS).strip("'"), "source": source,
+    return {"command": safe(command, MAX_NAME_CHARS), "source": safe(source, 80),
             "reason": rejection.reason, "code": int(rejection.code)}
-
-
-class RejectionLimiter:
-    """Token bucket over ``command_rejected`` events of intake refusals: at most ``burst`` at
-    once, ``rate`` per second after; the refusals not reported are counted (``suppressed``) and
-    the count goes into the next event that passes."""
-
-    def __init__(self, rate: float = 2.0, burst: int = 10):
-        self.rate, self.burst = float(rate), float(burst)
-        self._tokens = float(burst)
-        self._t: float | None = None
-        self.suppressed = 0
-
-    def allow(self, now: float) -> int | None:
-        """None: suppress this event; else the number suppressed since the last one passed."""
-        if self._t is not None:
-            self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate)
-        self._t = now
-        if self._tokens >= 1.0:
-            self._tokens -= 1.0
-            n, self.suppressed = self.suppressed, 0
-            return n
-        self.suppressed += 1
-        return None

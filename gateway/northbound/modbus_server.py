@@ -14,7 +14,9 @@ event loop, so PLC traffic never runs on a station's loop.
   address is listed (an address or a network, e.g. ``10.10.5.0/24``); every value is checked against the
   register map and the shared command rules (gateway/station/commands.py) before anything changes
   (exception 03 when out of range); commands go to ``station.submit`` on the station's own loop
-  (source ``plc:<address>``), a refused command answers exception 04 with its reason code in ``last_result``.
+  (source ``plc:<address>``), a refused command answers the exception its reason code maps to
+  (``registers.refusal_exception``: 06 busy, 03 refused value, 04 only when the station failed to
+  answer) with the reason code in ``last_result``.
 - The client address of a request is the connection's peer address.
 """
 from __future__ import annotations
@@ -32,11 +34,14 @@ from typing import Any
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..ports import CommandSink, StationLimits
+from ..ports import CommandSink, StationLimits, StationView
+from ..ratelog import RateLog, safe
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
-from ..station.commands import CODE, check_sample_id
-from ..threadloop import submit_to
+from ..station import commands as C
+from ..station.commands import CODE, Rejection, check_sample_id
+from ..threadloop import call_soon_on, submit_to
 from . import registers as R
+from .cmdparse import intake, rejected_event_data
 from .modbus_tcp.pdu import Exc as ExcCodes
 from .modbus_tcp.server import ModbusTcpServer, Pacer, Store
 
@@ -45,6 +50,8 @@ log = logging.getLogger("hookwatch.modbus")
 #: input registers served from the command status (not from the station's image)
 CMD_BASE = R.IR["last_command"].address
 CMD_REGS = 3
+#: input registers after the command status (from the station's image again)
+TAIL_BASE = CMD_BASE + CMD_REGS
 STATUS_ADDR = R.IR["status"].address
 WRITES_BIT = 1 << R.STATUS_BIT["writes_enabled"]
 LIVE_UPDATE_S = 0.1
@@ -67,6 +74,7 @@ class Unit:
         self.ir: list[int] = [0] * CMD_BASE
         self.hr: list[int] = [0] * R.HOLDING_SIZE
         self.cmd_regs: list[int] = [0] * CMD_REGS
+        self.tail: list[int] = [0] * (R.INPUT_SIZE - TAIL_BASE)
         self.lock = asyncio.Lock()      # writes of one unit are applied one at a time
 
     def may_write(self, peer: str | None) -> bool:
@@ -76,6 +84,10 @@ class Unit:
         o = self.owner
         return ("writes allowed only from " + ", ".join(sorted(o.allowed_clients))
                 if o.writes_enabled else "writes disabled")
+
+    def input_image(self) -> list[int]:
+        """The whole input table: the station's image with the command status in its place."""
+        return self.ir + self.cmd_regs + self.tail
 
     def decorate_input(self, regs: list[int], address: int, peer: str | None) -> list[int]:
         """The status word's ``writes_enabled`` bit is per client."""
@@ -233,7 +245,7 @@ class ModbusSettings:
 class ModbusOutput:
     """Station output serving one station on a shared Modbus TCP server."""
 
-    def __init__(self, settings: ModbusSettings, station=None):
+    def __init__(self, settings: ModbusSettings, station: StationView | None = None):
         self.s = settings
         self.station_id = settings.station_id
         self.station = station
@@ -264,6 +276,8 @@ class ModbusOutput:
         self._elapsed = 0.0
         self._slots = self._valid = 0
         self._counts = [0] * len(REASONS)
+        #: refused writes and commands: one log line per kind per minute, with the count
+        self.refusal_log = RateLog(log)
 
     source = "plc"
 
@@ -367,6 +381,7 @@ class ModbusOutput:
             "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
             "t_life": st.t_life, "elapsed": self._elapsed, "slots": self._slots,
             "valid_slots": self._valid, "headroom": st.headroom, "t_cross": st.t_cross,
+            "run_sample_id": st.sample_id or "", "run_test_id": st.test_id or "",
             "warning_alarm": (R.ALARM_STATES.index(st.warning_alarm)
                               if st.warning_alarm in R.ALARM_STATES else 0),
         }
@@ -381,7 +396,7 @@ class ModbusOutput:
         if u is None:
             return
         img = R.encode_table(R.INPUT_REGS, R.INPUT_SIZE, self.values(now), self.word_order)
-        u.ir = img[:CMD_BASE]
+        u.ir, u.tail = img[:CMD_BASE], img[TAIL_BASE:]
 
     def _initial_holding(self) -> list[int]:
         plan = self.station.default_plan if self.station is not None else None
@@ -400,41 +415,56 @@ class ModbusOutput:
         if plan.exception is not None:
             if plan.decoded:
                 (name, val), = plan.decoded
-                log.info("%s: PLC %s wrote %s=%r: %s", self.station_id, peer, name, val, plan.reason)
+                self.refusal_log.info(("write", name, int(plan.exception)), "%s: PLC %s wrote %s=%s: %s",
+                                      self.station_id, peer, name, safe(val), plan.reason)
             return ExcCodes(plan.exception)
         # staging values first, then the setpoint, then the command
         u.hr = list(plan.staged)
         if plan.wrote("t_set"):
             t_set = float(f"{plan.value('t_set'):.7g}")
-            reply = await self._submit(Command(CommandKind.SETPOINT, f"plc:{peer}", {"t_set": t_set}),
+            reply = await self._submit(intake(CommandKind.SETPOINT.value, {"t_set": t_set}, f"plc:{peer}"),
                                        R.COMMAND_CODE["setpoint"], u)
             if not reply:
-                return ExcCodes.DEVICE_FAILURE
+                return ExcCodes(R.refusal_exception(u.cmd_regs[1]))
             u.hr = R.apply_register(u.hr, plan.new, "t_set")
         if plan.wrote("command"):
             code = int(plan.value("command"))   # the command register reads 0 (docs/registers.md)
             kind = R.COMMAND_KINDS[code]
             args = R.command_args(kind, u.hr, self.word_order, self.grades)
-            if not await self._submit(Command(kind, f"plc:{peer}", args), code, u):
-                return ExcCodes.DEVICE_FAILURE
+            if not await self._submit(intake(kind.value, args, f"plc:{peer}"), code, u):
+                return ExcCodes(R.refusal_exception(u.cmd_regs[1]))
         return None
 
-    async def _submit(self, cmd: Command, code: int, u: Unit) -> bool:
+    async def _submit(self, cmd: Command | Rejection, code: int, u: Unit) -> bool:
+        """``cmd`` as the intake made it (gateway/northbound/cmdparse.py) to the station through
+        its refusal gate; the result code goes to ``last_result``. A refusal is logged once per
+        kind per minute with the count (and the station's ``command_rejected`` events likewise)."""
         st, loop = self.sink, self.loop
         result = CODE["NO_STATION"]
         ok = False
-        fut = submit_to(loop, st.submit(cmd)) if st is not None else None
-        if fut is not None:
+        name = next((n for c, n, _ in R.COMMAND_CODES if c == code), "command")
+        if isinstance(cmd, Rejection):
+            if st is not None and loop is not None:
+                call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, "plc"))
+            fut = None
+            result = int(cmd.code)
+            self.refusal_log.info(("command", name, result), "%s: PLC command %s refused: %s",
+                                  self.station_id, name, cmd.reason)
+        else:
+            fut = submit_to(loop, C.submit(st, cmd)) if st is not None else None
+        if fut is not None and isinstance(cmd, Command):
             try:
                 reply = await asyncio.wait_for(asyncio.wrap_future(fut), COMMAND_TIMEOUT_S)
                 ok = bool(reply.ok)
                 result = 0 if ok else int(getattr(reply, "code", 0) or CODE["BAD_REQUEST"])
                 if not ok:
-                    log.info("%s: PLC command %s from %s refused: %s", self.station_id, cmd.kind.value,
-                             cmd.source, reply.reason)
+                    self.refusal_log.info(("command", cmd.kind.value, result),
+                                          "%s: PLC command %s from %s refused: %s", self.station_id,
+                                          cmd.kind.value, cmd.source, reply.reason)
             except (TimeoutError, RuntimeError, Exception) as e:
-                log.error("%s: PLC command %s: station did not answer (%s)", self.station_id,
-                          cmd.kind.value, type(e).__name__)
+                self.refusal_log.log(("no_answer", cmd.kind.value), logging.ERROR,
+                                     "%s: PLC command %s: station did not answer (%s)", self.station_id,
+                                     cmd.kind.value, type(e).__name__)
         n = (u.cmd_regs[2] + 1) & 0xFFFF
         u.cmd_regs = [code, result, n]
         return ok

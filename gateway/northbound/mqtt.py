@@ -13,7 +13,7 @@ Threads:
   (MQTT 5: on the request's Response Topic, with its Correlation Data);
 - the broker connection reaches the station as ``station.set_uplink("mqtt", ok)`` through the same
   hand-over (so the PLC sees it in ``StationState.mqtt_ok``);
-- the end-of-life alarm is read from the station's alarm store (``gateway/station/alarms.py``);
+- the end-of-life alarm is read from the station's alarm store (``gateway/station/alarm_store.py``);
   the output keeps no alarm of its own on disk.
 """
 from __future__ import annotations
@@ -23,13 +23,14 @@ import logging
 import time
 from typing import Any
 
-from ..ports import CommandSink
+from ..ports import CommandSink, StationLinks
 from ..records import Event, EventType, SlotRecord, StationState
-from ..station.alarms import AlarmStore
+from ..station import commands as C
+from ..station.alarm_store import AlarmStore
 from ..station.commands import CODE, Rejection
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
-from .cmdparse import RejectionLimiter, clip, parse_command, rejected_event_data
+from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
 from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
@@ -47,7 +48,7 @@ _Telemetry = Telemetry
 class MqttOutput:
     """Station output (:class:`gateway.ports.Output`) publishing the station over MQTT."""
 
-    def __init__(self, settings: MqttSettings, station: Any = None,
+    def __init__(self, settings: MqttSettings, station: StationLinks | None = None,
                  alarms: AlarmStore | None = None) -> None:
         self.s = settings
         self.station = station
@@ -66,7 +67,6 @@ class MqttOutput:
         self._last_state: StationState | None = None
         self._last_state_key: tuple[Any, ...] | None = None
         self._last_state_pub = 0.0
-        self._rej_limiter = RejectionLimiter()
 
     source = "mqtt"
 
@@ -159,13 +159,13 @@ class MqttOutput:
     def _command(self, name: str, raw: bytes, response: tuple[str, bytes | None] | None = None) -> None:
         """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop; the
         answer goes to ``response`` (MQTT 5 Response Topic, Correlation Data) or to ``reply``."""
-        cmd = parse_command(name, raw, "mqtt")   # bounded: size, depth, numbers, strings
+        cmd = intake(name, raw, "mqtt")   # the one bounded intake: size, depth, types, strings
         if isinstance(cmd, Rejection):
-            self._reply(clip(name, 32).strip("'"), cmd.request_id, cmd, response)
+            self._reply(safe(name, MAX_NAME_CHARS), cmd.request_id, cmd, response)
             self._intake_rejected(name, cmd)
             return
         sink = self.sink
-        fut = submit_to(self.loop, sink.submit(cmd)) if sink is not None else None
+        fut = submit_to(self.loop, C.submit(sink, cmd)) if sink is not None else None
         if fut is None:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
                                                         CODE["NO_STATION"]), response)
@@ -182,16 +182,12 @@ class MqttOutput:
         fut.add_done_callback(done)
 
     def _intake_rejected(self, name: str, rej: Rejection) -> None:
-        """A request refused before it became a command (code 9) is a ``command_rejected`` event of
-        the station, as every other refusal (rate-limited: a flood of garbage is one event a second
-        with the count of the ones left out)."""
-        n = self._rej_limiter.allow(time.monotonic())
-        if n is None or self.station is None:
+        """A request refused before it became a command (code 9) is a refusal of the station like
+        every other: bounded ``command_rejected`` events, once per kind per window with a count
+        (gateway/station/commands.py, RefusalGate)."""
+        if self.station is None:
             return
-        data = rejected_event_data(name, rej, "mqtt")
-        if n:
-            data["suppressed"] = n
-        call_soon_on(self.loop, self.station.intake_rejected, data)
+        call_soon_on(self.loop, C.refused, self.station, rejected_event_data(name, rej, "mqtt"))
 
     def _reply(self, command: str, request_id: str | None, r: Any,
                response: tuple[str, bytes | None] | None = None) -> None:

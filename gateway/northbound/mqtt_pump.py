@@ -27,6 +27,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
+from ..ratelog import RateLog, clip
 from ..threadloop import Mailbox
 from . import mqtt_messages as M
 from . import schema
@@ -65,6 +66,8 @@ class MqttSettings(BrokerSettings):
     telemetry_budget_bytes: int = 50 * 1024 * 1024
     window: int = 16                  # messages in flight at most
     drain_on_stop_s: float = 2.0      # on a clean stop, time allowed to deliver what is pending
+    #: MQTT 5 Response Topics are obeyed only below this (``mqtt.reply_prefix``); None: ``<base>/reply``
+    reply_prefix: str | None = None
 
 
 class MqttPump:
@@ -83,6 +86,9 @@ class MqttPump:
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._status_topic = schema.topic_for(settings.base_topic, "status")
+        #: a Response Topic must start with this (the configured reply prefix and a slash)
+        self.response_prefix = (settings.reply_prefix or schema.topic_for(settings.base_topic, "reply")) + "/"
+        self._refusals = RateLog(log)
         self.connected = False
         self.counters: dict[str, int] = collections.Counter()
         self._client: paho.Client | None = None
@@ -433,7 +439,11 @@ class MqttPump:
 
     def _response_of(self, msg) -> Response | None:
         """MQTT 5: where the request wants its answer, ``(Response Topic, Correlation Data)``, if
-        it names a topic one may publish to within the bounds; None: answer on ``reply``."""
+        it names a topic one may publish to within the bounds and below the reply prefix
+        (``mqtt.reply_prefix``, default ``<base>/reply``); None: answer on ``reply``. A request
+        allowed to publish on ``cmd/…`` only cannot make the gateway publish on result, state or
+        other stations' command topics (or Sparkplug's): such a Response Topic is not obeyed,
+        counted (``response_topic_refused``) and logged once a minute with the count."""
         props = getattr(msg, "properties", None)
         topic = getattr(props, "ResponseTopic", None) if props is not None else None
         if topic is None:
@@ -443,5 +453,10 @@ class MqttPump:
                 or any(ch in topic for ch in "+#\x00") or topic.startswith("$")
                 or (corr is not None and len(corr) > CORRELATION_MAX)):
             self.counters["bad_response_topic"] += 1
+            return None
+        if not topic.startswith(self.response_prefix):
+            self.counters["response_topic_refused"] += 1
+            self._refusals.warning("response_topic", "%s: MQTT 5 Response Topic %s is not below %s: not obeyed, "
+                                   "answered on reply", self.s.station_id, clip(topic), self.response_prefix)
             return None
         return topic, None if corr is None else bytes(corr)

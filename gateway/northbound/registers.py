@@ -26,9 +26,12 @@ MAP_VERSION = 3    # 3: alarm enums in ISA-18.2 states (0–5), command codes 5�
 
 INPUT = "input"
 HOLDING = "holding"
+#: characters of the input register `test_id` (a test ID is UTC time, sample name ≤ 48, "-n": ≤ 73)
+TEST_ID_REG_CHARS = 80
 
 #: register counts of each type
-SIZES = {"uint16": 1, "enum": 1, "bits": 1, "uint32": 2, "float32": 2, "string": SAMPLE_ID_MAX // 2}
+SIZES = {"uint16": 1, "enum": 1, "bits": 1, "uint32": 2, "float32": 2, "string": SAMPLE_ID_MAX // 2,
+         "string80": TEST_ID_REG_CHARS // 2}
 
 
 @dataclass(frozen=True)
@@ -36,7 +39,7 @@ class Reg:
     name: str
     table: str          # input | holding
     address: int        # 0-based PDU address
-    type: str           # uint16 | enum | bits | uint32 | float32 | string
+    type: str           # uint16 | enum | bits | uint32 | float32 | string | string80
     unit: str
     doc: str
     allowed: str = ""   # holding registers: values a write may carry
@@ -142,6 +145,11 @@ INPUT_REGS = _layout(INPUT, [
      + ", ".join(f"{c} {n}" for c, n, _ in COMMAND_CODES)),
     ("last_result", "uint16", "", "result of the last command: 0 ok, else the rejection code (table below)"),
     ("command_count", "uint16", "", "commands processed (accepted or refused), wrapping at 65535"),
+    ("run_sample_id", "string", "", f"sample ID of the current / last test, up to {SAMPLE_ID_MAX} ASCII "
+     "characters, two per register (first character in the high byte), padded with 0; empty "
+     "before the first test"),
+    ("run_test_id", "string80", "", f"test ID of the current / last test (its records folder, the "
+     f"`test_id` of its MQTT messages), up to {TEST_ID_REG_CHARS} ASCII characters as `run_sample_id`"),
 ])
 
 #: command codes a PLC may write (all but 0 none and 4 setpoint, which is a write of `t_set`)
@@ -197,10 +205,11 @@ def encode_value(reg: Reg, value: Any, word_order: str = "big") -> list[int]:
     if t == "uint32":
         v = 0 if value is None or (isinstance(value, float) and not math.isfinite(value)) else int(round(value))
         return list(_words32(struct.pack(">I", min(max(v, 0), 0xFFFFFFFF)), word_order))
-    if t == "string":
-        raw = ("" if value is None else str(value)).encode("ascii", "replace")[:SAMPLE_ID_MAX]
-        raw = raw.ljust(SAMPLE_ID_MAX, b"\0")
-        return list(struct.unpack(f">{SAMPLE_ID_MAX // 2}H", raw))
+    if t in ("string", "string80"):
+        n = 2 * reg.count
+        raw = ("" if value is None else str(value)).encode("ascii", "replace")[:n]
+        raw = raw.ljust(n, b"\0")
+        return list(struct.unpack(f">{reg.count}H", raw))
     v = 0 if value is None else int(value)
     return [min(max(v, 0), 0xFFFF)]
 
@@ -212,7 +221,7 @@ def decode_value(reg: Reg, regs: list[int], word_order: str = "big") -> Any:
         hi, lo = (a, b) if word_order == "big" else (b, a)
         raw = struct.pack(">HH", hi, lo)
         return struct.unpack(">f" if t == "float32" else ">I", raw)[0]
-    if t == "string":
+    if t in ("string", "string80"):
         raw = struct.pack(f">{len(regs)}H", *regs)
         return raw
     return regs[0]
@@ -250,6 +259,30 @@ def status_word(flags: dict[str, bool]) -> int:
 #: Modbus exception codes a write can get before anything changes
 EXC_ILLEGAL_ADDRESS = 2
 EXC_ILLEGAL_VALUE = 3
+#: … and after the station was asked (Modbus Application Protocol 1.1b3, 7)
+EXC_DEVICE_FAILURE = 4
+EXC_DEVICE_BUSY = 6
+
+#: rejection codes (``last_result``) a PLC may retry later unchanged: the station is busy with a
+#: running test (Modbus 06 SERVER DEVICE BUSY)
+BUSY_REJECTIONS = ("BUSY", "SETPOINT_LOCKED")
+#: rejection codes that are no refusal but a failure: the station did not answer (04)
+FAILURE_REJECTIONS = ("NO_STATION",)
+_REJECTION_NAME = {code: name for code, name, _ in REJECT_CODES}
+
+
+def refusal_exception(code: int) -> int:
+    """The Modbus exception a command refused with rejection ``code`` answers: 06 while a test
+    keeps the station busy, 04 only when the station failed to answer, 03 for every other refusal
+    (a value, or a command the station's state does not allow: retrying it unchanged cannot
+    help). The detailed code stays in ``last_result``."""
+    name = _REJECTION_NAME.get(code)
+    if name in BUSY_REJECTIONS:
+        return EXC_DEVICE_BUSY
+    if name is None or name in FAILURE_REJECTIONS:
+        return EXC_DEVICE_FAILURE
+    return EXC_ILLEGAL_VALUE
+
 #: the command codes that are commands (holding register ``command``)
 COMMAND_KINDS = {COMMAND_CODE["start"]: CommandKind.START, COMMAND_CODE["stop"]: CommandKind.STOP,
                  COMMAND_CODE["ack"]: CommandKind.ACK, COMMAND_CODE["hook_replaced"]: CommandKind.HOOK_REPLACED,
@@ -382,15 +415,24 @@ EXCEPTIONS = (
      "`modbus_tcp.writes.allowed_clients`; also coils / discrete inputs (not served)"),
     (2, "ILLEGAL DATA ADDRESS", "a register outside the map, or a write covering only part of a "
      "32-bit value"),
-    (3, "ILLEGAL DATA VALUE", "a write of a value out of its allowed range (nothing changes)"),
-    (4, "SERVER DEVICE FAILURE", "a valid command the station refused now (e.g. start while a test "
-     "runs, stop without a test): the reason code is in `last_result`"),
+    (3, "ILLEGAL DATA VALUE", "a write of a value out of its allowed range (nothing changes); or a "
+     "command the station refused for its value or because its state does not allow it (rejection "
+     "codes " + ", ".join(f"{c} {n}" for c, n, _ in REJECT_CODES
+                           if c and n not in BUSY_REJECTIONS + FAILURE_REJECTIONS)
+     + " in `last_result`)"),
+    (4, "SERVER DEVICE FAILURE", "only a real failure: the station did not answer the command in "
+     "time (rejection code " + ", ".join(f"{c} {n}" for c, n, _ in REJECT_CODES if n in FAILURE_REJECTIONS)
+     + " in `last_result`), or the server failed to serve the request"),
+    (6, "SERVER DEVICE BUSY", "a valid command the station cannot take while a test runs (rejection "
+     "codes " + ", ".join(f"{c} {n}" for c, n, _ in REJECT_CODES if n in BUSY_REJECTIONS)
+     + " in `last_result`): retry once the test has ended"),
     (11, "GATEWAY TARGET FAILED TO RESPOND", "a unit ID no station on this port has"),
 )
 
 
 def _type_doc(r: Reg) -> str:
-    return {"string": f"string ({r.count} registers)", "enum": "uint16 (enum)",
+    return {"string": f"string ({r.count} registers)", "string80": f"string ({r.count} registers)",
+            "enum": "uint16 (enum)",
             "bits": "uint16 (bits)"}.get(r.type, r.type)
 
 
@@ -479,7 +521,7 @@ def render(station: dict[str, Any] | None = None) -> str:
         "`shelve_duration` (s), then 8 to `command`; 9 with `alarm_select` unshelves it. The alarm "
         "states are in `alarm` and `warning_alarm` (4 shelved); the shelving ends by itself at its "
         "expiry. A refused shelve (no alarm selected: 11, duration 0 or too long: 12, an alarm "
-        "that is not annunciated: 13) answers exception 04 and leaves the code in `last_result`.",
+        "that is not annunciated: 13) answers exception 03 and leaves the code in `last_result`.",
         "",
         "## Command codes",
         "",

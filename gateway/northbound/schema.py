@@ -219,16 +219,16 @@ CMD_START_FIELDS = (
     Field("grade", "str", "optional: one of the station's grades"),
     Field("t_set", "float", "required: tension setpoint, N, in (0, 0.98 · meter full scale)"),
     Field("t_end", "float", "optional: planned duration, s (default: the station's test.t_end_s)"),
-    Field("request_id", "str", "optional: echoed in the reply"),
+    Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),
 )
-CMD_SIMPLE_FIELDS = (Field("request_id", "str", "optional: echoed in the reply"),)
+CMD_SIMPLE_FIELDS = (Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),)
 CMD_UNSHELVE_FIELDS = (Field("alarm", "str", "`end_of_life` or `wear_warning`"), *CMD_SIMPLE_FIELDS)
 CMD_SHELVE_FIELDS = (*CMD_UNSHELVE_FIELDS[:1],
                      Field("duration_s", "float", "how long, s (at most 43200: one 12 h shift)"),
                      *CMD_SIMPLE_FIELDS)
 CMD_SETPOINT_FIELDS = (
     Field("t_set", "float", "required: setpoint of the next test, N (refused while a test runs)"),
-    Field("request_id", "str", "optional: echoed in the reply"),
+    Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),
 )
 
 TOPICS: tuple[Topic, ...] = (
@@ -249,7 +249,7 @@ TOPICS: tuple[Topic, ...] = (
           "the result of the last test that ended", RESULT_FIELDS),
     Topic("reply", "reply", "publish", 1, False, True,
           "the answer to every command received on cmd/… (MQTT 5: on the request's Response Topic "
-          "instead, when it names one)", REPLY_FIELDS),
+          "instead, when it names one below `mqtt.reply_prefix`)", REPLY_FIELDS),
     Topic("cmd_start", "cmd/start", "subscribe", 1, False, False,
           "start a test", CMD_START_FIELDS),
     Topic("cmd_stop", "cmd/stop", "subscribe", 1, False, False,
@@ -314,8 +314,12 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                                 ("expired", "true: the shelving ran out")),
     EventType.ALARM_OUT_OF_SERVICE: (("source", "who took the alarms out of service"),),
     EventType.ALARM_IN_SERVICE: (("source", "who returned them to service"),),
-    EventType.COMMAND_REJECTED: (("command", "the command"), ("source", "where it came from"),
-                                 ("reason", "why it was refused")),
+    EventType.COMMAND_REJECTED: (("command", "the command"), ("source", "where it came from (the last "
+                                 "of the window)"), ("reason", "why it was refused (the last of the "
+                                 "window)"), ("code", "the rejection code"),
+                                 ("count", "refusals of this kind (door, command, code) it stands for: "
+                                  "1 for the first of a window, then the others of the window in one "
+                                  "event when it ends"), ("window_s", "the window, s (60)")),
     EventType.CONFIG_RELOADED: (),
 }
 
@@ -632,11 +636,21 @@ def render() -> str:
         "MQTT and PLC commands go through the same validation (`gateway/station/commands.py`) and "
         "the same station command path; every command is answered on `reply` — or, over MQTT 5, on "
         "the Response Topic the request names, with the request's Correlation Data (same payload, "
-        "QoS 1, not retained, through the outbox; a Response Topic with a wildcard, starting with "
-        "`$` or longer than 256 characters, or Correlation Data over 256 bytes, is not used: the "
-        "answer goes to `reply`) — and a refused one "
-        "is never acted on (it also produces a `command_rejected` event). Unknown keys, unknown "
-        "commands and payloads that are not JSON objects are refused.",
+        "QoS 1, not retained, through the outbox). A Response Topic is obeyed only below "
+        "`mqtt.reply_prefix` (default `<base>/reply`, i.e. `<base>/reply/<anything>`): a client "
+        "allowed to publish on `cmd/…` cannot make the gateway publish on result, state, other "
+        "stations' command or Sparkplug topics. One elsewhere, with a wildcard, starting with `$` "
+        "or longer than 256 characters, or Correlation Data over 256 bytes, is not used: the answer "
+        "goes to `reply` and the refusal is counted (`response_topic_refused`, logged once a "
+        "minute with the count). A refused command is never acted on; refusals become "
+        "`command_rejected` events once per kind (door, command, code) per minute with their "
+        "`count`, so a flood of refusals is a few events, not one each. Every door (MQTT, PLC, "
+        "console, Sparkplug, CLI) goes through one bounded intake (`gateway/northbound/cmdparse.py`, "
+        "docs/limits.md): payload ≤ 4096 bytes, nesting ≤ 4, strict types (`\"0.6\"` is not a "
+        "number, `true` is not a number, only finite numbers), strings of printable ASCII ≤ 64 "
+        "characters (`sample_id` ≤ 32, `request_id` ≤ 64); unknown keys, unknown commands and "
+        "payloads that are not JSON objects are refused (code 9). Client text is never echoed "
+        "longer than 40 characters, and always escaped.",
         "",
         "| code | name | meaning |",
         "|---|---|---|",
@@ -652,7 +666,8 @@ def render() -> str:
         "variable named by `password_env` or the file named by `password_file` (never inline), "
         "`tls: {enabled, ca_file, cert_file, key_file}`, `telemetry_interval_s`, `outbox: {path, "
         "telemetry_budget_mb}`, `protocol` (`auto`: MQTT 5, falling back to 3.1.1 when the broker "
-        "refuses it; `5`; `3.1.1`). One MQTT connection per station (its own Last Will). The client "
+        "refuses it; `5`; `3.1.1`), `reply_prefix` (MQTT 5 Response Topics obeyed only below it; "
+        "default `<base>/reply`). One MQTT connection per station (its own Last Will). The client "
         "reconnects by itself (after 1 s, doubling up to 10 s).",
         "",
     ]

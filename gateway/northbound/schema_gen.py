@@ -17,6 +17,7 @@ from ..method.rules import REASON_NAMES
 from ..records import AlarmState, TestState
 from ..station.commands import REJECT_CODES
 from . import schema as S
+from .cmdparse import MAX_STRING_CHARS, REQUEST_ID_MAX, SAMPLE_ID_MAX
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
 ID_BASE = "https://hookwatch.invalid/schemas/"     # a name, not a place to fetch from
@@ -80,8 +81,17 @@ def field_schema(topic: S.Topic, f: S.Field) -> dict[str, Any]:
         out = {"const": S.SCHEMA_VERSION}
     if f.name in ("seq", "session"):
         out["minimum"] = 0
+    if t_is_command(topic) and f.type == "str":
+        # the intake's bounds (gateway/northbound/cmdparse.py): printable ASCII, bounded length
+        out["minLength"] = 1 if f.name in ("sample_id", "request_id") else 0
+        out["maxLength"] = {"sample_id": SAMPLE_ID_MAX, "request_id": REQUEST_ID_MAX}.get(f.name, MAX_STRING_CHARS)
+        out["pattern"] = "^[ -~]*$"
     out["description"] = f.doc
     return out
+
+
+def t_is_command(t: S.Topic) -> bool:
+    return t.direction == "subscribe"
 
 
 def topic_schema(t: S.Topic) -> dict[str, Any]:

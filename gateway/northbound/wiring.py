@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import os
 
+from ..ports import StationLinks
 from . import schema
 from .broker_settings import broker_kwargs
 from .metrics import MetricsOutput
@@ -28,6 +29,7 @@ def mqtt_settings(cfg):
         protocol=m.protocol, **broker_kwargs(m),
         telemetry_interval_s=float(m.telemetry_interval_s), outbox_path=path,
         telemetry_budget_bytes=int(float(ob.telemetry_budget_mb) * 1024 * 1024),
+        reply_prefix=getattr(m, "reply_prefix", None),
     )
 
 
@@ -42,7 +44,7 @@ def modbus_settings(cfg):
     )
 
 
-def outputs_for(cfg, station, *, modbus: bool = True, sparkplug: bool = True) -> list:
+def outputs_for(cfg, station: StationLinks, *, modbus: bool = True, sparkplug: bool = True) -> list:
     """The northbound outputs of one station (MQTT, then Modbus TCP unless ``modbus`` is False,
     then its Sparkplug device unless ``sparkplug`` is False: a fleet's supervisor hosts it)."""
     outs: list = []
@@ -69,7 +71,7 @@ def outputs_for(cfg, station, *, modbus: bool = True, sparkplug: bool = True) ->
     return outs
 
 
-def metrics_outputs(cfg, station, outputs: list, *, serve: bool = True) -> list:
+def metrics_outputs(cfg, station: StationLinks, outputs: list, *, serve: bool = True) -> list:
     """The metrics output of a station (``metrics.enabled``), reading the MQTT outbox and the
     PLC server counters of the station's other ``outputs``; with ``serve`` False it opens no
     endpoint (a fleet worker: the supervisor serves its snapshots)."""

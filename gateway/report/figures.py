@@ -138,6 +138,20 @@ def _save(fig, path: str) -> None:
     os.replace(tmp, path)
 
 
+def _literal_text(render):
+    """Draw every text of a figure literally: sample ids, grades and titles come from operators
+    (``S$1_^2``, ``\\x``) and are never TeX or mathtext (a ``$`` in a sample id must not change or
+    break its figure). The figures' own labels use Unicode (μ, θ), no mathtext."""
+    import functools
+
+    @functools.wraps(render)
+    def wrapped(*args, **kwargs):
+        import matplotlib
+        with matplotlib.rc_context({"text.usetex": False, "text.parse_math": False}):
+            return render(*args, **kwargs)
+    return wrapped
+
+
 def _style(ax) -> None:
     ax.grid(True, alpha=0.3, lw=0.6)
     ax.tick_params(labelsize=12)
@@ -241,7 +255,9 @@ def _draw_headroom(ax, d: Fig7Data) -> None:
     sec.tick_params(labelsize=11)
 
 
-def render_fig7(d: Fig7Data, path: str) -> None:
+@_literal_text
+def render_fig7(d: Fig7Data, path: str):
+    """Draw and save Fig. 7; returns the figure (its texts, for checks)."""
     fig, (ax, axt) = _figure(2, (2.2, 1.0), sharex=True)
     col_w = d.x_end / COLUMNS
     gap = 3 * col_w
@@ -320,6 +336,7 @@ def render_fig7(d: Fig7Data, path: str) -> None:
     right = 0.94 if d.mu_ss is not None and d.mu_th is not None else 0.985
     fig.subplots_adjust(left=0.07, right=right, top=0.95, bottom=0.07, hspace=0.08)
     _save(fig, path)
+    return fig
 
 
 # ---------------------------------------------------------------------------------------------
@@ -366,6 +383,7 @@ def loop_series(label: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray, t_set
     return LoopSeries(label, env, smooth, hist, mean, sd, drift, within)
 
 
+@_literal_text
 def render_fig8(open_s: LoopSeries, closed_s: LoopSeries, t_set: float, unit: str, x_end: float,
                 path: str, title: str) -> None:
     fig, (ax, axh) = _figure(2, (1.6, 1.0))
@@ -404,6 +422,7 @@ def render_fig8(open_s: LoopSeries, closed_s: LoopSeries, t_set: float, unit: st
 # Fig. 9: t_life by grade and setpoint
 # ---------------------------------------------------------------------------------------------
 
+@_literal_text
 def render_fig9(points: dict[tuple[float, str], list[float]], grades: list[str],
                 setpoints: list[float], rankings: dict[float, str], path: str, title: str) -> None:
     """Bars: mean t_life per (setpoint, grade) with ± one sample SD; dots: the samples."""

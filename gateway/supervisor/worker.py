@@ -24,8 +24,12 @@ from typing import Any
 
 from ..compose import build_station
 from ..config import ConfigError, load_station
+from ..northbound.cmdparse import intake
 from ..northbound.metrics import MetricsOutput
-from ..records import Command, CommandKind, Event, SlotRecord, StationState
+from ..ratelog import safe
+from ..records import Event, SlotRecord, StationState
+from ..station import commands as C
+from ..station.commands import Rejection
 from ..station.fleet import StationRunner
 from ..station.station import Station
 from ..threadloop import submit_to
@@ -184,13 +188,15 @@ class Worker:
         fid = body.get("id")
         r = self.runner
         st = r.station if r is not None else None
-        try:
-            cmd = Command(CommandKind(body.get("kind")), str(body.get("source") or "supervisor"),
-                          dict(body.get("args") or {}), body.get("request_id"))
-        except (ValueError, TypeError) as e:
-            self._reply(fid, False, f"bad command: {e}")
+        args = body.get("args") or {}
+        if isinstance(args, dict) and body.get("request_id") is not None:
+            args = {**args, "request_id": body.get("request_id")}
+        # the one bounded intake of every door (gateway/northbound/cmdparse.py)
+        cmd = intake(body.get("kind"), args, safe(str(body.get("source") or "supervisor"), 80))
+        if isinstance(cmd, Rejection):
+            self._reply(fid, False, cmd.reason, None, int(cmd.code))
             return
-        fut = submit_to(r.loop if r is not None else None, st.submit(cmd)) if st is not None else None
+        fut = submit_to(r.loop if r is not None else None, C.submit(st, cmd)) if st is not None else None
         if fut is None:
             self._reply(fid, False, "station is not running", cmd.request_id)
             return

@@ -7,6 +7,9 @@ registers, 23 read/write multiple registers. Every other function (coils and dis
 is answered with exception 01 ILLEGAL FUNCTION. A request whose length does not fit its function,
 a count of 0 or above the Modbus maximum, or a byte count that does not match is answered with
 exception 03 ILLEGAL DATA VALUE (Modbus spec, 4.1 and the per-function state diagrams).
+A command the station refuses is answered by the exception its rejection code maps to
+(gateway/northbound/registers.py ``refusal_exception``: 06 SERVER DEVICE BUSY, 03 ILLEGAL DATA
+VALUE, 04 SERVER DEVICE FAILURE only when the station failed to answer).
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ class Exc(enum.IntEnum):
     ILLEGAL_ADDRESS = 2
     ILLEGAL_VALUE = 3
     DEVICE_FAILURE = 4
+    DEVICE_BUSY = 6
     GATEWAY_NO_RESPONSE = 0x0B
 
 

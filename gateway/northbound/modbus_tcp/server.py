@@ -12,7 +12,7 @@
 - every request waits for the server-wide :class:`Pacer` (requests per second);
 - requests go to the unit (one per station) by unit id; an unknown unit id answers 0x0B.
 
-The units are duck-typed: ``ir``, ``cmd_regs``, ``hr`` (lists of registers), ``lock``,
+The units are duck-typed: ``input_image()`` (the input registers), ``hr`` (the holding registers), ``lock``,
 ``may_write(peer)`` and ``owner.handle_write(unit, address, values, peer)`` (an awaitable giving
 ``None`` or an :class:`~.pdu.Exc`).
 """
@@ -283,7 +283,7 @@ class ModbusTcpServer:
                 return P.write_reply(req)
         c["reads"] += 1
         if req.fc == P.READ_INPUT:
-            regs = P.read_range(u.ir + u.cmd_regs, req.read_addr, req.read_count)
+            regs = P.read_range(u.input_image(), req.read_addr, req.read_count)
             if not isinstance(regs, P.Exc):
                 regs = u.decorate_input(regs, req.read_addr, peer)
         else:

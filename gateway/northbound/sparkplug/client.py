@@ -36,9 +36,12 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
 from ... import __version__
-from ...records import Command, CommandKind
-from ...threadloop import submit_to
+from ...records import CommandKind
+from ...station import commands as C
+from ...station.commands import Rejection
+from ...threadloop import call_soon_on, submit_to
 from ..broker_settings import BrokerSettings, SecretError
+from ..cmdparse import intake, rejected_event_data
 from ..outbox import Outbox, Row
 from .inbound import BadInputLog, InboundLimits
 from .node import Disconnect, EdgeNode, MemoryBuffer, Publish, Submit
@@ -368,8 +371,15 @@ class NodeRuntime:
             self._act(self.node.command_result(sub.device_id, sub.kind, False, 10, "the station is not running",
                                                self._now()))
             return
-        cmd = Command(ck, "sparkplug", dict(sub.args))
-        fut = submit_to(out.loop, out.station.submit(cmd))
+        # the one bounded intake (gateway/northbound/cmdparse.py): a DCMD metric's Sparkplug type
+        # is kept, so a String "0.6" for Arg T Set or a 1 MB Arg Sample ID is refused like over MQTT
+        cmd = intake(ck.value, sub.args, "sparkplug")
+        if isinstance(cmd, Rejection):
+            self._act(self.node.command_result(sub.device_id, sub.kind, False, int(cmd.code), cmd.reason,
+                                               self._now()))
+            call_soon_on(out.loop, C.refused, out.station, rejected_event_data(ck.value, cmd, "sparkplug"))
+            return
+        fut = submit_to(out.loop, C.submit(out.station, cmd))
         if fut is None:
             self.post(("result", sub.device_id, sub.kind, False, 10, "the station is not running"))
             return

@@ -120,10 +120,12 @@ def test_cli_bad_scenario_is_one_line_exit_2(tmp_path):
 
 # ---------------------------------------------------------------------------------- the wire
 class Port:
-    """A client end of a pty, opened through its symlink; reopens when the link comes back."""
+    """A client end of a pty, opened through its symlink at 115200 baud (the virtual meter ignores
+    requests sent at another speed, as a real one does); reopens when the link comes back."""
 
-    def __init__(self, path: str):
+    def __init__(self, path: str, baud: int = 115200):
         self.path = path
+        self.speed = getattr(termios, f"B{baud}")
         self.fd: int | None = None
 
     def ensure(self) -> bool:
@@ -134,6 +136,9 @@ class Port:
         except OSError:
             return False
         tty.setraw(fd, termios.TCSANOW)
+        attrs = termios.tcgetattr(fd)
+        attrs[4] = attrs[5] = self.speed
+        termios.tcsetattr(fd, termios.TCSANOW, attrs)
         self.fd = fd
         return True
 

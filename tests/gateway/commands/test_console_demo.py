@@ -6,20 +6,31 @@ from __future__ import annotations
 import os
 import re
 import shlex
+import signal
 import subprocess
 import time
 import urllib.request
 
-from conftest import hookwatch_cmd
+from conftest import ROOT, hookwatch_cmd
 from kit.broker import check_message
 from kit.e2e import QUICK_END, QUICK_METHOD, Proc, quick_scenario, read_json, station_yaml
 from kit.tools import require_tool
 
 
+def _fresh_clone(tmp_path) -> str:
+    """This checkout's committed tree, cloned as a newcomer gets it (no .venv)."""
+    dst = str(tmp_path / "hookwatch")
+    subprocess.run(["git", "clone", "-q", "--no-hardlinks", ROOT, dst], check=True, timeout=120)
+    return dst
+
+
 def test_demo_shows_console_plc_and_mqtt(tmp_path):
+    """From a fresh clone, as root: ./hookwatch-demo sets itself up (venv, the Debian tools its
+    output promises) and its printed lines work as pasted."""
     require_tool("mosquitto")
     require_tool("mosquitto_sub")
     require_tool("mbpoll")
+    clone = _fresh_clone(tmp_path)
     st = station_yaml(tmp_path, {"meter": "/dev/ttyDEMO0", "stm32": "/dev/ttyDEMO1"}, name="demo",
                       method=QUICK_METHOD, control={"dead_band_n": 0.01},
                       test={"sample_id": "DEMO-Q", "t_end_s": QUICK_END})
@@ -27,14 +38,16 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     # life ~23 s after the start instead of ~53 s)
     sc = quick_scenario(tmp_path, "quick.yaml")
     work = tmp_path / "work"
-    demo = Proc(hookwatch_cmd() + ["demo", "--scenario", sc,
+    demo = Proc([os.path.join(clone, "hookwatch-demo"), "--scenario", sc,
                                    "--station", st, "--dir", str(work), "--t-end", str(QUICK_END),
                                    "--every", "20",
                                    "--console-port", "0", "--plc-port", "0", "--mqtt-port", "0"],
                 str(tmp_path / "demo.log"))
     try:
-        url = demo.readline_until("console :", timeout=60).split()[0]
-        assert re.match(r"^http://127\.0\.0\.1:\d+/$", url)
+        url = demo.readline_until("console :", timeout=400).split()[0]
+        # the console opens on the demo station's page (μ(t) live), not on the fleet
+        assert re.match(r"^http://127\.0\.0\.1:\d+/#/station/demo$", url), url
+        url = url.split("#")[0]
         demo.readline_until("MES     :")
         t_end = time.monotonic() + 10
         while not any("mosquitto_sub " in ln for ln in demo.stdout_lines()) and time.monotonic() < t_end:
@@ -62,11 +75,13 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     out = "".join(demo.stdout_lines()) + demo.stdout_rest
     truth = read_json(str(work / "truth.json"))
     tau = QUICK_METHOD["tau"]
-    m = re.search(r"end of life at ([\d.]+) s after the start; simulated wear onset ([\d.]+) s; "
-                  rf"detected (\d+) s later \(at ([\d.]+) s\), as the {tau} s persistence requires",
-                  out)
+    m = re.search(r"the hook reached its end of life ([\d.]+) s after the start; "
+                  rf"detected ([\d.]+) s later \(the {tau:g} s persistence\); "
+                  r"the simulated wear began to accelerate at ([\d.]+) s; "
+                  r"offline analysis of the recorded log agrees", out)
     assert m, out
-    t_life, onset, _later, t_det = map(float, m.groups())
+    t_life, later, onset = map(float, m.groups())
+    t_det = t_life + later
     (res_path,) = [os.path.join(dp, "result.json") for dp, _d, fs in os.walk(work / "records") if "result.json" in fs]
     assert abs(read_json(res_path)["method"]["t_life"] - t_life) < 0.06
     assert abs(truth["onset_run_s"] - onset) < 0.06
@@ -75,4 +90,29 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     fig = re.search(r"Fig\. 7 : (\S+\.png)", out).group(1)
     with open(fig, "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
-    assert "the identical result" in out
+    assert "gives the identical result" in out
+    # what a person reads: rounded numbers, no packaging chatter, where the files are
+    # (no binary-float tails such as 208.14000000000001 or 0.006180000000000004)
+    assert not re.search(r"\d\.\d*(0{6,}|9{6,})\d", out), out
+    log = demo.log()
+    assert "BuildBackendWarning" not in log and "!!" not in log, log
+    assert f"everything the demo wrote is under {work}" in out
+
+
+def test_an_interrupted_demo_exits_non_zero(tmp_path):
+    """A demo that did not complete says so and exits non-zero (Ctrl-C in the middle of the life)."""
+    st = station_yaml(tmp_path, {"meter": "/dev/ttyDEMO0", "stm32": "/dev/ttyDEMO1"}, name="demo",
+                      method=QUICK_METHOD, test={"sample_id": "DEMO-I", "t_end_s": QUICK_END})
+    sc = quick_scenario(tmp_path, "quick.yaml")
+    demo = Proc(hookwatch_cmd() + ["demo", "--scenario", sc, "--station", st, "--dir", str(tmp_path / "w"),
+                                   "--t-end", str(QUICK_END), "--every", "1", "--no-console", "--no-northbound"],
+                str(tmp_path / "demo.log"))
+    try:
+        demo.readline_until("[demo] EVENT test_started", timeout=120)
+        demo.readline_until("[demo] t=", timeout=120)
+        demo.p.send_signal(signal.SIGINT)
+        rc = demo.p.wait(60)
+    finally:
+        demo.stop()
+    assert rc != 0, demo.log()
+    assert "did not complete" in demo.log()

@@ -11,13 +11,13 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from gateway.northbound.cmdparse import (
     ECHO_CHARS,
-    RejectionLimiter,
     clip,
     nesting_depth,
     parse_command,
     rejected_event_data,
 )
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
+from gateway.ratelog import RefusalWindow
 from gateway.records import Command, CommandKind
 from gateway.station.commands import Rejection
 from kit.broker import Broker, Sub, check_message
@@ -79,10 +79,12 @@ def test_nesting_scan_ignores_brackets_in_strings():
     assert nesting_depth(b'{"a": "\\"[[[[["}', 10) == 1
 
 
-def test_rejection_limiter_counts_what_it_suppresses():
-    lim = RejectionLimiter(rate=1.0, burst=2)
-    assert [lim.allow(0.0), lim.allow(0.0), lim.allow(0.0), lim.allow(0.1)] == [0, 0, None, None]
-    assert lim.allow(1.2) == 2          # the next event carries the count
+def test_refusal_window_reports_the_first_and_counts_the_rest():
+    w = RefusalWindow(window_s=60.0)
+    assert [w.add("k", 0.0, "a"), w.add("k", 1.0, "b"), w.add("k", 2.0, "c"), w.add("j", 2.0)] == [1, 0, 0, 1]
+    assert w.next_due() == 60.0 and w.due(59.0) == []
+    assert w.due(60.0) == [("k", 2, ("c",))]      # the count of the window, with the last detail
+    assert w.add("k", 61.0) == 1                  # a new window
 
 
 # ------------------------------------------------------------------ the fuzzer through Mosquitto

@@ -83,15 +83,33 @@ def test_register_values_round_trip(order):
         elif r.type == "uint32":
             assert R.decode_value(r, R.encode_value(r, 123456.4, order), order) == 123456
             assert R.decode_value(r, R.encode_value(r, -5, order), order) == 0
-        elif r.type == "string":
+        elif r.type in ("string", "string80"):
             raw = R.decode_value(r, R.encode_value(r, "S-0042", order), order)
             assert R.decode_sample_id(raw) == "S-0042"
+            long_id = "20260105T080700.123Z-" + "s" * 48 + "-9999"
+            raw = R.decode_value(r, R.encode_value(r, long_id, order), order)
+            assert R.decode_sample_id(raw) == long_id[:2 * r.count]
         else:
             assert R.decode_value(r, R.encode_value(r, 70000, order), order) == 0xFFFF
     # big: high word first
     assert R.encode_value(R.IR["t1"], 1.0, "big") == [0x3F80, 0x0000]
     assert R.encode_value(R.IR["t1"], 1.0, "little") == [0x0000, 0x3F80]
     assert R.decode_sample_id(b"AB\0C" + b"\0" * 28) is None
+
+
+def test_refusals_answer_the_modbus_exception_the_specification_means():
+    from gateway.station.commands import CODE, REJECT_CODES
+
+    assert R.refusal_exception(CODE["BUSY"]) == 6               # server device busy: retry later
+    assert R.refusal_exception(CODE["SETPOINT_LOCKED"]) == 6
+    assert R.refusal_exception(CODE["NO_STATION"]) == 4         # the only real failure
+    assert R.refusal_exception(999) == 4
+    for code, name, _ in REJECT_CODES:
+        if code and name not in ("BUSY", "SETPOINT_LOCKED", "NO_STATION"):
+            assert R.refusal_exception(code) == 3, name         # a refused value / state
+    # the map only grew: the added input registers come after every earlier one
+    assert R.IR["run_sample_id"].address == R.IR["command_count"].address + 1
+    assert R.IR["run_test_id"].address == R.IR["run_sample_id"].address + R.IR["run_sample_id"].count
 
 
 def test_register_map_is_dense_and_fits_one_read():

@@ -1,6 +1,8 @@
 """Modbus TCP server: mbpoll reads the documented registers with live values from a running
-station, validated writes (exception 03 for out-of-range, 01 for clients not allowed, 04 for a
-command the station refuses), several stations on one port, and fuzzed frames never stop it."""
+station, validated writes (exception 03 for out-of-range, 01 for clients not allowed, 06 for a
+command the running test refuses, 03 for one the station's state refuses), the running test's
+sample and test ID in input registers, several stations on one port, and fuzzed frames never
+stop it."""
 import socket
 import struct
 
@@ -117,19 +119,69 @@ def test_plc_starts_and_stops_a_test_through_the_command_path(plant):
                       .get(IR["slots"].address, 0)) > 20, 10, what="slot counter")
     f = _floats(port, 3, IR["t_set"].address, 2)
     assert f[IR["t_set"].address] == pytest.approx(0.45) and f[IR["valid_ratio"].address] > 0.5
-    # a second start is refused by the station: exception 04, reason code BUSY in last_result
+    # the running test's sample ID and test ID, read by mbpoll (and pymodbus as the oracle)
+    assert _text(port, 3, "run_sample_id") == "PLC-77"
+    assert s.test_id and _text(port, 3, "run_test_id") == s.test_id
+    assert _pymodbus_text(port, 3, "run_test_id") == s.test_id
+    # a second start is refused by the station: exception 06 (busy), reason code BUSY in last_result
     rc, _, err = _write(port, 3, HR["command"].address, [1])
-    assert rc != 0 and "failure" in err.lower()
+    assert rc != 0 and "busy" in err.lower(), err
     assert _cmd_status(port, 3)[:2] == (1, 1)
-    # the setpoint of a running test cannot change: 04 too, and the register keeps its value
+    assert _pymodbus_write_exception(port, 3, HR["command"].address, [1]) == 6
+    # the setpoint of a running test cannot change: 06 too, and the register keeps its value
     rc, _, err = _write(port, 3, HR["t_set"].address, [0.6], "4:float")
-    assert rc != 0 and _cmd_status(port, 3)[:2] == (4, 8)
+    assert rc != 0 and "busy" in err.lower(), err
+    assert _cmd_status(port, 3)[:2] == (4, 8)
     assert _hr(port, 3, "t_set", "4:float") == pytest.approx(0.45)
     rc, _, err = _write(port, 3, HR["command"].address, [2])
     assert rc == 0, err
+    # the last test's IDs stay readable after it ended
+    assert _text(port, 3, "run_sample_id") == "PLC-77"
+    # a stop without a running test: a refusal for the station's state (03), NOT_RUNNING in last_result
+    rc, _, err = _write(port, 3, HR["command"].address, [2])
+    assert rc != 0 and "illegal data value" in err.lower(), err
+    assert _cmd_status(port, 3)[:2] == (2, 2)
+    assert _pymodbus_write_exception(port, 3, HR["command"].address, [2]) == 3
     assert s.monitor is None and s.results[-1]["end_reason"] == "stopped by command"
     ev = [e for e in _events(s) if e["type"] == "test_ended"]
     assert ev and ev[-1]["source"] == "plc:127.0.0.1"
+
+
+def _text(port, unit, name):
+    r = IR[name]
+    rc, v, err = mbpoll(port, "-t", "3", "-r", str(r.address), "-c", str(r.count), unit=unit)
+    assert rc == 0, err
+    raw = struct.pack(f">{r.count}H", *(v[r.address + i] for i in range(r.count)))
+    return raw.rstrip(b"\0").decode("ascii")
+
+
+def _pymodbus_client(port):
+    from pymodbus.client import ModbusTcpClient
+
+    c = ModbusTcpClient("127.0.0.1", port=port, timeout=3)
+    assert c.connect()
+    return c
+
+
+def _pymodbus_text(port, unit, name):
+    r = IR[name]
+    c = _pymodbus_client(port)
+    try:
+        rr = c.read_input_registers(r.address, count=r.count, device_id=unit)
+        assert not rr.isError(), rr
+        return struct.pack(f">{r.count}H", *rr.registers).rstrip(b"\0").decode("ascii")
+    finally:
+        c.close()
+
+
+def _pymodbus_write_exception(port, unit, address, values):
+    c = _pymodbus_client(port)
+    try:
+        rr = c.write_registers(address, values, device_id=unit)
+        assert rr.isError(), rr
+        return rr.exception_code
+    finally:
+        c.close()
 
 
 def _events(station):

@@ -154,8 +154,8 @@ def test_exception_codes_and_no_traceback_for_malformed_0x15(server, caplog):
 
 def test_holding_register_0_reads_back_0_after_a_command(server):
     port, st = server
-    # ack without an alarm: the station refuses (exception 04, reason code in last_result)
-    assert _ask(port, b"\x06\x00\x00\x00\x03") == b"\x86\x04"
+    # ack without an alarm: the station refuses for its state (exception 03, reason code in last_result)
+    assert _ask(port, b"\x06\x00\x00\x00\x03") == b"\x86\x03"
     assert _ask(port, b"\x03\x00\x00\x00\x01") == b"\x03\x02\x00\x00"
     rc, v, err = mbpoll(port, "-t", "3", "-r", str(IR["last_command"].address), "-c", "2", unit=3)
     assert rc == 0 and v[IR["last_command"].address] == 3 and v[IR["last_command"].address + 1] == 3

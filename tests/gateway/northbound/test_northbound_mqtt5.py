@@ -59,11 +59,13 @@ class Mes:
         self.c.loop_stop()
 
 
-def _output(tmp_path, port, protocol):
+def _output(tmp_path, port, protocol, reply_prefix="mes/replies"):
+    """``reply_prefix``: the MES of these tests wants its answers below `mes/replies`
+    (`mqtt.reply_prefix`; a Response Topic elsewhere is not obeyed)."""
     station = make_station(tmp_path, [])
     out = MqttOutput(MqttSettings(station_id="st1", base_topic=BASE, port=port, protocol=protocol,
                                   outbox_path=str(tmp_path / "outbox.sqlite"), reconnect_min_s=0.2,
-                                  reconnect_max_s=0.5), station)
+                                  reconnect_max_s=0.5, reply_prefix=reply_prefix), station)
     station.outputs.append(out)
     return station, out
 

@@ -2,7 +2,7 @@
 
 - The PLC (mbpoll) writes `alarm_select` and `shelve_duration`, then command code 8: the wear
   warning is shelved — the PLC reads it in `warning_alarm`, the MES (mosquitto_sub) gets the
-  retained `alarm/warning` with `shelved_until`; a refused shelve answers exception 04 with the
+  retained `alarm/warning` with `shelved_until`; a refused shelve answers exception 03 with the
   reason code in `last_result`; code 9 unshelves.
 - A Sparkplug primary host (tests/kit/sparkplug_host.py, its own protoc build) sees both alarms in
   the DBIRTH (the wear warning with the same State/Active/Priority/Shelved Until as the end of
@@ -58,11 +58,11 @@ def test_plc_shelves_and_unshelves_the_wear_warning_seen_by_mqtt_and_the_registe
         # refused before anything changes: a duration beyond one shift (exception 03) …
         rc, _, err = plc_write(mport, "shelve_duration", 50_000)
         assert rc != 0 and "Illegal data value" in err, err
-        # … and through the command path: no alarm selected → exception 04, code ALARM
+        # … and through the command path: no alarm selected → exception 03, code ALARM
         rc, _, err = plc_write(mport, "shelve_duration", 600)
         assert rc == 0, err
         rc, _, err = plc_write(mport, "command", R.COMMAND_CODE["shelve"])
-        assert rc != 0, "a shelve without an alarm must be refused"
+        assert rc != 0 and "Illegal data value" in err, "a shelve without an alarm must be refused"
         assert plc_read(mport, "last_command") == R.COMMAND_CODE["shelve"]
         assert plc_read(mport, "last_result") == CODE["ALARM"]
         assert R.ALARM_STATES[plc_read(mport, "warning_alarm")] == "unacknowledged"

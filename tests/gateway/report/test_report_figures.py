@@ -94,3 +94,34 @@ def test_fig7_without_baseline_and_fig9_fig8(tmp_path):
         w, h, sd = png_info(tmp_path / name)
         assert (w, h) == (1600, 1000) and sd > 10, name
     assert not [f for f in os.listdir(tmp_path) if f.endswith(".tmp.png")]
+
+
+@pytest.mark.parametrize("sample", ["$x$", r"S$1_^2\frac{", "a_b^c\\d$", "$$"])
+def test_fig7_and_fig9_draw_sample_ids_and_grades_literally(tmp_path, sample):
+    """A sample id (or grade) is operator text, never mathtext or TeX: `$x$` is drawn as the four
+    characters `$x$`, and `S$1_^2\\frac{` (unbalanced mathtext) still gives its figure."""
+    import matplotlib
+
+    p, s = _slots()
+    g = gate_and_baseline(s, p)
+    r = life_result(g).as_dict()
+    title = f"Sample {sample} — Grade {sample}, T_set 0.5 N"
+    d = F.fig7_data(title=title, ts=p.ts, mask=g.mask, mu=g.mu, ratio=g.ratio, t1=s.t1, t2=s.t2,
+                    p=p, result=r)
+    fig = F.render_fig7(d, str(tmp_path / "f7.png"))
+    w, h, sd = png_info(tmp_path / "f7.png")
+    assert (w, h) == (1600, 1000) and sd > 10
+    t = fig.axes[0].title
+    assert t.get_text() == title
+    assert t.get_usetex() is False and t._parse_math is False    # the Text as it is drawn
+    # the drawn text itself: an SVG with real <text> elements carries the characters as given
+    svg = tmp_path / "f7.svg"
+    with matplotlib.rc_context({"svg.fonttype": "none"}):
+        fig.savefig(svg, format="svg")
+    from xml.sax.saxutils import escape
+    assert escape(title) in svg.read_text(encoding="utf-8")
+    # Fig. 9 with the same text as a grade (legend) and in the rankings
+    F.render_fig9({(0.5, sample): [300.0, 310.0], (0.5, "II"): [200.0]}, [sample, "II"], [0.5],
+                  {0.5: f"{sample} > II"}, str(tmp_path / "f9.png"), f"Fig. 9 {sample}")
+    w, h, sd = png_info(tmp_path / "f9.png")
+    assert (w, h) == (1600, 1000) and sd > 10

@@ -1,4 +1,5 @@
-"""A human-readable output: one progress line every few seconds and a line per event."""
+"""A human-readable output for a terminal: one progress line every few seconds and a line per event
+(`hookwatch demo`; not the web console, which is `gateway/console/`)."""
 from __future__ import annotations
 
 import math
@@ -8,7 +9,21 @@ import time
 from ..records import Event, EventType, SlotRecord, StationState
 
 
-class ConsoleOutput:
+def fmt(v: object) -> str:
+    """A value as a person reads it: floats to 5 significant digits (0.00618, 240, 208.14), also
+    inside dicts and lists (no 0.006180000000000004)."""
+    if isinstance(v, bool) or v is None:
+        return str(v)
+    if isinstance(v, float):
+        return f"{v:.5g}"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {fmt(x)}" for k, x in v.items()) + "}"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(fmt(x) for x in v) + "]"
+    return str(v)
+
+
+class TerminalOutput:
     def __init__(self, every_s: float = 5.0, stream=None):
         self.every = every_s
         self.stream = stream or sys.stdout
@@ -58,7 +73,7 @@ class ConsoleOutput:
             if r.get("stop_reasons"):                # e.g. STOPPED for a test ended on purpose (§3)
                 d["stop_reasons"] = "+".join(r["stop_reasons"])
             d["t_life"] = r.get("t_life")
-        detail = ", ".join(f"{k}={v:.4f}" if isinstance(v, float) else f"{k}={v}" for k, v in d.items())
+        detail = ", ".join(f"{k}={fmt(v)}" for k, v in d.items())
         self._print(f"[{ev.station}] EVENT {ev.type.value}: {detail}")
 
     def on_state(self, st: StationState) -> None:

@@ -1,0 +1,214 @@
+"""`hookwatch check --probe` through the real CLI against the virtual station (`hookwatch sim` on
+ptys, a process of its own), a real Mosquitto with a password file and a port held by another
+program: each failure is one plain sentence with its fix, and the exit code says it. And at run time,
+a silent meter's failed zero check names the port and its settings."""
+import os
+import socket
+import subprocess
+
+import pytest
+import yaml
+
+from conftest import hookwatch_cmd
+from kit.broker import Broker
+from kit.e2e import run_gateway, station_yaml, virtual_station, wait_log
+from kit.tools import free_port, require_tool
+
+
+def check(*args, env=None):
+    p = subprocess.run(hookwatch_cmd() + ["check", *args], capture_output=True, text=True, timeout=180,
+                       env={**os.environ, **(env or {})})
+    return p.returncode, p.stdout, p.stderr
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("probe")
+    with virtual_station(tmp, "config/scenarios/demo.yaml") as (proc, links):
+        yield tmp, links
+
+
+def station(tmp, links, name, **kw):
+    return station_yaml(tmp, links, name=name, **kw)
+
+
+def test_a_station_that_answers_everywhere_passes(sim):
+    tmp, links = sim
+    rc, out, err = check("--probe", station(tmp, links, "good"))
+    assert rc == 0, out + err
+    assert f"meter answered on {links['meter']} at 115200 8N1, unit 1: channel 1" in out, out
+    assert f"STM32 answered a PING on {links['stm32']} at 115200 baud" in out, out
+    assert "probe: all OK" in out
+
+
+def test_a_wrong_baud_fails_and_the_scan_finds_the_meter(sim):
+    tmp, links = sim
+    path = station(tmp, links, "baud", meter={"baud": 38400})
+    rc, out, _ = check("--probe", path)
+    assert rc == 1, out
+    assert f"meter not answering on {links['meter']} at 38400 8N1, unit 1" in out, out
+    assert "hookwatch check --probe --scan" in out                     # the fix
+    rc, out, _ = check("--probe", "--scan", path)
+    assert rc == 1, out
+    assert f"it answered at {links['meter']} at 115200 8N1, unit 1: set meter.baud: 115200." in out, out
+
+
+def test_a_wrong_unit_is_found_by_the_scan(sim):
+    tmp, links = sim
+    rc, out, _ = check("--probe", "--scan", station(tmp, links, "unit", meter={"unit_id": 7}))
+    assert rc == 1, out
+    assert f"meter not answering on {links['meter']} at 115200 8N1, unit 7" in out, out
+    assert "set meter.unit_id: 1." in out, out
+
+
+def test_rs485_mode_on_a_pty_is_reported(sim):
+    tmp, links = sim
+    rc, out, _ = check("--probe", station(tmp, links, "rs485", meter={"rs485": {"enabled": True}}))
+    assert rc == 1, out
+    assert f"meter.rs485: {links['meter']}: the port refuses the kernel's RS-485 mode" in out, out
+    assert "remove the `rs485:` section" in out
+
+
+def test_a_dead_port(sim, tmp_path):
+    _, links = sim
+    dead = {"meter": str(tmp_path / "gone-meter"), "stm32": str(tmp_path / "gone-stm32")}
+    rc, out, _ = check("--probe", "--skip-local", station(tmp_path, dead, "dead"))
+    assert rc == 1, out
+    assert f"meter port {dead['meter']} no such device: check the cable" in out, out
+    assert f"STM32 port {dead['stm32']} does not exist" in out, out
+
+
+def test_a_broker_that_refuses_the_password_and_a_taken_port(sim, tmp_path):
+    tmp, links = sim
+    passwd = tmp_path / "passwd"
+    subprocess.run([require_tool("mosquitto_passwd"), "-b", "-c", str(passwd), "hw", "s3cret"], check=True,
+                   capture_output=True, timeout=60)
+    b = Broker(tmp_path)
+    b.conf.write_text(b.conf.read_text().replace("allow_anonymous true", "allow_anonymous false")
+                      + f"password_file {passwd}\n")
+    taken = []
+    for _ in range(3):          # held by "another program": Modbus TCP, metrics, console
+        t = socket.socket()
+        t.bind(("127.0.0.1", 0))
+        t.listen(1)
+        taken.append(t)
+    busy, busy_metrics, busy_console = (t.getsockname()[1] for t in taken)
+    free = free_port()
+    with b:
+        mqtt = {"enabled": True, "port": b.port, "username": "hw", "password_env": "HW_PROBE_PW"}
+        path = station(tmp, links, "broker", mqtt=mqtt,
+                       modbus_tcp={"enabled": True, "port": busy, "unit_id": 1})
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+        cfg["metrics"] = {"enabled": True, "port": busy_metrics}
+        cfg["console"] = {"enabled": True, "listen": [f"127.0.0.1:{busy_console}"]}
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "wrong"})
+        assert rc == 1, out
+        assert (f"mqtt broker 127.0.0.1:{b.port} refused user 'hw' (") in out, out
+        assert "check mqtt.username and the password" in out
+        assert f"modbus_tcp: 127.0.0.1:{busy} is already in use by another program" in out, out
+        assert f"metrics: 127.0.0.1:{busy_metrics} is already in use" in out, out
+        assert f"console.listen: 127.0.0.1:{busy_console} is already in use" in out, out
+        # the right password and a free port: all OK (and the Sparkplug section's broker too)
+        path = station(tmp, links, "broker2", mqtt=mqtt, modbus_tcp={"enabled": True, "port": free, "unit_id": 1})
+        with open(path) as f:
+            cfg = yaml.safe_load(f)
+        cfg["sparkplug"] = {**mqtt, "password_env": "HW_PROBE_SPB"}
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret", "HW_PROBE_SPB": "nope"})
+        assert rc == 1 and f"sparkplug broker 127.0.0.1:{b.port} refused user 'hw'" in out, out
+        assert "check sparkplug.username" in out
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret", "HW_PROBE_SPB": "s3cret"})
+        assert rc == 0, out
+        assert f"mqtt broker 127.0.0.1:{b.port} accepted user 'hw'." in out
+        assert f"sparkplug broker 127.0.0.1:{b.port} accepted user 'hw'." in out
+        # a Sparkplug server set: every member is asked
+        nobody = free_port()
+        cfg["sparkplug"]["servers"] = [f"127.0.0.1:{b.port}", f"127.0.0.1:{nobody}"]
+        with open(path, "w") as f:
+            yaml.safe_dump(cfg, f)
+        rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret", "HW_PROBE_SPB": "s3cret"})
+        assert rc == 1, out
+        assert f"sparkplug broker 127.0.0.1:{b.port} accepted user 'hw'." in out
+        assert f"sparkplug broker 127.0.0.1:{nobody} cannot be reached" in out, out
+        assert f"modbus_tcp: 127.0.0.1:{free} is free to listen on." in out
+    for t in taken:
+        t.close()
+    # the broker gone: cannot be reached
+    rc, out, _ = check("--probe", path, env={"HW_PROBE_PW": "s3cret"})
+    assert rc == 1 and f"mqtt broker 127.0.0.1:{b.port} cannot be reached" in out, out
+
+
+def test_an_echoing_adapter_needs_local_echo(tmp_path):
+    sc = tmp_path / "echo.yaml"
+    with open(os.path.join(os.path.dirname(__file__), "..", "..", "..", "config", "scenarios", "demo.yaml")) as f:
+        data = yaml.safe_load(f)
+    data["meter"] = {**(data.get("meter") or {}), "echo": True,
+                     "map": os.path.abspath("config/meters/zn-s.yaml")}
+    sc.write_text(yaml.safe_dump(data))
+    with virtual_station(tmp_path, str(sc)) as (_p, links):
+        rc, out, _ = check("--probe", station(tmp_path, links, "echo0"))
+        assert rc == 1, out
+        assert f"the adapter on {links['meter']} hands our own request back" in out, out
+        assert "set meter.local_echo: true." in out
+        rc, out, _ = check("--probe", station(tmp_path, links, "echo1", meter={"local_echo": True}))
+        assert rc == 0, out
+    # and the other way round: local_echo on an adapter that does not echo
+    with virtual_station(tmp_path, "config/scenarios/demo.yaml") as (_p, links):
+        rc, out, _ = check("--probe", station(tmp_path, links, "echo2", meter={"local_echo": True}))
+        assert rc == 1 and "set meter.local_echo: false." in out, out
+
+
+def test_the_latency_timer_of_a_usb_adapter_is_judged_against_the_slot(tmp_path):
+    # the sysfs layout of an FTDI adapter (no FTDI on this machine): 16 ms fails, 1 ms passes
+    from types import SimpleNamespace
+
+    from gateway.commission.probe import _latency_findings, meter_map_of
+
+    d = tmp_path / "sys" / "class" / "tty" / "ttyUSB3" / "device"
+    d.mkdir(parents=True)
+    m = meter_map_of(SimpleNamespace(map=None, baud=None, unit_id=None, parity=None))
+    for ms, ok in ((16, False), (1, True)):
+        (d / "latency_timer").write_text(f"{ms}\n")
+        f, = _latency_findings("/dev/ttyUSB3", m, 0.015, str(tmp_path / "sys"))
+        assert f.ok is ok, f
+    (d / "latency_timer").write_text("16\n")
+    f, = _latency_findings("/dev/ttyUSB3", m, 0.015, str(tmp_path / "sys"))
+    assert "holds received bytes for 16 ms" in f.text and "99-hookwatch.rules" in f.text
+    assert _latency_findings("/dev/pts/3", m, 0.015, str(tmp_path / "sys")) == []
+    # the STM32 link's ACK against its 10 ms timeout
+    from gateway.commission.probe import stm32_latency_finding
+
+    stm = SimpleNamespace(port="/dev/ttyUSB3", baud=115200, timeout_s=0.01)
+    f = stm32_latency_finding(stm, str(tmp_path / "sys"))
+    assert not f.ok and "stm32.timeout_s" in f.text
+    (d / "latency_timer").write_text("1\n")
+    assert stm32_latency_finding(stm, str(tmp_path / "sys")).ok
+    assert stm32_latency_finding(SimpleNamespace(port="/dev/pts/4", baud=115200, timeout_s=0.01),
+                                 str(tmp_path / "sys")) is None
+
+
+def test_a_silent_meter_at_run_time_is_named_with_its_port_and_settings(sim, tmp_path):
+    _, links = sim
+    path = station_yaml(tmp_path, links, name="silent", meter={"unit_id": 9})
+    gw = run_gateway(tmp_path, path, "--start")
+    try:
+        wait_log(gw, f"meter not answering on {links['meter']} at 115200 8N1, unit 9", timeout=60)
+        assert "zero check" in gw.log()
+    finally:
+        gw.stop()
+
+
+def test_the_probe_limits_are_documented_as_they_are():
+    from conftest import ROOT
+    from gateway.commission import probe as P
+
+    with open(os.path.join(ROOT, "docs", "limits.md"), encoding="utf-8") as f:
+        text = f.read()
+    assert ", ".join(map(str, P.SCAN_BAUDS)) in text
+    assert f"unit IDs {P.SCAN_UNITS[0]}–{P.SCAN_UNITS[-1]}" in text
+    assert f"wire time + {P.METER_MARGIN_S:g} s" in text and f"wire time + {P.SCAN_MARGIN_S:g} s" in text
+    assert f"{P.STM32_ATTEMPTS} PINGs" in text and f"CONNACK within {P.BROKER_TIMEOUT_S:g} s" in text
