@@ -39,6 +39,7 @@ from typing import Any
 
 from aiohttp import web
 
+from ..doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
 from ..records import Command, CommandKind
 from ..station.commands import CODE, Rejection, command_from_mapping
 from ..threadloop import ThreadLoop
@@ -69,7 +70,7 @@ DOWNLOADS = {"log.csv.gz": "application/gzip", "log.meta.yaml": "text/yaml; char
 class ConsoleSettings:
     def __init__(self, *, listen=("127.0.0.1:8080",), cert_file=None, key_file=None,
                  users_file: str, read_without_login="local", session_ttl_s=28800.0,
-                 lockout_attempts=5, lockout_s=300.0):
+                 lockout_attempts=5, lockout_s=300.0, door: DoorLimits | None = None):
         self.listen = tuple(listen)
         self.cert_file, self.key_file = cert_file, key_file
         self.users_file = users_file
@@ -77,6 +78,8 @@ class ConsoleSettings:
         self.session_ttl_s = float(session_ttl_s)
         self.lockout_attempts = int(lockout_attempts)
         self.lockout_s = float(lockout_s)
+        #: connection cap, request deadline, idle timeout (console.connections)
+        self.door = door or DoorLimits(256, 10.0, 60.0)
 
     @classmethod
     def from_config(cls, cfg) -> ConsoleSettings:
@@ -85,7 +88,7 @@ class ConsoleSettings:
         return cls(listen=c.listen, cert_file=c.tls.cert_file, key_file=c.tls.key_file,
                    users_file=users, read_without_login=c.read_without_login,
                    session_ttl_s=c.session_ttl_s, lockout_attempts=c.lockout_attempts,
-                   lockout_s=c.lockout_s)
+                   lockout_s=c.lockout_s, door=DoorLimits.from_config(c.connections))
 
 
 def parse_listen(addr: str) -> tuple[str, int]:
@@ -129,6 +132,7 @@ class ConsoleServer:
         self.dropped_clients = 0
         self.cpu_s = 0.0
         self._runner: web.AppRunner | None = None
+        self.door: AiohttpDoor | None = None
         self._tick_task: asyncio.Task | None = None
         self._cache = tempfile.mkdtemp(prefix="hookwatch-console-")
         self._fig_locks: dict[str, asyncio.Lock] = {}
@@ -178,23 +182,25 @@ class ConsoleServer:
 
     # ----------------------------------------------------------------- on the console loop
     async def _start(self) -> list[str]:
+        lim = self.settings.door
         app = self.make_app()
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0)
+        # the door's middleware first: a request's body is read within its deadline (gateway/doors.py)
+        app.middlewares.insert(0, door_middleware())
+        self._runner = web.AppRunner(app, shutdown_timeout=1.0, **door_runner_kwargs(lim))
         await self._runner.setup()
         ctx = None
         if self.settings.cert_file and self.settings.key_file:
             ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
             ctx.load_cert_chain(self.settings.cert_file, self.settings.key_file)
+        # one door for every listen address: one connection cap, deadlines, accept-error pause
+        self.door = AiohttpDoor("console", lim, self._runner, ssl_context=ctx, logger=log)
         urls = []
         for addr in self.settings.listen:
             host, port = parse_listen(addr)
-            site = web.TCPSite(self._runner, host, port, ssl_context=ctx, reuse_address=True)
-            await site.start()
-            server = site._server   # an asyncio.Server (typed as AbstractServer): the real port when 0
-            for s in (server.sockets if isinstance(server, asyncio.Server) else []):
-                h, p = s.getsockname()[:2]
-                shown = f"[{h}]" if ":" in h else h
-                urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
+            s = await self.door.listen(host, port)
+            h, p = s.getsockname()[:2]
+            shown = f"[{h}]" if ":" in h else h
+            urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
         self._tick_task = asyncio.get_running_loop().create_task(self._ticker())
         for u in urls:
             log.info("console on %s", u)
@@ -210,6 +216,8 @@ class ConsoleServer:
                     c.q.put_nowait(None)
                 except asyncio.QueueFull:
                     pass
+        if self.door is not None:
+            await self.door.close()
         if self._runner is not None:
             await self._runner.cleanup()
 

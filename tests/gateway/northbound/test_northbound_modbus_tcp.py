@@ -6,6 +6,7 @@ process has a low file-descriptor limit (`ulimit -n`), networks in `allowed_clie
 import logging
 import os
 import resource
+import dataclasses
 import socket
 import struct
 import subprocess
@@ -166,7 +167,7 @@ def test_connection_caps_and_idle_timeout(server, monkeypatch):
     srv = None
     from gateway.northbound.modbus_server import _SERVERS
     srv = next(s for (h, p), s in _SERVERS.items() if p == port).server
-    monkeypatch.setattr(srv, "idle_timeout_s", 1.0)
+    monkeypatch.setattr(srv.door, "limits", dataclasses.replace(srv.door.limits, idle_timeout_s=1.0))
     idle = [socket.create_connection(("127.0.0.1", port), timeout=5, source_address=("127.0.0.2", 0))
             for _ in range(S.MAX_PER_CLIENT + 5)]
     try:
