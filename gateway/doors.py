@@ -485,7 +485,37 @@ class DoorAccessLog(AbstractAccessLogger):
             conn.end()
 
 
+class _BadRequestLines(logging.Filter):
+    """aiohttp logs every unparsable request with its traceback: input from the network is not a
+    bug of ours. One line a minute (a warning, no traceback, with the count of those not shown)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.last = -1e18
+        self.skipped = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        now = time.monotonic()
+        if now - self.last < LOG_INTERVAL_S:
+            self.skipped += 1
+            return False
+        exc = record.exc_info[1] if record.exc_info else None
+        record.msg = str(record.getMessage()) + (f": {exc}" if exc is not None else "")
+        if self.skipped:
+            record.msg += f" ({self.skipped} more since the last such line)"
+        record.args = None
+        record.exc_info = record.exc_text = None
+        record.levelno, record.levelname = logging.WARNING, "WARNING"
+        self.last, self.skipped = now, 0
+        return True
+
+
+#: aiohttp's server log of the doors (bad requests: rate-limited, no tracebacks)
+http_log = logging.getLogger("hookwatch.doors.http")
+http_log.addFilter(_BadRequestLines())
+
+
 def door_runner_kwargs(limits: DoorLimits) -> dict[str, Any]:
     """``AppRunner`` keyword arguments of a door's aiohttp server."""
-    return {"access_log_class": DoorAccessLog, "access_log": log,
+    return {"access_log_class": DoorAccessLog, "access_log": log, "logger": http_log,
             "keepalive_timeout": limits.idle_timeout_s}

@@ -3,10 +3,10 @@ framer and the PDU codec as pure functions, then raw sockets against a real serv
 requests in one segment, a request split over segments, function 0x15, count 0, unknown
 functions, connection caps and the idle timeout, 1,100 idle sockets against a server whose
 process has a low file-descriptor limit (`ulimit -n`), networks in `allowed_clients`."""
+import dataclasses
 import logging
 import os
 import resource
-import dataclasses
 import socket
 import struct
 import subprocess
