@@ -10,8 +10,9 @@ with
   HTTP: the request line, the headers and the body; for Modbus: the whole frame) within this long
   of its first byte, however the bytes trickle in (a deadline, not a per-``recv`` timeout);
 - an **idle timeout** (:attr:`DoorLimits.idle_timeout_s`): a connection that does not begin a new
-  request this long after accept or after its last reply is closed; a reply that does not move
-  for as long (a client that does not read) is closed too;
+  request this long after its last reply (Modbus: after its accept too; HTTP: the first request
+  must be complete within the request deadline of the accept) is closed; a reply that does not
+  move for as long (a client that does not read) is closed too;
 - **accept errors** (``EMFILE``, ``ENFILE``, ``ENOBUFS`` …) are a *state*: counted, one log line
   (then at most one a minute, with the count), and the door stops accepting for
   :attr:`DoorLimits.accept_pause_s` instead of spinning; the pending connections wait in the
@@ -21,8 +22,8 @@ The :class:`Budget` is per process: at the first use it raises the soft ``RLIMIT
 hard limit and keeps a **reserve** of descriptors (``budget.reserve``: the slot loops, the
 recorder's files, serial ports, the MQTT outbox, the supervisor's socketpairs for worker restarts)
 that no door takes: the doors' caps are granted out of ``soft limit − reserve − the descriptors
-open at start`` (a door asks for its configured cap and gets less, with one log line, when the
-limit is too small), and a connection accepted while fewer than ``reserve`` descriptors are free
+open at start`` (a door asks for its configured cap and gets at most half of what is left, with
+one log line, when the limit is too small), and a connection accepted while fewer than ``reserve`` descriptors are free
 (the new descriptor's number tells: Linux gives the lowest free one) is closed at once.
 
 A door's protocol side marks a connection's requests: :meth:`Conn.data` (bytes of a request came
@@ -129,11 +130,12 @@ class Budget:
             self.reserve = max(16, int(reserve))
 
     def claim(self, name: str, wanted: int) -> int:
-        """A door's cap: ``wanted``, or what is left of :attr:`for_doors` (at least MIN_CAP)."""
+        """A door's cap: ``wanted``, or half of what is left of :attr:`for_doors` when that is
+        less (no door takes all: the doors started later still get room), at least MIN_CAP."""
         with self._lock:
             self.claims.pop(name, None)
             left = self.for_doors - sum(self.claims.values())
-            got = max(MIN_CAP, min(int(wanted), left))
+            got = max(MIN_CAP, min(int(wanted), left // 2))
             self.claims[name] = got
         if got < wanted:
             log.warning("%s: at most %d connections, not %d: the descriptor limit is %d and %d are "
@@ -187,12 +189,14 @@ class Conn:
     __slots__ = ("peer", "accepted", "idle_since", "first_byte", "busy", "close", "wbuf", "wbuf_t",
                  "transport", "requests", "door")
 
-    def __init__(self, peer: str, close: Callable[[], None], door: Door | None = None):
+    def __init__(self, peer: str, close: Callable[[], None], door: Door | None = None,
+                 first_request_deadline: bool = False):
         now = time.monotonic()
         self.peer = peer
         self.door = door
         self.accepted = self.idle_since = now
-        self.first_byte: float | None = None
+        #: the request deadline runs from the accept when the first request is due at once (HTTP)
+        self.first_byte: float | None = now if first_request_deadline else None
         self.busy = False
         self.close = close
         self.transport: Any = None
@@ -223,6 +227,10 @@ class Door:
     may close a connection to admit ``peer`` at the cap (True: room was made); a door without it
     closes the newcomer.
     """
+
+    #: a new connection's first request must be complete within the request deadline of the
+    #: accept (HTTP: a client connects to send a request); else the idle timeout applies first
+    first_request_deadline = False
 
     def __init__(self, name: str, limits: DoorLimits,
                  serve: Callable[[socket.socket, Conn], Awaitable[None] | None], *,
@@ -335,7 +343,7 @@ class Door:
                           "%d; %d refused)", self.name, peer, len(self.conns), self.cap, c["refused_connections"])
                 continue
             c["accepted"] += 1
-            conn = Conn(peer, sock.close, self)
+            conn = Conn(peer, sock.close, self, self.first_request_deadline)
             self.conns[conn] = None
             try:
                 r = self.serve(sock, conn)
@@ -423,6 +431,7 @@ _BY_TRANSPORT: dict[Any, Conn] = {}
 class AiohttpDoor(Door):
     """A door in front of an aiohttp ``AppRunner`` (set up with :func:`door_runner_kwargs` and
     the :func:`door_middleware` first among the app's middlewares)."""
+    first_request_deadline = True
 
     def __init__(self, name: str, limits: DoorLimits, runner, *, ssl_context=None,
                  logger: logging.Logger | None = None):
