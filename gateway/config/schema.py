@@ -313,9 +313,11 @@ def _door_keys(cap: int, request_s: float, idle_s: float, what: str) -> dict[str
         "request_timeout_s": key(request_s, "a request must be complete (all its bytes) within "
                                  "this long of its first byte, however they trickle in; else the "
                                  "connection is closed", kind="float", unit="s", lo=0.1, hi=600.0),
-        "idle_timeout_s": key(idle_s, "a connection that begins no request this long after it "
-                              "was opened or after its last reply (or does not read a reply for "
-                              "as long) is closed", kind="float", unit="s", lo=0.5, hi=86400.0),
+        "idle_timeout_s": key(idle_s, "a connection that begins no request this long after its "
+                              "last reply (or does not read a reply for as long) is closed; "
+                              "Modbus: also this long after it was opened (HTTP: the first "
+                              "request is due within request_timeout_s of the connect)",
+                              kind="float", unit="s", lo=0.5, hi=86400.0),
         "accept_pause_s": key(0.5, "after an accept error (EMFILE, ENFILE …: counted, one log line "
                               "a minute) the port stops accepting this long", kind="float",
                               unit="s", lo=0.01, hi=60.0),
