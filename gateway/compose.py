@@ -14,6 +14,7 @@ from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
 
 from .console.server import ConsoleServer, ConsoleSettings
+from .doors import Budget, DoorLimits, budget
 from .northbound.metrics import MetricsRelay
 from .northbound.modbus_server import ModbusOutput
 from .northbound.sparkplug.output import SparkplugOutput
@@ -57,6 +58,7 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     TCP output here (the supervisor serves the station's unit from the IPC stream); ``"sparkplug"``
     — no Sparkplug device here (the supervisor hosts the edge node); ``"metrics"`` — the metrics
     output counts here but opens no endpoint (its snapshot goes over IPC)."""
+    process_budget(cfg)
     mv = method_values(cfg)
     ts = float(mv.get("ts", 0.02))
     st = Station(
@@ -77,6 +79,13 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         st.outputs.append(console.output_for(st))
     st.slot_phase = slot_phase
     return st
+
+
+def process_budget(cfg) -> Budget:
+    """The process's descriptor budget (gateway/doors.py): the soft RLIMIT_NOFILE raised to the
+    hard limit, ``process.fd_reserve`` kept from the listening ports (the first call sets it)."""
+    p = getattr(cfg, "process", None)
+    return budget(int(p.fd_reserve) if p is not None else None)
 
 
 #: extra outputs of a site (a historian, a test fixture): ``module:callable[,module:callable]``;
@@ -102,6 +111,7 @@ def build_console(cfgs: list) -> ConsoleServer | None:
     in the fleet defaults), serving every station of ``cfgs``; None when it is not enabled."""
     if not cfgs or not cfgs[0].console.enabled:
         return None
+    process_budget(cfgs[0])
     return ConsoleServer(ConsoleSettings.from_config(cfgs[0]),
                          {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs},
                          mqtt_enabled={c.station.id: bool(c.mqtt.enabled) for c in cfgs})
@@ -145,6 +155,7 @@ def shared_outputs(cfg, station: StationView, console: ConsoleServer | None = No
     ``sparkplug_device``: the ``SparkplugOutput`` class to build, the supervisor's own whose device
     follows its worker), its console feed, and its metrics (the worker's snapshots on the
     supervisor's endpoint)."""
+    process_budget(cfg)
     outs: list[Output] = []
     modbus = None
     if with_northbound and cfg.modbus_tcp.enabled:
@@ -156,7 +167,8 @@ def shared_outputs(cfg, station: StationView, console: ConsoleServer | None = No
         outs.append(console.output_for(station))
     m = cfg.metrics
     if m.enabled:
-        outs.append(MetricsRelay(station.id, m.host, int(m.port), ts=station.ts, modbus=modbus))
+        outs.append(MetricsRelay(station.id, m.host, int(m.port), ts=station.ts, modbus=modbus,
+                                 limits=DoorLimits.from_config(m.connections)))
     return outs
 
 

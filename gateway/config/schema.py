@@ -434,6 +434,41 @@ class SparkplugConfig(BrokerConfig):
                                      lo=0.0, hi=31536000.0)
 
 
+def _door_keys(cap: int, request_s: float, idle_s: float, what: str) -> dict[str, Any]:
+    """The keys of a listening door (gateway/doors.py: one mechanism for every TCP port)."""
+    return {
+        "max_connections": key(cap, f"connections open at once on {what}; one more is closed at "
+                               "once (counted). Granted within the process's descriptor budget "
+                               "(`process.fd_reserve`)", kind="int", lo=2, hi=100000),
+        "request_timeout_s": key(request_s, "a request must be complete (all its bytes) within "
+                                 "this long of its first byte, however they trickle in; else the "
+                                 "connection is closed", kind="float", unit="s", lo=0.1, hi=600.0),
+        "idle_timeout_s": key(idle_s, "a connection that begins no request this long after its "
+                              "last reply (or does not read a reply for as long) is closed; "
+                              "Modbus: also this long after it was opened (HTTP: the first "
+                              "request is due within request_timeout_s of the connect)",
+                              kind="float", unit="s", lo=0.5, hi=86400.0),
+        "accept_pause_s": key(0.5, "after an accept error (EMFILE, ENFILE …: counted, one log line "
+                              "a minute) the port stops accepting this long", kind="float",
+                              unit="s", lo=0.01, hi=60.0),
+    }
+
+
+def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: str) -> type:
+    keys = _door_keys(cap, request_s, idle_s, what)
+    cls = dataclasses.make_dataclass(name, [(k, float if k.endswith("_s") else int, f)
+                                            for k, f in keys.items()], frozen=True, kw_only=True)
+    cls.__doc__ = f"connection limits of {what}"
+    cls.__module__ = __name__
+    return cls
+
+
+ModbusDoorConfig = _door_section("ModbusDoorConfig", 64, 10.0, 60.0, "the Modbus TCP port")
+MetricsDoorConfig = _door_section("MetricsDoorConfig", 8, 5.0, 30.0, "the metrics endpoint")
+ConsoleDoorConfig = _door_section("ConsoleDoorConfig", 256, 10.0, 60.0, "the console (every "
+                                  "listen address together)")
+
+
 @dataclass(frozen=True, kw_only=True)
 class ModbusWritesConfig:
     enabled: bool = key(False, "accept writes (commands) from a PLC; reads are always allowed",
@@ -453,6 +488,9 @@ class ModbusTcpConfig:
     word_order: str = key("big", "order of the two registers of a 32-bit value (big: high word "
                           "first)", kind="enum", choices=("big", "little"))
     writes: ModbusWritesConfig = section(ModbusWritesConfig, "commands from the PLC")
+    connections: ModbusDoorConfig = section(ModbusDoorConfig, "connection limits of the port "  # type: ignore[valid-type]
+                                            "(the first station on a port sets them); clients in "
+                                            "writes.allowed_clients always find room")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -465,6 +503,8 @@ class MetricsConfig:
     port: int = key(9620, "TCP port; every station of a fleet (`hookwatch run DIR`) shares the "
                     "endpoint on the same host and port (one series set per station)", kind="int",
                     lo=1, hi=65535)
+    connections: MetricsDoorConfig = section(MetricsDoorConfig, "connection limits of the "  # type: ignore[valid-type]
+                                             "endpoint (the first station's)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -514,6 +554,18 @@ class ConsoleConfig:
     stream_connects_total: int = key(120, "live-stream (SSE) connects per minute from all "
                                      "clients together; beyond, HTTP 429 with Retry-After",
                                      kind="int", lo=1, hi=100000, unit="1/min")
+    connections: ConsoleDoorConfig = section(ConsoleDoorConfig, "connection limits of the "  # type: ignore[valid-type]
+                                             "console")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProcessConfig:
+    fd_reserve: int = key(128, "file descriptors kept for the stations' own work (slot loops, "
+                          "recorder files, serial ports, MQTT outbox, the supervisor's worker "
+                          "restarts): the listening ports never take them. The soft "
+                          "RLIMIT_NOFILE is raised to the hard limit at start; the ports' "
+                          "connection caps are granted out of the rest (the first station "
+                          "file's value for the process)", kind="int", lo=32, hi=100000)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -632,6 +684,7 @@ class StationConfig:
     metrics: MetricsConfig = section(MetricsConfig, "metrics for Prometheus (the gateway's own health)")
     console: ConsoleConfig = section(ConsoleConfig, "operator console (web pages)")
     logging: LoggingConfig = section(LoggingConfig, "logging")
+    process: ProcessConfig = section(ProcessConfig, "the gateway process (descriptor budget)")
     #: not a key: the station file this configuration was read from, and its fleet file
     source: str = field(default="", metadata={"internal": True})
     fleet_file: str | None = field(default=None, metadata={"internal": True})

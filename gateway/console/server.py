@@ -40,6 +40,7 @@ from typing import Any
 
 from aiohttp import web
 
+from ..doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
 from ..northbound.cmdparse import intake, rejected_event_data
 from ..ports import StationView
 from ..ratelog import RateLog
@@ -79,7 +80,7 @@ class ConsoleSettings:
                  users_file: str, read_without_login="local", session_ttl_s=28800.0,
                  lockout_attempts=5, lockout_s=300.0, login_failures_per_address=20,
                  allowed_hosts=(), report_jobs=1, report_queue=8, stream_connects_per_address=30,
-                 stream_connects_total=120):
+                 stream_connects_total=120, door: DoorLimits | None = None):
         self.listen = tuple(listen)
         self.cert_file, self.key_file = cert_file, key_file
         self.users_file = users_file
@@ -93,6 +94,8 @@ class ConsoleSettings:
         self.report_queue = int(report_queue)
         self.stream_connects_per_address = int(stream_connects_per_address)
         self.stream_connects_total = int(stream_connects_total)
+        #: connection cap, request deadline, idle timeout (console.connections)
+        self.door = door or DoorLimits(256, 10.0, 60.0)
 
     @classmethod
     def from_config(cls, cfg) -> ConsoleSettings:
@@ -105,7 +108,8 @@ class ConsoleSettings:
                    allowed_hosts=c.allowed_hosts, report_jobs=c.report_jobs,
                    report_queue=c.report_queue,
                    stream_connects_per_address=c.stream_connects_per_address,
-                   stream_connects_total=c.stream_connects_total)
+                   stream_connects_total=c.stream_connects_total,
+                   door=DoorLimits.from_config(c.connections))
 
 
 def parse_listen(addr: str) -> tuple[str, int]:
@@ -154,6 +158,7 @@ class ConsoleServer:
         self.dropped_clients = 0
         self.cpu_s = 0.0
         self._runner: web.AppRunner | None = None
+        self.door: AiohttpDoor | None = None
         self._tick_task: asyncio.Task | None = None
         self._cache = tempfile.mkdtemp(prefix="hookwatch-console-")
         self._campaign_busy = False
@@ -202,24 +207,27 @@ class ConsoleServer:
 
     # ----------------------------------------------------------------- on the console loop
     async def _start(self) -> list[str]:
+        lim = self.settings.door
         app = self.make_app()
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=1.0,
-                                     logger=ServerLog(log, self.refusals))
+        # the door's middleware first: a request's body is read within its deadline (gateway/doors.py);
+        # the console's own server logger (malformed requests: one rate-limited line, no traceback)
+        app.middlewares.insert(0, door_middleware())
+        self._runner = web.AppRunner(app, shutdown_timeout=1.0,
+                                     **{**door_runner_kwargs(lim), "logger": ServerLog(log, self.refusals)})
         await self._runner.setup()
         ctx = None
         if self.settings.cert_file and self.settings.key_file:
             ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
             ctx.load_cert_chain(self.settings.cert_file, self.settings.key_file)
+        # one door for every listen address: one connection cap, deadlines, accept-error pause
+        self.door = AiohttpDoor("console", lim, self._runner, ssl_context=ctx, logger=log)
         urls = []
         for addr in self.settings.listen:
             host, port = parse_listen(addr)
-            site = web.TCPSite(self._runner, host, port, ssl_context=ctx, reuse_address=True)
-            await site.start()
-            server = site._server   # an asyncio.Server (typed as AbstractServer): the real port when 0
-            for s in (server.sockets if isinstance(server, asyncio.Server) else []):
-                h, p = s.getsockname()[:2]
-                shown = f"[{h}]" if ":" in h else h
-                urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
+            s = await self.door.listen(host, port)
+            h, p = s.getsockname()[:2]
+            shown = f"[{h}]" if ":" in h else h
+            urls.append(f"{'https' if ctx else 'http'}://{shown}:{p}/")
         self._tick_task = asyncio.get_running_loop().create_task(self._ticker())
         for u in urls:
             log.info("console on %s", u)
@@ -236,6 +244,8 @@ class ConsoleServer:
                     c.q.put_nowait(None)
                 except asyncio.QueueFull:
                     pass
+        if self.door is not None:
+            await self.door.close()
         if self._runner is not None:
             await self._runner.cleanup()
 

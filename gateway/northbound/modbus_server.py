@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import __version__
+from ..doors import DoorLimits
 from ..method.rules import REASONS
 from ..ports import CommandSink, StationLimits, StationView
 from ..ratelog import RateLog, safe
@@ -80,6 +81,10 @@ class Unit:
     def may_write(self, peer: str | None) -> bool:
         return self.owner.may_write(peer)
 
+    def allowed(self, peer: str | None) -> bool:
+        """``peer`` is in the station's allow-list (its connections always find room)."""
+        return self.owner.allowed(peer)
+
     def write_policy(self) -> str:
         o = self.owner
         return ("writes allowed only from " + ", ".join(sorted(o.allowed_clients))
@@ -104,8 +109,9 @@ class SharedServer:
     RETRY_S = 5.0
     LINGER_S = 3.0
 
-    def __init__(self, host: str, port: int):
+    def __init__(self, host: str, port: int, limits: DoorLimits | None = None):
         self.host, self.port = host, port
+        self.limits = limits
         self.store = Store()
         self.pacer = Pacer(MAX_REQUESTS_PER_S)
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -138,7 +144,7 @@ class SharedServer:
         self._ready.set()
         logged = False
         while not self._stop.is_set():
-            server = ModbusTcpServer(self.store, self.pacer)
+            server = ModbusTcpServer(self.store, self.pacer, limits=self.limits)
             try:
                 await server.start(self.host, self.port)
             except Exception as e:  # address in use, permission
@@ -206,11 +212,13 @@ _SERVERS: dict[tuple[str, int], SharedServer] = {}
 _REG_LOCK = threading.Lock()
 
 
-def shared_server(host: str, port: int) -> SharedServer:
+def shared_server(host: str, port: int, limits: DoorLimits | None = None) -> SharedServer:
+    """The server on (host, port), started by the first station that names it (with its
+    ``modbus_tcp`` door limits)."""
     with _REG_LOCK:
         s = _SERVERS.get((host, port))
         if s is None or not s._thread.is_alive():
-            s = _SERVERS[(host, port)] = SharedServer(host, port)
+            s = _SERVERS[(host, port)] = SharedServer(host, port, limits)
         if s._linger is not None:
             s._linger.cancel()
             s._linger = None
@@ -240,6 +248,8 @@ class ModbusSettings:
     allowed_clients: tuple[str, ...] = ()
     grades: tuple[str, ...] = ("I", "II")
     live_update_s: float = LIVE_UPDATE_S
+    #: connection cap, request deadline, idle timeout of the port (the first station's win)
+    door: DoorLimits | None = None
 
 
 class ModbusOutput:
@@ -287,7 +297,11 @@ class ModbusOutput:
 
     def may_write(self, peer: str | None) -> bool:
         """Writes enabled and ``peer`` inside one of ``allowed_clients`` (addresses or networks)."""
-        if not self.writes_enabled or not peer:
+        return self.writes_enabled and self.allowed(peer)
+
+    def allowed(self, peer: str | None) -> bool:
+        """``peer`` inside one of ``allowed_clients`` (writes enabled or not)."""
+        if not peer:
             return False
         try:
             ip = ipaddress.ip_address(peer)
@@ -300,7 +314,8 @@ class ModbusOutput:
     # -- output protocol (station loop)
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
-        self.server = await self.loop.run_in_executor(None, shared_server, self.s.host, int(self.s.port))
+        self.server = await self.loop.run_in_executor(None, shared_server, self.s.host, int(self.s.port),
+                                                  self.s.door)
         unit = Unit(int(self.s.unit_id), self)
         unit.hr = self._initial_holding()
         self.unit = unit

@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import os
 
+from ..doors import DoorLimits
 from ..ports import StationLinks
 from . import schema
 from .broker_settings import broker_kwargs
@@ -41,6 +42,7 @@ def modbus_settings(cfg):
         word_order=mb.word_order, writes_enabled=bool(mb.writes.enabled),
         allowed_clients=tuple(str(a) for a in (mb.writes.allowed_clients or ())),
         grades=tuple(getattr(cfg, "grades", ("I", "II"))),
+        door=DoorLimits.from_config(mb.connections),
     )
 
 
@@ -81,4 +83,5 @@ def metrics_outputs(cfg, station: StationLinks, outputs: list, *, serve: bool = 
 
     mqtt = next((o for o in outputs if isinstance(o, MqttOutput)), None)
     modbus = next((o for o in outputs if isinstance(o, ModbusOutput)), None)
-    return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus, serve=serve)]
+    return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus, serve=serve,
+                          limits=DoorLimits.from_config(m.connections))]

@@ -38,7 +38,9 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from ..compose import process_budget
 from ..config import Issue
+from ..doors import RateLog, budget
 from ..records import CommandReply
 from ..station.build import records_dir_ok
 from ..station.commands import CODE, Rejection
@@ -56,6 +58,9 @@ STREAM_LEN = 512
 STALL_S = 2.0
 #: … after which the worker watchdog waits this long (the readers catch up on the heartbeats)
 GRACE_S = 2.0
+#: a worker start that failed (EMFILE …) is tried again after this, doubling up to SPAWN_RETRY_MAX_S
+SPAWN_RETRY_S = 0.5
+SPAWN_RETRY_MAX_S = 30.0
 
 
 class FrameSink(Protocol):
@@ -187,6 +192,9 @@ class WorkerHandle:
         self.crashes_in_row = 0
         self.spawned = 0
         self.restarts = 0
+        #: starts that failed (EMFILE …): in all, and in a row (the retry back-off)
+        self.spawn_failures = 0
+        self.spawn_failures_in_row = 0
         self.stopping = False
         self.fingerprint = ""
         #: what the supervisor serves for this station (Modbus TCP unit, Sparkplug device, console, metrics)
@@ -199,7 +207,17 @@ class WorkerHandle:
         return self.proc is not None and self.proc.poll() is None
 
     def spawn(self) -> None:
+        """Start the worker. An OSError (EMFILE, ENFILE, EAGAIN, ENOMEM: out of descriptors or
+        processes) leaves nothing open behind and is raised for :meth:`Supervisor.tick`, which
+        makes it a state (retry with back-off, one log line with a count)."""
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            self._spawn(parent, child)
+        except BaseException:
+            parent.close()
+            raise
+
+    def _spawn(self, parent: socket.socket, child: socket.socket) -> None:
         sup = self.sup
         argv = [sys.executable, "-m", "gateway.supervisor.worker", self.path,
                 "--fd", str(child.fileno()), "--fleet-file", sup.plan.fleet_file or "",
@@ -356,6 +374,9 @@ class Supervisor:
         self._grace_until = 0.0
         self._ready = False
         self._started_any = False
+        #: worker starts that failed (EMFILE, ENFILE …), all stations
+        self.spawn_failures = 0
+        self.rlog = RateLog(log)
 
     # ------------------------------------------------------------ start
     def refuse(self, r: Refused, reload: bool = False) -> None:
@@ -373,6 +394,12 @@ class Supervisor:
         outputs to the hubs in between, so they see every frame from the first HELLO on)."""
         self.t_start = time.monotonic()
         self.plan = plan = plan_fleet(self.folder)
+        # the descriptor budget first: the soft limit raised, the reserve for the socketpairs of
+        # worker (re)starts kept from the console, metrics and Modbus ports (gateway/doors.py)
+        if plan.accepted:
+            process_budget(plan.accepted[0][1])
+        else:
+            budget()
         for path, cfg in list(plan.accepted):
             err = records_dir_ok(apply_overrides(cfg, self.opts).recorder.dir)
             if err:                       # a station that cannot record does not run
@@ -466,7 +493,12 @@ class Supervisor:
             if w.proc is None:
                 if not w.stopping and now >= w.next_start and starting < self.max_starting:
                     starting += 1
-                    w.spawn()
+                    try:
+                        w.spawn()
+                    except OSError as e:        # EMFILE, ENFILE, EAGAIN: a state, never the end
+                        self._spawn_failed(w, e, now)
+                        continue
+                    w.spawn_failures_in_row = 0
                     if w.spawned > 1:
                         w.restarts += 1
                         w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
@@ -486,6 +518,23 @@ class Supervisor:
                 w.hub.publish("supervisor", {"type": "worker_stuck", "station": name,
                                              "silent_s": round(age, 1), "time": time.time()})
                 w.proc.kill()
+
+    def _spawn_failed(self, w: WorkerHandle, e: OSError, now: float) -> None:
+        """A worker that cannot be started (no descriptor for its socketpair, no process): tried
+        again after SPAWN_RETRY_S, doubling to SPAWN_RETRY_MAX_S; one log line a minute per
+        station with the count; the running workers go on."""
+        w.spawn_failures += 1
+        w.spawn_failures_in_row += 1
+        delay = min(SPAWN_RETRY_MAX_S, SPAWN_RETRY_S * 2 ** (w.spawn_failures_in_row - 1))
+        w.next_start = now + delay
+        self.spawn_failures += 1
+        self.rlog(logging.ERROR, f"spawn:{w.hub.name}", "%s: cannot start the worker: %s; "
+                  "retrying in %.1f s (%d failed starts)", w.hub.name, e.strerror or e, delay,
+                  w.spawn_failures)
+        if w.spawn_failures_in_row == 1:
+            w.hub.publish("supervisor", {"type": "worker_start_failed", "station": w.hub.name,
+                                         "reason": str(e.strerror or e), "retry_in_s": delay,
+                                         "time": time.time()})
 
     def _exited(self, w: WorkerHandle, rc: int, now: float) -> None:
         w.reap()

@@ -1,20 +1,27 @@
 """The asyncio Modbus TCP server: connections, limits, pacing, dispatch to the units.
 
-- connections: at most :data:`MAX_CONNECTIONS` per server and :data:`MAX_PER_CLIENT` per client
-  address. At a cap, the connection idle longest is closed to make room if it has been idle for
-  :data:`EVICT_IDLE_S` (so idle sockets cannot lock a PLC out); else the new connection is closed
-  at once (counted, one log line a minute);
-- a connection that sends nothing for :data:`IDLE_TIMEOUT_S` (or does not read its replies for as
-  long) is closed;
+- connections: a :class:`~gateway.doors.Door` (the one mechanism of every listening port): at most
+  ``max_connections`` per server (:data:`MAX_CONNECTIONS`, within the process's descriptor
+  budget) and :data:`MAX_PER_CLIENT` per client address. The PLC always finds room: clients in
+  the stations' ``allowed_clients`` (the allow-list) have :data:`RESERVED_FOR_ALLOWED` slots no
+  other address may take, and at the cap an allowed client's connection closes the oldest
+  connection of the address holding the most (busy or idle). Any other client at a cap closes
+  that address's (or anyone's) connection idle longest if it has been idle ≥ :data:`EVICT_IDLE_S`,
+  else it is closed at once (counted, one log line a minute);
+- a connection that does not complete a whole Modbus request within ``idle_timeout_s`` of its
+  accept or of its previous reply is closed, however many single bytes it trickles; a request
+  begun must be complete within ``request_timeout_s``; a reply not read for ``idle_timeout_s``
+  closes the connection;
 - frames: :class:`~.framer.Framer` (several requests per segment, requests split over segments);
   requests of one connection are answered one after the other, in order; a header that is not
   Modbus closes that connection (counted, one log line a minute, no traceback);
 - every request waits for the server-wide :class:`Pacer` (requests per second);
 - requests go to the unit (one per station) by unit id; an unknown unit id answers 0x0B.
 
-The units are duck-typed: ``input_image()`` (the input registers), ``hr`` (the holding registers), ``lock``,
-``may_write(peer)`` and ``owner.handle_write(unit, address, values, peer)`` (an awaitable giving
-``None`` or an :class:`~.pdu.Exc`).
+The units are duck-typed: ``input_image()`` (the input registers), ``hr`` (the holding registers),
+``lock``, ``may_write(peer)``, ``allowed(peer)`` (in the allow-list, writes enabled or not) and
+``owner.handle_write(unit, address, values, peer)`` (an awaitable giving ``None`` or an
+:class:`~.pdu.Exc`).
 """
 from __future__ import annotations
 
@@ -24,6 +31,7 @@ import socket
 import time
 from typing import Any
 
+from ...doors import Conn, Door, DoorLimits, RateLog
 from . import pdu as P
 from .framer import FrameError, Framer, encode
 
@@ -32,27 +40,14 @@ log = logging.getLogger("hookwatch.modbus")
 MAX_CONNECTIONS = 64
 MAX_PER_CLIENT = 16
 IDLE_TIMEOUT_S = 60.0
+REQUEST_TIMEOUT_S = 10.0
 EVICT_IDLE_S = 1.0
+#: slots only clients of the allow-list may take
+RESERVED_FOR_ALLOWED = 4
 READ_CHUNK = 4096
 LOG_INTERVAL_S = 60.0
 
-
-class RateLog:
-    """One log line per key and interval; the lines not written are counted into the next one."""
-
-    def __init__(self, logger: logging.Logger, interval_s: float = LOG_INTERVAL_S):
-        self.log, self.interval = logger, interval_s
-        self._s: dict[str, list[float]] = {}
-
-    def __call__(self, level: int, key: str, msg: str, *args: Any) -> None:
-        now = time.monotonic()
-        st = self._s.setdefault(key, [-1e18, 0])
-        if now - st[0] >= self.interval:
-            n = int(st[1])
-            st[0], st[1] = now, 0
-            self.log.log(level, msg + (f" ({n} more since the last such line)" if n else ""), *args)
-        else:
-            st[1] += 1
+__all__ = ["ModbusTcpServer", "Pacer", "RateLog", "Store"]
 
 
 class Pacer:
@@ -91,111 +86,149 @@ class Store:
         self.counters: dict[str, int] = {
             "reads": 0, "writes": 0, "refused": 0, "bad_value": 0, "unknown_unit": 0,
             "bad_request": 0, "malformed": 0, "refused_connections": 0, "idle_closed": 0,
-            "connections": 0, "failed": 0, "evicted": 0,
+            "connections": 0, "failed": 0, "evicted": 0, "request_timeouts": 0,
             "accept_errors": 0}
 
 
 class ModbusTcpServer:
     def __init__(self, store: Store, pacer: Pacer | None = None, *, max_connections: int | None = None,
-                 max_per_client: int | None = None, idle_timeout_s: float | None = None):
+                 max_per_client: int | None = None, idle_timeout_s: float | None = None,
+                 limits: DoorLimits | None = None):
         self.store = store
         self.pacer = pacer
-        self.max_connections = MAX_CONNECTIONS if max_connections is None else max_connections
+        lim = limits or DoorLimits(MAX_CONNECTIONS, REQUEST_TIMEOUT_S, IDLE_TIMEOUT_S)
+        if max_connections is not None:
+            lim = DoorLimits(max_connections, lim.request_timeout_s, lim.idle_timeout_s, lim.accept_pause_s)
+        if idle_timeout_s is not None:
+            lim = DoorLimits(lim.max_connections, min(lim.request_timeout_s, idle_timeout_s),
+                             idle_timeout_s, lim.accept_pause_s)
+        self.limits = lim
         self.max_per_client = MAX_PER_CLIENT if max_per_client is None else max_per_client
-        self.idle_timeout_s = IDLE_TIMEOUT_S if idle_timeout_s is None else idle_timeout_s
+        self.idle_timeout_s = lim.idle_timeout_s
         self.rlog = RateLog(log)
-        self._lsock: socket.socket | None = None
-        self._accept_task: asyncio.Task | None = None
+        self.door: Door | None = None
         self._tasks: set[asyncio.Task] = set()
-        self._conns: dict[asyncio.StreamWriter, list] = {}   # writer → [client, last activity]
         self._per_client: dict[str, int] = {}
+        self._writers: dict[Conn, asyncio.StreamWriter] = {}
+
+    @property
+    def max_connections(self) -> int:
+        return self.door.cap if self.door is not None else self.limits.max_connections
 
     async def start(self, host: str, port: int) -> None:
-        """Listen. Connections are accepted one at a time by our own loop, and one over a cap is
-        closed before the next is accepted: the server never holds more than its caps + 1 file
-        descriptors for clients, whatever arrives (no EMFILE bursts)."""
-        fam = socket.AF_INET6 if ":" in host else socket.AF_INET
-        sock = socket.create_server((host, port), family=fam, backlog=128)
-        sock.setblocking(False)
-        self._lsock = sock
-        self._accept_task = asyncio.get_running_loop().create_task(self._accept_loop())
+        """Listen (a :class:`~gateway.doors.Door`: connections are accepted one at a time by our
+        own loop, and one over a cap is closed before the next is accepted)."""
+        door = Door(f"Modbus TCP {host}:{port}", self.limits, self._serve_conn,
+                    make_room=self._make_room, logger=log, counters=self.store.counters)
+        await door.listen(host, port)
+        self.door = door
 
     async def close(self) -> None:
-        if self._accept_task is not None:
-            self._accept_task.cancel()
-            try:
-                await self._accept_task
-            except (asyncio.CancelledError, Exception):
-                pass
-            self._accept_task = None
-        if self._lsock is not None:
-            self._lsock.close()
-            self._lsock = None
-        for w in list(self._conns):
-            w.transport.abort()
+        if self.door is not None:
+            await self.door.close()
         for t in list(self._tasks):
             t.cancel()
         if self._tasks:
             await asyncio.gather(*self._tasks, return_exceptions=True)
 
-    async def _accept_loop(self) -> None:
-        loop = asyncio.get_running_loop()
-        c = self.store.counters
-        lsock = self._lsock     # started by start() once it listens
-        if lsock is None:
-            return
-        while True:
-            try:
-                conn, addr = await loop.sock_accept(lsock)
-            except asyncio.CancelledError:
-                raise
-            except OSError as e:      # EMFILE, ENFILE, ECONNABORTED: a state, not a crash
-                c["accept_errors"] += 1
-                self.rlog(logging.ERROR, "accept", "Modbus TCP: cannot accept a connection: %s", e)
-                await asyncio.sleep(0.1)
-                continue
-            peer = addr[0] if addr else None
-            key = peer or "?"
-            if ((len(self._conns) >= self.max_connections and not self._evict(None))
-                    or (self._per_client.get(key, 0) >= self.max_per_client and not self._evict(key))):
-                c["refused_connections"] += 1
-                self.rlog(logging.WARNING, "cap", "Modbus TCP: connection from %s refused (%d open, at most "
-                          "%d; at most %d per client address)", peer, len(self._conns), self.max_connections,
-                          self.max_per_client)
-                conn.close()
-                continue
-            try:
-                reader, writer = await asyncio.open_connection(sock=conn, limit=READ_CHUNK)
-            except OSError:
-                conn.close()
-                continue
-            self._conns[writer] = [key, time.monotonic()]
-            self._per_client[key] = self._per_client.get(key, 0) + 1
-            t = loop.create_task(self._connection(reader, writer, peer, key))
-            self._tasks.add(t)
-            t.add_done_callback(self._tasks.discard)
-
     @property
     def connections(self) -> int:
-        return len(self._conns)
+        return self.door.connections if self.door is not None else 0
+
+    def _allowed(self, peer: str) -> bool:
+        for u in list(self.store.units.values()):
+            fn = getattr(u, "allowed", None)
+            if fn is not None and fn(peer):
+                return True
+        return False
+
+    # -- admission (the door calls it at its cap; the per-client cap and the reserve are ours)
+    def _make_room(self, peer: str) -> bool:
+        door = self.door
+        if door is None:
+            return False
+        if self._allowed(peer):
+            return self._evict_busiest(door)
+        return self._evict_idle(door, None, others_only=True)
+
+    def _admit(self, door: Door, peer: str) -> bool:
+        """Room for a connection ``peer`` the door has accepted (within its cap)."""
+        allowed = self._allowed(peer)
+        if self._per_client.get(peer, 0) >= self.max_per_client and not self._evict_idle(door, peer):
+            return False
+        if not allowed:
+            others = sum(1 for c in door.conns if not self._allowed(c.peer))
+            # ``others`` counts this connection too (the door registered it)
+            if others > max(1, door.cap - RESERVED_FOR_ALLOWED) and not self._evict_idle(door, None, others_only=True):
+                return False
+        return True
+
+    def _evict_idle(self, door: Door, client: str | None, others_only: bool = False) -> bool:
+        """Close the connection (of ``client``, or any) idle longest, if idle ≥ EVICT_IDLE_S."""
+        now = time.monotonic()
+        cands = [c for c in door.conns if not c.busy and (client is None or c.peer == client)
+                 and c.first_byte is None and c in self._writers
+                 and not (others_only and self._allowed(c.peer))]
+        if not cands:
+            return False
+        c = min(cands, key=lambda x: x.idle_since)
+        if now - c.idle_since < EVICT_IDLE_S:
+            return False
+        self._drop(door, c)
+        return True
+
+    def _evict_busiest(self, door: Door) -> bool:
+        """For an allowed client: close the oldest connection of the other address holding the most."""
+        by: dict[str, list[Conn]] = {}
+        for c in door.conns:
+            if c in self._writers and not self._allowed(c.peer):
+                by.setdefault(c.peer, []).append(c)
+        if not by:
+            return False
+        peer = max(by, key=lambda p: len(by[p]))
+        self._drop(door, min(by[peer], key=lambda c: c.accepted))
+        return True
+
+    def _drop(self, door: Door, c: Conn) -> None:
+        if self._writers.pop(c, None) is not None:
+            self._release(c.peer)
+        door.evict(c)
 
     # -- connections
-    async def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                          peer: str | None, key: str) -> None:
+    async def _serve_conn(self, sock: socket.socket, conn: Conn) -> None:
+        door = self.door
         c = self.store.counters
-        info = self._conns.get(writer) or [key, time.monotonic()]
+        if door is None or not self._admit(door, conn.peer):
+            c["refused_connections"] += 1
+            self.rlog(logging.WARNING, "cap", "Modbus TCP: connection from %s refused (%d open, at most "
+                      "%d; at most %d per client address)", conn.peer, door.connections if door else 0,
+                      self.max_connections, self.max_per_client)
+            if door is not None:
+                door.gone(conn)
+            sock.close()
+            return
+        reader, writer = await asyncio.open_connection(sock=sock, limit=READ_CHUNK)
+        conn.transport = writer.transport
+        conn.close = writer.transport.abort
+        self._writers[conn] = writer
+        self._per_client[conn.peer] = self._per_client.get(conn.peer, 0) + 1
+        t = asyncio.get_running_loop().create_task(self._connection(reader, writer, conn))
+        self._tasks.add(t)
+        t.add_done_callback(self._tasks.discard)
+
+    async def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                          conn: Conn) -> None:
+        c = self.store.counters
+        peer = conn.peer
+        door = self.door
         c["connections"] += 1
         framer = Framer()
         try:
             while True:
-                try:
-                    data = await asyncio.wait_for(reader.read(READ_CHUNK), self.idle_timeout_s)
-                except TimeoutError:
-                    c["idle_closed"] += 1
-                    break
+                data = await reader.read(READ_CHUNK)
                 if not data:
                     break
-                info[1] = time.monotonic()
+                conn.data()
                 try:
                     frames = framer.feed(data)
                 except FrameError as e:
@@ -203,20 +236,27 @@ class ModbusTcpServer:
                     self.rlog(logging.WARNING, "malformed", "Modbus TCP: malformed frame from %s (%s); "
                               "connection closed", peer, e)
                     break
+                if not frames:
+                    continue
+                conn.begin()
                 for f in frames:
                     reply = await self.handle(f.unit, f.pdu, peer)
                     writer.write(encode(f.tid, f.unit, reply))
-                if frames:
-                    try:
-                        await asyncio.wait_for(writer.drain(), self.idle_timeout_s)
-                    except TimeoutError:
-                        c["idle_closed"] += 1
-                        break
+                try:
+                    await asyncio.wait_for(writer.drain(), self.idle_timeout_s)
+                except TimeoutError:
+                    c["idle_closed"] += 1
+                    break
+                conn.end()
+                if framer.pending:
+                    conn.data()          # the next request has begun
         except (ConnectionError, OSError, asyncio.CancelledError):
             pass
         finally:
-            if self._conns.pop(writer, None) is not None:      # (an evicted one is counted off)
-                self._release(key)
+            if door is not None:
+                door.gone(conn)
+            if self._writers.pop(conn, None) is not None:      # (an evicted one is counted off)
+                self._release(peer)
             writer.transport.abort()
 
     def _release(self, key: str) -> None:
@@ -225,20 +265,6 @@ class ModbusTcpServer:
             self._per_client[key] = n
         else:
             self._per_client.pop(key, None)
-
-    def _evict(self, client: str | None) -> bool:
-        """Close the connection (of ``client``, or any) idle longest, if idle ≥ EVICT_IDLE_S."""
-        now = time.monotonic()
-        cands = [(info[1], w) for w, info in self._conns.items() if client is None or info[0] == client]
-        if not cands:
-            return False
-        last, w = min(cands, key=lambda x: x[0])
-        if now - last < EVICT_IDLE_S:
-            return False
-        self.store.counters["evicted"] += 1
-        self._release(self._conns.pop(w)[0])
-        w.transport.abort()
-        return True
 
     # -- requests
     async def handle(self, unit_id: int, raw: bytes, peer: str | None) -> bytes:

@@ -16,6 +16,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from conftest import ROOT
 from gateway.config import ConfigError, load_station
+from gateway.doors import DoorLimits
 from gateway.northbound import metrics as M
 from gateway.northbound.outbox import Outbox, Row
 from gateway.records import Event, EventType, SlotRecord, StationState
@@ -233,7 +234,7 @@ def test_endpoint_is_bounded(endpoints):
     # an over-long request line is refused, not read to its end
     with socket.create_connection((host, port), timeout=5) as s:
         s.sendall(b"GET /" + b"a" * (M.MAX_LINE + 100) + b" HTTP/1.0\r\n\r\n")
-        assert b" 414 " in s.recv(200)
+        assert s.recv(200)[:12] in (b"HTTP/1.0 400", b"HTTP/1.0 414", b"HTTP/1.1 400", b"HTTP/1.1 414")
     # idle connections hold at most MAX_CONNECTIONS handlers; one more is closed at once
     idle = [socket.create_connection((host, port), timeout=5) for _ in range(M.MAX_CONNECTIONS)]
     try:
@@ -254,7 +255,7 @@ def test_endpoint_is_bounded(endpoints):
 
 
 def test_port_in_use_is_a_state_then_recovers(monkeypatch, endpoints):
-    monkeypatch.setattr(M, "RETRY_S", 0.2)
+    monkeypatch.setattr(M.http, "RETRY_S", 0.2)
     blocker = socket.socket()
     blocker.bind(("127.0.0.1", 0))
     blocker.listen()
@@ -328,8 +329,8 @@ def test_wear_figures_follow_the_state_when_it_carries_them(endpoints):
 
 
 def test_hostile_requests_get_an_answer_or_a_close_and_scrapes_go_on(monkeypatch, endpoints):
-    monkeypatch.setattr(M._Handler, "timeout", 0.5)
-    out = M.MetricsOutput(fake_station(f"st-{free_port()}"), "127.0.0.1", 0)
+    out = M.MetricsOutput(fake_station(f"st-{free_port()}"), "127.0.0.1", 0,
+                          limits=DoorLimits(8, request_timeout_s=0.5, idle_timeout_s=5.0))
     run(out.start())
     ep = out.endpoint
     assert ep.listening.wait(5)
@@ -360,3 +361,49 @@ def test_hostile_requests_get_an_answer_or_a_close_and_scrapes_go_on(monkeypatch
             pass
         assert time.monotonic() - t0 < 3.0
     assert _get(ep, "/metrics") == 200
+
+
+def test_trickling_sockets_cannot_hold_the_endpoint(endpoints):
+    """Issue 21: more trickling clients than the endpoint has slots (each sends a byte of a
+    request every 0.3 s, so no single recv ever waits long) are closed at the request deadline;
+    scrapes are answered again while they still trickle."""
+    lim = DoorLimits(4, request_timeout_s=1.0, idle_timeout_s=5.0)
+    out = M.MetricsOutput(fake_station(f"st-{free_port()}"), "127.0.0.1", 0, limits=lim)
+    run(out.start())
+    ep = out.endpoint
+    assert ep.listening.wait(5)
+    host, port = ep.address
+    req = b"GET /metrics HTTP/1.1\r\nHost: x\r\n" + b"X-Slow: y\r\n" * 50 + b"\r\n"
+    socks = [socket.create_connection((host, port), timeout=5) for _ in range(8)]
+    closed = [False] * len(socks)
+    try:
+        t0 = time.monotonic()
+        answered = False
+        for i in range(len(req)):
+            for k, s in enumerate(socks):
+                if closed[k]:
+                    continue
+                try:
+                    s.sendall(req[i:i + 1])
+                except OSError:
+                    closed[k] = True
+            if not answered and time.monotonic() - t0 > 2.5:
+                answered = _get(ep, "/metrics") == 200
+            if (answered and all(closed)) or time.monotonic() - t0 > 30:
+                break
+            time.sleep(0.3)
+        assert answered, "the endpoint did not answer while the tricklers trickled"
+        for k, s in enumerate(socks):        # every trickler was closed by the server
+            if not closed[k]:
+                s.settimeout(0.5)
+                try:
+                    closed[k] = s.recv(100) == b""
+                except ConnectionResetError:
+                    closed[k] = True
+                except TimeoutError:
+                    pass
+        assert all(closed), closed
+        assert ep.door.counters["request_timeouts"] + ep.refused >= len(socks)
+    finally:
+        for s in socks:
+            s.close()

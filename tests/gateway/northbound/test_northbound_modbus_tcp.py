@@ -3,6 +3,7 @@ framer and the PDU codec as pure functions, then raw sockets against a real serv
 requests in one segment, a request split over segments, function 0x15, count 0, unknown
 functions, connection caps and the idle timeout, 1,100 idle sockets against a server whose
 process has a low file-descriptor limit (`ulimit -n`), networks in `allowed_clients`."""
+import dataclasses
 import logging
 import os
 import resource
@@ -166,7 +167,7 @@ def test_connection_caps_and_idle_timeout(server, monkeypatch):
     srv = None
     from gateway.northbound.modbus_server import _SERVERS
     srv = next(s for (h, p), s in _SERVERS.items() if p == port).server
-    monkeypatch.setattr(srv, "idle_timeout_s", 1.0)
+    monkeypatch.setattr(srv.door, "limits", dataclasses.replace(srv.door.limits, idle_timeout_s=1.0))
     idle = [socket.create_connection(("127.0.0.1", port), timeout=5, source_address=("127.0.0.2", 0))
             for _ in range(S.MAX_PER_CLIENT + 5)]
     try:
@@ -230,3 +231,88 @@ def test_1100_idle_sockets_under_a_low_fd_limit_do_not_lock_out_the_plc(tmp_path
         p.wait()
         p.stdout.close()
         p.stderr.close()
+
+
+def test_the_allowed_plc_finds_room_against_busy_connections_and_a_trickler_is_closed(tmp_path):
+    """Issue 21: 72 connections from other addresses that keep reading (busy, never idle) hold
+    every slot they can get; mbpoll, as the PLC in ``allowed_clients``, still reads (slots kept for
+    the allow-list). A client that trickles one byte of a request every 0.4 s is closed at the
+    request deadline although it never stops sending."""
+    import threading
+
+    from gateway.doors import DoorLimits
+    require_tool("mbpoll")
+    port = free_port()
+    lt = LoopThread()
+    s = make_station(tmp_path, [], station_id="plc")
+    s.outputs.append(ModbusOutput(ModbusSettings("plc", port=port, unit_id=1, allowed_clients=("127.0.0.1",),
+                                                 door=DoorLimits(64, request_timeout_s=2.0, idle_timeout_s=3.0)), s))
+    run = RunningStation(lt, s)
+    busy: list[socket.socket] = []
+    stop = threading.Event()
+    try:
+        wait_for(lambda: mbpoll(port, "-t", "3", "-r", "1", unit=1)[0] == 0, 20, what="server up")
+        from gateway.northbound.modbus_server import _SERVERS
+        srv = _SERVERS[("127.0.0.1", port)].server
+        req = _req(1, 1, struct.pack(">BHH", 4, IR["map_version"].address, 1))
+        for i in range(72):
+            try:
+                c = socket.create_connection(("127.0.0.1", port), timeout=5,
+                                             source_address=(f"127.0.1.{10 + i // 9}", 0))
+            except OSError:
+                continue
+            busy.append(c)
+
+        def keep_busy():
+            while not stop.is_set():
+                for c in list(busy):
+                    try:
+                        c.sendall(req)
+                        c.settimeout(1.0)
+                        if not c.recv(64):
+                            busy.remove(c)
+                            c.close()
+                    except OSError:
+                        busy.remove(c)
+                        c.close()
+                stop.wait(0.02)
+        t = threading.Thread(target=keep_busy, daemon=True)
+        t.start()
+        time.sleep(2.0)                   # every slot the others may take is taken, and busy
+        served = sum(1 for _ in busy)
+        assert srv.connections >= 64 - S.RESERVED_FOR_ALLOWED, srv.connections
+        assert served <= 64 - S.RESERVED_FOR_ALLOWED < 72
+        for _ in range(3):
+            rc, v, err = mbpoll(port, "-t", "3", "-r", str(IR["map_version"].address), unit=1)
+            assert rc == 0 and v[IR["map_version"].address] == R.MAP_VERSION, err
+        assert len(busy) >= 64 - S.RESERVED_FOR_ALLOWED - 1    # the busy ones were not thrown out for it
+        stop.set()
+        t.join(5)
+        for c in busy:
+            c.close()
+        busy.clear()
+        # a trickler: one byte of a request every 0.4 s is closed at the 2 s request deadline
+        with socket.create_connection(("127.0.0.1", port), timeout=5, source_address=("127.0.2.1", 0)) as tr:
+            t0 = time.monotonic()
+            closed_at = None
+            for i in range(40):
+                try:
+                    tr.sendall(req[i % len(req):i % len(req) + 1])
+                    tr.settimeout(0.4)
+                    if tr.recv(64) == b"":
+                        closed_at = time.monotonic() - t0
+                        break
+                except TimeoutError:
+                    continue
+                except OSError:
+                    closed_at = time.monotonic() - t0
+                    break
+            assert closed_at is not None and closed_at < 6.0, closed_at
+        assert srv.store.counters["request_timeouts"] >= 1
+    finally:
+        stop.set()
+        for c in busy:
+            c.close()
+        run.stop()
+        lt.close()
+        shutdown_all()

@@ -1,0 +1,76 @@
+"""Issue 21: the door (gateway/doors.py) as a process sees it. A child process with a small
+descriptor limit serves a door; every free descriptor is then taken, so each accept fails with
+EMFILE: the door counts the errors, writes one log line (not one per try), pauses instead of
+spinning, and serves again once descriptors are free. The budget grants caps within the limit."""
+import subprocess
+import sys
+
+from conftest import HERE, ROOT
+
+CHILD = r"""
+import asyncio, logging, os, resource, socket, sys, time
+sys.path[:0] = [sys.argv[1], sys.argv[2]]
+resource.setrlimit(resource.RLIMIT_NOFILE, (200, 200))
+logging.basicConfig(level=logging.INFO, stream=sys.stderr)
+from gateway import doors as D
+
+async def main():
+    b = D.budget(reserve=64)
+    served = []
+    def serve(sock, conn):
+        served.append(conn.peer)
+        sock.sendall(b"hi")
+        D_door.gone(conn)
+        sock.close()
+    global D_door
+    D_door = door = D.Door("test door", D.DoorLimits(500, 1.0, 5.0, accept_pause_s=0.2), serve)
+    lsock = await door.listen("127.0.0.1", 0)
+    port = lsock.getsockname()[1]
+    assert door.cap <= (200 - 64) // 2, door.cap          # granted within the budget
+    hold = []
+    try:
+        while True:
+            hold.append(os.open("/dev/null", os.O_RDONLY))
+    except OSError:
+        pass
+    print("port", port, flush=True)
+    t0 = time.monotonic()
+    while door.counters["accept_errors"] < 3 and time.monotonic() - t0 < 20:
+        await asyncio.sleep(0.1)
+    await asyncio.sleep(1.0)
+    errors = door.counters["accept_errors"]
+    for fd in hold:
+        os.close(fd)
+    t0 = time.monotonic()
+    while not served and time.monotonic() - t0 < 10:
+        await asyncio.sleep(0.05)
+    print("result", errors, len(served), door.cap, flush=True)
+    await door.close()
+
+asyncio.run(main())
+"""
+
+
+def test_accept_errors_are_a_state_with_one_log_line_and_a_pause():
+    p = subprocess.Popen([sys.executable, "-c", CHILD, ROOT, HERE], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    import socket
+    try:
+        line = p.stdout.readline().split()
+        assert line and line[0] == "port", p.stderr.read()
+        port = int(line[1])
+        c = socket.create_connection(("127.0.0.1", port), timeout=5)    # waits in the backlog
+        out, err = p.communicate(timeout=60)
+        c.close()
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    assert p.returncode == 0, err
+    res = [x for x in out.splitlines() if x.startswith("result")][0].split()
+    errors, served = int(res[1]), int(res[2])
+    # paused 0.2 s between tries: a handful of errors in ~1.5 s, not a spin of thousands
+    assert 3 <= errors <= 20, errors
+    assert served == 1                                   # served once descriptors were free
+    assert err.count("cannot accept a connection") == 1, err     # one line, rate-limited
+    assert "Traceback" not in err
