@@ -19,7 +19,7 @@ from .northbound.modbus_server import ModbusOutput
 from .northbound.sparkplug.output import SparkplugOutput
 from .northbound.sparkplug.output import settings_from_config as sparkplug_settings
 from .northbound.wiring import metrics_outputs, modbus_settings, outputs_for
-from .ports import MeterPort, Output, Stm32Port
+from .ports import MeterPort, Output, StationLinks, StationView, Stm32Port
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.station import Station
 
@@ -37,7 +37,7 @@ def build_stm32(cfg) -> Stm32Port:
     return Stm32Link.from_config(cfg.stm32)
 
 
-def northbound_outputs(cfg, station: Station, *, modbus: bool = True, sparkplug: bool = True) -> list[Output]:
+def northbound_outputs(cfg, station: StationLinks, *, modbus: bool = True, sparkplug: bool = True) -> list[Output]:
     """MQTT, Modbus TCP and Sparkplug, as the ``mqtt:``, ``modbus_tcp:`` and ``sparkplug:``
     sections enable them (Modbus TCP not when ``modbus`` is False, the Sparkplug device not when
     ``sparkplug`` is False: a fleet's supervisor serves them)."""
@@ -45,8 +45,13 @@ def northbound_outputs(cfg, station: Station, *, modbus: bool = True, sparkplug:
 
 
 def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: bool = True,
-                  served_by_supervisor: frozenset[str] = frozenset()) -> Station:
+                  served_by_supervisor: frozenset[str] = frozenset(),
+                  console: ConsoleServer | None = None, slot_phase: float = 0.0) -> Station:
     """One station from its configuration: drivers, method, control, limits and outputs.
+
+    ``console``: the process's console (``hookwatch run`` in one process), which gets the
+    station's feed; ``slot_phase``: where in the slot this station's deadlines fall (stations of
+    one process are spread over it).
 
     ``served_by_supervisor`` (a worker of ``hookwatch run FLEET_DIR``): ``"modbus"`` — no Modbus
     TCP output here (the supervisor serves the station's unit from the IPC stream); ``"sparkplug"``
@@ -68,6 +73,9 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     st.outputs.extend(plugin_outputs(cfg, st))
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
+    if console is not None and st.id in console.feeds:
+        st.outputs.append(console.output_for(st))
+    st.slot_phase = slot_phase
     return st
 
 
@@ -76,7 +84,7 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
 PLUGINS_ENV = "HOOKWATCH_OUTPUTS"
 
 
-def plugin_outputs(cfg, station: Station) -> list[Output]:
+def plugin_outputs(cfg, station: StationLinks) -> list[Output]:
     """The outputs named in ``$HOOKWATCH_OUTPUTS`` (none when it is unset). A name that does not
     import is an error at start-up, not a silently missing output."""
     out: list[Output] = []
@@ -128,7 +136,7 @@ def station_facts(cfg) -> dict:
             "default_plan": default_plan(cfg)}
 
 
-def shared_outputs(cfg, station, console: ConsoleServer | None = None, *,
+def shared_outputs(cfg, station: StationView, console: ConsoleServer | None = None, *,
                    with_northbound: bool = True, sparkplug_device=None) -> list[Output]:
     """The outputs a fleet's supervisor runs for one station proxy (``station``: a
     ``gateway.supervisor.remote.RemoteStation``): the same classes as in one process — the

@@ -11,11 +11,18 @@
   :class:`CommandSource` — a door commands come in by (MQTT, PLC), bound to a sink.
 - :class:`StationLimits` — what commands are checked against, built once from the station's
   configuration (``StationLimits.from_config``); ``gateway.station.commands.validate`` uses it.
+- :class:`StationView` — what an output may read of its station and call on it (a
+  ``gateway.station.station.Station`` in the station's process, a
+  ``gateway.supervisor.remote.RemoteStation`` in a fleet's supervisor).
+- :class:`Runtime` — what ``hookwatch run``'s one main loop drives: the stations of this process
+  (``gateway.station.fleet.Fleet``) or a worker process per station
+  (``gateway.supervisor.supervisor.Supervisor``).
 
 This module is pure (no I/O, no asyncio objects created) and is checked with ``mypy --strict``.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -138,3 +145,79 @@ class StationLimits:
         return cls(full_scale=DEFAULT_FULL_SCALE if fs is None else float(fs),
                    sat_ratio=DEFAULT_SAT_RATIO if sr is None else float(sr),
                    grades=tuple(grades), t_end_default_s=float(t_end_default_s))
+
+
+# ----------------------------------------------------------------------------- what outputs see
+class AlarmExpiries(Protocol):
+    """The part of a station's alarm store an output reads: when a shelving runs out."""
+
+    def shelved_until(self, name: str) -> float | None: ...
+
+
+class PlanView(Protocol):
+    """A test plan as outputs read it (``gateway.station.session.TestPlan``)."""
+
+    @property
+    def sample_id(self) -> str: ...
+    @property
+    def grade(self) -> str | None: ...
+    @property
+    def t_set(self) -> float: ...
+    @property
+    def t_end(self) -> float: ...
+
+
+class StationView(Protocol):
+    """What an output may read of its station and call on it, and nothing more: the station in
+    its own process and its proxy in a fleet's supervisor both are one. Reads are of the
+    station's own loop (an output on another thread reads ``state``, a copy, or hands over)."""
+
+    @property
+    def id(self) -> str: ...
+    @property
+    def ts(self) -> float: ...
+    @property
+    def limits(self) -> StationLimits: ...
+    @property
+    def default_plan(self) -> PlanView | None: ...
+    @property
+    def state(self) -> StationState: ...
+    @property
+    def alarms(self) -> AlarmExpiries: ...
+    @property
+    def outputs(self) -> Sequence[Output]: ...
+
+    async def submit(self, cmd: Command) -> CommandReply: ...
+
+
+class StationLinks(StationView, Protocol):
+    """A station in this process as its own outputs see it: its view plus what they report
+    back on the station's loop (their uplink, their disk, a request refused at the door), and
+    its alarm store itself (``gateway.station.alarm_store.AlarmStore``, which the pure core cannot
+    name: Any here), which the MQTT output publishes from."""
+
+    @property
+    def alarms(self) -> Any: ...
+
+    def set_uplink(self, name: str, ok: bool) -> None: ...
+    def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None: ...
+    def intake_rejected(self, data: dict[str, Any]) -> None: ...
+
+
+# ----------------------------------------------------------------------------- the runtime
+class Runtime(Protocol):
+    """What ``hookwatch run`` drives in its one main loop, as gunicorn's arbiter drives its
+    workers: ``start`` once, ``tick`` every 0.2 s (restarts, watchdogs, the test bookkeeping),
+    ``healthy`` for systemd's watchdog, ``reload`` on SIGHUP, ``stop`` once; ``report`` gives
+    each station's figures, results and failed starts at the end."""
+
+    def start(self) -> object: ...
+    def tick(self, now: float) -> None: ...
+    def alive(self) -> bool: ...
+    def ready(self) -> bool: ...
+    def healthy(self) -> bool: ...
+    def status(self) -> str: ...
+    def tests_done(self) -> bool: ...
+    def reload(self) -> None: ...
+    def stop(self) -> None: ...
+    def report(self) -> dict[str, dict[str, Any] | None]: ...

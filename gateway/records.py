@@ -108,7 +108,7 @@ class StationState:
     elapsed_s: float = 0.0
     status: str | None = None          # the method's status once the test has ended
     end_reason: str | None = None      # why a test ended (completed, protection stop, command, restart)
-    alarm: str = AlarmState.NORMAL.value  # an AlarmState value (gateway.station.alarms keeps it)
+    alarm: str = AlarmState.NORMAL.value  # an AlarmState value (gateway.station.alarm_store keeps it)
     warning_alarm: str = AlarmState.NORMAL.value  # the §5a wear-warning alarm (lower priority)
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)

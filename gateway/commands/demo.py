@@ -35,7 +35,7 @@ from ..northbound import schema as mqtt_schema
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
-from ..station.console import ConsoleOutput
+from ..station.terminal import TerminalOutput
 
 HELP = "run hookwatch on its built-in default: a simulated loom station through a compressed needle life"
 DESCRIPTION = HELP + (". Starts `hookwatch sim` on the demo scenario, runs the station against its "
@@ -243,7 +243,7 @@ def run(args) -> int:
 
         async def main():
             stop = asyncio.Event()
-            outs: list[Output] = [ConsoleOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
+            outs: list[Output] = [TerminalOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
             st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
             if console is not None:
                 st.outputs.append(console.output_for(st))

@@ -13,20 +13,13 @@ from typing import Any
 
 from .. import sdnotify
 from ..cli import CliError
-from ..compose import (
-    build_console,
-    build_station,
-    records_dir_ok,
-    served_by_supervisor,
-    shared_outputs,
-    shared_sparkplug_nodes,
-    station_facts,
-)
+from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_sparkplug_nodes
 from ..config import ConfigError, load_fleet, load_station
 from ..osprio import MAX_PRIORITY
+from ..ports import Runtime
 from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
-from ..supervisor.remote import RemoteFleet, RemoteStation, SparkplugDevice
+from ..supervisor.remote import RemoteFleet
 from ..supervisor.supervisor import Supervisor
 
 HELP = "run one station (a YAML file) or a whole fleet (a config folder, one process per station)"
@@ -94,102 +87,10 @@ def _override(cfg, args):
     return apply_overrides(cfg, RunOptions.from_args(args))
 
 
-def run(args) -> int:
-    if os.path.isdir(args.path) and not args.in_process:
-        return run_supervised(args)
-    cfgs = [_override(c, args) for c in _load(args.path)]
-    # each station is a thread with its own loop; a thread woken by its slot deadline must not
-    # wait the default 5 ms for the GIL while another station (or paho, or the PLC server) runs
-    sys.setswitchinterval(0.0005)
-    level = (args.log_level or getattr(getattr(cfgs[0], "logging", None), "level", "info") or "info").upper()
-    logging.basicConfig(level=getattr(logging, level, logging.INFO),
+def _setup_logging(level: str | None) -> None:
+    logging.basicConfig(level=getattr(logging, (level or "info").upper(), logging.INFO),
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    for c in cfgs:
-        err = records_dir_ok(c.recorder.dir)
-        if err:
-            raise CliError(f"station {c.station.id}: {err}", 1)
-
-    console = _console(cfgs)
-    runners = []
-    for i, c in enumerate(cfgs):
-        runners.append(StationRunner(c.station.id, _factory(c, args, i / len(cfgs), console),
-                                    rt_priority=args.realtime or 0))
-    fleet = Fleet(runners)
-    stop = threading.Event()
-    reload_req = threading.Event()
-
-    def on_signal(signum, frame):
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
-
-    fleet.start()
-    sdnotify.ready()
-    sdnotify.status(f"running {len(runners)} station(s)")
-    t0 = time.monotonic()
-    progress: dict[str, int] = {}
-    last_wd = 0.0
-    started_any = False
-    try:
-        while not stop.is_set() and fleet.alive():
-            stop.wait(0.2)
-            now = time.monotonic()
-            if now - last_wd >= 2.0:
-                last_wd = now
-                if fleet.healthy(progress):
-                    sdnotify.watchdog()
-            if reload_req.is_set():
-                reload_req.clear()
-                _reload(args, fleet, console)
-            if args.duration is not None and now - t0 >= args.duration:
-                break
-            if args.exit_when_done:
-                sts = [r.station for r in runners]
-                if any(s is not None and s.busy for s in sts):
-                    started_any = True
-                elif started_any or all(s is not None and (s.results or s.start_failures)
-                                        for s in sts):
-                    break
-    finally:
-        sdnotify.stopping()
-        fleet.stop()
-        if console is not None:
-            console.stop()
-    if args.stats_json:
-        out: dict[str, dict[str, Any] | None] = {}
-        for r in runners:
-            if r.station is None:
-                out[r.name] = None
-                continue
-            out[r.name] = dict(r.station.stats.summary(), results=r.station.results,
-                               start_failures=r.station.start_failures)
-        with open(args.stats_json, "w") as fh:
-            json.dump(out, fh, indent=1, default=str)
-    for r in runners:
-        if r.station is not None:
-            for f in r.station.start_failures:
-                print(f"{r.name}: start of {f['sample_id']} failed: {f['reason']}", flush=True)
-            for res in r.station.results:
-                m = res["method"]
-                print(f"{r.name}: test {res['test_id']} {res['test_status']} ({res['end_reason']}): "
-                      f"status {m['status']}"
-                      + (f" ({', '.join(m['stop_reasons'])})" if m.get("stop_reasons") else "")
-                      + f", t_life {m['t_life']}, mu_ss {m['mu_ss']}", flush=True)
-    return 0
-
-
-def _factory(cfg, args, phase: float, console=None):
-    """Builds the station of ``cfg``; ``phase`` spreads the stations of one process over the slot."""
-    def make():
-        st = build_station(cfg, with_northbound=not args.no_northbound)
-        st.slot_phase = phase
-        if console is not None:
-            st.outputs.append(console.output_for(st))
-        return st
-    return make
 
 
 def _console(cfgs):
@@ -202,51 +103,60 @@ def _console(cfgs):
     return console
 
 
-def _reload(args, fleet, console=None) -> None:
-    """SIGHUP: load the configuration again; each station decides on its own loop whether it
-    restarts with it (idle) or keeps the parameters of its running test."""
-    log = logging.getLogger("hookwatch.run")
+def run(args) -> int:
+    """Build the runtime (the stations in this process, or a supervisor with a worker process
+    per station) and drive it in the one main loop (:func:`drive`)."""
+    if os.path.isdir(args.path) and not args.in_process:
+        made = _supervised(args)
+    else:
+        made = _in_process(args)
+    if made is None:
+        return 1
+    runtime, console = made
     try:
-        cfgs = {c.station.id: _override(c, args) for c in _load(args.path)}
-    except CliError as e:
-        log.error("reload refused, configuration kept: %s", e)
-        return
-    n = len(fleet.runners)
-    for i, r in enumerate(fleet.runners):
-        c = cfgs.get(r.name)
-        if c is not None:
-            r.request_reload(_factory(c, args, i / n, console))
+        return drive(runtime, args)
+    finally:
+        if console is not None:
+            console.stop()
 
 
-def _setup_logging(level: str | None) -> None:
-    logging.basicConfig(level=getattr(logging, (level or "info").upper(), logging.INFO),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
-    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+def _in_process(args) -> tuple[Runtime, Any] | None:
+    """Every station in this process, each on its own thread (a station file, or --in-process)."""
+    cfgs = [_override(c, args) for c in _load(args.path)]
+    # each station is a thread with its own loop; a thread woken by its slot deadline must not
+    # wait the default 5 ms for the GIL while another station (or paho, or the PLC server) runs
+    sys.setswitchinterval(0.0005)
+    _setup_logging(args.log_level or getattr(getattr(cfgs[0], "logging", None), "level", "info"))
+    for c in cfgs:
+        err = records_dir_ok(c.recorder.dir)
+        if err:
+            raise CliError(f"station {c.station.id}: {err}", 1)
+    console = _console(cfgs)
+    n = len(cfgs)
+
+    def factories(cs) -> dict[str, Any]:
+        return {c.station.id: _factory(c, args, i / n, console) for i, c in enumerate(cs)}
+
+    def reloader() -> dict[str, Any]:
+        try:
+            return factories([_override(c, args) for c in _load(args.path)])
+        except CliError as e:
+            raise ValueError(str(e)) from None
+
+    runners = [StationRunner(name, f, rt_priority=args.realtime or 0)
+               for name, f in factories(cfgs).items()]
+    return Fleet(runners, reloader=reloader), console
 
 
-def _attach_shared(sup: Supervisor, remote: RemoteFleet, args, console) -> None:
-    """A station proxy with its shared outputs per running station of the supervisor (at start,
-    and after a SIGHUP: new stations get one, a station whose Modbus TCP, Sparkplug or metrics
-    settings changed gets a new one, a removed station's is stopped)."""
-    with_nb = not args.no_northbound
-    cfgs = {c.station.id: c for c in (_override(c, args) for _, c in sup.plan.accepted)}
-    for name, hub in sup.hubs.items():
-        cfg = cfgs.get(name)
-        if cfg is None or hub.worker is None or hub.worker.path not in sup.workers:
-            if name in remote.stations and (hub.worker is None or hub.worker.path not in sup.workers):
-                remote.remove(name)
-            continue
-        key = repr((cfg.modbus_tcp, cfg.sparkplug, cfg.metrics, with_nb))
-        if remote.keys.get(name) == key:
-            continue
-        if console is not None and name not in console.feeds:
-            console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled))
-        st = RemoteStation(hub, **station_facts(cfg))
-        st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb, sparkplug_device=SparkplugDevice)
-        remote.add(st, key)
+def _factory(cfg, args, phase: float, console=None):
+    """Builds the station of ``cfg``; ``phase`` spreads the stations of one process over the slot."""
+    def make():
+        return build_station(cfg, with_northbound=not args.no_northbound, console=console,
+                             slot_phase=phase)
+    return make
 
 
-def run_supervised(args) -> int:
+def _supervised(args) -> tuple[Runtime, Any] | None:
     """A fleet folder, one worker process per station under this supervisor."""
     try:
         plan = plan_fleet(args.path)
@@ -277,71 +187,67 @@ def run_supervised(args) -> int:
         return served_by_supervisor(cfg, console=console is not None, with_northbound=with_nb)
 
     sup = Supervisor(args.path, opts, watchdog_s=args.worker_watchdog, backoff_s=args.restart_backoff,
-                     served_for=served)
-    remote = RemoteFleet()
+                     served_for=served, shared=RemoteFleet(console, with_northbound=with_nb))
+    return sup, console
+
+
+def drive(runtime: Runtime, args) -> int:
+    """The one main loop of ``hookwatch run`` (as gunicorn's arbiter): signals, systemd's
+    READY/STATUS/WATCHDOG, SIGHUP reloads, --duration and --exit-when-done, then the report."""
+    log = logging.getLogger("hookwatch.run")
     stop = threading.Event()
     reload_req = threading.Event()
     signal.signal(signal.SIGTERM, lambda s, f: stop.set())
     signal.signal(signal.SIGINT, lambda s, f: stop.set())
     signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
-    plan = sup.start(spawn=False)
-    if not plan.accepted:
+    runtime.start()
+    if not runtime.alive():
         log.error("no station can run: every station file was refused")
-        if console is not None:
-            console.stop()
+        runtime.stop()
         return 1
-    _attach_shared(sup, remote, args, console)
-    sup.tick()
     t0 = time.monotonic()
     ready = False
     last_wd = 0.0
-    started_any = False
     try:
-        while not stop.is_set():
-            stop.wait(0.2)
+        while not stop.is_set() and runtime.alive():
             now = time.monotonic()
-            sup.tick(now)
-            if not ready and (sup.all_up() or now - t0 > 60):
+            runtime.tick(now)
+            if not ready and runtime.ready():
                 ready = True
                 sdnotify.ready()
-            n_run = sum(1 for w in sup.workers.values() if w.running)
             if now - last_wd >= 2.0:
                 last_wd = now
-                refused = [h.name for h in sup.hubs.values() if h.refused]
-                sdnotify.status(f"{n_run} station worker(s) running"
-                                + (f"; refused: {', '.join(refused)}" if refused else ""))
-                if ready and sup.healthy():
+                sdnotify.status(runtime.status())
+                if ready and runtime.healthy():
                     sdnotify.watchdog()
             if reload_req.is_set():
                 reload_req.clear()
-                sup.reload()
-                _attach_shared(sup, remote, args, console)
+                runtime.reload()
             if args.duration is not None and now - t0 >= args.duration:
                 break
-            if args.exit_when_done:
-                if any(h.in_test for h in sup.hubs.values()):
-                    started_any = True
-                elif started_any and not sup.pending():
-                    break
+            if args.exit_when_done and runtime.tests_done():
+                break
+            stop.wait(0.2)
     finally:
         sdnotify.stopping()
-        sup.stop()
-        remote.stop()
-        if console is not None:
-            console.stop()
-    out: dict = {}
-    for name, h in sup.hubs.items():
-        if h.refused:
-            out[name] = {"refused": h.refused}
-            continue
-        out[name] = dict(h.stats or {}, results=h.results,
-                         restarts=h.worker.restarts if h.worker else 0)
+        runtime.stop()
+    report = runtime.report()
     if args.stats_json:
-        with open(args.stats_json, "w") as f:
-            json.dump(out, f, indent=1, default=str)
-    for name, h in sup.hubs.items():
-        for res in h.results:
+        with open(args.stats_json, "w") as fh:
+            json.dump(report, fh, indent=1, default=str)
+    _print_report(report)
+    return 0
+
+
+def _print_report(report: dict[str, dict[str, Any] | None]) -> None:
+    for name, r in report.items():
+        if r is None:
+            continue
+        for f in r.get("start_failures") or []:
+            print(f"{name}: start of {f['sample_id']} failed: {f['reason']}", flush=True)
+        for res in r.get("results") or []:
             m = res["method"]
             print(f"{name}: test {res['test_id']} {res['test_status']} ({res['end_reason']}): "
-                  f"status {m['status']}, t_life {m['t_life']}, mu_ss {m['mu_ss']}", flush=True)
-    return 0
+                  f"status {m['status']}"
+                  + (f" ({', '.join(m['stop_reasons'])})" if m.get("stop_reasons") else "")
+                  + f", t_life {m['t_life']}, mu_ss {m['mu_ss']}", flush=True)

@@ -22,6 +22,7 @@ import zlib
 from dataclasses import asdict
 from typing import Any
 
+from ..ports import StationView
 from ..records import Event, EventType, SlotRecord, StationState
 from ..station.recorder import LOG_COLUMNS
 
@@ -220,7 +221,7 @@ class StationFeed:
         self.last_k: int | None = None
         self.last_seen = 0.0
         # set by the ConsoleOutput bound to the current Station object
-        self.station = None
+        self.station: StationView | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.mqtt_enabled = False
 
@@ -333,7 +334,7 @@ class StationFeed:
 class ConsoleOutput:
     """The station-side end of the hand-over (one per Station object)."""
 
-    def __init__(self, feed: StationFeed, station=None):
+    def __init__(self, feed: StationFeed, station: StationView | None = None):
         self.feed = feed
         self.station = station
         self._q = feed.q

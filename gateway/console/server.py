@@ -41,11 +41,12 @@ from typing import Any
 from aiohttp import web
 
 from ..northbound.cmdparse import intake, rejected_event_data
+from ..ports import StationView
 from ..ratelog import RateLog
 from ..records import Command, CommandKind
 from ..station import commands as C
 from ..station.commands import CODE, Rejection
-from ..threadloop import ThreadLoop, call_soon_on
+from ..threadloop import ThreadLoop, call_soon_on, submit_to
 from . import auth
 from .feed import ConsoleOutput, StationFeed, series_from_log
 from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
@@ -161,7 +162,7 @@ class ConsoleServer:
         self.error: str | None = None
 
     # ----------------------------------------------------------------- lifecycle (any thread)
-    def output_for(self, station) -> ConsoleOutput:
+    def output_for(self, station: StationView) -> ConsoleOutput:
         """The station output that feeds this console (one per Station object)."""
         return ConsoleOutput(self.feeds[station.id], station)
 
@@ -558,7 +559,9 @@ class ConsoleServer:
                      f.name, f.name, s.user)
             return web.json_response({"ok": True, "reason": "", "code": 0})
         try:
-            fut = asyncio.run_coroutine_threadsafe(C.submit(st, cmd), loop)
+            fut = submit_to(loop, C.submit(st, cmd))   # the one hand-over (gateway/threadloop.py)
+            if fut is None:
+                raise RuntimeError("its loop is closed")
             reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
         except (TimeoutError, RuntimeError) as e:
             reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,

@@ -64,6 +64,7 @@ from prometheus_client.exposition import generate_latest
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
 from .. import __version__
+from ..ports import StationView
 from ..records import AlarmState, Event, SlotRecord, StationState, TestState
 
 log = logging.getLogger("hookwatch.metrics")
@@ -221,7 +222,7 @@ class _EndpointSource:
 class MetricsOutput(_EndpointSource):
     """Station output feeding :class:`StationFigures`; registers the station on its endpoint."""
 
-    def __init__(self, station, host: str = "127.0.0.1", port: int = 9620, *,
+    def __init__(self, station: StationView, host: str = "127.0.0.1", port: int = 9620, *,
                  mqtt=None, modbus=None, serve: bool = True):
         self.station = station
         self.station_id = station.id

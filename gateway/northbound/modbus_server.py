@@ -34,7 +34,7 @@ from typing import Any
 
 from .. import __version__
 from ..method.rules import REASONS
-from ..ports import CommandSink, StationLimits
+from ..ports import CommandSink, StationLimits, StationView
 from ..ratelog import RateLog, safe
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
 from ..station import commands as C
@@ -245,7 +245,7 @@ class ModbusSettings:
 class ModbusOutput:
     """Station output serving one station on a shared Modbus TCP server."""
 
-    def __init__(self, settings: ModbusSettings, station=None):
+    def __init__(self, settings: ModbusSettings, station: StationView | None = None):
         self.s = settings
         self.station_id = settings.station_id
         self.station = station

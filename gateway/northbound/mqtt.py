@@ -13,7 +13,7 @@ Threads:
   (MQTT 5: on the request's Response Topic, with its Correlation Data);
 - the broker connection reaches the station as ``station.set_uplink("mqtt", ok)`` through the same
   hand-over (so the PLC sees it in ``StationState.mqtt_ok``);
-- the end-of-life alarm is read from the station's alarm store (``gateway/station/alarms.py``);
+- the end-of-life alarm is read from the station's alarm store (``gateway/station/alarm_store.py``);
   the output keeps no alarm of its own on disk.
 """
 from __future__ import annotations
@@ -23,10 +23,10 @@ import logging
 import time
 from typing import Any
 
-from ..ports import CommandSink
+from ..ports import CommandSink, StationLinks
 from ..records import Event, EventType, SlotRecord, StationState
 from ..station import commands as C
-from ..station.alarms import AlarmStore
+from ..station.alarm_store import AlarmStore
 from ..station.commands import CODE, Rejection
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
@@ -48,7 +48,7 @@ _Telemetry = Telemetry
 class MqttOutput:
     """Station output (:class:`gateway.ports.Output`) publishing the station over MQTT."""
 
-    def __init__(self, settings: MqttSettings, station: Any = None,
+    def __init__(self, settings: MqttSettings, station: StationLinks | None = None,
                  alarms: AlarmStore | None = None) -> None:
         self.s = settings
         self.station = station

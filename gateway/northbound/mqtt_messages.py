@@ -16,7 +16,7 @@ from typing import Any
 from .. import __version__
 from ..method.rules import REASONS
 from ..records import CommandReply, Event, EventType, SlotRecord, StationState
-from ..station.alarms import AlarmRecord
+from ..station.alarm_store import AlarmRecord
 from ..station.commands import CODE
 from . import schema
 from .registers import MAP_VERSION

@@ -4,6 +4,7 @@ from __future__ import annotations
 import logging
 import os
 
+from ..ports import StationLinks
 from . import schema
 from .broker_settings import broker_kwargs
 from .metrics import MetricsOutput
@@ -43,7 +44,7 @@ def modbus_settings(cfg):
     )
 
 
-def outputs_for(cfg, station, *, modbus: bool = True, sparkplug: bool = True) -> list:
+def outputs_for(cfg, station: StationLinks, *, modbus: bool = True, sparkplug: bool = True) -> list:
     """The northbound outputs of one station (MQTT, then Modbus TCP unless ``modbus`` is False,
     then its Sparkplug device unless ``sparkplug`` is False: a fleet's supervisor hosts it)."""
     outs: list = []
@@ -70,7 +71,7 @@ def outputs_for(cfg, station, *, modbus: bool = True, sparkplug: bool = True) ->
     return outs
 
 
-def metrics_outputs(cfg, station, outputs: list, *, serve: bool = True) -> list:
+def metrics_outputs(cfg, station: StationLinks, outputs: list, *, serve: bool = True) -> list:
     """The metrics output of a station (``metrics.enabled``), reading the MQTT outbox and the
     PLC server counters of the station's other ``outputs``; with ``serve`` False it opens no
     endpoint (a fleet worker: the supervisor serves its snapshots)."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Sequence
+from typing import Any
 
 from ..ports import Output
 from ..records import Event, SlotRecord, StationState
@@ -60,6 +61,18 @@ class Fanout:
                 o.on_state(st)
             except Exception:
                 self._failed(o, "state")
+
+    def optional(self, method: str, *args: Any) -> None:
+        """Call ``method`` on every output that has it (a hook only some outputs take, e.g. a
+        fleet proxy's ``on_worker``/``on_metrics``/``on_lost``), failures caught and counted."""
+        for o in (*self.head, *self.outputs):
+            fn = getattr(o, method, None)
+            if fn is None:
+                continue
+            try:
+                fn(*args)
+            except Exception:
+                self._failed(o, method)
 
     async def start(self) -> None:
         """Start every output. An output that cannot start raises: the station does not run

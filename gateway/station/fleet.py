@@ -173,12 +173,25 @@ class StationRunner:
 
 
 class Fleet:
-    def __init__(self, runners: list[StationRunner]):
+    """The stations of one process, each on its own thread: a :class:`gateway.ports.Runtime`
+    (``hookwatch run STATION.yaml``, or a fleet folder with ``--in-process``). ``reloader`` gives,
+    on SIGHUP, the new factory of each station by name (raising ValueError: configuration kept)."""
+
+    def __init__(self, runners: list[StationRunner],
+                 reloader: Callable[[], dict[str, Callable[[], Station]]] | None = None) -> None:
         self.runners = runners
+        self.reloader = reloader
+        self._progress: dict[str, int] = {}
+        self._started_any = False
 
     def start(self) -> None:
         for r in self.runners:
             r.start()
+
+    def tick(self, now: float) -> None:
+        """The test bookkeeping of ``--exit-when-done`` (restarts run on each station's thread)."""
+        if any(r.station is not None and r.station.busy for r in self.runners):
+            self._started_any = True
 
     def stop(self, timeout: float = 10.0) -> None:
         for r in self.runners:
@@ -191,12 +204,50 @@ class Fleet:
     def alive(self) -> bool:
         return any(r.tl.running for r in self.runners)
 
-    def healthy(self, last: dict[str, int]) -> bool:
+    def ready(self) -> bool:
+        return True
+
+    def status(self) -> str:
+        return f"running {len(self.runners)} station(s)"
+
+    def healthy(self) -> bool:
         """True when every running station made progress since the last call (watchdog)."""
         ok = True
+        last = self._progress
         for r in self.runners:
             p = r.progress()
             if r.tl.running and p <= last.get(r.name, -1) and p >= 0:
                 ok = False
             last[r.name] = p
         return ok
+
+    def tests_done(self) -> bool:
+        """Every test started has ended (or every station has ended or failed a start)."""
+        sts = [r.station for r in self.runners]
+        if any(s is not None and s.busy for s in sts):
+            return False
+        return self._started_any or all(s is not None and bool(s.results or s.start_failures)
+                                        for s in sts)
+
+    def reload(self) -> None:
+        """SIGHUP: each station decides on its own loop whether it restarts with its new
+        configuration (idle) or keeps the parameters of its running test."""
+        if self.reloader is None:
+            return
+        try:
+            factories = self.reloader()
+        except ValueError as e:
+            log.error("reload refused, configuration kept: %s", e)
+            return
+        for r in self.runners:
+            f = factories.get(r.name)
+            if f is not None:
+                r.request_reload(f)
+
+    def report(self) -> dict[str, dict[str, Any] | None]:
+        out: dict[str, dict[str, Any] | None] = {}
+        for r in self.runners:
+            st = r.station
+            out[r.name] = None if st is None else dict(
+                st.stats.summary(), results=st.results, start_failures=st.start_failures)
+        return out

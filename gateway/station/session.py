@@ -1,6 +1,6 @@
 """One test on a station: its plan, method monitor, controller and recorder, from start to end.
 
-Before slot 0 a :class:`StartAttempt` runs METHOD.md §3a (zero check with the motor off, spin-up
+Before slot 0 a :class:`~.starting.StartAttempt` runs METHOD.md §3a (zero check with the motor off, spin-up
 with the loop closed); it records nothing. Once the tension has settled, its controller goes on
 into the :class:`TestSession` (the loop stays closed) and its settle time and zero offsets go into
 the sidecar (``start:``, information only).
@@ -10,6 +10,7 @@ is fed through :class:`RecorderOutput`, an ordinary output placed first in the s
 """
 from __future__ import annotations
 
+import shutil
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -18,7 +19,6 @@ from .. import __version__
 from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams, build_params
-from ..method.start import StartSequence
 from ..records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
@@ -32,34 +32,12 @@ class TestPlan:
     t_end: float
 
 
-
 def plan_params(plan: TestPlan, method_values: dict[str, Any], station_id: str) -> MethodParams:
     """The method parameters of ``plan`` (the station's values with the plan's t_set and t_end)."""
     values = dict(method_values)
     values["t_set"] = plan.t_set
     values["t_end"] = plan.t_end
     return build_params(values, f"station {station_id}")
-
-
-@dataclass
-class StartAttempt:
-    """A start in progress (§3a): nothing of it is recorded; the station's state is STARTING."""
-    plan: TestPlan
-    params: MethodParams
-    seq: StartSequence
-    controller: Controller
-    source: str
-    motor_enabled: bool = False      # the take-up was enabled for the spin-up
-    wait_slots: int = 0              # slots waited (meter port, take-up at rest) before the zero check
-    zero_begun: bool = False         # the zero check's window has begun
-    reason: str | None = None        # a failure found by the station (not by the sequence)
-
-    @classmethod
-    def begin(cls, plan: TestPlan, method_values: dict[str, Any], control: ControlParams,
-              station_id: str, source: str) -> StartAttempt:
-        p = plan_params(plan, method_values, station_id)
-        return cls(plan=plan, params=p, seq=StartSequence(p),
-                   controller=Controller(control, plan.t_set), source=source)
 
 
 @dataclass
@@ -96,7 +74,11 @@ class TestSession:
         }
         if start_info is not None:
             meta["start"] = dict(start_info)
-        rec = TestRecorder(test_dir, meta, flush_interval_s)
+        try:
+            rec = TestRecorder(test_dir, meta, flush_interval_s)
+        except OSError:       # the log cannot be opened: the new folder of a test that never began goes
+            shutil.rmtree(test_dir, ignore_errors=True)
+            raise
         return cls(test_id=test_id, plan=plan, params=p, monitor=StreamingMonitor(p),
                    controller=controller or Controller(control, plan.t_set), recorder=rec)
 

@@ -32,17 +32,22 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import os
 import threading
 import time
 from typing import Any
 
+from ..compose import shared_outputs, station_facts
+from ..console.server import ConsoleServer
 from ..northbound.sparkplug import client as sparkplug_client
 from ..northbound.sparkplug.output import SparkplugOutput, state_values
-from ..ports import Output, StationLimits
+from ..ports import Output, PlanView, StationLimits, StationView
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
-from ..station.alarms import KIND_OF, MODEL_NAME
+from ..station.alarm_store import KIND_OF, MODEL_NAME
 from ..station.commands import CODE, Rejection
+from ..station.fanout import Fanout
 from ..threadloop import ThreadLoop
+from .fleetcfg import apply_overrides
 from .ipc import FrameType, event_from_dict, slot_from_row, state_from_dict
 
 __all__ = ["COMMAND_TIMEOUT_S", "RemoteFleet", "RemoteStation", "SparkplugDevice"]
@@ -77,28 +82,36 @@ class RemoteAlarms:
 
 
 class RemoteStation:
-    """The supervisor's stand-in of one station for the outputs it serves (see the module doc).
-
-    Attributes the outputs read of a station: ``id``, ``ts``, ``limits``, ``default_plan``,
-    ``state`` (latest :class:`StationState`), ``alarms`` (:class:`RemoteAlarms`), ``outputs``;
-    ``submit(cmd)`` is the command sink."""
+    """The supervisor's stand-in of one station for the outputs it serves (see the module doc):
+    a :class:`~gateway.ports.StationView` like the station itself (``id``, ``ts``, ``limits``,
+    ``default_plan``, ``state``: the latest :class:`StationState`, ``alarms``:
+    :class:`RemoteAlarms`, ``outputs``; ``submit(cmd)`` is the command sink). Its outputs are fed
+    through the station's own :class:`~gateway.station.fanout.Fanout`."""
 
     def __init__(self, hub: Any, *, ts: float = 0.02, limits: StationLimits | None = None,
-                 default_plan: Any = None) -> None:
+                 default_plan: PlanView | None = None) -> None:
         self.hub = hub
-        self.id = hub.name
+        self.id: str = hub.name
         self.ts = float(ts)
         self.limits = limits if limits is not None else StationLimits()
         self.default_plan = default_plan
         self.state = StationState(station=self.id)
         self.alarms = RemoteAlarms()
-        self.outputs: list[Output] = []
+        self.fanout = Fanout(self.id, [])
         self.loop: asyncio.AbstractEventLoop | None = None
         self.up = False
         self.last_k: int | None = None
         #: slot records the IPC lost (frames dropped by a stalled supervisor), counted
         self.lost = 0
         self._failed: set[tuple[str, str]] = set()
+
+    @property
+    def outputs(self) -> list[Output]:
+        return self.fanout.outputs
+
+    @outputs.setter
+    def outputs(self, outs: list[Output]) -> None:
+        self.fanout.outputs = outs
 
     # ------------------------------------------------------------ lifecycle (the outputs' loop)
     async def start(self) -> None:
@@ -151,7 +164,7 @@ class RemoteStation:
                 self._bad("event", e)
                 return
             self.alarms.on_event(ev)
-            self._each("on_event", ev)
+            self.fanout.event(ev)
         elif ftype == FrameType.STATE:
             try:
                 st = state_from_dict(body)
@@ -159,12 +172,9 @@ class RemoteStation:
                 self._bad("state", e)
                 return
             self.state = st
-            self._each("on_state", st)
+            self.fanout.state(st)
         elif ftype == FrameType.METRICS:
-            for o in self.outputs:
-                fn = getattr(o, "on_metrics", None)
-                if fn is not None:
-                    fn(body)
+            self.fanout.optional("on_metrics", body)
 
     def _record(self, rec: SlotRecord) -> None:
         last = self.last_k
@@ -173,12 +183,9 @@ class RemoteStation:
             # (the console reads the test so far from the recorder's log)
             n = rec.k - last - 1
             self.lost += n
-            for o in self.outputs:
-                fn = getattr(o, "on_lost", None)
-                if fn is not None:
-                    fn(n)
+            self.fanout.optional("on_lost", n)
         self.last_k = rec.k
-        self._each("on_record", rec)
+        self.fanout.record(rec)
 
     def on_worker(self, up: bool, restarts: int = 0) -> None:
         """The worker came up (HELLO) or went down (its link closed)."""
@@ -187,24 +194,8 @@ class RemoteStation:
         if not up:
             down = dataclasses.replace(self.state, meter_ok=False, stm32_ok=False, mqtt_ok=False)
             self.state = down
-            self._each("on_state", down)
-        for o in self.outputs:
-            fn = getattr(o, "on_worker", None)
-            if fn is not None:
-                try:
-                    fn(self.up, restarts)
-                except Exception:
-                    log.exception("%s: %s.on_worker failed", self.id, type(o).__name__)
-
-    def _each(self, method: str, item: Any) -> None:
-        for o in self.outputs:
-            try:
-                getattr(o, method)(item)
-            except Exception:
-                key = (type(o).__name__, method)
-                if key not in self._failed:       # one traceback per output and kind, not 50 a second
-                    self._failed.add(key)
-                    log.exception("%s: shared output %s.%s failed", self.id, *key)
+            self.fanout.state(down)
+        self.fanout.optional("on_worker", self.up, restarts)
 
     def _bad(self, what: str, e: Exception) -> None:
         key = ("frame", what)
@@ -225,7 +216,7 @@ class SparkplugDevice(SparkplugOutput):
     (its worker crashed, was killed or is restarting) takes it down: a DDEATH, the node and the
     other stations' devices going on. Nothing of a down worker is published (no stale values)."""
 
-    def __init__(self, settings, station=None) -> None:
+    def __init__(self, settings: Any, station: StationView | None = None) -> None:
         super().__init__(settings, station)
         self.up = False
         self._up_lock = threading.Lock()
@@ -246,8 +237,7 @@ class SparkplugDevice(SparkplugOutput):
             self.up = bool(up)
             if up:
                 self._agg = None
-                st = getattr(self.station, "state", None)
-                self._last = state_values(st) if st is not None else {}
+                self._last = state_values(self.station.state) if self.station is not None else {}
                 self.rt.post(("up", self.s.device_id, dict(self._last)))
             else:
                 self._flush(time.monotonic())
@@ -268,13 +258,41 @@ class SparkplugDevice(SparkplugOutput):
 
 
 class RemoteFleet:
-    """The station proxies of one supervisor and the loop their outputs' coroutines run on."""
+    """The station proxies of one supervisor and the loop their outputs' coroutines run on: the
+    supervisor's shared outputs (``Supervisor.shared``), attached at its start and after each
+    reload; which outputs a proxy gets is the composition root's
+    (:func:`gateway.compose.shared_outputs`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, console: ConsoleServer | None = None, *, with_northbound: bool = True) -> None:
         self.tl = ThreadLoop("fleet-outputs")
+        self.console = console
+        self.with_northbound = with_northbound
         self.stations: dict[str, RemoteStation] = {}
         #: per station, what its outputs were built from (rebuilt when it changes on SIGHUP)
         self.keys: dict[str, str] = {}
+
+    def attach(self, sup: Any) -> None:
+        """A station proxy with its shared outputs per running station of ``sup`` (a
+        :class:`~gateway.supervisor.supervisor.Supervisor`; at start, and after a SIGHUP: new
+        stations get one, a station whose Modbus TCP, Sparkplug or metrics settings changed gets
+        a new one, a removed station's is stopped)."""
+        with_nb, console = self.with_northbound, self.console
+        cfgs = {c.station.id: c for c in (apply_overrides(c, sup.opts) for _, c in sup.plan.accepted)}
+        for name, hub in sup.hubs.items():
+            cfg = cfgs.get(name)
+            if cfg is None or hub.worker is None or hub.worker.path not in sup.workers:
+                if name in self.stations and (hub.worker is None or hub.worker.path not in sup.workers):
+                    self.remove(name)
+                continue
+            key = repr((cfg.modbus_tcp, cfg.sparkplug, cfg.metrics, with_nb))
+            if self.keys.get(name) == key:
+                continue
+            if console is not None and name not in console.feeds:
+                console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled))
+            st = RemoteStation(hub, **station_facts(cfg))
+            st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb,
+                                        sparkplug_device=SparkplugDevice)
+            self.add(st, key)
 
     def add(self, st: RemoteStation, key: str = "", timeout: float = 15.0) -> None:
         """Start ``st``'s outputs and attach it to its hub (replacing an earlier proxy)."""

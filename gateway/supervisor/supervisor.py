@@ -38,9 +38,9 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from ..compose import records_dir_ok
 from ..config import Issue
 from ..records import CommandReply
+from ..station.build import records_dir_ok
 from ..station.commands import CODE, Rejection
 from ..threadloop import Mailbox
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
@@ -65,6 +65,16 @@ class FrameSink(Protocol):
     def on_frame(self, ftype: FrameType, body: dict[str, Any]) -> None: ...
 
     def on_worker(self, up: bool, restarts: int = 0) -> None: ...
+
+
+class SharedOutputs(Protocol):
+    """The outputs a fleet's supervisor runs for its stations
+    (:class:`~gateway.supervisor.remote.RemoteFleet`): attached to the hubs at start (before the
+    first worker, so they see every frame) and after each reload, stopped after the workers."""
+
+    def attach(self, sup: Supervisor) -> None: ...
+
+    def stop(self) -> None: ...
 
 
 class StationHub:
@@ -315,8 +325,11 @@ class Supervisor:
                  backoff_s: float = 1.0, backoff_max_s: float = 60.0, hold_after: int = 5,
                  hold_s: float = 300.0, stable_s: float = 60.0, startup_s: float = 60.0,
                  summary_every: int = 10,
-                 served_for: Callable[[Any], frozenset[str]] | None = None) -> None:
+                 served_for: Callable[[Any], frozenset[str]] | None = None,
+                 shared: SharedOutputs | None = None) -> None:
         self.folder = folder
+        #: the shared outputs (Modbus TCP units, Sparkplug devices, console, metrics), or None
+        self.shared = shared
         #: what the supervisor's shared outputs serve for a station (its configuration → a subset
         #: of modbus, sparkplug, console, metrics): its worker then streams what they need and serves none
         self.served_for = served_for
@@ -341,6 +354,8 @@ class Supervisor:
         self._last_tick = 0.0
         #: no watchdog kill before this time (after a stall of the supervisor itself)
         self._grace_until = 0.0
+        self._ready = False
+        self._started_any = False
 
     # ------------------------------------------------------------ start
     def refuse(self, r: Refused, reload: bool = False) -> None:
@@ -368,6 +383,8 @@ class Supervisor:
         n = max(1, len(plan.accepted))
         for i, (path, cfg) in enumerate(plan.accepted):
             self._add(path, cfg, i / n)
+        if self.shared is not None and plan.accepted:
+            self.shared.attach(self)
         if spawn:
             self.tick()
         return plan
@@ -389,6 +406,38 @@ class Supervisor:
         """Every worker runs its station (READY for systemd)."""
         return all(w.stopping or (w.running and w.go_t > 0) for w in self.workers.values())
 
+    # ------------------------------------------------------------ the runtime (gateway.ports.Runtime)
+    def alive(self) -> bool:
+        """A station can run (not every station file was refused); workers are restarted."""
+        return bool(self.workers)
+
+    def ready(self) -> bool:
+        """Every worker runs its station, or the start-up time is over (READY for systemd)."""
+        if not self._ready and (self.all_up() or time.monotonic() - self.t_start > self.startup_s):
+            self._ready = True
+        return self._ready
+
+    def status(self) -> str:
+        n_run = sum(1 for w in self.workers.values() if w.running)
+        refused = [h.name for h in self.hubs.values() if h.refused]
+        return (f"{n_run} station worker(s) running"
+                + (f"; refused: {', '.join(refused)}" if refused else ""))
+
+    def tests_done(self) -> bool:
+        """Every test started has ended, and no worker is starting or waiting for its restart."""
+        return (self._started_any and not any(h.in_test for h in self.hubs.values())
+                and not self.pending())
+
+    def report(self) -> dict[str, dict[str, Any] | None]:
+        out: dict[str, dict[str, Any] | None] = {}
+        for name, h in self.hubs.items():
+            if h.refused:
+                out[name] = {"refused": h.refused}
+                continue
+            out[name] = dict(h.stats or {}, results=h.results,
+                             restarts=h.worker.restarts if h.worker else 0)
+        return out
+
     # ------------------------------------------------------------ supervision
     def tick(self, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
@@ -399,6 +448,8 @@ class Supervisor:
                         now - self._last_tick, GRACE_S)
             self._grace_until = now + GRACE_S
         self._last_tick = now
+        if any(h.in_test for h in self.hubs.values()):
+            self._started_any = True
         # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
         # opening) costs about a second of CPU, and N at once would starve the running stations
         starting = sum(1 for w in self.workers.values() if w.running and not w.hello)
@@ -516,6 +567,8 @@ class Supervisor:
                 log.info("%s: station file removed: its worker stops", w.hub.name)
                 self._retire(w)
         self.plan = plan
+        if self.shared is not None:
+            self.shared.attach(self)
 
     def _retire(self, w: WorkerHandle) -> None:
         w.terminate()
@@ -538,3 +591,5 @@ class Supervisor:
                 w.proc.kill()
                 w.proc.wait()
             w.reap()
+        if self.shared is not None:
+            self.shared.stop()

@@ -32,3 +32,35 @@ def test_every_contract_is_quoted():
     quoted = "\n".join(t for p, t in _quotes() if p == "gateway/ports.py")
     assert contracts and all(f"class {c}(" in quoted or f"class {c}:" in quoted for c in contracts), (
         sorted(c for c in contracts if f"class {c}" not in quoted))
+
+
+def _tree_rows():
+    """The rows of the doc's "tree at a glance" table: (first cell, whole row)."""
+    with open(DOC, encoding="utf-8") as f:
+        text = f.read()
+    section = text.split("## The tree at a glance", 1)[1].split("\n## ", 1)[0]
+    return [(r.split("|")[1], r) for r in section.splitlines() if r.startswith("| `")]
+
+
+def test_the_tree_names_every_package_and_module():
+    """Every package of gateway/ and drivers/ has its row, naming each of its modules; every
+    module directly in gateway/ is named in a row's first cell."""
+    rows = _tree_rows()
+    missing = []
+    for top in ("gateway", "drivers"):
+        for d, _, files in os.walk(os.path.join(ROOT, top)):
+            if "__init__.py" not in files or "__pycache__" in d:
+                continue
+            rel = os.path.relpath(d, ROOT).replace(os.sep, "/")
+            mods = sorted(f for f in files if f.endswith(".py") and f != "__init__.py")
+            if rel == "gateway":
+                for m in mods:
+                    if not any(f"`gateway/{m}`" in cell for cell, _ in rows):
+                        missing.append(f"gateway/{m}")
+                continue
+            row = next((r for cell, r in rows if f"`{rel}/`" in cell), None)
+            if row is None:
+                missing.append(f"{rel}/")
+                continue
+            missing += [f"{rel}/{m}" for m in mods if f"`{m}`" not in row]
+    assert missing == [], f"docs/architecture.md's tree leaves out {missing}"

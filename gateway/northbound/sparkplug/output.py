@@ -15,6 +15,7 @@ from typing import Any
 
 from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...config.schema import parse_server
+from ...ports import StationView
 from ...records import Event, EventType, SlotRecord, StationState
 from ..broker_settings import broker_kwargs
 from . import client as _client
@@ -36,13 +37,13 @@ def _alarm_values(name: str, value: str, shelved_until: float | None = None) -> 
             f"{folder}/Priority": int(ALARMS[name].priority), f"{folder}/Shelved Until": until}
 
 
-def _shelved_until(station: Any, name: str) -> float | None:
+def _shelved_until(station: StationView | None, name: str) -> float | None:
     """When the station's alarm store shelved alarm ``name`` until (None: not shelved / no store)."""
     store = getattr(station, "alarms", None)
     return store.shelved_until(name) if store is not None else None
 
 
-def state_values(st: StationState, station: Any = None) -> dict[str, Any]:
+def state_values(st: StationState, station: StationView | None = None) -> dict[str, Any]:
     """The device metrics that follow the station's state (the shelving expiries from ``station``'s
     alarm store, when given)."""
     return {
@@ -95,7 +96,7 @@ class _Agg:
 class SparkplugOutput:
     """Station output publishing the station as one Sparkplug device of its edge node."""
 
-    def __init__(self, settings: SparkplugSettings, station=None):
+    def __init__(self, settings: SparkplugSettings, station: StationView | None = None):
         self.s = settings
         self.station = station
         self.loop: asyncio.AbstractEventLoop | None = None

@@ -6,7 +6,7 @@ the PLC's alarm enum register (generated from the same enum)."""
 from gateway.northbound import registers as R
 from gateway.northbound import schema as S
 from gateway.records import AlarmState, EventType
-from gateway.station.alarms import AlarmStore
+from gateway.station.alarm_store import AlarmStore
 from kit.broker import pub, station_on_broker
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool, wait_for

@@ -383,7 +383,7 @@ def test_alarm_raised_before_a_restart_is_cleared_by_the_next_test(tmp_path):
     (alarm.json), and a new test (a new hook) clears it with what it was about. The test plays the
     station: it feeds each event to the store first, then to the output."""
     from gateway.northbound.outbox import Outbox
-    from gateway.station.alarms import AlarmStore
+    from gateway.station.alarm_store import AlarmStore
     from kit.tools import free_port
 
     port = free_port()

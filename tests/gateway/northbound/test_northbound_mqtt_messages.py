@@ -5,7 +5,7 @@ import time
 from gateway.northbound import mqtt_messages as M
 from gateway.northbound import schema as S
 from gateway.records import Event, EventType, StationState
-from gateway.station.alarms import AlarmStore
+from gateway.station.alarm_store import AlarmStore
 from gateway.station.commands import CODE, Rejection
 
 BASE = "acme/hw/site/area/line/st1"

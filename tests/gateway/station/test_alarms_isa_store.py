@@ -8,7 +8,7 @@ import time
 
 from gateway.northbound.cmdparse import intake
 from gateway.records import Command, CommandKind, EventType
-from gateway.station.alarms import AlarmStore
+from gateway.station.alarm_store import AlarmStore
 from gateway.station.commands import CODE
 from kit.fakes import Capture
 from kit.northbound import LoopThread, RunningStation, make_station
@@ -131,7 +131,7 @@ def test_alarms_persist_across_a_restart_of_the_store(tmp_path):
     assert again.record.t_life == 12.0 and again.warning.headroom == 0.4
     # a restarted station shows the same, and its unshelve goes on where the old one stopped
     st2 = make_station(tmp_path, [], station_id="per")
-    st2._restore_alarm()
+    st2.board.restore_alarm()
     assert (st2.state.alarm, st2.state.warning_alarm) == ("acknowledged", "shelved")
     assert _submit(st2, CommandKind.UNSHELVE, alarm="wear_warning").ok
     assert st2.state.warning_alarm == "unacknowledged"
@@ -160,7 +160,7 @@ def test_an_old_alarm_json_still_loads_and_goes_on(tmp_path):
     # the station on top of it: the warning can be acknowledged, the hook replaced closes both
     st = make_station(tmp_path, [], station_id="old2")
     st.alarms = store
-    st._restore_alarm()
+    st.board.restore_alarm()
     assert (st.state.alarm, st.state.warning_alarm) == ("acknowledged", "unacknowledged")
     assert _submit(st, CommandKind.ACK).ok and st.state.warning_alarm == "acknowledged"
     assert _submit(st, CommandKind.HOOK_REPLACED).ok

@@ -20,27 +20,27 @@ def _ports(out):
 def test_a_port_gone_for_half_a_second_gives_its_pair_of_events(tmp_path):
     out = Capture()
     st = _station(tmp_path, out)
-    st._link_health()                               # first look: no event
+    st.health.check_links()                               # first look: no event
     assert _ports(out) == []
     # the driver lost the port and reopened it between two checks (connected again by now)
     st.meter.counters["port_lost"] = 1
-    st._link_health()
+    st.health.check_links()
     assert _ports(out) == [(EventType.PORT_LOST, "meter", True), (EventType.PORT_BACK, "meter", True)]
-    st._link_health()                               # nothing new: no repeat
+    st.health.check_links()                               # nothing new: no repeat
     assert len(_ports(out)) == 2
 
 
 def test_a_port_that_stays_lost_gives_one_lost_and_one_back(tmp_path):
     out = Capture()
     st = _station(tmp_path, out)
-    st._link_health()
+    st.health.check_links()
     st.stm32.connected = False
     st.stm32.counters["port_lost"] = 1
-    st._link_health()
-    st._link_health()
+    st.health.check_links()
+    st.health.check_links()
     assert _ports(out) == [(EventType.PORT_LOST, "stm32", False)]
     assert st.state.stm32_ok is False
     st.stm32.connected = True
-    st._link_health()
+    st.health.check_links()
     assert _ports(out) == [(EventType.PORT_LOST, "stm32", False), (EventType.PORT_BACK, "stm32", False)]
     assert st.state.stm32_ok is True

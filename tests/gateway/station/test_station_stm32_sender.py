@@ -6,7 +6,8 @@ wire by the test."""
 import asyncio
 
 from gateway.control import ControlParams
-from gateway.station.station import LatestValue, Station, TestPlan
+from gateway.station.station import Station, TestPlan
+from gateway.station.stm32link import LatestValue
 from kit.fakes import FakeMeter
 from kit.vclock import VirtualClock
 
@@ -86,7 +87,7 @@ def _station(tmp_path, name):
                  records_dir=str(tmp_path), default_plan=TestPlan("S-1", "I", 0.5, 100.0),
                  autostart=True)
     st.clock_factory = VirtualClock
-    assert not st._stm32_post
+    assert not st.link.posting
     return st, meter, stm
 
 
@@ -105,7 +106,7 @@ def test_the_slot_loop_never_waits_for_the_stm32_and_the_newest_command_wins(tmp
         seen["on_wire"] = stm.on_wire
         seen["skips_while_held"] = st.stats.stm32_busy_skips
         seen["reads_while_held"] = meter.reads
-        seen["box_full"] = not st._stm32_box.empty
+        seen["box_full"] = not st.link.box.empty
         stm.gate.set()                    # the link answers again
         reads_at_release = meter.reads
         while len(stm.sent) < seen["sent_while_held"] + 20:
@@ -121,7 +122,7 @@ def test_the_slot_loop_never_waits_for_the_stm32_and_the_newest_command_wins(tmp
     assert seen["box_full"]                                            # the newest one waits
     # every slot of the test put a command; all but the one on the wire and the newest replaced
     assert seen["skips_while_held"] >= 250
-    assert st._stm32_box.superseded == st.stats.stm32_busy_skips
+    assert st.link.box.superseded == st.stats.stm32_busy_skips
     assert st.stats.summary()["stm32_busy_skips"] == st.stats.stm32_busy_skips
     # the command sent after the release is the newest of its time, not the oldest held one
     rpm, at = seen["next_after_release"]
@@ -137,9 +138,9 @@ def test_a_stop_withdraws_a_speed_command_not_yet_sent(tmp_path):
         task = asyncio.create_task(st.run(stop))
         while meter.reads < 100:
             await asyncio.sleep(0)
-        assert not st._stm32_box.empty            # a command waits behind the held one
+        assert not st.link.box.empty            # a command waits behind the held one
         await st.end_test("stopped by command")
-        assert st._stm32_box.empty                # withdrawn by the STOP
+        assert st.link.box.empty                # withdrawn by the STOP
         n = len(stm.sent)
         stm.gate.set()
         for _ in range(50):

@@ -1,4 +1,5 @@
-"""A human-readable output: one progress line every few seconds and a line per event."""
+"""A human-readable output for a terminal: one progress line every few seconds and a line per event
+(`hookwatch demo`; not the web console, which is `gateway/console/`)."""
 from __future__ import annotations
 
 import math
@@ -22,7 +23,7 @@ def fmt(v: object) -> str:
     return str(v)
 
 
-class ConsoleOutput:
+class TerminalOutput:
     def __init__(self, every_s: float = 5.0, stream=None):
         self.every = every_s
         self.stream = stream or sys.stdout

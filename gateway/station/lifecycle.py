@@ -1,0 +1,233 @@
+"""A station's tests, from the start to the end: idle → starting → running → completed | aborted.
+
+A start (:class:`~.starting.StartAttempt`, METHOD.md §3a: zero check with the motor off, spin-up
+with the loop closed; nothing recorded; a refusal, a timeout or a records folder that cannot be
+written is ``start_failed`` and idle again) → slot 0 once the tension has settled (a
+:class:`~.session.TestSession`) → baseline search → monitoring → end of life (runs on to t_end)
+→ completed | aborted (protection stop; operator, PLC, MES stop or clean shutdown: ``end_slot`` in
+the sidecar, §3). :class:`TestLifecycle` holds the start or the test in progress, computes the
+method and the speed command of each slot (:meth:`TestLifecycle.slot`) and takes the decisions
+after it (:meth:`TestLifecycle.after_slot`); the slot loop (:class:`~.station.Station`) calls it.
+Every state change goes through the station's :class:`~.status.StatusBoard`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from ..control import ControlParams
+from ..method.core import StreamingMonitor
+from ..ports import MeterPort
+from .health import Health
+from .recorder import utc_iso
+from .session import RecorderOutput, TestPlan, TestSession
+from .starting import StartAttempt, StartStep
+from .status import StatusBoard
+from .stm32link import Stm32Drive
+
+__all__ = ["SlotResult", "TestLifecycle", "TestSetup"]
+
+log = logging.getLogger("hookwatch.station")
+
+
+@dataclass(frozen=True)
+class TestSetup:
+    """What every test of a station is built from (its configuration)."""
+    __test__ = False  # not a pytest test class
+    station_id: str
+    station_dir: str
+    ts: float
+    method_values: dict[str, Any]
+    control: ControlParams
+    identity: dict[str, Any]
+    flush_interval_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class SlotResult:
+    """The method's and the controller's figures of one slot (zeros/NaN outside a test)."""
+    kt: int                     # the test's slot (the loop's slot outside a test)
+    q: int = 0
+    mask: int = 0
+    ratio: float | None = None
+    mu: float | None = None
+    y: float = math.nan
+    saturated: bool = False
+
+
+class TestLifecycle:
+    __test__ = False
+
+    def __init__(self, setup: TestSetup, board: StatusBoard, health: Health, link: Stm32Drive,
+                 meter: MeterPort, recorder_out: RecorderOutput) -> None:
+        self.setup = setup
+        self.board, self.health, self.link, self.meter = board, health, link, meter
+        self.recorder_out = recorder_out
+        self.session: TestSession | None = None
+        self.starting: StartAttempt | None = None
+        self.results: list[dict[str, Any]] = []
+        #: starts that failed (§3a): {"sample_id", "reason", "source"}
+        self.start_failures: list[dict[str, Any]] = []
+        #: the speed command of the last slot, rpm
+        self.speed_cmd = 0.0
+        self.k = 0                      # the loop's current slot
+        self.motor_off_k = 0            # loop slot of the last stop command to the take-up
+
+    @property
+    def monitor(self) -> StreamingMonitor | None:
+        return self.session.monitor if self.session is not None else None
+
+    @property
+    def drives_motor(self) -> bool:
+        """The take-up gets a speed command this slot (a test running, or a start spinning up)."""
+        mon, att = self.monitor, self.starting
+        return ((mon is not None and mon.stop_slot is None and not mon.finished)
+                or (att is not None and att.motor_on))
+
+    # ---------------------------------------------------------------- one slot
+    def slot(self, k: int, present: bool, t1: float, t2: float) -> SlotResult:
+        """The start sequence's or the test's computation of loop slot ``k`` (pure, no waiting)."""
+        self.k = k
+        y, sat = math.nan, False
+        speed_act = self.link.speed_act
+        if self.starting is not None:
+            y, sat, self.speed_cmd = self.starting.slot(
+                present, t1, t2, port_open=bool(self.meter.connected), speed_act=speed_act,
+                speed_cmd=self.speed_cmd, off_for_s=(k - self.motor_off_k) * self.setup.ts)
+        sess = self.session
+        if sess is None:
+            return SlotResult(kt=k, y=y, saturated=sat)
+        if sess.k_start is None:
+            sess.k_start = k
+        kt = k - sess.k_start
+        out = sess.monitor.push(present, t1, t2)
+        c = sess.controller.step((t1 + t2) / 2.0 if present else None,
+                                 speed_act if math.isfinite(speed_act) else self.speed_cmd)
+        self.speed_cmd = c.u
+        self.board.method_events(sess, out, kt, self.setup.ts)
+        return SlotResult(kt=kt, q=out.q, mask=out.mask, ratio=out.ratio, mu=out.mu, y=c.y,
+                          saturated=c.saturated)
+
+    async def after_slot(self) -> None:
+        """Lifecycle decisions after a slot: the start sequence's, protection stop, planned end."""
+        att = self.starting
+        if att is not None:
+            step, reason = att.next_step()
+            if step is StartStep.ENABLE_MOTOR:
+                self._enable_motor(att)
+            elif step is StartStep.SETTLED:
+                refused = self._begin_test(att)
+                if refused is not None:
+                    await self.start_failed(refused)
+            elif step is StartStep.FAILED:
+                # a silent meter is named with its port and settings (drivers/zns.py diagnosis)
+                note = getattr(self.meter, "diagnosis", lambda: None)()
+                await self.start_failed((reason or "start failed") + (f": {note}" if note else ""))
+            return
+        mon = self.monitor
+        if mon is None:
+            return
+        if mon.stop_slot is not None:
+            # §3: command the motor to stop at once, then close the test
+            await self.end_test("protection stop")
+        elif mon.finished:
+            await self.end_test("completed")
+
+    # ---------------------------------------------------------------- transitions
+    def start_test(self, plan: TestPlan, source: str = "station") -> None:
+        """Begin the start of a test (§3a); slot 0 comes once the tension has settled."""
+        s = self.setup
+        att = self.starting = StartAttempt.begin(plan, s.method_values, s.control, s.station_id,
+                                                 source)
+        self.board.test_starting(plan, zero_check=att.params.zero_check,
+                                 start_timeout=att.params.start_timeout)
+        if att.next_step()[0] is StartStep.ENABLE_MOTOR:     # no zero check: spin up at once
+            self._enable_motor(att)
+
+    async def stop_test(self, source: str) -> None:
+        """A stop command: cancels a start in progress, else ends the running test (aborted)."""
+        if self.starting is not None:
+            await self.start_failed(f"start cancelled by command ({source})")
+        else:
+            await self.end_test("stopped by command", source=source)
+
+    def _enable_motor(self, att: StartAttempt) -> None:
+        att.motor_enabled = True
+        self.link.enable_soon()
+
+    def _begin_test(self, att: StartAttempt) -> str | None:
+        """The tension has settled: the next slot is the test's slot 0 (log, method, t_life
+        clock). A records folder that cannot be written refuses the start: the reason."""
+        s = self.setup
+        info = att.seq.sidecar()
+        try:
+            sess = TestSession.begin(station_id=s.station_id, station_dir=s.station_dir,
+                                     plan=att.plan, method_values=s.method_values,
+                                     control=s.control, identity=s.identity,
+                                     flush_interval_s=s.flush_interval_s,
+                                     controller=att.controller, start_info=info)
+        except OSError as e:        # EACCES, EROFS, ENOSPC, EMFILE: a state, never a crash
+            why = e.strerror or str(e)
+            log.error("%s: start of %s refused: %s cannot be written (%s)", s.station_id,
+                      att.plan.sample_id, e.filename or s.station_dir, why)
+            self.health.set_disk("records", False, {"reason": why})
+            return f"records folder cannot be written: {why}"
+        self.starting = None
+        self.session = sess            # the test's slot 0 is the next slot the loop processes
+        self.recorder_out.recorder = sess.recorder
+        self.health.watch_recorder(sess.recorder)
+        self.board.test_started(sess, att.source, info)
+        return None
+
+    async def start_failed(self, reason: str) -> None:
+        """The start is refused, timed out or cancelled (§3a): motor stopped, nothing recorded,
+        ``start_failed`` with the reason, idle again."""
+        att = self.starting
+        if att is None:
+            return
+        self.starting = None
+        self.speed_cmd = 0.0
+        self.motor_off_k = self.k
+        await self.link.stop(reason)         # a speed command not yet sent is withdrawn
+        self.start_failures.append({"sample_id": att.plan.sample_id, "reason": reason,
+                                    "source": att.source})
+        self.board.start_failed(reason, **att.failure_data(self.setup.ts))
+
+    async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
+        """End the running test (completed at t_end, or aborted) and write its result."""
+        sess = self.session
+        if sess is None:
+            return None
+        mon = sess.monitor
+        self.motor_off_k = self.k
+        await self.link.stop(reason)         # a speed command not yet sent is withdrawn
+        if reason in ("completed", "protection stop"):
+            res = mon.close()          # slots up to the planned end that never came: MISSING
+        else:                          # ended on purpose (§3): end_slot into the sidecar
+            res = sess.end_on_purpose()
+        test_status = "completed" if reason == "completed" else "aborted"
+        out = {"test_id": sess.test_id, "station": self.setup.station_id, "test_status": test_status,
+               "end_reason": reason, "closed_utc": utc_iso(), "method": res.as_dict(),
+               "sample_id": sess.plan.sample_id, "grade": sess.plan.grade, "t_set": sess.plan.t_set}
+        self.board.test_ended(mon.k - 1, reason, source, test_status, res)
+        sess.recorder.close(out)
+        self.results.append(out)
+        self.session = None
+        self.recorder_out.recorder = None
+        self.speed_cmd = 0.0
+        self.board.push()
+        return out
+
+    async def close(self, reason: str = "gateway shutdown") -> None:
+        """A clean stop: the start in progress fails, the running test ends (aborted)."""
+        try:
+            if self.starting is not None:
+                await self.start_failed(f"{reason} before slot 0")
+            if self.session is not None:
+                await self.end_test(reason)
+        finally:
+            self.starting = None
+            self.session = None
+            self.recorder_out.recorder = None

@@ -1,0 +1,149 @@
+"""The one place a station's state changes: its :class:`~gateway.records.StationState`, its events
+and their hand-over to the outputs.
+
+A :class:`StatusBoard` owns the state. Every change goes through :meth:`StatusBoard.update` (the
+only writer of its fields) or one of the named transitions built on it (a test starting, started,
+ended, a start failed, the method's events of a slot); :meth:`StatusBoard.emit` sends an event
+to the alarm store first (the outputs read it) and then to every output; :meth:`StatusBoard.push`
+hands a copy of the state to every output. The slot loop decides *when*; this module says *what*
+each change writes.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import fields, replace
+from typing import Any
+
+from ..method.core import SlotOut
+from ..records import Event, EventType, StationState, TestState
+from .alarm_store import AlarmStore
+from .fanout import Fanout
+from .session import TestPlan, TestSession
+
+__all__ = ["StatusBoard"]
+
+log = logging.getLogger("hookwatch.station")
+
+_FIELDS = frozenset(f.name for f in fields(StationState))
+
+
+class StatusBoard:
+    """A station's state, events and their fan-out (see the module doc). ``test_id`` gives the
+    running test's id (events belong to it unless told otherwise)."""
+
+    def __init__(self, station_id: str, alarms: AlarmStore, fanout: Fanout,
+                 test_id: Callable[[], str | None]) -> None:
+        self.id = station_id
+        self.alarms = alarms
+        self.fanout = fanout
+        self._test_id = test_id
+        self.state = StationState(station=station_id)
+        #: when the state last went to the outputs (time.monotonic())
+        self.last_push = 0.0
+
+    # ---------------------------------------------------------------- the primitives
+    def update(self, push: bool = False, **values: Any) -> None:
+        """The one writer of the state's fields; ``push``: hand the new state to the outputs."""
+        unknown = set(values) - _FIELDS
+        if unknown:
+            raise AttributeError(f"StationState has no field(s) {', '.join(sorted(unknown))}")
+        st = self.state
+        for name, v in values.items():
+            setattr(st, name, v)
+        if push:
+            self.push()
+
+    def push(self) -> None:
+        self.last_push = time.monotonic()
+        self.fanout.state(replace(self.state))
+
+    def emit(self, etype: EventType, k: int | None = None, *, of_test: str | None = None,
+             **data: Any) -> Event:
+        """One event to the alarm store and every output; ``of_test``: the test it belongs to
+        when that is not the running one (a cut-off test closed at start-up)."""
+        ev = Event(type=etype, station=self.id, wall_time=time.time(),
+                   test_id=of_test if of_test is not None else self._test_id(), k=k, data=data)
+        log.info("%s: %s %s", self.id, etype.value, data or "")
+        self.alarms.on_event(ev)              # the alarm store first: outputs read it
+        self.update(alarm=self.alarms.state.value, warning_alarm=self.alarms.warning.state.value)
+        self.fanout.event(ev)
+        return ev
+
+    def restore_alarm(self) -> None:
+        """The alarms as the store kept them across a restart (an open end of life: its test)."""
+        rec = self.alarms.restore()
+        self.update(alarm=rec.state.value, warning_alarm=self.alarms.warning.state.value)
+        if rec.active:
+            self.update(test_id=rec.test_id, sample_id=rec.sample_id, t_life=rec.t_life)
+
+    # ---------------------------------------------------------------- the test's transitions
+    def test_starting(self, plan: TestPlan, **data: Any) -> None:
+        """A start (§3a) begins: STARTING; a raised alarm is closed (a new test: a new hook)."""
+        if self.alarms.highest() is not None:
+            self.emit(EventType.ALARM_CLEARED, reason="new test started")
+        self.update(state=TestState.STARTING, test_id=None, sample_id=plan.sample_id,
+                    grade=plan.grade, t_set=plan.t_set, t_end=plan.t_end, status=None,
+                    end_reason=None)
+        self.emit(EventType.TEST_STARTING, sample_id=plan.sample_id, grade=plan.grade,
+                  t_set=plan.t_set, t_end=plan.t_end, **data)
+        self.push()
+
+    def test_started(self, sess: TestSession, source: str, info: dict[str, Any]) -> None:
+        """Slot 0 comes next: BASELINE_SEARCH with the figures of the last test cleared."""
+        plan = sess.plan
+        self.update(state=TestState.BASELINE_SEARCH, test_id=sess.test_id, sample_id=plan.sample_id,
+                    grade=plan.grade, t_set=plan.t_set, t_end=plan.t_end, mu_ss=None, mu_th=None,
+                    t_life=None, k_b=None, status=None, end_reason=None, protection_stop=False,
+                    stopped=False, headroom=None, t_cross=None, wear_warning=False, elapsed_s=0.0)
+        self.emit(EventType.TEST_STARTED, k=0, sample_id=plan.sample_id, grade=plan.grade,
+                  t_set=plan.t_set, t_end=plan.t_end, source=source, **info)
+        self.push()
+
+    def start_failed(self, reason: str, **data: Any) -> None:
+        """The start was refused, timed out or cancelled: IDLE again, ``start_failed``."""
+        self.update(state=TestState.IDLE, status=None, end_reason=reason)
+        self.emit(EventType.START_FAILED, reason=reason, **data)
+        self.push()
+
+    def test_ended(self, k: int, reason: str, source: str, test_status: str, result: Any) -> None:
+        """The test is closed (completed or aborted) with the method's ``result``."""
+        self.update(state=TestState.COMPLETED if test_status == "completed" else TestState.ABORTED,
+                    status=result.status, end_reason=reason,
+                    stopped=result.stop_reasons == ["STOPPED"])
+        self.emit(EventType.TEST_ENDED, k=k, reason=reason, source=source, test_status=test_status,
+                  result=result.as_dict())
+
+    def method_events(self, sess: TestSession, out: SlotOut, kt: int, ts: float) -> None:
+        """The method's events of test slot ``kt`` (baseline, end of life, a §5a window, the wear
+        warning, a protection stop) into the state and out as station events."""
+        mon = sess.monitor
+        self.update(elapsed_s=(kt + 1) * ts)
+        for e in out.events:
+            if e == "baseline":
+                self.update(state=TestState.MONITORING, mu_ss=mon.mu_ss, mu_th=mon.mu_th, k_b=mon.k_b)
+                self.emit(EventType.BASELINE, k=kt, mu_ss=mon.mu_ss, mu_th=mon.mu_th, k_b=mon.k_b,
+                          stable_first=mon.stable_first)
+                self.push()
+            elif e == "end_of_life" and mon.k_life is not None:
+                self.update(state=TestState.END_OF_LIFE, t_life=mon.k_life * ts)
+                self.emit(EventType.END_OF_LIFE, k=kt, k_life=mon.k_life, t_life=self.state.t_life,
+                          mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=sess.plan.sample_id)
+                self.push()
+            elif e == "window" and out.window is not None:
+                # §5a, informative: every window's headroom and projection reach the outputs
+                w = out.window
+                if w.headroom is not None:
+                    self.update(headroom=w.headroom, t_cross=w.t_cross)
+                self.push()
+            elif e == "wear_warning" and (wear := mon.wear) is not None and wear.warn_slot is not None:
+                self.update(wear_warning=True)
+                self.emit(EventType.WEAR_WARNING, k=kt, warn_slot=wear.warn_slot,
+                          t_warn=(wear.warn_slot + 1) * ts, headroom=wear.headroom,
+                          t_cross=wear.t_cross, h_warn=sess.params.h_warn, n_warn=sess.params.n_warn,
+                          mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=sess.plan.sample_id)
+                self.push()
+            elif e == "protection_stop":
+                self.update(protection_stop=True)
+                self.emit(EventType.PROTECTION_STOP, k=kt, stop_reasons=mon.result().stop_reasons)
