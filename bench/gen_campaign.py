@@ -13,6 +13,13 @@ each, target lives and μ_ss from Table 3, lives compressed by ``--compress`` (t
 
     python bench/gen_campaign.py DIR [--compress 100] [--layout flat|gateway] [--hours 10]
     python bench/gen_campaign.py DIR --source plant --compress 100   # the shipped example
+    python bench/gen_campaign.py --forecast [--reps 6] [--compress 40] [DIR]   # §5b bench
+
+``--forecast`` is the remaining-life bench (METHOD.md §5b, §7a): a campaign of grades I and II ×
+T_set 0.5 / 0.7 / 0.9 N from the virtual bench, run in order, each test's prior taken from the
+campaign's own earlier tests (§7a: at least 3 failures of its grade and T_set), analysed offline;
+it prints how many failures were warned at least ``lead`` ahead, how many warnings came after an
+end of life, and how often t_life fell inside [e10, e90] at half-life. See bench/README.md.
 """
 from __future__ import annotations
 
@@ -294,12 +301,14 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
                         grades=("I", "II"), setpoints=(0.5, 0.7, 0.9), reps: int = 3,
                         control_s: float = 7200.0, control_every: int = 10, seed0: int = 100) -> list[str]:
     """The example campaign: 2 grades × 3 setpoints × 3 samples from the virtual bench, lives
-    compressed ``time_scale``× (method windows w_ss 10 s, w_hold 60 s, tau 10 s), in the
+    compressed ``time_scale``× (method windows w_ss 10 s, w_hold 60 s, tau 10 s; the lead
+    3600 s and the life prior of the paper's Table 4 divided by time_scale), in the
     gateway's folder layout; a wear table; an open-loop and a closed-loop log for Fig. 8 (two
     hours each, long enough for the drift to leave the controller's dead band; every 10th slot
     written)."""
     import yaml
 
+    from drivers.sim.plant import TABLE4_LIFE
     from gateway.method.core import analyze_readings
     from gateway.method.params import build_params
 
@@ -312,14 +321,19 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
                 sid = f"{g}-{int(round(sp * 10)):02d}-{r:02d}"
                 seed = seed0 + i
                 t, a, b, truth = plant_run(g, sp, seed, t_end, time_scale)
-                method = {"t_set": sp, "t_end": t_end, "w_ss": 10, "w_hold": 60, "tau": 10}
+                # the life prior a plant would configure (forecast.priors): the paper's Table 4
+                # for the grade and setpoint, compressed like the lives (METHOD.md §5b, §7a)
+                pm, psd = TABLE4_LIFE[(g, sp)]
+                method = {"t_set": sp, "t_end": t_end, "w_ss": 10, "w_hold": 60, "tau": 10,
+                          "lead": 3600.0 / time_scale, "prior_mean": round(pm / time_scale, 3),
+                          "prior_sd": round(psd / time_scale, 3)}
                 test_id = f"20260105T{8 + (i * 7) // 60:02d}{(i * 7) % 60:02d}00Z-{sid}"
                 d = os.path.join(root, PLANT_STATION, test_id)
                 log = os.path.join(d, "log.csv.gz")
                 write_log_plain(log, t, a, b)
                 meta = {"station": PLANT_STATION, "test_id": test_id, "sample_id": sid, "grade": g,
                         "t_set": sp, "software": "bench/gen_campaign.py (virtual bench, offline)",
-                        "method": method, "control": {"mode": "closed"},
+                        "prior_source": "config", "prior_n": 3, "method": method, "control": {"mode": "closed"},
                         "sim": {"seed": seed, "time_scale": time_scale,
                                 "table_life_s": round(truth["table_life_s"], 1),
                                 "true_crossing_s": round(truth["cross_run_s"], 2),
@@ -353,6 +367,137 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
     return logs
 
 
+# ---------------------------------------------------------------------------------------------
+# The remaining-life bench (METHOD.md §5b, §7a)
+# ---------------------------------------------------------------------------------------------
+
+#: the method's times at full scale; divided by the compression (tau_g and stop_after are about
+#: data gaps, not wear: they stay)
+FULL_SCALE_TIMES = {"w_ss": 60.0, "w_hold": 3600.0, "tau": 60.0, "lead": 3600.0}
+
+
+@dataclass
+class ForecastRow:
+    sample_id: str
+    grade: str
+    t_set: float
+    prior: tuple[float, float, str | None, int | None]   # mean, sd, source, n
+    truth_life: float         # the plant's drawn life, running s
+    status: str
+    t_life: float | None
+    k_life: int | None
+    warn_s: float | None
+    warn_slot: int | None
+    reasons: list[str] | None
+    lead: float
+    band: tuple[float, float] | None     # [e10, e90] at half-life (with a prior)
+
+    @property
+    def lead_s(self) -> float | None:
+        return None if self.warn_s is None or self.t_life is None else self.t_life - self.warn_s
+
+    @property
+    def late(self) -> bool:
+        """A warning at or after the end of life (slot ≥ k_life)."""
+        return self.warn_slot is not None and self.k_life is not None and self.warn_slot >= self.k_life
+
+
+def forecast_campaign(*, compress: float = 40.0, reps: int = 6, grades=("I", "II"),
+                      setpoints=(0.5, 0.7, 0.9), seed0: int = 500, out: str | None = None,
+                      log=print) -> list[ForecastRow]:
+    """Run the campaign in rounds (every group's r-th test before any (r+1)-th), each test with
+    the §7a prior from the earlier ones; returns one row per test."""
+    from drivers.sim.plant import table_life
+    from gateway.method.core import analyze_readings
+    from gateway.method.forecast import band_at_half_life
+    from gateway.method.params import build_params
+    from gateway.method.prior import PastTest, resolve_prior
+
+    times = {k: v / compress for k, v in FULL_SCALE_TIMES.items()}
+    history: list[PastTest] = []
+    rows: list[ForecastRow] = []
+    i = 0
+    for r in range(1, reps + 1):
+        for sp in setpoints:
+            for g in grades:
+                i += 1
+                sid = f"{g}-{int(round(sp * 10)):02d}-{r:02d}"
+                m, sd = table_life(g, sp)
+                # long enough for every life the plant can draw (mean + 5 SD, +10 %), no longer
+                duration = round((m + 5 * sd) * 1.1 / compress, 1)
+                t, a, b, truth = plant_run(g, sp, seed0 + i, duration, compress)
+                prior = resolve_prior([], history, g, sp)
+                method = {"t_set": sp, "t_end": duration, **times}
+                if prior.mean is not None:
+                    method.update(prior_mean=prior.mean, prior_sd=prior.sd)
+                p = build_params(method)
+                res = analyze_readings(t, a, b, p)
+                history.append(PastTest(g, sp, res.status, res.t_life))
+                band = None
+                if res.t_life is not None and prior.mean is not None and prior.sd is not None:
+                    f = band_at_half_life(res.t_life, prior.mean, prior.sd, p.lead, p.n_ss * p.ts)
+                    band = None if f is None else (f.e10, f.e90)
+                row = ForecastRow(sid, g, sp, (prior.mean or 0.0, prior.sd or 0.0, prior.source, prior.n),
+                                  truth["cross_run_s"], res.status, res.t_life, res.k_life,
+                                  None if res.warn_slot is None else (res.warn_slot + 1) * p.ts,
+                                  res.warn_slot, res.warn_reasons, p.lead, band)
+                rows.append(row)
+                if out is not None:
+                    _write_forecast_test(out, i, row, t, a, b, method, res.as_dict(), prior.source, prior.n)
+                log(_row_line(row))
+    return rows
+
+
+def _write_forecast_test(root: str, i: int, row: ForecastRow, t, a, b, method: dict, res: dict,
+                         source: str | None, n: int | None) -> None:
+    import yaml
+
+    test_id = f"20260201T{(i // 60) % 24:02d}{i % 60:02d}00Z-{row.sample_id}"
+    d = os.path.join(root, PLANT_STATION, test_id)
+    write_log_plain(os.path.join(d, "log.csv.gz"), t, a, b)
+    meta = {"station": PLANT_STATION, "test_id": test_id, "sample_id": row.sample_id,
+            "grade": row.grade, "t_set": row.t_set, "software": "bench/gen_campaign.py --forecast",
+            "prior_source": source, "prior_n": n, "method": method}
+    with open(os.path.join(d, "log.meta.yaml"), "w", encoding="utf-8") as f:
+        yaml.safe_dump(meta, f, sort_keys=False)
+    with open(os.path.join(d, "result.json"), "w", encoding="utf-8") as f:
+        json.dump({"test_id": test_id, "station": PLANT_STATION, "test_status": "completed",
+                   "end_reason": "completed", "sample_id": row.sample_id, "grade": row.grade,
+                   "t_set": row.t_set, "method": res}, f, indent=1)
+
+
+def _row_line(r: ForecastRow) -> str:
+    pm, ps, src, n = r.prior
+    prior = f"prior {pm:7.1f} ± {ps:5.1f} s ({src}, n {n})" if src else "no prior" + " " * 30
+    tl = "-" if r.t_life is None else f"{r.t_life:7.1f}"
+    w = "no warning" if r.warn_s is None else (
+        f"warned {r.warn_s:7.1f} s by {'+'.join(r.reasons or [])}, {r.lead_s:+7.1f} s ahead")
+    band = "" if r.band is None else f"; half-life band [{r.band[0]:.1f}, {r.band[1]:.1f}]"
+    return f"  {r.sample_id:9s} {prior}  t_life {tl} (plant {r.truth_life:7.1f})  {w}{band}"
+
+
+def _pct(k: int, n: int) -> str:
+    return "-" if n == 0 else f"{100.0 * k / n:.1f} % ({k}/{n})"
+
+
+def forecast_summary(rows: list[ForecastRow]) -> dict[str, str]:
+    fails = [r for r in rows if r.t_life is not None]
+    with_prior = [r for r in fails if r.prior[2] is not None]
+    ahead = [r for r in with_prior if r.lead_s is not None and r.lead_s >= r.lead]
+    ahead_all = [r for r in fails if r.lead_s is not None and r.lead_s >= r.lead]
+    banded = [r for r in with_prior if r.band is not None]
+    inside = [r for r in banded if r.band is not None and r.t_life is not None
+              and r.band[0] <= r.t_life <= r.band[1]]
+    return {
+        "tests": f"{len(rows)} ({len(fails)} failures, {len(with_prior)} with a prior from earlier tests)",
+        "warned >= lead ahead (with a prior)": _pct(len(ahead), len(with_prior)) + "  [goal >= 90 %]",
+        "warned >= lead ahead (all failures)": _pct(len(ahead_all), len(fails)),
+        "warnings after an end of life": f"{sum(r.late for r in rows)}  [goal 0]",
+        "t_life in [e10, e90] at half-life": _pct(len(inside), len(banded)) + "  [goal 70-90 %]",
+        "lead": f"{rows[0].lead:g} s" if rows else "-",
+    }
+
+
 def write_log_plain(path: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> None:
     """Like :func:`write_log` with times on the slot grid (2 decimals) — smaller files."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -363,7 +508,7 @@ def write_log_plain(path: str, t: np.ndarray, t1: np.ndarray, t2: np.ndarray) ->
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("out", help="campaign folder to write")
+    ap.add_argument("out", nargs="?", help="campaign folder to write (optional with --forecast)")
     ap.add_argument("--compress", type=float, default=100.0,
                     help="divide lives and windows by this (1: real 10 h tests)")
     ap.add_argument("--hours", type=float, default=10.0, help="t_end before compression")
@@ -374,7 +519,27 @@ def main() -> None:
                     help="synth: this file's curves (fast, any size); plant: the virtual bench "
                          "(drivers/sim/plant.py) under the gateway's controller, lives compressed "
                          "--compress× (the shipped example: --source plant --compress 100)")
+    ap.add_argument("--forecast", action="store_true",
+                    help="the remaining-life bench (METHOD.md §5b, §7a): plant tests in rounds, "
+                         "priors from the earlier ones, figures printed (default --compress 40)")
+    ap.add_argument("--reps", type=int, default=6, help="--forecast: tests per grade and T_set")
     a = ap.parse_args()
+    if a.forecast:
+        import time
+
+        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        compress = a.compress if "--compress" in sys.argv else 40.0
+        t0 = time.perf_counter()
+        print(f"remaining-life bench: {a.reps} tests per grade and T_set, lives and method times "
+              f"compressed {compress:g}x (w_ss {60 / compress:g} s, w_hold {3600 / compress:g} s, "
+              f"tau {60 / compress:g} s, lead {3600 / compress:g} s)")
+        rows = forecast_campaign(compress=compress, reps=a.reps, out=a.out)
+        for k, v in forecast_summary(rows).items():
+            print(f"{k:38s} {v}")
+        print(f"{time.perf_counter() - t0:.0f} s")
+        return
+    if a.out is None:
+        ap.error("the campaign folder is required (except with --forecast)")
     if a.source == "plant":
         sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
         logs = make_plant_campaign(a.out, time_scale=a.compress, t_end=a.hours * 3600.0 / a.compress)

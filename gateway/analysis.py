@@ -6,7 +6,14 @@ from typing import Any
 
 from .logio import LogError, read_log
 from .method.core import Result, analyze_slots, to_slots
-from .method.params import PARAM_NAMES, MethodParams, ParamError, build_params
+from .method.params import (
+    PARAM_NAMES,
+    PRIOR_NAMES,
+    MethodParams,
+    ParamError,
+    build_params,
+    validate_prior,
+)
 
 
 class AnalysisError(ValueError):
@@ -27,10 +34,17 @@ def parse_overrides(items: Iterable[str]) -> dict[str, str]:
 
 
 def params_for(meta: Mapping[str, Any], overrides: Mapping[str, Any], source: str) -> MethodParams:
+    """The parameters of a log: its sidecar's ``method:`` section, then the overrides.
+
+    A prior from the sidecar with ``prior_sd`` ≤ 0 (or only half of one) means "no prior"
+    (METHOD.md §5b: the prior parts are null); a prior given with ``--set`` must be a real one."""
     values = dict(meta.get("method") or {})
     values.update(overrides)
     try:
-        return build_params(values, source)
+        p = build_params(values, source, prior_from_log=True)
+        if any(k in overrides for k in PRIOR_NAMES):
+            validate_prior(p.prior_mean, p.prior_sd, f"{source}: --set ")
+        return p
     except ParamError as e:
         raise AnalysisError(str(e)) from None
 

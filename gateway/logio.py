@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from . import logcache, safeyaml
+from .method.prior import NO_PRIOR, SOURCE_CONFIG, SOURCE_HISTORY, Prior
 
 #: a log file smaller than this is never looked up in the cache (cannot hold MIN_ROWS rows)
 _CACHE_MIN_BYTES = 256 << 10
@@ -98,6 +99,28 @@ def read_meta(path: str) -> dict[str, Any]:
     if method is not None and not isinstance(method, dict):
         raise LogError(f"{sp}: method: expected a mapping of parameter names, got {method!r}")
     return meta
+
+
+def sidecar_prior(meta: dict[str, Any]) -> Prior:
+    """The life prior a sidecar records (METHOD.md §5b, §7a): ``method.prior_mean`` and
+    ``method.prior_sd``, and beside them ``prior_source`` (``config``, ``history`` or nothing) and
+    ``prior_n``. Lenient, as the method reads a log: a prior with an SD ≤ 0, only half of one, or
+    values that are not numbers is no prior (source and n are then dropped too)."""
+    raw = meta.get("method")
+    method: dict[str, Any] = raw if isinstance(raw, dict) else {}
+
+    def num(v: Any) -> float | None:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            return None
+        return float(v)
+
+    m, sd = num(method.get("prior_mean")), num(method.get("prior_sd"))
+    if m is None or sd is None or not sd > 0:
+        return NO_PRIOR
+    src = meta.get("prior_source")
+    n = meta.get("prior_n")
+    return Prior(m, sd, src if src in (SOURCE_CONFIG, SOURCE_HISTORY) else None,
+                 n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None)
 
 
 def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:

@@ -7,6 +7,7 @@ import sys
 from ..analysis import AnalysisError, parse_overrides
 from ..cli import CliError
 from ..report.pipeline import build_report
+from ..report.tables import campaign_priors, priors_document
 
 HELP = "tables (CSV), figures (PNG) and a Markdown/HTML report for a campaign of recorded tests"
 DESCRIPTION = (
@@ -15,7 +16,9 @@ DESCRIPTION = (
     "t_set / method.t_set) in parallel, and write to DIR: per-sample results (Table 3), mean/SD/CV "
     "and grade ranking per setpoint (Table 4), δ sensitivity (Table 5), the wear table joined with "
     "t_life and its rank correlations (Table 6, from CAMPAIGN/wear.csv or --wear), Fig. 7 per "
-    "sample, Fig. 8 (open vs closed loop), Fig. 9, report.md and report.html. Problems with the "
+    "sample, Fig. 8 (open vs closed loop), Fig. 9, the prognosis table (early warning lead, "
+    "forecast band; METHOD.md §5b), report.md and report.html; with --priors the per-grade/T_set "
+    "life priors in the station configuration's forecast: form. Problems with the "
     "input are warnings: the rest of the report is still written (exit 0); exit 1 when no test "
     "could be analysed, 2 on usage errors. See docs/report.md.")
 
@@ -33,6 +36,9 @@ def add_arguments(ap):
     ap.add_argument("--closed-loop", metavar="LOG", help="closed-loop log for Fig. 8 (default: "
                     "role: closed_loop)")
     ap.add_argument("--no-figures", action="store_true", help="tables and report only")
+    ap.add_argument("--priors", metavar="FILE", help="also write the life prior (mean, SD, n) of "
+                    "every grade and T_set with at least 3 failures, as a station configuration's "
+                    "forecast: section (METHOD.md §7a), to FILE")
     ap.add_argument("--quiet", "-q", action="store_true", help="no progress bar, no warnings on stderr")
 
 
@@ -45,6 +51,8 @@ def run(args) -> int:
     if os.path.realpath(args.out) == os.path.realpath(args.campaign):
         raise CliError(f"--out {args.out}: is the campaign folder itself; give a new folder "
                        "(a subfolder of the campaign is fine)")
+    if args.priors is not None and os.path.isdir(args.priors):
+        raise CliError(f"--priors {args.priors}: is a folder; give a file name")
     if args.wear is not None and not os.path.isfile(args.wear):
         raise CliError(f"--wear {args.wear}: no such file")
     jobs = args.jobs if args.jobs is not None else (os.cpu_count() or 1)
@@ -65,7 +73,29 @@ def run(args) -> int:
           f"{len(out.problems)} problem(s); {len(out.figures)} figures; {out.seconds:.1f} s "
           f"on {out.workers} process(es), analysis CPU {out.analysis_cpu_s:.1f} s")
     print(f"report: {os.path.join(out.out_dir, 'report.html')}")
+    if args.priors is not None:
+        _write_priors(args.priors, out.samples, args.campaign)
     if out.n_analysed == 0:
         print("hookwatch report: no test could be analysed", file=sys.stderr)
         return 1
     return 0
+
+
+def _write_priors(path: str, samples, campaign: str) -> None:
+    import yaml
+
+    entries = campaign_priors(samples)
+    doc = priors_document(entries, campaign)
+    head = (f"# life priors from the campaign {os.path.abspath(campaign)} (hookwatch report "
+            "--priors; METHOD.md §7a: failures per grade and T_set, n ≥ 3, SD ≥ 2 % of the mean)\n"
+            "# paste into a station file (or fleet.yaml) as its forecast: section\n")
+    try:
+        d = os.path.dirname(os.path.abspath(path))
+        os.makedirs(d, exist_ok=True)
+        tmp = path + ".tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write(head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
+        os.replace(tmp, path)
+    except OSError as e:
+        raise CliError(f"--priors {path}: cannot write: {e.strerror or e}") from None
+    print(f"priors: {path} ({len(entries)} grade/T_set group(s) with at least 3 failures)")

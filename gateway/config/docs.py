@@ -96,7 +96,8 @@ def render() -> str:
                     "| key | default | unit | meaning |", "|---|---|---|---|"]
             for p in PARAMS:
                 if p.name in S.METHOD_KEYS:
-                    d = str(p.default).lower() if isinstance(p.default, bool) else f"{p.default:g}"
+                    d = ("null" if p.default is None else str(p.default).lower()
+                         if isinstance(p.default, bool) else f"{p.default:g}")
                     out.append(f"| `method.{p.name}` | `{d}` | {p.unit} | {_esc(p.doc)} |")
             out.append("")
             continue

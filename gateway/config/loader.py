@@ -334,6 +334,9 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
     if isinstance(v, dict):
         return False, _bad(v, f"a mapping is not allowed here; allowed: {allowed}", allowed)
     kind = k.kind
+    if kind == "prior_list":
+        good, out = S.parse_prior_entries(v)
+        return (True, out) if good else (False, _bad(v, f"{out}; allowed: {allowed}", allowed))
     if kind in ("int", "float"):
         bad = isinstance(v, bool) or not isinstance(v, (int, float)) or (kind == "int" and isinstance(v, float))
         if bad:

@@ -26,6 +26,7 @@ from typing import Any
 
 from ..control import ControlParams, NotchParams
 from ..method.params import PARAMS as METHOD_PARAMS
+from ..method.prior import PriorEntry, same_t_set
 from ..validation import show_yaml
 
 # ---------------------------------------------------------------------------------------------
@@ -49,7 +50,7 @@ ENV_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 TOPIC_RE = re.compile(r"^[^/+#\s]+(/[^/+#\s]+)*$")
 
 KINDS = ("str", "ident", "topic", "envvar", "path", "port", "int", "float", "bool", "enum",
-         "str_list", "ip_list")
+         "str_list", "ip_list", "prior_list")
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,9 @@ class Key:
             s = "a list of strings"
         elif k == "ip_list":
             s = "a list of IP addresses or networks, e.g. [10.10.4.20, 10.10.5.0/24]"
+        elif k == "prior_list":
+            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n]}, e.g. [{grade: I, t_set_n: 0.5, "
+                 "mean_s: 32306.9, sd_s: 951.7}] (mean_s, sd_s > 0)")
         else:
             s = "a string"
         if self.nullable:
@@ -222,6 +226,61 @@ class TestConfig:
                          "completed after this long", kind="float", unit="s", lo=0.0, lo_open=True)
     autostart: bool = key(False, "start a test with these values as soon as the station runs",
                           kind="bool")
+
+
+#: the keys of one `forecast.priors` entry (METHOD.md §7a): required, then optional
+PRIOR_ENTRY_KEYS = ("grade", "t_set_n", "mean_s", "sd_s")
+PRIOR_ENTRY_OPTIONAL = ("n",)
+#: entries a `forecast.priors` list may hold (grades × setpoints of one station)
+MAX_PRIOR_ENTRIES = 256
+
+
+def parse_prior_entries(v: Any) -> tuple[bool, Any]:
+    """``forecast.priors``: (True, tuple of PriorEntry) or (False, message). Grades are checked
+    against `grades` by a rule."""
+    if not isinstance(v, list):
+        return False, f"{show_yaml(v)} is not a list"
+    if len(v) > MAX_PRIOR_ENTRIES:
+        return False, f"{len(v)} entries; at most {MAX_PRIOR_ENTRIES}"
+    out: list[PriorEntry] = []
+    for i, item in enumerate(v, start=1):
+        if not isinstance(item, dict):
+            return False, f"entry {i} ({show_yaml(item)}) is not a mapping"
+        unknown = [k for k in item if k not in PRIOR_ENTRY_KEYS + PRIOR_ENTRY_OPTIONAL]
+        if unknown:
+            return False, (f"entry {i}: unknown key {str(unknown[0])!r}; keys: "
+                           f"{', '.join(PRIOR_ENTRY_KEYS + PRIOR_ENTRY_OPTIONAL)}")
+        missing = [k for k in PRIOR_ENTRY_KEYS if k not in item]
+        if missing:
+            return False, f"entry {i}: {missing[0]} is missing"
+        g = item["grade"]
+        if isinstance(g, (int, float)) and not isinstance(g, bool):
+            g = str(g)
+        if not isinstance(g, str) or not g.strip():
+            return False, f"entry {i}: grade {show_yaml(item['grade'])} is not a grade name"
+        nums: dict[str, float] = {}
+        for k in ("t_set_n", "mean_s", "sd_s"):
+            x = item[k]
+            if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(float(x)):
+                return False, f"entry {i}: {k} {show_yaml(x)} is not a finite number"
+            if not float(x) > 0:
+                return False, f"entry {i} (grade {g}): {k} {show_yaml(x)} is impossible; allowed: > 0"
+            nums[k] = float(x)
+        n = item.get("n")
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+            return False, f"entry {i}: n {show_yaml(n)} is not a count of tests (an integer ≥ 1)"
+        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n))
+    return True, tuple(out)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ForecastConfig:
+    priors: tuple = key((), "the life of earlier hooks per grade and T_set: the prior of a new "
+                        "test's forecast (METHOD.md §5b, §7a); without an entry for its grade and "
+                        "T_set (±0.001 N) the prior comes from the station's completed `failure` "
+                        "tests of that grade and T_set (at least 3), else there is none. "
+                        "`method.prior_mean`/`prior_sd` fix one prior that wins over both. "
+                        "`hookwatch report … --priors FILE` writes this list", kind="prior_list")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -563,6 +622,8 @@ class StationConfig:
     # ControlConfig is made by make_dataclass: a value to mypy, not a type
     control: ControlConfig = section(ControlConfig, "tension control (METHOD.md §8)")  # type: ignore[valid-type]
     test: TestConfig = section(TestConfig, "the test a station starts without further instructions")
+    forecast: ForecastConfig = section(ForecastConfig, "the life priors of the remaining-life "
+                                       "forecast (METHOD.md §5b, §7a)")
     grades: tuple[str, ...] = key(("I", "II"), "needle grades a test may name", kind="str_list")
     recorder: RecorderConfig = section(RecorderConfig, "recording of every test")
     mqtt: MqttConfig = section(MqttConfig, "northbound MQTT (to the MES)")
@@ -673,6 +734,17 @@ def _grade(cfg, r):
         r.error(("grades",), "a grade is listed twice")
 
 
+def _forecast(cfg, r):
+    seen: list[PriorEntry] = []
+    for i, e in enumerate(cfg.forecast.priors, start=1):
+        if e.grade not in cfg.grades:
+            r.error(("forecast", "priors"), f"entry {i}: grade {e.grade!r} is not one of the grades; "
+                    f"allowed: {', '.join(cfg.grades) or '(grades is empty)'}")
+        if any(o.grade == e.grade and same_t_set(o.t_set, e.t_set) for o in seen):
+            r.error(("forecast", "priors"), f"entry {i}: grade {e.grade} at {e.t_set:g} N is given twice")
+        seen.append(e)
+
+
 def _ports(cfg, r):
     if cfg.meter.port == cfg.stm32.port:
         r.error(("stm32", "port"), f"{cfg.stm32.port!r} is also meter.port; the meter and the "
@@ -750,6 +822,8 @@ RULES: tuple[Rule, ...] = (
          _password),
     Rule("`mqtt.tls.cert_file` and `key_file` go together.", _tls),
     Rule("`test.grade` is one of `grades`; `grades` has no duplicates.", _grade),
+    Rule("`forecast.priors` names only grades of `grades`, each grade and T_set (±0.001 N) once.",
+         _forecast),
     Rule("`meter.port` and `stm32.port` differ.", _ports),
     Rule("`sparkplug.servers`: each `host:port` (or `host`, on `sparkplug.port`), none twice.", _servers),
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from . import rules as R
+from .forecast import Forecaster, ForecastOut
 from .params import STOPPED, MethodParams
 from .wear import WearTracker, WindowOut
 
@@ -43,8 +44,13 @@ class Result:
     stop_slot: int | None
     stop_reasons: list[str] | None
     headroom: float | None = None
-    warn_slot: int | None = None
     t_cross: float | None = None
+    warn_slot: int | None = None
+    warn_reasons: list[str] | None = None
+    end_p10: float | None = None
+    end_p50: float | None = None
+    end_p90: float | None = None
+    p_end: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -54,15 +60,18 @@ class Result:
             "n_valid": self.n_valid, "reasons": dict(self.reasons),
             "interrupted": self.interrupted, "stop_slot": self.stop_slot,
             "stop_reasons": None if self.stop_reasons is None else list(self.stop_reasons),
-            "headroom": self.headroom, "warn_slot": self.warn_slot, "t_cross": self.t_cross,
+            "headroom": self.headroom, "t_cross": self.t_cross, "warn_slot": self.warn_slot,
+            "warn_reasons": None if self.warn_reasons is None else list(self.warn_reasons),
+            "end_p10": self.end_p10, "end_p50": self.end_p50, "end_p90": self.end_p90,
+            "p_end": self.p_end,
         }
 
 
 def _finish(p: MethodParams, *, n_slots: int, n_valid: int, reason_counts: dict[str, int],
             stable_first: int | None, k_b: int | None, mu_ss: float | None,
             k_life: int | None, stop_slot: int | None, stop_mask: int,
-            end_slot: int | None, wear: WearTracker | None) -> Result:
-    """One place that turns the method's findings into a status (§3, §5, §5a, §6).
+            end_slot: int | None, wear: WearTracker | None, forecast: Forecaster) -> Result:
+    """One place that turns the method's findings into a status (§3, §5, §5a, §5b, §6).
 
     ``end_slot``: the test was ended on purpose there (§3); it applies only when the analysed
     slots reached it without a protection stop."""
@@ -88,8 +97,11 @@ def _finish(p: MethodParams, *, n_slots: int, n_valid: int, reason_counts: dict[
         n_slots=n_slots, n_valid=n_valid, reasons=reason_counts, interrupted=interrupted,
         stop_slot=stop_slot, stop_reasons=stop_reasons,
         headroom=None if wear is None else wear.headroom,
-        warn_slot=None if wear is None else wear.warn_slot,
         t_cross=None if wear is None else wear.t_cross,
+        warn_slot=forecast.warn_slot,
+        warn_reasons=None if forecast.warn_reasons is None else list(forecast.warn_reasons),
+        end_p10=forecast.end_p10, end_p50=forecast.end_p50, end_p90=forecast.end_p90,
+        p_end=forecast.p_end,
     )
 
 
@@ -106,9 +118,11 @@ class SlotOut:
     ratio: float | None      # R = T2/T1 (diagnostic, also when invalid), None if undefined
     mu: float | None         # only when q = 1
     #: "baseline", "end_of_life", "protection_stop", "window" (a §5a window is complete: see
-    #: ``window``), "wear_warning" (the §5a early warning, once per test)
+    #: ``window``), "forecast" (a §5b forecast time: see ``forecast``), "wear_warning" (the §5b
+    #: early warning: the first due window, at most once per test, never at or after k_det)
     events: list[str] = field(default_factory=list)
     window: WindowOut | None = None   # the post-baseline window that ended with this slot
+    forecast: ForecastOut | None = None   # the §5b forecast at the end of this slot's window
 
 
 class StreamingMonitor:
@@ -118,10 +132,14 @@ class StreamingMonitor:
     the test runs on) ; ``stopped`` after a protection stop; ``ended`` after t_end or end_slot.
 
     After the baseline, every complete window yields a :class:`WindowOut` (§5a: value, headroom,
-    t_cross, warning) in ``SlotOut.window`` of the slot that completes it, with the event
-    ``"window"`` (and ``"wear_warning"`` the one time the early warning fires); ``wear`` holds the
-    running figures. A test ended on purpose (operator, PLC, MES, clean shutdown) ends with
-    :meth:`stop`, whose result equals the batch form over the log with ``end_slot`` in its sidecar.
+    t_cross, headroom run) in ``SlotOut.window`` of the slot that completes it, with the event
+    ``"window"``; ``wear`` holds the running figures. Every complete window from j = 0 that ends
+    before the detection slot k_det yields a :class:`ForecastOut` (§5b: e10/e50/e90 and P from the
+    prior, headroom, t_cross, due and its reasons) in ``SlotOut.forecast``, with the event
+    ``"forecast"``, and ``"wear_warning"`` the one time the early warning fires (the first due
+    window); ``forecast`` holds the running figures. A test ended on purpose (operator, PLC, MES,
+    clean shutdown) ends with :meth:`stop`, whose result equals the batch form over the log with
+    ``end_slot`` in its sidecar.
     """
 
     def __init__(self, p: MethodParams):
@@ -162,6 +180,7 @@ class StreamingMonitor:
         self.windows_done = 0
         self.windows_steady_run = 0
         self.wear: WearTracker | None = None   # §5a, from the baseline on
+        self.forecast = Forecaster(p)           # §5b, every window before k_det
 
     # -- state for display --
     @property
@@ -255,26 +274,40 @@ class StreamingMonitor:
             win = np.array(self._win_mu, dtype=np.float64)
             self._win_mu = []
             self.windows_done += 1
+            j = k // self._n_ss
+            w = None
             if self.wear is not None:
-                w = self.wear.add(k // self._n_ss, win.size, R.window_value(win, self.p))
+                w = self.wear.add(j, win.size, R.window_value(win, self.p))
                 events.append("window")
-                if w.warning:
-                    events.append("wear_warning")
-                return SlotOut(k, q, mask, ratio, mu, events, w)
-            if R.window_steady(win, self.p):
-                self._run.append(win)
-                if len(self._run) == self._m:
-                    self.k_b = k
-                    self.stable_first = k - self._m * self._n_ss + 1
-                    self.mu_ss = R.baseline_value(np.concatenate(list(self._run)))
-                    self.mu_th = R.threshold(self.mu_ss, self.p)
-                    self.wear = WearTracker(self.p, self.mu_ss, self.mu_th)
-                    self._run.clear()
-                    events.append("baseline")
             else:
-                self._run.clear()
-            self.windows_steady_run = len(self._run)
+                self._baseline_window(k, win, events)
+            fc = None
+            # §5b: only windows whose last slot lies before k_det (k_life is set at k_det)
+            if self.k_life is None:
+                fc = self.forecast.add(j, w)
+                events.append("forecast")
+                if fc.warning:
+                    if self.wear is not None:
+                        self.wear.warn_slot = fc.last_slot
+                    events.append("wear_warning")
+            return SlotOut(k, q, mask, ratio, mu, events, w, fc)
         return SlotOut(k, q, mask, ratio, mu, events)
+
+    def _baseline_window(self, k: int, win: np.ndarray, events: list[str]) -> None:
+        """§4: a complete window during the baseline search."""
+        if R.window_steady(win, self.p):
+            self._run.append(win)
+            if len(self._run) == self._m:
+                self.k_b = k
+                self.stable_first = k - self._m * self._n_ss + 1
+                self.mu_ss = R.baseline_value(np.concatenate(list(self._run)))
+                self.mu_th = R.threshold(self.mu_ss, self.p)
+                self.wear = WearTracker(self.p, self.mu_ss, self.mu_th)
+                self._run.clear()
+                events.append("baseline")
+        else:
+            self._run.clear()
+        self.windows_steady_run = len(self._run)
 
     def reason_counts(self) -> dict[str, int]:
         return {name: self.counts[i] for i, name in enumerate(R.REASON_NAMES)}
@@ -286,7 +319,7 @@ class StreamingMonitor:
                        reason_counts=self.reason_counts(), stable_first=self.stable_first,
                        k_b=self.k_b, mu_ss=self.mu_ss, k_life=self.k_life,
                        stop_slot=self.stop_slot, stop_mask=self._stop_mask,
-                       end_slot=self._end_slot, wear=self.wear)
+                       end_slot=self._end_slot, wear=self.wear, forecast=self.forecast)
 
     def close(self, n_slots: int | None = None) -> Result:
         """End the test: slots up to the planned end (or up to ``n_slots``) that never came are
@@ -478,6 +511,7 @@ class GatedSlots:
     k_b: int | None
     mu_ss: float | None
     windows: list[tuple[int, int, float | None]] = field(default_factory=list)  # §5a (j, N_eff, μ̃)
+    n_usable: int = 0         # windows must end before this slot (§4: complete, before a stop)
 
 
 def _post_windows(mu: np.ndarray, valid: np.ndarray, k_b: int, n_usable: int,
@@ -504,31 +538,54 @@ def gate_and_baseline(s: SlotArrays, p: MethodParams) -> GatedSlots:
     n_usable = n_slots if stop_slot is None else stop_slot
     stable_first, k_b, mu_ss = _baseline(mu, valid, n_usable, p)
     windows = [] if k_b is None else _post_windows(mu, valid, k_b, n_usable, p)
-    return GatedSlots(p, mask, ratio, mu, stop_slot, stop_mask, stable_first, k_b, mu_ss, windows)
+    return GatedSlots(p, mask, ratio, mu, stop_slot, stop_mask, stable_first, k_b, mu_ss, windows,
+                      n_usable)
 
 
 def life_result(g: GatedSlots, delta: float | None = None) -> Result:
     """§5–§6 over gated slots, with the δ of the gating parameters or the one given."""
+    return life_detail(g, delta)[0]
+
+
+def life_detail(g: GatedSlots, delta: float | None = None
+                ) -> tuple[Result, list[WindowOut], list[ForecastOut]]:
+    """:func:`life_result` with the figures the streaming form publishes as it goes: every §5a
+    window after Ω_stable and every §5b forecast time, in order."""
     p = g.p if delta is None else g.p.with_delta(delta)
     mask, mu, k_b, mu_ss = g.mask, g.mu, g.k_b, g.mu_ss
     valid = mask == 0
     k_life = None
     wear = None
+    outs: dict[int, WindowOut] = {}
     if k_b is not None and mu_ss is not None:    # set together by the baseline search
         mu_th = R.threshold(mu_ss, p)
         wear = WearTracker(p, mu_ss, mu_th)
         for j, n_eff, value in g.windows:
-            wear.add(j, n_eff, value)
+            outs[j] = wear.add(j, n_eff, value)
         with np.errstate(invalid="ignore"):
             bb = valid[k_b + 1:] & (mu[k_b + 1:] > mu_th)
         i = _persistence(bb, p.n_tau, p.n_g)
         if i is not None:
             k_life = k_b + 1 + i - p.n_tau + 1
+    forecast = Forecaster(p)
+    fouts = [forecast.add(j, outs.get(j)) for j in forecast_windows(p, g.n_usable, k_life)]
     counts = {name: int(np.count_nonzero(mask & bit)) for bit, name in R.REASONS}
-    return _finish(p, n_slots=mask.size, n_valid=int(np.count_nonzero(valid)),
-                   reason_counts=counts, stable_first=g.stable_first, k_b=k_b, mu_ss=g.mu_ss,
-                   k_life=k_life, stop_slot=g.stop_slot, stop_mask=g.stop_mask,
-                   end_slot=p.end_slot, wear=wear)
+    res = _finish(p, n_slots=mask.size, n_valid=int(np.count_nonzero(valid)),
+                  reason_counts=counts, stable_first=g.stable_first, k_b=k_b, mu_ss=g.mu_ss,
+                  k_life=k_life, stop_slot=g.stop_slot, stop_mask=g.stop_mask,
+                  end_slot=p.end_slot, wear=wear, forecast=forecast)
+    return res, list(outs.values()), fouts
+
+
+def forecast_windows(p: MethodParams, n_usable: int, k_life: int | None) -> range:
+    """§5b: the forecast times: every complete window j = 0, 1, … that ends before slot n_usable
+    and, with t_life found, whose last slot lies before k_det = k_life + N_τ − 1."""
+    n_ss = p.n_ss
+    n = n_usable // n_ss
+    if k_life is not None:
+        k_det = k_life + p.n_tau - 1
+        n = min(n, k_det // n_ss)      # last slot (j+1)·N_ss − 1 < k_det  ⇔  j + 1 ≤ k_det // N_ss
+    return range(n)
 
 
 def analyze_slots(s: SlotArrays, p: MethodParams) -> Result:

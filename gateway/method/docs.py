@@ -39,16 +39,16 @@ def render() -> str:
             "is no longer part of the test (`n_slots` = `end_slot`), whereas after a protection "
             "stop `stop_slot` is the last analysed slot (`n_slots` = `stop_slot` + 1). A test "
             "that found t_life before either stays `failure` with `interrupted` true.", "",
-            "## Wear headroom, early warning, projection (METHOD.md §5a)", "",
+            "## Wear headroom, headroom runs, projection (METHOD.md §5a)", "",
             "Informative: they never change `status`, `k_life` or `t_life`.", "",
             "- After the baseline, every complete window of `w_ss` (that ends before a protection "
             "stop, `end_slot` or the end of the log) *has a value* when at least "
             "`valid_ratio_min` of its slots are valid: the median μ̃ of its valid μ.",
             "- `headroom` h = (μ_th − μ̃) / (μ_th − μ_ss) of the last window with a value: 1 at "
             "the baseline, 0 at the threshold, negative above it (not clipped).",
-            "- `warn_slot`: the last slot of the first run of `n_warn` consecutive windows with a "
-            "value and h < `h_warn` (a window without a value breaks the run); once per test, "
-            "also when t_life came first.",
+            "- A window *completes a headroom run* when it and the `n_warn` − 1 windows before it "
+            "all have a value and h < `h_warn` (a window without a value breaks the run): one of "
+            "the reasons of the early warning (§5b).",
             "- `t_cross`: where the Theil–Sen slope s of the last up to `trend_windows` window "
             "values (at least 10) would take μ̃ to μ_th, in s from the test start: the end of "
             "the last window with a value + (μ_th − μ̃) / s; none when s ≤ 0, h ≤ 0 or fewer "
@@ -59,6 +59,31 @@ def render() -> str:
             "it is an upper estimate for planning, not a guaranteed life. The headroom is a "
             "one-window median and moves with the load; the early warning is the signal to plan "
             "a change, t_life remains the end-of-life decision.", "",
+            "## Remaining life and the early warning (METHOD.md §5b)", "",
+            "Informative: they never change `status`, `k_life` or `t_life`.", "",
+            "- The *prior* (`prior_mean` m, `prior_sd` s) is the life of earlier hooks of the same "
+            "grade at the same T_set, taken as normal. The gateway writes it into the sidecar when "
+            "a test starts (`prior_source`: `config` — the station's `forecast:` entry or its "
+            "`method:` section —, `history` with the count n of completed `failure` tests, or "
+            "nothing; METHOD.md §7a). In a log's sidecar a prior with `prior_sd` ≤ 0 (or only one "
+            "of the two) means no prior; in a station's configuration or `--set` it is an error.",
+            "- *Forecast times*: the end t_j = (j + 1)·`w_ss` of every complete window j = 0, 1, … "
+            "(also before the baseline) up to a protection stop, `end_slot` or the end of the log; "
+            "once t_life is found only the windows that end before the detection slot "
+            "k_det = k_life + N_τ − 1 (from there the end-of-life alarm speaks).",
+            "- With a prior, at t = t_j, S = 1 − Φ((t − m)/s): the end quantiles "
+            "e_p = max(m + s·Φ⁻¹(1 − S·(1 − p)), t) for p = 0.1, 0.5, 0.9 and the chance "
+            "P = (Φ((t + `lead` − m)/s) − Φ((t − m)/s)) / S that the end comes within the lead; "
+            "when S < 1e-12 e_p = t and P = 1 (Φ, Φ⁻¹: scipy.special.ndtr, ndtri).",
+            "- A window is *due* when P ≥ `p_due` (reason `prior`), it completes a headroom run "
+            "(`headroom`), or its t_cross − t_j ≤ `lead` (`trend`).",
+            "- `warn_slot`, `warn_reasons`: the last slot of the first due window and the sorted "
+            "reasons that hold there: at most once per test, never at or after k_det.",
+            "- `end_p10`, `end_p50`, `end_p90`, `p_end`: e_p and P of the last forecast time "
+            "(null without a prior or without a forecast time).", "",
+            "What they do not promise: the prior is the spread of earlier hooks, not a measurement "
+            "of this one; a hook that wears unlike its predecessors is caught by the headroom and "
+            "trend reasons, and t_life remains the end-of-life decision.", "",
             "The start-sequence parameters (`zero_check`, `zero_tol`, `settle_band`, "
             "`settle_time`, `start_timeout`; METHOD.md §3a) act before slot 0 and never change "
             "the analysis of a recorded log.", ""]

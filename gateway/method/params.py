@@ -46,10 +46,18 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("t_end", None, "s", "planned test duration (none: open-ended)", optional=True),
     ParamSpec("end_slot", None, "slot", "first slot after a test ended on purpose (§3); written by "
               "the gateway into the sidecar, not set in a station file", optional=True, kind="int"),
-    ParamSpec("h_warn", 0.5, "1", "headroom below which windows count toward the early warning (§5a)"),
-    ParamSpec("n_warn", 5, "1", "consecutive windows needed for the early warning (§5a)", kind="int"),
+    ParamSpec("h_warn", 0.5, "1", "headroom below which windows count toward a headroom run "
+              "(§5a, a reason of the early warning §5b)"),
+    ParamSpec("n_warn", 5, "1", "consecutive windows that make a headroom run (§5a)", kind="int"),
     ParamSpec("trend_windows", 60, "1", "windows used by the projection's Theil–Sen slope (§5a)",
               kind="int"),
+    ParamSpec("prior_mean", None, "s", "mean life of hooks of this grade at this T_set (§5b, §7a); "
+              "written by the gateway into the sidecar at the start of a test", optional=True),
+    ParamSpec("prior_sd", None, "s", "standard deviation of that life (§5b); without it, or ≤ 0 "
+              "in a log's sidecar, the forecast from the prior is null", optional=True),
+    ParamSpec("lead", 3600.0, "s", "the planner's lead time: a hook is due when its end may come "
+              "within it (§5b)"),
+    ParamSpec("p_due", 0.1, "1", "chance of the end within the lead that makes a hook due (§5b)"),
     ParamSpec("zero_check", True, "bool", "zero check before the motor starts (§3a)", kind="bool"),
     ParamSpec("zero_tol", 0.02, "N", "allowed offset of each channel at zero (§3a)"),
     ParamSpec("settle_band", 0.1, "1", "slot 0 needs the mean tension within settle_band · t_set "
@@ -63,8 +71,10 @@ SPEC = {p.name: p for p in PARAMS}
 RESULT_KEYS: tuple[str, ...] = (
     "status", "mu_ss", "mu_th", "k_b", "stable_first", "stable_last", "k_life", "t_life",
     "n_slots", "n_valid", "reasons", "interrupted", "stop_slot", "stop_reasons",
-    "headroom", "warn_slot", "t_cross",
+    "headroom", "t_cross", "warn_slot", "warn_reasons", "end_p10", "end_p50", "end_p90", "p_end",
 )
+#: the parameters of the life prior (§5b, §7a)
+PRIOR_NAMES: tuple[str, ...] = ("prior_mean", "prior_sd")
 #: the stop reason of a test ended on purpose (§3)
 STOPPED = "STOPPED"
 #: the §5a projection needs at least this many windows with a value
@@ -111,6 +121,10 @@ class MethodParams:
     h_warn: float = 0.5
     n_warn: int = 5
     trend_windows: int = 60
+    prior_mean: float | None = None
+    prior_sd: float | None = None
+    lead: float = 3600.0
+    p_due: float = 0.1
     zero_check: bool = True
     zero_tol: float = 0.02
     settle_band: float = 0.1
@@ -228,9 +242,14 @@ def _num(name: str, value: Any, source: str) -> float | int | bool | None:
     return f
 
 
-def build_params(values: Mapping[str, Any], source: str = "") -> MethodParams:
+def build_params(values: Mapping[str, Any], source: str = "", *,
+                 prior_from_log: bool = False) -> MethodParams:
     """Make MethodParams from a mapping of §10 names. Unknown names and impossible values raise
-    ParamError with a message that names the key, the value and what is allowed."""
+    ParamError with a message that names the key, the value and what is allowed.
+
+    ``prior_from_log``: the values come from a recorded log's sidecar, where a prior with
+    ``prior_sd`` ≤ 0 (or only half of it) means "no prior" (§5b: the prior parts are null);
+    everywhere else (a station's configuration, ``--set``) such a prior is an error."""
     prefix = f"{source}: " if source else ""
     unknown = [k for k in values if k not in SPEC]
     if unknown:
@@ -245,11 +264,11 @@ def build_params(values: Mapping[str, Any], source: str = "") -> MethodParams:
         raise _err(prefix, "t_set", "missing; the regulated mean tension T_set (N) is required",
                    allowed=f"a number ({SPEC['t_set'].doc}, N)")
     p = MethodParams(**kw)
-    validate(p, prefix)
+    validate(p, prefix, prior_from_log=prior_from_log)
     return p
 
 
-def validate(p: MethodParams, prefix: str = "") -> None:
+def validate(p: MethodParams, prefix: str = "", *, prior_from_log: bool = False) -> None:
     def bad(name: str, rule: str) -> None:
         v = getattr(p, name)
         raise _err(prefix, name, f"{v!r} is impossible; allowed: {rule}", v, rule)
@@ -290,6 +309,12 @@ def validate(p: MethodParams, prefix: str = "") -> None:
     if not p.trend_windows >= MIN_TREND_WINDOWS:
         bad("trend_windows", f"≥ {MIN_TREND_WINDOWS} (the projection needs at least "
             f"{MIN_TREND_WINDOWS} windows with a value)")
+    if not p.lead >= 0:
+        bad("lead", "≥ 0 s")
+    if not 0 < p.p_due < 1:
+        bad("p_due", "0 < p_due < 1")
+    if not prior_from_log:
+        validate_prior(p.prior_mean, p.prior_sd, prefix)
     for name in ("zero_tol", "start_timeout"):
         if not getattr(p, name) > 0:
             bad(name, "> 0")
@@ -303,3 +328,20 @@ def validate(p: MethodParams, prefix: str = "") -> None:
                    related=("settle_time",),
                    text=f"{prefix}start_timeout {p.start_timeout!r} must be longer than "
                         f"settle_time {p.settle_time!r}")
+
+
+def validate_prior(mean: float | None, sd: float | None, prefix: str = "") -> None:
+    """A configured prior (§5b, §7a): both or neither; mean > 0 s, SD > 0 s."""
+    if mean is None and sd is None:
+        return
+    if mean is None or sd is None:
+        have, lack = ("prior_mean", "prior_sd") if sd is None else ("prior_sd", "prior_mean")
+        msg = f"{have} without {lack}; a life prior needs both (mean and SD of the life, s)"
+        raise _err(prefix, lack, msg, allowed="a number, given together with " + have,
+                   related=(have,), text=prefix + msg)
+    if not mean > 0:
+        raise _err(prefix, "prior_mean", f"{mean!r} is impossible; allowed: > 0 s (a mean life)",
+                   mean, "> 0")
+    if not sd > 0:
+        raise _err(prefix, "prior_sd", f"{sd!r} is impossible; allowed: > 0 s (the SD of the life)",
+                   sd, "> 0")

@@ -1,4 +1,4 @@
-"""METHOD.md §5a: wear headroom, early warning and projection, one window at a time.
+"""METHOD.md §5a: wear headroom, headroom runs and projection, one window at a time.
 
 Informative only: nothing here changes a status, k_life or t_life. Both forms of the method feed
 the same :class:`WearTracker` with the same window values, so they agree by construction; the
@@ -26,12 +26,12 @@ class WindowOut:
     headroom: float | None    # h_j (None without a value)
     t_cross: float | None     # projected crossing of μ_th, s from test start (None: no projection)
     slope: float | None       # Theil–Sen slope used, 1/s (None with fewer than 10 windows)
-    warning: bool             # this window completes the early-warning run (once per test)
+    headroom_run: bool        # this window completes a headroom run (§5a; a reason of §5b)
 
     def as_dict(self) -> dict[str, Any]:
         return {"j": self.j, "last_slot": self.last_slot, "n_eff": self.n_eff, "value": self.value,
                 "headroom": self.headroom, "t_cross": self.t_cross, "slope": self.slope,
-                "warning": self.warning}
+                "headroom_run": self.headroom_run}
 
 
 class WearTracker:
@@ -47,6 +47,8 @@ class WearTracker:
         self._trend_t: deque[float] = deque(maxlen=p.trend_windows)
         self._trend_v: deque[float] = deque(maxlen=p.trend_windows)
         self._run = 0
+        #: the early warning (§5b), set by the streaming monitor when it fires (kept here for the
+        #: runtime that reads ``monitor.wear.warn_slot``; the §5b figures are ``monitor.forecast``)
         self.warn_slot: int | None = None
         self.headroom: float | None = None    # h of the last window with a value
         self.t_cross: float | None = None     # t_cross of the last window with a value
@@ -60,15 +62,9 @@ class WearTracker:
             self._run = 0
             return WindowOut(j, last, n_eff, None, None, None, None, False)
         h = R.headroom(value, self.mu_ss, self.mu_th)
-        warning = False
-        if self.warn_slot is None:
-            if h < p.h_warn:
-                self._run += 1
-                if self._run >= p.n_warn:
-                    self.warn_slot = last
-                    warning = True
-            else:
-                self._run = 0
+        # a run: this window and the n_warn − 1 before it all have a value and h < h_warn
+        self._run = self._run + 1 if h < p.h_warn else 0
+        run = self._run >= p.n_warn
         self._trend_t.append(R.window_mid_time(j, p))
         self._trend_v.append(value)
         slope = None
@@ -79,4 +75,4 @@ class WearTracker:
                 t_cross = (j + 1) * p.n_ss * p.ts + (self.mu_th - value) / slope
         self.headroom = h
         self.t_cross = t_cross
-        return WindowOut(j, last, n_eff, value, h, t_cross, slope, warning)
+        return WindowOut(j, last, n_eff, value, h, t_cross, slope, run)

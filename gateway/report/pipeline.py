@@ -196,8 +196,9 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
     t3 = T.table3(samples)
     t4 = T.table4(samples)
     t5, t5s = T.table5(samples, DELTA_FACTORS)
+    tp = T.table_prognosis(samples)
     apart = T.table_apart(samples)
-    tables = [t3, t4, t5, t5s]
+    tables = [t3, t4, t5, t5s, tp]
     t6 = t6c = None
     if camp.wear is not None:
         t6, t6c = T.table6(samples, camp.wear)
@@ -234,6 +235,7 @@ def build_report(campaign_dir: str, out_dir: str, *, wear: str | None = None, jo
     doc_sections.append(Section("Per sample (Table 3)", tables=[t3], anchor="table3"))
     doc_sections.append(Section("Per setpoint and grade (Table 4)", tables=[t4], anchor="table4"))
     doc_sections.append(Section("Sensitivity to δ (Table 5)", tables=[t5, t5s], anchor="table5"))
+    doc_sections.append(Section("Prognosis (METHOD.md §5b)", tables=[tp], anchor="prognosis"))
     if t6 is not None and t6c is not None:
         doc_sections.append(Section("Consistency with offline wear (Table 6)", tables=[t6, t6c],
                                     anchor="table6"))

@@ -9,7 +9,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..method.forecast import band_at_half_life
 from ..method.params import STOPPED
+from ..method.prior import PastTest, PriorEntry, priors_by_group
 from . import stats as S
 
 STATUS_ERROR = "error"          # the log could not be read or the method not set up
@@ -49,12 +51,25 @@ class Sample:
     fig: str | None = None                # Fig. 7 path relative to the report folder
     delta0: float | None = None
     ts: float = 0.02                      # sampling period of the test (slot → s)
+    lead: float | None = None             # the planner's lead time of the test (§5b), s
+    prior: tuple[float, float] | None = None   # (prior_mean, prior_sd) of its sidecar (§5b)
+    window_s: float | None = None         # w_ss as slots · ts: the forecast times' spacing
 
     @property
     def warn_s(self) -> float | None:
-        """METHOD.md §5a early warning: the end of the warning run's last window, s."""
+        """METHOD.md §5b early warning: the end of the first due window, s."""
         w = self.result().get("warn_slot")
         return None if w is None else (w + 1) * self.ts
+
+    @property
+    def warn_reasons(self) -> list[str] | None:
+        return self.result().get("warn_reasons")
+
+    @property
+    def warn_lead_s(self) -> float | None:
+        """t_life − the warning's time: how long ahead of the end the warning came (§5b)."""
+        w, t = self.warn_s, self.t_life
+        return None if w is None or t is None else t - w
 
     @property
     def headroom(self) -> float | None:
@@ -119,10 +134,14 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
         apart = apart or "duplicate sample_id"
     if spec.grade is None and apart is None:
         apart = "no grade in the sidecar"
+    prior = None
+    if p is not None and p.prior_mean is not None and p.prior_sd is not None and p.prior_sd > 0:
+        prior = (p.prior_mean, p.prior_sd)
     return Sample(spec.sample_id, spec.grade, None if p is None else p.t_set,
                   None if p is None else p.t_end, spec.rel, status, results,
                   note="; ".join(notes), apart=apart, delta0=None if p is None else p.delta,
-                  ts=0.02 if p is None else p.ts)
+                  ts=0.02 if p is None else p.ts, lead=None if p is None else p.lead,
+                  prior=prior, window_s=None if p is None else p.n_ss * p.ts)
 
 
 def _sort_key(s: Sample):
@@ -153,7 +172,8 @@ def table3(samples: Sequence[Sample]) -> Table:
         rows.append({"sample_id": s.sample_id, "grade": s.grade or "—", "t_set_N": s.t_set,
                      "t_end_h": None if s.t_end_s is None else s.t_end_s / 3600.0,
                      "t_life_s": s.t_life, "mu_ss": s.mu_ss, "status": s.status,
-                     "warn_s": s.warn_s, "headroom": s.headroom,
+                     "warn_s": s.warn_s, "warn_lead_s": s.warn_lead_s,
+                     "warn_reasons": "+".join(s.warn_reasons or []), "headroom": s.headroom,
                      "valid_pct": (100.0 * r["n_valid"] / r["n_slots"]) if r.get("n_slots") else None,
                      "note": s.note, "log": s.rel})
     return Table("table3_samples", "Table 3 — online wear life per sample", [
@@ -161,14 +181,96 @@ def table3(samples: Sequence[Sample]) -> Table:
         Column("t_set_N", "T_set (N)", "g"), Column("t_end_h", "t_end (h)", "g", 4),
         Column("t_life_s", "t_life (s)", "f1", 2), Column("mu_ss", "μ_ss", "f4", 6),
         Column("status", "status"), Column("warn_s", "early warning (s)", "f1", 2),
+        Column("warn_lead_s", "warning lead (s)", "f1", 2), Column("warn_reasons", "warned by"),
         Column("headroom", "last headroom", "f3", 6),
         Column("valid_pct", "valid slots (%)", "pct1", 2),
         Column("note", "note"), Column("log", "log"),
     ], rows, intro="Every test of the campaign at δ0 (the sidecar's δ). t_life exists only for "
-                   "status failure. Early warning and last headroom (METHOD.md §5a, informative): "
-                   "the end of the first run of n_warn windows under h_warn, and "
-                   "h = (μ_th − μ̃)/(μ_th − μ_ss) of the last window after the baseline (1 at the "
-                   "baseline, 0 at the threshold).")
+                   "status failure. Early warning, its lead and last headroom (METHOD.md §5a, §5b, "
+                   "informative): the end of the first due window (due by the life prior, a "
+                   "headroom run or the trend), t_life minus that time, the reasons that held "
+                   "there, and h = (μ_th − μ̃)/(μ_th − μ_ss) of the last window after the "
+                   "baseline (1 at the baseline, 0 at the threshold).")
+
+
+# ---------------------------------------------------------------------------------------------
+# Prognosis (METHOD.md §5b)
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class Prognosis:
+    """The §5b figures of one group of failures (or of all of them)."""
+    n: int = 0                  # failures
+    warned: int = 0             # with an early warning
+    warned_lead: int = 0        # warned at least `lead` ahead of t_life
+    late: int = 0               # warned after t_life (before the detection slot)
+    with_prior: int = 0         # with a prior and a forecast time at half-life
+    in_band: int = 0            # t_life inside [e10, e90] of the forecast at half-life
+
+    def add(self, s: Sample) -> None:
+        t = s.t_life
+        if t is None:
+            return
+        self.n += 1
+        lead_s = s.warn_lead_s
+        if lead_s is not None:
+            self.warned += 1
+            if s.lead is not None and lead_s >= s.lead:
+                self.warned_lead += 1
+            if lead_s < 0:
+                self.late += 1
+        if s.prior is not None and s.lead is not None and s.window_s is not None:
+            f = band_at_half_life(t, s.prior[0], s.prior[1], s.lead, s.window_s)
+            if f is not None:
+                self.with_prior += 1
+                if f.e10 <= t <= f.e90:
+                    self.in_band += 1
+
+    @staticmethod
+    def pct(k: int, n: int) -> float | None:
+        return None if n == 0 else 100.0 * k / n
+
+
+def prognosis(samples: Sequence[Sample]) -> dict[tuple[float, str] | None, Prognosis]:
+    """Per (T_set, grade) over the samples in the statistics, and for all of them (key None)."""
+    out: dict[tuple[float, str] | None, Prognosis] = {None: Prognosis()}
+    for s in sort_samples(samples):
+        if not s.in_stats or s.t_set is None or s.grade is None:
+            continue
+        out.setdefault((s.t_set, s.grade), Prognosis()).add(s)
+        out[None].add(s)
+    return out
+
+
+def table_prognosis(samples: Sequence[Sample]) -> Table:
+    rows = []
+    leads = sorted({s.lead for s in samples if s.in_stats and s.lead is not None})
+    for key, g in prognosis(samples).items():
+        if key is None and g.n == 0:
+            continue
+        rows.append({"t_set_N": None if key is None else key[0],
+                     "grade": "all" if key is None else key[1], "n": g.n, "warned": g.warned,
+                     "warned_lead": g.warned_lead, "warned_lead_pct": Prognosis.pct(g.warned_lead, g.n),
+                     "late": g.late, "with_prior": g.with_prior, "in_band": g.in_band,
+                     "in_band_pct": Prognosis.pct(g.in_band, g.with_prior)})
+    all_row = rows.pop(0) if rows and rows[0]["grade"] == "all" else None
+    if all_row is not None:
+        rows.append(all_row)
+    lead_txt = ", ".join(f"{x:g} s" for x in leads) or "the sidecar's lead"
+    return Table("table_prognosis", "Prognosis — early warning and forecast per setpoint and grade", [
+        Column("t_set_N", "T_set (N)", "g"), Column("grade", "Grade"), Column("n", "failures", "int"),
+        Column("warned", "warned", "int"), Column("warned_lead", "warned ≥ lead ahead", "int"),
+        Column("warned_lead_pct", "≥ lead (%)", "pct1", 1),
+        Column("late", "warned after t_life", "int"),
+        Column("with_prior", "with a prior", "int"), Column("in_band", "t_life in [e10, e90]", "int"),
+        Column("in_band_pct", "in band (%)", "pct1", 1),
+    ], rows, intro=(f"Over the failures in the statistics (METHOD.md §5b, informative). Lead: "
+                    f"{lead_txt}. \"Warned ≥ lead ahead\": t_life − the warning's time ≥ the "
+                    "test's lead; \"warned after t_life\": the warning came between t_life and "
+                    "the detection slot. \"In band\": t_life inside [e10, e90] of the forecast "
+                    "from the test's prior at the last forecast time at or before t_life / 2 "
+                    "(tests without a prior in their sidecar are not counted there; the band is "
+                    "an 80 % interval when the prior matches the hooks)."))
 
 
 def table_apart(samples: Sequence[Sample]) -> Table:
@@ -371,3 +473,26 @@ def table6(samples: Sequence[Sample], wear) -> tuple[Table, Table]:
                                "for ties). The method expects a negative ρ: shorter life goes with "
                                "larger wear.")
     return joined, corr
+
+
+# ---------------------------------------------------------------------------------------------
+# Priors for the configuration (METHOD.md §7a)
+# ---------------------------------------------------------------------------------------------
+
+def campaign_priors(samples: Sequence[Sample]) -> list[PriorEntry]:
+    """The life prior of every (grade, T_set) group with at least 3 failures in the statistics:
+    mean, sample SD (at least 2 % of the mean) and n — the §7a history rule."""
+    past = [PastTest(s.grade, s.t_set, "failure", s.t_life) for s in sort_samples(samples)
+            if s.in_stats and s.t_life is not None]
+    return priors_by_group(past)
+
+
+def priors_document(entries: Sequence[PriorEntry], source: str) -> dict[str, Any]:
+    """The configuration's ``forecast:`` section holding these priors (s to 0.1 s)."""
+    out = []
+    for e in entries:
+        d = e.as_config()
+        d["mean_s"] = round(e.mean, 1)
+        d["sd_s"] = round(e.sd, 1)
+        out.append(d)
+    return {"forecast": {"priors": out}}

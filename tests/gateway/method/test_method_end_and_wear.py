@@ -1,5 +1,6 @@
-"""METHOD.md §3 (a test ended on purpose) and §5a (headroom, early warning, projection) on
-hand-made slot sequences whose expected figures are computed here from the text of the spec."""
+"""METHOD.md §3 (a test ended on purpose) and §5a (headroom, headroom runs, projection) on
+hand-made slot sequences whose expected figures are computed here from the text of the spec.
+The §5b forecast and early warning: test_method_forecast.py."""
 import math
 import os
 
@@ -73,7 +74,7 @@ def test_window_value_is_the_median_and_even_counts_take_the_middle_two():
     assert wins[0].value == pytest.approx((vals[4] + vals[5]) / 2, abs=1e-15)
 
 
-def test_a_window_with_too_few_valid_slots_has_no_value_and_breaks_the_warning_run():
+def test_a_window_with_too_few_valid_slots_has_no_value_and_breaks_the_headroom_run():
     p = MethodParams(**P, h_warn=0.5, n_warn=3)
     hi = 0.30   # h = (0.3125 - 0.30) / 0.0625 = 0.2 < 0.5
     # run of 2, a window without a value, then a run of 3: the warning is the end of the second run
@@ -81,20 +82,28 @@ def test_a_window_with_too_few_valid_slots_has_no_value_and_breaks_the_warning_r
     r, wins, outs = both(p, present, a, b)
     assert wins[2].value is None and wins[2].headroom is None and wins[2].n_eff == 0
     assert r.warn_slot == (7 + 1) * 10 - 1 == 79     # last slot of window j = 7 (2, 3 | 4 | 5, 6, 7)
-    assert [o.k for o in outs if "wear_warning" in o.events] == [79]
-    assert [w.warning for w in wins].count(True) == 1      # once per test
+    assert r.warn_reasons == ["headroom"]
+    assert [o.k for o in outs if "wear_warning" in o.events] == [79]   # once per test
+    # every window that completes a run says so (j = 7 and j = 8), the warning is the first
+    assert [w.j for w in wins if w.headroom_run] == [7, 8]
     # a window with 8 of 10 valid slots has no value either (valid_ratio_min 0.9)
     mu = windows_with_values([]) + [hi] * 8 + [math.nan] * 2
     r2, w2, _ = both(p, *log_of(mu))
     assert w2[0].value is None and r2.headroom is None
 
 
-def test_the_warning_comes_also_after_t_life():
+def test_the_warning_never_comes_at_or_after_the_detection_slot():
+    """§5b: from k_det = k_life + N_τ − 1 on the end-of-life alarm speaks, not the forecast (the
+    §5a version of the warning came after t_life here)."""
     p = MethodParams(**{**P, "tau": 0.1}, n_warn=4)
     present, a, b = log_of(windows_with_values([0.4] * 5))
-    r, _, _ = both(p, present, a, b)
+    r, wins, outs = both(p, present, a, b)
     assert r.status == "failure" and r.k_life == 20
-    assert r.warn_slot == 59 and r.warn_slot > r.k_life
+    assert [w.j for w in wins if w.headroom_run] == [5, 6]     # the runs still exist (§5a) …
+    assert r.warn_slot is None and r.warn_reasons is None       # … but come after k_det = 24
+    assert not any("wear_warning" in o.events for o in outs)
+    # the forecast times are the windows that end before k_det: j = 0 and 1 (slots 9, 19)
+    assert [o.forecast.j for o in outs if o.forecast is not None] == [0, 1]
 
 
 def test_projection_needs_ten_windows_and_follows_a_linear_trend():

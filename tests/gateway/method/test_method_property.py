@@ -6,10 +6,23 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from gateway.method import MethodParams, StreamingMonitor, analyze_slots, gate_arrays
-from gateway.method.core import SlotArrays, gate_and_baseline
+from gateway.method.core import SlotArrays, gate_and_baseline, life_detail
 
 EVENT_KINDS = ["dropout", "burst", "spike", "low", "ratio_low", "ratio_high", "saturation", "nan",
                "gap_ng", "gap_ng1", "gap_stop", "gap_stop1"]
+
+
+@st.composite
+def prior_params(draw):
+    """§5b parameters: a prior around the length of these short logs (or none, or one with SD ≤ 0,
+    which a log's sidecar may carry: the prior parts are then null), a lead and p_due."""
+    kind = draw(st.sampled_from(["none", "prior", "prior", "zero_sd"]))
+    out = dict(lead=draw(st.sampled_from([0.0, 2.0, 10.0, 3600.0])),
+               p_due=draw(st.sampled_from([0.05, 0.1, 0.5, 0.99])))
+    if kind != "none":
+        out["prior_mean"] = draw(st.floats(5.0, 150.0))
+        out["prior_sd"] = 0.0 if kind == "zero_sd" else draw(st.floats(0.01, 40.0))
+    return out
 
 
 @st.composite
@@ -22,7 +35,7 @@ def random_log(draw, wear=False):
             stop_after=draw(st.sampled_from([1.0, 10.0])), delta=draw(st.sampled_from([0.1, 0.25])),
             end_slot=draw(st.sampled_from([None, 2500, 4000])),
             h_warn=draw(st.sampled_from([0.5, 0.9])), n_warn=draw(st.sampled_from([1, 3, 5])),
-            trend_windows=draw(st.sampled_from([10, 25, 60])))
+            trend_windows=draw(st.sampled_from([10, 25, 60])), **draw(prior_params()))
         return _make_log(draw, p, n=draw(st.integers(1500, 6000)), max_events=6)
     p = MethodParams(
         t_set=0.5, w_ss=draw(st.sampled_from([0.6, 1.0])), w_hold=draw(st.sampled_from([1.0, 2.0, 3.0])),
@@ -31,7 +44,7 @@ def random_log(draw, wear=False):
         t_end=draw(st.sampled_from([None, None, 60.0, 90.0])),
         end_slot=draw(st.sampled_from([None, None, None, 0, 1, 2000, 3001, 4500])),
         h_warn=draw(st.sampled_from([0.5, 0.9, 1.2])), n_warn=draw(st.sampled_from([1, 2, 5])),
-        trend_windows=draw(st.sampled_from([10, 12, 60])),
+        trend_windows=draw(st.sampled_from([10, 12, 60])), **draw(prior_params()),
     )
     return _make_log(draw, p, n=draw(st.integers(0, 5000)), max_events=25)
 
@@ -96,7 +109,8 @@ def test_streaming_equals_batch(case):
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(random_log(wear=True))
 def test_streaming_equals_batch_past_the_baseline(case):
-    """end_slot, headroom, warning and projection (§3, §5a) on long tests with many windows."""
+    """end_slot, headroom, projection, forecast and warning (§3, §5a, §5b) on long tests with many
+    windows."""
     _streaming_equals_batch(*case)
 
 
@@ -105,6 +119,7 @@ def _streaming_equals_batch(p, present, t1, t2):
     mask, ratio, mu = gate_arrays(present, t1, t2, p)
     mon = StreamingMonitor(p)
     windows = []
+    forecasts = []
     warned = []
     for k in range(len(present)):
         if mon.finished:
@@ -123,6 +138,9 @@ def _streaming_equals_batch(p, present, t1, t2):
         if out.window is not None:
             assert "window" in out.events and out.window.last_slot == k
             windows.append(out.window)
+        if out.forecast is not None:
+            assert "forecast" in out.events and out.forecast.last_slot == k
+            forecasts.append(out.forecast)
         if "wear_warning" in out.events:
             warned.append(k)
     stream = mon.close(len(present))
@@ -136,6 +154,24 @@ def _streaming_equals_batch(p, present, t1, t2):
         if len(windows) == len(g.windows) and last:
             assert stream.headroom == last[-1].headroom and stream.t_cross == last[-1].t_cross
     assert warned == ([stream.warn_slot] if stream.warn_slot is not None and warned else [])
+    # §5b at every forecast time: every key (e10/e50/e90, P, headroom, t_cross, due, reasons,
+    # warning) of the streaming form equals the batch form's, bit for bit
+    res, bwins, bfore = life_detail(g)
+    assert res.as_dict() == batch.as_dict()
+    assert windows == bwins[:len(windows)]
+    assert forecasts == bfore[:len(forecasts)]
+    assert [f.last_slot for f in bfore if f.warning] == ([] if batch.warn_slot is None else [batch.warn_slot])
+    if batch.k_life is not None:
+        assert all(f.last_slot < batch.k_life + p.n_tau - 1 for f in bfore)
+    if bfore:
+        last = bfore[-1]
+        assert (batch.end_p10, batch.end_p50, batch.end_p90, batch.p_end) == (last.e10, last.e50, last.e90, last.p_end)
+        if batch.warn_slot is not None:
+            first_due = next(f for f in bfore if f.due)
+            assert (first_due.last_slot, list(first_due.reasons)) == (batch.warn_slot, batch.warn_reasons)
+    else:
+        assert batch.warn_slot is None and batch.p_end is None
+    event(f"forecast times {min(len(bfore), 3)}+, warn {batch.warn_reasons}")
     event(f"status {stream.status}{' STOPPED' if stream.stop_reasons == ['STOPPED'] else ''}")
     event(f"warning {stream.warn_slot is not None}, projection {stream.t_cross is not None}, "
           f"headroom {stream.headroom is not None}")

@@ -1,4 +1,4 @@
-"""The five method vectors (copied from ../shared/vectors) through the CLI and through both forms."""
+"""The six method vectors (copied from ../shared/vectors) through the CLI and through both forms."""
 import glob
 import json
 import os
@@ -12,9 +12,9 @@ from gateway.logio import read_log
 from gateway.method import analyze_slots, run_streaming, to_slots
 
 EXACT = ["status", "k_b", "stable_first", "stable_last", "k_life", "n_slots", "n_valid", "reasons",
-         "stop_slot", "stop_reasons", "interrupted", "warn_slot"]
-CLOSE = ["mu_ss", "mu_th", "t_life", "headroom"]
-RELATIVE = ["t_cross"]
+         "stop_slot", "stop_reasons", "interrupted", "warn_slot", "warn_reasons"]
+CLOSE = ["mu_ss", "mu_th", "t_life", "headroom", "p_end"]
+RELATIVE = ["t_cross", "end_p10", "end_p50", "end_p90"]
 NAMES = sorted(os.path.basename(p)[:-len(".csv.gz")] for p in glob.glob(os.path.join(VECTORS, "*.csv.gz")))
 
 
@@ -38,8 +38,8 @@ def expected(name):
         return json.load(f)
 
 
-def test_there_are_five_vectors():
-    assert NAMES == ["v1_failure", "v2_faults", "v3_no_failure", "v4_aborted", "v5_stopped"]
+def test_there_are_six_vectors():
+    assert NAMES == ["v1_failure", "v2_faults", "v3_no_failure", "v4_aborted", "v5_stopped", "v6_prior"]
 
 
 def test_cli_json_reproduces_every_vector():
@@ -98,6 +98,8 @@ def test_streamed_windows_match_the_vector_figures():
             wins.append(out.window)
         if "wear_warning" in out.events:
             warned.append(k)
+            assert out.forecast is not None and out.forecast.warning
+            assert list(out.forecast.reasons) == ["trend"]
     exp = expected("v1_failure")
     assert warned == [exp["warn_slot"]]
     assert wins[0].j == (exp["k_b"] + 1) // p.n_ss
@@ -109,20 +111,23 @@ def test_set_end_slot_and_warning_parameters_on_the_command_line():
     log = os.path.join(VECTORS, "v1_failure.csv.gz")
     exp = expected("v1_failure")
     runs = {}
-    for end in (100000, 170000):
-        p = subprocess.run(hookwatch_cmd() + ["analyze", log, "--json", "--set", f"end_slot={end}",
-                                              "--set", "h_warn=0.9", "--set", "n_warn=2"],
+    for end, extra in ((100000, ()), (170000, ()), (170000, ("h_warn=0.9", "n_warn=2"))):
+        # lead 0: no trend reason (t_cross lies after the window), the headroom run alone
+        sets = [a for x in ("lead=0", f"end_slot={end}", *extra) for a in ("--set", x)]
+        p = subprocess.run(hookwatch_cmd() + ["analyze", log, "--json", *sets],
                            capture_output=True, text=True, timeout=60)
         assert p.returncode == 0, p.stderr
-        runs[end] = json.loads(p.stdout)
-    got = runs[100000]       # stopped before the end of life
+        runs[end, extra] = json.loads(p.stdout)
+    got = runs[100000, ()]       # stopped before the end of life
     assert (got["status"], got["stop_slot"], got["stop_reasons"], got["n_slots"], got["interrupted"]) == \
         ("aborted", 100000, ["STOPPED"], 100000, False)
-    got = runs[170000]       # stopped after t_life: stays a failure, interrupted
+    got = runs[170000, ()]       # stopped after t_life: stays a failure, interrupted
     assert (got["status"], got["stop_slot"], got["stop_reasons"], got["interrupted"], got["k_life"]) == \
         ("failure", 170000, ["STOPPED"], True, exp["k_life"])
-    # a higher h_warn and a shorter run warn earlier than the vector's defaults
-    assert got["warn_slot"] is not None and got["warn_slot"] < exp["warn_slot"]
+    assert got["warn_reasons"] == ["headroom"] and got["warn_slot"] > exp["warn_slot"]
+    # a higher h_warn and a shorter run warn earlier
+    got2 = runs[170000, ("h_warn=0.9", "n_warn=2")]
+    assert got2["warn_reasons"] == ["headroom"] and got2["warn_slot"] < got["warn_slot"]
 
 
 def test_cli_table_shows_headroom_warning_projection_and_stopped():
@@ -130,12 +135,22 @@ def test_cli_table_shows_headroom_warning_projection_and_stopped():
     p = subprocess.run(hookwatch_cmd() + ["analyze", *logs], capture_output=True, text=True, timeout=60)
     assert p.returncode == 0, p.stderr
     head = p.stdout.splitlines()[0].split()
-    assert head[-3:] == ["headroom", "warn_s", "t_cross_s"]
+    assert head[-6:] == ["headroom", "warn_s", "warn_by", "t_cross_s", "end_p50_s", "p_end"]
     rows = {ln.split()[0]: ln.split() for ln in p.stdout.splitlines()[1:4]}
     v1, v3, v5 = (rows[x] for x in logs)
-    assert v1[-3:] == ["-0.496", "3120.00", "-"]          # warning at the end of slot 155999
-    assert v3[-3:] == ["1.001", "-", "80836"]
-    assert v5[-3:] == ["0.986", "-", "-"] and v5[1] == "aborted"
-    assert "early warning at 3120.00 s (slot 155999)" in p.stdout
+    assert v1[-6:] == ["-0.496", "2910.00", "trend", "-", "-", "-"]   # the end of slot 145499
+    assert v3[-6:] == ["1.001", "-", "-", "80836", "-", "-"]
+    assert v5[-6:] == ["0.986", "-", "-", "-", "-", "-"] and v5[1] == "aborted"
+    assert "early warning at 2910.00 s (slot 145499; due by trend)" in p.stdout
     assert "reaches mu_th at 80836 s (22.5 h" in p.stdout
     assert "ended on purpose at slot 125000 (STOPPED)" in p.stdout
+
+
+def test_cli_table_shows_the_forecast_from_a_prior():
+    p = subprocess.run(hookwatch_cmd() + ["analyze", os.path.join(VECTORS, "v6_prior.csv.gz")],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    row = p.stdout.splitlines()[1].split()
+    assert row[-6:] == ["-0.506", "2520.00", "prior", "-", "3421", "1.000"]
+    assert "early warning at 2520.00 s (slot 125999; due by prior); prior 3300 ± 150 s;" in p.stdout
+    assert "end 3346 / 3421 / 3559 s (10/50/90 %), P(end within 600 s) 1.000" in p.stdout

@@ -162,6 +162,10 @@ def test_shipped_example_campaign_gives_a_full_report(tmp_path):
     assert len(t4) == 6 and {r["ranking"] for r in t4} == {"I > II"}
     assert len(read_csv(out / "table6_wear.csv")) == 18
     assert (out / "figures" / "fig8_open_vs_closed_loop.png").is_file()
+    # the example's priors (Table 4, compressed like the lives) warn every failure, never late
+    tp = {(r["t_set_N"], r["grade"]): r for r in read_csv(out / "table_prognosis.csv")}
+    assert len(tp) == 7 and (tp["", "all"]["n"], tp["", "all"]["warned"], tp["", "all"]["late"],
+                             tp["", "all"]["with_prior"]) == ("18", "18", "0", "18")
     assert not [f for f in os.listdir(example) if f.startswith(".hookwatch")]   # nothing written there
 
 

@@ -1,4 +1,4 @@
-"""Reports with METHOD.md §3 (STOPPED) and §5a (warning, headroom): Table 3's new columns, the
+"""Reports with METHOD.md §3 (STOPPED), §5a (headroom) and §5b (warning): Table 3's columns, the
 samples listed apart, and Fig. 7's warning line and headroom windows — through `hookwatch report`
 on two of the method vectors."""
 import csv
@@ -35,11 +35,13 @@ def rows(path):
 def test_table3_has_the_warning_time_and_the_last_headroom(report):
     t3 = rows(report / "table3_samples.csv")
     v1, v5 = t3["v1_failure"], t3["v5_stopped"]
-    assert float(v1["warn_s"]) == pytest.approx((155999 + 1) * 0.02)
+    assert float(v1["warn_s"]) == pytest.approx((145499 + 1) * 0.02)       # METHOD.md §5b
+    assert float(v1["warn_lead_s"]) == pytest.approx(3318.48 - 2910.0) and v1["warn_reasons"] == "trend"
     assert float(v1["headroom"]) == pytest.approx(-0.495569, abs=1e-6)
     assert v5["warn_s"] == "" and float(v5["headroom"]) == pytest.approx(0.986258, abs=1e-6)
+    assert v5["warn_lead_s"] == "" and v5["warn_reasons"] == ""
     md = (report / "report.md").read_text(encoding="utf-8")
-    assert "early warning (s)" in md and "last headroom" in md
+    assert "early warning (s)" in md and "last headroom" in md and "warning lead (s)" in md
 
 
 def test_a_stopped_test_is_listed_apart_as_censored_not_as_a_missing_meter(report):

@@ -262,12 +262,13 @@ def test_a_start_while_starting_is_busy(tmp_path):
 
 def test_headroom_and_the_wear_warning_reach_state_events_and_the_alarm_store(tmp_path):
     # μ steady, then rising: the headroom falls, the warning (2 windows under 0.5) comes before
-    # the end of life (μ above μ_th for τ = 10 slots)
+    # the end of life (μ above μ_th for τ = 10 slots); lead 0: the headroom run is the warning's
+    # only reason (METHOD.md §5b: no prior, and no t_cross lies within a lead of 0 s)
     def ratio(n):
         return 1.5 if n < 150 else 1.5 + 0.001 * (n - 150)
 
     st, _motor, tap = make(tmp_path, meter_kw={"ratio": ratio},
-                              method={"n_warn": 2, "h_warn": 0.5})
+                              method={"n_warn": 2, "h_warn": 0.5, "lead": 0})
     run(st, 800)
     events, states = tap.events, tap.states
     k = kinds(events)
