@@ -36,7 +36,8 @@ object)::
      "state": "monitoring", "test_running": true, "alarm": "normal",
      "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null,
      "headroom": 0.4 | null, "t_cross": 5400.0 | null, "warning": false,    # METHOD.md §5a
-     "events": {"port_lost": 1, ...}}
+     "events": {"port_lost": 1, ...},
+     "records_pruned": {"tests": 3, "bytes": 13800000}}         # record retention, since start
 
 Process-wide figures (not per station): :func:`set_console_clients` (the console sets it) and
 the PLC server counters (a Modbus TCP server may serve several stations; labelled by ``listen``).
@@ -65,7 +66,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 
 from .. import __version__
 from ..ports import StationView
-from ..records import AlarmState, Event, SlotRecord, StationState, TestState
+from ..records import AlarmState, Event, EventType, SlotRecord, StationState, TestState
 
 log = logging.getLogger("hookwatch.metrics")
 
@@ -120,7 +121,8 @@ class Histogram:
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
-                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok")
+                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
+                 "pruned_tests", "pruned_bytes")
 
     def __init__(self, station: str):
         self.station = station
@@ -137,6 +139,7 @@ class StationFigures:
         self.state = TestState.IDLE
         self.alarm = "normal"
         self.events: dict[str, int] = {}
+        self.pruned_tests = self.pruned_bytes = 0     # record retention (records_pruned events)
 
 
 _FIGURES: dict[str, StationFigures] = {}
@@ -272,6 +275,9 @@ class MetricsOutput(_EndpointSource):
         ev_counts = self.f.events
         t = ev.type.value
         ev_counts[t] = ev_counts.get(t, 0) + 1
+        if ev.type is EventType.RECORDS_PRUNED:
+            self.f.pruned_tests += len(ev.data.get("tests") or ())
+            self.f.pruned_bytes += int(ev.data.get("bytes") or 0)
 
     def on_state(self, st: StationState) -> None:
         f = self.f
@@ -330,6 +336,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
         "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
         "t_cross": f.t_cross, "warning": f.warning,
         "events": dict(f.events), "disk_ok": f.disk_ok,
+        "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes},
     }
 
 
@@ -506,6 +513,16 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
             events.add_metric([s["station"], t], float(v))
         disk.add_metric([s["station"]], 1.0 if s.get("disk_ok", True) else 0.0)
     out += [state, running, warning, alarm, events, disk]
+
+    pr_tests = CounterMetricFamily(f"{p}_records_pruned_tests", "completed tests removed by record "
+                                   "retention (recorder.retention)", labels=["station"])
+    pr_bytes = CounterMetricFamily(f"{p}_records_pruned_bytes", "bytes freed by record retention "
+                                   "(recorder.retention)", labels=["station"])
+    for s in snapshots:
+        rp = s.get("records_pruned") or {"tests": 0, "bytes": 0}
+        pr_tests.add_metric([s["station"]], float(rp["tests"]))
+        pr_bytes.add_metric([s["station"]], float(rp["bytes"]))
+    out += [pr_tests, pr_bytes]
 
     sup = GaugeMetricFamily(f"{p}_station_up", "1 while the station's loop runs and reports (a "
                             "fleet: its worker process is up)", labels=["station"])
