@@ -1,0 +1,81 @@
+"""Issue 21 item 6 (second half): after a disk outage longer than the recorder's reserve, the
+offline analysis of the recorded log gives the live result. A real station (``hookwatch run``)
+against ``hookwatch sim`` on a real small tmpfs, filled mid-test for longer than the reserve
+(lowered with ``HOOKWATCH_RECORDER_RESERVE_ROWS``), then freed: the refused slots are LOST in the
+live result, recorded as ``lost_spans`` in the sidecar, and ``hookwatch analyze`` reads them the
+same way."""
+import os
+import time
+
+import pytest
+
+from gateway.logio import read_log
+from gateway.station.recorder import LOG_NAME, RESERVE_ENV, RESULT_NAME
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    analyze_cli,
+    events,
+    quick_scenario,
+    read_json,
+    run_gateway,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+)
+from kit.smallfs import fill, small_tmpfs
+
+TUNED = {"dead_band_n": 0.01}
+RESERVE = 100          # rows: 2 s at 50 Hz
+
+
+def _test_dir(tmp_path, station, timeout=60.0):
+    t_wait = time.monotonic() + timeout
+    while time.monotonic() < t_wait:
+        dirs = test_dirs(tmp_path, station)
+        if dirs and os.path.exists(os.path.join(dirs[0], LOG_NAME)):
+            return dirs[0]
+        time.sleep(0.2)
+    raise AssertionError(f"no test folder with a log for {station}")
+
+
+@pytest.mark.slow
+def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monkeypatch):
+    monkeypatch.setenv(RESERVE_ENV, str(RESERVE))
+    sc = quick_scenario(tmp_path, "quick.yaml")
+    with small_tmpfs(tmp_path / "records", "2m"), virtual_station(tmp_path, sc) as (_sim, links):
+        st = station_yaml(tmp_path, links, name="lost", control=TUNED, method=QUICK_METHOD,
+                          test={"t_end_s": QUICK_END})
+        gw = run_gateway(tmp_path, st, "--start", "--duration", str(QUICK_END + 40))
+        try:
+            d = _test_dir(tmp_path, "lost")
+            time.sleep(3)
+            filler = fill(str(tmp_path / "records"))
+            time.sleep(7)                     # full for 7 s > the 2 s reserve
+            os.unlink(filler)
+            t_wait = time.monotonic() + QUICK_END + 30
+            while time.monotonic() < t_wait and not os.path.exists(os.path.join(d, RESULT_NAME)):
+                time.sleep(0.3)
+        finally:
+            gw.stop()
+        glog = gw.log_all()
+        assert "station failed" not in glog and "Traceback" not in glog, glog
+        res = read_json(os.path.join(d, RESULT_NAME))
+        live = res["method"]
+        # the outage outlasted the reserve: slots were refused, counted as LOST in the live result
+        n_lost = res["recorder"]["lost_rows"]
+        assert n_lost > 0 and live["reasons"]["LOST"] == n_lost, (res["recorder"], live)
+        spans = res["recorder"]["lost_spans"]
+        assert sum(b - a + 1 for a, b in spans) == n_lost
+        lg = read_log(os.path.join(d, LOG_NAME))
+        assert lg.meta["lost_spans"] == spans
+        # no row of a lost span is in the log; every other slot the station had a reading for is
+        ks = {int(round(t / 0.02)) for t in lg.t}
+        assert not any(a <= k <= b for k in ks for a, b in spans)
+        # the full disk did not stop the test (LOST is not unsafe): it ran to its planned end
+        assert res["test_status"] == "completed", res
+        assert live["stop_reasons"] is None or "LOST" not in live["stop_reasons"], live
+        # the offline analysis of the recorded log gives the live result, key for key
+        assert analyze_cli(os.path.join(d, LOG_NAME)) == live
+        types = [e["type"] for e in events(d)]
+        assert "disk_full" in types and "disk_ok" in types, types
