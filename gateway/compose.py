@@ -73,7 +73,9 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor,
                                              sparkplug="sparkplug" not in served_by_supervisor))
     st.outputs.extend(plugin_outputs(cfg, st))
-    st.outputs.append(retention_output(cfg, st))
+    # first of the outputs: a pass still running at the station's stop finishes (and its event
+    # leaves) before MQTT and the metrics stop
+    st.outputs.insert(0, retention_output(cfg, st))
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
     if console is not None and st.id in console.feeds:
