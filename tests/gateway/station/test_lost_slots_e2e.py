@@ -5,9 +5,11 @@ against ``hookwatch sim`` on a real small tmpfs, filled mid-test for longer than
 live result, recorded as ``lost_spans`` in the sidecar, and ``hookwatch analyze`` reads them the
 same way."""
 import os
+import shutil
 import time
 
 import pytest
+import yaml
 
 from gateway.logio import read_log
 from gateway.station.recorder import LOG_NAME, RESERVE_ENV, RESULT_NAME
@@ -77,5 +79,18 @@ def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monke
         assert live["stop_reasons"] is None or "LOST" not in live["stop_reasons"], live
         # the offline analysis of the recorded log gives the live result, key for key
         assert analyze_cli(os.path.join(d, LOG_NAME)) == live
+        # the same log without lost_spans (the old reading: the gap as MISSING) would abort at the
+        # gap, longer than the protection stop's 1 s, while the live result ran on
+        assert max(b - a + 1 for a, b in spans) > 50
+        bare = tmp_path / "bare"
+        bare.mkdir()
+        shutil.copy(os.path.join(d, LOG_NAME), bare / LOG_NAME)
+        with open(os.path.join(d, "log.meta.yaml")) as f:
+            meta = yaml.safe_load(f)
+        meta.pop("lost_spans")
+        (bare / "log.meta.yaml").write_text(yaml.safe_dump(meta))
+        old = analyze_cli(bare / LOG_NAME)
+        assert old["status"] in ("aborted", "failure") and old["stop_reasons"] == ["MISSING"], old
+        assert old != live
         types = [e["type"] for e in events(d)]
         assert "disk_full" in types and "disk_ok" in types, types
