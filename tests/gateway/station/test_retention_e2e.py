@@ -178,3 +178,29 @@ def test_one_pass_at_a_time_and_a_request_during_a_pass_runs_once_more(tmp_path)
     assert sum(len(p.tests) for p in pruned) == 3 == out.pruned_tests
     left = sorted(os.listdir(sd))
     assert left == ["20260103T000000.000Z-S", running]        # the newest completed + the running
+
+
+def test_metrics_count_the_records_pruned_events():
+    """The two counters follow the events (a snapshot of an older worker without them reads 0)."""
+    from gateway.northbound.metrics import MetricsOutput, families
+
+    class View:
+        id = "mx-ret"
+        ts = 0.02
+
+    m = MetricsOutput(View(), serve=False)
+    for tests, n in ((["a", "b"], 1000), (["c"], 234)):
+        m.on_event(Event(EventType.RECORDS_PRUNED, "mx-ret", time.time(),
+                         data={"tests": tests, "bytes": n, "rules": ["min_free_percent"] * len(tests)}))
+    snap = m.snapshot()
+    old = {**snap, "station": "old"}
+    old.pop("records_pruned")
+
+    def value(name, station):
+        fam = next(f for f in families([snap, old]) if f.name == name)
+        return next(s.value for s in fam.samples if s.labels["station"] == station)
+
+    assert value("hookwatch_records_pruned_tests", "mx-ret") == 3
+    assert value("hookwatch_records_pruned_bytes", "mx-ret") == 1234
+    assert value("hookwatch_records_pruned_tests", "old") == 0
+    assert snap["events"]["records_pruned"] == 2
