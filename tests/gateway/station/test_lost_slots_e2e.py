@@ -94,3 +94,26 @@ def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monke
         assert old != live
         types = [e["type"] for e in events(d)]
         assert "disk_full" in types and "disk_ok" in types, types
+
+
+@pytest.mark.parametrize("spans", [[[5]], [[7, 3]], [[-1, 2]], "0-3", [[1.5, 2]], [[True, 3]]])
+def test_a_malformed_lost_span_is_a_clear_error(tmp_path, spans):
+    from gateway.analysis import AnalysisError, analyze_log
+
+    log = tmp_path / "x.csv"
+    log.write_text("t,T1,T2\n" + "".join(f"{k * 0.02:.2f},0.3,0.6\n" for k in range(300)))
+    (tmp_path / "x.meta.yaml").write_text(yaml.safe_dump({"method": {"t_set": 0.5}, "lost_spans": spans}))
+    with pytest.raises(AnalysisError, match="lost"):
+        analyze_log(str(log))
+
+
+def test_lost_spans_read_from_the_sidecar_are_lost_slots(tmp_path):
+    from gateway.analysis import analyze_log
+
+    log = tmp_path / "x.csv"
+    log.write_text("t,T1,T2\n" + "".join(f"{k * 0.02:.2f},0.3,0.6\n" for k in range(300)))
+    (tmp_path / "x.meta.yaml").write_text(yaml.safe_dump({"method": {"t_set": 0.5},
+                                                          "lost_spans": [[10, 19], [290, 10_000]]}))
+    res, _p = analyze_log(str(log))
+    # rows inside a lost span are ignored; a span past the end of the log is cut at its grid
+    assert res.reasons["LOST"] == 10 + 10 and res.n_slots == 300 and res.n_valid == 280
