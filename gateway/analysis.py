@@ -4,8 +4,8 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from .logio import LogError, read_log
-from .method.core import Result, analyze_slots, to_slots
+from .logio import Log, LogError, read_log
+from .method.core import Result, SlotArrays, analyze_slots, mark_lost, to_slots
 from .method.params import (
     PARAM_NAMES,
     PRIOR_NAMES,
@@ -49,6 +49,22 @@ def params_for(meta: Mapping[str, Any], overrides: Mapping[str, Any], source: st
         raise AnalysisError(str(e)) from None
 
 
+def log_slots(log: Log, p: MethodParams) -> SlotArrays:
+    """A log on the slot grid, with the sidecar's ``lost_spans`` (slots whose rows the recorder
+    could not write during a disk outage) as LOST slots, exactly as the live station fed them to
+    the method (``gateway.method.rules.LOST``)."""
+    s = to_slots(log.t, log.t1, log.t2, p)
+    spans = log.meta.get("lost_spans")
+    if spans is None:
+        return s
+    if not isinstance(spans, list):
+        raise AnalysisError(f"{log.path}: lost_spans: expected a list of [first, last] slots")
+    try:
+        return mark_lost(s, spans)
+    except ValueError as e:
+        raise AnalysisError(f"{log.path}: {e}") from None
+
+
 def analyze_log(path: str, overrides: Mapping[str, Any] | None = None) -> tuple[Result, MethodParams]:
     """The result of a recorded log and the parameters it was analysed with."""
     try:
@@ -56,7 +72,7 @@ def analyze_log(path: str, overrides: Mapping[str, Any] | None = None) -> tuple[
     except LogError as e:
         raise AnalysisError(str(e)) from None
     p = params_for(log.meta, overrides or {}, path)
-    return analyze_slots(to_slots(log.t, log.t1, log.t2, p), p), p
+    return analyze_slots(log_slots(log, p), p), p
 
 
 def analyze_file(path: str, overrides: Mapping[str, Any] | None = None) -> Result:

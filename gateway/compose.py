@@ -19,8 +19,10 @@ from .northbound.metrics import MetricsRelay
 from .northbound.modbus_server import ModbusOutput
 from .northbound.sparkplug.output import SparkplugOutput
 from .northbound.sparkplug.output import settings_from_config as sparkplug_settings
-from .northbound.wiring import metrics_outputs, modbus_settings, outputs_for
+from .northbound.wiring import metrics_outputs, modbus_settings, outbox_path, outputs_for
 from .ports import MeterPort, Output, StationLinks, StationView, Stm32Port
+from .records import EventType
+from .retention import Policy, Pruned, RetentionOutput
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.station import Station
 
@@ -73,6 +75,9 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor,
                                              sparkplug="sparkplug" not in served_by_supervisor))
     st.outputs.extend(plugin_outputs(cfg, st))
+    # first of the outputs: a pass still running at the station's stop finishes (and its event
+    # leaves) before MQTT and the metrics stop
+    st.outputs.insert(0, retention_output(cfg, st))
     # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
     if console is not None and st.id in console.feeds:
@@ -86,6 +91,19 @@ def process_budget(cfg) -> Budget:
     hard limit, ``process.fd_reserve`` kept from the listening ports (the first call sets it)."""
     p = getattr(cfg, "process", None)
     return budget(int(p.fd_reserve) if p is not None else None)
+
+
+def retention_output(cfg, st: Station) -> RetentionOutput:
+    """The station's record retention (``recorder.retention``): passes off the slot loop, never the
+    running test nor a result still in the MQTT outbox; each pruning a ``records_pruned`` event
+    (the metrics count it)."""
+    rc = cfg.recorder.retention
+
+    def pruned(p: Pruned) -> None:
+        st.board.emit(EventType.RECORDS_PRUNED, tests=list(p.tests), bytes=p.bytes, rules=list(p.rules))
+
+    return RetentionOutput(st.id, st.station_dir, Policy.from_config(rc), float(rc.interval_s),
+                           lambda: st.test_id, outbox_path(cfg), pruned)
 
 
 #: extra outputs of a site (a historian, a test fixture): ``module:callable[,module:callable]``;

@@ -75,6 +75,7 @@ class EventType(str, enum.Enum):
     CONFIG_RELOADED = "config_reloaded"
     DISK_FULL = "disk_full"              # the records' or the outbox's disk cannot be written
     DISK_OK = "disk_ok"                  # … and can again (once per transition and store)
+    RECORDS_PRUNED = "records_pruned"    # record retention removed completed tests (gateway/retention.py)
 
 
 @dataclass

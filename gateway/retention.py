@@ -19,21 +19,30 @@ Prometheus counters ``hookwatch_records_pruned_tests_total`` / ``…_bytes_total
 
 :func:`select` is pure (the policy on a list of folders); :func:`scan` and :func:`prune` do the I/O
 and never raise: a folder that cannot be read or removed is skipped and logged once per pass.
+:class:`RetentionOutput` runs the passes of one station (at start, after every test end and every
+``interval_s``; in a worker thread, one at a time), wired in ``gateway.compose``.
 """
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import logging
 import os
 import shutil
 import sqlite3
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+
+from .records import Event, EventType, SlotRecord, StationState
 
 log = logging.getLogger("hookwatch.retention")
 
 #: at most this many folders are looked at per station and pass (a bound on the work of a pass)
 MAX_FOLDERS = 100_000
+#: a station's stop waits at most this long for a pass in progress (its thread then finishes alone)
+STOP_WAIT_S = 30.0
 #: a result.json larger than this is not read for its closing time (the folder's mtime is used)
 MAX_RESULT_BYTES = 4 * 1024 * 1024
 
@@ -240,3 +249,88 @@ def prune(station: str, station_dir: str, policy: Policy, now: float, running: s
         log.info("retention: %s: pruned %d test(s), %.1f MB (%s): %s", station, len(gone), freed / 1e6,
                  ", ".join(sorted(set(rules))), ", ".join(gone[:5]) + (" …" if len(gone) > 5 else ""))
     return Pruned(station=station, tests=gone, rules=rules, bytes=freed, failed=failed)
+
+
+class RetentionOutput:
+    """The retention passes of one station, as one of its outputs (wired in ``gateway.compose``):
+    a pass at start, after every test end (``test_ended``) and every ``interval_s``, each in a
+    worker thread (``asyncio.to_thread``: never on the slot loop), at most one at a time (a pass
+    asked for during one runs once more after it). The running test is read when a pass begins;
+    ``on_pruned`` gets what a pass removed (the station's ``records_pruned`` event). A failing pass
+    is logged and counted, never raised."""
+
+    def __init__(self, station: str, station_dir: str, policy: Policy, interval_s: float,
+                 running: Callable[[], str | None], outbox_path: str | None,
+                 on_pruned: Callable[[Pruned], None], clock: Callable[[], float] = time.time) -> None:
+        self.station, self.station_dir, self.policy = station, station_dir, policy
+        self.interval_s = float(interval_s)
+        self._running, self.outbox_path, self._on_pruned, self._clock = running, outbox_path, on_pruned, clock
+        self._ticker: asyncio.Task[None] | None = None
+        self._pass: asyncio.Task[None] | None = None
+        self._again = False
+        self._stopping = False
+        #: passes done, passes that failed, tests and bytes pruned by this output
+        self.passes = self.failures = self.pruned_tests = self.pruned_bytes = 0
+
+    # -- output protocol (the station's loop)
+    async def start(self) -> None:
+        self._stopping = False
+        self._ticker = asyncio.get_running_loop().create_task(self._tick())
+
+    def on_record(self, rec: SlotRecord) -> None:
+        pass
+
+    def on_event(self, ev: Event) -> None:
+        if ev.type is EventType.TEST_ENDED:
+            self.request()
+
+    def on_state(self, st: StationState) -> None:
+        pass
+
+    async def stop(self) -> None:
+        self._stopping = True
+        if self._ticker is not None:
+            self._ticker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._ticker
+            self._ticker = None
+        if self._pass is not None:      # a pass in its thread cannot be cancelled: let it finish
+            await asyncio.wait({self._pass}, timeout=STOP_WAIT_S)
+
+    # -- passes
+    def request(self) -> None:
+        """Ask for a pass (on the station's loop); joins the one running, if any."""
+        if self._stopping:
+            return
+        if self._pass is not None and not self._pass.done():
+            self._again = True
+            return
+        self._pass = asyncio.get_running_loop().create_task(self._passes())
+
+    async def _tick(self) -> None:
+        while True:
+            self.request()
+            await asyncio.sleep(self.interval_s)
+
+    async def _passes(self) -> None:
+        while True:
+            self._again = False
+            running = self._running()
+            try:
+                res = await asyncio.to_thread(prune, self.station, self.station_dir, self.policy,
+                                              self._clock(), running, self.outbox_path)
+            except Exception:       # prune never raises by design; a bug must not end the station
+                self.failures += 1
+                if self.failures == 1:
+                    log.exception("retention: %s: a pass failed (further failures are counted)", self.station)
+                res = None
+            self.passes += 1
+            if res is not None and res.tests:
+                self.pruned_tests += len(res.tests)
+                self.pruned_bytes += res.bytes
+                try:
+                    self._on_pruned(res)
+                except Exception:
+                    log.exception("retention: %s: reporting a pruning failed", self.station)
+            if not self._again or self._stopping:
+                return

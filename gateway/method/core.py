@@ -162,6 +162,7 @@ class StreamingMonitor:
         self.k = 0                       # next slot index
         self.n_valid = 0
         self.counts = [0] * len(R.REASONS)
+        self.lost = 0                    # LOST slots (gateway extension, rules.LOST)
         self._prev: tuple[float, float] | None = None   # latest non-MISSING reading
         self._unsafe_run = 0
         self._unsafe_mask = 0
@@ -201,8 +202,10 @@ class StreamingMonitor:
     def finished(self) -> bool:
         return self.stop_slot is not None or (self._end is not None and self.k >= self._end)
 
-    def push(self, present: bool, t1: float = float("nan"), t2: float = float("nan")) -> SlotOut:
-        """Process the next slot. ``present`` False (or a non-finite value) makes it MISSING."""
+    def push(self, present: bool, t1: float = float("nan"), t2: float = float("nan"),
+             lost: bool = False) -> SlotOut:
+        """Process the next slot. ``present`` False (or a non-finite value) makes it MISSING;
+        ``lost`` makes it LOST (its reading could not be recorded: ``rules.LOST``)."""
         if self.finished:
             raise RuntimeError("the test has ended; no further slots are analysed")
         k = self.k
@@ -212,7 +215,9 @@ class StreamingMonitor:
         mu = None
         events: list[str] = []
         # NaN and inf fail the self-comparisons below: x - x == 0 only for finite x
-        if not present or not (t1 - t1 == 0.0 and t2 - t2 == 0.0):
+        if lost:
+            mask = R.LOST
+        elif not present or not (t1 - t1 == 0.0 and t2 - t2 == 0.0):
             mask = R.MISSING
         else:
             if t1 >= self._t_sat or t2 >= self._t_sat:
@@ -236,13 +241,17 @@ class StreamingMonitor:
             assert ratio is not None, "valid slot without a ratio (t_min_ratio = 0 and T1 = 0)"
             self.n_valid += 1
             mu = float(R.log_ratio_mu(ratio, self._theta))
+        elif lost:
+            self.lost += 1
         else:
             for i, (bit, _) in enumerate(R.REASONS):
                 if mask & bit:
                     self.counts[i] += 1
 
-        # protection stop (§3)
-        if mask & R.UNSAFE:
+        # protection stop (§3); a LOST slot neither counts toward nor breaks an unsafe run
+        if lost:
+            pass
+        elif mask & R.UNSAFE:
             self._unsafe_run += 1
             self._unsafe_mask |= mask & R.UNSAFE
             if self._unsafe_run > self._n_stop:
@@ -312,7 +321,10 @@ class StreamingMonitor:
         self.windows_steady_run = len(self._run)
 
     def reason_counts(self) -> dict[str, int]:
-        return {name: self.counts[i] for i, name in enumerate(R.REASON_NAMES)}
+        out = {name: self.counts[i] for i, name in enumerate(R.REASON_NAMES)}
+        if self.lost:
+            out[R.LOST_NAME] = self.lost
+        return out
 
     def result(self) -> Result:
         """The result over the slots pushed so far. With a planned end (t_end) not yet reached, the
@@ -346,17 +358,20 @@ class StreamingMonitor:
         return self.close()
 
 
-def run_streaming(p: MethodParams, present: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> Result:
-    """Convenience: the streaming form over slot arrays, as the station would feed it."""
+def run_streaming(p: MethodParams, present: np.ndarray, t1: np.ndarray, t2: np.ndarray,
+                  lost: np.ndarray | None = None) -> Result:
+    """Convenience: the streaming form over slot arrays, as the station would feed it (``lost``:
+    the LOST slots, ``rules.LOST``)."""
     mon = StreamingMonitor(p)
     n = len(present)
     pr = present.tolist()
     a = t1.tolist()
     b = t2.tolist()
+    lo = [False] * n if lost is None else lost.tolist()
     for k in range(n):
         if mon.finished:
             break
-        mon.push(pr[k], a[k], b[k])
+        mon.push(pr[k], a[k], b[k], lo[k])
     return mon.close(n)
 
 
@@ -372,6 +387,27 @@ class SlotArrays:
     t2: np.ndarray
     duplicates: int = 0   # readings that landed in an already filled slot (the later one won)
     out_of_grid: int = 0  # readings before slot 0 or after the planned end
+    lost: np.ndarray | None = None   # bool, the LOST slots (rules.LOST); None: none
+
+
+def mark_lost(s: SlotArrays, spans: Any) -> SlotArrays:
+    """The slots of ``spans`` ([first, last] slot pairs, the sidecar's ``lost_spans``) are LOST
+    (``rules.LOST``): their readings, if any, are ignored. Spans beyond the grid are cut; a
+    malformed span is an error (ValueError)."""
+    n = s.present.size
+    lost = np.zeros(n, dtype=bool) if s.lost is None else s.lost.copy()
+    for sp in spans or ():
+        if (not isinstance(sp, (list, tuple)) or len(sp) != 2
+                or not all(isinstance(x, int) and not isinstance(x, bool) for x in sp)
+                or sp[0] < 0 or sp[1] < sp[0]):
+            raise ValueError(f"lost span {sp!r}: expected [first slot, last slot], 0 <= first <= last")
+        lost[min(sp[0], n):min(sp[1] + 1, n)] = True
+    if not lost.any():
+        return s
+    present = s.present & ~lost
+    t1 = np.where(lost, np.nan, s.t1)
+    t2 = np.where(lost, np.nan, s.t2)
+    return SlotArrays(present, t1, t2, s.duplicates, s.out_of_grid, lost)
 
 
 def to_slots(t: np.ndarray, t1: np.ndarray, t2: np.ndarray, p: MethodParams) -> SlotArrays:
@@ -400,9 +436,10 @@ def to_slots(t: np.ndarray, t1: np.ndarray, t2: np.ndarray, p: MethodParams) -> 
 
 
 def gate_arrays(present: np.ndarray, t1: np.ndarray, t2: np.ndarray,
-                p: MethodParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                p: MethodParams, lost: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """§2 over whole arrays: returns (mask uint8, ratio with NaN where undefined, μ with NaN where
-    invalid)."""
+    invalid). ``lost``: LOST slots (``rules.LOST``, mask exactly LOST; give them present False)."""
     n = present.size
     with np.errstate(invalid="ignore", divide="ignore"):
         fin = present & np.isfinite(t1) & np.isfinite(t2)
@@ -428,6 +465,8 @@ def gate_arrays(present: np.ndarray, t1: np.ndarray, t2: np.ndarray,
     mask |= (jump * R.JUMP).astype(np.uint8)
     mask |= (rlow * R.RATIO_LOW).astype(np.uint8)
     mask |= (rhigh * R.RATIO_HIGH).astype(np.uint8)
+    if lost is not None:
+        mask[lost] = R.LOST
     valid = mask == 0
     mu = np.full(n, np.nan)
     mu[valid] = R.log_ratio_mu(ratio[valid], p.theta)
@@ -435,7 +474,14 @@ def gate_arrays(present: np.ndarray, t1: np.ndarray, t2: np.ndarray,
 
 
 def _protection_stop(mask: np.ndarray, p: MethodParams) -> tuple[int | None, int]:
-    """First slot of a run of more than n_stop consecutive unsafe slots, and the run's reasons."""
+    """First slot of a run of more than n_stop consecutive unsafe slots, and the run's reasons.
+    LOST slots are transparent (neither count toward nor break a run): the run is found over the
+    other slots and mapped back."""
+    lost = (mask & R.LOST) != 0
+    if lost.any():
+        idx = np.flatnonzero(~lost)
+        s, m = _protection_stop(mask[idx], p)
+        return (None, 0) if s is None else (int(idx[s]), m)
     unsafe = (mask & R.UNSAFE) != 0
     need = p.n_stop + 1
     n = unsafe.size
@@ -529,7 +575,7 @@ def _post_windows(mu: np.ndarray, valid: np.ndarray, k_b: int, n_usable: int,
 
 
 def gate_and_baseline(s: SlotArrays, p: MethodParams) -> GatedSlots:
-    mask, ratio, mu = gate_arrays(s.present, s.t1, s.t2, p)
+    mask, ratio, mu = gate_arrays(s.present, s.t1, s.t2, p, s.lost)
     stop_slot, stop_mask = _protection_stop(mask, p)
     n_slots = mask.size if stop_slot is None else stop_slot + 1
     mask = mask[:n_slots]
@@ -572,6 +618,9 @@ def life_detail(g: GatedSlots, delta: float | None = None
     forecast = Forecaster(p)
     fouts = [forecast.add(j, outs.get(j)) for j in forecast_windows(p, g.n_usable, k_life)]
     counts = {name: int(np.count_nonzero(mask & bit)) for bit, name in R.REASONS}
+    n_lost = int(np.count_nonzero(mask & R.LOST))
+    if n_lost:
+        counts[R.LOST_NAME] = n_lost
     res = _finish(p, n_slots=mask.size, n_valid=int(np.count_nonzero(valid)),
                   reason_counts=counts, stable_first=g.stable_first, k_b=k_b, mu_ss=g.mu_ss,
                   k_life=k_life, stop_slot=g.stop_slot, stop_mask=g.stop_mask,

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from .params import PARAMS, RESULT_KEYS
-from .rules import REASONS, UNSAFE
+from .rules import LOST, LOST_NAME, REASONS, UNSAFE
 
 
 def render() -> str:
@@ -32,6 +32,17 @@ def render() -> str:
             "|---|---|---|"]
     for bit, name in REASONS:
         out.append(f"| 0x{bit:02X} | {name} | {'yes' if bit & UNSAFE else 'no'} |")
+    out += [f"| 0x{LOST:02X} | {LOST_NAME} | no: transparent (gateway extension, below) |", "",
+            f"`{LOST_NAME}` is a gateway extension, not part of METHOD.md: a slot whose reading the "
+            "recorder could not take (a disk outage longer than its memory reserve; the slots are "
+            "`lost_spans` in the sidecar). It is not valid (no μ; it counts against N_eff and as a "
+            "non-exceeding slot for §5) and it neither counts toward nor breaks a run of unsafe "
+            "slots (§3): a full disk says nothing about the yarn or the meter and does not stop a "
+            "life test. Its reading is not the JUMP reference. The live station and `hookwatch "
+            "analyze` (which reads `lost_spans`) feed exactly the same slots as LOST, so the "
+            f"offline result equals the live one. `reasons` has a `{LOST_NAME}` count only when a "
+            "test has LOST slots (a log without `lost_spans` gives METHOD.md's keys).",
+            ]
     out += ["", "## Result keys", "", ", ".join(f"`{k}`" for k in RESULT_KEYS), "",
             "`stop_reasons` lists the unsafe reasons (MISSING, SATURATED, LOW_TENSION) seen in the "
             "run of unsafe slots that triggered the protection stop, or `STOPPED` for a test "

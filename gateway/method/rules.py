@@ -33,11 +33,22 @@ REASON_NAMES = tuple(n for _, n in REASONS)
 #: reasons that make a slot unsafe for the protection stop (§3)
 UNSAFE = MISSING | LOW_TENSION | SATURATED
 
+#: gateway extension (not METHOD.md): the slot's reading could not be recorded (the recorder's
+#: memory reserve was full during a disk outage, ``lost_spans`` in the sidecar). A LOST slot is
+#: not valid (no μ; it counts against N_eff and as a non-exceeding slot for §5) and is
+#: transparent to the protection stop (§3): it neither counts toward an unsafe run nor breaks
+#: one — a full disk says nothing about the yarn or the meter and must not stop a life test. Its
+#: reading does not update the JUMP reference (as MISSING). Not one of ``REASONS`` (the §2 reason
+#: bits, the register map, the METHOD vectors): counted in a result's ``reasons`` as ``LOST`` only
+#: when a test has lost slots.
+LOST = 0x40
+LOST_NAME = "LOST"
+
 MAD_SCALE = 1.4826
 
 
 def reason_names(mask: int) -> list[str]:
-    return [name for bit, name in REASONS if mask & bit]
+    return [name for bit, name in REASONS if mask & bit] + ([LOST_NAME] if mask & LOST else [])
 
 
 def slot_index(t: ArrayLike, ts: float) -> NDArray[np.int64]:

@@ -304,6 +304,10 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.DISK_FULL: (("store", "records (the test's folder) or outbox (MQTT)"),
                           ("reason", "the operating system's error")),
     EventType.DISK_OK: (("store", "records or outbox"), ("reason", "the error it recovered from")),
+    EventType.RECORDS_PRUNED: (("tests", "the test ids removed (whole test folders, oldest first)"),
+                               ("bytes", "the bytes freed"),
+                               ("rules", "the rule that selected each test (max_age_days, "
+                                         "max_total_mb, min_free_percent), in the order of `tests`")),
     EventType.PORT_BACK: (("port", "meter or stm32"),),
     EventType.ALARM_ACK: (("source", "who acknowledged (mqtt, plc:ADDR, cli)"),),
     EventType.ALARM_CLEARED: (("reason", "why (new test started, hook_replaced)"),

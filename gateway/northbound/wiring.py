@@ -16,6 +16,13 @@ from .sparkplug.output import SparkplugOutput, settings_from_config
 log = logging.getLogger("hookwatch.northbound")
 
 
+def outbox_path(cfg) -> str | None:
+    """The station's MQTT outbox file (None when MQTT is off: no result waits in one)."""
+    if getattr(cfg, "mqtt", None) is None or not cfg.mqtt.enabled:
+        return None
+    return cfg.mqtt.outbox.path or os.path.join(cfg.recorder.dir, cfg.station.id, "outbox.sqlite")
+
+
 def mqtt_settings(cfg):
 
     m = cfg.mqtt

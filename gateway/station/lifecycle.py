@@ -102,7 +102,10 @@ class TestLifecycle:
         if sess.k_start is None:
             sess.k_start = k
         kt = k - sess.k_start
-        out = sess.monitor.push(present, t1, t2)
+        # asked BEFORE the method sees the slot: a recorder whose reserve is full (a disk outage
+        # longer than it) refuses the slot, which the method then takes as LOST (rules.LOST) and the
+        # recorder notes in lost_spans, so the offline analysis feeds it the same way
+        out = sess.monitor.push(present, t1, t2, not sess.recorder.accepts())
         c = sess.controller.step((t1 + t2) / 2.0 if present else None,
                                  speed_act if math.isfinite(speed_act) else self.speed_cmd)
         self.speed_cmd = c.u

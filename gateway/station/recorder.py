@@ -26,6 +26,7 @@ from typing import Any
 import yaml
 
 from ..analysis import AnalysisError, analyze_file
+from ..method.rules import LOST
 from ..records import Event, SlotRecord
 
 log = logging.getLogger("hookwatch.recorder")
@@ -144,9 +145,14 @@ def _fsync_in_background(fd: int) -> None:
     _fsync_pool.submit(_fsync_dup, os.dup(fd))
 
 
-#: rows kept in memory while the disk refuses writes (5 minutes at 50 Hz, about 1 MB); beyond it
-#: the oldest unwritten rows are dropped and counted as a lost span (their slots read as MISSING)
+#: rows kept in memory while the disk refuses writes (5 minutes at 50 Hz, about 1 MB): the
+#: recorder's reserve. Once it is full the recorder refuses further slots (:meth:`TestRecorder.accepts`
+#: is False): the station feeds them to the method as LOST (``gateway.method.rules.LOST``) and the
+#: recorder notes them as ``lost_spans`` in the sidecar, which the offline analysis reads the same
+#: way (online == offline after any disk outage)
 MAX_PENDING_ROWS = 15_000
+#: the reserve can be lowered (tests, a box short of memory) through this environment variable
+RESERVE_ENV = "HOOKWATCH_RECORDER_RESERVE_ROWS"
 #: events kept in memory while the disk refuses writes
 MAX_PENDING_EVENTS = 1_000
 #: at most one "still cannot write" log line per this many seconds
@@ -155,6 +161,23 @@ DISK_LOG_INTERVAL_S = 60.0
 
 class DiskError(OSError):
     pass
+
+
+def reserve_rows() -> int:
+    """The recorder's reserve in rows: :data:`RESERVE_ENV` when set to a whole number in
+    1 … :data:`MAX_PENDING_ROWS`, else :data:`MAX_PENDING_ROWS` (a bad value is logged, not used)."""
+    raw = os.environ.get(RESERVE_ENV, "").strip()
+    if not raw:
+        return MAX_PENDING_ROWS
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= MAX_PENDING_ROWS:
+        log.warning("%s=%r: not a whole number in 1 … %d; the reserve is %d rows", RESERVE_ENV, raw,
+                    MAX_PENDING_ROWS, MAX_PENDING_ROWS)
+        return MAX_PENDING_ROWS
+    return n
 
 
 def _write_block(fd: int, data: bytes, good_offset: int) -> int:
@@ -210,12 +233,15 @@ class TestRecorder:
 
     A disk that refuses writes (full, read-only, gone) is a *state*, not a crash:
     ``disk_ok`` turns False, ``on_disk_state(False, info)`` is called once, one error line is
-    logged (then at most one a minute, with a count); rows are kept in memory up to
-    :data:`MAX_PENDING_ROWS` (older ones are dropped and counted in ``lost_rows``/``lost_spans``).
-    When a write succeeds again ``disk_ok`` turns True, ``on_disk_state(True, info)`` is called,
-    the events ``disk_full`` and ``disk_ok`` (with the lost span) are appended to the events file
-    and the sidecar gets ``lost_spans`` at close. Slots of a lost span have no rows: the offline
-    analysis reads them as MISSING (METHOD.md §9).
+    logged (then at most one a minute, with a count); rows are kept in memory up to the reserve
+    (:func:`reserve_rows`). Once it is full :meth:`accepts` is False: the station asks before it
+    feeds a slot to the method and feeds a refused slot as LOST (``gateway.method.rules.LOST``);
+    its record (mask LOST) is not written but counted in ``lost_rows``/``lost_spans`` ([first,
+    last] slot). No row the method analysed is ever dropped. When a write succeeds again
+    ``disk_ok`` turns True, ``on_disk_state(True, info)`` is called, the events ``disk_full`` and
+    ``disk_ok`` (with the lost spans) are appended to the events file and the sidecar gets
+    ``lost_spans`` (again at close): the offline analysis feeds those slots as LOST, as the live
+    station did.
     """
 
     __test__ = False  # not a pytest test class
@@ -246,7 +272,9 @@ class TestRecorder:
         self.disk_ok = True
         self.write_errors = 0
         self.lost_rows = 0
-        self.lost_spans: list[list[int]] = []   # [first k, last k] of rows that never reached the disk
+        self.lost_spans: list[list[int]] = []   # [first k, last k] of LOST slots (refused, never recorded)
+        #: rows held in memory while the disk refuses writes, at most (see :meth:`accepts`)
+        self.reserve = reserve_rows()
         self.dropped_events = 0
         self._fail_since: float | None = None
         self._fail_utc: str | None = None
@@ -271,8 +299,8 @@ class TestRecorder:
             self._last_err_log = now
             self._errors_unlogged = 0
             log.error("%s: cannot write (%s): disk state FAILED; rows kept in memory (up to %d), "
-                      "then dropped and marked as a lost span", self.dir, self._fail_reason,
-                      MAX_PENDING_ROWS)
+                      "then further slots are LOST (not recorded, not analysed; lost_spans)",
+                      self.dir, self._fail_reason, self.reserve)
             self._notify(False, {"reason": self._fail_reason, "utc": self._fail_utc})
         else:
             self._errors_unlogged += 1
@@ -291,8 +319,11 @@ class TestRecorder:
         info = {"reason": self._fail_reason, "since_utc": self._fail_utc, "duration_s": round(dur, 3),
                 "lost_rows": self.lost_rows, "lost_spans": [list(s) for s in self.lost_spans],
                 "dropped_events": self.dropped_events}
-        log.warning("%s: writing again after %.1f s (%s); %d rows lost in %d span(s)", self.dir, dur,
+        log.warning("%s: writing again after %.1f s (%s); %d slots LOST in %d span(s)", self.dir, dur,
                     self._fail_reason, self.lost_rows, len(self.lost_spans))
+        if self.lost_spans:     # in the sidecar now: a crash before the close keeps them
+            self.update_meta(["lost_spans"], [list(s) for s in self.lost_spans])
+            self.update_meta(["lost_rows"], self.lost_rows)
         self._ev_pending[:0] = [
             json.dumps({"utc": self._fail_utc, "type": "disk_full", "station": self.meta.get("station"),
                         "test_id": self.meta.get("test_id"), "data": {"reason": self._fail_reason}}) + "\n",
@@ -307,24 +338,17 @@ class TestRecorder:
             except Exception:
                 log.exception("%s: disk state callback failed", self.dir)
 
-    def _drop_oldest_rows(self) -> None:
-        over = len(self._buf) - MAX_PENDING_ROWS
-        if over <= 0:
-            return
-        ks = [k for k in self._buf_k[:over] if k >= 0]
-        keep_header = self._buf_k[0] == -1
-        hdr = self._buf[0] if keep_header else None
-        del self._buf[:over]
-        del self._buf_k[:over]
-        if hdr is not None and self._buf_k[:1] != [-1]:
-            self._buf.insert(0, hdr)
-            self._buf_k.insert(0, -1)
-        if ks:
-            self.lost_rows += len(ks)
-            if self.lost_spans and self.lost_spans[-1][1] >= ks[0] - 1:
-                self.lost_spans[-1][1] = ks[-1]
-            else:
-                self.lost_spans.append([ks[0], ks[-1]])
+    def accepts(self) -> bool:
+        """Can the recorder take the next slot's row? False only while the disk refuses writes and
+        the reserve is full: the station then feeds that slot to the method as LOST."""
+        return self.disk_ok or len(self._buf) + len(self._cols) < self.reserve
+
+    def _lose(self, k: int) -> None:
+        self.lost_rows += 1
+        if self.lost_spans and self.lost_spans[-1][1] == k - 1:
+            self.lost_spans[-1][1] = k
+        else:
+            self.lost_spans.append([k, k])
 
     def _write_meta(self) -> None:
         _atomic_write(os.path.join(self.dir, META_NAME),
@@ -343,10 +367,13 @@ class TestRecorder:
             log.error("%s: cannot rewrite the sidecar: %s", self.dir, e)
 
     def on_record(self, rec: SlotRecord) -> None:
-        if not rec.present or self.closed:
-            return  # §9: a slot without a row is MISSING
-        self._cols.add(rec)     # formatted at the flush, all rows of the interval at once
-        self.rows += 1
+        if self.closed:
+            return
+        if rec.mask & LOST:
+            self._lose(rec.k)       # refused (accepts() was False): a lost span, no row
+        elif rec.present:           # §9: a slot without a row is MISSING
+            self._cols.add(rec)     # formatted at the flush, all rows of the interval at once
+            self.rows += 1
         if self._clock() - self._last_flush >= self._flush_every:
             self.flush()
 
@@ -388,7 +415,6 @@ class TestRecorder:
                 self._buf_k.clear()
             except OSError as e:
                 ok = False
-                self._drop_oldest_rows()
                 self._failed(e)
         if ok and not self.disk_ok:
             self._recovered()
@@ -415,14 +441,17 @@ class TestRecorder:
         if self.closed:
             return
         self.flush(force=True)
+        tail: tuple[int, bytes] | None = None
         if self._buf or self._ev_pending:
             n = sum(1 for k in self._buf_k if k >= 0)
             if n:
-                self.lost_rows += n
-                ks = [k for k in self._buf_k if k >= 0]
-                self.lost_spans.append([ks[0], ks[-1]])
-            log.error("%s: closing with %d rows and %d events that never reached the disk", self.dir,
-                      n, len(self._ev_pending))
+                # rows the method analysed: kept and written with the result when the disk takes
+                # them again (the retry thread), so the log still gives the live result
+                tail = (self._off, gzip.compress("".join(self._buf).encode(), compresslevel=5, mtime=0))
+            self.dropped_events += len(self._ev_pending)
+            log.error("%s: closing with %d rows (kept in memory, written with the result) and %d "
+                      "events (dropped) that have not reached the disk", self.dir, n,
+                      len(self._ev_pending))
         for fd in (self._fd, self._ev_fd):
             with contextlib.suppress(OSError):
                 os.close(fd)
@@ -435,11 +464,13 @@ class TestRecorder:
                 self._write_meta()
             except OSError as e:
                 log.error("%s: cannot update the sidecar with the lost spans: %s", self.dir, e)
-        write_result(self.dir, result)
+        write_result(self.dir, result, tail)
         self.closed = True
 
 
 _pending_results: dict[str, dict[str, Any]] = {}
+#: log rows not yet on disk when their test closed: test folder → (offset, gzip member)
+_pending_tails: dict[str, tuple[int, bytes]] = {}
 _pending_lock = threading.Lock()
 _retry_thread: threading.Thread | None = None
 #: seconds between attempts to write a result that could not be written
@@ -463,6 +494,15 @@ def _atomic_write(path: str, dump: Callable[[Any], Any]) -> None:
 
 
 def _write_result_file(test_dir: str, result: dict[str, Any]) -> None:
+    tail = _pending_tails.get(test_dir)
+    if tail is not None:        # the log's last rows first: a result never names rows not on disk
+        fd = os.open(os.path.join(test_dir, LOG_NAME), os.O_WRONLY)
+        try:
+            _write_block(fd, tail[1], tail[0])
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        del _pending_tails[test_dir]
     _atomic_write(os.path.join(test_dir, RESULT_NAME), lambda f: json.dump(result, f, indent=1))
 
 
@@ -483,14 +523,17 @@ def _retry_results() -> None:
                 return
 
 
-def write_result(test_dir: str, result: dict[str, Any]) -> bool:
-    """Write ``result.json`` atomically. Never raises: on failure the result is kept in memory and
-    retried every :data:`RESULT_RETRY_S` in a background thread (one error line). Returns whether
-    it was written now."""
+def write_result(test_dir: str, result: dict[str, Any], tail: tuple[int, bytes] | None = None) -> bool:
+    """Write ``result.json`` atomically (after ``tail``, the log's last rows as (offset, gzip
+    member), if any). Never raises: on failure both are kept in memory and retried every
+    :data:`RESULT_RETRY_S` in a background thread (one error line). Returns whether it was
+    written now."""
     global _retry_thread
     try:
-        _write_result_file(test_dir, result)
         with _pending_lock:
+            if tail is not None:
+                _pending_tails[test_dir] = tail
+            _write_result_file(test_dir, result)
             _pending_results.pop(test_dir, None)
         return True
     except OSError as e:

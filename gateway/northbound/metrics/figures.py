@@ -59,7 +59,8 @@ class Histogram:
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
-                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok")
+                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
+                 "pruned_tests", "pruned_bytes")
 
     def __init__(self, station: str):
         self.station = station
@@ -76,6 +77,7 @@ class StationFigures:
         self.state = TestState.IDLE
         self.alarm = "normal"
         self.events: dict[str, int] = {}
+        self.pruned_tests = self.pruned_bytes = 0     # record retention (records_pruned events)
 
 
 _FIGURES: dict[str, StationFigures] = {}
@@ -161,6 +163,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
         "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
         "t_cross": f.t_cross, "warning": f.warning,
         "events": dict(f.events), "disk_ok": f.disk_ok,
+        "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes},
     }
 
 

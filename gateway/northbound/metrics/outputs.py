@@ -8,7 +8,7 @@ from typing import Any
 
 from ...doors import DoorLimits
 from ...ports import StationView
-from ...records import Event, SlotRecord, StationState
+from ...records import Event, EventType, SlotRecord, StationState
 from .figures import (
     _RUNNING,
     SNAPSHOT_VERSION,
@@ -78,6 +78,9 @@ class MetricsOutput(EndpointSource):
         ev_counts = self.f.events
         t = ev.type.value
         ev_counts[t] = ev_counts.get(t, 0) + 1
+        if ev.type is EventType.RECORDS_PRUNED:
+            self.f.pruned_tests += len(ev.data.get("tests") or ())
+            self.f.pruned_bytes += int(ev.data.get("bytes") or 0)
 
     def on_state(self, st: StationState) -> None:
         f = self.f

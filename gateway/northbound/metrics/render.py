@@ -125,6 +125,16 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
         disk.add_metric([s["station"]], 1.0 if s.get("disk_ok", True) else 0.0)
     out += [state, running, warning, alarm, events, disk]
 
+    pr_tests = CounterMetricFamily(f"{p}_records_pruned_tests", "completed tests removed by record "
+                                   "retention (recorder.retention)", labels=["station"])
+    pr_bytes = CounterMetricFamily(f"{p}_records_pruned_bytes", "bytes freed by record retention "
+                                   "(recorder.retention)", labels=["station"])
+    for s in snapshots:
+        rp = s.get("records_pruned") or {"tests": 0, "bytes": 0}
+        pr_tests.add_metric([s["station"]], float(rp["tests"]))
+        pr_bytes.add_metric([s["station"]], float(rp["bytes"]))
+    out += [pr_tests, pr_bytes]
+
     sup = GaugeMetricFamily(f"{p}_station_up", "1 while the station's loop runs and reports (a "
                             "fleet: its worker process is up)", labels=["station"])
     restarts = CounterMetricFamily(f"{p}_worker_restarts", "restarts of the station's worker "

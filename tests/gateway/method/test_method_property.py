@@ -6,7 +6,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from gateway.method import MethodParams, StreamingMonitor, analyze_slots, gate_arrays
-from gateway.method.core import SlotArrays, gate_and_baseline, life_detail
+from gateway.method.core import SlotArrays, gate_and_baseline, life_detail, mark_lost
 
 EVENT_KINDS = ["dropout", "burst", "spike", "low", "ratio_low", "ratio_high", "saturation", "nan",
                "gap_ng", "gap_ng1", "gap_stop", "gap_stop1"]
@@ -114,9 +114,69 @@ def test_streaming_equals_batch_past_the_baseline(case):
     _streaming_equals_batch(*case)
 
 
-def _streaming_equals_batch(p, present, t1, t2):
-    batch = analyze_slots(SlotArrays(present, t1, t2), p)
-    mask, ratio, mu = gate_arrays(present, t1, t2, p)
+@st.composite
+def log_with_lost_spans(draw):
+    """A random log and LOST spans (a disk outage longer than the recorder's reserve, the
+    gateway extension ``rules.LOST``): anywhere, also over gaps, unsafe runs and the baseline."""
+    p, present, t1, t2 = draw(random_log(wear=draw(st.booleans())))
+    n = len(present)
+    spans = []
+    for _ in range(draw(st.integers(1, 4)) if n else 0):
+        a = draw(st.integers(0, n - 1))
+        spans.append([a, a + draw(st.sampled_from([0, 1, p.n_stop, p.n_stop + 1, 40, 300, 2000]))])
+    return p, present, t1, t2, spans
+
+
+@settings(max_examples=600, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(log_with_lost_spans())
+def test_streaming_equals_batch_with_lost_slots(case):
+    """LOST slots fed one by one (as the station does when its recorder refuses them) give the
+    batch form over the same slots marked from ``lost_spans`` (as ``hookwatch analyze`` does)."""
+    p, present, t1, t2, spans = case
+    s = mark_lost(SlotArrays(present, t1, t2), spans)
+    n_lost = 0 if s.lost is None else int(s.lost.sum())
+    res = _streaming_equals_batch(p, s.present, s.t1, s.t2, s.lost)
+    counted = res.reasons.get("LOST", 0)
+    assert ("LOST" in res.reasons) == (counted > 0)
+    assert counted <= n_lost
+    event(f"lost slots counted {min(counted, 1)}")
+
+
+def test_lost_slots_neither_count_toward_nor_break_a_protection_stop():
+    p = MethodParams(t_set=0.5, w_ss=0.6, w_hold=1.0, tau=0.3, tau_g=0.1, stop_after=0.2, delta=0.1)
+    n = 400
+    present = np.ones(n, dtype=bool)
+    t1, t2 = np.full(n, 0.3), np.full(n, 0.6)
+    # a MISSING run of n_stop slots, then LOST slots, then one more MISSING: the run goes on
+    present[100:100 + p.n_stop] = False
+    present[100 + p.n_stop + 50] = False
+    lost = np.zeros(n, dtype=bool)
+    lost[100 + p.n_stop:100 + p.n_stop + 50] = True
+    t1[~present], t2[~present] = np.nan, np.nan
+    s = SlotArrays(present & ~lost, t1, t2, lost=lost)
+    r = _streaming_equals_batch(p, s.present, s.t1, s.t2, lost, stats=False)
+    assert r.status == "aborted" and r.stop_slot == 100 + p.n_stop + 50, r
+    assert r.stop_reasons == ["MISSING"] and r.reasons["LOST"] == 50
+    # LOST slots alone (a long disk outage) never stop a test, however long
+    lost2 = np.zeros(n, dtype=bool)
+    lost2[50:350] = True
+    r2 = _streaming_equals_batch(p, ~lost2, np.where(lost2, np.nan, 0.3), np.where(lost2, np.nan, 0.6), lost2,
+                                stats=False)
+    assert r2.stop_slot is None and r2.reasons["LOST"] == 300 and r2.reasons["MISSING"] == 0
+
+
+def test_no_lost_slot_no_lost_key():
+    """METHOD.md's reasons are unchanged for a test without LOST slots (the vectors compare them)."""
+    p = MethodParams(t_set=0.5, w_ss=0.6, w_hold=1.0, tau=0.3, tau_g=0.1, stop_after=0.2, delta=0.1)
+    n = 200
+    r = _streaming_equals_batch(p, np.ones(n, dtype=bool), np.full(n, 0.3), np.full(n, 0.6), stats=False)
+    assert "LOST" not in r.reasons
+
+
+def _streaming_equals_batch(p, present, t1, t2, lost=None, stats=True):
+    batch = analyze_slots(SlotArrays(present, t1, t2, lost=lost), p)
+    mask, ratio, mu = gate_arrays(present, t1, t2, p, lost)
+    lost_l = [False] * len(present) if lost is None else lost.tolist()
     mon = StreamingMonitor(p)
     windows = []
     forecasts = []
@@ -124,7 +184,7 @@ def _streaming_equals_batch(p, present, t1, t2):
     for k in range(len(present)):
         if mon.finished:
             break
-        out = mon.push(bool(present[k]), float(t1[k]), float(t2[k]))
+        out = mon.push(bool(present[k]), float(t1[k]), float(t2[k]), lost_l[k])
         assert out.mask == mask[k]
         assert out.q == (mask[k] == 0)
         if out.mu is None:
@@ -147,7 +207,7 @@ def _streaming_equals_batch(p, present, t1, t2):
     assert stream.as_dict() == batch.as_dict()
     # §5a window by window: the streaming form published exactly the batch form's windows (those
     # the streaming form completed before close() padded the rest with MISSING slots)
-    g = gate_and_baseline(SlotArrays(present, t1, t2), p)
+    g = gate_and_baseline(SlotArrays(present, t1, t2, lost=lost), p)
     assert [(w.j, w.n_eff, w.value) for w in windows] == g.windows[:len(windows)]
     if windows:
         last = [w for w in windows if w.value is not None]
@@ -171,12 +231,15 @@ def _streaming_equals_batch(p, present, t1, t2):
             assert (first_due.last_slot, list(first_due.reasons)) == (batch.warn_slot, batch.warn_reasons)
     else:
         assert batch.warn_slot is None and batch.p_end is None
+    if not stats:
+        return stream
     event(f"forecast times {min(len(bfore), 3)}+, warn {batch.warn_reasons}")
     event(f"status {stream.status}{' STOPPED' if stream.stop_reasons == ['STOPPED'] else ''}")
     event(f"warning {stream.warn_slot is not None}, projection {stream.t_cross is not None}, "
           f"headroom {stream.headroom is not None}")
     if p.end_slot is not None and stream.status == "aborted" and stream.stop_reasons == ["STOPPED"]:
         assert stream.stop_slot == p.end_slot == stream.n_slots
+    return stream
 
 
 def test_gap_of_ng_keeps_count_and_ng_plus_one_resets():

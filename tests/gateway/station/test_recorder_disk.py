@@ -11,6 +11,7 @@ import time
 import pytest
 
 from gateway.logio import read_log
+from gateway.method.rules import LOST
 from gateway.records import Command, CommandKind, SlotRecord
 from gateway.station import recorder as recmod
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, new_test_dir
@@ -39,28 +40,40 @@ class Clock:
         return self.t
 
 
-def test_full_disk_keeps_members_whole_marks_the_lost_span_and_resumes(tmp_path, monkeypatch, caplog):
-    monkeypatch.setattr(recmod, "MAX_PENDING_ROWS", 200)
+def feed(r, k):
+    """One slot as the station feeds it: asked first; a refused slot goes by as LOST (no row)."""
+    if r.accepts():
+        r.on_record(rec(k))
+    else:
+        r.on_record(SlotRecord(k=k, t=k * 0.02, present=True, t1=0.3, t2=0.6, q=0, mask=LOST,
+                               ratio=None, mu=None, mean_filt=0.45, speed_cmd=150.0,
+                               speed_act=149.5, saturated=False))
+
+
+def test_full_disk_keeps_members_whole_refuses_the_newest_and_resumes(tmp_path, monkeypatch, caplog):
+    monkeypatch.setenv(recmod.RESERVE_ENV, "200")
     states = []
     with small_tmpfs(tmp_path / "fs", "1m") as fs:
         clk = Clock()
         r = TestRecorder(os.path.join(fs, "t1"), {"station": "s", "test_id": "t1",
                                                   "method": {"t_set": 0.5, "t_end": 100.0}},
                          clock=clk, on_disk_state=lambda ok, info: states.append((ok, info)))
+        assert r.reserve == 200
         k = 0
         for _ in range(5):                                  # 5 s on a good disk
             for _ in range(50):
-                r.on_record(rec(k))
+                feed(r, k)
                 k += 1
             clk.t += 1.0
         r.flush()
         filler = fill(fs)
         for _ in range(10):                                 # 10 s on a full disk: 500 rows
             for _ in range(50):
-                r.on_record(rec(k))
+                feed(r, k)
                 k += 1
             clk.t += 1.0
         assert not r.disk_ok and states == [(False, states[0][1])]
+        assert not r.accepts()                              # the reserve is full: newest refused
         # what reached the disk (a tmpfs page's slack may take a block or two) reads back whole
         assert read_log(os.path.join(fs, "t1", LOG_NAME)).t.size >= 250
         with gzip.open(os.path.join(fs, "t1", LOG_NAME)) as f:
@@ -70,17 +83,18 @@ def test_full_disk_keeps_members_whole_marks_the_lost_span_and_resumes(tmp_path,
         os.unlink(filler)
         for _ in range(3):
             for _ in range(50):
-                r.on_record(rec(k))
+                feed(r, k)
                 k += 1
             clk.t += 1.0
-        assert r.disk_ok and states[-1][0] is True
+        assert r.disk_ok and states[-1][0] is True and r.accepts()
         r.close({"test_status": "completed"})
         assert 0 < r.lost_rows <= 500 - 200
+        # every row that was accepted is on disk; only the refused (LOST) slots are missing
         assert read_log(os.path.join(fs, "t1", LOG_NAME)).t.size == 900 - r.lost_rows
 
 
-def test_full_disk_log_reads_back_and_lost_span_is_missing(tmp_path, monkeypatch):
-    monkeypatch.setattr(recmod, "MAX_PENDING_ROWS", 200)
+def test_full_disk_lost_span_is_the_refused_slots_and_analyze_reads_it(tmp_path, monkeypatch):
+    monkeypatch.setenv(recmod.RESERVE_ENV, "200")
     with small_tmpfs(tmp_path / "fs", "1m") as fs:
         clk = Clock()
         d = os.path.join(fs, "t1")
@@ -93,16 +107,19 @@ def test_full_disk_log_reads_back_and_lost_span_is_missing(tmp_path, monkeypatch
             if sec == 15:
                 os.unlink(filler)
             for _ in range(50):
-                r.on_record(rec(k))
+                feed(r, k)
                 k += 1
             clk.t += 1.0
+        (a, b), = r.lost_spans
+        # the sidecar has the span as soon as the disk takes writes again (a crash keeps it)
+        assert read_log(os.path.join(d, LOG_NAME)).meta["lost_spans"] == [[a, b]]
         r.close({"test_status": "completed"})
         lg = read_log(os.path.join(d, LOG_NAME))
         ks = {int(math.floor(t / 0.02 + 0.5)) for t in lg.t}
         lost = set(range(1000)) - ks
         assert len(lost) == r.lost_rows > 0
-        (a, b), = r.lost_spans
         assert lost == set(range(a, b + 1))
+        assert lg.meta["lost_spans"] == [[a, b]]
         with open(os.path.join(d, "events.jsonl")) as f:
             evs = [json.loads(x) for x in f]
         assert [e["type"] for e in evs] == ["disk_full", "disk_ok"]
@@ -110,8 +127,34 @@ def test_full_disk_log_reads_back_and_lost_span_is_missing(tmp_path, monkeypatch
         res = read_json(os.path.join(d, RESULT_NAME))
         assert res["recorder"]["lost_rows"] == r.lost_rows
         out = analyze_cli(os.path.join(d, LOG_NAME))
-        # the lost span reads as MISSING slots (METHOD.md §9: a long gap aborts the analysis there)
-        assert out["n_slots"] > 0 and out["status"] in ("aborted", "no_failure", "failed"), out
+        # the lost span is read as LOST slots (not MISSING: no protection stop at the gap; the
+        # log of 1000 slots of a planned 5000 stops after its end)
+        assert out["reasons"]["LOST"] == b - a + 1, out
+        assert out["stop_slot"] >= 1000, out
+
+
+def test_rows_still_in_memory_at_close_reach_the_log_with_the_result(tmp_path, monkeypatch):
+    """A test that ends while the disk is full: the rows the method analysed are kept and written
+    before the result when the disk takes them again (the log still gives the live result)."""
+    monkeypatch.setattr(recmod, "RESULT_RETRY_S", 0.2)
+    with small_tmpfs(tmp_path / "fs", "1m") as fs:
+        clk = Clock()
+        d = os.path.join(fs, "t1")
+        r = TestRecorder(d, {"station": "s", "test_id": "t1",
+                             "method": {"t_set": 0.5, "t_end": 100.0}}, clock=clk)
+        for k in range(100):
+            feed(r, k)
+        clk.t += 1.0
+        r.flush()
+        filler = fill(fs)
+        for k in range(100, 200):
+            feed(r, k)
+        r.close({"test_status": "completed"})
+        assert not os.path.exists(os.path.join(d, RESULT_NAME))
+        os.unlink(filler)
+        wait_for(lambda: os.path.exists(os.path.join(d, RESULT_NAME)), 10, what="result written")
+        assert read_log(os.path.join(d, LOG_NAME)).t.size == 200
+        assert r.lost_rows == 0
 
 
 # ------------------------------------------------------------------ a real station on a small disk
