@@ -64,34 +64,33 @@ def test_stalled_consumer_never_blocks_the_station_and_is_bounded():
     the queue stays at its bound, the oldest frames are dropped and counted; once the supervisor
     reads again it gets the newest frames, in order."""
     a, b = socket.socketpair()
-    a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
-    b.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    chan = FrameChannel(a, maxlen=64)
-    out = IpcOutput(chan, every=1)                       # one frame per slot: the worst case
-    n = 20_000
-    # b never reads meanwhile: a send that waited for the socket would wait for ever (the test's
-    # timeout); how long a record takes is bench/bench_slot_cpu.py's figure, not asserted here
-    for k in range(n):
-        out.on_record(_rec(k))
-        assert len(chan.box) <= 64
-    assert chan.dropped > n - 64 - 1000                  # the kernel buffers hold only a few
-    # the consumer comes back: what it reads ends with the newest slot, in order
-    out.on_record(_rec(n))
-    dec = FrameDecoder()
-    ks = []
-    b.settimeout(2.0)
-    t_end = time.monotonic() + 10
-    while time.monotonic() < t_end and (not ks or ks[-1] != n):
-        try:
-            data = b.recv(65536)
-        except TimeoutError:
-            break
-        ks += [body["last"]["k"] for _, body in dec.feed(data)]
-    assert ks[-1] == n and ks == sorted(ks)
-    assert len(ks) < 1000
-    chan.flush(1.0)
-    a.close()
-    b.close()
+    with a, b:                                           # closed also when an assertion fails
+        a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        b.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        chan = FrameChannel(a, maxlen=64)
+        out = IpcOutput(chan, every=1)                       # one frame per slot: the worst case
+        n = 20_000
+        # b never reads meanwhile: a send that waited for the socket would wait for ever (the test's
+        # timeout); how long a record takes is bench/bench_nonblocking.py's figure, not asserted here
+        for k in range(n):
+            out.on_record(_rec(k))
+            assert len(chan.box) <= 64
+        assert chan.dropped > n - 64 - 1000                  # the kernel buffers hold only a few
+        # the consumer comes back: what it reads ends with the newest slot, in order
+        out.on_record(_rec(n))
+        dec = FrameDecoder()
+        ks = []
+        b.settimeout(2.0)
+        t_end = time.monotonic() + 10
+        while time.monotonic() < t_end and (not ks or ks[-1] != n):
+            try:
+                data = b.recv(65536)
+            except TimeoutError:
+                break
+            ks += [body["last"]["k"] for _, body in dec.feed(data)]
+        assert ks[-1] == n and ks == sorted(ks)
+        assert len(ks) < 1000
+        chan.flush(1.0)
 
 
 def test_output_summarises_slots_and_passes_events_and_state():
