@@ -154,3 +154,8 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(CPU_GROUP))
         elif path in MODULE_GROUPS:
             item.add_marker(pytest.mark.xdist_group(path))
+    # the modules with long tests first, so that the workers end together on short ones rather
+    # than one worker on a long life at the end; each module stays whole and in its own order
+    # (module-scoped fixtures, tests that build on the one before)
+    has_slow = {it.nodeid.split("::", 1)[0] for it in items if it.get_closest_marker("slow")}
+    items.sort(key=lambda it: it.nodeid.split("::", 1)[0] not in has_slow)

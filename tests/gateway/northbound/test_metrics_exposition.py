@@ -20,7 +20,7 @@ from gateway.northbound import metrics as M
 from gateway.northbound.outbox import Outbox, Row
 from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TS
-from kit.tools import free_port
+from kit.tools import free_port, wait_for
 
 
 def rec(k, *, present=True, lateness=0.0003, rtt=0.006, q=1, mu=0.2):
@@ -234,10 +234,16 @@ def test_endpoint_is_bounded(endpoints):
     with socket.create_connection((host, port), timeout=5) as s:
         s.sendall(b"GET /" + b"a" * (M.MAX_LINE + 100) + b" HTTP/1.0\r\n\r\n")
         assert b" 414 " in s.recv(200)
-    # idle connections hold at most MAX_CONNECTIONS handlers; one more is closed at once
+    # idle connections hold at most MAX_CONNECTIONS handlers; one more is closed at once. First
+    # the handlers of the requests above must have ended (on a loaded machine a thread may still
+    # be finishing: an idle connection would be refused then and a slot free for the one more)
+    srv = ep.server
+    wait_for(lambda: srv.slots._value == M.MAX_CONNECTIONS, 20, what="the earlier handlers ended")
+    refused = srv.refused
     idle = [socket.create_connection((host, port), timeout=5) for _ in range(M.MAX_CONNECTIONS)]
     try:
-        time.sleep(0.3)
+        wait_for(lambda: srv.slots._value == 0, 20, what="every idle connection holding a handler")
+        assert srv.refused == refused
         # closed, not held until a handler frees (the idle ones never leave: a held connection
         # would end in the client's timeout, socket.timeout, and fail here)
         with socket.create_connection((host, port), timeout=5) as s:
