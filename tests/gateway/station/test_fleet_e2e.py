@@ -22,6 +22,7 @@ from kit.e2e import (
     test_dirs,
     virtual_station,
 )
+from kit.tools import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -63,9 +64,13 @@ def test_four_stations_one_process_one_meter_killed(tmp_path):
         # bench/bench_fleet.py measures it; this test asserts what holds on a loaded one
         gw = run_gateway(tmp_path, str(fleet), "--exit-when-done", "--stats-json", str(stats),
                          "--realtime", "20")
-        # mid-test, the victim's virtual station dies with both its ports: its meter is gone
+        # mid-test, the victim's virtual station dies with both its ports: its meter is gone.
+        # Mid-test by the victim's own progress (its test folder exists: slot 0 came, ~7 s after
+        # the start on a quiet machine, later on a loaded one) and a few seconds of slots more —
+        # not by the wall clock, which a loaded machine stretches
         import time
-        time.sleep(15)        # slot 0 comes ~7 s after the start; the tests end at ~42 s
+        wait_for(lambda: test_dirs(tmp_path, VICTIM), 120, 0.2, what="the victim's test started")
+        time.sleep(3)
         victim = sims[VICTIM][0]
         victim.p.send_signal(signal.SIGKILL)
         victim.p.wait(10)
