@@ -80,8 +80,9 @@ def analyze_cli(log_path) -> dict:
     return out
 
 
-def wait_log(proc: Proc, text: str, timeout: float = 20.0) -> None:
-    """Wait until ``text`` appears in a process' log (stderr)."""
+def wait_log(proc: Proc, text: str, timeout: float = 60.0) -> None:
+    """Wait until ``text`` appears in a process' log (stderr). The timeout is a bound against a
+    hang, not a speed goal: generous, for a loaded machine."""
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
         if text in proc.log_all():
@@ -96,7 +97,7 @@ def fleet_dir(tmp_path, **defaults):
     base = {
         "station": {"site": "lab", "area": "hall", "line": "l1"},
         "meter": {"map": os.path.join(ROOT, "config", "meters", "zn-s.yaml")},
-        "method": {"w_ss": 5, "w_hold": 20, "tau": 5},
+        "method": {"w_ss": 5, "w_hold": 20, "tau": 5, **STALL_TOLERANT},
         "test": {"t_set_n": 0.5, "t_end_s": 70},
         "recorder": {"dir": str(tmp_path / "records")},
         "mqtt": {"enabled": False}, "modbus_tcp": {"enabled": False},
@@ -119,7 +120,13 @@ SHORT_METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}
 #: same sequence (run-in, baseline, onset, persistent exceedance, end of life) in half the time.
 #: A Grade-I end of life comes ~23 s after slot 0, well before QUICK_END.
 QUICK_SCALE = 1200
-QUICK_METHOD = {"w_ss": 2, "w_hold": 8, "tau": 2}
+#: the protection stop (METHOD.md §3: `stop_after` of unsafe slots) of the test stations whose
+#: subject is not the protection stop: 5 s instead of 1 s. A loaded test machine (other workers'
+#: stations, other jobs) can stall a 50 Hz loop for over a second; the stop is then right, but
+#: it ends a life that the test wants to see through. The protection stop itself is tested at
+#: 1 s (the method's tests; the fault end-to-end tests keep the default).
+STALL_TOLERANT = {"stop_after": 5}
+QUICK_METHOD = {"w_ss": 2, "w_hold": 8, "tau": 2, **STALL_TOLERANT}
 QUICK_END = 35
 
 

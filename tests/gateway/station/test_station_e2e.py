@@ -15,6 +15,7 @@ from kit.e2e import (
     QUICK_END,
     QUICK_METHOD,
     QUICK_SCALE,
+    STALL_TOLERANT,
     analyze_cli,
     assert_no_slot_lost,
     events,
@@ -129,7 +130,8 @@ def test_closed_loop_holds_setpoint_open_loop_wanders_notch_reduces_ripple(tmp_p
             sub.mkdir()
             sc = scenario_file(sub, name, plant=plant, method={"t_end": duration})
             _sim, links = stack.enter_context(virtual_station(sub, sc, seed=3))
-            st = station_yaml(sub, links, name=name, control=control, test={"t_end_s": duration})
+            st = station_yaml(sub, links, name=name, control=control, test={"t_end_s": duration},
+                              method={**STALL_TOLERANT})
             procs[name] = (sub, run_gateway(sub, st, "--start", "--exit-when-done"))
         for _name, (_sub, gw) in procs.items():
             assert wait_exit(gw, duration + 60) == 0, gw.log()
