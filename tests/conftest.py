@@ -137,6 +137,17 @@ CPU: dict[str, tuple[str, ...]] = {
 }
 #: module-scoped fixtures outside the CPU group: the module's own worker
 MODULE_GROUPS = ("tests/gateway/northbound/test_northbound_modbus_tcp.py",)
+#: fleets of virtual stations (several `hookwatch sim` + a gateway carrying 3–4 stations at 50 Hz):
+#: one after another on one worker — two at once are 8 stations and 8 simulators on two cores,
+#: where the stations' slots go MISSING by the second (their protection stops end the lives)
+FLEET_GROUP = "fleet"
+FLEETS = (
+    "tests/gateway/station/test_fleet_e2e.py",
+    "tests/gateway/station/test_fleet_crash_restart.py",
+    "tests/gateway/supervisor/test_supervisor_e2e.py",
+    "tests/gateway/supervisor/test_supervisor_shared_e2e.py",
+    "tests/gateway/supervisor/test_supervisor_sparkplug_e2e.py",
+)
 
 
 def _listed(table: dict[str, tuple[str, ...]], path: str, name: str) -> bool:
@@ -154,6 +165,8 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(CPU_GROUP))
         elif path in MODULE_GROUPS:
             item.add_marker(pytest.mark.xdist_group(path))
+        elif path in FLEETS:
+            item.add_marker(pytest.mark.xdist_group(FLEET_GROUP))
     # the modules with long tests first, so that the workers end together on short ones rather
     # than one worker on a long life at the end; each module stays whole and in its own order
     # (module-scoped fixtures, tests that build on the one before)
