@@ -73,3 +73,102 @@ def loop_thread():
     lt = LoopThread()
     yield lt
     lt.close()
+
+
+# ------------------------------------------------------------------------ the suite's schedule
+# `./run-tests` runs the suite on pytest-xdist workers (`-n 4 --dist loadgroup`): most tests wait
+# on real time (50 Hz stations, simulated lives), so several run side by side on two cores. The
+# tables below say, in one place, which tests are long (`slow`: left out of the quick loop
+# `-m "not slow"`) and which must share a worker (`xdist_group`). Modules that mark themselves
+# (`pytestmark = pytest.mark.slow`: the long end-to-end lives) are not repeated here.
+
+#: long on the wall clock (a gateway with a fleet, a browser, a campaign report, a fuzzed live
+#: server, hypothesis at thousands of examples): module → test functions, "*" for all of them
+SLOW: dict[str, tuple[str, ...]] = {
+    "tests/gateway/method/test_method_property.py": (
+        "test_streaming_equals_batch", "test_streaming_equals_batch_past_the_baseline"),
+    "tests/gateway/report/test_report_campaign.py": (
+        "test_report_has_every_table_and_figure", "test_report_tables_match_the_campaign",
+        "test_one_and_two_processes_give_the_same_tables", "test_gateway_layout_and_gateway_aborted_tests",
+        "test_shipped_example_campaign_gives_a_full_report"),
+    "tests/gateway/report/test_report_bad_input.py": ("*",),
+    "tests/gateway/report/test_report_wear.py": ("*",),
+    "tests/gateway/northbound/test_northbound_modbus.py": (
+        "test_malformed_frames_never_stop_the_server", "test_server_alive_after_fuzzing_and_no_write_got_through"),
+    "tests/gateway/northbound/test_northbound_cmdparse.py": (
+        "test_fuzzed_mqtt_commands_each_get_one_small_reply_and_the_link_stays_up",
+        "test_after_fuzzing_the_station_still_answers_and_events_are_bounded"),
+    "tests/gateway/northbound/test_northbound_modbus_tcp.py": (
+        "test_1100_idle_sockets_under_a_low_fd_limit_do_not_lock_out_the_plc",),
+    "tests/gateway/northbound/test_metrics_prometheus.py": ("*",),
+    "tests/gateway/northbound/test_metrics_fleet.py": ("*",),
+    "tests/gateway/northbound/test_metrics_northbound.py": ("*",),
+    "tests/gateway/northbound/test_northbound_mqtt.py": (
+        "test_broker_outage_and_gateway_restart_deliver_every_event_in_order_once",),
+    "tests/gateway/console/test_console_http.py": (
+        "test_console_history_fig7_downloads_and_campaign", "test_console_slow_client_dropped_fast_client_served",
+        "test_console_http_auth_csrf_commands_lockout"),
+    "tests/gateway/console/test_console_browser.py": ("*",),
+    "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
+    "tests/gateway/commands/test_console_demo.py": ("*",),
+    "tests/gateway/test_logio_cache.py": ("test_analyze_cli_same_result_cold_and_warm",),
+    "tests/gateway/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
+    "tests/deploy/test_deploy.py": ("test_gateway_speaks_the_units_notify_protocol",),
+    "tests/drivers/sim/test_plant.py": ("test_closed_loop_holds_setpoint_open_loop_wanders",),
+    "tests/drivers/sim/test_sim.py": ("test_sim_process_prints_paths_and_each_fault_fires_on_the_wire",),
+}
+
+#: CPU-bound (no real-time wait): one after another on one worker, so that they never take both
+#: cores from the real-time tests at once; and the modules whose tests share a module-scoped
+#: fixture (a campaign, a running plant) or build on each other in order stay on one worker
+CPU_GROUP = "cpu"
+CPU: dict[str, tuple[str, ...]] = {
+    "tests/gateway/method/test_method_property.py": ("*",),
+    "tests/gateway/method/test_method_vectors.py": ("*",),
+    "tests/gateway/report/test_report_campaign.py": ("*",),
+    "tests/gateway/report/test_report_bad_input.py": ("*",),
+    "tests/gateway/report/test_report_wear.py": ("*",),
+    "tests/gateway/report/test_report_figures.py": ("*",),
+    "tests/gateway/northbound/test_northbound_modbus.py": ("*",),
+    "tests/gateway/northbound/test_northbound_cmdparse.py": ("*",),
+    "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
+    "tests/gateway/supervisor/test_supervisor_ipc.py": (
+        "test_stalled_consumer_never_blocks_the_station_and_is_bounded",),
+}
+#: module-scoped fixtures outside the CPU group: the module's own worker
+MODULE_GROUPS = ("tests/gateway/northbound/test_northbound_modbus_tcp.py",)
+#: fleets of virtual stations (several `hookwatch sim` + a gateway carrying 3–4 stations at 50 Hz):
+#: one after another on one worker — two at once are 8 stations and 8 simulators on two cores,
+#: where the stations' slots go MISSING by the second (their protection stops end the lives)
+FLEET_GROUP = "fleet"
+FLEETS = (
+    "tests/gateway/station/test_fleet_e2e.py",
+    "tests/gateway/station/test_fleet_crash_restart.py",
+    "tests/gateway/supervisor/test_supervisor_e2e.py",
+    "tests/gateway/supervisor/test_supervisor_shared_e2e.py",
+    "tests/gateway/supervisor/test_supervisor_sparkplug_e2e.py",
+)
+
+
+def _listed(table: dict[str, tuple[str, ...]], path: str, name: str) -> bool:
+    names = table.get(path, ())
+    return "*" in names or name in names
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        path = item.nodeid.split("::", 1)[0]
+        name = getattr(item, "originalname", None) or item.name.split("[", 1)[0]
+        if _listed(SLOW, path, name):
+            item.add_marker(pytest.mark.slow)
+        if _listed(CPU, path, name):
+            item.add_marker(pytest.mark.xdist_group(CPU_GROUP))
+        elif path in MODULE_GROUPS:
+            item.add_marker(pytest.mark.xdist_group(path))
+        elif path in FLEETS:
+            item.add_marker(pytest.mark.xdist_group(FLEET_GROUP))
+    # the modules with long tests first, so that the workers end together on short ones rather
+    # than one worker on a long life at the end; each module stays whole and in its own order
+    # (module-scoped fixtures, tests that build on the one before)
+    has_slow = {it.nodeid.split("::", 1)[0] for it in items if it.get_closest_marker("slow")}
+    items.sort(key=lambda it: it.nodeid.split("::", 1)[0] not in has_slow)

@@ -68,7 +68,9 @@ class Client:
         h = {"Content-Type": "application/json", **(headers or {})}
         req = urllib.request.Request(self.base + path, data=data, method=method, headers=h)
         try:
-            with self.opener.open(req, timeout=30) as r:
+            # a bound against a hang, not a speed goal: a campaign report on a loaded machine
+            # (other workers' stations on the same cores) can take minutes
+            with self.opener.open(req, timeout=180) as r:
                 return r.status, _json(r.read()), r.headers
         except urllib.error.HTTPError as e:
             return e.code, _json(e.read()), e.headers

@@ -415,11 +415,9 @@ def test_sim_default_scenario_duration_trace_and_sigint(tmp_path):
     truth = json.loads(sim.truth_path.read_text())
     assert truth["grade"] == "I" and truth["time_scale"] == 150.0
     assert 150 < truth["onset_run_s"] < 250 and truth["cross_run_s"] > truth["onset_run_s"]
-    # --duration ends the run by itself (exit 0)
-    t = time.monotonic()
+    # --duration ends the run by itself (exit 0; one that did not would meet the timeout)
     p = subprocess.run(hookwatch_cmd() + ["sim", "--link-dir", str(tmp_path / "l2"), "--duration", "1.5"],
                        capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert p.returncode == 0, p.stderr
     assert p.stdout.splitlines()[:2][0].startswith("meter: ")
-    assert time.monotonic() - t < 30
     assert any('"event": "start"' in x for x in p.stderr.splitlines())      # events default to stderr

@@ -79,7 +79,8 @@ def test_console_in_a_browser(tmp_path, browser):
         late.goto(url + "/#/station/loom-a")
         _wait_js(late, "window.hw.points > 0", 20)
         assert late.evaluate("window.hw.firstT") == 0
-        assert late.evaluate("window.hw.lastT") > 20
+        # … up to where the first page had been (how far the test got in 30 s is the machine's)
+        assert late.evaluate("window.hw.lastT") > t1 + 1
         late.screenshot(path=str(tmp_path / "station-mid.png"), full_page=True)
         late.close()
 

@@ -21,7 +21,7 @@ from gateway.northbound import metrics as M
 from gateway.northbound.outbox import Outbox, Row
 from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TS
-from kit.tools import free_port
+from kit.tools import free_port, wait_for
 
 
 def rec(k, *, present=True, lateness=0.0003, rtt=0.006, q=1, mu=0.2):
@@ -235,23 +235,28 @@ def test_endpoint_is_bounded(endpoints):
     with socket.create_connection((host, port), timeout=5) as s:
         s.sendall(b"GET /" + b"a" * (M.MAX_LINE + 100) + b" HTTP/1.0\r\n\r\n")
         assert s.recv(200)[:12] in (b"HTTP/1.0 400", b"HTTP/1.0 414", b"HTTP/1.1 400", b"HTTP/1.1 414")
-    # idle connections hold at most MAX_CONNECTIONS handlers; one more is closed at once
+    # idle connections hold at most MAX_CONNECTIONS; one more is closed at once (not held until a
+    # slot frees). First the connections of the requests above must have ended (on a loaded
+    # machine one may still be closing: a slot would then be taken and the count off by one)
+    door = ep.door
+    assert door is not None
+    wait_for(lambda: door.connections == 0, 20, what="the earlier connections ended")
     idle = [socket.create_connection((host, port), timeout=5) for _ in range(M.MAX_CONNECTIONS)]
     try:
-        time.sleep(0.3)
+        wait_for(lambda: door.connections == M.MAX_CONNECTIONS, 20, what="every idle connection held")
         with socket.create_connection((host, port), timeout=5) as s:
             s.sendall(b"GET /metrics HTTP/1.0\r\n\r\n")
-            t0 = time.monotonic()
             try:
                 data = s.recv(100)
             except ConnectionResetError:
-                data = b""
-            assert data == b"" and time.monotonic() - t0 < 2.0
+                data = b""        # closed (reset)
+            except TimeoutError:
+                data = None       # held, not closed: the client's timeout
+            assert data == b"", (door.cap, door.connections)
     finally:
         for s in idle:
             s.close()
-    time.sleep(0.3)
-    assert _get(ep, "/metrics") == 200
+    wait_for(lambda: _get(ep, "/metrics") == 200, 20, what="the endpoint answering again")
 
 
 def test_port_in_use_is_a_state_then_recovers(monkeypatch, endpoints):
@@ -352,14 +357,13 @@ def test_hostile_requests_get_an_answer_or_a_close_and_scrapes_go_on(monkeypatch
             assert reply == b"" or reply[:10] in (b"HTTP/1.0 4", b"HTTP/1.0 5") and reply[9:12] != b"500", \
                 (data[:40], reply)
     # a client that sends half a request and waits is dropped after the request timeout
-    with socket.create_connection((host, port), timeout=5) as s:
+    # (a client kept for ever would end in the client's own timeout, socket.timeout: a failure)
+    with socket.create_connection((host, port), timeout=10) as s:
         s.sendall(b"GET /met")
-        t0 = time.monotonic()
         try:
             assert s.recv(100) == b""
         except ConnectionResetError:
             pass
-        assert time.monotonic() - t0 < 3.0
     assert _get(ep, "/metrics") == 200
 
 

@@ -221,6 +221,10 @@ def test_1100_idle_sockets_under_a_low_fd_limit_do_not_lock_out_the_plc(tmp_path
                 pass
         time.sleep(1.5)                  # idle long enough to be evicted for a new connection
         assert p.poll() is None
+        # the PLC gets in (on a loaded machine the server may still be accepting the last idle
+        # sockets, which evict the PLC's fresh connection in turn: it tries again, as a PLC does)
+        wait_for(lambda: mbpoll(port, "-t", "3", "-r", "1", unit=1)[0] == 0, 30, 0.5,
+                 what="the PLC served among 1,100 idle sockets")
         for _ in range(3):
             rc, v, err = mbpoll(port, "-t", "3", "-r", str(IR["map_version"].address), unit=1)
             assert rc == 0 and v[IR["map_version"].address] == R.MAP_VERSION, err

@@ -45,10 +45,14 @@ def test_overrun_makes_missing_slots_and_keeps_the_grid(tmp_path):
     # each slow read covers its own slot and overruns the next ones: those are MISSING
     assert st.stats.overrun_slots >= 4 and len(missing) == st.stats.overrun_slots
     assert all(not math.isfinite(r.t1) for r in recs if not r.present)
-    # no drift: the k-th poll started at t0 + k·Ts (within the lateness), also after overruns
+    # no drift: the k-th poll started at t0 + k·Ts, never before, also after overruns. How late
+    # is the machine's (a poll that starts more than Ts/2 late is an overrun, above); a grid that
+    # drifted would put every poll of a stretch late, a loaded machine only some of them
     t0 = st.clock.t0
     polled = [r for r in recs if r.present]
-    for r, t_call in zip(polled, meter.call_times):
-        assert abs(t_call - (t0 + r.k * 0.02)) < 0.010, (r.k, t_call - t0)
+    off = [t_call - (t0 + r.k * 0.02) for r, t_call in zip(polled, meter.call_times)]
+    assert off and min(off) >= 0, min(off)
+    for i in range(0, len(off) - 24, 25):
+        assert min(off[i:i + 25]) < 0.010, (polled[i].k, off[i:i + 25])
     # the recorded timestamps put every reading back into its own slot
     assert all(math.floor(r.t / 0.02 + 0.5) == r.k for r in polled)

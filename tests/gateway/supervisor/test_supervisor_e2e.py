@@ -22,6 +22,7 @@ from kit.e2e import (
     QUICK_METHOD,
     QUICK_SCALE,
     analyze_cli,
+    assert_no_slot_lost,
     fleet_dir,
     read_json,
     run_gateway,
@@ -127,8 +128,8 @@ def test_killed_worker_restarts_neighbours_fill_their_slots_broken_file_refused(
             continue
         (res,) = results
         assert res["test_status"] == "completed" and res["method"]["status"] == "failure", res
-        assert st[name]["filled_ratio"] >= 0.99, (name, st[name])
-        assert res["method"]["reasons"]["MISSING"] <= 0.01 * res["method"]["n_slots"], res
+        # nothing lost (the share of filled slots is a bench/ figure: bench_fleet.py)
+        assert_no_slot_lost(dirs[0], res["method"], st[name])
 
 
 def test_sighup_reloads_only_the_changed_station(tmp_path):
@@ -204,10 +205,9 @@ def test_commands_flow_back_and_a_stuck_worker_is_killed_and_restarted(tmp_path)
             # kill() only queues the stop: wait until the kernel shows the process stopped, so
             # that the command below cannot be answered in the moment before
             wait_for(lambda: _proc_state(pid) in ("T", "t"), 5, 0.01, what="worker stopped")
-            t0 = time.monotonic()
+            # answered by the supervisor itself, not by the stuck worker (which cannot)
             r4 = hub.command("ack", timeout=0.5)
             assert not r4.ok and "did not answer within 0.5 s" in r4.reason
-            assert time.monotonic() - t0 < 2.0
             t_end = time.monotonic() + 20
             while not (w.proc is not None and w.proc.pid != pid and w.hello):
                 assert time.monotonic() < t_end, "stuck worker not restarted"

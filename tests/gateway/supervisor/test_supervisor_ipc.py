@@ -58,41 +58,39 @@ def _rec(k: int) -> SlotRecord:
                       lateness_s=0.001, rtt_s=0.005)
 
 
+@pytest.mark.timeout(120)
 def test_stalled_consumer_never_blocks_the_station_and_is_bounded():
     """The supervisor stops reading: the worker's slot loop (IpcOutput.on_record) keeps its pace,
     the queue stays at its bound, the oldest frames are dropped and counted; once the supervisor
     reads again it gets the newest frames, in order."""
     a, b = socket.socketpair()
-    a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
-    b.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    chan = FrameChannel(a, maxlen=64)
-    out = IpcOutput(chan, every=1)                       # one frame per slot: the worst case
-    worst = 0.0
-    n = 20_000
-    for k in range(n):                                   # b never reads meanwhile
-        t0 = time.perf_counter()
-        out.on_record(_rec(k))
-        worst = max(worst, time.perf_counter() - t0)
-        assert len(chan.box) <= 64
-    assert worst < 0.05, worst                           # never waited for the socket
-    assert chan.dropped > n - 64 - 1000                  # the kernel buffers hold only a few
-    # the consumer comes back: what it reads ends with the newest slot, in order
-    out.on_record(_rec(n))
-    dec = FrameDecoder()
-    ks = []
-    b.settimeout(2.0)
-    t_end = time.monotonic() + 10
-    while time.monotonic() < t_end and (not ks or ks[-1] != n):
-        try:
-            data = b.recv(65536)
-        except TimeoutError:
-            break
-        ks += [body["last"]["k"] for _, body in dec.feed(data)]
-    assert ks[-1] == n and ks == sorted(ks)
-    assert len(ks) < 1000
-    chan.flush(1.0)
-    a.close()
-    b.close()
+    with a, b:                                           # closed also when an assertion fails
+        a.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+        b.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        chan = FrameChannel(a, maxlen=64)
+        out = IpcOutput(chan, every=1)                       # one frame per slot: the worst case
+        n = 20_000
+        # b never reads meanwhile: a send that waited for the socket would wait for ever (the test's
+        # timeout); how long a record takes is bench/bench_nonblocking.py's figure, not asserted here
+        for k in range(n):
+            out.on_record(_rec(k))
+            assert len(chan.box) <= 64
+        assert chan.dropped > n - 64 - 1000                  # the kernel buffers hold only a few
+        # the consumer comes back: what it reads ends with the newest slot, in order
+        out.on_record(_rec(n))
+        dec = FrameDecoder()
+        ks = []
+        b.settimeout(2.0)
+        t_end = time.monotonic() + 10
+        while time.monotonic() < t_end and (not ks or ks[-1] != n):
+            try:
+                data = b.recv(65536)
+            except TimeoutError:
+                break
+            ks += [body["last"]["k"] for _, body in dec.feed(data)]
+        assert ks[-1] == n and ks == sorted(ks)
+        assert len(ks) < 1000
+        chan.flush(1.0)
 
 
 def test_output_summarises_slots_and_passes_events_and_state():
@@ -117,6 +115,7 @@ def test_output_summarises_slots_and_passes_events_and_state():
     b.close()
 
 
+@pytest.mark.timeout(120)
 def test_hub_slow_subscriber_loses_oldest_and_never_blocks_publisher():
     hub = StationHub("st", None)
     slow = hub.subscribe(maxlen=8)
@@ -130,10 +129,9 @@ def test_hub_slow_subscriber_loses_oldest_and_never_blocks_publisher():
             got.extend(fast.drain())
     th = threading.Thread(target=drain)
     th.start()
-    t0 = time.perf_counter()
+    # `slow` never drains: a publish that waited for it would wait for ever (the test's timeout)
     for i in range(5000):
         hub.publish("slots", {"i": i})
-    elapsed = time.perf_counter() - t0
     stop.set()
     th.join()
     got.extend(fast.drain())
@@ -141,7 +139,6 @@ def test_hub_slow_subscriber_loses_oldest_and_never_blocks_publisher():
     assert [b["i"] for _, b in slow.drain()] == list(range(4992, 5000))
     assert slow.dropped == 4992
     assert len(hub.stream) <= 512 and hub.stream[-1][1]["i"] == 4999
-    assert elapsed < 2.0
 
 
 def _fleet(tmp_path, stations: dict[str, str]):
