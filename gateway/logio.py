@@ -406,9 +406,9 @@ def write_companion(path: str) -> str:
 
 
 def write_companion_later(path: str) -> bool:
-    """:func:`write_companion` in the process's one background writer (the recorder calls this
-    when a test closes). Never blocks, never raises."""
-    return logcols.write_in_background(path, write_companion)
+    """:func:`write_companion` in the process's one background writer, in a child interpreter
+    (the recorder calls this when a test closes). Never blocks, never raises."""
+    return logcols.write_in_background(path)
 
 
 def _parse_reference(path: str, text: str, body: str, columns: list[str], cols: list[int]) -> np.ndarray:

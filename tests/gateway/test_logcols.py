@@ -264,3 +264,15 @@ def test_a_real_recorder_on_a_small_disk_closes_normally_without_a_companion(tmp
         msgs = [r.getMessage() for r in caplog.records if r.name == "hookwatch.logcols"]
         assert len(msgs) == 1 and "short of space" in msgs[0]
         assert logio.read_log(path).t.size > logcols.MIN_ROWS
+
+
+def test_a_log_that_does_not_parse_is_one_warning_line(tmp_path, caplog):
+    path = str(tmp_path / LOG_NAME)
+    with open(path, "wb") as f:
+        f.write(gzip.compress(b"t,T1,T2\n0.0,0.3,0.6\n0.02,zero,0.6\n", mtime=0))
+    with caplog.at_level(logging.INFO, logger="hookwatch.logcols"):
+        assert logio.write_companion_later(path) is True
+        assert logcols.wait_idle(60)
+    msgs = [r.getMessage() for r in caplog.records if r.name == "hookwatch.logcols"]
+    assert len(msgs) == 1 and "companion not written" in msgs[0] and "line 3" in msgs[0], msgs
+    assert sorted(os.listdir(tmp_path)) == [LOG_NAME]
