@@ -3,8 +3,10 @@
 read from .csv.gz; nothing is cached, nothing written beside the log), where its time goes, the
 parse candidates side by side in one run (ISA-L + Arrow, the product's path, vs. zlib + numpy,
 the reference it replaced, vs. reading a binary companion), the same on a log in the recorder's
-own 10-column format, and the streaming form's cost per slot. Medians over several runs; the load
-average is printed with each figure because the machine is shared."""
+own 10-column format, the same log with and without its columnar companion (``log.cols``, written
+once by the recorder at close: gateway/logcols.py), and the streaming form's cost per slot.
+Medians over several runs; the load average is printed with each figure because the machine is
+shared. ``--companion`` runs only the companion comparison."""
 import os
 import resource
 import statistics
@@ -181,6 +183,145 @@ print(T1 - T0, T2 - T1, T3 - T2, T4 - T3, T5 - T4, T6 - T5)
           + ", ".join(f"{n} {statistics.median(c):.3f} s" for n, c in zip(names, zip(*rows))))
 
 
+STAGES_CODE = r"""
+import time; T0 = time.perf_counter()
+import numpy
+T1 = time.perf_counter()
+from gateway import logio
+from gateway.analysis import params_for
+from gateway.method import analyze_slots, to_slots
+T2 = time.perf_counter()
+lg = logio.read_log(LOG)
+T3 = time.perf_counter()
+prm = params_for(lg.meta, {}, LOG)
+s = to_slots(lg.t, lg.t1, lg.t2, prm)
+T4 = time.perf_counter()
+analyze_slots(s, prm)
+T5 = time.perf_counter()
+print(T1 - T0, T2 - T1, T3 - T2, T4 - T3, T5 - T4)
+"""
+
+
+def companion(runs: int = 7) -> None:
+    """Cold `hookwatch analyze --json` of the recorder-format 10-hour log with its companion and
+    without it (the companion moved aside), interleaved run by run in one loop (same load for
+    both); the companion made by the function the recorder calls at close; then where each
+    path's time goes, in fresh interpreters."""
+    from gateway import logcols, logio
+
+    rlog = os.path.join(HERE, "data", "rec10h", "log.csv.gz")
+    if not os.path.exists(rlog):
+        generate_recorder_format(rlog)
+    cp = logcols.companion_path(rlog)
+    away = cp + ".aside"
+    for stale in (away, cp):
+        if os.path.exists(stale):
+            os.remove(stale)
+    t0 = time.perf_counter()
+    what = logio.write_companion(rlog)
+    wt = time.perf_counter() - t0
+    if not os.path.exists(cp):
+        sys.exit(f"no companion: {what}")
+    rows = logio.read_log(rlog, with_meta=False).t.size
+    print(f"[{load()}] recorder-format 10-hour log: {os.path.getsize(rlog) / 1e6:.1f} MB .csv.gz "
+          f"({os.path.getsize(rlog) / rows:.1f} B/row), {rows:,} rows; companion {what} in {wt:.2f} s "
+          f"(parse + encode, in the recorder's background thread): {os.path.getsize(cp) / 1e6:.2f} MB, "
+          f"{os.path.getsize(cp) / rows:.2f} B/row ({os.path.getsize(cp) / os.path.getsize(rlog):.2f}× the .csv.gz)")
+    with open(cp, "rb") as f:
+        import json
+        import struct
+        f.read(len(logcols.MAGIC))
+        (hl,) = struct.unpack("<I", f.read(4))
+        hdr = json.loads(f.read(hl))
+    print("  encodings: " + ", ".join(f"{e['name']} {e['enc']}{e.get('k', '')} ({e['dtype']}) "
+                                      f"{e['len'] / rows:.2f} B/row" for e in hdr["enc"]))
+    # what the recorder's background writer costs the station's interpreter: the largest gap of a
+    # thread that sleeps 2 ms at a time (a stand-in for the slot loop), idle vs. while the writer
+    # builds this companion (in its child interpreter)
+    def max_gap(during) -> float:
+        import threading
+        stop, gaps = [], []
+
+        def tick() -> None:
+            last = time.perf_counter()
+            while not stop:
+                time.sleep(0.002)
+                now = time.perf_counter()
+                gaps.append(now - last)
+                last = now
+        th = threading.Thread(target=tick)
+        th.start()
+        during()
+        stop.append(1)
+        th.join()
+        return max(gaps)
+
+    os.replace(cp, away)
+    try:
+        idle = max_gap(lambda: time.sleep(wt))
+        busy = max_gap(lambda: (logio.write_companion_later(rlog), logcols.wait_idle(600)))
+    finally:
+        if os.path.exists(cp):          # written again by the background writer: the same file
+            os.remove(away)
+        else:
+            os.replace(away, cp)
+    print(f"  a 2 ms ticker in the recorder's process: largest gap {busy * 1e3:.1f} ms while the "
+          f"background writer builds the companion, {idle * 1e3:.1f} ms idle")
+    exe = os.path.join(os.path.dirname(sys.executable), "hookwatch")
+    folder = os.path.dirname(rlog)
+    with_c: list[float] = []
+    without: list[float] = []
+    cpu: dict[str, list[float]] = {"with": [], "without": []}
+    loads = []
+    out = None
+    for _ in range(runs):
+        for present, times, key in ((True, with_c, "with"), (False, without, "without")):
+            if not present:
+                os.replace(cp, away)
+            try:
+                before = sorted(os.listdir(folder))
+                r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t0 = time.perf_counter()
+                p = subprocess.run([exe, "analyze", rlog, "--json"], capture_output=True, text=True,
+                                   cwd=os.path.dirname(HERE))
+                times.append(time.perf_counter() - t0)
+                r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu[key].append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
+                assert sorted(os.listdir(folder)) == before, "analyze wrote beside the log"
+            finally:
+                if not present:
+                    os.replace(away, cp)
+            assert p.returncode == 0, p.stderr
+            assert out is None or p.stdout == out, "results differ with and without the companion"
+            out = p.stdout
+        loads.append(os.getloadavg()[0])
+    mw, mo = statistics.median(with_c), statistics.median(without)
+    print(f"analyze recorder-format 10 h log, cold, WITH companion: {med(with_c)} over {runs} runs  "
+          f"[goal ≤ 1.0 s]")
+    print(f"  same loop, WITHOUT (ISA-L + Arrow parse of the text): {med(without)}; ratio of medians "
+          f"{mo / mw:.1f}×; same result: yes; nothing written beside the log: yes")
+    print(f"  CPU seconds per run (user+sys, all threads): with {statistics.median(cpu['with']):.3f} s, "
+          f"without {statistics.median(cpu['without']):.3f} s; 1-min load during the loop "
+          f"{min(loads):.1f}–{max(loads):.1f}   [{load()}]")
+    names = ("interpreter+numpy", "gateway import", "read_log", "slot grid", "method")
+    for present in (True, False):
+        if not present:
+            os.replace(cp, away)
+        try:
+            rows_t = []
+            for _ in range(5):
+                p = subprocess.run([sys.executable, "-c", STAGES_CODE.replace("LOG", repr(rlog))],
+                                   capture_output=True, text=True, cwd=os.path.dirname(HERE), check=True)
+                rows_t.append([float(x) for x in p.stdout.split()])
+        finally:
+            if not present:
+                os.replace(away, cp)
+        print(f"  stages {'with' if present else 'without'} (median of 5 fresh interpreters, min in "
+              "brackets): " + ", ".join(f"{n} {statistics.median(c):.3f} ({min(c):.3f}) s"
+                                         for n, c in zip(names, zip(*rows_t))))
+    print(f"  [{load()}]")
+
+
 def main(runs: int = 7) -> None:
     log = os.path.join(HERE, "data", "long10h.csv.gz")
     if not os.path.exists(log):
@@ -237,4 +378,8 @@ def main(runs: int = 7) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    if "--companion" in sys.argv[1:]:
+        companion()
+    else:
+        main()
+        companion()

@@ -15,14 +15,13 @@ quoted field, ragged rows, an empty field, ``nan(…)``, non-UTF-8 text, a missi
 back to the reference parser (numpy's loadtxt, forked over two cores for large bodies), which
 also finds and names the bad row.
 
-Why not a binary companion (or the old cache): exact float64 columns compress to 11.6 B/row for
-a 3-decimal log (2.2× its .csv.gz, decoding about as slowly as this whole read) and 7.8 B/row for
-the recorder's own 10-column format (0.25× its .csv.gz, ≈ 10× faster than reading it: the next
-step for the station's own logs, written once by the recorder at close, see bench/README.md); it
-must be written by someone and validated, and helps only logs the station recorded; the fast
-parse helps every log and leaves the records folder as the recorder wrote it. A
-``NAME.colcache`` left by older versions is ignored (never read, never deleted: deleting it is
-safe).
+A log the station recorded gets a compact columnar companion ``NAME.cols`` when its test closes
+(:mod:`gateway.logcols`: written once, by the recorder's background writer, from this module's
+parse of the finished log): :func:`read_log` takes t, T1, T2 from it — bit-identical, ≈ 5× faster
+than gunzip + parse of a 10-hour recorder log — when it matches the log's size, mtime_ns and
+SHA-256 (and its own CRC); otherwise (none, stale, damaged) it parses the text. Readers never
+write one. A ``NAME.colcache`` left by older versions is ignored (never read, never deleted:
+deleting it is safe).
 """
 from __future__ import annotations
 
@@ -39,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from . import safeyaml
+from . import logcols, safeyaml
 from .method.prior import NO_PRIOR, SOURCE_CONFIG, SOURCE_HISTORY, Prior
 
 REQUIRED_COLUMNS = ("t", "T1", "T2")
@@ -68,19 +67,6 @@ def log_stem(path: str) -> str:
 
 def sidecar_path(path: str) -> str:
     return log_stem(path) + ".meta.yaml"
-
-
-def _read_raw(path: str) -> bytes:
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except FileNotFoundError:
-        raise LogError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise LogError(f"{path}: is a directory, not a log file") from None
-    except OSError as e:
-        raise LogError(f"{path}: cannot read: {e.strerror or e}") from None
-    return raw
 
 
 #: compressed bytes handed to the inflater at a time by the lenient member loop: what is left of a
@@ -290,8 +276,23 @@ def _parse_fast(body: str, ncols: int, cols: list[int]) -> np.ndarray | None:
     return flat.reshape(nrows, ncols)[:, cols]
 
 
+def _read_raw_stat(path: str) -> tuple[bytes, os.stat_result]:
+    """The file's bytes and the fstat of the same open file (the key a companion must match)."""
+    try:
+        with open(path, "rb") as f:
+            st = os.fstat(f.fileno())
+            raw = f.read()
+    except FileNotFoundError:
+        raise LogError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise LogError(f"{path}: is a directory, not a log file") from None
+    except OSError as e:
+        raise LogError(f"{path}: cannot read: {e.strerror or e}") from None
+    return raw, st
+
+
 def _read_bytes(path: str) -> bytes:
-    return _decompress(path, _read_raw(path))
+    return _decompress(path, _read_raw_stat(path)[0])
 
 
 #: field text Arrow reads as a number where the reference parser does not (``nan(123)``)
@@ -338,9 +339,20 @@ def _parse_arrow(raw: bytes, start: int, end: int, ncols: int, cols: list[int]
 
 
 def read_log(path: str, with_meta: bool = True) -> Log:
-    """The log at ``path``: columns t, T1, T2 as float64 arrays (every complete row). Reads only:
-    nothing is ever written beside the log (see the module doc for the fast path and why)."""
-    raw = _decompress(path, _read_raw(path))
+    """The log at ``path``: columns t, T1, T2 as float64 arrays (every complete row). From its
+    companion (:mod:`gateway.logcols`) when one was made from exactly these bytes, else parsed.
+    Reads only: nothing is ever written beside the log."""
+    raw, st = _read_raw_stat(path)
+    got = logcols.load(path, raw, st)
+    t, t1, t2, columns = got if got is not None else parse_raw(path, raw)
+    meta = read_meta(path) if with_meta else {}
+    return Log(path=path, t=t, t1=t1, t2=t2, meta=meta, columns=columns)
+
+
+def parse_raw(path: str, raw: bytes) -> logcols.Columns:
+    """t, T1, T2 and the header columns of the log file's bytes ``raw`` (the text, never a
+    companion); LogError names what is wrong."""
+    raw = _decompress(path, raw)
     if not raw.isascii():
         try:
             raw.decode("utf-8")
@@ -369,8 +381,33 @@ def read_log(path: str, with_meta: bool = True) -> Log:
     else:
         data = _parse_reference(path, raw.decode("utf-8"), raw[start:end].decode("utf-8"), columns, cols)
         t, t1, t2 = data[:, 0].copy(), data[:, 1].copy(), data[:, 2].copy()
-    meta = read_meta(path) if with_meta else {}
-    return Log(path=path, t=t, t1=t1, t2=t2, meta=meta, columns=columns)
+    return t, t1, t2, columns
+
+
+def write_companion(path: str) -> str:
+    """Write the companion of the finished log at ``path`` from the parse of its bytes (so its
+    values are exactly what a parse gives). Returns what was done; raises on an I/O error or a
+    log that does not parse (the background writer makes that one log line)."""
+    raw, st = _read_raw_stat(path)
+    if logcols.load(path, raw, st) is not None:
+        return "already current"
+    t, t1, t2, columns = parse_raw(path, raw)
+    if t.size < logcols.MIN_ROWS:
+        return f"skipped: {t.size} rows parse fast (fewer than {logcols.MIN_ROWS})"
+    key = logcols.key_of(raw, st)
+    data = logcols.dumps(key, t, t1, t2, columns)
+    now = os.stat(path)
+    if now.st_size != st.st_size or now.st_mtime_ns != st.st_mtime_ns:
+        return "skipped: the log changed while it was read"
+    if not logcols.store(path, data):
+        return "skipped: the disk is short of space"
+    return f"written ({t.size} rows, {len(data)} bytes)"
+
+
+def write_companion_later(path: str) -> bool:
+    """:func:`write_companion` in the process's one background writer, in a child interpreter
+    (the recorder calls this when a test closes). Never blocks, never raises."""
+    return logcols.write_in_background(path)
 
 
 def _parse_reference(path: str, text: str, body: str, columns: list[str], cols: list[int]) -> np.ndarray:

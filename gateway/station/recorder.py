@@ -25,6 +25,7 @@ from typing import Any
 
 import yaml
 
+from .. import logio
 from ..analysis import AnalysisError, analyze_file
 from ..method.rules import LOST
 from ..records import Event, SlotRecord
@@ -466,6 +467,8 @@ class TestRecorder:
                 log.error("%s: cannot update the sidecar with the lost spans: %s", self.dir, e)
         write_result(self.dir, result, tail)
         self.closed = True
+        # the log's compact columns, for a fast offline analysis: one background thread, never raises
+        logio.write_companion_later(os.path.join(self.dir, LOG_NAME))
 
 
 _pending_results: dict[str, dict[str, Any]] = {}
