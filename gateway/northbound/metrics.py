@@ -36,6 +36,8 @@ object)::
      "state": "monitoring", "test_running": true, "alarm": "normal",
      "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null,
      "headroom": 0.4 | null, "t_cross": 5400.0 | null, "warning": false,    # METHOD.md §5a
+     "end_p10_left": 900.0 | null, "end_p50_left": ..., "end_p90_left": ...,   # §5b, s remaining
+     "p_end": 0.2 | null, "due": false, "lead_s": 3600.0 | null,
      "events": {"port_lost": 1, ...}}
 
 Process-wide figures (not per station): :func:`set_console_clients` (the console sets it) and
@@ -120,7 +122,8 @@ class Histogram:
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
-                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok")
+                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
+                 "forecast")
 
     def __init__(self, station: str):
         self.station = station
@@ -137,6 +140,8 @@ class StationFigures:
         self.state = TestState.IDLE
         self.alarm = "normal"
         self.events: dict[str, int] = {}
+        #: the §5b forecast as the state last had it (forecast_figures)
+        self.forecast: dict[str, Any] = {}
 
 
 _FIGURES: dict[str, StationFigures] = {}
@@ -280,7 +285,8 @@ class MetricsOutput(_EndpointSource):
         # METHOD.md §5a figures, once the station state carries them
         f.headroom = getattr(st, "headroom", None)
         f.t_cross = getattr(st, "t_cross", None)
-        f.warning = getattr(st, "warn_slot", None) is not None
+        f.warning = bool(st.wear_warning)
+        f.forecast = forecast_figures(st)
         f.disk_ok = bool(getattr(st, "disk_ok", True))
         if st.state not in _RUNNING:
             f.mu = None
@@ -329,8 +335,18 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
         "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
         "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
         "t_cross": f.t_cross, "warning": f.warning,
-        "events": dict(f.events), "disk_ok": f.disk_ok,
+        "events": dict(f.events), "disk_ok": f.disk_ok, **f.forecast,
     }
+
+
+def forecast_figures(st: StationState) -> dict[str, Any]:
+    """The §5b figures of a snapshot (METHOD.md): the remaining time to each end quantile of the
+    last forecast time (s, at least 0; null without one), P, the due flag and the lead."""
+    el = float(st.elapsed_s)
+    out: dict[str, Any] = {f"end_p{q}_left": (max(0.0, e - el) if e is not None else None)
+                           for q, e in ((10, st.end_p10), (50, st.end_p50), (90, st.end_p90))}
+    out.update(p_end=st.p_end, due=bool(st.due), lead_s=st.lead_s)
+    return out
 
 
 class MetricsRelay(_EndpointSource):
@@ -531,10 +547,42 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
                 g.add_metric([s["station"]], float(v))
         out.append(g)
 
+    out += forecast_families(p, snapshots)
+
     if console_clients is not None:
         out.append(GaugeMetricFamily(f"{p}_console_clients", "clients connected to the web console",
                                      value=float(console_clients)))
     return out
+
+
+def forecast_families(p: str, snapshots: list[dict[str, Any]]) -> list[Any]:
+    """The §5b remaining-life metrics (METHOD.md): remaining seconds to each end quantile, P, the
+    lead and a due gauge (the alerting rule in deploy/prometheus/ fires on it)."""
+    out: list[Any] = []
+    for q in (10, 50, 90):
+        g = GaugeMetricFamily(f"{p}_end_p{q}_seconds", f"remaining time to the {q} % end quantile "
+                              "of the hook's life forecast at its last forecast time (METHOD.md "
+                              "§5b); absent without a prior, outside a test and once the end of "
+                              "life was detected", labels=["station"])
+        for s in snapshots:
+            v = s.get(f"end_p{q}_left")
+            if v is not None and math.isfinite(v):
+                g.add_metric([s["station"]], float(v))
+        out.append(g)
+    pe = GaugeMetricFamily(f"{p}_end_within_lead_probability", "chance that the hook's end comes "
+                           "within the lead (METHOD.md §5b P)", labels=["station"])
+    lead = GaugeMetricFamily(f"{p}_lead_seconds", "the planner's lead the hook is judged against "
+                             "(METHOD.md §5b)", labels=["station"])
+    due = GaugeMetricFamily(f"{p}_hook_due", "1 while the last forecast window of the running test "
+                            "is due (METHOD.md §5b: P ≥ p_due, a headroom run or a projected "
+                            "crossing within the lead)", labels=["station"])
+    for s in snapshots:
+        if s.get("p_end") is not None and math.isfinite(s["p_end"]):
+            pe.add_metric([s["station"]], float(s["p_end"]))
+        if s.get("lead_s") is not None:
+            lead.add_metric([s["station"]], float(s["lead_s"]))
+        due.add_metric([s["station"]], 1.0 if s.get("due") else 0.0)
+    return out + [pe, lead, due]
 
 
 class SnapshotCollector:
