@@ -13,8 +13,7 @@ import urllib.request
 
 from conftest import ROOT, hookwatch_cmd
 from kit.broker import check_message
-from kit.e2e import (QUICK_END, QUICK_LEAD, QUICK_METHOD, QUICK_PRIOR, Proc, quick_scenario, read_json,
-                     station_yaml)
+from kit.e2e import QUICK_END, QUICK_LEAD, QUICK_METHOD, QUICK_PRIOR, Proc, quick_scenario, read_json, station_yaml
 from kit.tools import require_tool
 
 
