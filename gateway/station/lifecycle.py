@@ -98,6 +98,8 @@ class TestLifecycle:
     def slot(self, k: int, present: bool, t1: float, t2: float) -> SlotResult:
         """The start sequence's or the test's computation of loop slot ``k`` (pure, no waiting)."""
         self.k = k
+        if k == 0:                       # the station's first slot: the box's life history is read
+            self.priors.refresh()        # off the loop (§7a), long before a test's slot 0
         y, sat = math.nan, False
         speed_act = self.link.speed_act
         if self.starting is not None:
