@@ -526,7 +526,9 @@ def _examples() -> dict[str, dict[str, Any]]:
     st = StationState(station="st1", state=TestState.END_OF_LIFE, test_id="20260301T060000Z-S-0042",
                       sample_id="S-0042", grade="I", t_set=0.5, t_end=36000.0, mu_ss=0.2213,
                       mu_th=0.2545, k_b=1500, t_life=6930.5, elapsed_s=7200.0, alarm="unacknowledged",
-                      meter_ok=True, stm32_ok=True)
+                      meter_ok=True, stm32_ok=True, wear_warning=True, warn_reasons=["prior"],
+                      prior_mean=7800.0, prior_sd=900.0, prior_source="config", lead_s=3600.0,
+                      p_due=0.1, test_started_utc="2026-03-01T06:00:00.000Z")
     ev = Event(EventType.END_OF_LIFE, "st1", t, st.test_id, 346525,
                {"k_life": 346525, "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545, "sample_id": "S-0042"})
     return {
@@ -537,7 +539,8 @@ def _examples() -> dict[str, dict[str, Any]]:
             "tension": {"mean": 0.5012, "min": 0.4981, "max": 0.5047}, "mu": 0.2561,
             "valid_ratio": 0.98, "counts": {n: (1 if n == "JUMP" else 0) for n in REASON_NAMES},
             "speed_cmd": 120.4, "speed_act": 120.1, "saturated_slots": 0, "saturation": False,
-            "headroom": -0.42, "t_cross": None}),
+            "headroom": -0.42, "t_cross": None, "end_p10": None, "end_p50": None, "end_p90": None,
+            "p_end": None, "due": False}),
         "event": event_payload(1044, ev),
         "alarm": alarm_payload(1045, t, "st1", {
             "state": "unacknowledged", "active": True, "condition": True, "acknowledged": False,
@@ -548,7 +551,9 @@ def _examples() -> dict[str, dict[str, Any]]:
             "state": "unacknowledged", "active": True, "condition": True, "acknowledged": False,
             "shelved_until": None, "test_id": st.test_id,
             "sample_id": "S-0042", "warn_slot": 275999, "t_warn": 5520.0, "headroom": 0.41,
-            "t_cross": 7040.5, "mu_ss": 0.2213, "mu_th": 0.2545, "raised_at": iso_ms(t - 1380.0)}),
+            "t_cross": 7040.5, "reasons": ["prior"], "end_p10": 6620.4, "end_p50": 7905.2,
+            "end_p90": 9080.7, "p_end": 0.12, "lead_s": 3600.0, "mu_ss": 0.2213, "mu_th": 0.2545,
+            "raised_at": iso_ms(t - 1380.0)}),
         "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
                    "t_set": 0.5, "test_status": "completed", "end_reason": "completed",
                    "result": {"status": "failure", "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545}},
