@@ -245,9 +245,9 @@ class TestLifecycle:
         if self.starting is not None:
             await self.start_failed(f"start cancelled: hook replaced ({source})")
         last = await self.end_test("hook_replaced", source=source) if sess is not None else None
-        if last is None and self.results:
-            last = self.results[-1]
         old_sid = old_plan.sample_id if old_plan is not None else st.sample_id
+        if last is None and self.results and self.results[-1].get("sample_id") == old_sid:
+            last = self.results[-1]          # the old hook's last test (none: it never ran one)
         if sample_id == old_sid:        # a PLC's staged id is still the old hook's: not a new one
             sample_id = None
         new_sid = sample_id or next_sample_id(old_sid, sample_id_max)
