@@ -17,6 +17,8 @@ import threading
 
 from ..cli import CliError
 from ..config import ConfigError, load_station
+from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
+from ..northbound.schema import base_topic
 from ..station.hooks import HOOKS_NAME, MAX_LINES, read_hooks
 
 HELP = "list a station's replaced hooks (hooks.jsonl), or tell the running station its hook was replaced"
@@ -75,9 +77,6 @@ def _send(cfg, sample_id: str | None, grade: str | None) -> int:
     code (0 accepted, 1 refused or no answer)."""
     import paho.mqtt.client as paho
     from paho.mqtt.enums import CallbackAPIVersion
-
-    from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
-    from ..northbound.schema import base_topic
 
     m = cfg.mqtt
     if not m.enabled:
