@@ -102,6 +102,8 @@ class Telemetry:
             "speed_cmd": self.speed_cmd, "speed_act": self.speed_act,
             "saturated_slots": self.n_sat, "saturation": self.n_sat > 0,
             "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
+            # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
+            **schema.forecast_fields(None, state=False),
         }
 
 
