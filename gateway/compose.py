@@ -71,6 +71,8 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         autostart=bool(cfg.test.autostart), limits=station_limits(cfg, mv),
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
     )
+    st.tests.priors.entries = tuple(cfg.forecast.priors)      # §7a, METHOD.md
+    st.tests.restart_on_replace = bool(cfg.test.restart_on_replace)
     if with_northbound:
         st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor,
                                              sparkplug="sparkplug" not in served_by_supervisor))

@@ -71,6 +71,7 @@ class EventType(str, enum.Enum):
     ALARM_UNSHELVED = "alarm_unshelved"        # by command or at the shelving's expiry
     ALARM_OUT_OF_SERVICE = "alarm_out_of_service"
     ALARM_IN_SERVICE = "alarm_in_service"
+    HOOK_REPLACED = "hook_replaced"      # a hook was replaced (its line in hooks.jsonl)
     COMMAND_REJECTED = "command_rejected"
     CONFIG_RELOADED = "config_reloaded"
     DISK_FULL = "disk_full"              # the records' or the outbox's disk cannot be written
@@ -113,7 +114,21 @@ class StationState:
     warning_alarm: str = AlarmState.NORMAL.value  # the §5a wear-warning alarm (lower priority)
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
-    wear_warning: bool = False         # §5a early warning fired in this test
+    wear_warning: bool = False         # §5b early warning fired in this test (the first due window)
+    # §5b/§7a remaining life (issue 20): all None/False/[] outside a test; no projection (end_p*,
+    # p_end, t_cross, due) after the end of life was detected or after the test ended
+    prior_mean: float | None = None    # the test's life prior, s (§7a)
+    prior_sd: float | None = None
+    prior_source: str | None = None    # "method", "config", "history:N" or None (no prior)
+    lead_s: float | None = None        # the planner's lead (§5b `lead`), s
+    p_due: float | None = None         # the bound P is held against (§5b `p_due`)
+    end_p10: float | None = None       # end quantiles of the last forecast time, s from slot 0
+    end_p50: float | None = None
+    end_p90: float | None = None
+    p_end: float | None = None         # chance of the end within the lead (last forecast time)
+    due: bool = False                  # the last forecast window is due (§5b)
+    warn_reasons: list[str] = field(default_factory=list)   # the early warning's reasons, sorted
+    test_started_utc: str | None = None   # ISO 8601 (UTC) of the test's slot 0
     stopped: bool = False              # the last test was ended on purpose (STOPPED, §3)
     protection_stop: bool = False
     meter_ok: bool = False

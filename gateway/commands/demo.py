@@ -328,10 +328,23 @@ def _plain_words(m: dict, ended: dict, onset: float | None, tau: float, ts: floa
     if k is not None:
         t_det = (k + 1) * ts
         parts.append(f"detected {t_det - t_life:.1f} s later (the {tau:g} s persistence)")
+    parts.append(_warned(m, t_life, ts))
     if onset is not None:
         parts.append(f"the simulated wear began to accelerate at {onset:.1f} s")
     parts.append(agrees)
     return "; ".join(parts)
+
+
+def _warned(m: dict, t_life: float, ts: float) -> str:
+    """How far ahead the early warning (METHOD.md §5b) came, and why."""
+    warn_slot = m.get("warn_slot")
+    if warn_slot is None:
+        return "no early warning came before the end of life was detected"
+    t_warn = (int(warn_slot) + 1) * ts
+    why = ", ".join(m.get("warn_reasons") or [])
+    if t_warn <= t_life:
+        return f"warned {t_life - t_warn:.1f} s before the end of life (reasons: {why})"
+    return f"warned only {t_warn - t_life:.1f} s after the end of life began (reasons: {why})"
 
 
 def _fig7(test_dir: str, out: str) -> str | None:

@@ -226,6 +226,9 @@ class TestConfig:
                          "completed after this long", kind="float", unit="s", lo=0.0, lo_open=True)
     autostart: bool = key(False, "start a test with these values as soon as the station runs",
                           kind="bool")
+    restart_on_replace: bool = key(False, "a `hook_replaced` command starts the next test with the "
+                                   "new hook at once (these values, the new sample ID and grade)",
+                                   kind="bool")
 
 
 #: the keys of one `forecast.priors` entry (METHOD.md §7a): required, then optional

@@ -383,6 +383,7 @@ class ModbusOutput:
             "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
             "starting": st.state == TestState.STARTING,
             "disk_ok": bool(getattr(st, "disk_ok", True)),
+            "hook_due": bool(st.due),
         }
         v = {
             "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION,
@@ -402,6 +403,14 @@ class ModbusOutput:
         }
         for (_, name), c in zip(REASONS, self._counts):
             v[f"count_{name.lower()}"] = c
+        # §5b: the remaining time to each end quantile, as the forecast stood at its last window
+        el = float(st.elapsed_s)
+        for q, e in ((10, st.end_p10), (50, st.end_p50), (90, st.end_p90)):
+            v[f"end_p{q}_left"] = max(0.0, e - el) if e is not None else math.nan
+        v["p_end"] = st.p_end
+        v["warn_reasons"] = sum(1 << R.WARN_REASON_BIT[r] for r in st.warn_reasons
+                                if r in R.WARN_REASON_BIT)
+        v["lead"] = st.lead_s if st.lead_s is not None and running else 0
         return v
 
     def _update(self, now: float | None = None, force: bool = False) -> None:

@@ -30,6 +30,7 @@ from ..station.alarm_store import AlarmStore
 from ..station.commands import CODE, Rejection
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
+from . import schema
 from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
 from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
@@ -127,6 +128,7 @@ class MqttOutput:
         st = self._last_state           # §5a: the headroom of the last window, as in `state`
         summary = agg.summary(now, self._test_id, st.headroom if st is not None else None,
                               st.t_cross if st is not None else None)
+        summary.update(schema.forecast_fields(st if self._test_id else None, state=False))
         self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(), summary))
 
     def on_event(self, ev: Event) -> None:

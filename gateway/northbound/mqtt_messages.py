@@ -102,6 +102,8 @@ class Telemetry:
             "speed_cmd": self.speed_cmd, "speed_act": self.speed_act,
             "saturated_slots": self.n_sat, "saturation": self.n_sat > 0,
             "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
+            # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
+            **schema.forecast_fields(None, state=False),
         }
 
 
@@ -113,7 +115,9 @@ def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
             "acknowledged": rec.acknowledged, "shelved_until": rec.shelved_until, "test_id": rec.test_id,
             "sample_id": rec.sample_id, "t_life": rec.t_life, "k_life": rec.k_life,
             "warn_slot": rec.warn_slot, "t_warn": rec.t_warn, "headroom": rec.headroom,
-            "t_cross": rec.t_cross,
+            "t_cross": rec.t_cross, "reasons": None if rec.reasons is None else list(rec.reasons),
+            "end_p10": rec.end_p10, "end_p50": rec.end_p50, "end_p90": rec.end_p90,
+            "p_end": rec.p_end, "lead_s": rec.lead_s,
             "mu_ss": rec.mu_ss, "mu_th": rec.mu_th, "raised_at": rec.raised_at,
             "acknowledged_at": rec.acknowledged_at, "acknowledged_by": rec.acknowledged_by,
             "cleared_at": rec.cleared_at}
@@ -168,7 +172,9 @@ def state_key(st: StationState) -> tuple[Any, ...]:
     return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
             st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
             st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
-            st.warning_alarm, getattr(st, "disk_ok", True))
+            st.warning_alarm, getattr(st, "disk_ok", True), st.end_p10, st.end_p50, st.end_p90,
+            st.p_end, st.due, tuple(st.warn_reasons), st.prior_mean, st.prior_sd, st.prior_source,
+            st.lead_s, st.p_due, st.test_started_utc)
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:

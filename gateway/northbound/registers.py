@@ -21,7 +21,9 @@ from ..records import AlarmState, CommandKind, TestState
 from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
-MAP_VERSION = 3    # 3: alarm enums in ISA-18.2 states (0–5), command codes 5–7, status bit 13 disk_ok
+MAP_VERSION = 4    # 4: the §5b forecast (end_p10/50/90_left, p_end, warn_reasons), status bit 14
+#                    hook_due; `hook_replaced` takes sample_id/grade (registers added only)
+#                  3: alarm enums in ISA-18.2 states (0–5), command codes 5–7, status bit 13 disk_ok
 #                    2: headroom, t_cross, warning_alarm, status bits 10–12, test state 6 starting
 
 INPUT = "input"
@@ -82,7 +84,17 @@ STATUS_BITS: tuple[tuple[int, str, str], ...] = (
     (12, "starting", "a start is in progress: zero check or spin-up before slot 0 (METHOD.md §3a)"),
     (13, "disk_ok", "the test records and the MQTT outbox can be written (0: a full or read-only "
      "disk; the station runs on, see docs/limits.md)"),
+    (14, "hook_due", "the hook is due (METHOD.md §5b): the last forecast window of the running test "
+     "is due (P ≥ p_due, a headroom run or a projected crossing within the lead); 0 outside a test "
+     "and once the end of life was detected (the end-of-life alarm speaks then)"),
 )
+#: bits of the input register `warn_reasons`: the early warning's reasons (§5b) once it fired
+WARN_REASON_BITS: tuple[tuple[int, str, str], ...] = (
+    (0, "headroom", "the headroom stayed under `h_warn` for `n_warn` windows (§5a)"),
+    (1, "prior", "the chance of the end within the lead reached `p_due` (the life prior, §7a)"),
+    (2, "trend", "the recent trend reaches μ_th within the lead (§5a t_cross)"),
+)
+WARN_REASON_BIT = {name: bit for bit, name, _ in WARN_REASON_BITS}
 STATUS_BIT = {name: bit for bit, name, _ in STATUS_BITS}
 
 ALARM_STATES = tuple(a.value for a in AlarmState)
@@ -94,7 +106,9 @@ COMMAND_CODES: tuple[tuple[int, str, str], ...] = (
     (2, "stop", "stop the running test (it ends as aborted)"),
     (3, "ack", "acknowledge the active alarms (end of life and wear warning)"),
     (4, "setpoint", "(input register only) the last command was a write of `t_set`"),
-    (5, "hook_replaced", "the worn hook was replaced: closes its alarms (ISA-18.2 `normal`)"),
+    (5, "hook_replaced", "the worn hook was replaced: ends the running test, closes its alarms "
+     "(ISA-18.2 `normal`), logs it (hooks.jsonl); the new hook's `sample_id` and `grade` from the "
+     "holding registers (empty / the old one: `<old>-R<n>`)"),
     (6, "out_of_service", "both alarms out of service while a needle is being changed"),
     (7, "in_service", "return the alarms to service"),
     (8, "shelve", "shelve the alarm in `alarm_select` for `shelve_duration` s (ISA-18.2; only an "
@@ -150,6 +164,14 @@ INPUT_REGS = _layout(INPUT, [
      "before the first test"),
     ("run_test_id", "string80", "", f"test ID of the current / last test (its records folder, the "
      f"`test_id` of its MQTT messages), up to {TEST_ID_REG_CHARS} ASCII characters as `run_sample_id`"),
+    *[(f"end_p{q}_left", "float32", "s", f"remaining time to the {q} % end quantile of the forecast "
+       "at the last forecast time (METHOD.md §5b): e_p − elapsed, at least 0; NaN without a prior, "
+       "outside a test and once the end of life was detected") for q in (10, 50, 90)],
+    ("p_end", "float32", "", "chance that the end comes within the lead (§5b P) at the last "
+     "forecast time; NaN without a prior, outside a test, after the end-of-life detection"),
+    ("warn_reasons", "bits", "", "the early warning's reasons once it fired in the running test "
+     "(status bit 10), see the table below; 0 before and outside a test"),
+    ("lead", "uint32", "s", "the lead the hook is judged against (§5b `lead`), s; 0 outside a test"),
 ])
 
 #: command codes a PLC may write (all but 0 none and 4 setpoint, which is a write of `t_set`)
@@ -398,6 +420,17 @@ def command_args(kind: CommandKind, hr: list[int] | tuple[int, ...], word_order:
     if kind == CommandKind.START:
         return start_args(hr, word_order, grades)
     args: dict[str, Any] = {}
+    if kind == CommandKind.HOOK_REPLACED:
+        # the new hook's sample id and grade, when staged (the station derives `<old>-R<n>`
+        # when the sample id is empty or still the old hook's)
+        r = HR["sample_id"]
+        sid = decode_sample_id(decode_value(r, list(hr[r.address:r.address + r.count]), word_order))
+        if sid:
+            args["sample_id"] = sid
+        g = int(hr[HR["grade"].address])
+        if 1 <= g <= len(grades):
+            args["grade"] = grades[g - 1]
+        return args
     if kind in (CommandKind.SHELVE, CommandKind.UNSHELVE):
         sel = int(hr[HR["alarm_select"].address])
         if 1 <= sel <= len(ALARM_SELECT):
@@ -495,6 +528,10 @@ def render(station: dict[str, Any] | None = None) -> str:
     out += ["", "### Status bits (`status`)", "", "| bit | name | meaning |", "|---|---|---|"]
     for bit, name, doc in STATUS_BITS:
         out.append(f"| {bit} | `{name}` | {doc} |")
+    out += ["", "### Early-warning reasons (`warn_reasons`)", "", "| bit | reason | meaning |",
+            "|---|---|---|"]
+    for bit, name, doc in WARN_REASON_BITS:
+        out.append(f"| {bit} | `{name}` | {doc} |")
     out += [
         "",
         "## Holding registers (functions 03 read, 06 / 16 / 23 write)",
@@ -516,6 +553,9 @@ def render(station: dict[str, Any] | None = None) -> str:
         "",
         "To start a test: write `sample_id`, `grade`, `t_end` (optional) and `t_set`, then 1 to "
         "`command`. Read `last_command`, `last_result` and `command_count` to see the outcome.",
+        "",
+        "When a hook is replaced: write the new hook's `sample_id` (and `grade`), then 5 to "
+        "`command`: the running test ends, the alarms close and the replacement is logged.",
         "",
         "To shelve an alarm (ISA-18.2): write `alarm_select` (1 end_of_life, 2 wear_warning) and "
         "`shelve_duration` (s), then 8 to `command`; 9 with `alarm_select` unshelves it. The alarm "
@@ -574,6 +614,12 @@ def render_csv(station: dict[str, Any] | None = None) -> str:
                     "table": "input.status", "address": IR["status"].address, "reference": IR["status"].reference,
                     "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "", "allowed": "",
                     "meaning": doc})
+    for bit, name, doc in WARN_REASON_BITS:
+        w.writerow({**({"station": station["id"], "unit_id": station["unit_id"],
+                        "word_order": station["word_order"]} if station else {}),
+                    "table": "input.warn_reasons", "address": IR["warn_reasons"].address,
+                    "reference": IR["warn_reasons"].reference, "count": 1, "name": f"bit{bit}:{name}",
+                    "type": "bit", "unit": "", "allowed": "", "meaning": doc})
     return buf.getvalue()
 
 

@@ -76,6 +76,45 @@ STATUS_FIELDS = (
     Field("map_version", "int", "version of the PLC register map served alongside"),
 )
 
+#: the §5b/§7a remaining-life figures (METHOD.md), in `state` and in `telemetry`: the forecast as
+#: found at the last forecast time (a window's end) of the running test; none outside a test,
+#: none of the projection (end_p*, p_end, due) from the end-of-life detection on
+FORECAST_FIELDS = (
+    Field("end_p10", "float|null", "end of life, 10 % quantile of the forecast from the prior at the "
+          "last forecast time (§5b), s from the test's slot 0 (`test_started_utc` + this = wall "
+          "time); null without a prior, outside a test or once the end of life was detected"),
+    Field("end_p50", "float|null", "end of life, median of that forecast, s from slot 0"),
+    Field("end_p90", "float|null", "end of life, 90 % quantile of that forecast, s from slot 0"),
+    Field("p_end", "float|null", "chance that the end comes within the lead `lead_s` (§5b P)"),
+    Field("due", "bool", "the last forecast window is due (§5b: P ≥ p_due, a headroom run or a "
+          "projected crossing within the lead)"),
+)
+FORECAST_STATE_FIELDS = FORECAST_FIELDS + (
+    Field("warn_reasons", "list", "the early warning's reasons once it fired (sorted: headroom, "
+          "prior, trend), else []"),
+    Field("prior_mean", "float|null", "the test's life prior, mean, s (§7a)"),
+    Field("prior_sd", "float|null", "the test's life prior, SD, s"),
+    Field("prior_source", "str|null", "where the prior came from: `method` (fixed in the station's "
+          "method section), `config` (forecast.priors), `history:N` (N recorded failures), null: none"),
+    Field("lead_s", "float|null", "the planner's lead (§5b `lead`), s"),
+    Field("p_due", "float|null", "the bound P is held against (§5b `p_due`)"),
+    Field("test_started_utc", "str|null", "UTC time of the test's slot 0, ISO 8601"),
+)
+
+
+def forecast_fields(st: StationState | None, *, state: bool = True) -> dict[str, Any]:
+    """The forecast figures of ``st`` (all of FORECAST_STATE_FIELDS, or FORECAST_FIELDS only)."""
+    names = FORECAST_STATE_FIELDS if state else FORECAST_FIELDS
+    if st is None:
+        return {f.name: ([] if f.type == "list" else False if f.type == "bool" else None)
+                for f in names}
+    out = {f.name: getattr(st, f.name, None) for f in names}
+    out["due"] = bool(out["due"])
+    if state:
+        out["warn_reasons"] = list(out["warn_reasons"] or [])
+    return out
+
+
 STATE_FIELDS = ENVELOPE + (
     Field("test_state", "str", "idle, starting (zero check and spin-up before slot 0, METHOD.md "
           "§3a), baseline_search, monitoring, end_of_life, completed, aborted"),
@@ -100,7 +139,8 @@ STATE_FIELDS = ENVELOPE + (
           "(§5a): 1 at the baseline, 0 at the threshold, negative above; informative"),
     Field("t_cross", "float|null", "projected time (s from test start) at which the recent trend "
           "of μ reaches μ_th (§5a), from the last window with a value; null: no projection"),
-    Field("wear_warning", "bool", "the §5a early warning fired in this test"),
+    Field("wear_warning", "bool", "the §5b early warning (the first due window) fired in this test"),
+    *FORECAST_STATE_FIELDS,
     Field("warning_alarm", "str", "wear-warning alarm (priority 2), ISA-18.2 state: "
           + ", ".join(a.value for a in AlarmState)),
     Field("meter_ok", "bool", "the tension meter answers"),
@@ -125,6 +165,7 @@ TELEMETRY_FIELDS = ENVELOPE + (
     Field("saturation", "bool", "the control output was clamped at least once in the interval"),
     Field("headroom", "float|null", "wear headroom of the last complete window (§5a), as in `state`"),
     Field("t_cross", "float|null", "projected crossing of μ_th, s from test start (§5a), as in `state`"),
+    *FORECAST_FIELDS,
 )
 
 EVENT_FIELDS = ENVELOPE + (
@@ -170,10 +211,16 @@ WARNING_FIELDS = ENVELOPE + (
     *_ALARM_STATE,
     Field("test_id", "str|null", "the test whose headroom fell"),
     Field("sample_id", "str|null", "its sample"),
-    Field("warn_slot", "int|null", "last slot of the window that completed the warning run (§5a)"),
+    Field("warn_slot", "int|null", "last slot of the first due window (§5b)"),
     Field("t_warn", "float|null", "time of the warning, s from test start ((warn_slot + 1)·Ts)"),
     Field("headroom", "float|null", "the headroom of that window"),
     Field("t_cross", "float|null", "the projection at that window, s from test start (null: none)"),
+    Field("reasons", "list|null", "why that window was due (§5b, sorted): headroom, prior, trend"),
+    Field("end_p10", "float|null", "the forecast then: end quantile 10 %, s from slot 0"),
+    Field("end_p50", "float|null", "end median, s from slot 0"),
+    Field("end_p90", "float|null", "end quantile 90 %, s from slot 0"),
+    Field("p_end", "float|null", "chance of the end within the lead then"),
+    Field("lead_s", "float|null", "the lead, s"),
     Field("mu_ss", "float|null", "baseline μ_ss"),
     Field("mu_th", "float|null", "threshold μ_th"),
     *_ALARM_TIMES,
@@ -222,6 +269,11 @@ CMD_START_FIELDS = (
     Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),
 )
 CMD_SIMPLE_FIELDS = (Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),)
+CMD_HOOK_FIELDS = (Field("sample_id", "str", "optional: the NEW hook's sample id (1–64 printable "
+                         "ASCII characters); without it `<old>-R<n>`"),
+                   Field("grade", "str", "optional: the new hook's grade, one of the station's "
+                         "grades (default: the old hook's)"),
+                   *CMD_SIMPLE_FIELDS)
 CMD_UNSHELVE_FIELDS = (Field("alarm", "str", "`end_of_life` or `wear_warning`"), *CMD_SIMPLE_FIELDS)
 CMD_SHELVE_FIELDS = (*CMD_UNSHELVE_FIELDS[:1],
                      Field("duration_s", "float", "how long, s (at most 43200: one 12 h shift)"),
@@ -259,8 +311,11 @@ TOPICS: tuple[Topic, ...] = (
     Topic("cmd_setpoint", "cmd/setpoint", "subscribe", 1, False, False,
           "set the tension setpoint of the next test", CMD_SETPOINT_FIELDS),
     Topic("cmd_hook_replaced", "cmd/hook_replaced", "subscribe", 1, False, False,
-          "the worn hook was replaced: closes its alarms (refused without one)",
-          CMD_SIMPLE_FIELDS),
+          "the worn hook was replaced: the running test ends (`end_reason` hook_replaced), its "
+          "alarms close, one line goes to the station's hooks.jsonl (the history the life prior "
+          "learns from, METHOD.md §7a) and, with `test.restart_on_replace`, the next test starts "
+          "with the new hook. Refused (NO_ALARM) only when there is no alarm, no test and no "
+          "`sample_id`", CMD_HOOK_FIELDS),
     Topic("cmd_shelve", "cmd/shelve", "subscribe", 1, False, False,
           "shelve one annunciated alarm until `duration_s` from now (ISA-18.2)", CMD_SHELVE_FIELDS),
     Topic("cmd_unshelve", "cmd/unshelve", "subscribe", 1, False, False,
@@ -285,7 +340,10 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.TEST_STARTED: (("sample_id", "sample"), ("grade", "grade"), ("t_set", "setpoint, N"),
                              ("t_end", "planned duration, s"), ("source", "who started it"),
                              ("settle_s", "spin-up time until slot 0, s"),
-                             ("zero_offsets_n", "zero offsets {T1, T2}, N (information only)")),
+                             ("zero_offsets_n", "zero offsets {T1, T2}, N (information only)"),
+                             ("prior_mean", "the life prior's mean, s (§7a; null: none)"),
+                             ("prior_sd", "its SD, s"), ("prior_source", "method, config, history:N"),
+                             ("prior_n", "the count of tests it came from (or null)")),
     EventType.BASELINE: (("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
                          ("k_b", "slot of the baseline"), ("stable_first", "first slot of the stable segment")),
     EventType.END_OF_LIFE: (("k_life", "slot of the end of life"), ("t_life", "wear life, s"),
@@ -296,7 +354,18 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                              ("t_cross", "projected crossing of μ_th, s (or null)"),
                              ("h_warn", "the headroom bound"), ("n_warn", "windows needed"),
                              ("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
-                             ("sample_id", "sample")),
+                             ("sample_id", "sample"),
+                             ("reasons", "why the window is due (§5b, sorted): headroom, prior, trend"),
+                             ("end_p10", "end quantile 10 %, s from slot 0 (null without a prior)"),
+                             ("end_p50", "end median, s from slot 0"), ("end_p90", "end quantile 90 %, s"),
+                             ("p_end", "chance of the end within the lead"), ("lead_s", "the lead, s")),
+    EventType.HOOK_REPLACED: (("station", "station"), ("old_sample_id", "the replaced hook's sample"),
+                              ("new_sample_id", "the new hook's sample"), ("grade", "its grade"),
+                              ("by", "who (mqtt, plc:ADDR, sparkplug, console:user, cli)"),
+                              ("utc", "when, ISO 8601"),
+                              ("test_id", "the old hook's last test (or null)"),
+                              ("life_s", "its t_life if it failed, else how long that test ran, s"),
+                              ("logged", "the line reached hooks.jsonl (false: the disk refused it)")),
     EventType.PROTECTION_STOP: (("stop_reasons", "unsafe reasons of the run that stopped the test"),),
     EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
                            ("source", "who ended it"), ("result", "the method's result")),
@@ -409,7 +478,8 @@ def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
             "elapsed_s": round(float(st.elapsed_s), 3), "status": st.status,
             "end_reason": st.end_reason, "alarm": st.alarm, "protection_stop": bool(st.protection_stop),
             "stopped": bool(st.stopped), "headroom": st.headroom, "t_cross": st.t_cross,
-            "wear_warning": bool(st.wear_warning), "warning_alarm": st.warning_alarm,
+            "wear_warning": bool(st.wear_warning), **forecast_fields(st),
+            "warning_alarm": st.warning_alarm,
             "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok),
             "disk_ok": bool(getattr(st, "disk_ok", True))}
 
@@ -460,7 +530,9 @@ def _examples() -> dict[str, dict[str, Any]]:
     st = StationState(station="st1", state=TestState.END_OF_LIFE, test_id="20260301T060000Z-S-0042",
                       sample_id="S-0042", grade="I", t_set=0.5, t_end=36000.0, mu_ss=0.2213,
                       mu_th=0.2545, k_b=1500, t_life=6930.5, elapsed_s=7200.0, alarm="unacknowledged",
-                      meter_ok=True, stm32_ok=True)
+                      meter_ok=True, stm32_ok=True, wear_warning=True, warn_reasons=["prior"],
+                      prior_mean=7800.0, prior_sd=900.0, prior_source="config", lead_s=3600.0,
+                      p_due=0.1, test_started_utc="2026-03-01T06:00:00.000Z")
     ev = Event(EventType.END_OF_LIFE, "st1", t, st.test_id, 346525,
                {"k_life": 346525, "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545, "sample_id": "S-0042"})
     return {
@@ -471,7 +543,8 @@ def _examples() -> dict[str, dict[str, Any]]:
             "tension": {"mean": 0.5012, "min": 0.4981, "max": 0.5047}, "mu": 0.2561,
             "valid_ratio": 0.98, "counts": {n: (1 if n == "JUMP" else 0) for n in REASON_NAMES},
             "speed_cmd": 120.4, "speed_act": 120.1, "saturated_slots": 0, "saturation": False,
-            "headroom": -0.42, "t_cross": None}),
+            "headroom": -0.42, "t_cross": None, "end_p10": None, "end_p50": None, "end_p90": None,
+            "p_end": None, "due": False}),
         "event": event_payload(1044, ev),
         "alarm": alarm_payload(1045, t, "st1", {
             "state": "unacknowledged", "active": True, "condition": True, "acknowledged": False,
@@ -482,7 +555,9 @@ def _examples() -> dict[str, dict[str, Any]]:
             "state": "unacknowledged", "active": True, "condition": True, "acknowledged": False,
             "shelved_until": None, "test_id": st.test_id,
             "sample_id": "S-0042", "warn_slot": 275999, "t_warn": 5520.0, "headroom": 0.41,
-            "t_cross": 7040.5, "mu_ss": 0.2213, "mu_th": 0.2545, "raised_at": iso_ms(t - 1380.0)}),
+            "t_cross": 7040.5, "reasons": ["prior"], "end_p10": 6620.4, "end_p50": 7905.2,
+            "end_p90": 9080.7, "p_end": 0.12, "lead_s": 3600.0, "mu_ss": 0.2213, "mu_th": 0.2545,
+            "raised_at": iso_ms(t - 1380.0)}),
         "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
                    "t_set": 0.5, "test_status": "completed", "end_reason": "completed",
                    "result": {"status": "failure", "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545}},
@@ -492,7 +567,7 @@ def _examples() -> dict[str, dict[str, Any]]:
         "cmd_stop": {"request_id": "r-18"},
         "cmd_ack": {"request_id": "r-19"},
         "cmd_setpoint": {"t_set": 0.6},
-        "cmd_hook_replaced": {"request_id": "r-20"},
+        "cmd_hook_replaced": {"sample_id": "S-0043", "request_id": "r-20"},
         "cmd_shelve": {"alarm": "end_of_life", "duration_s": 1800, "request_id": "r-21"},
         "cmd_unshelve": {"alarm": "end_of_life"},
         "cmd_out_of_service": {"request_id": "r-22"},
@@ -602,12 +677,18 @@ def render() -> str:
         "through the same validation. Every transition is in one event (`data.transitions`: `alarm`, "
         "`hook`, `from`, `to`, `action`, `time`, `by`, `priority`) and one retained message on "
         "`alarm/end_of_life` or `alarm/warning`, so a MES "
-        "that connects late sees the current state. The wear warning (METHOD.md §5a: the "
-        "headroom stayed under `h_warn` for `n_warn` windows) is a second alarm of lower "
-        "priority (2; end of life is 1) with the same lifecycle on `alarm/warning`, raised once "
-        "per test with the event `wear_warning`; one ack acknowledges both. It is informative: "
+        "that connects late sees the current state. The wear warning (METHOD.md §5b: the first "
+        "due window — the chance that the end comes within the lead reached `p_due` (`prior`), "
+        "the headroom stayed under `h_warn` for `n_warn` windows (`headroom`) or the recent trend "
+        "reaches μ_th within the lead (`trend`)) is a second alarm of lower "
+        "priority (2; end of life is 1) with the same lifecycle on `alarm/warning`, raised at "
+        "most once per test with the event `wear_warning` (its `reasons` and the forecast), never "
+        "once the end of life was detected; one ack acknowledges both. It is informative: "
         "it never changes a test's status or t_life, and its projection `t_cross` assumes the "
-        "recent trend goes on (the accelerated stage usually comes sooner). Both alarms are kept "
+        "recent trend goes on (the accelerated stage usually comes sooner). The forecast itself "
+        "(`end_p10/50/90` in s from slot 0 — `test_started_utc` makes them wall times —, `p_end`, "
+        "`due`) is in `state` and `telemetry` as found at the last forecast time, not an event "
+        "stream of its own. Both alarms are kept "
         "in the station's alarm "
         "store (`alarm.json` in its records folder), which the PLC registers read as well: after a "
         "gateway restart the alarms stand until the next test start clears them.",

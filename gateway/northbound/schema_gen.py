@@ -23,7 +23,7 @@ DIALECT = "https://json-schema.org/draft/2020-12/schema"
 ID_BASE = "https://hookwatch.invalid/schemas/"     # a name, not a place to fetch from
 
 _TYPES = {"str": "string", "int": "integer", "float": "number", "bool": "boolean", "object": "object",
-          "null": "null"}
+          "null": "null", "list": "array"}
 
 TIME = {"type": "string", "pattern": r"^\d{4}-\d{2}-\d{2}T\d{2}:\d{2}:\d{2}\.\d{3}Z$"}
 TIME_OR_NULL = {"anyOf": [TIME, {"type": "null"}]}

@@ -70,6 +70,13 @@ class AlarmRecord:
     t_warn: float | None = None
     headroom: float | None = None
     t_cross: float | None = None
+    # … and its §5b forecast: the reasons of the due window, the end quantiles, P and the lead
+    reasons: list[str] | None = None
+    end_p10: float | None = None
+    end_p50: float | None = None
+    end_p90: float | None = None
+    p_end: float | None = None
+    lead_s: float | None = None
     condition: bool = False              # ISA-18.2: the process condition stands (the hook is worn)
     shelved_until: str | None = None     # UTC time a shelving expires
 
@@ -242,7 +249,10 @@ class AlarmStore:
         elif et == EventType.WEAR_WARNING:
             tr = self._raise(WARNING, ev, sample_id=d.get("sample_id"), warn_slot=d.get("warn_slot"),
                              t_warn=d.get("t_warn"), headroom=d.get("headroom"),
-                             t_cross=d.get("t_cross"), mu_ss=d.get("mu_ss"), mu_th=d.get("mu_th"))
+                             t_cross=d.get("t_cross"), mu_ss=d.get("mu_ss"), mu_th=d.get("mu_th"),
+                             reasons=d.get("reasons"), end_p10=d.get("end_p10"),
+                             end_p50=d.get("end_p50"), end_p90=d.get("end_p90"),
+                             p_end=d.get("p_end"), lead_s=d.get("lead_s"))
         elif et == EventType.ALARM_ACK:        # one ACK acknowledges every unacknowledged alarm
             tr = self._each(only, lambda a: a.acknowledge(t, src))
         elif et == EventType.ALARM_CLEARED:    # a new test / the hook was replaced: closed

@@ -67,7 +67,7 @@ COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
     CommandKind.STOP: (),
     CommandKind.ACK: (),
     CommandKind.SETPOINT: ("t_set",),
-    CommandKind.HOOK_REPLACED: (),
+    CommandKind.HOOK_REPLACED: ("sample_id", "grade"),
     CommandKind.SHELVE: ("alarm", "duration_s"),
     CommandKind.UNSHELVE: ("alarm",),
     CommandKind.OUT_OF_SERVICE: (),
@@ -200,8 +200,18 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if err:
             return reject(cmd, "T_SET", err)
     elif cmd.kind == CommandKind.HOOK_REPLACED:
-        if state.alarm == AlarmState.NORMAL.value and state.warning_alarm == AlarmState.NORMAL.value:
-            return reject(cmd, "NO_ALARM", "no alarm of the hook to close")
+        # the new hook's sample id (optional: `<old>-R<n>`) and grade, checked as a start's are
+        if a.get("sample_id") is not None:
+            err = check_sample_id(a.get("sample_id"), limits.sample_id_max)
+            if err:
+                return reject(cmd, "SAMPLE_ID", err)
+        err = check_grade(a.get("grade"), limits.grades)
+        if err:
+            return reject(cmd, "GRADE", err)
+        if (state.alarm == AlarmState.NORMAL.value and state.warning_alarm == AlarmState.NORMAL.value
+                and not running and a.get("sample_id") is None):
+            return reject(cmd, "NO_ALARM", "no alarm, no test and no new sample_id: nothing to "
+                          "record (name the new hook's sample_id)")
     elif cmd.kind in ALARM_COMMAND_EVENTS:
         return _check_alarm_command(cmd, state)
     else:  # pragma: no cover - CommandKind is closed

@@ -14,6 +14,7 @@ from typing import Any, Protocol
 from ..ports import StationLimits
 from ..records import Command, CommandKind, EventType
 from .commands import ALARM_COMMAND_EVENTS
+from .lifecycle import TestLifecycle
 from .session import TestPlan
 from .status import StatusBoard
 
@@ -25,6 +26,8 @@ class CommandTarget(Protocol):
     board: StatusBoard
     default_plan: TestPlan | None
     limits: StationLimits
+
+    tests: TestLifecycle
 
     def start_test(self, plan: TestPlan, source: str = "station") -> None: ...
     async def stop_test(self, source: str) -> None: ...
@@ -55,8 +58,9 @@ async def _ack(st: CommandTarget, cmd: Command) -> None:
 
 
 async def _hook_replaced(st: CommandTarget, cmd: Command) -> None:
-    st.board.emit(EventType.ALARM_CLEARED, source=cmd.source, reason="hook_replaced")
-    st.board.push()
+    a = cmd.args
+    await st.tests.hook_replaced(cmd.source, a.get("sample_id"), a.get("grade"), st.default_plan,
+                                 st.limits.sample_id_max)
 
 
 async def _alarm(st: CommandTarget, cmd: Command) -> None:

@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from dataclasses import dataclass
 from typing import Any
 
 from ..control import ControlParams
 from ..method.core import StreamingMonitor
 from ..ports import MeterPort
+from ..records import EventType
 from .health import Health
+from .hooks import append_hook, next_sample_id
+from .priors import PriorBook
 from .recorder import utc_iso
 from .session import RecorderOutput, TestPlan, TestSession
 from .starting import StartAttempt, StartStep
@@ -74,6 +78,10 @@ class TestLifecycle:
         self.speed_cmd = 0.0
         self.k = 0                      # the loop's current slot
         self.motor_off_k = 0            # loop slot of the last stop command to the take-up
+        #: the §7a sources of a test's life prior (the records root's history: every station's)
+        self.priors = PriorBook(setup.station_id, os.path.dirname(setup.station_dir) or ".")
+        #: `test.restart_on_replace`: a replaced hook starts the next test at once
+        self.restart_on_replace = False
 
     @property
     def monitor(self) -> StreamingMonitor | None:
@@ -90,6 +98,8 @@ class TestLifecycle:
     def slot(self, k: int, present: bool, t1: float, t2: float) -> SlotResult:
         """The start sequence's or the test's computation of loop slot ``k`` (pure, no waiting)."""
         self.k = k
+        if k == 0:                       # the station's first slot: the box's life history is read
+            self.priors.refresh()        # off the loop (§7a), long before a test's slot 0
         y, sat = math.nan, False
         speed_act = self.link.speed_act
         if self.starting is not None:
@@ -144,6 +154,7 @@ class TestLifecycle:
         s = self.setup
         att = self.starting = StartAttempt.begin(plan, s.method_values, s.control, s.station_id,
                                                  source)
+        self.priors.refresh()            # the history as it is now, read off the loop before slot 0
         self.board.test_starting(plan, zero_check=att.params.zero_check,
                                  start_timeout=att.params.start_timeout)
         if att.next_step()[0] is StartStep.ENABLE_MOTOR:     # no zero check: spin up at once
@@ -165,12 +176,13 @@ class TestLifecycle:
         clock). A records folder that cannot be written refuses the start: the reason."""
         s = self.setup
         info = att.seq.sidecar()
+        prior = self.priors.resolve(att.plan.grade, att.plan.t_set, s.method_values)
         try:
             sess = TestSession.begin(station_id=s.station_id, station_dir=s.station_dir,
                                      plan=att.plan, method_values=s.method_values,
                                      control=s.control, identity=s.identity,
                                      flush_interval_s=s.flush_interval_s,
-                                     controller=att.controller, start_info=info)
+                                     controller=att.controller, start_info=info, prior=prior)
         except OSError as e:        # EACCES, EROFS, ENOSPC, EMFILE: a state, never a crash
             why = e.strerror or str(e)
             log.error("%s: start of %s refused: %s cannot be written (%s)", s.station_id,
@@ -181,7 +193,7 @@ class TestLifecycle:
         self.session = sess            # the test's slot 0 is the next slot the loop processes
         self.recorder_out.recorder = sess.recorder
         self.health.watch_recorder(sess.recorder)
-        self.board.test_started(sess, att.source, info)
+        self.board.test_started(sess, att.source, info, prior)
         return None
 
     async def start_failed(self, reason: str) -> None:
@@ -217,11 +229,56 @@ class TestLifecycle:
         self.board.test_ended(mon.k - 1, reason, source, test_status, res)
         sess.recorder.close(out)
         self.results.append(out)
+        self.priors.add_result(out)          # what §7a learns from (this station's and the box's)
+        self.priors.refresh()
         self.session = None
         self.recorder_out.recorder = None
         self.speed_cmd = 0.0
         self.board.push()
         return out
+
+    async def hook_replaced(self, source: str, sample_id: str | None, grade: str | None,
+                            fallback: TestPlan | None, sample_id_max: int) -> dict[str, Any]:
+        """The worn hook was replaced (issue 20): the running test ends (``hook_replaced``), its
+        alarms close, one line goes to hooks.jsonl (what §7a's history and the planner read) and,
+        with ``restart_on_replace``, the next test starts with the new hook."""
+        st = self.board.state
+        sess = self.session
+        old_plan = sess.plan if sess is not None else (self.starting.plan if self.starting else None)
+        if self.starting is not None:
+            await self.start_failed(f"start cancelled: hook replaced ({source})")
+        last = await self.end_test("hook_replaced", source=source) if sess is not None else None
+        old_sid = old_plan.sample_id if old_plan is not None else st.sample_id
+        if last is None and self.results and self.results[-1].get("sample_id") == old_sid:
+            last = self.results[-1]          # the old hook's last test (none: it never ran one)
+        if sample_id == old_sid:        # a PLC's staged id is still the old hook's: not a new one
+            sample_id = None
+        new_sid = sample_id or next_sample_id(old_sid, sample_id_max)
+        new_grade = grade or (old_plan.grade if old_plan is not None else st.grade)
+        life = None
+        if last is not None:
+            m = last.get("method") or {}
+            life = m.get("t_life") if m.get("t_life") is not None else (
+                m.get("n_slots", 0) * self.setup.ts if m.get("n_slots") is not None else None)
+        rec: dict[str, Any] = {
+            "station": self.setup.station_id, "old_sample_id": old_sid, "new_sample_id": new_sid,
+            "grade": new_grade, "by": source, "utc": utc_iso(),
+            "test_id": last.get("test_id") if last is not None else None, "life_s": life}
+        if self.board.alarms.highest() is not None:
+            self.board.emit(EventType.ALARM_CLEARED, source=source, reason="hook_replaced")
+        err = append_hook(self.setup.station_dir, rec)
+        if err is not None:
+            log.error("%s: hooks.jsonl cannot be written (%s); the replacement is in the event only",
+                      self.setup.station_id, err)
+            self.health.set_disk("records", False, {"reason": err})
+        self.board.update(sample_id=new_sid, grade=new_grade)
+        self.board.emit(EventType.HOOK_REPLACED, **rec, logged=err is None)
+        base = old_plan or fallback
+        if self.restart_on_replace and base is not None:
+            self.start_test(TestPlan(sample_id=new_sid, grade=new_grade, t_set=base.t_set,
+                                     t_end=base.t_end), source=source)
+        self.board.push()
+        return rec
 
     async def close(self, reason: str = "gateway shutdown") -> None:
         """A clean stop: the start in progress fails, the running test ends (aborted)."""

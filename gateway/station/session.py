@@ -19,6 +19,7 @@ from .. import __version__
 from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams, build_params
+from ..method.prior import Prior
 from ..records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
@@ -57,10 +58,17 @@ class TestSession:
               method_values: dict[str, Any], control: ControlParams, identity: dict[str, Any],
               flush_interval_s: float, start_wall: float | None = None,
               controller: Controller | None = None,
-              start_info: dict[str, Any] | None = None) -> TestSession:
+              start_info: dict[str, Any] | None = None,
+              prior: Prior | None = None) -> TestSession:
         """Build the method of ``plan`` and open its test folder; ``controller`` is the one that ran
-        the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar."""
-        p = plan_params(plan, method_values, station_id)
+        the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar, ``prior``
+        the test's life prior (§7a): its mean and SD go into the method (and so into the sidecar's
+        ``method:`` section, for `hookwatch analyze` to give the same forecast), its source and
+        count beside it (``prior_source``, ``prior_n``)."""
+        values = dict(method_values)
+        if prior is not None and prior.mean is not None and prior.sd is not None:
+            values["prior_mean"], values["prior_sd"] = prior.mean, prior.sd
+        p = plan_params(plan, values, station_id)
         start_wall = time.time() if start_wall is None else start_wall
         # a folder of its own, created exclusively (two starts within one millisecond cannot share one)
         test_id, test_dir = new_test_dir(station_dir, plan.sample_id, start_wall)
@@ -74,6 +82,8 @@ class TestSession:
         }
         if start_info is not None:
             meta["start"] = dict(start_info)
+        if prior is not None:
+            meta["prior_source"], meta["prior_n"] = prior.source, prior.n
         try:
             rec = TestRecorder(test_dir, meta, flush_interval_s)
         except OSError:       # the log cannot be opened: the new folder of a test that never began goes

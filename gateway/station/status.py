@@ -17,6 +17,7 @@ from dataclasses import fields, replace
 from typing import Any
 
 from ..method.core import SlotOut
+from ..method.prior import Prior
 from ..records import Event, EventType, StationState, TestState
 from .alarm_store import AlarmStore
 from .fanout import Fanout
@@ -27,6 +28,13 @@ __all__ = ["StatusBoard"]
 log = logging.getLogger("hookwatch.station")
 
 _FIELDS = frozenset(f.name for f in fields(StationState))
+#: the §5a/§5b projections, cleared outside a test and from the end-of-life detection on
+NO_PROJECTION: dict[str, Any] = {"end_p10": None, "end_p50": None, "end_p90": None, "p_end": None,
+                                 "t_cross": None, "due": False}
+#: … and the rest of the §5b/§7a figures, none outside a test (the contract of issue 20)
+NO_FORECAST: dict[str, Any] = {"prior_mean": None, "prior_sd": None, "prior_source": None,
+                               "lead_s": None, "p_due": None, "warn_reasons": [],
+                               "test_started_utc": None}
 
 
 class StatusBoard:
@@ -90,15 +98,24 @@ class StatusBoard:
                   t_set=plan.t_set, t_end=plan.t_end, **data)
         self.push()
 
-    def test_started(self, sess: TestSession, source: str, info: dict[str, Any]) -> None:
-        """Slot 0 comes next: BASELINE_SEARCH with the figures of the last test cleared."""
-        plan = sess.plan
+    def test_started(self, sess: TestSession, source: str, info: dict[str, Any],
+                     prior: Prior | None = None) -> None:
+        """Slot 0 comes next: BASELINE_SEARCH with the figures of the last test cleared, the test's
+        life prior (§7a) and the §5b parameters in the state."""
+        plan, p = sess.plan, sess.params
+        src = prior.source if prior is not None and p.prior_mean is not None else None
         self.update(state=TestState.BASELINE_SEARCH, test_id=sess.test_id, sample_id=plan.sample_id,
                     grade=plan.grade, t_set=plan.t_set, t_end=plan.t_end, mu_ss=None, mu_th=None,
                     t_life=None, k_b=None, status=None, end_reason=None, protection_stop=False,
-                    stopped=False, headroom=None, t_cross=None, wear_warning=False, elapsed_s=0.0)
+                    stopped=False, wear_warning=False, elapsed_s=0.0,
+                    prior_mean=p.prior_mean, prior_sd=p.prior_sd, prior_source=src,
+                    lead_s=p.lead, p_due=p.p_due, warn_reasons=[],
+                    test_started_utc=sess.recorder.meta.get("start_time"), headroom=None,
+                    **NO_PROJECTION)
         self.emit(EventType.TEST_STARTED, k=0, sample_id=plan.sample_id, grade=plan.grade,
-                  t_set=plan.t_set, t_end=plan.t_end, source=source, **info)
+                  t_set=plan.t_set, t_end=plan.t_end, source=source, prior_mean=p.prior_mean,
+                  prior_sd=p.prior_sd, prior_source=src,
+                  prior_n=prior.n if prior is not None and src is not None else None, **info)
         self.push()
 
     def start_failed(self, reason: str, **data: Any) -> None:
@@ -111,7 +128,7 @@ class StatusBoard:
         """The test is closed (completed or aborted) with the method's ``result``."""
         self.update(state=TestState.COMPLETED if test_status == "completed" else TestState.ABORTED,
                     status=result.status, end_reason=reason,
-                    stopped=result.stop_reasons == ["STOPPED"])
+                    stopped=result.stop_reasons == ["STOPPED"], **NO_PROJECTION, **NO_FORECAST)
         self.emit(EventType.TEST_ENDED, k=k, reason=reason, source=source, test_status=test_status,
                   result=result.as_dict())
 
@@ -127,21 +144,33 @@ class StatusBoard:
                           stable_first=mon.stable_first)
                 self.push()
             elif e == "end_of_life" and mon.k_life is not None:
-                self.update(state=TestState.END_OF_LIFE, t_life=mon.k_life * ts)
+                # from the detection on the end-of-life alarm speaks, not the forecast (§5b)
+                self.update(state=TestState.END_OF_LIFE, t_life=mon.k_life * ts, **NO_PROJECTION)
                 self.emit(EventType.END_OF_LIFE, k=kt, k_life=mon.k_life, t_life=self.state.t_life,
                           mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=sess.plan.sample_id)
                 self.push()
             elif e == "window" and out.window is not None:
-                # §5a, informative: every window's headroom and projection reach the outputs
+                # §5a, informative: every window's headroom and projection reach the outputs (the
+                # projection only before the end of life was detected)
                 w = out.window
                 if w.headroom is not None:
-                    self.update(headroom=w.headroom, t_cross=w.t_cross)
+                    self.update(headroom=w.headroom)
+                    if mon.k_life is None:
+                        self.update(t_cross=w.t_cross)
+                if out.forecast is None:
+                    self.push()
+            elif e == "forecast" and (fc := out.forecast) is not None:
+                # §5b: every forecast time's e_p and P as found (state only, no event stream)
+                self.update(end_p10=fc.e10, end_p50=fc.e50, end_p90=fc.e90, p_end=fc.p_end,
+                            due=fc.due)
                 self.push()
-            elif e == "wear_warning" and (wear := mon.wear) is not None and wear.warn_slot is not None:
-                self.update(wear_warning=True)
-                self.emit(EventType.WEAR_WARNING, k=kt, warn_slot=wear.warn_slot,
-                          t_warn=(wear.warn_slot + 1) * ts, headroom=wear.headroom,
-                          t_cross=wear.t_cross, h_warn=sess.params.h_warn, n_warn=sess.params.n_warn,
+            elif e == "wear_warning" and (fc := out.forecast) is not None and fc.warning:
+                # the first due window (§5b): at most once per test, never at or after k_det
+                self.update(wear_warning=True, warn_reasons=list(fc.reasons))
+                self.emit(EventType.WEAR_WARNING, k=kt, warn_slot=fc.last_slot, t_warn=fc.t,
+                          reasons=list(fc.reasons), end_p10=fc.e10, end_p50=fc.e50, end_p90=fc.e90,
+                          p_end=fc.p_end, lead_s=sess.params.lead, headroom=fc.headroom,
+                          t_cross=fc.t_cross, h_warn=sess.params.h_warn, n_warn=sess.params.n_warn,
                           mu_ss=mon.mu_ss, mu_th=mon.mu_th, sample_id=sess.plan.sample_id)
                 self.push()
             elif e == "protection_stop":

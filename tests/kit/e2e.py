@@ -35,7 +35,7 @@ def virtual_station(tmp_path, scenario: str, seed: int = 1, extra: list[str] | N
 
 
 def station_yaml(tmp_path, links, *, name="e2e", method=None, control=None, test=None,
-                 mqtt=None, modbus_tcp=None, meter=None) -> str:
+                 mqtt=None, modbus_tcp=None, meter=None, extra=None) -> str:
     cfg = {
         "station": {"id": name, "site": "lab", "area": "test", "line": "l1"},
         "meter": {"port": links["meter"], "map": os.path.join(ROOT, "config", "meters", "zn-s.yaml"),
@@ -47,6 +47,7 @@ def station_yaml(tmp_path, links, *, name="e2e", method=None, control=None, test
         "recorder": {"dir": str(tmp_path / "records")},
         "mqtt": {"enabled": False, **(mqtt or {})},
         "modbus_tcp": {"enabled": False, **(modbus_tcp or {})},
+        **(extra or {}),          # further sections (forecast:, sparkplug:, metrics: …)
     }
     path = tmp_path / f"{name}.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
@@ -128,6 +129,10 @@ QUICK_SCALE = 1200
 STALL_TOLERANT = {"stop_after": 5}
 QUICK_METHOD = {"w_ss": 2, "w_hold": 8, "tau": 2, **STALL_TOLERANT}
 QUICK_END = 35
+#: … and a life prior for it (METHOD.md §5b, §7a: Grade I at 0.5 N, compressed like the life) with
+#: a lead of 5 s: the early warning comes some 5 s before the end of life
+QUICK_PRIOR = {"grade": "I", "t_set_n": 0.5, "mean_s": 24.0, "sd_s": 2.0, "n": 5}
+QUICK_LEAD = 5.0
 
 
 def quick_scenario(tmp_path, shipped: str) -> str:

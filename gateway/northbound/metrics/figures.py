@@ -16,7 +16,7 @@ import urllib.parse
 from bisect import bisect_left
 from typing import Any
 
-from ...records import TestState
+from ...records import StationState, TestState
 
 SNAPSHOT_VERSION = 1
 
@@ -60,7 +60,7 @@ class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
                  "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
-                 "pruned_tests", "pruned_bytes")
+                 "pruned_tests", "pruned_bytes", "forecast")
 
     def __init__(self, station: str):
         self.station = station
@@ -78,6 +78,8 @@ class StationFigures:
         self.alarm = "normal"
         self.events: dict[str, int] = {}
         self.pruned_tests = self.pruned_bytes = 0     # record retention (records_pruned events)
+        #: the §5b forecast as the state last had it (forecast_figures)
+        self.forecast: dict[str, Any] = {}
 
 
 _FIGURES: dict[str, StationFigures] = {}
@@ -163,7 +165,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
         "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
         "t_cross": f.t_cross, "warning": f.warning,
         "events": dict(f.events), "disk_ok": f.disk_ok,
-        "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes},
+        "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes}, **f.forecast,
     }
 
 
@@ -177,3 +179,13 @@ _PROCESS = _Process()
 def set_console_clients(n: int | None) -> None:
     """The web console reports how many clients it serves (None: no console in this process)."""
     _PROCESS.console_clients = None if n is None else max(0, int(n))
+
+
+def forecast_figures(st: StationState) -> dict[str, Any]:
+    """The §5b figures of a snapshot (METHOD.md): the remaining time to each end quantile of the
+    last forecast time (s, at least 0; null without one), P, the due flag and the lead."""
+    el = float(st.elapsed_s)
+    out: dict[str, Any] = {f"end_p{q}_left": (max(0.0, e - el) if e is not None else None)
+                           for q, e in ((10, st.end_p10), (50, st.end_p50), (90, st.end_p90))}
+    out.update(p_end=st.p_end, due=bool(st.due), lead_s=st.lead_s)
+    return out

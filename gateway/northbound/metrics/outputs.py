@@ -17,6 +17,7 @@ from .figures import (
     _counters,
     figures_for,
     figures_snapshot,
+    forecast_figures,
     plc_figures,
 )
 from .http import Endpoint, EndpointSource
@@ -89,7 +90,8 @@ class MetricsOutput(EndpointSource):
         # METHOD.md §5a figures, once the station state carries them
         f.headroom = getattr(st, "headroom", None)
         f.t_cross = getattr(st, "t_cross", None)
-        f.warning = getattr(st, "warn_slot", None) is not None
+        f.warning = bool(st.wear_warning)
+        f.forecast = forecast_figures(st)
         f.disk_ok = bool(getattr(st, "disk_ok", True))
         if st.state not in _RUNNING:
             f.mu = None

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from typing import Any
 
 from prometheus_client import CollectorRegistry
 from prometheus_client.exposition import generate_latest
@@ -159,6 +160,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
                 g.add_metric([s["station"]], float(v))
         out.append(g)
 
+    out += forecast_families(p, snapshots)
+
     if console_clients is not None:
         out.append(GaugeMetricFamily(f"{p}_console_clients", "clients connected to the web console",
                                      value=float(console_clients)))
@@ -186,3 +189,33 @@ class SnapshotCollector:
 def render(registry: CollectorRegistry) -> bytes:
     """The text exposition of ``registry`` (CONTENT_TYPE)."""
     return generate_latest(registry)
+
+
+def forecast_families(p: str, snapshots: list[dict[str, Any]]) -> list[Any]:
+    """The §5b remaining-life metrics (METHOD.md): remaining seconds to each end quantile, P, the
+    lead and a due gauge (the alerting rule in deploy/prometheus/ fires on it)."""
+    out: list[Any] = []
+    for q in (10, 50, 90):
+        g = GaugeMetricFamily(f"{p}_end_p{q}_seconds", f"remaining time to the {q} % end quantile "
+                              "of the hook's life forecast at its last forecast time (METHOD.md "
+                              "§5b); absent without a prior, outside a test and once the end of "
+                              "life was detected", labels=["station"])
+        for s in snapshots:
+            v = s.get(f"end_p{q}_left")
+            if v is not None and math.isfinite(v):
+                g.add_metric([s["station"]], float(v))
+        out.append(g)
+    pe = GaugeMetricFamily(f"{p}_end_within_lead_probability", "chance that the hook's end comes "
+                           "within the lead (METHOD.md §5b P)", labels=["station"])
+    lead = GaugeMetricFamily(f"{p}_lead_seconds", "the planner's lead the hook is judged against "
+                             "(METHOD.md §5b)", labels=["station"])
+    due = GaugeMetricFamily(f"{p}_hook_due", "1 while the last forecast window of the running test "
+                            "is due (METHOD.md §5b: P ≥ p_due, a headroom run or a projected "
+                            "crossing within the lead)", labels=["station"])
+    for s in snapshots:
+        if s.get("p_end") is not None and math.isfinite(s["p_end"]):
+            pe.add_metric([s["station"]], float(s["p_end"]))
+        if s.get("lead_s") is not None:
+            lead.add_metric([s["station"]], float(s["lead_s"]))
+        due.add_metric([s["station"]], 1.0 if s.get("due") else 0.0)
+    return out + [pe, lead, due]

@@ -74,6 +74,22 @@ ARG_T_END = "Device Control/Planned End"
 ARG_ALARM = "Device Control/Alarm"
 ARG_DURATION = "Device Control/Shelve Duration"
 
+#: the forecast's metrics (METHOD.md §5a, §5b, §7a)
+FC_STARTED = "Test/Started"
+FC_P10 = "Forecast/End P10"
+FC_P50 = "Forecast/End P50"
+FC_P90 = "Forecast/End P90"
+FC_P_END = "Forecast/P End"
+FC_DUE = "Forecast/Due"
+FC_HEADROOM = "Forecast/Headroom"
+FC_T_CROSS = "Forecast/t_cross"
+FC_WARNING = "Forecast/Warning"
+FC_REASONS = "Forecast/Warning Reasons"
+FC_PRIOR_MEAN = "Forecast/Prior Mean"
+FC_PRIOR_SD = "Forecast/Prior SD"
+FC_PRIOR_SOURCE = "Forecast/Prior Source"
+FC_LEAD = "Forecast/Lead"
+
 #: the station's alarms as Sparkplug metric folders: ISA-18.2 name (gateway.alarms.ALARMS) → folder
 ALARM_FOLDERS = {"end_of_life": "Alarm/End Of Life", "wear_warning": "Alarm/Wear Warning"}
 
@@ -141,10 +157,13 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef(STOP, DataType.Boolean, description="write true to stop the running test", writable=True),
     MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the unacknowledged alarms (end "
               "of life and wear warning)", writable=True),
-    MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced",
+    MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced "
+              "(optional `Device Control/Sample ID` / `Grade`: the new hook's; the running test ends, "
+              "the replacement is logged)", writable=True),
+    MetricDef(ARG_SAMPLE_ID, DataType.String, description="start and hook-replaced argument: sample ID",
               writable=True),
-    MetricDef(ARG_SAMPLE_ID, DataType.String, description="start argument: sample ID", writable=True),
-    MetricDef(ARG_GRADE, DataType.String, description="start argument: needle grade", writable=True),
+    MetricDef(ARG_GRADE, DataType.String, description="start and hook-replaced argument: needle grade",
+              writable=True),
     MetricDef(ARG_T_SET, DataType.Float, "N", "start argument: setpoint", writable=True),
     MetricDef(ARG_T_END, DataType.Double, "s", "start argument: planned duration", writable=True),
     MetricDef(OUT_OF_SERVICE, DataType.Boolean, description="write true to take the alarms out of service "
@@ -162,6 +181,27 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef(ARG_ALARM, DataType.String, description="shelve / unshelve argument: `end_of_life` or "
               "`wear_warning`", writable=True),
     MetricDef(ARG_DURATION, DataType.Double, "s", "shelve argument: how long, (0, 43200] s", writable=True),
+    # the §5a/§5b/§7a forecast (METHOD.md), appended so that the aliases above stay what they were;
+    # the projections are null outside a test and once the end of life was detected
+    MetricDef(FC_STARTED, DataType.DateTime, "ms", "UTC time of the test's slot 0 (ms since the "
+              "epoch): the forecast's times are seconds from it"),
+    MetricDef(FC_P10, DataType.Double, "s", "end of life, 10 % quantile of the forecast from the "
+              "life prior at the last forecast time (§5b), s from slot 0"),
+    MetricDef(FC_P50, DataType.Double, "s", "end of life, median of that forecast, s from slot 0"),
+    MetricDef(FC_P90, DataType.Double, "s", "end of life, 90 % quantile, s from slot 0"),
+    MetricDef(FC_P_END, DataType.Double, "", "chance that the end comes within the lead (§5b P)"),
+    MetricDef(FC_DUE, DataType.Boolean, description="the last forecast window is due (§5b)"),
+    MetricDef(FC_HEADROOM, DataType.Double, "", "wear headroom h of the last window with a value (§5a)"),
+    MetricDef(FC_T_CROSS, DataType.Double, "s", "projected crossing of μ_th, s from slot 0 (§5a)"),
+    MetricDef(FC_WARNING, DataType.Boolean, description="the early warning (the first due window) "
+              "fired in this test"),
+    MetricDef(FC_REASONS, DataType.String, description="its reasons, sorted, comma-separated "
+              "(headroom, prior, trend); empty before"),
+    MetricDef(FC_PRIOR_MEAN, DataType.Double, "s", "the test's life prior, mean (§7a)"),
+    MetricDef(FC_PRIOR_SD, DataType.Double, "s", "the test's life prior, SD"),
+    MetricDef(FC_PRIOR_SOURCE, DataType.String, description="method | config | history:N (empty: "
+              "no prior)"),
+    MetricDef(FC_LEAD, DataType.Double, "s", "the planner's lead the hook is judged against (§5b)"),
 )
 
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}

@@ -8,6 +8,7 @@ to its node (DBIRTH), ``stop`` detaches it (DDEATH; the last station ends the no
 from __future__ import annotations
 
 import asyncio
+import datetime as _dt
 import logging
 import math
 import time
@@ -55,7 +56,25 @@ def state_values(st: StationState, station: StationView | None = None) -> dict[s
         **_alarm_values("wear_warning", st.warning_alarm, _shelved_until(station, "wear_warning")),
         "Status/Protection Stop": st.protection_stop, "Status/Meter OK": st.meter_ok,
         "Status/STM32 OK": st.stm32_ok,
+        **forecast_values(st),
     }
+
+
+def forecast_values(st: StationState) -> dict[str, Any]:
+    """The §5a/§5b/§7a forecast metrics of the state (null outside a test, as the state has them)."""
+    started = None
+    if st.test_started_utc:
+        try:
+            started = int(round(_dt.datetime.fromisoformat(
+                st.test_started_utc.replace("Z", "+00:00")).timestamp() * 1000))
+        except ValueError:
+            started = None
+    return {M.FC_STARTED: started, M.FC_P10: st.end_p10, M.FC_P50: st.end_p50,
+            M.FC_P90: st.end_p90, M.FC_P_END: st.p_end, M.FC_DUE: bool(st.due),
+            M.FC_HEADROOM: st.headroom, M.FC_T_CROSS: st.t_cross, M.FC_WARNING: bool(st.wear_warning),
+            M.FC_REASONS: ",".join(st.warn_reasons), M.FC_PRIOR_MEAN: st.prior_mean,
+            M.FC_PRIOR_SD: st.prior_sd, M.FC_PRIOR_SOURCE: st.prior_source or "",
+            M.FC_LEAD: st.lead_s}
 
 
 class _Agg:

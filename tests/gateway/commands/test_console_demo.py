@@ -13,7 +13,7 @@ import urllib.request
 
 from conftest import ROOT, hookwatch_cmd
 from kit.broker import check_message
-from kit.e2e import QUICK_END, QUICK_METHOD, Proc, quick_scenario, read_json, station_yaml
+from kit.e2e import QUICK_END, QUICK_LEAD, QUICK_METHOD, QUICK_PRIOR, Proc, quick_scenario, read_json, station_yaml
 from kit.tools import require_tool
 
 
@@ -31,9 +31,11 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     require_tool("mosquitto_sub")
     require_tool("mbpoll")
     clone = _fresh_clone(tmp_path)
+    # with a life prior and a lead compressed like the life (as config/demo/station.yaml has them)
     st = station_yaml(tmp_path, {"meter": "/dev/ttyDEMO0", "stm32": "/dev/ttyDEMO1"}, name="demo",
-                      method=QUICK_METHOD, control={"dead_band_n": 0.01},
-                      test={"sample_id": "DEMO-Q", "t_end_s": QUICK_END})
+                      method={**QUICK_METHOD, "lead": QUICK_LEAD}, control={"dead_band_n": 0.01},
+                      test={"sample_id": "DEMO-Q", "t_end_s": QUICK_END},
+                      extra={"forecast": {"priors": [QUICK_PRIOR]}})
     # the shipped one-minute life (quick.yaml) compressed twice more (the kit's QUICK_*: the end of
     # life ~23 s after the start instead of ~53 s)
     sc = quick_scenario(tmp_path, "quick.yaml")
@@ -77,10 +79,17 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     tau = QUICK_METHOD["tau"]
     m = re.search(r"the hook reached its end of life ([\d.]+) s after the start; "
                   rf"detected ([\d.]+) s later \(the {tau:g} s persistence\); "
+                  r"warned ([\d.]+) s before the end of life \(reasons: ([a-z, ]+)\); "
                   r"the simulated wear began to accelerate at ([\d.]+) s; "
                   r"offline analysis of the recorded log agrees", out)
     assert m, out
-    t_life, later, onset = map(float, m.groups())
+    t_life, later, ahead, reasons, onset = (float(m.group(1)), float(m.group(2)), float(m.group(3)),
+                                            m.group(4), float(m.group(5)))
+    # the early warning (METHOD.md §5b) came first, from the prior, as the result has it
+    result = read_json([os.path.join(dp, "result.json") for dp, _d, fs in os.walk(work / "records")
+                        if "result.json" in fs][0])["method"]
+    assert ahead > 0 and "prior" in reasons.split(", ") and reasons.split(", ") == result["warn_reasons"]
+    assert abs(t_life - (result["warn_slot"] + 1) * 0.02 - ahead) < 0.06
     t_det = t_life + later
     (res_path,) = [os.path.join(dp, "result.json") for dp, _d, fs in os.walk(work / "records") if "result.json" in fs]
     assert abs(read_json(res_path)["method"]["t_life"] - t_life) < 0.06

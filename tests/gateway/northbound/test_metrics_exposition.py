@@ -309,12 +309,12 @@ def test_docs_and_shipped_rules_name_exactly_the_exposed_metrics():
     exposed = _exposed_names()
     with open(os.path.join(ROOT, "docs", "metrics.md"), encoding="utf-8") as f:
         doc = f.read()
-    documented = set(re.findall(r"^\| `(hookwatch_[a-z_]+)`", doc, re.M))
+    documented = set(re.findall(r"^\| `(hookwatch_[a-z0-9_]+)`", doc, re.M))
     assert documented == exposed
     with open(os.path.join(ROOT, "deploy", "prometheus", "hookwatch-rules.yml"), encoding="utf-8") as f:
         rules = f.read()
     used = {re.sub(r"_(bucket|sum|count)$", "", n)
-            for n in re.findall(r"\b(hookwatch_[a-z_]+)", rules + doc)}
+            for n in re.findall(r"\b(hookwatch_[a-z0-9_]+)", rules + doc)}
     assert used <= exposed, used - exposed
 
 
@@ -324,13 +324,22 @@ def test_wear_figures_follow_the_state_when_it_carries_them(endpoints):
     out = M.MetricsOutput(fake_station(name), "127.0.0.1", 0)
     run(out.start())
     st = StationState(name, state=TS.MONITORING, mu_ss=0.2, mu_th=0.25)
-    st.headroom, st.t_cross, st.warn_slot = 0.4, 5400.0, 12345    # fields of a later StationState
+    st.headroom, st.t_cross, st.wear_warning = 0.4, 5400.0, True
+    st.end_p10, st.end_p50, st.end_p90, st.p_end, st.due, st.lead_s = 900.0, 1500.0, 2400.0, 0.3, True, 600.0
+    st.elapsed_s = 500.0
     out.on_state(st)
     m = scrape(out.endpoint)
     lab = (("station", name),)
     assert m[("hookwatch_wear_headroom", lab)] == pytest.approx(0.4)
     assert m[("hookwatch_wear_projected_end_seconds", lab)] == 5400.0
     assert m[("hookwatch_wear_warning", lab)] == 1
+    # METHOD.md §5b: the remaining time to each end quantile, P, the lead and the due gauge
+    assert m[("hookwatch_end_p10_seconds", lab)] == 400.0
+    assert m[("hookwatch_end_p50_seconds", lab)] == 1000.0
+    assert m[("hookwatch_end_p90_seconds", lab)] == 1900.0
+    assert m[("hookwatch_end_within_lead_probability", lab)] == pytest.approx(0.3)
+    assert m[("hookwatch_lead_seconds", lab)] == 600.0
+    assert m[("hookwatch_hook_due", lab)] == 1
 
 
 def test_hostile_requests_get_an_answer_or_a_close_and_scrapes_go_on(monkeypatch, endpoints):

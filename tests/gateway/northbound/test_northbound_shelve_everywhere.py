@@ -193,4 +193,4 @@ def test_the_register_map_gives_shelve_and_unshelve_their_arguments():
     assert R.command_args(CommandKind.STOP, hr, "big", ()) == {}
     assert R.plan_write(hr, HR["alarm_select"].address, [3], "big", lim).exception == R.EXC_ILLEGAL_VALUE
     # added at the end: the addresses of map version 3 did not move
-    assert HR["alarm_select"].address > HR["sample_id"].address and R.MAP_VERSION == 3
+    assert HR["alarm_select"].address > HR["sample_id"].address and R.MAP_VERSION >= 3   # 4 added input registers only

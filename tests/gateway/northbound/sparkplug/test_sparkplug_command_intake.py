@@ -5,6 +5,7 @@ a long Sample ID is refused and never echoed into DDATA, a Sample ID with a newl
 station's code 4 with the value escaped; a well-typed start is carried out."""
 from gateway.northbound.sparkplug.client import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
+from gateway.station.hooks import read_hooks
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.sparkplug_host import PrimaryHost, metric_value
@@ -75,6 +76,16 @@ def test_dcmd_metrics_are_typed_and_bounded_like_every_other_door(tmp_path):
                            {"name": "Device Control/Setpoint", "float_value": 0.5}])
         assert code == 0, text
         assert st.plan.sample_id == "SPB-2"
+        # issue 20: Hook Replaced with the new hook's Sample ID — a hostile one refused (code 4),
+        # nothing logged; a good one carried out (the start in progress ends, hooks.jsonl has it)
+        hook = {"name": "Device Control/Hook Replaced", "boolean_value": True}
+        text, code = send([hook, {"name": "Device Control/Sample ID", "string_value": "S\tX"}])
+        assert code == 4 and "\t" not in text, text
+        assert read_hooks(str(tmp_path / "records" / DEV)) == []
+        text, code = send([hook, {"name": "Device Control/Sample ID", "string_value": "SPB-3"}])
+        assert code == 0, text
+        (h,) = read_hooks(str(tmp_path / "records" / DEV))
+        assert (h["old_sample_id"], h["new_sample_id"], h["by"]) == ("SPB-2", "SPB-3", "sparkplug")
     finally:
         if run is not None:
             run.stop()

@@ -1,0 +1,103 @@
+"""A station's life log of its hooks: ``<recorder.dir>/<station>/hooks.jsonl``.
+
+One JSON line per replaced hook, appended (never rewritten) when ``hook_replaced`` is carried
+out: ``{"station", "old_sample_id", "new_sample_id", "grade", "by", "utc", "test_id", "life_s"}``
+(``test_id``: the old hook's last test or null; ``life_s``: its t_life if it failed, else the
+elapsed time of that test, or null). A line is at most :data:`MAX_LINE` bytes (longer values are
+clipped). A line that cannot be written (ENOSPC, EACCES, …) is a state (the caller reports the
+records disk), never an exception. :func:`read_hooks` reads the last :data:`MAX_LINES` lines; a
+damaged line is skipped (one log line with the count).
+"""
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import re
+from typing import Any
+
+__all__ = ["HOOKS_NAME", "MAX_LINE", "MAX_LINES", "append_hook", "next_sample_id", "read_hooks"]
+
+log = logging.getLogger("hookwatch.station")
+
+HOOKS_NAME = "hooks.jsonl"
+#: bytes per line, newline included
+MAX_LINE = 4096
+#: lines read back (the newest)
+MAX_LINES = 10_000
+#: characters kept of a text value of a line
+_CLIP = 256
+
+_REPLACED = re.compile(r"^(.*)-R(\d{1,6})$")
+
+
+def next_sample_id(old: str | None, limit: int) -> str:
+    """The sample id a new hook gets when the command names none: ``<old>-R<n>`` (n counts up
+    over ``-R`` suffixes: S-1 → S-1-R1 → S-1-R2), at most ``limit`` characters."""
+    base, n = (old or "hook"), 1
+    m = _REPLACED.match(base)
+    if m:
+        base, n = m.group(1), int(m.group(2)) + 1
+    tail = f"-R{n}"
+    return base[: max(1, limit - len(tail))] + tail
+
+
+def _clip(v: Any) -> Any:
+    return v[:_CLIP] if isinstance(v, str) else v
+
+
+def append_hook(station_dir: str, record: dict[str, Any]) -> str | None:
+    """Append one record to the station's hooks.jsonl; None when written, else the OS's reason."""
+    rec = {k: _clip(v) for k, v in record.items()}
+    line = json.dumps(rec, ensure_ascii=True, separators=(",", ":"), allow_nan=False) + "\n"
+    if len(line) > MAX_LINE:      # cannot happen with clipped values; never write a longer line
+        line = json.dumps({k: rec.get(k) for k in ("station", "old_sample_id", "new_sample_id",
+                                                    "utc", "test_id")}) + "\n"
+    try:
+        os.makedirs(station_dir, exist_ok=True)
+        fd = os.open(os.path.join(station_dir, HOOKS_NAME),
+                     os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+        try:
+            os.write(fd, line.encode("ascii"))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
+
+
+def read_hooks(station_dir: str, max_lines: int = MAX_LINES) -> list[dict[str, Any]]:
+    """The last ``max_lines`` records of the station's hooks.jsonl (none when it is absent)."""
+    path = os.path.join(station_dir, HOOKS_NAME)
+    tail: collections.deque[bytes] = collections.deque(maxlen=max_lines)
+    try:
+        with open(path, "rb") as f:
+            while raw := f.readline(MAX_LINE + 1):
+                if len(raw) > MAX_LINE and not raw.endswith(b"\n"):
+                    # an overlong line: the rest of it is read in bounded pieces and dropped
+                    while (more := f.readline(MAX_LINE + 1)) and not more.endswith(b"\n"):
+                        pass
+                tail.append(raw)
+    except FileNotFoundError:
+        return []
+    except OSError as e:
+        log.warning("%s: cannot be read (%s)", path, e.strerror or e)
+        return []
+    out: list[dict[str, Any]] = []
+    bad = 0
+    for raw in tail:
+        try:
+            if len(raw) > MAX_LINE:
+                raise ValueError("line too long")
+            rec = json.loads(raw.decode("utf-8"))
+            if not isinstance(rec, dict):
+                raise ValueError("not an object")
+        except (ValueError, UnicodeDecodeError, RecursionError):
+            bad += 1
+            continue
+        out.append(rec)
+    if bad:
+        log.warning("%s: %d damaged line(s) skipped", path, bad)
+    return out
