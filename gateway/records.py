@@ -113,6 +113,20 @@ class StationState:
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
     wear_warning: bool = False         # §5a early warning fired in this test
+    # the forecast (METHOD.md §5b; docs/wave2 contract): all None/False/[] outside a test, and the
+    # projections (end_p*, p_end, t_cross, due) None/False after the end of life or the test's end
+    prior_mean: float | None = None
+    prior_sd: float | None = None
+    prior_source: str | None = None    # "config", "method", "history:N" or None
+    lead_s: float | None = None
+    p_due: float | None = None
+    end_p10: float | None = None       # projected end of life, s from the test's slot 0
+    end_p50: float | None = None
+    end_p90: float | None = None
+    p_end: float | None = None
+    due: bool = False                  # the last forecast window is due
+    warn_reasons: list[str] = field(default_factory=list)   # sorted reasons of the early warning
+    test_started_utc: str | None = None   # ISO 8601 of slot 0 (turns end_p* into wall time)
     stopped: bool = False              # the last test was ended on purpose (STOPPED, §3)
     protection_stop: bool = False
     meter_ok: bool = False
