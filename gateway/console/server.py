@@ -707,6 +707,7 @@ class ConsoleServer:
             f = self._feed(request)
         except _HttpError as e:
             return _err(e.status, e.reason)
+        f.drain()
         if not f.journal_seeded:
             f.journal_seeded = True
             try:
@@ -715,8 +716,8 @@ class ConsoleServer:
             except OSError as e:
                 log.warning("console: %s: recorded alarm journal unreadable: %s", f.name, e)
                 old = []
+            f.drain()
             f.seed_journal(old)
-        f.drain()
         return web.json_response({"station": f.name, "journal": list(f.journal)})
 
     def _due_filters(self, request) -> tuple[str | None, str | None]:
