@@ -61,7 +61,7 @@
   function wall(iso) {
     if (!iso) return "–";
     const d = new Date(iso);
-    return isNaN(d) ? "–" : d.toLocaleString(undefined, { weekday: "short", hour: "2-digit", minute: "2-digit" });
+    return isNaN(d) ? "–" : d.toLocaleString(undefined, { weekday: "short", hour: "2-digit", minute: "2-digit", hour12: false });
   }
   function wallAt(start, s) { return (start && s != null && isFinite(s)) ? new Date(new Date(start).getTime() + s * 1000).toISOString() : null; }
   function projection(s) {
