@@ -112,21 +112,21 @@ class StationState:
     warning_alarm: str = AlarmState.NORMAL.value  # the §5a wear-warning alarm (lower priority)
     headroom: float | None = None      # §5a h of the last post-baseline window with a value
     t_cross: float | None = None       # §5a projected crossing of μ_th, s from test start (None: none)
-    wear_warning: bool = False         # §5a early warning fired in this test
-    # the forecast (METHOD.md §5b; docs/wave2 contract): all None/False/[] outside a test, and the
-    # projections (end_p*, p_end, t_cross, due) None/False after the end of life or the test's end
-    prior_mean: float | None = None
+    wear_warning: bool = False         # §5b early warning fired in this test (the first due window)
+    # §5b/§7a remaining life (issue 20): all None/False/[] outside a test; no projection (end_p*,
+    # p_end, t_cross, due) after the end of life was detected or after the test ended
+    prior_mean: float | None = None    # the test's life prior, s (§7a)
     prior_sd: float | None = None
-    prior_source: str | None = None    # "config", "method", "history:N" or None
-    lead_s: float | None = None
-    p_due: float | None = None
-    end_p10: float | None = None       # projected end of life, s from the test's slot 0
+    prior_source: str | None = None    # "method", "config", "history:N" or None (no prior)
+    lead_s: float | None = None        # the planner's lead (§5b `lead`), s
+    p_due: float | None = None         # the bound P is held against (§5b `p_due`)
+    end_p10: float | None = None       # end quantiles of the last forecast time, s from slot 0
     end_p50: float | None = None
     end_p90: float | None = None
-    p_end: float | None = None
-    due: bool = False                  # the last forecast window is due
-    warn_reasons: list[str] = field(default_factory=list)   # sorted reasons of the early warning
-    test_started_utc: str | None = None   # ISO 8601 of slot 0 (turns end_p* into wall time)
+    p_end: float | None = None         # chance of the end within the lead (last forecast time)
+    due: bool = False                  # the last forecast window is due (§5b)
+    warn_reasons: list[str] = field(default_factory=list)   # the early warning's reasons, sorted
+    test_started_utc: str | None = None   # ISO 8601 (UTC) of the test's slot 0
     stopped: bool = False              # the last test was ended on purpose (STOPPED, §3)
     protection_stop: bool = False
     meter_ok: bool = False
