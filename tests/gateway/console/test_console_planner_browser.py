@@ -55,7 +55,7 @@ def browser():
             b.close()
 
 
-def _wait_js(page, expr, timeout_s=30.0):
+def _wait_js(page, expr, timeout_s=60.0):
     page.wait_for_function(expr, timeout=timeout_s * 1000, polling=250)
 
 
@@ -64,6 +64,16 @@ def _login(page, user, pw):
     page.fill("#login-pw", pw)
     page.click("#login button")
     page.wait_for_selector("#logout:not(.hidden)")
+
+
+def _click_command(page, button: str, name: str) -> str:
+    """Click a command button and wait for the console's answer; it must be accepted."""
+    page.evaluate("document.querySelector('#msg').textContent = ''")
+    page.click(button)
+    page.wait_for_function("document.querySelector('#msg').textContent !== ''")
+    msg = page.locator("#msg").inner_text()
+    assert msg == f"{name}: accepted", msg
+    return msg
 
 
 def _commands(page) -> list[dict]:
@@ -178,7 +188,7 @@ def _station_events(tmp_path, etype: str, **match) -> list[dict]:
     return out
 
 
-def _wait(cond, timeout_s=20.0):
+def _wait(cond, timeout_s=40.0):
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
         v = cond()
@@ -200,39 +210,35 @@ def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browse
         row = page.locator('#due tr[data-station="loom-a"]').inner_text()
         assert "l1" in row and "hall" in row
         page.goto(url + "/#/station/loom-a")
-        _wait_js(page, "window.hw.points > 0", 30)
+        _wait_js(page, "window.hw.points > 0", 60)
         _login(page, "alice", PW)
         sent = _commands(page)
 
         # --- out of service, then in service: the station's state and its events say so
-        page.click("#b-oos")
-        page.wait_for_function("document.querySelector('#msg').textContent.includes('out_of_service: accepted')")
-        page.wait_for_selector("#alarm .alarm-out_of_service", timeout=15000)
+        _click_command(page, "#b-oos", "out_of_service")
+        page.wait_for_selector("#alarm .alarm-out_of_service", timeout=30000)
         _wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].filter(r => "
                        "r.textContent.includes('out_of_service') && "
                        "r.textContent.includes('console:alice')).length === 2")
         _wait(lambda: _station_events(tmp_path, "alarm_out_of_service", source="console:alice"))
-        page.click("#b-ins")
-        page.wait_for_function("document.querySelector('#msg').textContent.includes('in_service: accepted')")
+        _click_command(page, "#b-ins", "in_service")
         _wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].some(r => "
                        "r.textContent.includes('return_to_service') && r.textContent.includes('console:alice'))")
         _wait(lambda: _station_events(tmp_path, "alarm_in_service", source="console:alice"))
-        page.wait_for_selector("#alarm:not(:has(.alarm-out_of_service))", timeout=15000)
+        page.wait_for_selector("#alarm:not(:has(.alarm-out_of_service))", timeout=30000)
 
         # --- the end of life (≈ 58 s into the virtual life), then shelve and unshelve it
         page.wait_for_selector("#alarm .alarm-active", timeout=120000)
         page.select_option("#j-alarm", "end_of_life")
         page.fill("#j-minutes", "30")
-        page.click("#b-shelve")
-        page.wait_for_function("document.querySelector('#msg').textContent.includes('shelve: accepted')")
-        page.wait_for_selector("#alarm .alarm-shelved", timeout=15000)
+        _click_command(page, "#b-shelve", "shelve")
+        page.wait_for_selector("#alarm .alarm-shelved", timeout=30000)
         ev = _wait(lambda: _station_events(tmp_path, "alarm_shelved", source="console:alice"))
         assert ev[0]["until"] - ev[0]["time"] == pytest.approx(1800, abs=5)
         _wait_js(page, "[...document.querySelectorAll('#journal tbody tr.j-shelved')].some(r => "
                        "r.textContent.includes('end_of_life') && r.textContent.includes('console:alice'))")
-        page.click("#b-unshelve")
-        page.wait_for_function("document.querySelector('#msg').textContent.includes('unshelve: accepted')")
-        page.wait_for_selector("#alarm .alarm-active", timeout=15000)
+        _click_command(page, "#b-unshelve", "unshelve")
+        page.wait_for_selector("#alarm .alarm-active", timeout=30000)
         _wait(lambda: _station_events(tmp_path, "alarm_unshelved", source="console:alice"))
         page.screenshot(path=str(tmp_path / "journal.png"), full_page=True)
         # the journal JSON: every transition with who and when, in time order
