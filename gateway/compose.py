@@ -134,7 +134,8 @@ def build_console(cfgs: list) -> ConsoleServer | None:
     process_budget(cfgs[0])
     return ConsoleServer(ConsoleSettings.from_config(cfgs[0]),
                          {c.station.id: os.path.join(c.recorder.dir, c.station.id) for c in cfgs},
-                         mqtt_enabled={c.station.id: bool(c.mqtt.enabled) for c in cfgs})
+                         mqtt_enabled={c.station.id: bool(c.mqtt.enabled) for c in cfgs},
+                         places={c.station.id: (c.station.line, c.station.area) for c in cfgs})
 
 
 # ------------------------------------------------------------------------------------------------

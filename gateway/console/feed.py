@@ -16,7 +16,11 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import datetime as _dt
+import json
+import logging
 import math
+import os
 import time
 import zlib
 from dataclasses import asdict
@@ -32,6 +36,20 @@ HANDOVER_SLOTS = 8192
 MAX_BUCKETS = 1024
 #: events kept per station for the event list
 MAX_EVENTS = 200
+#: ISA-18.2 alarm transitions kept per station for the alarm journal
+MAX_JOURNAL = 500
+#: transitions taken from one event (an event carries one per alarm it changed: two today)
+MAX_TRANSITIONS_PER_EVENT = 8
+#: recorded tests (newest first) whose events.jsonl seed the journal when the console starts
+JOURNAL_TESTS = 5
+#: last lines read of a file kept as JSON lines (events.jsonl, hooks.jsonl)
+TAIL_LINES = 10_000
+#: longest line read of such a file (hooks.jsonl lines are ≤ 4 KiB; events are small)
+TAIL_LINE_BYTES = 16 * 1024
+#: states of a running test (TestState values): baseline search, monitoring, end of life
+_RUNNING = (1, 2, 3)
+
+log = logging.getLogger("hookwatch.console")
 
 # bucket fields: first slot, mu min, mu max, n valid, sums of t1, t2 (n present), speed cmd (n),
 # speed act (n act)
@@ -224,6 +242,12 @@ class StationFeed:
         self.station: StationView | None = None
         self.loop: asyncio.AbstractEventLoop | None = None
         self.mqtt_enabled = False
+        # where the station stands in the plant (station.line / station.area of its file)
+        self.line = ""
+        self.area = ""
+        #: the ISA-18.2 transitions of the station's alarms, oldest first (bounded)
+        self.journal: collections.deque = collections.deque(maxlen=MAX_JOURNAL)
+        self.journal_seeded = False
 
     # ----------------------------------------------------------------- console thread
     def drain(self, budget: int = 100_000) -> bool:
@@ -302,7 +326,13 @@ class StationFeed:
                 setattr(self, name, d[name])
         if d.get("warn_slot") is not None:
             self.markers["t_warn"] = (d["warn_slot"] + 1) * self.series.ts
+        self.journal.extend(journal_entries(ev.as_dict()))
         self.events.append(ev.as_dict())
+
+    def seed_journal(self, entries: list[dict[str, Any]]) -> None:
+        """Put the transitions read from the recorded tests before those seen live (once)."""
+        self.journal_seeded = True
+        self.journal = merge_journal(entries, list(self.journal))
 
     def summary(self) -> dict[str, Any]:
         """The fleet card."""
@@ -314,7 +344,16 @@ class StationFeed:
                  t_cross=self.t_cross, slots=self.series.n_slots, valid=self.series.n_valid,
                  filled=self.series.n_present,
                  running=self.running, handover_dropped=self.dropped,
-                 online=self.station is not None, last_seen=self.last_seen)
+                 online=self.station is not None, last_seen=self.last_seen,
+                 line=self.line, area=self.area)
+        if st is not None:
+            # the station's own projection is the truth (not the last one any record carried)
+            s["t_cross"] = st.t_cross
+        if st is None or st.t_life is not None or st.state.value not in _RUNNING:
+            # no projection after the end of life nor outside a running test (the hook's life is
+            # known, or there is no test): a stale "projected crossing" is never shown
+            s.update(t_cross=None, end_p10=None, end_p50=None, end_p90=None, p_end=None, due=False)
+        s["past_threshold"] = bool(st is not None and (st.t_life is not None or st.state.value == 3))
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
         elif not s.get("mqtt_ok"):
@@ -329,6 +368,203 @@ class StationFeed:
         return {"type": "snapshot", "station": self.name, "gen": s.gen, "width_s": s.width * s.ts,
                 "rows": s.rows(), "markers": self.markers, "summary": self.summary(),
                 "events": list(self.events)}
+
+
+def _wall(start: Any, offset_s: Any) -> str | None:
+    """``start`` (ISO 8601 of slot 0) + ``offset_s`` seconds as ISO 8601 UTC (seconds, ``Z``)."""
+    if not isinstance(start, str) or not isinstance(offset_s, (int, float)) or isinstance(offset_s, bool) \
+            or not math.isfinite(offset_s) or abs(offset_s) > 1e9:
+        return None
+    try:
+        t0 = _dt.datetime.fromisoformat(start.replace("Z", "+00:00"))
+    except ValueError:
+        return None
+    if t0.tzinfo is None:
+        t0 = t0.replace(tzinfo=_dt.UTC)
+    t = (t0 + _dt.timedelta(seconds=float(offset_s))).astimezone(_dt.UTC)
+    return t.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+#: the columns of the planner's due list (JSON keys and CSV header, in this order)
+DUE_COLUMNS = ("station", "line", "area", "sample_id", "grade", "state", "due", "end_utc_p10",
+               "end_utc_p50", "end_utc_p90", "p_end", "reasons", "t_life_utc", "headroom",
+               "alarm", "test_id", "test_started_utc", "end_p10", "end_p50", "end_p90", "t_life")
+
+
+def due_row(s: dict[str, Any]) -> dict[str, Any]:
+    """One station of the due list from its fleet card (:meth:`StationFeed.summary`)."""
+    start = s.get("test_started_utc")
+    life = s.get("t_life")
+    reasons = s.get("warn_reasons") or []
+    row = {k: s.get(k) for k in DUE_COLUMNS}
+    row.update(end_utc_p10=_wall(start, s.get("end_p10")), end_utc_p50=_wall(start, s.get("end_p50")),
+               end_utc_p90=_wall(start, s.get("end_p90")), t_life_utc=_wall(start, life),
+               reasons=[str(r) for r in reasons] if isinstance(reasons, list) else [],
+               due=bool(s.get("due")) or life is not None,
+               line=s.get("line") or "", area=s.get("area") or "")
+    # how soon it is due: the hook past its end of life first (at the wall time of t_life), then
+    # by the median projected end (p50, then p10), then running tests without a projection, then
+    # the rest; the station's name breaks ties
+    if life is not None:
+        row["_key"] = (0, row["t_life_utc"] or "", s.get("station", ""))
+    elif row["end_utc_p50"] or row["end_utc_p10"]:
+        row["_key"] = (1, row["end_utc_p50"] or row["end_utc_p10"], s.get("station", ""))
+    elif s.get("state") in ("baseline_search", "monitoring", "end_of_life"):
+        row["_key"] = (2, "", s.get("station", ""))
+    else:
+        row["_key"] = (3, "", s.get("station", ""))
+    return row
+
+
+def due_list(cards: list[dict[str, Any]], line: str | None = None,
+             area: str | None = None) -> list[dict[str, Any]]:
+    """The planner's due list: every station (of ``line`` / ``area`` when given), the soonest
+    due first."""
+    rows = [due_row(c) for c in cards
+            if (line is None or (c.get("line") or "") == line)
+            and (area is None or (c.get("area") or "") == area)]
+    rows.sort(key=lambda r: r["_key"])
+    for r in rows:
+        del r["_key"]
+    return rows
+
+
+#: characters that make a spreadsheet read a cell as a formula (CSV injection, OWASP)
+_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(v: Any) -> str:
+    """One CSV cell as text, defused: a cell that starts with ``= + - @`` (or a tab / carriage
+    return) gets a leading ``'`` so that no spreadsheet runs it as a formula."""
+    if v is None:
+        t = ""
+    elif isinstance(v, bool):
+        t = "true" if v else "false"
+    elif isinstance(v, list):
+        t = " ".join(str(x) for x in v)
+    elif isinstance(v, float):
+        t = repr(round(v, 6)) if math.isfinite(v) else ""
+    else:
+        t = str(v)
+    return "'" + t if t.startswith(_FORMULA_START) else t
+
+
+def journal_entries(ev: dict[str, Any]) -> list[dict[str, Any]]:
+    """The journal lines of one station event (``Event.as_dict`` or a line of events.jsonl): one
+    per ISA-18.2 transition it carries (``transitions``), with the event's type, test and source."""
+    trs = ev.get("transitions")
+    if not isinstance(trs, list):
+        return []
+    out = []
+    for t in trs[:MAX_TRANSITIONS_PER_EVENT]:
+        if not isinstance(t, dict) or not isinstance(t.get("time"), (int, float)):
+            continue
+        out.append({"time": float(t["time"]), "alarm": _short(t.get("alarm")),
+                    "from": _short(t.get("from")), "to": _short(t.get("to")),
+                    "action": _short(t.get("action")), "by": _short(t.get("by")),
+                    "hook": _short(t.get("hook")), "priority": t.get("priority")
+                    if isinstance(t.get("priority"), int) else None,
+                    "event": _short(ev.get("type")), "test_id": _short(ev.get("test_id"))})
+    return out
+
+
+def _short(v: Any, n: int = 128) -> str | None:
+    return None if v is None else str(v)[:n]
+
+
+def _jkey(e: dict[str, Any]) -> tuple:
+    return (e.get("time"), e.get("alarm"), e.get("action"), e.get("from"), e.get("to"))
+
+
+def merge_journal(older: list[dict[str, Any]], newer: list[dict[str, Any]],
+                  n: int = MAX_JOURNAL) -> collections.deque:
+    """Both lists as one journal in time order, each transition once, the newest ``n`` kept."""
+    seen: set[tuple] = set()
+    out = []
+    for e in sorted(older + newer, key=lambda e: e.get("time") or 0.0):
+        k = _jkey(e)
+        if k not in seen:
+            seen.add(k)
+            out.append(e)
+    return collections.deque(out[-n:], maxlen=n)
+
+
+def tail_jsonl(path: str, max_lines: int = TAIL_LINES,
+               max_line_bytes: int = TAIL_LINE_BYTES) -> tuple[list[dict[str, Any]], int]:
+    """The last ``max_lines`` lines of a JSON-lines file as objects, oldest first, and how many
+    lines were damaged (not JSON, not an object, longer than ``max_line_bytes``: skipped). Reads
+    at most ``max_lines × max_line_bytes`` bytes from the end; a missing file is ``([], 0)``."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            budget = max_lines * (max_line_bytes + 1)
+            start = max(0, size - budget)
+            f.seek(start)
+            data = f.read(size - start)
+    except FileNotFoundError:
+        return [], 0
+    lines = data.split(b"\n")
+    if start > 0:
+        lines = lines[1:]            # the first line is cut by the read window
+    lines = [ln for ln in lines if ln.strip()][-max_lines:]
+    out, bad = [], 0
+    for ln in lines:
+        if len(ln) > max_line_bytes:
+            bad += 1
+            continue
+        try:
+            v = json.loads(ln.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError, RecursionError):
+            bad += 1
+            continue
+        if isinstance(v, dict):
+            out.append(v)
+        else:
+            bad += 1
+    return out, bad
+
+
+def journal_from_disk(station_dir: str, n_tests: int = JOURNAL_TESTS) -> list[dict[str, Any]]:
+    """The alarm transitions recorded in the events.jsonl of the station's newest tests."""
+    try:
+        names = sorted((n for n in os.listdir(station_dir)
+                        if os.path.isfile(os.path.join(station_dir, n, "events.jsonl"))),
+                       reverse=True)[:n_tests]
+    except OSError:
+        return []
+    out: list[dict[str, Any]] = []
+    for n in reversed(names):
+        evs, bad = tail_jsonl(os.path.join(station_dir, n, "events.jsonl"))
+        if bad:
+            log.warning("console: %s/events.jsonl: %d damaged lines skipped", n, bad)
+        for ev in evs:
+            out.extend(journal_entries(ev))
+    return out[-MAX_JOURNAL:]
+
+
+#: the fields of one hooks.jsonl line (the station's life log; docs/console.md)
+HOOK_FIELDS = ("station", "old_sample_id", "new_sample_id", "grade", "by", "utc", "test_id", "life_s")
+
+
+def read_hooks(station_dir: str, max_lines: int = TAIL_LINES) -> list[dict[str, Any]]:
+    """The successive hooks of a station from ``<station dir>/hooks.jsonl``, newest first: the
+    last ``max_lines`` lines; a damaged line is skipped (one log line with the count)."""
+    path = os.path.join(station_dir, "hooks.jsonl")
+    rows, bad = tail_jsonl(path, max_lines, 4096)
+    if bad:
+        log.warning("console: %s: %d damaged lines skipped", path, bad)
+    out = []
+    for r in reversed(rows):
+        h = {k: r.get(k) for k in HOOK_FIELDS}
+        for k in ("station", "old_sample_id", "new_sample_id", "grade", "by", "utc", "test_id"):
+            if h[k] is not None:
+                h[k] = str(h[k])[:128]
+        life = h["life_s"]
+        h["life_s"] = float(life) if isinstance(life, (int, float)) and not isinstance(life, bool) \
+            and math.isfinite(life) else None
+        out.append(h)
+    return out
 
 
 class ConsoleOutput:

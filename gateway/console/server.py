@@ -9,12 +9,17 @@ JSON API (reading: open from the loopback address, else a login — ``console.re
     GET  /api/station/<id>                  snapshot: decimated series from slot 0, markers, events
     GET  /api/station/<id>/stream           Server-Sent Events: snapshot, then changes (~4/s)
     GET  /api/station/<id>/tests            recorded tests
+    GET  /api/station/<id>/hooks            the successive hooks and their lives (hooks.jsonl)
+    GET  /api/station/<id>/journal          the ISA-18.2 alarm journal (every transition, who, when)
+    GET  /api/due[?line=&area=]             the planner's due list (every station, soonest first)
+    GET  /api/due.csv[?line=&area=]         the same as CSV (cells defused against formulas)
     GET  /api/station/<id>/tests/<test>/fig7.png        the report's Fig. 7 of a test
     GET  /api/station/<id>/tests/<test>/files/<name>    log.csv.gz, log.meta.yaml, events.jsonl, result.json
     GET  /api/session                       who is logged in (+ CSRF token)
     POST /api/login  {user, password}       → session cookie + CSRF token
     POST /api/logout
-    POST /api/station/<id>/command {command, ...}   start | stop | ack | setpoint | hook_replaced
+    POST /api/station/<id>/command {command, ...}   start | stop | ack | setpoint | hook_replaced |
+                                            shelve | unshelve | out_of_service | in_service
 
 Every POST other than login needs the session cookie and the ``X-CSRF-Token`` header; commands go
 through the station's one validation (``Station.submit`` on the station's own loop) and are logged
@@ -23,7 +28,9 @@ with the user.
 from __future__ import annotations
 
 import asyncio
+import csv
 import hmac
+import io
 import ipaddress
 import json
 import logging
@@ -44,12 +51,21 @@ from ..doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
 from ..northbound.cmdparse import intake, rejected_event_data
 from ..ports import StationView
 from ..ratelog import RateLog
-from ..records import Command, CommandKind
+from ..records import CommandKind
 from ..station import commands as C
 from ..station.commands import CODE, Rejection
 from ..threadloop import ThreadLoop, call_soon_on, submit_to
 from . import auth
-from .feed import ConsoleOutput, StationFeed, series_from_log
+from .feed import (
+    DUE_COLUMNS,
+    ConsoleOutput,
+    StationFeed,
+    csv_cell,
+    due_list,
+    journal_from_disk,
+    read_hooks,
+    series_from_log,
+)
 from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
 
 log = logging.getLogger("hookwatch.console")
@@ -69,6 +85,10 @@ MAX_CLIENTS = 64
 MAX_JSON_DEPTH = 16
 #: how often the console drains the hand-overs and sends changes
 TICK_S = 0.25
+#: reads from disk (a station's hooks, the due list as CSV) a minute from one address
+FILE_READS_PER_MIN = 60
+#: longest line / area filter of the due list, characters
+FILTER_MAX = 64
 COOKIE = "hw_session"
 TEST_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.:+-]{0,127}$")
 DOWNLOADS = {"log.csv.gz": "application/gzip", "log.meta.yaml": "text/yaml; charset=utf-8",
@@ -136,15 +156,20 @@ class ConsoleServer:
     """One console per process: every station of the fleet, on its own thread and loop."""
 
     def __init__(self, settings: ConsoleSettings, stations: dict[str, str], ts: float = 0.02,
-                 mqtt_enabled: dict[str, bool] | None = None):
+                 mqtt_enabled: dict[str, bool] | None = None,
+                 places: dict[str, tuple[str, str]] | None = None):
         """``stations``: station id → its records folder (recorder.dir/<id>); ``mqtt_enabled``:
-        stations that report over MQTT (the others show no MQTT link)."""
+        stations that report over MQTT (the others show no MQTT link); ``places``: station id →
+        (station.line, station.area) for the due list's columns and filters."""
         self.settings = settings
         self.ts = ts
         self.records = dict(stations)
         self.feeds = {name: StationFeed(name, ts) for name in stations}
         for name, on in (mqtt_enabled or {}).items():
             self.feeds[name].mqtt_enabled = bool(on)
+        for name, (line, area) in (places or {}).items():
+            if name in self.feeds:
+                self.feeds[name].line, self.feeds[name].area = str(line or ""), str(area or "")
         self.tl = ThreadLoop("console")
         self.sessions = auth.Sessions(settings.session_ttl_s)
         self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
@@ -152,6 +177,7 @@ class ConsoleServer:
         self.reports = ReportPool(settings.report_jobs, settings.report_queue)
         self.stream_rate = RateBound(settings.stream_connects_per_address)
         self.stream_rate_all = RateBound(settings.stream_connects_total)
+        self.file_rate = RateBound(FILE_READS_PER_MIN)
         self.refusals = LogLimit(log)
         self.clients: dict[str, set[_Client]] = {n: set() for n in stations}
         self.urls: list[str] = []
@@ -172,7 +198,7 @@ class ConsoleServer:
         return ConsoleOutput(self.feeds[station.id], station)
 
     def add_station(self, name: str, records_dir: str, mqtt_enabled: bool = False,
-                    timeout: float = 10.0) -> None:
+                    timeout: float = 10.0, line: str = "", area: str = "") -> None:
         """A station that joined while the console runs (a fleet's SIGHUP with a new station
         file): its feed is added on the console's loop, where every handler reads the feeds."""
         async def add() -> None:
@@ -180,6 +206,7 @@ class ConsoleServer:
                 return
             feed = StationFeed(name, self.ts)
             feed.mqtt_enabled = bool(mqtt_enabled)
+            feed.line, feed.area = str(line or ""), str(area or "")
             self.records = {**self.records, name: records_dir}
             self.clients = {**self.clients, name: set()}
             self.feeds = {**self.feeds, name: feed}
@@ -261,6 +288,10 @@ class ConsoleServer:
         r.add_get("/api/station/{sid}/stream", self.h_stream)
         r.add_post("/api/station/{sid}/command", self.h_command)
         r.add_get("/api/station/{sid}/tests", self.h_tests)
+        r.add_get("/api/station/{sid}/hooks", self.h_hooks)
+        r.add_get("/api/station/{sid}/journal", self.h_journal)
+        r.add_get("/api/due", self.h_due)
+        r.add_get("/api/due.csv", self.h_due_csv)
         r.add_get("/api/station/{sid}/tests/{tid}/fig7.png", self.h_fig7)
         r.add_get("/api/station/{sid}/tests/{tid}/files/{name}", self.h_file)
         r.add_post("/api/campaign", self.h_campaign_run)
@@ -558,16 +589,9 @@ class ConsoleServer:
             return self._reply(f, s, "command", cmd, status=400)
         kind = cmd.kind.value
         hook = cmd.kind == CommandKind.HOOK_REPLACED
-        if hook:        # the console's hook_replaced: acknowledges the alarm (docs/console.md)
-            cmd = Command(CommandKind.ACK, source, {}, cmd.request_id)
         if st is None or loop is None:
             return self._reply(f, s, kind, Rejection(False, f"station {f.name} is not running", None,
                                                      CODE["NO_STATION"]))
-        if hook and getattr(getattr(st, "state", None), "alarm", "normal") not in ("unacknowledged",
-                                                                             "rtn_unacknowledged"):
-            log.info("console: %s: hook replaced on %s (reported by %s; no alarm to acknowledge)",
-                     f.name, f.name, s.user)
-            return web.json_response({"ok": True, "reason": "", "code": 0})
         try:
             fut = submit_to(loop, C.submit(st, cmd))   # the one hand-over (gateway/threadloop.py)
             if fut is None:
@@ -577,7 +601,8 @@ class ConsoleServer:
             reply = Rejection(False, f"the station did not answer ({type(e).__name__})", None,
                               CODE["NO_STATION"])
         if hook and reply.ok:
-            log.info("console: %s: hook replaced, alarm acknowledged by %s", f.name, s.user)
+            log.info("console: %s: hook replaced by %s (new hook %s)", f.name, s.user,
+                     _cut(str(cmd.args.get("sample_id", "(derived)"))))
         return self._reply(f, s, kind, reply)
 
     def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply, status: int = 409) -> web.Response:
@@ -663,6 +688,92 @@ class ConsoleServer:
             return _err(e.status, e.reason)
         tests = await asyncio.get_running_loop().run_in_executor(None, list_tests, d)
         return web.json_response({"station": request.match_info["sid"], "tests": tests})
+
+    def _file_rate(self, request) -> web.Response | None:
+        """Disk reads (hooks, the CSV) are bounded per client address: 429 + Retry-After."""
+        wait = self.file_rate.take(request.remote or "?")
+        if wait > 0:
+            return self._refuse(request, 429, "file rate", "too many reads from disk; "
+                                f"try again in {math.ceil(wait)} s",
+                                headers={"Retry-After": str(math.ceil(wait))})
+        return None
+
+    async def h_hooks(self, request):
+        """The station's successive hooks with their lives, newest first (hooks.jsonl, bounded)."""
+        try:
+            d = self._station_dir(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        refused = self._file_rate(request)
+        if refused is not None:
+            return refused
+        hooks = await asyncio.get_running_loop().run_in_executor(None, read_hooks, d)
+        return web.json_response({"station": request.match_info["sid"], "hooks": hooks})
+
+    async def h_journal(self, request):
+        """The alarm journal of a station: every ISA-18.2 transition with who and when, oldest
+        first (what the recorded tests hold, then what the console saw live; bounded)."""
+        try:
+            f = self._feed(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        f.drain()
+        if not f.journal_seeded:
+            f.journal_seeded = True
+            try:
+                old = await asyncio.get_running_loop().run_in_executor(
+                    None, journal_from_disk, self.records[f.name])
+            except OSError as e:
+                log.warning("console: %s: recorded alarm journal unreadable: %s", f.name, e)
+                old = []
+            f.drain()
+            f.seed_journal(old)
+        return web.json_response({"station": f.name, "journal": list(f.journal)})
+
+    def _due_filters(self, request) -> tuple[str | None, str | None]:
+        out = []
+        for name in ("line", "area"):
+            v = request.query.get(name)
+            if v is not None and (len(v) > FILTER_MAX or not v.isprintable()):
+                raise _HttpError(400, f"{name}: at most {FILTER_MAX} printable characters")
+            out.append(v if v else None)
+        return out[0], out[1]
+
+    def _due(self, request) -> list[dict[str, Any]]:
+        line, area = self._due_filters(request)
+        for f in self.feeds.values():
+            f.drain()
+        return due_list([f.summary() for f in self.feeds.values()], line, area)
+
+    async def h_due(self, request):
+        """The planner's due list: every station, the soonest due first (docs/console.md)."""
+        try:
+            rows = self._due(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        feeds = self.feeds.values()
+        return web.json_response({"time": time.time(), "columns": list(DUE_COLUMNS), "stations": rows,
+                                  "lines": sorted({f.line for f in feeds if f.line}),
+                                  "areas": sorted({f.area for f in feeds if f.area})})
+
+    async def h_due_csv(self, request):
+        """The due list as CSV (RFC 4180; every cell that starts with = + - @ gets a leading ')."""
+        try:
+            rows = self._due(request)
+        except _HttpError as e:
+            return _err(e.status, e.reason)
+        refused = self._file_rate(request)
+        if refused is not None:
+            return refused
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\r\n")
+        w.writerow(DUE_COLUMNS)
+        for r in rows:
+            w.writerow([csv_cell(r.get(c)) for c in DUE_COLUMNS])
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        return web.Response(body=buf.getvalue().encode("utf-8"), headers={
+            "Content-Type": "text/csv; charset=utf-8",
+            "Content-Disposition": f'attachment; filename="due-{stamp}.csv"'})
 
     async def h_file(self, request):
         try:

@@ -288,7 +288,8 @@ class RemoteFleet:
             if self.keys.get(name) == key:
                 continue
             if console is not None and name not in console.feeds:
-                console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled))
+                console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled),
+                                    line=cfg.station.line, area=cfg.station.area)
             st = RemoteStation(hub, **station_facts(cfg))
             st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb,
                                         sparkplug_device=SparkplugDevice)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import http.cookiejar
 import json
+import os
 import subprocess
 import urllib.error
 import urllib.request
@@ -12,6 +13,11 @@ import urllib.request
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
+from gateway import records as R
+from gateway.console import auth
+from gateway.console.feed import ConsoleOutput
+from gateway.console.server import ConsoleServer, ConsoleSettings
+from gateway.records import StationState
 from kit.e2e import fleet_dir, run_gateway, virtual_station
 
 QUICK = "config/scenarios/quick.yaml"
@@ -94,3 +100,50 @@ def _json(b: bytes):
         return json.loads(b.decode())
     except ValueError:
         return {"raw": b[:200]}
+
+
+# ------------------------------------------------ a console fed with constructed station states
+CONSOLE_PW = "a long password"
+START = "2026-11-26T06:00:00.000Z"
+INJECT = '=HYPERLINK("http://evil.example","x")'
+
+#: station → (line, area)
+PLACES = {"loom-a": ("line-1", "hall-1"), "loom-b": ("line-1", "hall-2"),
+          "loom-c": ("line-2", "hall-1"), "loom-d": ("line-2", "hall-2")}
+
+
+def fleet_states() -> dict[str, StationState]:
+    """Four stations: a, b projected (b sooner and due), c past its end of life (with a stale
+    projection that must not be shown), d idle."""
+    a = StationState(station="loom-a", state=R.TestState.MONITORING, test_id="20261126T060000Z-A",
+                     sample_id=INJECT, grade="+G1", test_started_utc=START, headroom=0.6,
+                     end_p10=3600.0, end_p50=5400.0, end_p90=7200.0, p_end=0.12, t_cross=5400.0,
+                     elapsed_s=1200.0)
+    b = StationState(station="loom-b", state=R.TestState.MONITORING, test_id="20261126T060000Z-B",
+                     sample_id="S-B", grade="@G2", test_started_utc=START, headroom=0.2,
+                     end_p10=1500.0, end_p50=1800.0, end_p90=2400.0, p_end=0.71, due=True,
+                     warn_reasons=["headroom", "trend"], wear_warning=True,
+                     warning_alarm="unacknowledged", t_cross=1800.0, elapsed_s=1200.0)
+    c = StationState(station="loom-c", state=R.TestState.END_OF_LIFE, test_id="20261126T060000Z-C",
+                     sample_id="-S-C", grade="G3", test_started_utc=START, headroom=-0.1,
+                     t_life=1000.0, end_p10=900.0, end_p50=1000.0, end_p90=1100.0, p_end=0.99,
+                     due=True, t_cross=950.0, alarm="unacknowledged", elapsed_s=1200.0)
+    d = StationState(station="loom-d")
+    return {"loom-a": a, "loom-b": b, "loom-c": c, "loom-d": d}
+
+
+def start_console(tmp_path, states=None, **kw):
+    """A console with the four stations; their states handed over as a station would."""
+    users = str(tmp_path / "users.json")
+    if not os.path.exists(users):
+        auth.add_user(users, "alice", CONSOLE_PW)
+    dirs = {n: str(tmp_path / "records" / n) for n in PLACES}
+    for d in dirs.values():
+        os.makedirs(d, exist_ok=True)
+    srv = ConsoleServer(ConsoleSettings(listen=("127.0.0.1:0",), users_file=users, **kw), dirs,
+                        places=PLACES)
+    outs = {n: ConsoleOutput(srv.feeds[n]) for n in PLACES}
+    for n, st in (states or fleet_states()).items():
+        outs[n].on_state(st)
+    url = srv.start()[0].rstrip("/")
+    return srv, url, outs, dirs

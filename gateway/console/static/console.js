@@ -48,11 +48,31 @@
   hw.command = command;
 
   // ------------------------------------------------------------------ fleet
-  function headroomBar(h) {
+  // a hook past its threshold (t_life found, or headroom ≤ 0) is drawn as past it: a full red bar
+  function headroomBar(h, past) {
+    if (past || (h != null && h <= 0))
+      return `<div class="bar out past" title="past its threshold${h != null ? " (headroom " + fmt(h, 2) + ")" : ""}"><div style="width:100%"></div><span>past threshold</span></div>`;
     if (h == null) return '<div class="bar" title="no headroom yet"></div>';
     const w = Math.max(0, Math.min(1, h)) * 100;
-    const cls = h <= 0 ? "out" : h < 0.5 ? "low" : "";
+    const cls = h < 0.5 ? "low" : "";
     return `<div class="bar ${cls}" title="headroom ${fmt(h, 2)}"><div style="width:${w}%"></div></div>`;
+  }
+  // wall-clock time of an ISO 8601 UTC string, local to the browser: "Thu 14:05"
+  function wall(iso) {
+    if (!iso) return "–";
+    const d = new Date(iso);
+    return isNaN(d) ? "–" : d.toLocaleString(undefined, { weekday: "short", hour: "2-digit", minute: "2-digit", hour12: false });
+  }
+  function wallAt(start, s) { return (start && s != null && isFinite(s)) ? new Date(new Date(start).getTime() + s * 1000).toISOString() : null; }
+  function projection(s) {
+    if (s.end_p50 == null) return "";
+    const st = s.test_started_utc;
+    return `projected end ${wall(wallAt(st, s.end_p10))} – ${wall(wallAt(st, s.end_p90))} (median ${wall(wallAt(st, s.end_p50))}), P_end ${fmt(s.p_end, 2)}`;
+  }
+  function wearWarning(s) {
+    if (!s.wear_warning && (!s.warning_alarm || s.warning_alarm === "normal")) return "none";
+    const r = (s.warn_reasons || []).map(esc).join(", ");
+    return `<span class="wear">wear warning${r ? ": " + r : ""}</span> ${alarmBadge(s.warning_alarm)}`;
   }
   function slotsText(s) {
     const n = s.slots || 0;
@@ -84,7 +104,8 @@
         <div class="kv">
           <span>state</span><span class="state">${esc(s.state || (s.online ? "" : "offline"))}${s.sample_id ? " · " + esc(s.sample_id) : ""}</span>
           <span>μ now</span><span>${fmt(s.mu_now)} <small>(μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</small></span>
-          <span>headroom</span><span>${headroomBar(s.headroom)}</span>
+          <span>headroom</span><span>${headroomBar(s.headroom, s.past_threshold)}</span>
+          <span>wear</span><span class="wear-cell">${wearWarning(s)}</span>
           <span>alarm</span><span class="alarm">${alarmBadge(s.alarm)} ${needsAck(s.alarm) ? `<button class="ack" data-sid="${esc(s.station)}">acknowledge</button>` : ""}</span>
           <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
           <span>slots</span><span>${slotsText(s)}</span>
@@ -122,12 +143,27 @@
         <label>T_set (N) <input id="c-tset" type="number" step="0.01"></label>
         <label>duration (s) <input id="c-tend" type="number" step="1"></label>
         <button id="b-start">start</button> <button id="b-stop">stop</button>
-        <button id="b-ack">acknowledge</button> <button id="b-hook">hook replaced</button>
+        <button id="b-ack">acknowledge</button> <button id="b-hook">hook replaced …</button>
       </div>
+      <dialog id="hook-dlg"><form method="dialog" id="hook-form">
+        <p><b>Hook replaced on ${esc(sid)}</b><br><small>ends the running test, closes the old hook's alarms and logs its life</small></p>
+        <label>new hook's sample id <input id="h-sample" required maxlength="32" pattern="[ -~]+"></label><br>
+        <label>grade (optional) <input id="h-grade" maxlength="16"></label><br>
+        <button id="h-send" value="send">hook replaced</button> <button id="h-cancel" type="button">cancel</button>
+      </form></dialog>
       <div class="panel"><b>μ(t)</b> <small id="mu-note"></small><div id="mu-chart"></div></div>
       <div class="row"><div class="panel"><b>tension (N)</b><div id="t-chart"></div></div>
       <div class="panel"><b>speed (rpm)</b><div id="s-chart"></div></div></div>
-      <div class="panel"><b>events</b><div class="events" id="events"></div></div>`;
+      <div class="panel"><b>events</b><div class="events" id="events"></div></div>
+      <div class="panel" id="journal-panel"><b>alarm journal</b> <small>(ISA-18.2: every transition, who, when)</small>
+        <div class="controls" id="alarm-ctl">
+          <label>alarm <select id="j-alarm"><option value="end_of_life">end of life</option><option value="wear_warning">wear warning</option></select></label>
+          <label>for (min) <input id="j-minutes" type="number" min="1" max="720" step="1" value="60"></label>
+          <button id="b-shelve">shelve</button> <button id="b-unshelve">unshelve</button>
+          <button id="b-oos">out of service</button> <button id="b-ins">in service</button>
+        </div>
+        <table id="journal"><thead><tr><th>time (UTC)</th><th>alarm</th><th>from</th><th>to</th><th>action</th><th>by</th><th>hook</th></tr></thead><tbody></tbody></table>
+      </div>`;
     let rows = [], markers = {}, summary = {}, width = 0.02;
     const W = Math.min(1200, main.clientWidth - 40);
     const muPlot = new uPlot({ width: W, height: 320, scales: { x: { time: false } }, plugins: [markerPlugin(() => markers)],
@@ -162,7 +198,9 @@
       $("#st-info").innerHTML = `<span>state</span><span id="state">${esc(s.state)}</span>
         <span>test</span><span>${esc(s.test_id)} · sample ${esc(s.sample_id)} · grade ${esc(s.grade)} · T_set ${fmt(s.t_set, 2)} N</span>
         <span>μ now</span><span>${fmt(s.mu_now)} (μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</span>
-        <span>headroom</span><span>${headroomBar(s.headroom)} ${s.t_cross != null ? "projected crossing at " + fmt(s.t_cross, 0) + " s" : ""}</span>
+        <span>headroom</span><span id="headroom">${headroomBar(s.headroom, s.past_threshold)} ${s.t_cross != null ? "projected crossing at " + fmt(s.t_cross, 0) + " s" : ""}</span>
+        <span>forecast</span><span id="projection">${projection(s) || "–"}</span>
+        <span>wear</span><span>${wearWarning(s)}</span>
         <span>t_life</span><span id="t-life">${s.t_life != null ? fmt(s.t_life, 2) + " s" : "–"}</span>
         <span>alarm</span><span id="alarm">${alarmBadge(s.alarm)}</span>
         <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
@@ -190,12 +228,93 @@
     });
     $("#b-stop").addEventListener("click", () => command(sid, { command: "stop" }));
     $("#b-ack").addEventListener("click", () => command(sid, { command: "ack" }));
-    $("#b-hook").addEventListener("click", () => command(sid, { command: "hook_replaced" }));
+    // hook replaced: the same command as MQTT, the PLC and Sparkplug, with the NEW hook's sample id
+    const dlg = $("#hook-dlg");
+    $("#b-hook").addEventListener("click", () => { $("#h-sample").value = ""; $("#h-grade").value = ""; dlg.showModal(); });
+    $("#h-cancel").addEventListener("click", () => dlg.close("cancel"));
+    $("#hook-form").addEventListener("submit", ev => {
+      ev.preventDefault();
+      const sample = $("#h-sample").value.trim();
+      if (!sample) { $("#h-sample").reportValidity(); return; }
+      const b = { command: "hook_replaced", sample_id: sample };
+      if ($("#h-grade").value.trim()) b.grade = $("#h-grade").value.trim();
+      dlg.close("send");
+      command(sid, b).then(loadJournal);
+    });
+    // the alarm journal and its actions (shelve / unshelve one alarm; out of / in service: both)
+    async function loadJournal() {
+      const r = await api("/api/station/" + encodeURIComponent(sid) + "/journal");
+      if (r.status !== 200) return;
+      hw.journal = r.journal.length;
+      $("#journal tbody").innerHTML = r.journal.slice().reverse().map(j => `<tr class="j-${esc(j.to)}">
+        <td>${esc(new Date(j.time * 1000).toISOString().replace("T", " ").slice(0, 19))}</td><td>${esc(j.alarm)}</td>
+        <td>${esc(j.from)}</td><td>${esc(j.to)}</td><td>${esc(j.action)}</td><td class="by">${esc(j.by)}</td><td>${esc(j.hook)}</td></tr>`).join("");
+    }
+    const alarmCmd = body => command(sid, body).then(loadJournal);
+    $("#b-shelve").addEventListener("click", () => alarmCmd({ command: "shelve", alarm: $("#j-alarm").value, duration_s: 60 * Number($("#j-minutes").value || 60) }));
+    $("#b-unshelve").addEventListener("click", () => alarmCmd({ command: "unshelve", alarm: $("#j-alarm").value }));
+    $("#b-oos").addEventListener("click", () => alarmCmd({ command: "out_of_service" }));
+    $("#b-ins").addEventListener("click", () => alarmCmd({ command: "in_service" }));
+    loadJournal();
+    const jt = setInterval(loadJournal, 2000);
+    cleanup.push(() => clearInterval(jt));
+  }
+
+  // ------------------------------------------------------------------ the planner's due list
+  function duePage() {
+    const q = new URLSearchParams(location.hash.split("?")[1] || "");
+    main.innerHTML = `<div class="row"><h2 style="margin:0">Due list</h2>
+      <label>line <select id="f-line"><option value="">all</option></select></label>
+      <label>area <select id="f-area"><option value="">all</option></select></label>
+      <a id="csv" href="/api/due.csv" download>CSV</a> <small id="due-note"></small></div>
+      <table id="due"><thead><tr><th>station</th><th>projected end p10 – p90 (median)</th><th>P_end</th><th>reasons</th><th>state</th><th>grade</th><th>sample</th><th>line</th><th>area</th></tr></thead><tbody></tbody></table>`;
+    const fl = $("#f-line"), fa = $("#f-area");
+    const want = { line: q.get("line") || "", area: q.get("area") || "" };
+    function query() {
+      const p = new URLSearchParams();
+      if (fl.value) p.set("line", fl.value);
+      if (fa.value) p.set("area", fa.value);
+      const s = p.toString();
+      return s ? "?" + s : "";
+    }
+    function fill(sel, values, cur) {
+      const have = [...sel.options].map(o => o.value).slice(1).join("\n");
+      if (have !== values.join("\n")) sel.innerHTML = '<option value="">all</option>' + values.map(v => `<option value="${esc(v)}">${esc(v)}</option>`).join("");
+      if ([...sel.options].some(o => o.value === cur)) sel.value = cur;
+    }
+    async function load() {
+      const r = await api("/api/due" + query());
+      if (r.status !== 200) { say(r.reason); return; }
+      fill(fl, r.lines, fl.value || want.line); fill(fa, r.areas, fa.value || want.area);
+      $("#csv").href = "/api/due.csv" + query();
+      hw.due = r.stations.map(x => x.station);
+      $("#due tbody").innerHTML = r.stations.map(x => {
+        const when = x.t_life != null ? `past its end of life since ${wall(x.t_life_utc)}`
+          : x.end_utc_p50 ? `${wall(x.end_utc_p10)} – ${wall(x.end_utc_p90)} (${wall(x.end_utc_p50)})` : "–";
+        return `<tr data-station="${esc(x.station)}" class="${x.due ? "due" : ""}">
+          <td><a href="#/station/${encodeURIComponent(x.station)}">${esc(x.station)}</a></td><td class="when">${when}</td>
+          <td>${fmt(x.p_end, 2)}</td><td>${x.reasons.map(esc).join(", ")}</td><td>${esc(x.state)}</td><td>${esc(x.grade)}</td>
+          <td>${esc(x.sample_id)}</td><td>${esc(x.line)}</td><td>${esc(x.area)}</td></tr>`; }).join("");
+      $("#due-note").textContent = `${r.stations.length} stations, ${r.stations.filter(x => x.due).length} due`;
+    }
+    fl.addEventListener("change", () => { want.line = fl.value; load(); });
+    fa.addEventListener("change", () => { want.area = fa.value; load(); });
+    load();
+    const t = setInterval(load, 2000);
+    cleanup.push(() => clearInterval(t));
   }
 
   // ------------------------------------------------------------------ history
   async function historyPage(sid) {
-    main.innerHTML = `<h2 style="margin:0 0 .5em">History of ${esc(sid)} <small><a href="#/station/${encodeURIComponent(sid)}">live</a></small></h2><div id="tests">loading …</div><div id="fig"></div>`;
+    main.innerHTML = `<h2 style="margin:0 0 .5em">History of ${esc(sid)} <small><a href="#/station/${encodeURIComponent(sid)}">live</a></small></h2>
+      <div class="row"><div class="panel"><b>hooks</b><div id="hooks">loading …</div></div>
+      <div class="panel"><b>tests</b><div id="tests">loading …</div></div></div><div id="fig"></div>`;
+    api("/api/station/" + encodeURIComponent(sid) + "/hooks").then(h => {
+      if (h.status !== 200) { $("#hooks").textContent = h.reason; return; }
+      $("#hooks").innerHTML = h.hooks.length ? `<table id="hooks-table"><tr><th>replaced (UTC)</th><th>old hook</th><th>its life (s)</th><th>its last test</th><th>new hook</th><th>grade</th><th>by</th></tr>` +
+        h.hooks.map(x => `<tr><td>${esc((x.utc || "").replace("T", " ").slice(0, 19))}</td><td>${esc(x.old_sample_id)}</td><td>${fmt(x.life_s, 1)}</td><td>${esc(x.test_id)}</td><td>${esc(x.new_sample_id)}</td><td>${esc(x.grade)}</td><td>${esc(x.by)}</td></tr>`).join("") + "</table>"
+        : "no hook replaced yet";
+    });
     const r = await api("/api/station/" + encodeURIComponent(sid) + "/tests");
     if (r.status !== 200) { $("#tests").textContent = r.reason; return; }
     const base = "/api/station/" + encodeURIComponent(sid) + "/tests/";
@@ -234,6 +353,7 @@
     if ((m = h.match(/^\/station\/(.+)$/))) stationPage(decodeURIComponent(m[1]));
     else if ((m = h.match(/^\/history\/(.+)$/))) historyPage(decodeURIComponent(m[1]));
     else if (h === "/campaign") campaignPage();
+    else if (h === "/due" || h.startsWith("/due?")) duePage();
     else fleetPage();
   }
   window.addEventListener("hashchange", route);
