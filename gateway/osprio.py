@@ -7,7 +7,8 @@ lateness of a full box. With ``SCHED_FIFO`` the slot thread preempts every norma
 its timer fires, and, being asleep 95 % of the time, costs the others nothing.
 
 Only the calling thread is switched (Linux schedules threads, not processes): the MQTT, IPC and
-console threads of the same process stay normal. Permitted for root, ``CAP_SYS_NICE``, or up to
+console threads of the same process stay normal, and so do threads the slot thread starts later
+(``SCHED_RESET_ON_FORK``: e.g. the executor that runs record retention). Permitted for root, ``CAP_SYS_NICE``, or up to
 ``RLIMIT_RTPRIO`` (systemd: ``LimitRTPRIO=``) for other users. A slot loop stuck in a busy loop at
 this priority still leaves the kernel's real-time throttling share (5 %) and the other core to the
 rest of the box, and the supervisor's watchdog kills it after 5 s without a heartbeat.
@@ -30,7 +31,10 @@ def realtime_thread(priority: int) -> str | None:
     if setter is None:
         return "this platform has no SCHED_FIFO"
     try:
-        setter(0, os.SCHED_FIFO, os.sched_param(priority))   # 0: the calling thread (Linux)
+        # 0: the calling thread (Linux). SCHED_RESET_ON_FORK: a thread this one starts later (an
+        # executor's worker, a background writer) begins under normal scheduling instead of
+        # inheriting SCHED_FIFO — background work must never run ahead of the box's other threads
+        setter(0, os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0), os.sched_param(priority))
     except PermissionError:
         return ("not permitted (needs root, CAP_SYS_NICE or RLIMIT_RTPRIO ≥ "
                 f"{priority}: systemd LimitRTPRIO={priority})")
@@ -44,5 +48,5 @@ def thread_policy() -> str:
     getter = getattr(os, "sched_getscheduler", None)
     if getter is None:
         return "unknown"
-    pol = getter(0)
+    pol = getter(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
     return {os.SCHED_OTHER: "other", os.SCHED_FIFO: "fifo", os.SCHED_RR: "rr"}.get(pol, str(pol))
