@@ -157,6 +157,8 @@ def scan(station_dir: str) -> list[Folder]:
     out: list[Folder] = []
     try:
         entries = sorted(os.scandir(station_dir), key=lambda e: e.name)[:MAX_FOLDERS]
+    except FileNotFoundError:
+        return out                  # no test recorded yet
     except OSError as e:
         log.warning("retention: cannot list %s: %s", station_dir, e.strerror or e)
         return out

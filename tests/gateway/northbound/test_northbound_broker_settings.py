@@ -22,10 +22,14 @@ recorder: {dir: REC}
 """
 #: the configuration keys of each section before the shared base (they must not change)
 MQTT_KEYS = {"enabled", "host", "port", "prefix", "client_id", "keepalive_s", "protocol", "username",
-             "password_env", "password_file", "tls", "telemetry_interval_s", "outbox"}
+             "password_env", "password_file", "tls", "telemetry_interval_s", "outbox",
+             "reply_prefix"}                                  # issue 21: MQTT 5 response topics
 SPARKPLUG_KEYS = {"enabled", "host", "port", "group_id", "edge_node_id", "device_id", "primary_host_id",
                   "client_id", "username", "password_env", "keepalive_s", "tls", "data_interval_s",
-                  "store_path", "history_budget_mb"}
+                  "store_path", "history_budget_mb",
+                  # issue 21: server sets, inbound bounds, rebirth rate, STATE rule
+                  "servers", "max_command_bytes", "max_command_metrics", "max_string_chars",
+                  "rebirth_min_interval_s", "state_max_bytes", "state_future_skew_s"}
 
 
 def names(cls):
