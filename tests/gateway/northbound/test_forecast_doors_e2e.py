@@ -79,7 +79,12 @@ def test_the_forecast_reaches_every_door_and_online_equals_offline(tmp_path, pro
                 api = prometheus(f"127.0.0.1:{pport}")
                 gw = run_gateway(tmp_path, st, "--start", "--exit-when-done")
                 # the early warning: the first due window, at most once per test
-                ww = sub.wait(lambda s: s.messages("event/wear_warning"), 180, what="the wear warning")
+                # (or the gateway's end: then what happened is in its log, not in a 180 s wait)
+                sub.wait(lambda s: s.messages("event/wear_warning") or gw.p.poll() is not None, 180,
+                         what="the wear warning")
+                ww = sub.messages("event/wear_warning")
+                assert ww, ("no wear warning before the gateway ended: "
+                            + " ".join(m[1] for m in sub.messages() if "/event/" in m[1]) + "\n" + gw.log())
                 # while the hook is due: the PLC …
                 plc = plc_forecast(mport, 3)
                 # … and Prometheus: the gauge, and the shipped alert firing on it

@@ -1,0 +1,206 @@
+#!/usr/bin/env python3
+"""Issue 21 benchmark: a flood on one door at a time, and what a running station keeps.
+
+One virtual station (`hookwatch sim`) and one `hookwatch run` with the console, the metrics
+endpoint and the PLC's Modbus TCP port on; the PLC (127.0.0.1, the allow-listed client) reads the
+input registers every 100 ms throughout. Each run lasts DURATION s; after a few seconds one door
+is flooded from another loopback address (127.0.0.3):
+
+- ``none``: no flood (the reference of the same run series);
+- ``console``: IDLE idle TCP connections to the console, held to the end;
+- ``metrics``: IDLE idle TCP connections to the metrics endpoint;
+- ``modbus``: 80 connections that each send a valid read request every 10 ms;
+- ``trickle``: 64 connections to each HTTP door sending one byte every 2 s;
+- ``sse``: live-stream (SSE) connects as fast as they are answered (connect churn).
+
+Per run: the station's slots filled (% of the grid), slot-lateness p99 (ms), the PLC's reads that
+failed, and whether the test was aborted. The goal (issue 21): ≥ 99.9 % of the slots and the PLC
+link kept under a flood on any one door, no test aborted.
+
+    bench/bench_doors.py [--duration 40] [--idle 3000] [--doors none,console,metrics,modbus,trickle,sse]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, HERE)
+sys.path.insert(0, ROOT)
+
+from bench_fleet import make_fleet, stop_sims_read  # noqa: E402
+from bench_station import EXE  # noqa: E402
+
+FLOOD_FROM = "127.0.0.3"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _conn(port: int, timeout: float = 2.0) -> socket.socket | None:
+    s = socket.socket()
+    s.settimeout(timeout)
+    try:
+        s.bind((FLOOD_FROM, 0))
+        s.connect(("127.0.0.1", port))
+        return s
+    except OSError:
+        s.close()
+        return None
+
+
+class Plc(threading.Thread):
+    """The allow-listed PLC: a raw Modbus TCP read of 8 input registers every 100 ms."""
+
+    def __init__(self, port: int, stop: threading.Event):
+        super().__init__(daemon=True)
+        self.port, self.stop = port, stop
+        self.ok = self.failed = 0
+
+    def run(self) -> None:
+        tid = 0
+        sock = None
+        while not self.stop.is_set():
+            try:
+                if sock is None:
+                    sock = socket.create_connection(("127.0.0.1", self.port), timeout=2)
+                tid = (tid + 1) & 0xFFFF
+                sock.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 4, 0, 8))
+                data = sock.recv(256)
+                if len(data) >= 9 and data[7] == 4:
+                    self.ok += 1
+                else:
+                    raise OSError("bad reply")
+            except OSError:
+                self.failed += 1
+                if sock is not None:
+                    sock.close()
+                sock = None
+            self.stop.wait(0.1)
+        if sock is not None:
+            sock.close()
+
+
+def flood(kind: str, ports: dict[str, int], idle: int, stop: threading.Event) -> list[socket.socket]:
+    held: list[socket.socket] = []
+    if kind in ("console", "metrics"):
+        for _ in range(idle):
+            if stop.is_set():
+                break
+            s = _conn(ports[kind])
+            if s is not None:
+                held.append(s)
+    elif kind == "modbus":
+        def busy():
+            s = _conn(ports["modbus"])
+            tid = 0
+            while s is not None and not stop.is_set():
+                tid = (tid + 1) & 0xFFFF
+                try:
+                    s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 4, 0, 8))
+                    s.recv(256)
+                except OSError:
+                    s.close()
+                    s = _conn(ports["modbus"])
+                stop.wait(0.01)
+        for _ in range(80):
+            threading.Thread(target=busy, daemon=True).start()
+    elif kind == "trickle":
+        def trickle(port):
+            s = _conn(port)
+            while s is not None and not stop.is_set():
+                try:
+                    s.sendall(b"G")
+                except OSError:
+                    s.close()
+                    s = _conn(port)
+                stop.wait(2.0)
+        for door in ("console", "metrics"):
+            for _ in range(64):
+                threading.Thread(target=trickle, args=(ports[door],), daemon=True).start()
+    elif kind == "sse":
+        def churn():
+            while not stop.is_set():
+                s = _conn(ports["console"])
+                if s is None:
+                    continue
+                try:
+                    s.sendall(b"GET /api/station/s00/stream HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                    s.recv(512)
+                except OSError:
+                    pass
+                s.close()
+        for _ in range(8):
+            threading.Thread(target=churn, daemon=True).start()
+    return held
+
+
+def run(kind: str, duration: float, idle: int) -> dict:
+    ports = {"console": free_port(), "metrics": free_port(), "modbus": free_port()}
+    work, fleet, sims = make_fleet(1, f"hw-bench-doors-{kind}-", {
+        "console": {"enabled": True, "listen": [f"127.0.0.1:{ports['console']}"]},
+        "metrics": {"enabled": True, "host": "127.0.0.1", "port": ports["metrics"]},
+        "modbus_tcp": {"enabled": True, "host": "127.0.0.1", "port": ports["modbus"],
+                       "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}}})
+    stats = os.path.join(work, "stats.json")
+    gw = subprocess.Popen([EXE, "run", fleet, "--in-process", "--duration", str(duration), "--stats-json", stats,
+                           "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t_end = time.monotonic() + 20
+    while time.monotonic() < t_end:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{ports['console']}/api/fleet", timeout=1).read()
+            break
+        except OSError:
+            time.sleep(0.2)
+    stop = threading.Event()
+    plc = Plc(ports["modbus"], stop)
+    plc.start()
+    time.sleep(3.0)
+    held = flood(kind, ports, idle, stop) if kind != "none" else []
+    gw.wait()
+    stop.set()
+    plc.join(5)
+    for s in held:
+        s.close()
+    st = stop_sims_read(sims, stats)
+    s = next(iter(st.values()))
+    aborted = False
+    for dp, _d, fs in os.walk(os.path.join(work, "records")):
+        if "result.json" in fs:
+            with open(os.path.join(dp, "result.json")) as f:
+                aborted |= json.load(f).get("end_reason") == "protection stop"
+    out = {"door": kind, "filled_pct": 100 * s["filled_ratio"], "p99_ms": s["lateness_ms_p99"],
+           "plc_ok": plc.ok, "plc_failed": plc.failed, "held": len(held), "aborted": aborted}
+    print(f"{kind:8s}: filled {out['filled_pct']:.3f} %, p99 lateness {out['p99_ms']:.2f} ms, PLC reads "
+          f"{plc.ok} ok / {plc.failed} failed, {len(held)} connections held, aborted {aborted}", flush=True)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=40.0)
+    ap.add_argument("--idle", type=int, default=3000)
+    ap.add_argument("--doors", default="none,console,metrics,modbus,trickle,sse")
+    a = ap.parse_args()
+    with open("/proc/loadavg") as f:
+        print("load before:", f.read().split()[:3], flush=True)
+    res = [run(k, a.duration, a.idle) for k in a.doors.split(",")]
+    with open("/proc/loadavg") as f:
+        print("load after:", f.read().split()[:3], flush=True)
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()
