@@ -17,7 +17,7 @@ Per run: the station's slots filled (% of the grid), slot-lateness p99 (ms), the
 failed, and whether the test was aborted. The goal (issue 21): ≥ 99.9 % of the slots and the PLC
 link kept under a flood on any one door, no test aborted.
 
-    bench/bench_doors.py [--duration 40] [--idle 3000] [--doors none,console,metrics,modbus,trickle,sse]
+    bench/bench_doors.py [--duration 40] [--idle 3000] [--doors none,console,…] [--in-process]
 """
 from __future__ import annotations
 
@@ -41,6 +41,8 @@ from bench_fleet import make_fleet, stop_sims_read  # noqa: E402
 from bench_station import EXE  # noqa: E402
 
 FLOOD_FROM = "127.0.0.3"
+#: extra options of `hookwatch run` (--in-process: the doors in the station's own process)
+RUN_EXTRA: list[str] = []
 
 
 def free_port() -> int:
@@ -155,7 +157,7 @@ def run(kind: str, duration: float, idle: int) -> dict:
         "modbus_tcp": {"enabled": True, "host": "127.0.0.1", "port": ports["modbus"],
                        "writes": {"enabled": True, "allowed_clients": ["127.0.0.1"]}}})
     stats = os.path.join(work, "stats.json")
-    gw = subprocess.Popen([EXE, "run", fleet, "--in-process", "--duration", str(duration), "--stats-json", stats,
+    gw = subprocess.Popen([EXE, "run", fleet, *RUN_EXTRA, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     t_end = time.monotonic() + 20
     while time.monotonic() < t_end:
@@ -193,7 +195,11 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=40.0)
     ap.add_argument("--idle", type=int, default=3000)
     ap.add_argument("--doors", default="none,console,metrics,modbus,trickle,sse")
+    ap.add_argument("--in-process", action="store_true", help="the station in the doors' process "
+                    "(hookwatch run --in-process); default: a worker process under the supervisor")
     a = ap.parse_args()
+    if a.in_process:
+        RUN_EXTRA.append("--in-process")
     with open("/proc/loadavg") as f:
         print("load before:", f.read().split()[:3], flush=True)
     res = [run(k, a.duration, a.idle) for k in a.doors.split(",")]
