@@ -48,7 +48,7 @@ from typing import Any
 from aiohttp import web
 
 from ..doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
-from ..northbound.cmdparse import intake, rejected_event_data
+from ..northbound.cmdparse import intake, nesting_depth, rejected_event_data
 from ..ports import StationView
 from ..ratelog import RateLog
 from ..records import CommandKind
@@ -434,7 +434,7 @@ class ConsoleServer:
             body = await request.read()
         except web.HTTPRequestEntityTooLarge:
             raise bad(413, "too large", f"request body larger than {MAX_BODY} bytes") from None
-        if _json_depth(body) > MAX_JSON_DEPTH:
+        if nesting_depth(body, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
             raise bad(400, "deep JSON", f"JSON nested deeper than {MAX_JSON_DEPTH} levels")
         try:
             data = json.loads(body.decode("utf-8"))
@@ -930,31 +930,6 @@ def _cut(text: str, n: int = 60) -> str:
     """Client text quoted in a log line: at most ``n`` characters, no control characters."""
     t = "".join(ch if ch.isprintable() else "?" for ch in str(text)[:n])
     return t if len(text) <= n else f"{t}… ({len(text)} chars)"
-
-
-def _json_depth(body: bytes) -> int:
-    """The deepest nesting of ``[``/``{`` in JSON bytes (strings skipped), counted before parsing."""
-    depth = deepest = 0
-    in_str = esc = False
-    for b in body:
-        if in_str:
-            if esc:
-                esc = False
-            elif b == 0x5C:          # backslash
-                esc = True
-            elif b == 0x22:          # "
-                in_str = False
-        elif b == 0x22:
-            in_str = True
-        elif b in (0x5B, 0x7B):
-            depth += 1
-            if depth > deepest:
-                deepest = depth
-                if deepest > MAX_JSON_DEPTH:
-                    return deepest
-        elif b in (0x5D, 0x7D):
-            depth -= 1
-    return deepest
 
 
 def _err(status: int, reason: str, headers: dict | None = None) -> web.Response:

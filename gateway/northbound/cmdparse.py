@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from ..ratelog import ECHO_CHARS, clip, safe
@@ -68,8 +68,11 @@ NUMERIC_FIELDS = frozenset({"t_set", "t_end", "duration_s"})
 TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id"})
 
 
-class _Refused(ValueError):
-    pass
+class Refused(ValueError):
+    """Raised inside ``json.loads`` hooks for input over a bound (every bounded JSON reader)."""
+
+
+_Refused = Refused
 
 
 def nesting_depth(data: bytes, limit: int) -> int:
@@ -103,23 +106,35 @@ def _num(s: str, conv):
     return conv(s)
 
 
-def _const(s: str):
-    raise _Refused(f"{s} is not allowed")
+def refuse_constant(s: str) -> Any:
+    """``parse_constant`` of a bounded JSON read: NaN, Infinity and -Infinity are refused."""
+    raise Refused(f"{s} is not allowed")
 
 
-def _pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    if len(pairs) > MAX_KEYS:
-        raise _Refused(f"an object with {len(pairs)} keys; at most {MAX_KEYS}")
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if len(k) > MAX_KEY_CHARS:
-            raise _Refused(f"key {clip(k)} too long; at most {MAX_KEY_CHARS} characters")
-        if k in out:
-            raise _Refused(f"key {clip(k)} given twice")
-        if isinstance(v, str) and len(v) > MAX_STRING_CHARS:
-            raise _Refused(f"{safe(k)}: a string of {len(v)} characters; at most {MAX_STRING_CHARS}")
-        out[k] = v
-    return out
+def bounded_pairs(max_keys: int, max_key_chars: int,
+                  max_string_chars: int | None = None) -> Callable[[list[tuple[str, Any]]], dict[str, Any]]:
+    """``object_pairs_hook`` of a bounded JSON read: at most ``max_keys`` keys of at most
+    ``max_key_chars`` characters, none twice, string values of at most ``max_string_chars``."""
+
+    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
+        if len(items) > max_keys:
+            raise Refused(f"an object with {len(items)} keys; at most {max_keys}")
+        out: dict[str, Any] = {}
+        for k, v in items:
+            if len(k) > max_key_chars:
+                raise Refused(f"key {clip(k)} too long; at most {max_key_chars} characters")
+            if k in out:
+                raise Refused(f"key {clip(k)} given twice")
+            if max_string_chars is not None and isinstance(v, str) and len(v) > max_string_chars:
+                raise Refused(f"{safe(k)}: a string of {len(v)} characters; at most {max_string_chars}")
+            out[k] = v
+        return out
+
+    return pairs
+
+
+_const = refuse_constant
+_pairs = bounded_pairs(MAX_KEYS, MAX_KEY_CHARS, MAX_STRING_CHARS)
 
 
 def bad(name: str, reason: str, request_id: str | None = None, code: str = "BAD_REQUEST") -> Rejection:

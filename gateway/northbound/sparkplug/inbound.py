@@ -25,7 +25,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from ..cmdparse import clip, nesting_depth
+from ..cmdparse import Refused, bounded_pairs, clip, nesting_depth, refuse_constant
 from .sparkplug_b_pb2 import Payload
 
 #: nesting of the STATE document: ``{"online": …, "timestamp": …}`` is depth 1
@@ -58,8 +58,7 @@ class BadInput(ValueError):
         self.reason = reason
 
 
-class _Refused(ValueError):
-    pass
+_Refused = Refused
 
 
 def _num(s: str, conv: Any) -> Any:
@@ -71,21 +70,8 @@ def _num(s: str, conv: Any) -> Any:
     return v
 
 
-def _const(s: str) -> Any:
-    raise _Refused(f"{s} is not allowed")
-
-
-def _pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    if len(pairs) > STATE_MAX_KEYS:
-        raise _Refused(f"an object with {len(pairs)} keys; at most {STATE_MAX_KEYS}")
-    out: dict[str, Any] = {}
-    for k, v in pairs:
-        if len(k) > MAX_KEY_CHARS:
-            raise _Refused(f"key {clip(k)} too long; at most {MAX_KEY_CHARS} characters")
-        if k in out:
-            raise _Refused(f"key {clip(k)} given twice")
-        out[k] = v
-    return out
+_const = refuse_constant
+_pairs = bounded_pairs(STATE_MAX_KEYS, MAX_KEY_CHARS)
 
 
 def parse_state(payload: bytes, limits: InboundLimits) -> tuple[bool, int]:
