@@ -215,7 +215,14 @@ def test_commands_flow_back_and_a_stuck_worker_is_killed_and_restarted(tmp_path)
             kinds = [b.get("type") for k, b in box.drain()]
             assert "test_started" in kinds and "test_ended" in kinds and "command_rejected" in kinds
             assert kinds.index("worker_stuck") < kinds.index("worker_exited") < kinds.index("worker_restarted")
-            r5 = hub.command("ack", timeout=5.0)      # the new worker answers (yes or no)
+            # the new worker answers (yes or no) once its station runs (its hello may come a moment
+            # before the station's loop does: "station is not running" until then)
+            t_end = time.monotonic() + 20
+            while True:
+                r5 = hub.command("ack", timeout=5.0)
+                if "not running" not in r5.reason or time.monotonic() > t_end:
+                    break
+                time.sleep(0.2)
             assert "did not answer" not in r5.reason and "not running" not in r5.reason, r5
         finally:
             stop.set()
