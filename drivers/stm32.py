@@ -45,6 +45,8 @@ import struct
 from collections import deque
 from typing import Any
 
+import serial
+
 from .crc import crc16_modbus
 from .stm32_protocol import (
     ACK_LEN,
@@ -210,8 +212,6 @@ class Stm32Link:
             self._task = self._loop.create_task(self._supervise(), name=f"stm32 {self.port}")
 
     def _try_open(self) -> bool:
-        import serial
-
         try:
             # serial_for_url: a device path as serial.Serial, or a pyserial URL (hwloop:// in tests)
             ser = serial.serial_for_url(self.port, self.baud, bytesize=8, parity="N", stopbits=1,

@@ -13,7 +13,10 @@ hidden imports.
 from __future__ import annotations
 
 import ast
+import json
 import os
+import subprocess
+import sys
 from collections import defaultdict
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -341,3 +344,40 @@ def test_the_station_state_changes_in_one_place():
     assert bad == []
     old = "def f(self):\n    st = self.state\n    st.alarm = 1\n    self.state.test_id = None\n"
     assert _state_writes(ast.parse(old)) == ["3 st.alarm", "4 self.state.test_id"]
+
+
+#: functions of the modules ``hookwatch run`` loads that may still import when first called (each
+#: says why it is never called on a station's thread)
+LATE_IMPORTS_ALLOWED = {
+    ("gateway.logio", "_decompress"): "reading a log (analyze, report), never `hookwatch run`",
+    ("gateway.logio", "_parse_forked"): "reading a log (analyze, report), never `hookwatch run`",
+    ("gateway.logio", "_parse_arrow"): "reading a log (analyze, report): pyarrow only there",
+    ("gateway.northbound.registers", "render_csv"): "the register map's CSV (docs, `regmap`)",
+}
+
+
+def _late_imports(tree: ast.Module) -> list[tuple[str, int]]:
+    """(function, line) of every import statement inside a function."""
+    return [(fn.name, n.lineno) for fn in ast.walk(tree)
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef))
+            for n in ast.walk(fn) if isinstance(n, (ast.Import, ast.ImportFrom))]
+
+
+def test_what_the_runtime_loads_imports_at_start_up():
+    """A module that `hookwatch run` loads imports everything at module level, so no import can
+    happen on a station's slot thread: the first forecast imported scipy.special there (0.3 s
+    quiet, up to 0.85 s loaded: slots MISSING, the STM32 watchdog tripped, a protection stop). The
+    runtime set is read from a fresh interpreter that loads the run command and the composition
+    root; scipy, pyarrow and matplotlib are not in it."""
+    code = ("import sys, json, gateway.commands.run, gateway.compose; "
+            "print(json.dumps(sorted(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         check=True).stdout
+    loaded = set(json.loads(out))
+    assert not {"scipy", "pyarrow", "matplotlib"} & loaded
+    runtime = sorted(m for m in loaded if m in TREES)
+    assert "gateway.station.station" in runtime and "gateway.method.forecast" in runtime
+    late = [f"{m}.{fn}:{line}" for m in runtime for fn, line in _late_imports(TREES[m])
+            if (m, fn) not in LATE_IMPORTS_ALLOWED]
+    assert late == []
+    assert _late_imports(ast.parse("import a\ndef f():\n    import b\n")) == [("f", 3)]

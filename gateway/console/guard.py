@@ -13,6 +13,8 @@ import time
 from collections.abc import Awaitable, Callable, Iterable
 from typing import Any
 
+from aiohttp.http_exceptions import HttpProcessingError
+
 #: names a browser on the same host uses for a console bound to a loopback address
 LOCAL_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback")
 #: a refused-request log line of one kind at most this often; the lines not written are counted
@@ -201,7 +203,6 @@ class ServerLog:
         self._refusals = refusals
 
     def _client_error(self, exc: object) -> tuple[int, str] | None:
-        from aiohttp.http_exceptions import HttpProcessingError
         if isinstance(exc, HttpProcessingError) and 400 <= int(exc.code or 0) < 500:
             first = str(exc.message).strip().splitlines()[0] if str(exc.message).strip() else ""
             return int(exc.code), first[:80]

@@ -85,7 +85,8 @@ def render() -> str:
             "- With a prior, at t = t_j, S = 1 − Φ((t − m)/s): the end quantiles "
             "e_p = max(m + s·Φ⁻¹(1 − S·(1 − p)), t) for p = 0.1, 0.5, 0.9 and the chance "
             "P = (Φ((t + `lead` − m)/s) − Φ((t − m)/s)) / S that the end comes within the lead; "
-            "when S < 1e-12 e_p = t and P = 1 (Φ, Φ⁻¹: scipy.special.ndtr, ndtri).",
+            "when S < 1e-12 e_p = t and P = 1 (Φ(x) = ½·erfc(−x/√2); Φ⁻¹: AS241, as Python's "
+            "statistics.NormalDist; both agree with scipy.special.ndtr, ndtri to ≈ 1e-16).",
             "- A window is *due* when P ≥ `p_due` (reason `prior`), it completes a headroom run "
             "(`headroom`), or its t_cross − t_j ≤ `lead` (`trend`).",
             "- `warn_slot`, `warn_reasons`: the last slot of the first due window and the sorted "

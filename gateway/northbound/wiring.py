@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sqlite3
 
 from ..doors import DoorLimits
 from ..ports import StationLinks
@@ -59,9 +60,6 @@ def outputs_for(cfg, station: StationLinks, *, modbus: bool = True, sparkplug: b
     outs: list = []
     mqtt_out = None
     if getattr(cfg, "mqtt", None) is not None and cfg.mqtt.enabled:
-        import sqlite3
-
-
         ms = mqtt_settings(cfg)
         try:
             mqtt_out = MqttOutput(ms, station)

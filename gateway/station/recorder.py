@@ -21,6 +21,7 @@ import threading
 import time
 from array import array
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import yaml
@@ -141,7 +142,6 @@ def _fsync_in_background(fd: int) -> None:
     global _fsync_pool
     with _fsync_lock:
         if _fsync_pool is None:
-            from concurrent.futures import ThreadPoolExecutor
             _fsync_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fsync")
     _fsync_pool.submit(_fsync_dup, os.dup(fd))
 
