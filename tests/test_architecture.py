@@ -381,3 +381,43 @@ def test_what_the_runtime_loads_imports_at_start_up():
             if (m, fn) not in LATE_IMPORTS_ALLOWED]
     assert late == []
     assert _late_imports(ast.parse("import a\ndef f():\n    import b\n")) == [("f", 3)]
+
+
+def test_a_station_thread_imports_nothing_while_it_runs_a_life(tmp_path):
+    """The dynamic half of the rule above, for what the static scan cannot see (numpy loads
+    numpy.ma when np.median first runs): a fresh interpreter loads the runtime, then feeds the
+    streaming method every vector's slots (with the v6 prior: the forecast) as a station does;
+    no module may be imported from the first slot on."""
+    import dataclasses
+
+    from gateway.analysis import params_for
+    from gateway.logio import read_log
+    from gateway.method import to_slots
+
+    vectors = os.path.join(ROOT, "tests", "vectors")
+    lives = []
+    for name in ("v1_failure", "v2_faults", "v6_prior"):
+        log = read_log(os.path.join(vectors, f"{name}.csv.gz"))
+        p = params_for(log.meta, {}, name)
+        s = to_slots(log.t, log.t1, log.t2, p)
+        lives.append({"p": dataclasses.asdict(p), "present": s.present.tolist(),
+                      "t1": s.t1.tolist(), "t2": s.t2.tolist()})
+    assert lives[-1]["p"]["prior_mean"] is not None
+    path = tmp_path / "lives.json"
+    path.write_text(json.dumps(lives))
+    code = (
+        "import sys, json, gateway.commands.run, gateway.compose\n"
+        "from gateway.method import MethodParams, StreamingMonitor\n"
+        f"lives = json.load(open({str(path)!r}))\n"
+        "before, events = set(sys.modules), set()\n"
+        "for life in lives:\n"
+        "    mon = StreamingMonitor(MethodParams(**life['p']))\n"
+        "    for k, (pr, a, b) in enumerate(zip(life['present'], life['t1'], life['t2'])):\n"
+        "        if mon.finished: break\n"
+        "        events.update(mon.push(pr, a, b).events)\n"
+        "    mon.close(len(life['present']))\n"
+        "print(json.dumps({'new': sorted(set(sys.modules) - before), 'events': sorted(events)}))\n")
+    out = json.loads(subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                                    text=True, check=True).stdout)
+    assert {"window", "forecast", "wear_warning"} <= set(out["events"])
+    assert out["new"] == []

@@ -9,6 +9,10 @@ import functools
 import math
 
 import numpy as np
+
+# np.median loads numpy.ma when it first runs: loaded here, at start-up, not on a station's slot
+# thread (tests/test_architecture.py: nothing imports while a life runs)
+import numpy.ma  # noqa: F401
 from numpy.typing import ArrayLike, NDArray
 
 from .params import MethodParams
