@@ -13,6 +13,10 @@ with
   request this long after its last reply (Modbus: after its accept too; HTTP: the first request
   must be complete within the request deadline of the accept) is closed; a reply that does not
   move for as long (a client that does not read) is closed too;
+- an **accept rate** (:attr:`DoorLimits.accepts_per_s`, a token bucket): beyond it the door waits
+  before its next accept and further connects queue in the kernel's backlog, so that a connect
+  flood (e.g. live-stream churn answered 429) costs the process — and the slot loop sharing its
+  interpreter — a bounded amount of work per second, whatever the flood's rate;
 - **accept errors** (``EMFILE``, ``ENFILE``, ``ENOBUFS`` …) are a *state*: counted, one log line
   (then at most one a minute, with the count), and the door stops accepting for
   :attr:`DoorLimits.accept_pause_s` instead of spinning; the pending connections wait in the
@@ -68,13 +72,15 @@ class DoorLimits:
     request_timeout_s: float = 10.0
     idle_timeout_s: float = 60.0
     accept_pause_s: float = 0.5
+    #: new connections accepted per second at most (a token bucket with a burst of as many)
+    accepts_per_s: float = 100.0
 
     @classmethod
     def from_config(cls, c: Any) -> DoorLimits:
         """From a configuration section with the door keys (``max_connections``,
         ``request_timeout_s``, ``idle_timeout_s``, ``accept_pause_s``)."""
         return cls(int(c.max_connections), float(c.request_timeout_s), float(c.idle_timeout_s),
-                   float(c.accept_pause_s))
+                   float(c.accept_pause_s), float(getattr(c, "accepts_per_s", 100.0)))
 
 
 class RateLog(_ratelog.RateLog):
@@ -239,7 +245,7 @@ class Door:
         self.conns: dict[Conn, None] = {}
         #: counted here (a server may pass its own dict: the door's keys are added to it)
         self.counters = counters if counters is not None else {}
-        for k in ("accepted", "refused_connections", "refused_reserve", "accept_errors",
+        for k in ("accepted", "accepts_paced", "refused_connections", "refused_reserve", "accept_errors",
                   "request_timeouts", "idle_closed", "evicted"):
             self.counters.setdefault(k, 0)
         self.paused_until = 0.0
@@ -307,7 +313,17 @@ class Door:
         loop = asyncio.get_running_loop()
         c = self.counters
         b = budget()
+        rate = max(1.0, float(self.limits.accepts_per_s))
+        tokens, t_last = rate, time.monotonic()
         while True:
+            now = time.monotonic()
+            tokens = min(rate, tokens + (now - t_last) * rate)
+            t_last = now
+            if tokens < 1.0:              # over the accept rate: the backlog holds the rest
+                c["accepts_paced"] += 1
+                await asyncio.sleep((1.0 - tokens) / rate)
+                continue
+            tokens -= 1.0
             try:
                 sock, addr = await loop.sock_accept(lsock)
             except asyncio.CancelledError:

@@ -437,7 +437,7 @@ class SparkplugConfig(BrokerConfig):
                                      lo=0.0, hi=31536000.0)
 
 
-def _door_keys(cap: int, request_s: float, idle_s: float, what: str) -> dict[str, Any]:
+def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0) -> dict[str, Any]:
     """The keys of a listening door (gateway/doors.py: one mechanism for every TCP port)."""
     return {
         "max_connections": key(cap, f"connections open at once on {what}; one more is closed at "
@@ -454,12 +454,17 @@ def _door_keys(cap: int, request_s: float, idle_s: float, what: str) -> dict[str
         "accept_pause_s": key(0.5, "after an accept error (EMFILE, ENFILE …: counted, one log line "
                               "a minute) the port stops accepting this long", kind="float",
                               unit="s", lo=0.01, hi=60.0),
+        "accepts_per_s": key(accepts, "new connections accepted per second at most (a burst of as "
+                             "many at once); beyond, the port waits and further connects queue in "
+                             "the kernel's backlog: a connect flood costs the process a bounded "
+                             "amount of work, whatever its rate", kind="float", unit="1/s",
+                             lo=1.0, hi=100000.0),
     }
 
 
 def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: str) -> type:
     keys = _door_keys(cap, request_s, idle_s, what)
-    cls = dataclasses.make_dataclass(name, [(k, float if k.endswith("_s") else int, f)
+    cls = dataclasses.make_dataclass(name, [(k, float if k.endswith(("_s", "per_s")) else int, f)
                                             for k, f in keys.items()], frozen=True, kw_only=True)
     cls.__doc__ = f"connection limits of {what}"
     cls.__module__ = __name__
