@@ -10,8 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from ..analysis import AnalysisError, log_slots
 from ..logio import LogError, read_log
-from ..method.core import gate_and_baseline, life_result, to_slots
+from ..method.core import gate_and_baseline, life_result
 from .figures import fig7_data, loop_series, render_fig7, render_fig8, time_unit
 
 
@@ -21,16 +22,18 @@ def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
     c0 = time.process_time()
     path, p = task["log"], task["params"]
     try:
-        lg = read_log(path, with_meta=False)
+        lg = read_log(path)     # with its sidecar: the recorded lost_spans are LOST slots
     except LogError as e:
         return {"error": str(e)}
     except MemoryError:
         return {"error": f"{path}: not enough memory to read the log"}
     try:
-        s = to_slots(lg.t, lg.t1, lg.t2, p)
+        s = log_slots(lg, p)    # as `hookwatch analyze` and the live station saw them
         g = gate_and_baseline(s, p)
         results = {f: life_result(g, None if f == 1.0 else p.delta * f).as_dict()
                    for f in task["factors"]}
+    except AnalysisError as e:
+        return {"error": str(e)}
     except Exception as e:  # noqa: BLE001 - a bad log must not take the campaign down
         return {"error": f"{path}: analysis failed: {type(e).__name__}: {e}"}
     t_last = float(np.nanmax(lg.t)) if lg.t.size and np.isfinite(lg.t).any() else None
