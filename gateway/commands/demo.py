@@ -32,6 +32,7 @@ from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
 from ..northbound import schema as mqtt_schema
+from ..osprio import die_with_parent
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
@@ -96,7 +97,7 @@ def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
     cmd = [sys.executable, "-m", "gateway.cli", "sim", args.scenario, "--link-dir", links,
            "--seed", str(args.seed), "--truth", truth]
     log = open(os.path.join(work, "sim.log"), "w")
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, preexec_fn=die_with_parent)
     assert p.stdout is not None
     log.close()
     paths: dict[str, str] = {}
@@ -141,7 +142,8 @@ def _start_mosquitto(work: str, port: int) -> subprocess.Popen | None:
         # as root, mosquitto would drop to user `mosquitto`, who may not write here
         f.write(f"user {getpass.getuser()}\nlistener {port} 127.0.0.1\nallow_anonymous true\n"
                 f"persistence false\nlog_dest file {d}/mosquitto.log\n")
-    p = subprocess.Popen([exe, "-c", conf], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = subprocess.Popen([exe, "-c", conf], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                         preexec_fn=die_with_parent)
     t_end = time.monotonic() + 5
     while time.monotonic() < t_end:
         with socket.socket() as sk:
@@ -248,7 +250,7 @@ def run(args) -> int:
             if console is not None:
                 st.outputs.append(console.output_for(st))
             loop = asyncio.get_running_loop()
-            for s in (signal.SIGINT, signal.SIGTERM):
+            for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):     # SIGHUP: the terminal closed
                 loop.add_signal_handler(s, stop.set)
             task = asyncio.create_task(st.run(stop))
             try:

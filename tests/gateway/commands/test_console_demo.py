@@ -125,3 +125,49 @@ def test_an_interrupted_demo_exits_non_zero(tmp_path):
         demo.stop()
     assert rc != 0, demo.log()
     assert "did not complete" in demo.log()
+
+
+def _children(pid: int) -> set[int]:
+    out: set[int] = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out |= {int(x) for x in f.read().split()}
+    return out
+
+
+def test_a_killed_demo_leaves_no_simulator_or_broker_behind(tmp_path):
+    """SIGKILL (or a crash, or a closed terminal) gives the demo no chance to stop its children:
+    the simulator and the demo's Mosquitto end with it (PR_SET_PDEATHSIG)."""
+    require_tool("mosquitto")
+    st = station_yaml(tmp_path, {"meter": "/dev/ttyDEMO0", "stm32": "/dev/ttyDEMO1"}, name="demo",
+                      method=QUICK_METHOD, test={"sample_id": "DEMO-I", "t_end_s": QUICK_END})
+    sc = quick_scenario(tmp_path, "quick.yaml")
+    demo = Proc(hookwatch_cmd() + ["demo", "--scenario", sc, "--station", st, "--dir", str(tmp_path / "w"),
+                                   "--t-end", str(QUICK_END), "--every", "1", "--no-console",
+                                   "--mqtt-port", "0"],
+                str(tmp_path / "demo.log"))
+    try:
+        demo.readline_until("[demo] EVENT test_started", timeout=120)
+        kids = _children(demo.p.pid)
+        names = set()
+        for k in kids:
+            with open(f"/proc/{k}/cmdline", "rb") as f:
+                names.add("mosquitto" if b"mosquitto" in f.read() else "sim")
+        assert names == {"mosquitto", "sim"}, demo.log()
+        demo.p.kill()
+        demo.p.wait(30)
+        t_end = time.monotonic() + 30          # a bound against a hang, not a speed goal
+        while any(os.path.exists(f"/proc/{k}") and _state(k) != "Z" for k in kids) and time.monotonic() < t_end:
+            time.sleep(0.1)
+        left = [k for k in kids if os.path.exists(f"/proc/{k}") and _state(k) != "Z"]
+        assert left == [], demo.log()
+    finally:
+        demo.stop()
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"
