@@ -133,7 +133,9 @@ class RateLog:
     def window_s(self) -> float:
         return self._w.window_s
 
-    def log(self, kind: Hashable, level: int, msg: str, *args: Any) -> None:
+    def log(self, kind: Hashable, level: int, msg: str, *args: Any, exc_info: bool = False) -> None:
+        """``exc_info``: the traceback of the exception being handled goes with the first line of
+        the window only (the count line has none)."""
         with self._lock:
             now = self.clock()
             due = self._w.due(now)
@@ -143,7 +145,7 @@ class RateLog:
         self._emit(due)
         if first:
             self.logged += 1
-            self.logger.log(level, msg + " (×1)", *args)
+            self.logger.log(level, msg + " (×1)", *args, exc_info=exc_info)
 
     def info(self, kind: Hashable, msg: str, *args: Any) -> None:
         self.log(kind, logging.INFO, msg, *args)

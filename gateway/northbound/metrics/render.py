@@ -13,6 +13,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 
 from ... import __version__
 from ...records import AlarmState, TestState
+from ..sparkplug.client import node_figures
 from .figures import _PROCESS, OPERATION_KINDS
 
 log = logging.getLogger("hookwatch.metrics")
@@ -34,7 +35,8 @@ def _hist(name: str, doc: str, snaps: list[dict], key: str) -> HistogramMetricFa
     return fam
 
 
-def families(snapshots: list[dict], *, console_clients: int | None = None) -> list[Metric]:
+def families(snapshots: list[dict], *, console_clients: int | None = None,
+             sparkplug: list[dict[str, Any]] | None = None) -> list[Metric]:
     """Prometheus metric families of station snapshots (pure: no I/O, no clock)."""
     p = PREFIX
     out: list[Metric] = []
@@ -165,6 +167,7 @@ def families(snapshots: list[dict], *, console_clients: int | None = None) -> li
     if console_clients is not None:
         out.append(GaugeMetricFamily(f"{p}_console_clients", "clients connected to the web console",
                                      value=float(console_clients)))
+    out += sparkplug_families(p, sparkplug or [])
     return out
 
 
@@ -182,7 +185,7 @@ class SnapshotCollector:
             except Exception:  # one broken source must not hide the others
                 log.exception("metrics: a station snapshot failed")
         snaps.sort(key=lambda s: s["station"])
-        yield from families(snaps, console_clients=_PROCESS.console_clients)
+        yield from families(snaps, console_clients=_PROCESS.console_clients, sparkplug=node_figures())
 
 
 
@@ -219,3 +222,29 @@ def forecast_families(p: str, snapshots: list[dict[str, Any]]) -> list[Any]:
             lead.add_metric([s["station"]], float(s["lead_s"]))
         due.add_metric([s["station"]], 1.0 if s.get("due") else 0.0)
     return out + [pe, lead, due]
+
+
+def sparkplug_families(p: str, nodes: list[dict[str, Any]]) -> list[Any]:
+    """The Sparkplug edge nodes of this process (docs/sparkplug.md): session up, bad inbound
+    payloads by kind (STATE, NCMD, DCMD … refused within bounds and ignored), and the node's other
+    counters (births, rebirths, published, connect errors, crashes …) as events."""
+    if not nodes:
+        return []
+    labels = ["group", "node"]
+    up = GaugeMetricFamily(f"{p}_sparkplug_connected", "1 while the edge node's MQTT session is up",
+                           labels=labels)
+    bad = CounterMetricFamily(f"{p}_sparkplug_bad_payloads", "inbound Sparkplug payloads refused "
+                              "within bounds and ignored, by kind (the session goes on)",
+                              labels=labels + ["kind"])
+    ev = CounterMetricFamily(f"{p}_sparkplug_events", "the edge node's counted events (births, "
+                             "rebirths, published messages, connect errors, crashes …)",
+                             labels=labels + ["event"])
+    for n in nodes:
+        key = [str(n["group"]), str(n["node"])]
+        up.add_metric(key, 1.0 if n["connected"] else 0.0)
+        for name, v in sorted(n["counters"].items()):
+            if name.startswith("bad_"):
+                bad.add_metric(key + [name[4:]], float(v))
+            else:
+                ev.add_metric(key + [name], float(v))
+    return [up, bad, ev]

@@ -36,6 +36,7 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
 from ... import __version__
+from ...ratelog import RateLog, safe
 from ...records import CommandKind
 from ...station import commands as C
 from ...station.commands import Rejection
@@ -43,7 +44,7 @@ from ...threadloop import call_soon_on, submit_to
 from ..broker_settings import BrokerSettings, SecretError
 from ..cmdparse import intake, rejected_event_data
 from ..outbox import Outbox, Row
-from .inbound import BadInputLog, InboundLimits
+from .inbound import InboundLimits
 from .node import Disconnect, EdgeNode, MemoryBuffer, Publish, Submit
 
 log = logging.getLogger("hookwatch.sparkplug")
@@ -200,8 +201,8 @@ class NodeRuntime:
         self._disconnect: Disconnect | None = None
         self._qos1: list = []              # QoS 1 publishes (NDEATH) not yet acknowledged
         self.counters: dict[str, int] = collections.Counter()
-        self._badlog = BadInputLog()
-        self._badlog_t = 0.0
+        #: bad payloads and internal errors: one line per kind per minute with a count
+        self._rlog = RateLog(log)
         self._crash_backoff = CRASH_BACKOFF_MIN_S
 
     # ------------------------------------------------------------------ any thread
@@ -228,6 +229,21 @@ class NodeRuntime:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout)
+        self._rlog.close()          # the counts of the last window
+
+    def figures(self) -> dict[str, Any]:
+        """For the metrics endpoint (any thread): the node's identity, whether its session is up,
+        and its counters (the runtime's and the node's; ``bad_<kind>``: bad payloads by kind)."""
+        counters: dict[str, int] = {}
+        for src in (self.counters, self.node.counters):
+            for _ in range(3):          # another thread may add a key while this one copies
+                try:
+                    counters.update(src)
+                    break
+                except RuntimeError:
+                    continue
+        return {"group": self.s.group_id, "node": self.s.edge_node_id, "connected": bool(self._sock),
+                "counters": counters}
 
     # ------------------------------------------------------------------ node thread
     def _now(self) -> int:
@@ -308,20 +324,14 @@ class NodeRuntime:
         if self._sock:
             self._act(self.node.tick(self._now()))
         self._log_bad()
-        now = time.monotonic()
-        if now - self._badlog_t >= 1.0:
-            self._badlog_t = now
-            for line in self._badlog.due(now):
-                log.warning("sparkplug %s: %s", self.s.edge_node_id, line)
 
     def _log_bad(self) -> None:
         if not self.node.bad:
             return
-        now = time.monotonic()
         for kind, reason in self.node.take_bad():
-            line = self._badlog.note(kind, reason, now)
-            if line is not None:
-                log.warning("sparkplug %s: %s", self.s.edge_node_id, line)
+            self._rlog.warning(("bad", kind), "sparkplug %s: a bad payload on %s ignored (counted: "
+                               "hookwatch_sparkplug_bad_payloads_total): %s", self.s.edge_node_id,
+                               kind, reason)
 
     def _inputs(self) -> None:
         while True:
@@ -544,10 +554,9 @@ class NodeRuntime:
                 self._act(self.node.command(msg.topic, msg.payload, now))
         except Exception as e:  # noqa: BLE001 - one message must not end the session
             self.counters["message_errors"] += 1
-            line = self._badlog.note("internal", f"{type(e).__name__}: {str(e)[:120]}", time.monotonic())
-            if line is not None:
-                log.error("sparkplug %s: handling a message on %.80s failed: %s", self.s.edge_node_id,
-                          msg.topic, line, exc_info=True)
+            self._rlog.log("internal", logging.ERROR, "sparkplug %s: handling a message on %s failed: "
+                           "%s: %s", self.s.edge_node_id, safe(msg.topic, 80), type(e).__name__,
+                           str(e)[:120], exc_info=True)
         self._log_bad()
 
 
@@ -558,6 +567,13 @@ def _pub_args(p: Publish) -> tuple:
 # ---------------------------------------------------------------------- one runtime per node
 _RUNTIMES: dict[tuple, NodeRuntime] = {}
 _RT_LOCK = threading.Lock()
+
+
+def node_figures() -> list[dict[str, Any]]:
+    """:meth:`NodeRuntime.figures` of every edge node this process runs (the metrics endpoint)."""
+    with _RT_LOCK:
+        rts = list(_RUNTIMES.values())
+    return sorted((rt.figures() for rt in rts), key=lambda f: (f["group"], f["node"]))
 
 
 def attach(s: SparkplugSettings, output) -> NodeRuntime:

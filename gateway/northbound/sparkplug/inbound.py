@@ -15,8 +15,8 @@ node's thread. Every payload is checked *before* it can cost anything:
   characters.
 
 A refused payload raises :class:`BadInput` (its kind and a short reason: never the payload itself
-beyond a few characters); the caller counts it and logs it through :class:`BadInputLog` (one line
-per kind per interval, with the count).
+beyond a few characters); the caller counts it and logs it through :class:`gateway.ratelog.RateLog`
+(one line per kind per minute, with the count).
 """
 from __future__ import annotations
 
@@ -35,8 +35,6 @@ MAX_KEY_CHARS = 32
 MAX_NUMBER_CHARS = 32
 #: a timestamp is a uint64 on the wire; JSON numbers beyond int64 are refused
 MAX_TIMESTAMP = (1 << 63) - 1
-#: one log line per kind of bad input per this many seconds (with the count since the last line)
-LOG_INTERVAL_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -124,34 +122,3 @@ def parse_payload(kind: str, payload: bytes, limits: InboundLimits) -> Payload:
             raise BadInput(kind, f"{clip(m.name or m.alias)}: a string of {len(m.string_value)} characters; "
                            f"at most {cap}")
     return p
-
-
-class BadInputLog:
-    """At most one log line per kind of bad input per ``interval_s``, each with the count of that
-    kind since the previous line (pure: the caller passes the time and writes the line)."""
-
-    def __init__(self, interval_s: float = LOG_INTERVAL_S):
-        self.interval_s = float(interval_s)
-        self._last: dict[str, float] = {}
-        self._pending: dict[str, tuple[int, str]] = {}     # kind → (count not logged, last reason)
-
-    def note(self, kind: str, reason: str, now_s: float) -> str | None:
-        """The line to log now for this bad input, or None (counted for a later line)."""
-        n, _ = self._pending.get(kind, (0, ""))
-        self._pending[kind] = (n + 1, reason)
-        last = self._last.get(kind)
-        if last is None or now_s - last >= self.interval_s or now_s < last:
-            return self._line(kind, now_s)
-        return None
-
-    def due(self, now_s: float) -> list[str]:
-        """Lines for the kinds whose interval has passed with bad inputs not logged yet."""
-        return [self._line(k, now_s) for k in list(self._pending)
-                if now_s - self._last.get(k, -math.inf) >= self.interval_s]
-
-    def _line(self, kind: str, now_s: float) -> str:
-        n, reason = self._pending.pop(kind)
-        self._last[kind] = now_s
-        what = "1 bad payload" if n == 1 else f"{n} bad payloads"
-        return (f"{what} on {kind} ignored (counted; one line per {self.interval_s:g} s at most); "
-                f"last: {reason}")

@@ -307,7 +307,9 @@ def _exposed_names() -> set[str]:
                 headroom=0.5, t_cross=5400.0, warning=True, mu=0.2, mu_ss=0.2, mu_th=0.25, events={"port_lost": 1})
     snap["links"]["mqtt"] = {"up": True, "counters": {"sent": 1, "disconnects": 1}}
     return {f.name + ("_total" if f.type == "counter" else "")
-            for f in M.families([snap], console_clients=1)}
+            for f in M.families([snap], console_clients=1, sparkplug=[
+                {"group": "g", "node": "n", "connected": True,
+                 "counters": {"bad_state": 1, "births": 1}}])}
 
 
 def test_docs_and_shipped_rules_name_exactly_the_exposed_metrics():

@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.client import SparkplugSettings, node_figures
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station
@@ -87,7 +87,7 @@ def seq_unbroken(msgs) -> bool:
     return all(b.p.seq == (a.p.seq + 1) % 256 for a, b in zip(msgs, msgs[1:]))
 
 
-def test_hostile_retained_state_and_a_state_from_the_future(tmp_path):
+def test_hostile_retained_state_and_a_state_from_the_future(tmp_path, caplog):
     b = Broker(tmp_path).start()
     host = PrimaryHost(b.port, "scada", GROUP, tmp_path)
     node = None
@@ -107,6 +107,11 @@ def test_hostile_retained_state_and_a_state_from_the_future(tmp_path):
         assert len(after) >= 5 and seq_unbroken(after), "DDATA must go on in the same session"
         assert node.rt._thread.is_alive() and node.rt.counters["crashes"] == 0
         assert node.rt.node.counters["bad_state"] >= len(HOSTILE)
+        # counted for the metrics endpoint, logged once a minute per kind (the first at once)
+        [fig] = [f for f in node_figures() if f["node"] == NODE]
+        assert fig["connected"] and fig["counters"]["bad_state"] >= len(HOSTILE)
+        lines = [r for r in caplog.records if "a bad payload on state ignored" in r.getMessage()]
+        assert len(lines) == 1 and "(×1)" in lines[0].getMessage(), [r.getMessage() for r in lines]
 
         # --- a new session meets the retained hostile STATE again: it waits for a good one
         mark = host.mark()

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import ROOT
 from gateway.northbound.sparkplug import metrics as M
-from gateway.northbound.sparkplug.inbound import BadInputLog, InboundLimits, parse_state
+from gateway.northbound.sparkplug.inbound import InboundLimits, parse_state
 from gateway.northbound.sparkplug.node import Disconnect, EdgeNode, Publish
 from gateway.northbound.sparkplug.sparkplug_b_pb2 import Payload
 
@@ -147,19 +147,6 @@ def test_a_state_from_the_future_cannot_lock_the_host_out():
     assert n.host_state(state(True, now + 60_000), now + 2002) == []
     assert n.host_state(state(False, now + 3000), now + 3000) == []      # older than +60 s: stale
     assert kinds(n.host_state(state(False, now + 61_000), now + 4000)) == ["NDEATH"]
-
-
-def test_bad_input_log_is_one_line_per_kind_per_interval_with_a_count():
-    lg = BadInputLog(60.0)
-    assert "1 bad payload on state" in lg.note("state", "r1", 0.0)
-    assert lg.note("state", "r2", 1.0) is None
-    assert lg.note("state", "r3", 2.0) is None
-    assert lg.note("ncmd", "x", 2.0) is not None                 # another kind: its own line
-    assert lg.due(30.0) == []
-    [line] = lg.due(60.0)
-    assert "2 bad payloads on state" in line and "r3" in line
-    assert lg.due(200.0) == []                                   # nothing new: nothing logged
-    assert lg.note("state", "r4", 130.0) is not None
 
 
 def test_one_thread_to_loop_hand_over():
