@@ -1,4 +1,5 @@
-"""Reading the log interchange format (METHOD.md §9) and its metadata sidecar.
+"""Reading the log interchange format (METHOD.md §9) and its metadata sidecar; the bounded tail
+of a JSON-lines record file (:func:`tail_jsonl`: events.jsonl, hooks.jsonl).
 
 A log is ``NAME.csv`` or ``NAME.csv.gz`` with a header line and columns ``t``, ``T1``, ``T2``
 (further columns are ignored); its metadata is ``NAME.meta.yaml`` beside it.
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import math
 import os
 import sys
@@ -429,3 +431,45 @@ def finite_or_none(x: Any) -> Any:
     if isinstance(x, float) and not math.isfinite(x):
         return None
     return x
+
+
+#: last lines read of a file kept as JSON lines (events.jsonl, hooks.jsonl)
+TAIL_LINES = 10_000
+#: longest line read of such a file (hooks.jsonl lines are ≤ 4 KiB; events are small)
+TAIL_LINE_BYTES = 16 * 1024
+
+
+def tail_jsonl(path: str, max_lines: int = TAIL_LINES,
+               max_line_bytes: int = TAIL_LINE_BYTES) -> tuple[list[dict[str, Any]], int]:
+    """The last ``max_lines`` lines of a JSON-lines file as objects, oldest first, and how many
+    lines were damaged (not JSON, not an object, longer than ``max_line_bytes``: skipped). Reads
+    at most ``max_lines × max_line_bytes`` bytes from the end; a missing file is ``([], 0)``."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            budget = max_lines * (max_line_bytes + 1)
+            start = max(0, size - budget)
+            f.seek(start)
+            data = f.read(size - start)
+    except FileNotFoundError:
+        return [], 0
+    lines = data.split(b"\n")
+    if start > 0:
+        lines = lines[1:]            # the first line is cut by the read window
+    lines = [ln for ln in lines if ln.strip()][-max_lines:]
+    out, bad = [], 0
+    for ln in lines:
+        if len(ln) > max_line_bytes:
+            bad += 1
+            continue
+        try:
+            v = json.loads(ln.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError, RecursionError):
+            bad += 1
+            continue
+        if isinstance(v, dict):
+            out.append(v)
+        else:
+            bad += 1
+    return out, bad

@@ -17,7 +17,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import datetime as _dt
-import json
 import logging
 import math
 import os
@@ -26,8 +25,10 @@ import zlib
 from dataclasses import asdict
 from typing import Any
 
+from ..logio import tail_jsonl
 from ..ports import StationView
 from ..records import Event, EventType, SlotRecord, StationState
+from ..station.hooks import read_hooks
 from ..station.recorder import LOG_COLUMNS
 
 #: slots the hand-over holds (2 min 44 s at 50 Hz) before the oldest are dropped
@@ -42,10 +43,6 @@ MAX_JOURNAL = 500
 MAX_TRANSITIONS_PER_EVENT = 8
 #: recorded tests (newest first) whose events.jsonl seed the journal when the console starts
 JOURNAL_TESTS = 5
-#: last lines read of a file kept as JSON lines (events.jsonl, hooks.jsonl)
-TAIL_LINES = 10_000
-#: longest line read of such a file (hooks.jsonl lines are ≤ 4 KiB; events are small)
-TAIL_LINE_BYTES = 16 * 1024
 #: states of a running test (TestState values): baseline search, monitoring, end of life
 _RUNNING = (1, 2, 3)
 
@@ -489,42 +486,6 @@ def merge_journal(older: list[dict[str, Any]], newer: list[dict[str, Any]],
     return collections.deque(out[-n:], maxlen=n)
 
 
-def tail_jsonl(path: str, max_lines: int = TAIL_LINES,
-               max_line_bytes: int = TAIL_LINE_BYTES) -> tuple[list[dict[str, Any]], int]:
-    """The last ``max_lines`` lines of a JSON-lines file as objects, oldest first, and how many
-    lines were damaged (not JSON, not an object, longer than ``max_line_bytes``: skipped). Reads
-    at most ``max_lines × max_line_bytes`` bytes from the end; a missing file is ``([], 0)``."""
-    try:
-        with open(path, "rb") as f:
-            f.seek(0, os.SEEK_END)
-            size = f.tell()
-            budget = max_lines * (max_line_bytes + 1)
-            start = max(0, size - budget)
-            f.seek(start)
-            data = f.read(size - start)
-    except FileNotFoundError:
-        return [], 0
-    lines = data.split(b"\n")
-    if start > 0:
-        lines = lines[1:]            # the first line is cut by the read window
-    lines = [ln for ln in lines if ln.strip()][-max_lines:]
-    out, bad = [], 0
-    for ln in lines:
-        if len(ln) > max_line_bytes:
-            bad += 1
-            continue
-        try:
-            v = json.loads(ln.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError, RecursionError):
-            bad += 1
-            continue
-        if isinstance(v, dict):
-            out.append(v)
-        else:
-            bad += 1
-    return out, bad
-
-
 def journal_from_disk(station_dir: str, n_tests: int = JOURNAL_TESTS) -> list[dict[str, Any]]:
     """The alarm transitions recorded in the events.jsonl of the station's newest tests."""
     try:
@@ -547,13 +508,11 @@ def journal_from_disk(station_dir: str, n_tests: int = JOURNAL_TESTS) -> list[di
 HOOK_FIELDS = ("station", "old_sample_id", "new_sample_id", "grade", "by", "utc", "test_id", "life_s")
 
 
-def read_hooks(station_dir: str, max_lines: int = TAIL_LINES) -> list[dict[str, Any]]:
-    """The successive hooks of a station from ``<station dir>/hooks.jsonl``, newest first: the
-    last ``max_lines`` lines; a damaged line is skipped (one log line with the count)."""
-    path = os.path.join(station_dir, "hooks.jsonl")
-    rows, bad = tail_jsonl(path, max_lines, 4096)
-    if bad:
-        log.warning("console: %s: %d damaged lines skipped", path, bad)
+def hook_history(station_dir: str) -> list[dict[str, Any]]:
+    """The successive hooks of a station (``<station dir>/hooks.jsonl``, read by
+    :func:`gateway.station.hooks.read_hooks`: bounded, a damaged line skipped), newest first, each
+    with the :data:`HOOK_FIELDS` only, texts clipped, ``life_s`` a finite number or None."""
+    rows = read_hooks(station_dir)
     out = []
     for r in reversed(rows):
         h = {k: r.get(k) for k in HOOK_FIELDS}

@@ -62,8 +62,8 @@ from .feed import (
     StationFeed,
     csv_cell,
     due_list,
+    hook_history,
     journal_from_disk,
-    read_hooks,
     series_from_log,
 )
 from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
@@ -707,7 +707,7 @@ class ConsoleServer:
         refused = self._file_rate(request)
         if refused is not None:
             return refused
-        hooks = await asyncio.get_running_loop().run_in_executor(None, read_hooks, d)
+        hooks = await asyncio.get_running_loop().run_in_executor(None, hook_history, d)
         return web.json_response({"station": request.match_info["sid"], "hooks": hooks})
 
     async def h_journal(self, request):

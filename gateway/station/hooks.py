@@ -10,12 +10,13 @@ damaged line is skipped (one log line with the count).
 """
 from __future__ import annotations
 
-import collections
 import json
 import logging
 import os
 import re
 from typing import Any
+
+from ..logio import tail_jsonl
 
 __all__ = ["HOOKS_NAME", "MAX_LINE", "MAX_LINES", "append_hook", "next_sample_id", "read_hooks"]
 
@@ -69,35 +70,15 @@ def append_hook(station_dir: str, record: dict[str, Any]) -> str | None:
 
 
 def read_hooks(station_dir: str, max_lines: int = MAX_LINES) -> list[dict[str, Any]]:
-    """The last ``max_lines`` records of the station's hooks.jsonl (none when it is absent)."""
+    """The last ``max_lines`` records of the station's hooks.jsonl, oldest first (none when it is
+    absent or cannot be read: one log line); read from the end within a bounded number of bytes
+    (:func:`gateway.logio.tail_jsonl`); a damaged line is skipped (one log line with the count)."""
     path = os.path.join(station_dir, HOOKS_NAME)
-    tail: collections.deque[bytes] = collections.deque(maxlen=max_lines)
     try:
-        with open(path, "rb") as f:
-            while raw := f.readline(MAX_LINE + 1):
-                if len(raw) > MAX_LINE and not raw.endswith(b"\n"):
-                    # an overlong line: the rest of it is read in bounded pieces and dropped
-                    while (more := f.readline(MAX_LINE + 1)) and not more.endswith(b"\n"):
-                        pass
-                tail.append(raw)
-    except FileNotFoundError:
-        return []
+        out, bad = tail_jsonl(path, max_lines, MAX_LINE)
     except OSError as e:
         log.warning("%s: cannot be read (%s)", path, e.strerror or e)
         return []
-    out: list[dict[str, Any]] = []
-    bad = 0
-    for raw in tail:
-        try:
-            if len(raw) > MAX_LINE:
-                raise ValueError("line too long")
-            rec = json.loads(raw.decode("utf-8"))
-            if not isinstance(rec, dict):
-                raise ValueError("not an object")
-        except (ValueError, UnicodeDecodeError, RecursionError):
-            bad += 1
-            continue
-        out.append(rec)
     if bad:
         log.warning("%s: %d damaged line(s) skipped", path, bad)
     return out

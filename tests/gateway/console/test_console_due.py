@@ -16,8 +16,9 @@ import json
 import logging
 import os
 
-from gateway.console.feed import MAX_JOURNAL, csv_cell, tail_jsonl
+from gateway.console.feed import MAX_JOURNAL, csv_cell
 from gateway.console.server import FILE_READS_PER_MIN
+from gateway.logio import tail_jsonl
 from gateway.records import Event, EventType
 from kit.console_helpers import INJECT, Client, start_console
 
@@ -181,7 +182,7 @@ def test_hooks_of_a_station_bounded_damaged_lines_skipped(tmp_path, caplog):
         assert [(x["old_sample_id"], x["new_sample_id"], x["life_s"]) for x in h] == [
             ("S-2", "S-3", None), ("S-1", "S-2", 3600.5)]                   # newest first
         warn = [r.getMessage() for r in caplog.records if "damaged" in r.getMessage()]
-        assert len(warn) == 1 and "2 damaged lines" in warn[0]
+        assert len(warn) == 1 and "2 damaged line(s) skipped" in warn[0]
         assert not [r for r in caplog.records if r.exc_info]
         assert c.get("/api/station/nope/hooks")[0] == 404
     finally:
