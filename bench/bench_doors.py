@@ -149,6 +149,30 @@ def flood(kind: str, ports: dict[str, int], idle: int, stop: threading.Event) ->
     return held
 
 
+def _plc_read(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=1) as sk:
+            sk.sendall(struct.pack(">HHHBBHH", 1, 0, 6, 1, 4, 0, 8))
+            data = sk.recv(256)
+            return len(data) >= 9 and data[7] == 4
+    except OSError:
+        return False
+
+
+def _ready(ports: dict[str, int], t_end: float) -> bool:
+    """The console answers and the PLC port serves a read (under the supervisor the port opens
+    once the worker's station reports, a few seconds after the console)."""
+    while time.monotonic() < t_end:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{ports['console']}/api/fleet", timeout=1).read()
+            if _plc_read(ports["modbus"]):
+                return True
+        except OSError:
+            pass
+        time.sleep(0.2)
+    return False
+
+
 def run(kind: str, duration: float, idle: int) -> dict:
     ports = {"console": free_port(), "metrics": free_port(), "modbus": free_port()}
     work, fleet, sims = make_fleet(1, f"hw-bench-doors-{kind}-", {
@@ -159,13 +183,8 @@ def run(kind: str, duration: float, idle: int) -> dict:
     stats = os.path.join(work, "stats.json")
     gw = subprocess.Popen([EXE, "run", fleet, *RUN_EXTRA, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    t_end = time.monotonic() + 20
-    while time.monotonic() < t_end:
-        try:
-            urllib.request.urlopen(f"http://127.0.0.1:{ports['console']}/api/fleet", timeout=1).read()
-            break
-        except OSError:
-            time.sleep(0.2)
+    if not _ready(ports, time.monotonic() + 60):
+        print(f"{kind:8s}: the gateway's doors did not answer within 60 s", flush=True)
     stop = threading.Event()
     plc = Plc(ports["modbus"], stop)
     plc.start()

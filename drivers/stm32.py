@@ -94,6 +94,10 @@ def _flags(v: int) -> Flag:
     return f
 
 
+def _flag_names(f: Flag) -> str:
+    return "|".join(m.name or "" for m in Flag if m in f) or "none"
+
+
 def _stop_reason(v: int) -> StopReason | int:
     r = _reason_cache.get(v)
     if r is None:
@@ -164,7 +168,7 @@ class Stm32Link:
         self.counters: dict[str, int] = {
             "sent": 0, "acked": 0, "naks": 0, "timeouts": 0, "crc_errors": 0, "retries": 0,
             "port_lost": 0, "reopened": 0, "stale": 0, "bad_replies": 0, "keepalives": 0,
-            "failed": 0}
+            "failed": 0, "drive_stops": 0}
         self.last_status: Status | None = None
         self.last_nak: Reply | None = None
         self.last_rtt_s: float = math.nan
@@ -548,6 +552,12 @@ class Stm32Link:
         self.last_status = st
         if st.enabled != self._was_enabled:
             self._poke()            # the keep-alive starts or stops
+            if self._was_enabled and self._want_enabled:
+                # stopped by the firmware, not asked for: say why (the tension falls next)
+                self.counters["drive_stops"] += 1
+                why = getattr(st.stop_reason, "name", st.stop_reason)
+                log.warning("stm32 %s: the drive stopped on its own: %s (flags %s; %d such stops)",
+                            self.port, why, _flag_names(st.flags), self.counters["drive_stops"])
         self._was_enabled = st.enabled
         return st
 

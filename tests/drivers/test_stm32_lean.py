@@ -162,3 +162,28 @@ def test_posted_command_lost_reply_busy_link_and_a_pending_post_before_an_exchan
     rpm, enabled, stale, again = out["after"]
     assert rpm == 0.0 and not enabled and stale == 0 and again is None
     assert out["nan"] is False
+
+
+def test_a_drive_stopped_by_the_firmware_is_counted_and_said_once(caplog):
+    """A stalled gateway thread (here: the loop blocked 0.5 s, beyond the 0.3 s watchdog) lets the
+    firmware's watchdog stop the motor: the next status says so, and the link logs why (the
+    tension falls next, and a protection stop may follow: the operator reads the cause)."""
+    import logging
+    import time
+
+    async def body(link):
+        await link.stop("gateway start")
+        await link.enable()
+        assert await link.set_speed(100.0) is not None
+        time.sleep(0.5)                     # the whole thread stalls: no keep-alive either
+        st = await link.set_speed(100.0)
+        st2 = await link.read_status()
+        return st, st2, dict(link.counters)
+
+    with caplog.at_level(logging.WARNING, logger="hookwatch.stm32"):
+        st, st2, c = run(_with_virtual_stm32(body))
+    assert not st.enabled and st.watchdog_tripped and st.stop_reason == p.StopReason.WATCHDOG
+    assert not st2.enabled
+    assert c["drive_stops"] == 1
+    lines = [r.getMessage() for r in caplog.records if "stopped on its own" in r.getMessage()]
+    assert len(lines) == 1 and "WATCHDOG" in lines[0], lines
