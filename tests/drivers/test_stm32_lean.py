@@ -187,3 +187,43 @@ def test_a_drive_stopped_by_the_firmware_is_counted_and_said_once(caplog):
     assert c["drive_stops"] == 1
     lines = [r.getMessage() for r in caplog.records if "stopped on its own" in r.getMessage()]
     assert len(lines) == 1 and "WATCHDOG" in lines[0], lines
+
+
+def test_the_twins_own_stall_is_not_the_gateways_silence():
+    """The virtual firmware's watchdog judges the gateway's silence on the wire. When the twin's
+    own process stalls (a loaded machine; here: it is not ticked and its loop does not run for
+    0.5 s) while the gateway keeps sending every 20 ms, the frames it then reads at once came one
+    after another: no trip. A gateway that really falls silent for 0.5 s while the twin looks
+    every 5 ms trips it."""
+    import time
+
+    from drivers.sim.loopback import take
+
+    async def body():
+        vs = VirtualStm32(Stm32Firmware(0.2), SimpleMotor(tau_s=0.05), link=LoopbackLink())
+        dev = await vs.start(own_ticker=False)
+        end = take(dev.split("://", 1)[1])
+        seq = iter(range(1, 256))
+        try:
+            end.send(p.req_enable(next(seq)))
+            for _ in range(10):
+                vs.tick()
+                time.sleep(0.005)
+            assert vs.firmware.drive_enabled
+            for _ in range(25):                          # the twin stalls, the gateway sends on
+                end.send(p.req_set_speed(next(seq), 100.0))
+                time.sleep(0.02)
+            vs.tick()
+            after_stall = (vs.firmware.drive_enabled, vs.firmware.counters["watchdog_trips"])
+            for _ in range(100):                         # the gateway is silent, the twin looks
+                vs.tick()
+                time.sleep(0.005)
+            after_silence = (vs.firmware.drive_enabled, vs.firmware.counters["watchdog_trips"])
+            return after_stall, after_silence
+        finally:
+            end.close()
+            await vs.stop()
+
+    after_stall, after_silence = run(body())
+    assert after_stall == (True, 0)
+    assert after_silence == (False, 1)
