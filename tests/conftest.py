@@ -30,6 +30,21 @@ def hookwatch_cmd() -> list[str]:
 # ------------------------------------------------------------------------------------ fixtures
 
 
+@pytest.fixture(autouse=True)
+def _no_process_outlives_its_test():
+    """A gateway left running by a test that ended (an assertion, a test that stops its simulator
+    first) keeps reopening its ports by path, and a pseudo-terminal's number is soon reused by the
+    next test's simulator: that gateway then locks the new test's STM32 port and reads its meter
+    (seen twice in parallel runs). Every Proc a test started and did not stop is stopped here
+    (the module-scoped fixtures' ones, started before, are left to their fixtures)."""
+    from kit.proc import LIVE
+    before = set(LIVE)
+    yield
+    for p in list(LIVE):
+        if p not in before:
+            p.stop(timeout=10)
+
+
 @pytest.fixture
 def broker(tmp_path):
     """A running Mosquitto on a free loopback port (kit.broker.Broker), stopped after the test."""

@@ -6,6 +6,7 @@ import contextlib
 import json
 import os
 import re
+import signal
 import subprocess
 import time
 
@@ -31,7 +32,24 @@ def virtual_station(tmp_path, scenario: str, seed: int = 1, extra: list[str] | N
         yield proc, {"meter": str(link_dir / "meter"), "stm32": str(link_dir / "stm32"),
                      "truth": str(truth)}
     finally:
+        # the links go first: a gateway still running would otherwise follow them to the
+        # pseudo-terminals the next test's simulator gets under the same numbers
+        for name in ("meter", "stm32"):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(link_dir / name)
         proc.stop()
+
+
+def kill_virtual_station(proc: Proc, links: dict) -> None:
+    """The virtual station dies at once with both its ports (SIGKILL), and its links go as udev
+    removes a pulled adapter's /dev/hookwatch/… names: a gateway that still follows them would
+    otherwise open the pseudo-terminals another test's simulator gets under the same numbers (it
+    did: a parallel run's fleet test locked another test's STM32 port and read its meter)."""
+    proc.p.send_signal(signal.SIGKILL)
+    proc.p.wait(10)
+    for name in ("meter", "stm32"):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(links[name])
 
 
 def station_yaml(tmp_path, links, *, name="e2e", method=None, control=None, test=None,

@@ -6,6 +6,7 @@ import signal
 import subprocess
 import threading
 import time
+import weakref
 
 from conftest import ROOT
 
@@ -38,10 +39,15 @@ def stop_process(p: subprocess.Popen | None, sig: int = signal.SIGTERM, timeout:
     return p.returncode
 
 
+#: every Proc not yet stopped (tests/conftest.py stops what a test leaves running)
+LIVE: weakref.WeakSet[Proc] = weakref.WeakSet()
+
+
 class Proc:
     """A process whose stdout lines are collected by a thread and whose stderr goes to a log."""
 
     def __init__(self, argv, log_path, env=None):
+        LIVE.add(self)
         self.log_path = log_path
         self._log = open(log_path, "w")
         self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self._log, text=True,
@@ -90,6 +96,7 @@ class Proc:
         return read_log(self.log_path)
 
     def stop(self, sig=signal.SIGTERM, timeout: float = 15.0) -> int:
+        LIVE.discard(self)
         stop_process(self.p, sig, timeout)
         self._reader.join(5)
         with self._cond:

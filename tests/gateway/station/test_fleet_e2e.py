@@ -3,7 +3,6 @@
 three keep their slots and finish their lives with results identical to offline analysis."""
 import contextlib
 import os
-import signal
 import subprocess
 
 import pytest
@@ -17,6 +16,7 @@ from kit.e2e import (
     analyze_cli,
     assert_no_slot_lost,
     fleet_dir,
+    kill_virtual_station,
     read_json,
     run_gateway,
     test_dirs,
@@ -71,9 +71,7 @@ def test_four_stations_one_process_one_meter_killed(tmp_path):
         import time
         wait_for(lambda: test_dirs(tmp_path, VICTIM), 120, 0.2, what="the victim's test started")
         time.sleep(3)
-        victim = sims[VICTIM][0]
-        victim.p.send_signal(signal.SIGKILL)
-        victim.p.wait(10)
+        kill_virtual_station(*sims[VICTIM])
         try:
             assert gw.p.wait(150) == 0, gw.log()
         finally:
