@@ -196,7 +196,11 @@ Everything the node receives is parsed within bounds (`gateway/northbound/sparkp
 a payload outside them is **ignored and counted**, and logged at most once per kind (`state`,
 `ncmd`, `dcmd`, `topic`) per minute with the count since the previous line. It never ends the
 session or the node's thread — a hostile **retained** STATE that comes back at every reconnect
-is ignored every time, and the node goes on waiting for a good one.
+is ignored every time, and the node goes on waiting for a good one. The counts are on the metrics
+endpoint of the process that runs the node (in a fleet, the supervisor):
+`hookwatch_sparkplug_bad_payloads_total{group,node,kind}`, `hookwatch_sparkplug_connected` and
+`hookwatch_sparkplug_events_total{event}` (births, rebirths, connect errors, crashes …;
+docs/metrics.md).
 
 | input | limit | key |
 |---|---|---|
