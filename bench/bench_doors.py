@@ -70,6 +70,7 @@ class Plc(threading.Thread):
         super().__init__(daemon=True)
         self.port, self.stop = port, stop
         self.ok = self.failed = 0
+        self.errors: dict[str, int] = {}
 
     def run(self) -> None:
         tid = 0
@@ -85,8 +86,10 @@ class Plc(threading.Thread):
                     self.ok += 1
                 else:
                     raise OSError("bad reply")
-            except OSError:
+            except OSError as e:
                 self.failed += 1
+                self.errors[type(e).__name__ + (f" {e}" if str(e) == "bad reply" else "")] = \
+                    self.errors.get(type(e).__name__, 0) + 1
                 if sock is not None:
                     sock.close()
                 sock = None
@@ -183,14 +186,20 @@ def run(kind: str, duration: float, idle: int) -> dict:
     stats = os.path.join(work, "stats.json")
     gw = subprocess.Popen([EXE, "run", fleet, *RUN_EXTRA, "--duration", str(duration), "--stats-json", stats,
                            "--log-level", "warning"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    t_gw = time.monotonic()
     if not _ready(ports, time.monotonic() + 60):
         print(f"{kind:8s}: the gateway's doors did not answer within 60 s", flush=True)
     stop = threading.Event()
     plc = Plc(ports["modbus"], stop)
     plc.start()
     time.sleep(3.0)
+    # the PLC and the flood end a second before the gateway does: a read refused by a gateway
+    # that has ended is not a lost link
+    ender = threading.Timer(max(0.0, t_gw + duration - 1.0 - time.monotonic()), stop.set)
+    ender.start()
     held = flood(kind, ports, idle, stop) if kind != "none" else []
     gw.wait()
+    ender.cancel()
     stop.set()
     plc.join(5)
     for s in held:
@@ -203,9 +212,11 @@ def run(kind: str, duration: float, idle: int) -> dict:
             with open(os.path.join(dp, "result.json")) as f:
                 aborted |= json.load(f).get("end_reason") == "protection stop"
     out = {"door": kind, "filled_pct": 100 * s["filled_ratio"], "p99_ms": s["lateness_ms_p99"],
-           "plc_ok": plc.ok, "plc_failed": plc.failed, "held": len(held), "aborted": aborted}
+           "plc_ok": plc.ok, "plc_failed": plc.failed, "plc_errors": plc.errors, "held": len(held),
+           "aborted": aborted}
     print(f"{kind:8s}: filled {out['filled_pct']:.3f} %, p99 lateness {out['p99_ms']:.2f} ms, PLC reads "
-          f"{plc.ok} ok / {plc.failed} failed, {len(held)} connections held, aborted {aborted}", flush=True)
+          f"{plc.ok} ok / {plc.failed} failed {plc.errors or ''}, {len(held)} connections held, "
+          f"aborted {aborted}", flush=True)
     return out
 
 
