@@ -282,11 +282,17 @@ class TestRecorder:
         self._fail_reason = ""
         self._last_err_log = 0.0
         self._errors_unlogged = 0
+        # on the slot loop at the test's slot 0: nothing here waits for the disk (an fsync on a
+        # busy disk took ~0.2 s once: 9 slots MISSING and the STM32's watchdog stopped the motor);
+        # the sidecar, the log's header and the events file are synced by the background thread
         try:
-            self._write_meta()
+            self._write_meta(sync=False)
         except OSError as e:
             self._failed(e)
-        self.flush(force=True)
+        self.flush(force=True, sync=False)
+        if self.disk_ok:
+            _fsync_in_background(self._fd)
+            _fsync_in_background(self._ev_fd)
 
     # -- disk state
     def _failed(self, e: OSError) -> None:
@@ -351,9 +357,10 @@ class TestRecorder:
         else:
             self.lost_spans.append([k, k])
 
-    def _write_meta(self) -> None:
+    def _write_meta(self, sync: bool = True) -> None:
         _atomic_write(os.path.join(self.dir, META_NAME),
-                      lambda f: yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True))
+                      lambda f: yaml.safe_dump(self.meta, f, sort_keys=False, allow_unicode=True),
+                      sync=sync)
 
     def update_meta(self, path: list[str], value: Any) -> None:
         """Set one key of the sidecar (``["method", "end_slot"]``) and rewrite it atomically."""
@@ -362,7 +369,7 @@ class TestRecorder:
             d = d.setdefault(k, {})
         d[path[-1]] = value
         try:
-            self._write_meta()
+            self._write_meta(sync=False)        # on the slot loop: synced in the background
         except OSError as e:
             self.write_errors += 1
             log.error("%s: cannot rewrite the sidecar: %s", self.dir, e)
@@ -399,8 +406,11 @@ class TestRecorder:
         self._ev_pending.clear()
         return True
 
-    def flush(self, force: bool = False) -> None:
-        """Write the buffered rows as one complete gzip member (and pending events); never raises."""
+    def flush(self, force: bool = False, sync: bool | None = None) -> None:
+        """Write the buffered rows as one complete gzip member (and pending events); never raises.
+        ``force``: now, whatever the flush interval; ``sync`` (default: ``force``): and fsync
+        here (otherwise every ``fsync_interval_s`` in the background)."""
+        sync = force if sync is None else sync
         now = self._clock()
         self._last_flush = now
         ok = True
@@ -423,7 +433,7 @@ class TestRecorder:
             ok = self._flush_events()
         if ok:
             try:
-                if force:
+                if sync:
                     os.fsync(self._fd)
                     os.fsync(self._ev_fd)
                     self._last_fsync = now
@@ -480,16 +490,27 @@ _retry_thread: threading.Thread | None = None
 RESULT_RETRY_S = 5.0
 
 
-def _atomic_write(path: str, dump: Callable[[Any], Any]) -> None:
-    """Write a text file through a synced temporary file and a rename; on failure the temporary
-    file is removed and the error raised (the old file, if any, stays)."""
+def _atomic_write(path: str, dump: Callable[[Any], Any], sync: bool = True) -> None:
+    """Write a text file through a temporary file and a rename; on failure the temporary file is
+    removed and the error raised (the old file, if any, stays). ``sync``: the temporary file is
+    synced before the rename; otherwise (on a slot loop) the file and its folder are synced by
+    the background thread right after it."""
     tmp = path + ".tmp"
     try:
         with open(tmp, "w", encoding="utf-8") as f:
             dump(f)
             f.flush()
-            os.fsync(f.fileno())
+            if sync:
+                os.fsync(f.fileno())
+            else:
+                _fsync_in_background(f.fileno())
         os.replace(tmp, path)
+        if not sync:
+            dfd = os.open(os.path.dirname(path) or ".", os.O_RDONLY)
+            try:
+                _fsync_in_background(dfd)
+            finally:
+                os.close(dfd)
     except OSError:
         with contextlib.suppress(OSError):
             os.unlink(tmp)

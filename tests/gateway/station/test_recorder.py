@@ -96,3 +96,35 @@ def test_kill_9_loses_at_most_the_last_second_and_restart_closes_as_aborted(tmp_
     assert res["method"]["status"] == "aborted"      # t_end not reached: the rest is MISSING
     assert res["method"]["n_slots"] >= lg.t.size
     assert incomplete_tests(str(tmp_path / "station")) == []
+
+
+def test_a_test_start_never_waits_for_the_disk_on_the_slot_loop(tmp_path, monkeypatch):
+    """A recorder opens at the test's slot 0, on the station's slot loop: the sidecar, the log's
+    header and the events file are written there but synced by the background thread (an fsync
+    on a busy disk once took ~0.2 s: 9 slots MISSING, the STM32's watchdog stopped the motor, a
+    protection stop). The files are synced all the same, and read back."""
+    import os
+    import threading
+    import time
+
+    from gateway.logio import read_meta
+    from gateway.station import recorder as R
+
+    calls: list[str] = []
+    real = os.fsync
+
+    def spy(fd):
+        calls.append(threading.current_thread().name)
+        return real(fd)
+
+    monkeypatch.setattr(R.os, "fsync", spy)
+    here = threading.current_thread().name
+    r = TestRecorder(str(tmp_path / "x"), META)
+    r.update_meta(["method", "end_slot"], 7)
+    t_end = time.monotonic() + 20
+    while len(calls) < 5 and time.monotonic() < t_end:
+        time.sleep(0.01)
+    assert here not in calls, calls
+    assert len(calls) >= 5 and all(c.startswith("fsync") for c in calls), calls
+    assert read_meta(os.path.join(r.dir, LOG_NAME))["method"]["end_slot"] == 7
+    r.close({"test_status": "completed"})
