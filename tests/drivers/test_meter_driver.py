@@ -289,8 +289,14 @@ def test_pymodbus_rtt_at_19200(meter_proc):
     wire = m.map.poll_time_s()
     # never faster than the wire (the virtual meter keeps the wire time; nothing is made up). How
     # little pymodbus adds to it is bench/bench_station.py's figure (wire --baud 19200), and
-    # bench/bench_slot_cpu.py's for the driver's CPU: not asserted on a loaded machine
-    assert wire <= rtts[0], (wire, rtts[:3])
+    # bench/bench_slot_cpu.py's for the driver's CPU: not asserted on a loaded machine.
+    # A read right after one that timed out is left out: Modbus RTU has no transaction id, and the
+    # late answer to the timed-out request can arrive during the next one (11.4 ms after it, once,
+    # with 4 test workers on the 2 cores) — later than the driver's stale-reply bound (the wire
+    # time of request and reply, × 0.9), so it is taken as that read's answer, as on a real line
+    after_good = sorted(r.rtt_s for prev, r in zip(results, results[1:])
+                        if prev is not None and r is not None)
+    assert after_good and wire <= after_good[0], (wire, after_good[:3])
 
 
 def test_a_stale_readiness_event_is_no_hang_up_a_real_one_is(meter_proc):
