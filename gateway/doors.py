@@ -78,9 +78,9 @@ class DoorLimits:
     @classmethod
     def from_config(cls, c: Any) -> DoorLimits:
         """From a configuration section with the door keys (``max_connections``,
-        ``request_timeout_s``, ``idle_timeout_s``, ``accept_pause_s``)."""
+        ``request_timeout_s``, ``idle_timeout_s``, ``accept_pause_s``, ``accepts_per_s``)."""
         return cls(int(c.max_connections), float(c.request_timeout_s), float(c.idle_timeout_s),
-                   float(c.accept_pause_s), float(getattr(c, "accepts_per_s", 100.0)))
+                   float(c.accept_pause_s), float(c.accepts_per_s))
 
 
 class RateLog(_ratelog.RateLog):

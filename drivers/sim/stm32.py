@@ -48,11 +48,10 @@ from .pty import PtyLink
 GATEWAY_STOP_REASONS = (StopReason.COMMAND, StopReason.PROTECTION, StopReason.TEST_END,
                         StopReason.GATEWAY)
 
-
-
 #: frames read at once after the simulator itself did not look at its pty for longer than this
 #: are taken to have arrived one after another since the previous look (see ``_on_readable``)
 STALL_SPREAD_S = 0.015
+
 
 class Stm32Firmware:
     """The firmware's state machine. All times are seconds on the caller's monotonic clock."""
@@ -461,10 +460,9 @@ class VirtualStm32:
         # over the time since then, the last one now: the watchdog judges the gateway's silence
         # on the wire, not this process' (a 0.3 s stall of the simulator used to trip it).
         n = len(frames)
-        gap = now - look if look is not None else 0.0
-        spread = n > 1 and gap > STALL_SPREAD_S
+        first = look if look is not None and n > 1 and now - look > STALL_SPREAD_S else now
         for i, fr in enumerate(frames):
-            self._schedule(fr.encode(), look + gap * (i + 1) / n if spread and look is not None else now)
+            self._schedule(fr.encode(), first + (now - first) * (i + 1) / n)
 
     def _call_at(self, when: float, fn, *args) -> None:
         h: asyncio.TimerHandle | None = None
