@@ -143,6 +143,10 @@ class TestLifecycle:
         if mon is None:
             return
         if mon.stop_slot is not None:
+            # the ports' state goes into the record before it closes: a stop caused by a vanished
+            # port names the port (``port_lost``) in the test's own events, whenever the once-a-
+            # second link check would have come (a loaded box can take the stop first)
+            self.health.check_links()
             # §3: command the motor to stop at once, then close the test
             await self.end_test("protection stop")
         elif mon.finished:
