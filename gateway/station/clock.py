@@ -69,3 +69,45 @@ class SlotStats:
                 "lateness_ms_max": lat[-1] * 1e3 if lat else math.nan,
                 "rtt_ms_median": statistics.median(self.rtt) * 1e3 if self.rtt else math.nan,
                 "stm32_busy_skips": self.stm32_busy_skips}
+
+
+class LateStarts:
+    """The log of late slot starts (overruns), bounded like every refusal log
+    (:mod:`gateway.ratelog`): the first overrun of a window is one line at once; the rest of the
+    window is counted and said in one line when the window ends (how many, the slots recorded as
+    MISSING, the worst lateness), so a loaded box writes two lines a minute, not one per slot.
+    Pure: the caller passes the time and logs the lines returned."""
+
+    def __init__(self, window_s: float) -> None:
+        self.window_s = float(window_s)
+        self._start: float | None = None     # the open window's start (its first overrun)
+        self._count = 0                      # overruns after the first, not yet said
+        self._missing = 0
+        self._worst_s = 0.0
+        self._last_k = 0
+
+    def add(self, now: float, k: int, lateness_s: float, missing: int) -> str | None:
+        """One overrun: slot ``k`` started ``lateness_s`` late, ``missing`` slots recorded as
+        MISSING. Returns the line to log now (the first of a window), else None (counted)."""
+        if self._start is not None and now - self._start < self.window_s:
+            self._count += 1
+            self._missing += missing
+            self._worst_s = max(self._worst_s, lateness_s)
+            self._last_k = k
+            return None
+        self._start = now
+        return f"slot {k} started {lateness_s * 1e3:.0f} ms late: {missing} slot(s) recorded as MISSING"
+
+    def due(self, now: float, force: bool = False) -> str | None:
+        """The line for the counted overruns once their window has ended (``force``: now)."""
+        if self._start is None or not (force or now - self._start >= self.window_s):
+            return None
+        self._start = None
+        if not self._count:
+            return None
+        line = (f"{self._count} more late slot start(s) in the last {self.window_s:.0f} s: "
+                f"{self._missing} slot(s) recorded as MISSING, the worst {self._worst_s * 1e3:.0f} ms "
+                f"late, the last at slot {self._last_k}")
+        self._count = self._missing = 0
+        self._worst_s = 0.0
+        return line

@@ -27,13 +27,14 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any
 
+from .. import ratelog
 from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from .alarm_store import AlarmStore
-from .clock import SlotClock, SlotStats
+from .clock import LateStarts, SlotClock, SlotStats
 from .commands import Rejection, validate
 from .dispatch import HANDLERS
 from .fanout import Fanout
@@ -77,6 +78,8 @@ class Station:
         self.idle_status_interval_s = idle_status_interval_s
         self.autostart = autostart
         self.stats = SlotStats()
+        #: overruns are logged once per window with a count (not a line per late slot)
+        self.late_starts = LateStarts(ratelog.WINDOW_S)
         self._recorder_out = RecorderOutput()
         self.fanout = Fanout(station_id, self.outputs, head=(self._recorder_out,))
         #: the one place the state changes; the ports, uplinks and disks; the STM32 transport
@@ -256,6 +259,9 @@ class Station:
         await step("meter port", self.meter.close())
         await step("stm32 port", self.stm32.close())
         await step("outputs", self.fanout.stop())
+        line = self.late_starts.due(time.monotonic(), force=True)
+        if line is not None:
+            log.warning("%s: %s", self.id, line)
         log.info("%s: slot stats %s", self.id, self.stats.summary())
 
     async def _open(self) -> None:
@@ -294,8 +300,9 @@ class Station:
             if lateness > self.ts / 2:
                 # overrun: the slots whose window has passed are MISSING; never shift the grid
                 k_now = clock.slot_at(clock.clock())
-                log.warning("%s: slot %d started %.0f ms late: %d slot(s) recorded as MISSING",
-                            self.id, k, lateness * 1e3, max(0, k_now - k))
+                line = self.late_starts.add(time.monotonic(), k, lateness, max(0, k_now - k))
+                if line is not None:
+                    log.warning("%s: %s", self.id, line)
                 for kk in range(k, k_now):
                     stats.slots += 1
                     stats.overrun_slots += 1
@@ -324,6 +331,9 @@ class Station:
                 last_idle_status = now
                 link.request_status()
             if now - self.board.last_push >= 1.0:
+                line = self.late_starts.due(now)
+                if line is not None:
+                    log.warning("%s: %s", self.id, line)
                 self.health.check_links()
                 for name in self.alarms.expired(time.time()):   # a shelving ran out
                     self.board.emit(EventType.ALARM_UNSHELVED, alarm=name, expired=True)

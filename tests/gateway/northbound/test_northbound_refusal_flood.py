@@ -63,8 +63,12 @@ def test_3000_refused_plc_writes_are_a_few_log_lines_and_events_with_counts(tmp_
         # (bounds against a hang, not speed goals: 20 s once ran out with 4 test workers on 2 cores)
         wait_for(lambda: sum(e.data["count"] for e in refusal_events()) == N, WINDOW_S + 60,
                  what="the refused commands counted in events")
-        wait_for(lambda: sum(int(COUNT.search(m).group(1)) for m in modbus_lines() if COUNT.search(m)) == 2 * N,
-                 WINDOW_S + 60, what="the refused writes counted in log lines")
+        def counted():
+            return sum(int(COUNT.search(m).group(1)) for m in modbus_lines() if COUNT.search(m))
+        try:
+            wait_for(lambda: counted() == 2 * N, WINDOW_S + 60, what="the refused writes counted in log lines")
+        except AssertionError as e:
+            raise AssertionError(f"{e}: {counted()} of {2 * N}; {modbus_lines()}") from None
         evs = refusal_events()
         lines = modbus_lines()
         windows = elapsed / WINDOW_S + 2
