@@ -179,8 +179,11 @@ class RateLog:
             return
         t = threading.Timer(max(0.0, at - now) + 0.01, self._fire)
         t.daemon = True
+        try:
+            t.start()               # (under the lock: its _fire waits for this call to end)
+        except RuntimeError:        # no thread to be had: the count comes with the next line or
+            return                  # at close, and the next refusal tries again
         self._timer = t
-        t.start()
 
     def _fire(self) -> None:
         with self._lock:

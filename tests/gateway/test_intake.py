@@ -5,6 +5,7 @@ client text clipped and escaped (gateway/ratelog.py); refusals logged once per k
 with the count."""
 import json
 import logging
+import threading
 
 import pytest
 
@@ -107,4 +108,31 @@ def test_rate_log_logs_once_per_kind_per_window_with_the_count(caplog):
     rl.flush()
     msgs = [r.getMessage() for r in caplog.records]
     assert msgs[2:] == ["PLC wrote t_set=2999: out of range (×2999 in the last 60 s)"]
+    rl.close()
+
+
+def test_rate_log_without_a_timer_thread_still_counts_every_refusal(caplog, monkeypatch):
+    """No thread to be had (the process at its thread limit): the refusal is still counted, its
+    count comes with the next line of the log, and the next refusal arms the timer again (the log
+    is never left without one)."""
+    clock = _Clock()
+    rl = RateLog(logging.getLogger("hookwatch.test_ratelog"), window_s=0.2, clock=clock)
+    caplog.set_level(logging.INFO, logger="hookwatch.test_ratelog")
+    real_start = threading.Timer.start
+
+    def no_thread(self):
+        raise RuntimeError("can't start new thread")
+    monkeypatch.setattr(threading.Timer, "start", no_thread)
+    rl.info("k", "refused %s", 1)
+    rl.info("k", "refused %s", 2)                     # counted; no timer could start
+    monkeypatch.setattr(threading.Timer, "start", real_start)
+    rl.info("k", "refused %s", 3)                     # counted; the timer starts now
+    clock.t = 1.0
+    msgs = []
+    for _ in range(200):                              # the timer says the count (real time)
+        msgs = [r.getMessage() for r in caplog.records]
+        if len(msgs) == 2:
+            break
+        threading.Event().wait(0.01)
+    assert msgs == ["refused 1 (×1)", "refused 3 (×2 in the last 0 s)"], msgs
     rl.close()
