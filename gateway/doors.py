@@ -284,6 +284,7 @@ class Door:
         self.sockets.clear()
         for c in list(self.conns):
             self._close(c)
+        self.rlog.close()               # the counts of the last window, and no timer after
 
     @property
     def connections(self) -> int:

@@ -327,6 +327,7 @@ class ModbusOutput:
         if self.server is not None and self.unit is not None:
             self.server.unregister(self.unit)
         self.unit = None
+        self.refusal_log.close()        # the counts of the last window, and no timer after
 
     def on_record(self, rec: SlotRecord) -> None:
         now = time.monotonic()

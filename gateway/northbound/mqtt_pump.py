@@ -182,6 +182,7 @@ class MqttPump:
                 log.exception("%s: could not store the last messages", self.s.station_id)
             self._close_client()
             self.outbox.close()
+            self._refusals.close()      # the counts of the last window, and no timer after
 
     def _fault(self, e: Exception) -> None:
         """One pump fault: count it, log it (the first with its traceback, then one line a minute

@@ -12,6 +12,7 @@ import math
 import statistics
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -76,10 +77,11 @@ class LateStarts:
     (:mod:`gateway.ratelog`): the first overrun of a window is one line at once; the rest of the
     window is counted and said in one line when the window ends (how many, the slots recorded as
     MISSING, the worst lateness), so a loaded box writes two lines a minute, not one per slot.
-    Pure: the caller passes the time and logs the lines returned."""
+    The caller passes the time; each line goes to ``say`` (the station's log) and is returned."""
 
-    def __init__(self, window_s: float) -> None:
+    def __init__(self, window_s: float, say: Callable[[str], None] = lambda line: None) -> None:
         self.window_s = float(window_s)
+        self.say = say
         self._start: float | None = None     # the open window's start (its first overrun)
         self._count = 0                      # overruns after the first, not yet said
         self._missing = 0
@@ -96,7 +98,9 @@ class LateStarts:
             self._last_k = k
             return None
         self._start = now
-        return f"slot {k} started {lateness_s * 1e3:.0f} ms late: {missing} slot(s) recorded as MISSING"
+        line = f"slot {k} started {lateness_s * 1e3:.0f} ms late: {missing} slot(s) recorded as MISSING"
+        self.say(line)
+        return line
 
     def due(self, now: float, force: bool = False) -> str | None:
         """The line for the counted overruns once their window has ended (``force``: now)."""
@@ -110,4 +114,5 @@ class LateStarts:
                 f"late, the last at slot {self._last_k}")
         self._count = self._missing = 0
         self._worst_s = 0.0
+        self.say(line)
         return line

@@ -32,7 +32,7 @@ from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
-from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
+from ..records import Command, CommandReply, EventType, SlotRecord, StationState
 from .alarm_store import AlarmStore
 from .clock import LateStarts, SlotClock, SlotStats
 from .commands import Rejection, validate
@@ -79,7 +79,7 @@ class Station:
         self.autostart = autostart
         self.stats = SlotStats()
         #: overruns are logged once per window with a count (not a line per late slot)
-        self.late_starts = LateStarts(ratelog.WINDOW_S)
+        self.late_starts = LateStarts(ratelog.WINDOW_S, lambda line: log.warning("%s: %s", station_id, line))
         self._recorder_out = RecorderOutput()
         self.fanout = Fanout(station_id, self.outputs, head=(self._recorder_out,))
         #: the one place the state changes; the ports, uplinks and disks; the STM32 transport
@@ -171,12 +171,6 @@ class Station:
         """A test is starting or running."""
         return self.session is not None or self.starting is not None
 
-    def _emit_event(self, etype: EventType, k: int | None = None, **data: Any) -> Event:
-        return self.board.emit(etype, k, **data)    # (tests and tools: the board's emit/push)
-
-    def _push_state(self) -> None:
-        self.board.push()
-
     # ---------------------------------------------------------------- from outputs (this loop)
     def set_uplink(self, name: str, ok: bool) -> None:
         """An uplink (MQTT) reports its connection (via the thread hand-over)."""
@@ -259,9 +253,7 @@ class Station:
         await step("meter port", self.meter.close())
         await step("stm32 port", self.stm32.close())
         await step("outputs", self.fanout.stop())
-        line = self.late_starts.due(time.monotonic(), force=True)
-        if line is not None:
-            log.warning("%s: %s", self.id, line)
+        self.late_starts.due(time.monotonic(), force=True)
         log.info("%s: slot stats %s", self.id, self.stats.summary())
 
     async def _open(self) -> None:
@@ -300,9 +292,7 @@ class Station:
             if lateness > self.ts / 2:
                 # overrun: the slots whose window has passed are MISSING; never shift the grid
                 k_now = clock.slot_at(clock.clock())
-                line = self.late_starts.add(time.monotonic(), k, lateness, max(0, k_now - k))
-                if line is not None:
-                    log.warning("%s: %s", self.id, line)
+                self.late_starts.add(time.monotonic(), k, lateness, max(0, k_now - k))
                 for kk in range(k, k_now):
                     stats.slots += 1
                     stats.overrun_slots += 1
@@ -331,9 +321,7 @@ class Station:
                 last_idle_status = now
                 link.request_status()
             if now - self.board.last_push >= 1.0:
-                line = self.late_starts.due(now)
-                if line is not None:
-                    log.warning("%s: %s", self.id, line)
+                self.late_starts.due(now)
                 self.health.check_links()
                 for name in self.alarms.expired(time.time()):   # a shelving ran out
                     self.board.emit(EventType.ALARM_UNSHELVED, alarm=name, expired=True)

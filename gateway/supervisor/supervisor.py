@@ -642,3 +642,4 @@ class Supervisor:
             w.reap()
         if self.shared is not None:
             self.shared.stop()
+        self.rlog.close()               # the counts of the last window, and no timer after

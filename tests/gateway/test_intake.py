@@ -3,13 +3,16 @@ the same raw command gets the same answer whichever door it came through (MQTT o
 bytes, Sparkplug metrics, PLC registers or the CLI as a mapping); types strict, strings bounded;
 client text clipped and escaped (gateway/ratelog.py); refusals logged once per kind per window
 with the count."""
+import asyncio
 import json
 import logging
 import threading
 
 import pytest
 
+from gateway import doors as D
 from gateway.northbound.cmdparse import MAX_STRING_CHARS, intake
+from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings
 from gateway.ratelog import RateLog, clip, safe
 from gateway.records import Command, CommandKind
 from gateway.station.commands import Rejection
@@ -136,3 +139,24 @@ def test_rate_log_without_a_timer_thread_still_counts_every_refusal(caplog, monk
         threading.Event().wait(0.01)
     assert msgs == ["refused 1 (×1)", "refused 3 (×2 in the last 0 s)"], msgs
     rl.close()
+
+
+def test_a_door_or_output_that_stops_says_its_last_counts_and_leaves_no_timer(caplog):
+    """A PLC output and a door stop in the middle of a refusal window: the counts of the window
+    are logged at the stop (not lost, not a minute later by a timer of an object that is gone —
+    ci: timers of earlier tests' outputs wrote into a later test's log)."""
+    caplog.set_level(logging.INFO, logger="hookwatch")
+    out = ModbusOutput(ModbusSettings("stx", port=1, unit_id=9), None)
+    door = D.Door("test door", D.DoorLimits(10, 1.0, 5.0), lambda sock, conn: None)
+    for rl in (out.refusal_log, door.rlog):
+        for i in range(5):
+            rl.info("k", "refused %s", i)
+        assert rl._timer is not None                   # the window's count is due later
+
+    async def stop():
+        await out.stop()
+        await door.close()
+    asyncio.run(stop())
+    counts = [r.getMessage() for r in caplog.records if "×4 in the last" in r.getMessage()]
+    assert len(counts) == 2, [r.getMessage() for r in caplog.records]
+    assert out.refusal_log._timer is None and door.rlog._timer is None

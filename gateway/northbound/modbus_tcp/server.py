@@ -130,6 +130,7 @@ class ModbusTcpServer:
             t.cancel()
         if self._tasks:
             await asyncio.gather(*self._tasks, return_exceptions=True)
+        self.rlog.close()               # the counts of the last window, and no timer after
 
     @property
     def connections(self) -> int:

@@ -33,9 +33,9 @@ def test_the_same_isa_state_in_mqtt_and_the_plc_register(tmp_path):
         assert v[IR["map_version"].address] == R.MAP_VERSION
 
         async def end_of_life():             # what the method's end of life does
-            st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, mu_ss=0.2,
+            st.board.emit(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, mu_ss=0.2,
                            mu_th=0.23, sample_id="S-1")
-            st._push_state()
+            st.board.push()
 
         def step(n_alarm_msgs, want):
             """Wait for the n-th alarm message; MQTT alarm, MQTT state and PLC agree on ``want``."""

@@ -3,6 +3,7 @@ station, validated writes (exception 03 for out-of-range, 01 for clients not all
 command the running test refuses, 03 for one the station's state refuses), the running test's
 sample and test ID in input registers, several stations on one port, and fuzzed frames never
 stop it."""
+import math
 import socket
 import struct
 
@@ -53,6 +54,13 @@ def _floats(port, unit, start, n, big=True):
     return vals
 
 
+def _live_floats(port, unit, start, n, big=True):
+    """The latest slot's values: a slot the loop reached late is MISSING and reads NaN until the
+    next slot (docs/registers.md), which a loaded box shows now and then; read again then."""
+    return wait_for(lambda: (lambda v: v if all(math.isfinite(x) for x in v.values()) else None)(
+        _floats(port, unit, start, n, big)), 10, interval=0.02, what="a slot with a reading")
+
+
 def test_mbpoll_reads_the_documented_registers_with_live_values(plant):
     port, stations = plant
     rc, v, err = mbpoll(port, "-t", "3", "-r", "0", "-c", str(IR["alarm"].address + 1), unit=3)
@@ -63,7 +71,7 @@ def test_mbpoll_reads_the_documented_registers_with_live_values(plant):
     for bit in ("meter_ok", "stm32_ok", "writes_enabled"):
         assert status & (1 << R.STATUS_BIT[bit]), bit
     assert not status & (1 << R.STATUS_BIT["running"])
-    f = _floats(port, 3, IR["t1"].address, 3)
+    f = _live_floats(port, 3, IR["t1"].address, 3)
     assert f == {IR["t1"].address: 0.4, IR["t2"].address: 0.6, IR["tension"].address: 0.5}
     # the heartbeat counts seconds, driven by the station's own loop
     h0 = v[IR["heartbeat"].address]
@@ -73,7 +81,7 @@ def test_mbpoll_reads_the_documented_registers_with_live_values(plant):
     rc, v4, err = mbpoll(port, "-t", "3", "-r", str(IR["status"].address), unit=4)
     assert rc == 0 and not v4[IR["status"].address] & (1 << R.STATUS_BIT["writes_enabled"])
     # little-endian words on unit 5: mbpoll without -B
-    assert _floats(port, 5, IR["t1"].address, 1, big=False) == {IR["t1"].address: 0.4}
+    assert _live_floats(port, 5, IR["t1"].address, 1, big=False) == {IR["t1"].address: 0.4}
 
 
 def _write(port, unit, reg, values, typ="4"):

@@ -80,7 +80,7 @@ def test_every_payload_a_station_publishes_validates(tmp_path):
             pub(b.port, f"{BASE}/cmd/frobnicate", "{not json")                       # refused
 
             async def end_of_life():                 # what the method does at t_life
-                station._emit_event(EventType.END_OF_LIFE, k=50, k_life=50, t_life=1.0, mu_ss=0.2,
+                station.board.emit(EventType.END_OF_LIFE, k=50, k_life=50, t_life=1.0, mu_ss=0.2,
                                     mu_th=0.23, sample_id="S-1")
             lt.call(end_of_life())
             pub(b.port, f"{BASE}/cmd/ack", "{}")

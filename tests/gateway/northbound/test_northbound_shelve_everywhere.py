@@ -28,9 +28,9 @@ IR, HR = R.IR, R.HR
 
 def wear_warning(st):
     async def fire():                          # what the method's §5a early warning does
-        st._emit_event(EventType.WEAR_WARNING, k=300, warn_slot=300, t_warn=6.02, headroom=0.2,
+        st.board.emit(EventType.WEAR_WARNING, k=300, warn_slot=300, t_warn=6.02, headroom=0.2,
                        t_cross=40.0, h_warn=0.25, n_warn=3, mu_ss=0.2, mu_th=0.23, sample_id="S-1")
-        st._push_state()
+        st.board.push()
     return fire()
 
 

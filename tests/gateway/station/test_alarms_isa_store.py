@@ -20,7 +20,7 @@ def _submit(st, kind, source="mqtt", **args):
 
 
 def _eol(st):
-    st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, mu_ss=0.2, mu_th=0.23,
+    st.board.emit(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, mu_ss=0.2, mu_th=0.23,
                    sample_id="S-1")
 
 
@@ -120,7 +120,7 @@ def test_a_shelving_expires_in_the_running_station(tmp_path):
 def test_alarms_persist_across_a_restart_of_the_store(tmp_path):
     st = make_station(tmp_path, [], station_id="per")
     _eol(st)
-    st._emit_event(EventType.WEAR_WARNING, warn_slot=10, t_warn=0.22, headroom=0.4, sample_id="S-1")
+    st.board.emit(EventType.WEAR_WARNING, warn_slot=10, t_warn=0.22, headroom=0.4, sample_id="S-1")
     assert _submit(st, CommandKind.SHELVE, alarm="wear_warning", duration_s=3600).ok
     assert _submit(st, CommandKind.ACK).ok
     src = st.alarms.path

@@ -14,7 +14,7 @@ def test_hook_replaced_closes_the_alarm_and_is_refused_without_one(tmp_path):
     out = Capture()
     st = Station(station_id="hr", method={}, control=ControlParams(), meter=TimedMeter(slow=()),
                  stm32=QuietStm32(), records_dir=str(tmp_path), outputs=[out])
-    st._emit_event(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, sample_id="S-1")
+    st.board.emit(EventType.END_OF_LIFE, k=600, k_life=600, t_life=12.0, sample_id="S-1")
     assert st.state.alarm == "unacknowledged"   # ISA-18.2 (was "active")
 
     async def main():
