@@ -15,6 +15,8 @@ from typing import Any
 
 from aiohttp.http_exceptions import HttpProcessingError
 
+from ..ratelog import RateLog
+
 #: names a browser on the same host uses for a console bound to a loopback address
 LOCAL_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback")
 #: a refused-request log line of one kind at most this often; the lines not written are counted
@@ -101,33 +103,23 @@ class RateBound:
         return (1.0 - tokens) / rate
 
 
-class LogLimit:
-    """One log line per kind per :data:`LOG_EVERY_S` with the count of the lines not written
-    (refused requests are client input: they never flood the log, never carry a traceback)."""
+class LogLimit(RateLog):
+    """The console's log of refused requests: the project's one rate-limited log
+    (:class:`gateway.ratelog.RateLog`: the first line of a kind in a window at once, the rest of
+    the window as one line with the count when it ends), every line a WARNING prefixed
+    ``console:``, never with a traceback (refused requests are client input); ``counts`` keeps the
+    refusals per kind (bounded: :data:`MAX_KEYS` kinds)."""
 
     def __init__(self, logger: logging.Logger, every_s: float = LOG_EVERY_S,
                  clock: Callable[[], float] = time.monotonic):
-        self.log = logger
-        self.every = every_s
-        self.clock = clock
-        self._last: dict[str, float] = {}
-        self._n: dict[str, int] = {}
+        super().__init__(logger, every_s, clock)
         self.counts: dict[str, int] = {}
 
     def warn(self, kind: str, msg: str, *args: Any) -> None:
+        if kind not in self.counts and len(self.counts) >= MAX_KEYS:
+            self.counts.clear()
         self.counts[kind] = self.counts.get(kind, 0) + 1
-        now = self.clock()
-        last = self._last.get(kind)
-        if last is not None and now - last < self.every:
-            self._n[kind] = self._n.get(kind, 0) + 1
-            return
-        if len(self._last) >= MAX_KEYS:
-            self._last.clear()
-            self._n.clear()
-        n = self._n.pop(kind, 0)
-        self._last[kind] = now
-        more = f" (+{n} more in the last {self.every:.0f} s)" if n else ""
-        self.log.warning("console: " + msg + more, *args)
+        self.warning(kind, "console: " + msg, *args)
 
 
 class Busy(Exception):

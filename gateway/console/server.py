@@ -276,6 +276,7 @@ class ConsoleServer:
         if self._runner is not None:
             await self._runner.cleanup()
         self._refusal_log.close()       # the counts of the last window, and no timer after
+        self.refusals.close()
 
     def make_app(self) -> web.Application:
         app = web.Application(client_max_size=MAX_BODY, middlewares=[self._guard])

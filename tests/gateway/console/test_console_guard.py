@@ -49,8 +49,10 @@ def test_log_limit_one_line_per_kind_a_minute_with_count(caplog):
     now[0] += 61
     lim.warn("bad JSON", "POST %s refused", "/api/login")
     msgs = [r.getMessage() for r in caplog.records]
-    assert msgs == ["console: POST /api/login refused", "console: deep",
-                    "console: POST /api/login refused (+4 more in the last 60 s)"]
+    assert msgs == ["console: POST /api/login refused (×1)", "console: deep (×1)",
+                    "console: POST /api/login refused (×4 in the last 60 s)",
+                    "console: POST /api/login refused (×1)"]
+    lim.close()
     assert all(r.levelno == logging.WARNING and not r.exc_info for r in caplog.records)
     assert lim.counts == {"bad JSON": 6, "deep JSON": 1}
 
