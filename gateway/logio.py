@@ -301,6 +301,18 @@ def _read_bytes(path: str) -> bytes:
 _ARROW_UNSAFE = b"("
 
 
+def _arrow_owned(pa: Any, raw: bytes, start: int, end: int) -> Any:
+    """``raw[start:end]`` copied into memory of Arrow's own (one memcpy, a few ms for a 10-hour
+    log). Never a buffer over Python's bytes (``pa.py_buffer``): Arrow's worker threads may drop
+    the last reference to their input after ``read_csv`` returned, and releasing a Python buffer
+    needs the GIL — at interpreter exit that thread is ended inside a C++ ``std::thread``, which
+    aborts the process (SIGABRT, "terminate called without an active exception"; seen in
+    ``hookwatch analyze`` on a loaded box, Arrow's PyBuffer destructor in the core dump)."""
+    buf = pa.allocate_buffer(end - start)
+    memoryview(buf).cast("B")[:] = memoryview(raw)[start:end]
+    return buf
+
+
 def _parse_arrow(raw: bytes, start: int, end: int, ncols: int, cols: list[int]
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """t, T1, T2 of the complete rows ``raw[start:end]`` by Arrow's CSV reader (threads on every core, no
@@ -320,7 +332,7 @@ def _parse_arrow(raw: bytes, start: int, end: int, ncols: int, cols: list[int]
     want = [names[c] for c in cols]
     try:
         tab = pcsv.read_csv(
-            pa.py_buffer(memoryview(raw)[start:end]),   # no copy
+            _arrow_owned(pa, raw, start, end),
             read_options=pcsv.ReadOptions(column_names=names, block_size=4 << 20),
             parse_options=pcsv.ParseOptions(quote_char=False, escape_char=False, double_quote=False,
                                             newlines_in_values=False, ignore_empty_lines=True),

@@ -10,6 +10,8 @@ import subprocess
 import zlib
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pcsv
 import pytest
 
 from conftest import ROOT, hookwatch_cmd
@@ -316,3 +318,24 @@ def test_many_members_read_in_linear_time():
     assert logio._inflate_members(raw, Counting) == full
     assert sum(seen) <= 2 * len(raw) + len(mems) * logio._INFLATE_CHUNK
     assert max(seen) <= logio._INFLATE_CHUNK + 1   # + a byte carried over (a split magic)
+
+
+def test_arrow_reads_memory_of_its_own_never_a_python_buffer(tmp_path, monkeypatch):
+    """Arrow's CSV reader is given a copy in Arrow's own memory, never a buffer over Python's
+    bytes: its worker threads may drop the last reference after ``read_csv`` returned, and a
+    Python buffer released then needs the GIL — at interpreter exit that aborts the process
+    (SIGABRT in ``hookwatch analyze``; Arrow's PyBuffer destructor in the core dump)."""
+    seen = []
+    real = pcsv.read_csv
+
+    def spy(src, *a, **kw):
+        seen.append((isinstance(src, pa.Buffer), src.size, pa.total_allocated_bytes()))
+        return real(src, *a, **kw)
+    monkeypatch.setattr(pcsv, "read_csv", spy)
+    body = "".join(f"{k * 0.02:.2f},0.3,0.6\n" for k in range(5000))
+    p = tmp_path / "log.csv"
+    p.write_text("t,T1,T2\n" + body)
+    t, t1, t2, _ = logio.parse_raw(str(p), p.read_bytes())
+    assert t.size == 5000 and t1[0] == 0.3 and t2[-1] == 0.6
+    (is_buffer, size, allocated), = seen
+    assert is_buffer and size == len(body) and allocated >= size, seen
