@@ -17,7 +17,7 @@ import yaml
 from gateway.records import Event, EventType
 from gateway.retention import Policy, RetentionOutput
 from gateway.station.recorder import RESULT_NAME
-from kit.broker import Broker, Sub
+from kit.broker import Broker, Sub, pub
 from kit.e2e import run_gateway, scenario_file, station_yaml, test_dirs, virtual_station
 from kit.smallfs import small_tmpfs
 from kit.tools import free_port, wait_for
@@ -105,6 +105,14 @@ def test_retention_over_many_short_tests_on_a_small_disk(tmp_path):
             assert not set(seen) & {os.path.basename(d) for d in _done(tmp_path)}   # phase 1 all gone
             # phase 3: the broker is back; the held results leave, their tests go; the metrics count
             broker = Broker(tmp_path, port=broker.port).start()
+            # the MES is subscribed again before the held results leave (mosquitto_sub reconnects
+            # on its own; the pruning events are not retained: one published before would be missed)
+            n_probe = len(sub.messages("probe"))
+
+            def probe(s):
+                pub(broker.port, "hookwatch/probe", "{}", qos=1)
+                return len(s.messages("probe")) > n_probe
+            sub.wait(probe, 30, what="the MES subscribed again")
             mport = free_port()
             st = _station(tmp_path, links, broker.port, metrics_port=mport)
             gw = run_gateway(tmp_path, st, "--start", "--duration", str(T_END + 40), name="gw-last")
