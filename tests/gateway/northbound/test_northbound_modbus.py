@@ -57,8 +57,10 @@ def _floats(port, unit, start, n, big=True):
 def _live_floats(port, unit, start, n, big=True):
     """The latest slot's values: a slot the loop reached late is MISSING and reads NaN until the
     next slot (docs/registers.md), which a loaded box shows now and then; read again then."""
-    return wait_for(lambda: (lambda v: v if all(math.isfinite(x) for x in v.values()) else None)(
-        _floats(port, unit, start, n, big)), 10, interval=0.02, what="a slot with a reading")
+    def read():
+        v = _floats(port, unit, start, n, big)
+        return v if all(math.isfinite(x) for x in v.values()) else None
+    return wait_for(read, 10, interval=0.02, what="a slot with a reading")
 
 
 def test_mbpoll_reads_the_documented_registers_with_live_values(plant):
