@@ -32,7 +32,7 @@ from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
 from ..northbound import schema as mqtt_schema
-from ..osprio import die_with_parent
+from ..osprio import die_with_parent, realtime_thread
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
@@ -244,6 +244,10 @@ def run(args) -> int:
         ended: dict[str, int] = {}
 
         async def main():
+            # as deployed (`hookwatch run --realtime 20`): the slot loop (this thread) under
+            # SCHED_FIFO where permitted, so a busy box does not stall the demo's life; threads it
+            # starts later (MQTT, the executor) begin under normal scheduling. Elsewhere: as is
+            realtime_thread(20)
             stop = asyncio.Event()
             outs: list[Output] = [TerminalOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
             st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
