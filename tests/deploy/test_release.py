@@ -11,6 +11,7 @@ import glob
 import hashlib
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -38,6 +39,10 @@ def _offline(script: str, **kw):
     return _sh([require_tool("unshare"), "-n", "sh", "-ec", "ip link set lo up\n" + script], **kw)
 
 
+#: what the module's build made (the release fixture fills it)
+_BUILT: dict[str, int] = {}
+
+
 @pytest.fixture(scope="module")
 def release(tmp_path_factory):
     if os.geteuid() != 0:
@@ -46,6 +51,7 @@ def release(tmp_path_factory):
     out = tmp_path_factory.mktemp("dist")
     r = _sh([os.path.join(ROOT, "scripts", "build-release"), str(out)])
     (tarball,) = glob.glob(str(out / "hookwatch-*.tar.gz"))
+    _BUILT["tarball_bytes"] = os.path.getsize(tarball)
     assert r.stdout.strip() == tarball
     unpacked = tmp_path_factory.mktemp("unpacked")
     with tarfile.open(tarball) as t:
@@ -360,3 +366,12 @@ def test_a_changed_unit_is_reported_never_replaced_silently(release, tmp_path):
                     os.path.join(units, "hookwatch@.service"))
     r = _install(nxt, root)
     assert r.returncode == 0 and "KEPT" not in r.stderr and "UPDATED" not in r.stderr, r.stderr
+
+
+def test_the_documented_tarball_size_is_the_measured_one(release):
+    """docs/deploy.md §1.2 states the size of the tarball: within a fifth of what was just built."""
+    doc = _read(os.path.join(ROOT, "docs", "deploy.md"))
+    m = re.search(r"hookwatch-<version>-py311-<arch>\.tar\.gz \((\d+) MB measured", doc)
+    assert m, "docs/deploy.md §1.2 does not state the tarball's measured size"
+    built_mb = _BUILT["tarball_bytes"] / 1e6
+    assert abs(int(m.group(1)) - built_mb) <= 0.2 * built_mb, (m.group(1), built_mb)
