@@ -5,20 +5,28 @@ Reads ``<folder>/<test_id>/result.json`` (one station's folder) — or, given a 
 result. A damaged, unreadable or oversized result file is skipped with one log line (with a
 count), never fatal. Bounded: at most ``max_files`` result files (the newest by folder name,
 which starts with the test's UTC start time) and ``MAX_RESULT_BYTES`` each.
+
+A result carries what §7a needs: the method's ``status``, ``t_life``, ``k_b``, ``stop_reasons``
+and ``n_slots``, and the test's ``ts`` (a censored life is c = n_slots · Ts). Results written
+before ``ts`` went into result.json take it from the test's sidecar (``log.meta.yaml`` beside it,
+``method.ts``), read only for a test that may be a censored life.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
 import os
 from typing import Any
 
-from .method.prior import PastTest
+from . import safeyaml
+from .method.prior import STOPPED, PastTest
 
 log = logging.getLogger(__name__)
 
 RESULT_NAME = "result.json"
+SIDECAR_NAME = "log.meta.yaml"
 #: a result file is a few kB; larger ones are not read
 MAX_RESULT_BYTES = 1 << 20
 #: result files read per call (the newest); a station records one test per hook life
@@ -32,8 +40,13 @@ def _num(v: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
-def past_test(result: Any) -> PastTest | None:
-    """A result.json's content as a PastTest, or None when it is not a result."""
+def _int(v: Any) -> int | None:
+    return v if isinstance(v, int) and not isinstance(v, bool) else None
+
+
+def past_test(result: Any, ts: float | None = None) -> PastTest | None:
+    """A result.json's content as a PastTest, or None when it is not a result. ``ts``: the test's
+    sampling period when the result does not say it."""
     if not isinstance(result, dict):
         return None
     method = result.get("method")
@@ -41,10 +54,35 @@ def past_test(result: Any) -> PastTest | None:
         return None
     grade = result.get("grade")
     status = method.get("status")
+    reasons = method.get("stop_reasons")
+    tid, station = result.get("test_id"), result.get("station")
+    r_ts = _num(result.get("ts"))
     return PastTest(grade=grade if isinstance(grade, str) else None,
                     t_set=_num(result.get("t_set")),
                     status=status if isinstance(status, str) else None,
-                    t_life=_num(method.get("t_life")))
+                    t_life=_num(method.get("t_life")),
+                    k_b=_int(method.get("k_b")),
+                    stop_reasons=(tuple(reasons) if isinstance(reasons, list)
+                                  and all(isinstance(x, str) for x in reasons) else None),
+                    n_slots=_int(method.get("n_slots")),
+                    ts=r_ts if r_ts is not None else ts,
+                    test_id=tid if isinstance(tid, str) else None,
+                    station=station if isinstance(station, str) else None)
+
+
+def _may_be_censored(t: PastTest) -> bool:
+    return t.k_b is not None and (t.status == "no_failure" or (
+        t.status == "aborted" and t.stop_reasons == (STOPPED,)))
+
+
+def _sidecar_ts(test_dir: str) -> float | None:
+    """``method.ts`` of the test's sidecar (None when it has none or cannot be read)."""
+    try:
+        meta = safeyaml.read(os.path.join(test_dir, SIDECAR_NAME), limits=safeyaml.SIDECAR).data
+    except (safeyaml.YamlError, OSError):
+        return None
+    method = meta.get("method") if isinstance(meta, dict) else None
+    return _num(method.get("ts")) if isinstance(method, dict) else None
 
 
 def _result_files(folder: str) -> list[str]:
@@ -91,6 +129,8 @@ def read_history(folder: str, max_files: int = MAX_FILES) -> list[PastTest]:
         if t is None:
             bad.append(f"{p} (not a test result)")
             continue
+        if t.ts is None and _may_be_censored(t):
+            t = dataclasses.replace(t, ts=_sidecar_ts(os.path.dirname(p)))
         out.append(t)
     if bad:
         log.warning("%s: %d damaged result file(s) skipped by the life history, e.g. %s",

@@ -162,8 +162,8 @@ def read_meta(path: str) -> dict[str, Any]:
 
 def sidecar_prior(meta: dict[str, Any]) -> Prior:
     """The life prior a sidecar records (METHOD.md §5b, §7a): ``method.prior_mean`` and
-    ``method.prior_sd``, and beside them ``prior_source`` (``config``, ``history`` or nothing) and
-    ``prior_n``. Lenient, as the method reads a log: a prior with an SD ≤ 0, only half of one, or
+    ``method.prior_sd``, and beside them ``prior_source`` (``config``, ``history`` or nothing),
+    ``prior_n`` and ``prior_n_censored``. Lenient, as the method reads a log: a prior with an SD ≤ 0, only half of one, or
     values that are not numbers is no prior (source and n are then dropped too)."""
     raw = meta.get("method")
     method: dict[str, Any] = raw if isinstance(raw, dict) else {}
@@ -177,9 +177,10 @@ def sidecar_prior(meta: dict[str, Any]) -> Prior:
     if m is None or sd is None or not sd > 0:
         return NO_PRIOR
     src = meta.get("prior_source")
-    n = meta.get("prior_n")
+    n, nc = meta.get("prior_n"), meta.get("prior_n_censored")
     return Prior(m, sd, src if src in (SOURCE_CONFIG, SOURCE_HISTORY) else None,
-                 n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None)
+                 n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None,
+                 nc if isinstance(nc, int) and not isinstance(nc, bool) and nc >= 0 else None)
 
 
 def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:

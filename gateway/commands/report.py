@@ -1,6 +1,7 @@
 """`hookwatch report CAMPAIGN --out DIR`: the paper's tables and figures for a test campaign."""
 from __future__ import annotations
 
+import json
 import os
 import sys
 
@@ -36,9 +37,10 @@ def add_arguments(ap):
     ap.add_argument("--closed-loop", metavar="LOG", help="closed-loop log for Fig. 8 (default: "
                     "role: closed_loop)")
     ap.add_argument("--no-figures", action="store_true", help="tables and report only")
-    ap.add_argument("--priors", metavar="FILE", help="also write the life prior (mean, SD, n) of "
-                    "every grade and T_set with at least 3 failures, as a station configuration's "
-                    "forecast: section (METHOD.md §7a), to FILE")
+    ap.add_argument("--priors", metavar="FILE", help="also write the life prior (mean, SD, n "
+                    "failures, n_censored right-censored lives) of every grade and T_set with at "
+                    "least 3 failures, as a station configuration's forecast: section "
+                    "(METHOD.md §7a), to FILE")
     ap.add_argument("--quiet", "-q", action="store_true", help="no progress bar, no warnings on stderr")
 
 
@@ -86,8 +88,12 @@ def _write_priors(path: str, samples, campaign: str) -> None:
 
     entries = campaign_priors(samples)
     doc = priors_document(entries, campaign)
-    head = (f"# life priors from the campaign {os.path.abspath(campaign)} (hookwatch report "
-            "--priors; METHOD.md §7a: failures per grade and T_set, n ≥ 3, SD ≥ 2 % of the mean)\n"
+    # the folder's name is written as a JSON string (every control and non-ASCII character
+    # escaped): a newline in it cannot end the comment and inject YAML (issue 27)
+    head = (f"# life priors from the campaign {json.dumps(os.path.abspath(campaign))} (hookwatch "
+            "report --priors; METHOD.md §7a: per grade and T_set with n ≥ 3 failures, the "
+            "maximum-likelihood normal of the failures (n) and the right-censored lives "
+            "(n_censored), SD ≥ 2 % of the mean)\n"
             "# paste into a station file (or fleet.yaml) as its forecast: section\n")
     try:
         d = os.path.dirname(os.path.abspath(path))

@@ -233,7 +233,7 @@ class TestConfig:
 
 #: the keys of one `forecast.priors` entry (METHOD.md §7a): required, then optional
 PRIOR_ENTRY_KEYS = ("grade", "t_set_n", "mean_s", "sd_s")
-PRIOR_ENTRY_OPTIONAL = ("n",)
+PRIOR_ENTRY_OPTIONAL = ("n", "n_censored")
 #: entries a `forecast.priors` list may hold (grades × setpoints of one station)
 MAX_PRIOR_ENTRIES = 256
 
@@ -272,7 +272,11 @@ def parse_prior_entries(v: Any) -> tuple[bool, Any]:
         n = item.get("n")
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
             return False, f"entry {i}: n {show_yaml(n)} is not a count of tests (an integer ≥ 1)"
-        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n))
+        nc = item.get("n_censored")
+        if nc is not None and (isinstance(nc, bool) or not isinstance(nc, int) or nc < 0):
+            return False, (f"entry {i}: n_censored {show_yaml(nc)} is not a count of tests (an "
+                           "integer ≥ 0)")
+        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n, nc))
     return True, tuple(out)
 
 
@@ -280,8 +284,9 @@ def parse_prior_entries(v: Any) -> tuple[bool, Any]:
 class ForecastConfig:
     priors: tuple = key((), "the life of earlier hooks per grade and T_set: the prior of a new "
                         "test's forecast (METHOD.md §5b, §7a); without an entry for its grade and "
-                        "T_set (±0.001 N) the prior comes from the station's completed `failure` "
-                        "tests of that grade and T_set (at least 3), else there is none. "
+                        "T_set (±0.001 N) the prior comes from the completed tests of that grade "
+                        "and T_set (at least 3 `failure`s; right-censored lives count too: "
+                        "METHOD.md §7a), else there is none. "
                         "`method.prior_mean`/`prior_sd` fix one prior that wins over both. "
                         "`hookwatch report … --priors FILE` writes this list", kind="prior_list")
 

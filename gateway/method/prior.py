@@ -1,16 +1,32 @@
 """METHOD.md §7a: where a new test's life prior (§5b) comes from. Pure: entries in, a prior out.
 
 In this order: (1) the station's configuration (a fixed ``prior_mean``/``prior_sd`` in its
-``method:`` section wins; else its ``forecast:`` entry for the test's grade and T_set); (2) the
-completed tests recorded with the same grade and the same T_set (±0.001 N) that ended in
-``failure``, when there are at least 3: their mean t_life and sample SD (n − 1), the SD at least
-0.02 · mean; (3) none.
+``method:`` section wins; else its ``forecast:`` entry for the test's grade and T_set); (2) its
+history: the completed tests of the same grade at the same T_set (±0.001 N), when at least 3 of
+them ended in ``failure``; (3) none.
+
+A history holds observed lives (``failure``: x = t_life) and right-censored lives (a test that found
+its baseline and then ended on purpose — ``aborted`` with ``stop_reasons`` = [``STOPPED``] — or at
+t_end — ``no_failure`` —: it lived at least c = n_slots · Ts); other tests do not enter it. The
+prior is the maximum-likelihood normal of both kinds (:func:`censored_normal_mle`), the SD scaled
+by √(n_f / (n_f − 1)) and at least 0.02 · mean; without censored lives exactly the failures' mean
+and sample SD; all failures equal: their value and 0.02 · it.
+
+The maximisation is pure Python (the standard library's ``math.erfc``; no scipy on the product's
+path): Newton's method with a backtracking line search on ℓ in Olsen's parameters α = m/s,
+β = 1/s, where ℓ is strictly concave (each observed term is concave in (α, β), each censored term is
+ln Φ of a linear form of them, and ln Φ is concave), so the one maximum is found from any start. The
+log-survival ln Φ̄(a) of a censored life far beyond the mean is taken from Laplace's continued
+fraction of Mills' ratio (never log(0)). Bounded: at most :data:`MAX_NEWTON` steps of at most
+:data:`MAX_HALVINGS` halvings each. A fit that does not converge (not seen; a safety net) gives no
+prior from the history, as fewer than 3 failures do: the test's forecast then has no prior part
+(§5b), never a wrong one.
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 #: two setpoints are the same within this much (N)
@@ -19,20 +35,33 @@ T_SET_TOL = 0.001
 MIN_HISTORY = 3
 #: the SD from the history is at least this fraction of the mean
 MIN_REL_SD = 0.02
+#: Newton steps of the maximum-likelihood fit, at most (it converges in ≈ 5–15)
+MAX_NEWTON = 200
+#: halvings of one Newton step, at most
+MAX_HALVINGS = 80
+#: the fit has converged when a step changes α and β by less than this, relative
+CONVERGED = 1e-13
 
 SOURCE_CONFIG = "config"
 SOURCE_HISTORY = "history"
+
+#: the §7a kinds of a life
+OBSERVED = "failure"
+CENSORED = "censored"
+STOPPED = "STOPPED"
 
 
 @dataclass(frozen=True)
 class PriorEntry:
     """A configured prior: the life (mean and SD, s) of hooks of ``grade`` at ``t_set`` (N); ``n``
-    (informative) is the count of tests it was computed from, when known."""
+    (informative) is the count of failures it was computed from, ``n_censored`` the count of
+    right-censored lives, when known."""
     grade: str
     t_set: float
     mean: float
     sd: float
     n: int | None = None
+    n_censored: int | None = None
 
     def as_config(self) -> dict[str, Any]:
         """The entry in the configuration's ``forecast.priors`` form."""
@@ -40,32 +69,66 @@ class PriorEntry:
                                "sd_s": self.sd}
         if self.n is not None:
             out["n"] = self.n
+        if self.n_censored is not None:
+            out["n_censored"] = self.n_censored
         return out
 
 
 @dataclass(frozen=True)
 class PastTest:
-    """One completed test as the history sees it (its result file)."""
+    """One completed test as the history sees it (its result): the method's ``status``,
+    ``t_life``, ``k_b``, ``stop_reasons`` and ``n_slots``, the test's ``ts`` (s), and who it was
+    (``test_id``, ``station``: each test counts once)."""
     grade: str | None
     t_set: float | None
     status: str | None
     t_life: float | None
+    k_b: int | None = None
+    stop_reasons: tuple[str, ...] | None = None
+    n_slots: int | None = None
+    ts: float | None = None
+    test_id: str | None = None
+    station: str | None = None
+
+    def life(self) -> tuple[str, float] | None:
+        """What the test gives the §7a history: (``failure``, x = t_life), (``censored``,
+        c = n_slots · Ts) or None (no baseline, a protection stop, or figures that are not
+        plausible: a life must be a finite number > 0)."""
+        if self.status == "failure":
+            x = self.t_life
+            return (OBSERVED, x) if _positive(x) and x is not None else None
+        ended = (self.status == "no_failure"
+                 or (self.status == "aborted" and self.stop_reasons == (STOPPED,)))
+        if not ended or self.k_b is None or self.n_slots is None or self.ts is None:
+            return None
+        c = self.n_slots * self.ts
+        return (CENSORED, c) if _positive(c) else None
+
+
+def _positive(v: float | None) -> bool:
+    return v is not None and math.isfinite(v) and v > 0
 
 
 @dataclass(frozen=True)
 class Prior:
-    """The prior of a new test: mean and SD (s), where it came from and from how many tests (None
-    for a configured prior without a count)."""
+    """The prior of a new test: mean and SD (s), where it came from and from how many failures
+    (``n``) and right-censored lives (``n_censored``) — None for a configured prior without
+    counts."""
     mean: float | None
     sd: float | None
     source: str | None
     n: int | None = None
+    n_censored: int | None = None
+    #: the source as the station's state publishes it (``method``, ``config``, ``history:N``;
+    #: None: ``source``)
+    label: str | None = field(default=None, compare=False)
 
     def sidecar(self) -> dict[str, Any]:
         """What the gateway writes into a new test's sidecar: ``method.prior_mean``/``prior_sd``
-        go in its ``method:`` section, ``prior_source``/``prior_n`` beside it."""
+        go in its ``method:`` section, ``prior_source``/``prior_n``/``prior_n_censored`` beside
+        it."""
         return {"prior_mean": self.mean, "prior_sd": self.sd, "prior_source": self.source,
-                "prior_n": self.n}
+                "prior_n": self.n, "prior_n_censored": self.n_censored}
 
 
 NO_PRIOR = Prior(None, None, None, None)
@@ -75,20 +138,151 @@ def same_t_set(a: float, b: float) -> bool:
     return abs(a - b) <= T_SET_TOL + 1e-12
 
 
-def _usable(t: PastTest, grade: str, t_set: float) -> bool:
-    return (t.status == "failure" and t.grade == grade and t.t_set is not None
-            and same_t_set(t.t_set, t_set) and t.t_life is not None and math.isfinite(t.t_life)
-            and t.t_life > 0)
+# ---------------------------------------------------------------------------------------------
+# The censored normal's likelihood
+# ---------------------------------------------------------------------------------------------
+
+_SQRT1_2 = math.sqrt(0.5)
+_LN_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+#: from here on, ln Φ̄ and the hazard come from the continued fraction (erfc would underflow
+#: near 38)
+_TAIL_FROM = 20.0
+#: terms of the continued fraction (at a ≥ 20 it has converged to the last bit long before)
+_TAIL_TERMS = 60
 
 
-def history_prior(lives: list[float]) -> tuple[float, float] | None:
-    """Mean and sample SD (n − 1) of at least MIN_HISTORY lives, the SD at least 0.02 · mean."""
-    n = len(lives)
+def log_sf(a: float) -> tuple[float, float, float]:
+    """ln Φ̄(a) (Φ̄ = 1 − Φ, the standard normal's survival), the hazard φ(a)/Φ̄(a) and
+    hazard − a (> 0), stable for every finite a: no log(0) far in the upper tail, no cancellation
+    far in the lower one."""
+    if a >= _TAIL_FROM:
+        # Laplace: Φ̄(a)/φ(a) = 1/(a + 1/(a + 2/(a + 3/(a + …)))); g = the tail after "a +"
+        g = a
+        for k in range(_TAIL_TERMS, 1, -1):
+            g = a + k / g
+        rest = 1.0 / g                            # hazard − a
+        hz = a + rest
+        return -0.5 * a * a - _LN_SQRT_2PI - math.log(hz), hz, rest
+    sf = 0.5 * math.erfc(a * _SQRT1_2)
+    ln_sf = math.log1p(-0.5 * math.erfc(-a * _SQRT1_2)) if a < 0 else math.log(sf)
+    hz = math.exp(-0.5 * a * a - _LN_SQRT_2PI) / sf
+    return ln_sf, hz, hz - a
+
+
+def log_likelihood(xs: Sequence[float], cs: Sequence[float], m: float, s: float) -> float:
+    """§7a's ℓ(m, s) = Σ_x [−ln s − ½((x − m)/s)²] + Σ_c ln(1 − Φ((c − m)/s))."""
+    return (math.fsum(-math.log(s) - 0.5 * ((x - m) / s) ** 2 for x in xs)
+            + math.fsum(log_sf((c - m) / s)[0] for c in cs))
+
+
+def _ell(ys: Sequence[float], ws: Sequence[float], al: float, be: float) -> float:
+    """ℓ in Olsen's parameters (α = m/s, β = 1/s) on the standardised lives."""
+    return (len(ys) * math.log(be) - 0.5 * math.fsum((be * y - al) ** 2 for y in ys)
+            + math.fsum(log_sf(be * w - al)[0] for w in ws))
+
+
+def censored_normal_mle(xs: Sequence[float], cs: Sequence[float]) -> tuple[float, float] | None:
+    """(m̂, ŝ) maximising §7a's ℓ for the observed lives ``xs`` (at least two different) and the
+    right-censored ones ``cs``; None when the fit does not converge within its bounds (or the
+    figures are not finite). Newton with a line search on the strictly concave ℓ(α, β)."""
+    n = len(xs)
+    if n < 2:
+        return None
+    x0 = math.fsum(xs) / n
+    d = math.sqrt(math.fsum((x - x0) ** 2 for x in xs) / (n - 1))
+    if not (math.isfinite(d) and d > 0):
+        return None
+    ys = [(x - x0) / d for x in xs]
+    ws = [(c - x0) / d for c in cs]
+    sy = math.fsum(ys)
+    syy = math.fsum(y * y for y in ys)
+    al, be = 0.0, math.sqrt(n / (n - 1))          # the failures-only maximum
+    f = _ell(ys, ws, al, be)
+    for _ in range(MAX_NEWTON):
+        ga = math.fsum(be * y - al for y in ys)
+        gb = n / be - math.fsum((be * y - al) * y for y in ys)
+        haa, hab, hbb = -float(n), sy, -n / (be * be) - syy
+        for w in ws:
+            _, hz, rest = log_sf(be * w - al)
+            r = hz * rest                           # −(ln Φ̄)'' ∈ (0, 1)
+            ga += hz
+            gb -= hz * w
+            haa -= r
+            hab += r * w
+            hbb -= r * w * w
+        det = haa * hbb - hab * hab
+        if not (math.isfinite(det) and det > 0):
+            return None
+        da = -(hbb * ga - hab * gb) / det
+        db = -(haa * gb - hab * ga) / det
+        step = 1.0
+        for _h in range(MAX_HALVINGS):
+            na, nb = al + step * da, be + step * db
+            if nb > 0:
+                nf = _ell(ys, ws, na, nb)
+                if nf >= f - 1e-12 * abs(f):
+                    break
+            step *= 0.5
+        else:
+            return None
+        done = abs(na - al) <= CONVERGED * max(1.0, abs(al)) and abs(nb - be) <= CONVERGED * be
+        al, be, f = na, nb, nf
+        if done:
+            m, s = x0 + d * al / be, d / be
+            return (m, s) if math.isfinite(m) and math.isfinite(s) and s > 0 else None
+    return None
+
+
+def history_prior(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[float, float] | None:
+    """§7a's prior (mean, SD) from the observed lives ``xs`` and the right-censored ``cs``: None
+    with fewer than MIN_HISTORY failures (or a fit that does not converge); without censored lives
+    the mean and sample SD (n − 1); all failures equal: that value and 0.02 · it; else the
+    maximum-likelihood (m̂, ŝ), SD ŝ · √(n_f / (n_f − 1)), at least 0.02 · m̂."""
+    n = len(xs)
     if n < MIN_HISTORY:
         return None
-    m = math.fsum(lives) / n
-    sd = math.sqrt(math.fsum((x - m) ** 2 for x in lives) / (n - 1))
-    return m, max(sd, MIN_REL_SD * m)
+    if all(x == xs[0] for x in xs):
+        return xs[0], MIN_REL_SD * xs[0]
+    if not cs:
+        m = math.fsum(xs) / n
+        sd = math.sqrt(math.fsum((x - m) ** 2 for x in xs) / (n - 1))
+        return m, max(sd, MIN_REL_SD * m)
+    fit = censored_normal_mle(xs, cs)
+    if fit is None or not fit[0] > 0:
+        return None
+    m, s = fit
+    return m, max(s * math.sqrt(n / (n - 1)), MIN_REL_SD * m)
+
+
+# ---------------------------------------------------------------------------------------------
+# A new test's prior
+# ---------------------------------------------------------------------------------------------
+
+def group_lives(history: Iterable[PastTest], grade: str, t_set: float) -> tuple[list[float], list[float]]:
+    """The observed and right-censored lives of ``grade`` at ``t_set`` (±0.001 N), each test once
+    (a test id seen again is skipped; tests without an id all count)."""
+    xs: list[float] = []
+    cs: list[float] = []
+    seen: set[str] = set()
+    for t in history:
+        if t.grade != grade or t.t_set is None or not same_t_set(t.t_set, t_set):
+            continue
+        if t.test_id is not None:
+            if t.test_id in seen:
+                continue
+            seen.add(t.test_id)
+        lf = t.life()
+        if lf is not None:
+            (xs if lf[0] == OBSERVED else cs).append(lf[1])
+    return xs, cs
+
+
+def prior_of_lives(xs: Sequence[float], cs: Sequence[float]) -> Prior:
+    """The §7a history prior of these lives (NO_PRIOR when there is none)."""
+    h = history_prior(xs, cs)
+    if h is None:
+        return NO_PRIOR
+    return Prior(h[0], h[1], SOURCE_HISTORY, len(xs), len(cs))
 
 
 def resolve_prior(config_entries: Iterable[PriorEntry], history: Iterable[PastTest],
@@ -104,32 +298,27 @@ def resolve_prior(config_entries: Iterable[PriorEntry], history: Iterable[PastTe
         return NO_PRIOR
     for e in config_entries:
         if e.grade == grade and same_t_set(e.t_set, t_set) and e.sd > 0:
-            return Prior(e.mean, e.sd, SOURCE_CONFIG, e.n)
-    lives = [t.t_life for t in history if _usable(t, grade, t_set) and t.t_life is not None]
-    h = history_prior(lives)
-    if h is None:
-        return NO_PRIOR
-    return Prior(h[0], h[1], SOURCE_HISTORY, len(lives))
+            return Prior(e.mean, e.sd, SOURCE_CONFIG, e.n, e.n_censored)
+    return prior_of_lives(*group_lives(history, grade, t_set))
 
 
 def priors_by_group(history: Iterable[PastTest]) -> list[PriorEntry]:
     """Every (grade, T_set) group with at least MIN_HISTORY failures, as configuration entries
     (the §7a history rule per group; T_set within ±0.001 N of the group's first test), sorted by
-    grade then T_set."""
-    groups: list[tuple[str, float, list[float]]] = []
+    grade then T_set; ``n`` failures and ``n_censored`` right-censored lives."""
+    groups: list[tuple[str, float, list[PastTest]]] = []
     for t in history:
-        grade, t_set, life = t.grade, t.t_set, t.t_life
-        if grade is None or t_set is None or life is None or not _usable(t, grade, t_set):
+        if t.grade is None or t.t_set is None or t.life() is None:
             continue
-        for g, ts, lives in groups:
-            if g == grade and same_t_set(ts, t_set):
-                lives.append(life)
+        for g, ts, members in groups:
+            if g == t.grade and same_t_set(ts, t.t_set):
+                members.append(t)
                 break
         else:
-            groups.append((grade, t_set, [life]))
+            groups.append((t.grade, t.t_set, [t]))
     out = []
-    for g, ts, lives in sorted(groups, key=lambda x: (x[0], x[1])):
-        h = history_prior(lives)
-        if h is not None:
-            out.append(PriorEntry(g, ts, h[0], h[1], len(lives)))
+    for g, ts, members in sorted(groups, key=lambda x: (x[0], x[1])):
+        pr = prior_of_lives(*group_lives(members, g, ts))
+        if pr.mean is not None and pr.sd is not None:
+            out.append(PriorEntry(g, ts, pr.mean, pr.sd, pr.n, pr.n_censored))
     return out

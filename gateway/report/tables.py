@@ -54,6 +54,7 @@ class Sample:
     lead: float | None = None             # the planner's lead time of the test (§5b), s
     prior: tuple[float, float] | None = None   # (prior_mean, prior_sd) of its sidecar (§5b)
     window_s: float | None = None         # w_ss as slots · ts: the forecast times' spacing
+    duplicate: bool = False               # its sample_id came before (the first one counts)
 
     @property
     def warn_s(self) -> float | None:
@@ -141,7 +142,8 @@ def make_sample(spec, outcome: dict | None, factors: Sequence[float]) -> Sample:
                   None if p is None else p.t_end, spec.rel, status, results,
                   note="; ".join(notes), apart=apart, delta0=None if p is None else p.delta,
                   ts=0.02 if p is None else p.ts, lead=None if p is None else p.lead,
-                  prior=prior, window_s=None if p is None else p.n_ss * p.ts)
+                  prior=prior, window_s=None if p is None else p.n_ss * p.ts,
+                  duplicate=spec.duplicate_of is not None)
 
 
 def _sort_key(s: Sample):
@@ -479,20 +481,33 @@ def table6(samples: Sequence[Sample], wear) -> tuple[Table, Table]:
 # Priors for the configuration (METHOD.md §7a)
 # ---------------------------------------------------------------------------------------------
 
+#: decimals of a prior's mean and SD in the `--priors` file (s): §7a's agreement is 1e-6 relative
+PRIOR_DECIMALS = 6
+
+
 def campaign_priors(samples: Sequence[Sample]) -> list[PriorEntry]:
-    """The life prior of every (grade, T_set) group with at least 3 failures in the statistics:
-    mean, sample SD (at least 2 % of the mean) and n — the §7a history rule."""
-    past = [PastTest(s.grade, s.t_set, "failure", s.t_life) for s in sort_samples(samples)
-            if s.in_stats and s.t_life is not None]
+    """The life prior of every (grade, T_set) group with at least 3 failures: the §7a history rule
+    (failures and right-censored lives: a test that found its baseline and ended on purpose or at
+    t_end; the maximum-likelihood normal, SD at least 2 % of the mean), with ``n`` failures and
+    ``n_censored``. A test counts once: a duplicate sample ID and a test without analysis do not."""
+    past = []
+    for s in sort_samples(samples):
+        if s.results is None or s.duplicate:
+            continue
+        r = s.result()
+        reasons = r.get("stop_reasons")
+        past.append(PastTest(s.grade, s.t_set, r.get("status"), r.get("t_life"), k_b=r.get("k_b"),
+                             stop_reasons=None if reasons is None else tuple(reasons),
+                             n_slots=r.get("n_slots"), ts=s.ts))
     return priors_by_group(past)
 
 
 def priors_document(entries: Sequence[PriorEntry], source: str) -> dict[str, Any]:
-    """The configuration's ``forecast:`` section holding these priors (s to 0.1 s)."""
+    """The configuration's ``forecast:`` section holding these priors (s to 1e-6 s)."""
     out = []
     for e in entries:
         d = e.as_config()
-        d["mean_s"] = round(e.mean, 1)
-        d["sd_s"] = round(e.sd, 1)
+        d["mean_s"] = round(e.mean, PRIOR_DECIMALS)
+        d["sd_s"] = round(e.sd, PRIOR_DECIMALS)
         out.append(d)
     return {"forecast": {"priors": out}}

@@ -1,16 +1,22 @@
 """The life prior of a station's next test (METHOD.md §7a), resolved at each test start.
 
-In this order: a fixed ``prior_mean``/``prior_sd`` in the station's ``method:`` section (source
-``method``); else its ``forecast.priors`` entry for the test's grade and T_set (``config``); else the
-recorded history — every completed test under the records root (``recorder.dir``: in a fleet,
-every station of the box) with the same grade and T_set that ended in ``failure``, at least 3
-(``history:N``); else none.
+In this order: a fixed ``prior_mean``/``prior_sd`` in the station's ``method:`` section (published
+source ``method``); else its ``forecast.priors`` entry for the test's grade and T_set (``config``);
+else the recorded history — every completed test under the records root (``recorder.dir``: in a
+fleet, every station of the box) with the same grade and T_set: its failures (at least 3) and its
+right-censored lives (a test that found its baseline and ended on purpose or at t_end), the
+maximum-likelihood normal of both (``history:N``, N failures); else none. The sidecar records the
+§7a source (``config`` or ``history``) with ``prior_n`` and ``prior_n_censored``.
 
 The history is read off the slot loop (a worker thread of the loop's default executor) when the
-station opens, again when a test starts and after each test ends; the start uses the last
-history read (a read still running is not waited for: the start keeps the slot loop's time).
-Bounded by :mod:`gateway.history` (the newest 20,000 result files, 1 MiB each); a damaged result
-is skipped there with one log line.
+station opens, again when a test starts and after each test ends; the same worker fits the prior of
+every (grade, T_set) group it read (a fit of 20,000 lives takes ≈ 0.1 s: never on the slot loop).
+The start uses the last history read (a read still running is not waited for: the start keeps the
+slot loop's time) with the results of this station's tests ended since: a group's fit is looked up
+by its lives; a group the worker has not fitted (a test just ended) is fitted at the start when it
+holds at most :data:`SYNC_FIT_MAX` lives (≈ 2 ms), else the last read's fit of the group is used
+(one log line). Bounded by :mod:`gateway.history` (the newest 20,000 result files, 1 MiB each); a
+damaged result is skipped there with one log line.
 """
 from __future__ import annotations
 
@@ -20,14 +26,49 @@ from collections.abc import Iterable
 from typing import Any
 
 from ..history import past_test, read_history
-from ..method.prior import NO_PRIOR, PastTest, Prior, PriorEntry, resolve_prior
+from ..method.prior import (NO_PRIOR, SOURCE_CONFIG, SOURCE_HISTORY, PastTest, Prior, PriorEntry,
+                            group_lives, prior_of_lives, resolve_prior)
 
 __all__ = ["PriorBook", "SOURCE_METHOD"]
 
 log = logging.getLogger("hookwatch.station")
 
-#: the prior fixed in the station's `method:` section
+#: the prior fixed in the station's `method:` section (as the state publishes its source)
 SOURCE_METHOD = "method"
+#: a group of at most this many lives that the reading worker has not fitted is fitted at the start
+SYNC_FIT_MAX = 400
+
+#: (grade, T_set) groups the reading worker fits, at most
+MAX_GROUPS = 256
+#: a group's lives, as the key of its fit
+FitKey = tuple[tuple[float, ...], tuple[float, ...]]
+
+
+def _key(xs: list[float], cs: list[float]) -> FitKey:
+    return tuple(sorted(xs)), tuple(sorted(cs))
+
+
+def fit_groups(history: list[PastTest]) -> dict[FitKey, Prior]:
+    """The §7a prior of every (grade, T_set) group of ``history`` (each group as a test of that
+    grade at that T_set sees it), by its lives. Run by the reading worker, off the loop."""
+    out: dict[FitKey, Prior] = {}
+    done: set[tuple[str, float]] = set()
+    for t in history:
+        if t.grade is None or t.t_set is None or (t.grade, t.t_set) in done:
+            continue
+        if len(done) >= MAX_GROUPS:
+            break
+        done.add((t.grade, t.t_set))
+        xs, cs = group_lives(history, t.grade, t.t_set)
+        k = _key(xs, cs)
+        if k not in out:
+            out[k] = prior_of_lives(xs, cs)
+    return out
+
+
+def _read_and_fit(root: str) -> tuple[list[PastTest], dict[FitKey, Prior]]:
+    hist = read_history(root)
+    return hist, fit_groups(hist)
 
 
 class PriorBook:
@@ -39,7 +80,9 @@ class PriorBook:
         self.entries: tuple[PriorEntry, ...] = tuple(entries)
         #: the last history read (None: none finished yet)
         self.history: list[PastTest] | None = None
-        self._reading: asyncio.Future[list[PastTest]] | None = None
+        #: the fits of the last read's groups (by their lives)
+        self.fits: dict[FitKey, Prior] = {}
+        self._reading: asyncio.Future[tuple[list[PastTest], dict[FitKey, Prior]]] | None = None
         #: results of this station's tests ended since the last read began (kept until a read
         #: that began after them has finished)
         self._recent: list[PastTest] = []
@@ -53,10 +96,10 @@ class PriorBook:
         except RuntimeError:
             return
         recent = list(self._recent)
-        fut = loop.run_in_executor(None, read_history, self.records_root)
+        fut = loop.run_in_executor(None, _read_and_fit, self.records_root)
         self._reading = fut
 
-        def done(f: asyncio.Future[list[PastTest]]) -> None:
+        def done(f: asyncio.Future[tuple[list[PastTest], dict[FitKey, Prior]]]) -> None:
             if f.cancelled():
                 return
             exc = f.exception()
@@ -64,7 +107,7 @@ class PriorBook:
                 log.warning("%s: the life history under %s could not be read (%s)", self.station_id,
                             self.records_root, exc)
                 return
-            self.history = f.result()
+            self.history, self.fits = f.result()
             self._recent = [t for t in self._recent if t not in recent]
         fut.add_done_callback(done)
 
@@ -78,15 +121,30 @@ class PriorBook:
         return list(self.history or []) + self._recent
 
     def resolve(self, grade: str | None, t_set: float, method_values: dict[str, Any]) -> Prior:
-        """§7a for a test of ``grade`` at ``t_set``; the source as the station publishes it."""
+        """§7a for a test of ``grade`` at ``t_set``, with the §7a source (``config``,
+        ``history``) and the source as the state publishes it (``label``: ``method``, ``config``,
+        ``history:N``)."""
         fixed = (method_values.get("prior_mean"), method_values.get("prior_sd"))
         if fixed[0] is not None and fixed[1] is not None:
-            return Prior(float(fixed[0]), float(fixed[1]), SOURCE_METHOD, None)
+            return Prior(float(fixed[0]), float(fixed[1]), SOURCE_CONFIG, None, label=SOURCE_METHOD)
         if self.history is None and grade is not None and not any(
                 e.grade == grade for e in self.entries):
             log.info("%s: the life history is still being read; this test may start without a "
                      "prior from it", self.station_id)
-        pr = resolve_prior(self.entries, self.known(), grade, t_set)
-        if pr.source == "history":
-            return Prior(pr.mean, pr.sd, f"history:{pr.n}", pr.n)
-        return pr if pr.mean is not None else NO_PRIOR
+        pr = resolve_prior(self.entries, (), grade, t_set)
+        if pr.source == SOURCE_CONFIG or grade is None:
+            return pr
+        xs, cs = group_lives(self.known(), grade, t_set)
+        pr = self.fits.get(_key(xs, cs)) or self._fit(grade, t_set, xs, cs)
+        if pr.source == SOURCE_HISTORY:
+            return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=f"history:{pr.n}")
+        return NO_PRIOR
+
+    def _fit(self, grade: str, t_set: float, xs: list[float], cs: list[float]) -> Prior:
+        """A group the reading worker did not fit: at once when small, else the last read's fit."""
+        if len(xs) + len(cs) <= SYNC_FIT_MAX:
+            return prior_of_lives(xs, cs)
+        old = self.fits.get(_key(*group_lives(self.history or [], grade, t_set)), NO_PRIOR)
+        log.info("%s: the life history of %s at %g N (%d lives) is being fitted again off the loop; "
+                 "this test starts with the last fit", self.station_id, grade, t_set, len(xs) + len(cs))
+        return old

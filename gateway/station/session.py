@@ -64,7 +64,7 @@ class TestSession:
         the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar, ``prior``
         the test's life prior (§7a): its mean and SD go into the method (and so into the sidecar's
         ``method:`` section, for `hookwatch analyze` to give the same forecast), its source and
-        count beside it (``prior_source``, ``prior_n``)."""
+        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``)."""
         values = dict(method_values)
         if prior is not None and prior.mean is not None and prior.sd is not None:
             values["prior_mean"], values["prior_sd"] = prior.mean, prior.sd
@@ -83,7 +83,9 @@ class TestSession:
         if start_info is not None:
             meta["start"] = dict(start_info)
         if prior is not None:
-            meta["prior_source"], meta["prior_n"] = prior.source, prior.n
+            side = prior.sidecar()
+            for k in ("prior_source", "prior_n", "prior_n_censored"):
+                meta[k] = side[k]
         try:
             rec = TestRecorder(test_dir, meta, flush_interval_s)
         except OSError:       # the log cannot be opened: the new folder of a test that never began goes

@@ -103,7 +103,7 @@ class StatusBoard:
         """Slot 0 comes next: BASELINE_SEARCH with the figures of the last test cleared, the test's
         life prior (§7a) and the §5b parameters in the state."""
         plan, p = sess.plan, sess.params
-        src = prior.source if prior is not None and p.prior_mean is not None else None
+        src = (prior.label or prior.source) if prior is not None and p.prior_mean is not None else None
         self.update(state=TestState.BASELINE_SEARCH, test_id=sess.test_id, sample_id=plan.sample_id,
                     grade=plan.grade, t_set=plan.t_set, t_end=plan.t_end, mu_ss=None, mu_th=None,
                     t_life=None, k_b=None, status=None, end_reason=None, protection_stop=False,

@@ -72,11 +72,12 @@ def test_priors_file_is_the_configurations_forecast_section(report, tmp_path):
     doc = yaml.safe_load(text)
     (e,) = doc["forecast"]["priors"]
     lives = list(LIVES.values())
-    assert (e["grade"], e["t_set_n"], e["n"]) == ("I", 0.5, 3)
-    assert e["mean_s"] == round(statistics.mean(lives), 1)
-    assert e["sd_s"] == round(max(statistics.stdev(lives), 0.02 * statistics.mean(lives)), 1)
+    assert (e["grade"], e["t_set_n"], e["n"], e["n_censored"]) == ("I", 0.5, 3, 0)
+    # no censored lives: the failures' mean and sample SD (to the file's 1e-6 s)
+    assert e["mean_s"] == round(statistics.mean(lives), 6)
+    assert e["sd_s"] == round(max(statistics.stdev(lives), 0.02 * statistics.mean(lives)), 6)
     # a station file takes it as it is
     st = tmp_path / "s.yaml"
     st.write_text(MINIMAL + text, encoding="utf-8")
     cfg = load_station(str(st))
-    assert cfg.forecast.priors == (PriorEntry("I", 0.5, e["mean_s"], e["sd_s"], 3),)
+    assert cfg.forecast.priors == (PriorEntry("I", 0.5, e["mean_s"], e["sd_s"], 3, 0),)

@@ -1,8 +1,9 @@
 """Issue 20, the station side: the life prior of each test (METHOD.md §7a) and `hook_replaced`.
 
-- The prior is resolved at each start: a fixed one in `method:` wins (source `method`), else the
-  `forecast.priors` entry of the grade and T_set (`config`), else the recorded history of every
-  station under the same records root with ≥ 3 failures (`history:N`), read off the slot loop; a
+- The prior is resolved at each start: a fixed one in `method:` wins (published source `method`),
+  else the `forecast.priors` entry of the grade and T_set (`config`), else the recorded history of
+  every station under the same records root with ≥ 3 failures (`history:N`; the sidecar's
+  `prior_source` is §7a's `config` / `history`), read and fitted off the slot loop; a
   damaged result is skipped with one log line. The prior goes into the sidecar's method section
   (so `hookwatch analyze` of the log gives the same forecast) and into the state.
 - `hook_replaced` ends the running test (end_reason hook_replaced), appends one line to
@@ -88,12 +89,13 @@ def test_the_prior_comes_from_the_method_then_the_configuration_then_the_history
         asyncio.run(read())
     assert sum("damaged result file" in r.getMessage() for r in caplog.records) == 1
     h = book.resolve("I", 0.5, {})
-    assert h.source == "history:3" and h.n == 3 and h.mean == 110.0
+    assert h.source == "history" and h.label == "history:3" and h.n == 3 and h.mean == 110.0
+    assert h.n_censored == 0
     assert abs(h.sd - 10.0) < 1e-9
     c = book.resolve("II", 0.5, {})
     assert (c.mean, c.sd, c.source, c.n) == (40.0, 4.0, "config", 7)
     f = book.resolve("I", 0.5, {"prior_mean": 90.0, "prior_sd": 9.0})
-    assert (f.mean, f.sd, f.source) == (90.0, 9.0, "method")
+    assert (f.mean, f.sd, f.source, f.label) == (90.0, 9.0, "config", "method")
     assert book.resolve("I", 0.7, {}).source is None          # one failure only: no prior
     assert book.resolve(None, 0.5, {}).source is None
 
@@ -115,7 +117,8 @@ def test_a_test_starts_with_its_prior_in_the_sidecar_and_the_state(tmp_path):
     assert state["lead_s"] == 20.0 and state["p_due"] == 0.2 and state["test_started_utc"]
     assert state["end_p50"] is None and state["due"] is False and state["warn_reasons"] == []
     assert meta["method"]["prior_mean"] == 110.0 and meta["method"]["lead"] == 20.0
-    assert meta["prior_source"] == "history:3" and meta["prior_n"] == 3
+    # the sidecar: §7a's source and counts; the state and the event: the published label
+    assert meta["prior_source"] == "history" and meta["prior_n"] == 3 and meta["prior_n_censored"] == 0
     started = [e for e in out.events if e.type == EventType.TEST_STARTED][0]
     assert started.data["prior_source"] == "history:3" and started.data["prior_n"] == 3
     # the test ended (gateway shutdown): no forecast outside a test
@@ -123,7 +126,7 @@ def test_a_test_starts_with_its_prior_in_the_sidecar_and_the_state(tmp_path):
     with open(meta_path(root / "fc")) as f:
         on_disk = yaml.safe_load(f)
     assert on_disk["method"]["prior_mean"] == 110.0 and on_disk["method"]["prior_sd"] == 10.0
-    assert on_disk["prior_source"] == "history:3"
+    assert on_disk["prior_source"] == "history" and on_disk["prior_n_censored"] == 0
 
 
 def meta_path(station_dir):
