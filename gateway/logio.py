@@ -163,8 +163,9 @@ def read_meta(path: str) -> dict[str, Any]:
 def sidecar_prior(meta: dict[str, Any]) -> Prior:
     """The life prior a sidecar records (METHOD.md §5b, §7a): ``method.prior_mean`` and
     ``method.prior_sd``, and beside them ``prior_source`` (``config``, ``history`` or nothing),
-    ``prior_n`` and ``prior_n_censored``. Lenient, as the method reads a log: a prior with an SD ≤ 0, only half of one, or
-    values that are not numbers is no prior (source and n are then dropped too)."""
+    ``prior_n`` and ``prior_n_censored``. Lenient, as the method reads a log: a prior with an
+    SD ≤ 0, only half of one, or values that are not numbers is no prior (source and counts are
+    then dropped too)."""
     raw = meta.get("method")
     method: dict[str, Any] = raw if isinstance(raw, dict) else {}
 

@@ -151,6 +151,8 @@ CPU_GROUP = "cpu"
 CPU: dict[str, tuple[str, ...]] = {
     "tests/gateway/method/test_method_property.py": ("*",),
     "tests/gateway/method/test_method_vectors.py": ("*",),
+    "tests/gateway/method/test_prior_mle.py": ("*",),
+    "tests/gateway/report/test_report_priors_campaign.py": ("*",),
     "tests/gateway/report/test_report_campaign.py": ("*",),
     "tests/gateway/report/test_report_bad_input.py": ("*",),
     "tests/gateway/report/test_report_wear.py": ("*",),

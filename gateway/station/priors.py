@@ -26,8 +26,17 @@ from collections.abc import Iterable
 from typing import Any
 
 from ..history import past_test, read_history
-from ..method.prior import (NO_PRIOR, SOURCE_CONFIG, SOURCE_HISTORY, PastTest, Prior, PriorEntry,
-                            group_lives, prior_of_lives, resolve_prior)
+from ..method.prior import (
+    NO_PRIOR,
+    SOURCE_CONFIG,
+    SOURCE_HISTORY,
+    PastTest,
+    Prior,
+    PriorEntry,
+    group_lives,
+    prior_of_lives,
+    resolve_prior,
+)
 
 __all__ = ["PriorBook", "SOURCE_METHOD"]
 

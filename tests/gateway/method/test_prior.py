@@ -157,3 +157,39 @@ def test_too_many_prior_entries_is_a_validation_error(tmp_path):
                         for i in range(S.MAX_PRIOR_ENTRIES + 1))
     with pytest.raises(ConfigError, match=f"{S.MAX_PRIOR_ENTRIES + 1} entries; at most {S.MAX_PRIOR_ENTRIES}"):
         load_station(write(tmp_path / "s.yaml", MINIMAL + f"forecast: {{priors: [{entries}]}}\n"))
+
+
+def test_reader_gives_the_censored_lives_their_ts_from_the_result_or_the_sidecar(tmp_path):
+    st = tmp_path / "records" / "loom-01"
+    for i, life in enumerate((2917.92, 3064.34, 3215.14, 3363.06)):
+        _result(str(st / f"2026010{i}T000000Z-S-{i}"), "I", 0.5, "failure", life)
+
+    def ended(name, method, ts=None, sidecar_ts=None):
+        d = st / name
+        d.mkdir(parents=True)
+        res = {"test_id": name, "station": "loom-01", "grade": "I", "t_set": 0.5,
+               "method": {"k_b": 40000, **method}}
+        if ts is not None:
+            res["ts"] = ts
+        (d / "result.json").write_text(json.dumps(res))
+        if sidecar_ts is not None:
+            (d / "log.meta.yaml").write_text(f"method: {{t_set: 0.5, ts: {sidecar_ts}}}\n")
+    # replaced early (STOPPED) with ts in the result; stopped and at t_end from before `ts` was
+    # written (the sidecar says it); a protection stop and a test without baseline: not censored
+    ended("20260110T000000Z-S-a", {"status": "aborted", "stop_reasons": ["STOPPED"],
+                                   "n_slots": 130000, "t_life": None}, ts=0.02)
+    ended("20260111T000000Z-S-b", {"status": "aborted", "stop_reasons": ["STOPPED"],
+                                   "n_slots": 145000}, sidecar_ts=0.02)
+    ended("20260112T000000Z-S-c", {"status": "no_failure", "n_slots": 150000}, sidecar_ts=0.02)
+    ended("20260113T000000Z-S-d", {"status": "aborted", "stop_reasons": ["MISSING"],
+                                   "n_slots": 100051}, ts=0.02)
+    ended("20260114T000000Z-S-e", {"status": "no_baseline", "k_b": None, "n_slots": 9000}, ts=0.02)
+    hist = read_history(str(st))
+    assert len(hist) == 9
+    a = [t for t in hist if t.test_id == "20260110T000000Z-S-a"][0]
+    assert (a.station, a.k_b, a.stop_reasons, a.n_slots, a.ts) == ("loom-01", 40000, ("STOPPED",), 130000, 0.02)
+    assert sorted(t.life()[1] for t in hist if t.life() and t.life()[0] == "censored") == [2600.0, 2900.0, 3000.0]
+    p = resolve_prior([], hist, "I", 0.5)
+    assert (p.source, p.n, p.n_censored) == ("history", 4, 3)
+    assert p.mean == pytest.approx(3156.10905968845, rel=1e-10)
+    assert p.sd == pytest.approx(182.25402648037655, rel=1e-10)

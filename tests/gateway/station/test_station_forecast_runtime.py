@@ -217,3 +217,46 @@ def test_hooks_jsonl_is_bounded_and_a_damaged_line_is_skipped(tmp_path, caplog):
     (tmp_path / "blocked").write_text("")
     err = append_hook(str(tmp_path / "blocked"), {"station": "st"})
     assert isinstance(err, str) and err
+
+
+def _ended(folder, name, status, n_slots, reasons=None):
+    d = folder / name
+    d.mkdir(parents=True)
+    (d / "result.json").write_text(json.dumps({
+        "test_id": name, "grade": "I", "t_set": 0.5, "ts": 0.02,
+        "method": {"status": status, "t_life": None, "k_b": 40000, "n_slots": n_slots,
+                   "stop_reasons": reasons}}))
+
+
+def test_censored_lives_enter_the_prior_fitted_off_the_loop(tmp_path, caplog, monkeypatch):
+    import gateway.station.priors as P
+    root = tmp_path / "records"
+    for i, life in enumerate((2917.92, 3064.34, 3215.14, 3363.06)):
+        _result(root / "a", f"F{i}", "I", 0.5, "failure", life)
+    _ended(root / "a", "C1", "aborted", 130000, ["STOPPED"])   # hooks replaced early
+    _ended(root / "b", "C2", "aborted", 145000, ["STOPPED"])
+    _ended(root / "b", "C3", "no_failure", 150000)               # reached its planned end
+    _ended(root / "b", "P1", "aborted", 100051, ["MISSING"])     # a protection stop: not a life
+    book = PriorBook("a", str(root))
+
+    async def read():
+        book.refresh()
+        await _until(lambda: book.history is not None)
+    asyncio.run(read())
+    # the worker fitted the group: the start only looks it up
+    assert len(book.fits) == 1
+    h = book.resolve("I", 0.5, {})
+    assert (h.source, h.label, h.n, h.n_censored) == ("history", "history:4", 4, 3)
+    assert abs(h.mean - 3156.10905968845) <= 1e-10 * 3156 and abs(h.sd - 182.25402648037655) <= 1e-8
+    assert h.sidecar()["prior_n_censored"] == 3
+    # a test of this station just ended (not yet read again): a small group is fitted at the start
+    book.add_result({"test_id": "C4", "grade": "I", "t_set": 0.5, "ts": 0.02,
+                     "method": {"status": "no_failure", "k_b": 1, "n_slots": 160000}})
+    h2 = book.resolve("I", 0.5, {})
+    assert (h2.n, h2.n_censored) == (4, 4) and h2.mean > h.mean
+    # a group too large to fit on the slot loop: the last read's fit, with one log line
+    monkeypatch.setattr(P, "SYNC_FIT_MAX", 5)
+    with caplog.at_level(logging.INFO, logger="hookwatch.station"):
+        h3 = book.resolve("I", 0.5, {})
+    assert (h3.mean, h3.n_censored) == (h.mean, 3)
+    assert sum("fitted again off the loop" in r.getMessage() for r in caplog.records) == 1
