@@ -98,8 +98,8 @@ class Key:
         elif k == "ip_list":
             s = "a list of IP addresses or networks, e.g. [10.10.4.20, 10.10.5.0/24]"
         elif k == "prior_list":
-            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n]}, e.g. [{grade: I, t_set_n: 0.5, "
-                 "mean_s: 32306.9, sd_s: 951.7}] (mean_s, sd_s > 0)")
+            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n, n_censored]}, e.g. [{grade: I, "
+                 "t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (mean_s, sd_s > 0)")
         else:
             s = "a string"
         if self.nullable:
