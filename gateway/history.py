@@ -8,8 +8,9 @@ which starts with the test's UTC start time) and ``MAX_RESULT_BYTES`` each.
 
 A result carries what §7a needs: the method's ``status``, ``t_life``, ``k_b``, ``stop_reasons``
 and ``n_slots``, and the test's ``ts`` (a censored life is c = n_slots · Ts). Results written
-before ``ts`` went into result.json take it from the test's sidecar (``log.meta.yaml`` beside it,
-``method.ts``), read only for a test that may be a censored life.
+before ``ts`` and ``t_end`` went into result.json take them from the test's sidecar
+(``log.meta.yaml`` beside it, ``method.ts``, ``method.t_end``), read only for a test that may be a
+censored life (:func:`sidecar_method` gives the rest on demand).
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def past_test(result: Any, ts: float | None = None) -> PastTest | None:
     grade = result.get("grade")
     status = method.get("status")
     reasons = method.get("stop_reasons")
-    tid, station = result.get("test_id"), result.get("station")
+    tid, station, why = result.get("test_id"), result.get("station"), result.get("end_reason")
     r_ts = _num(result.get("ts"))
     return PastTest(grade=grade if isinstance(grade, str) else None,
                     t_set=_num(result.get("t_set")),
@@ -67,7 +68,8 @@ def past_test(result: Any, ts: float | None = None) -> PastTest | None:
                     n_slots=_int(method.get("n_slots")),
                     ts=r_ts if r_ts is not None else ts,
                     test_id=tid if isinstance(tid, str) else None,
-                    station=station if isinstance(station, str) else None)
+                    station=station if isinstance(station, str) else None,
+                    t_end=_num(result.get("t_end")), end_reason=why if isinstance(why, str) else None)
 
 
 def _may_be_censored(t: PastTest) -> bool:
@@ -75,14 +77,14 @@ def _may_be_censored(t: PastTest) -> bool:
         t.status == "aborted" and t.stop_reasons == (STOPPED,)))
 
 
-def _sidecar_ts(test_dir: str) -> float | None:
-    """``method.ts`` of the test's sidecar (None when it has none or cannot be read)."""
+def sidecar_method(test_dir: str) -> dict[str, Any]:
+    """The ``method:`` section of the test's sidecar ({} when it has none or cannot be read)."""
     try:
         meta = safeyaml.read(os.path.join(test_dir, SIDECAR_NAME), limits=safeyaml.SIDECAR).data
     except (safeyaml.YamlError, OSError):
-        return None
+        return {}
     method = meta.get("method") if isinstance(meta, dict) else None
-    return _num(method.get("ts")) if isinstance(method, dict) else None
+    return method if isinstance(method, dict) else {}
 
 
 def _result_files(folder: str) -> list[str]:
@@ -130,7 +132,9 @@ def read_history(folder: str, max_files: int = MAX_FILES) -> list[PastTest]:
             bad.append(f"{p} (not a test result)")
             continue
         if t.ts is None and _may_be_censored(t):
-            t = dataclasses.replace(t, ts=_sidecar_ts(os.path.dirname(p)))
+            m = sidecar_method(os.path.dirname(p))
+            t = dataclasses.replace(t, ts=t.ts if t.ts is not None else _num(m.get("ts")),
+                                    t_end=t.t_end if t.t_end is not None else _num(m.get("t_end")))
         out.append(t)
     if bad:
         log.warning("%s: %d damaged result file(s) skipped by the life history, e.g. %s",

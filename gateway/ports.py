@@ -202,6 +202,9 @@ class StationLinks(StationView, Protocol):
     def set_uplink(self, name: str, ok: bool) -> None: ...
     def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None: ...
     def intake_rejected(self, data: dict[str, Any]) -> None: ...
+    def site_lives(self, tests: tuple[Any, ...]) -> None:
+        """The other stations' lives of the site (``gateway.method.prior.PastTest``), as the
+        MQTT output last received them (METHOD.md §7a)."""
 
 
 # ----------------------------------------------------------------------------- the runtime

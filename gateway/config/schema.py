@@ -382,6 +382,10 @@ class MqttConfig(BrokerConfig):
                                    null_means="`<base>/reply` (the station's own reply topic)")
     telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
                                       kind="float", unit="s", lo=0.1, hi=3600.0)
+    share_lives: bool = key(True, "share every completed test's life with the gateways of this "
+                            "`station.site` on the broker, and pool theirs into the life prior's "
+                            "history (METHOD.md §7a; a retained `<base>/lives` per station, "
+                            "docs/mqtt.md); false: neither share nor receive", kind="bool")
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
 
 

@@ -89,6 +89,10 @@ class PastTest:
     ts: float | None = None
     test_id: str | None = None
     station: str | None = None
+    #: the planned duration (s) and why the test ended (the gateway's end_reason): what the site
+    #: shares beside the life (issue 29), not used by the prior
+    t_end: float | None = None
+    end_reason: str | None = None
 
     def life(self) -> tuple[str, float] | None:
         """What the test gives the §7a history: (``failure``, x = t_life), (``censored``,
@@ -122,13 +126,20 @@ class Prior:
     #: the source as the station's state publishes it (``method``, ``config``, ``history:N``;
     #: None: ``source``)
     label: str | None = field(default=None, compare=False)
+    #: a history prior: the stations its tests came from, and in words where it came from
+    #: (``this station: …``, ``the site: N tests from K stations``)
+    n_stations: int | None = field(default=None, compare=False)
+    origin: str | None = field(default=None, compare=False)
 
     def sidecar(self) -> dict[str, Any]:
         """What the gateway writes into a new test's sidecar: ``method.prior_mean``/``prior_sd``
         go in its ``method:`` section, ``prior_source``/``prior_n``/``prior_n_censored`` beside
         it."""
-        return {"prior_mean": self.mean, "prior_sd": self.sd, "prior_source": self.source,
-                "prior_n": self.n, "prior_n_censored": self.n_censored}
+        out = {"prior_mean": self.mean, "prior_sd": self.sd, "prior_source": self.source,
+               "prior_n": self.n, "prior_n_censored": self.n_censored}
+        if self.origin is not None:
+            out["prior_stations"], out["prior_from"] = self.n_stations, self.origin
+        return out
 
 
 NO_PRIOR = Prior(None, None, None, None)
@@ -258,11 +269,10 @@ def history_prior(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[float,
 # A new test's prior
 # ---------------------------------------------------------------------------------------------
 
-def group_lives(history: Iterable[PastTest], grade: str, t_set: float) -> tuple[list[float], list[float]]:
-    """The observed and right-censored lives of ``grade`` at ``t_set`` (±0.001 N), each test once
-    (a test id seen again is skipped; tests without an id all count)."""
-    xs: list[float] = []
-    cs: list[float] = []
+def group_tests(history: Iterable[PastTest], grade: str, t_set: float) -> list[tuple[PastTest, str, float]]:
+    """The tests of ``grade`` at ``t_set`` (±0.001 N) that give the history a life, with it (kind,
+    value), each test once (a test id seen again is skipped; tests without an id all count)."""
+    out: list[tuple[PastTest, str, float]] = []
     seen: set[str] = set()
     for t in history:
         if t.grade != grade or t.t_set is None or not same_t_set(t.t_set, t_set):
@@ -273,8 +283,14 @@ def group_lives(history: Iterable[PastTest], grade: str, t_set: float) -> tuple[
             seen.add(t.test_id)
         lf = t.life()
         if lf is not None:
-            (xs if lf[0] == OBSERVED else cs).append(lf[1])
-    return xs, cs
+            out.append((t, lf[0], lf[1]))
+    return out
+
+
+def group_lives(history: Iterable[PastTest], grade: str, t_set: float) -> tuple[list[float], list[float]]:
+    """The observed and right-censored lives of ``grade`` at ``t_set`` (±0.001 N), each test once."""
+    g = group_tests(history, grade, t_set)
+    return [v for _, k, v in g if k == OBSERVED], [v for _, k, v in g if k == CENSORED]
 
 
 def prior_of_lives(xs: Sequence[float], cs: Sequence[float]) -> Prior:

@@ -46,7 +46,8 @@ from ..ratelog import ECHO_CHARS, clip, safe
 from ..records import Command, CommandKind
 from ..station.commands import CODE, COMMAND_KEYS, SAMPLE_ID_MAX, Rejection, check_sample_id
 
-__all__ = ["intake", "parse_command", "rejected_event_data", "clip", "safe", "nesting_depth", "bad",
+__all__ = ["intake", "parse_command", "read_bounded_json", "Refused", "bounded_pairs",
+           "rejected_event_data", "clip", "safe", "nesting_depth", "bad",
            "ECHO_CHARS", "MAX_PAYLOAD_BYTES", "MAX_DEPTH", "MAX_NUMBER_CHARS", "MAX_STRING_CHARS",
            "MAX_KEYS", "MAX_KEY_CHARS", "MAX_NAME_CHARS", "REQUEST_ID_MAX", "SAMPLE_ID_MAX",
            "NUMERIC_FIELDS", "TEXT_FIELDS", "COMMAND_KEY"]
@@ -155,25 +156,40 @@ def _kind(name: Any) -> CommandKind | Rejection:
     return bad("command", f"{clip(name, MAX_NAME_CHARS)} unknown; allowed: {kinds}")
 
 
-def _decode(name: str, payload: bytes | bytearray | memoryview) -> dict[str, Any] | Rejection:
-    """Bounded JSON: bytes → a dict of scalars' parents, or a code-9 Rejection."""
-    if len(payload) > MAX_PAYLOAD_BYTES:
-        return bad(name, f"payload of {len(payload)} bytes; at most {MAX_PAYLOAD_BYTES}")
+def read_bounded_json(payload: bytes | bytearray | memoryview, *, max_bytes: int = MAX_PAYLOAD_BYTES,
+                      max_depth: int = MAX_DEPTH,
+                      pairs: Callable[[list[tuple[str, Any]]], dict[str, Any]] = _pairs) -> Any:
+    """THE bounded JSON reader: ``payload`` → a JSON value (None when it is empty), or
+    :class:`Refused` with the reason. Bounded before it costs anything: the bytes, the nesting
+    depth (a scan, before ``json.loads`` could recurse), every number's characters (NaN/Infinity
+    refused), every object's keys and string values (``pairs``, :func:`bounded_pairs`)."""
+    if len(payload) > max_bytes:
+        raise Refused(f"payload of {len(payload)} bytes; at most {max_bytes}")
     try:
         text = bytes(payload).decode("utf-8").strip()
     except UnicodeDecodeError:
-        return bad(name, "payload is not UTF-8 JSON")
+        raise Refused("payload is not UTF-8 JSON") from None
     if not text:
-        return {}
-    if nesting_depth(text.encode(), MAX_DEPTH) > MAX_DEPTH:
-        return bad(name, f"payload nested deeper than {MAX_DEPTH} levels")
+        return None
+    if nesting_depth(text.encode(), max_depth) > max_depth:
+        raise Refused(f"payload nested deeper than {max_depth} levels")
     try:
-        obj = json.loads(text, parse_int=lambda s: _num(s, int), parse_float=lambda s: _num(s, float),
-                         parse_constant=_const, object_pairs_hook=_pairs)
+        return json.loads(text, parse_int=lambda s: _num(s, int), parse_float=lambda s: _num(s, float),
+                          parse_constant=_const, object_pairs_hook=pairs)
+    except _Refused:
+        raise
+    except (json.JSONDecodeError, RecursionError, ValueError) as e:
+        raise Refused(f"payload is not JSON: {clip(str(e), 80)}") from None
+
+
+def _decode(name: str, payload: bytes | bytearray | memoryview) -> dict[str, Any] | Rejection:
+    """Bounded JSON: bytes → a dict of scalars' parents, or a code-9 Rejection."""
+    try:
+        obj = read_bounded_json(payload)
     except _Refused as e:
         return bad(name, str(e))
-    except (json.JSONDecodeError, RecursionError, ValueError) as e:
-        return bad(name, f"payload is not JSON: {clip(str(e), 80)}")
+    if obj is None:
+        return {}
     if isinstance(obj, str):
         return bad(name, f"payload must be a JSON object, got a string of {len(obj)} characters")
     if not isinstance(obj, dict):

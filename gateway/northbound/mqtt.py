@@ -14,15 +14,23 @@ Threads:
 - the broker connection reaches the station as ``station.set_uplink("mqtt", ok)`` through the same
   hand-over (so the PLC sees it in ``StationState.mqtt_ok``);
 - the end-of-life alarm is read from the station's alarm store (``gateway/station/alarm_store.py``);
-  the output keeps no alarm of its own on disk.
+  the output keeps no alarm of its own on disk;
+- the site's life history (``mqtt.share_lives``, gateway/northbound/sitelives.py): the station's
+  own lives (its records folder, read on a worker thread at the start and after each test) go out
+  as the retained ``<base>/lives``, again after every reconnect; the other stations' lives of the
+  site arrive on the pump thread, are checked, kept and saved by :class:`SiteLives` there, and
+  reach the station through the hand-over (``station.site_lives``).
 """
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import threading
 import time
 from typing import Any
 
+from ..history import read_history
 from ..ports import CommandSink, StationLinks
 from ..records import Event, EventType, SlotRecord, StationState
 from ..station import commands as C
@@ -35,6 +43,7 @@ from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
 from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
+from .sitelives import STORE_NAME, SiteLives, lives_topic, snapshot
 
 __all__ = ["MqttOutput", "MqttSettings", "SecretError", "SOFTWARE", "STATE_REFRESH_S",
            "alarm_fields", "Telemetry"]
@@ -60,7 +69,15 @@ class MqttOutput:
         self._own_alarms = alarms is None and station is None
         self.alarms: AlarmStore = (alarms if alarms is not None else station.alarms if station is not None
                                    else AlarmStore(None, settings.station_id))
-        self.pump = MqttPump(settings, on_link=self._link_changed, on_command=self._command)
+        #: the site's lives (None: `mqtt.share_lives` off, or no records folder)
+        self.site: SiteLives | None = None
+        if settings.share_lives and settings.records_dir:
+            self.site = SiteLives(os.path.join(settings.records_dir, STORE_NAME), settings.station_id)
+        self._lives_msg: M.Message | None = None
+        self._site_lock = threading.Lock()
+        self._site_jobs: set[asyncio.Future[None]] = set()
+        self.pump = MqttPump(settings, on_link=self._link_changed, on_command=self._command,
+                             on_lives=self._lives if self.site is not None else None)
         self._base = settings.base_topic
         # station-loop state
         self._test_id: str | None = None
@@ -101,6 +118,8 @@ class MqttOutput:
             if not self.outbox.disk_ok:
                 set_disk("outbox", False, {"reason": "the outbox cannot be written"})
         self.pump.start()
+        if self.site is not None:
+            self._share(first=True)
 
     async def stop(self) -> None:
         self._flush_telemetry(time.monotonic())
@@ -110,6 +129,8 @@ class MqttOutput:
                 None, self.pump.join, self.s.drain_on_stop_s + 5.0)
         else:
             self.pump.join(0)
+        if self.site is not None:
+            self.site.close()
 
     def on_record(self, rec: SlotRecord) -> None:
         agg = self._agg
@@ -141,6 +162,8 @@ class MqttOutput:
             self.pump.put(msg)
         if ev.type == EventType.TEST_ENDED and ev.test_id is not None and ev.test_id == self._test_id:
             self._test_id = None
+        if ev.type == EventType.TEST_ENDED and self.site is not None:
+            self._share(ended=ev.test_id)
 
     def on_state(self, st: StationState) -> None:
         self._last_state = st
@@ -154,9 +177,66 @@ class MqttOutput:
 
     # ================================================================ pump thread → station
     def _link_changed(self, ok: bool) -> None:
-        """The broker link changed (pump thread): tell the station on its own loop."""
+        """The broker link changed (pump thread): tell the station on its own loop; connected, the
+        station's lives go out again (a broker may have lost its retained messages)."""
         if self.station is not None:
             call_soon_on(self.loop, self.station.set_uplink, "mqtt", ok)
+        msg = self._lives_msg
+        if ok and msg is not None:
+            self.pump.put(msg)
+
+    # ================================================================ the site's lives
+    def _share(self, first: bool = False, ended: str | None = None) -> None:
+        """Read the station's own lives (and, the first time, the local copy of the site's) on a
+        worker thread, and publish them; never on the station's loop."""
+        loop = self.loop
+        if loop is None:
+            return
+        fut = loop.run_in_executor(None, self._share_now, first, ended)
+        self._site_jobs.add(fut)
+
+        def done(f: asyncio.Future[None]) -> None:
+            self._site_jobs.discard(f)
+            if not f.cancelled() and f.exception() is not None:
+                log.warning("%s: the station's lives could not be shared: %s", self.s.station_id,
+                            f.exception())
+        fut.add_done_callback(done)
+
+    def _share_now(self, first: bool, ended: str | None) -> None:
+        site, folder = self.site, self.s.records_dir
+        if site is None or folder is None:
+            return
+        with self._site_lock:
+            if first:
+                n = site.load()
+                if n:
+                    log.info("%s: the site's lives: %d tests of %d stations from %s", self.s.station_id,
+                             n, site.stations(), site.path)
+                    self._give_station()
+            own = read_history(folder)
+            for _ in range(40):             # the ended test's result.json follows its event
+                if ended is None or any(t.test_id == ended for t in own):
+                    break
+                time.sleep(0.25)
+                own = read_history(folder)
+            doc = snapshot(self.s.station_id, own, schema.iso_ms(time.time()))
+            def payload(seq: int, d: dict[str, Any] = doc) -> dict[str, Any]:
+                return {**d, "seq": seq}
+            msg = M.Message("lives", lives_topic(self._base), payload, qos=1, retain=True)
+            self._lives_msg = msg
+            self.pump.put(msg)
+
+    def _lives(self, topic: str, payload: bytes) -> None:
+        """A station of the site published its lives (pump thread)."""
+        site = self.site
+        if site is not None and site.receive(topic, payload):
+            log.info("%s: the site's lives: %d tests of %d other stations", self.s.station_id,
+                     len(site.tests()), site.stations())
+            self._give_station()
+
+    def _give_station(self) -> None:
+        if self.station is not None and self.site is not None:
+            call_soon_on(self.loop, self.station.site_lives, self.site.tests())
 
     def _command(self, name: str, raw: bytes, response: tuple[str, bytes | None] | None = None) -> None:
         """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop; the

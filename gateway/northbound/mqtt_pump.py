@@ -33,6 +33,7 @@ from . import mqtt_messages as M
 from . import schema
 from .broker_settings import BrokerSettings, SecretError
 from .outbox import Outbox, Row
+from .sitelives import site_filter
 
 log = logging.getLogger("hookwatch.mqtt")
 
@@ -68,17 +69,24 @@ class MqttSettings(BrokerSettings):
     drain_on_stop_s: float = 2.0      # on a clean stop, time allowed to deliver what is pending
     #: MQTT 5 Response Topics are obeyed only below this (``mqtt.reply_prefix``); None: ``<base>/reply``
     reply_prefix: str | None = None
+    #: share the station's lives with its site and receive theirs (``mqtt.share_lives``;
+    #: gateway/northbound/sitelives.py), and the station's records folder (its own lives)
+    share_lives: bool = False
+    records_dir: str | None = None
 
 
 class MqttPump:
     """Store-and-forward of one station's messages (see the module docstring)."""
 
     def __init__(self, settings: MqttSettings, on_link: Callable[[bool], None] = lambda ok: None,
-                 on_command: Callable[[str, bytes, Response | None], None] = lambda name, payload, response: None
-                 ) -> None:
+                 on_command: Callable[[str, bytes, Response | None], None] = lambda name, payload, response: None,
+                 on_lives: Callable[[str, bytes], None] | None = None) -> None:
         self.s = settings
         self.on_link = on_link
         self.on_command = on_command
+        #: the site's retained lives (topic, payload), when the station shares them
+        self.on_lives = on_lives
+        self._cmd_prefix = M.command_filter(settings.base_topic)[:-1]
         self.outbox = Outbox(settings.outbox_path, settings.telemetry_budget_bytes)
         self._queue: Mailbox[Row] = Mailbox(QUEUE_MAX)
         self._dropped_logged = 0
@@ -400,6 +408,8 @@ class MqttPump:
         self._backoff = self.s.reconnect_min_s
         self.counters["connects"] += 1
         client.subscribe(M.command_filter(self.s.base_topic), qos=1)
+        if self.on_lives is not None:
+            client.subscribe(site_filter(self.s.base_topic), qos=1)
         client.publish(self._status_topic, self._status(True), qos=1, retain=True)
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
@@ -435,6 +445,10 @@ class MqttPump:
                 log.debug("%s: sent seq %d (%s)", self.s.station_id, row.seq, row.kind)
 
     def _on_message(self, client, userdata, msg) -> None:
+        if self.on_lives is not None and not msg.topic.startswith(self._cmd_prefix):
+            self.counters["site_lives"] += 1
+            self.on_lives(msg.topic, bytes(msg.payload))
+            return
         self.counters["commands"] += 1
         self.on_command(msg.topic.rsplit("/", 1)[-1], msg.payload, self._response_of(msg))
 

@@ -230,7 +230,7 @@ class TestLifecycle:
         out = {"test_id": sess.test_id, "station": self.setup.station_id, "test_status": test_status,
                "end_reason": reason, "closed_utc": utc_iso(), "method": res.as_dict(),
                "sample_id": sess.plan.sample_id, "grade": sess.plan.grade, "t_set": sess.plan.t_set,
-               "ts": sess.params.ts}
+               "ts": sess.params.ts, "t_end": sess.params.t_end}
         self.board.test_ended(mon.k - 1, reason, source, test_status, res)
         sess.recorder.close(out)
         self.results.append(out)

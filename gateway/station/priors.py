@@ -28,12 +28,14 @@ from typing import Any
 from ..history import past_test, read_history
 from ..method.prior import (
     NO_PRIOR,
+    OBSERVED,
     SOURCE_CONFIG,
     SOURCE_HISTORY,
     PastTest,
     Prior,
     PriorEntry,
     group_lives,
+    group_tests,
     prior_of_lives,
     resolve_prior,
 )
@@ -75,9 +77,20 @@ def fit_groups(history: list[PastTest]) -> dict[FitKey, Prior]:
     return out
 
 
-def _read_and_fit(root: str) -> tuple[list[PastTest], dict[FitKey, Prior]]:
+def _read_and_fit(root: str, site: tuple[PastTest, ...] = ()) -> tuple[list[PastTest], dict[FitKey, Prior]]:
+    """The records root's history, and the fits of its groups with the site's lives."""
     hist = read_history(root)
-    return hist, fit_groups(hist)
+    return hist, fit_groups(hist + list(site))
+
+
+def origin(station_id: str, tests: list[PastTest]) -> tuple[int, str]:
+    """How many stations a history prior's tests came from, and in words: ``this station: N
+    tests`` or ``the site: N tests from K stations (M of this station)``."""
+    names = {t.station or station_id for t in tests}
+    here = sum(1 for t in tests if (t.station or station_id) == station_id)
+    if names == {station_id}:
+        return 1, f"this station: {len(tests)} tests"
+    return len(names), f"the site: {len(tests)} tests from {len(names)} stations ({here} of this station)"
 
 
 class PriorBook:
@@ -95,17 +108,22 @@ class PriorBook:
         #: results of this station's tests ended since the last read began (kept until a read
         #: that began after them has finished)
         self._recent: list[PastTest] = []
+        #: the other stations' lives that the site shared (gateway/northbound/sitelives.py)
+        self.site: tuple[PastTest, ...] = ()
+        self._again = False
 
     def refresh(self) -> None:
         """Read the history again, off the loop (nothing when a read is running or no loop runs)."""
         if self._reading is not None and not self._reading.done():
+            self._again = True              # read again when this one is done
             return
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
             return
         recent = list(self._recent)
-        fut = loop.run_in_executor(None, _read_and_fit, self.records_root)
+        self._again = False
+        fut = loop.run_in_executor(None, _read_and_fit, self.records_root, self.site)
         self._reading = fut
 
         def done(f: asyncio.Future[tuple[list[PastTest], dict[FitKey, Prior]]]) -> None:
@@ -117,6 +135,8 @@ class PriorBook:
                             self.records_root, exc)
                 return
             self.history, self.fits = f.result()
+            if self._again:
+                self.refresh()
             self._recent = [t for t in self._recent if t not in recent]
         fut.add_done_callback(done)
 
@@ -126,8 +146,13 @@ class PriorBook:
         if t is not None:
             self._recent.append(t)
 
+    def set_site(self, tests: tuple[PastTest, ...]) -> None:
+        """The site's lives changed (received from the broker): kept, and fitted off the loop."""
+        self.site = tuple(tests)
+        self.refresh()
+
     def known(self) -> list[PastTest]:
-        return list(self.history or []) + self._recent
+        return list(self.history or []) + self._recent + list(self.site)
 
     def resolve(self, grade: str | None, t_set: float, method_values: dict[str, Any]) -> Prior:
         """§7a for a test of ``grade`` at ``t_set``, with the §7a source (``config``,
@@ -143,10 +168,15 @@ class PriorBook:
         pr = resolve_prior(self.entries, (), grade, t_set)
         if pr.source == SOURCE_CONFIG or grade is None:
             return pr
-        xs, cs = group_lives(self.known(), grade, t_set)
+        group = group_tests(self.known(), grade, t_set)
+        xs = [v for _, k, v in group if k == OBSERVED]
+        cs = [v for _, k, v in group if k != OBSERVED]
         pr = self.fits.get(_key(xs, cs)) or self._fit(grade, t_set, xs, cs)
         if pr.source == SOURCE_HISTORY:
-            return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=f"history:{pr.n}")
+            k, words = origin(self.station_id, [t for t, _, _ in group])
+            label = f"history:{pr.n}" if k == 1 else f"history:{pr.n} ({words})"
+            return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k,
+                         origin=words)
         return NO_PRIOR
 
     def _fit(self, grade: str, t_set: float, xs: list[float], cs: list[float]) -> Prior:

@@ -84,8 +84,9 @@ class TestSession:
             meta["start"] = dict(start_info)
         if prior is not None:
             side = prior.sidecar()
-            for k in ("prior_source", "prior_n", "prior_n_censored"):
-                meta[k] = side[k]
+            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_stations", "prior_from"):
+                if k in side:
+                    meta[k] = side[k]
         try:
             rec = TestRecorder(test_dir, meta, flush_interval_s)
         except OSError:       # the log cannot be opened: the new folder of a test that never began goes

@@ -31,6 +31,7 @@ from .. import ratelog
 from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
+from ..method.prior import PastTest
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
 from ..records import Command, CommandReply, EventType, SlotRecord, StationState
 from .alarm_store import AlarmStore
@@ -179,6 +180,11 @@ class Station:
     def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None:
         """A store (``records``, ``outbox``) reports whether its disk can be written."""
         self.health.set_disk(store, ok, info)
+
+    def site_lives(self, tests: tuple[Any, ...]) -> None:
+        """The site's lives changed (the MQTT output, via the thread hand-over): they join the
+        §7a history of the next test's prior (fitted off the loop)."""
+        self.tests.priors.set_site(tuple(t for t in tests if isinstance(t, PastTest)))
 
     def intake_rejected(self, data: dict[str, Any]) -> None:
         """A command source refused a request before it became a command (malformed, too large:
