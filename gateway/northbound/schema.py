@@ -283,6 +283,17 @@ CMD_SETPOINT_FIELDS = (
     Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),
 )
 
+LIVES_FIELDS = ENVELOPE + (
+    Field("lives", "list", "the station's completed tests that give METHOD.md §7a's history a life, "
+          "its newest 500 at most, oldest first; each `{test_id, grade, t_set, status, t_life, "
+          "censored_s, n_slots, ts, k_b, stop_reasons, end_reason, t_end}`: a `failure` with "
+          "`t_life` (s), or a right-censored life — a test that found its baseline (`k_b`) and "
+          "ended on purpose (`aborted`, `stop_reasons` [\"STOPPED\"]) or at `t_end` "
+          "(`no_failure`) — with `censored_s` = `n_slots` · `ts`; `t_end` the planned duration, "
+          "`end_reason` the gateway's. The gateways of the site pool them into the life prior "
+          "(`mqtt.share_lives`; gateway/northbound/sitelives.py)"),
+)
+
 TOPICS: tuple[Topic, ...] = (
     Topic("status", "status", "publish", 1, True, False,
           "gateway connection status; `offline` is the Last Will", STATUS_FIELDS),
@@ -299,6 +310,11 @@ TOPICS: tuple[Topic, ...] = (
           "the wear-warning alarm (§5a, priority 2) and its lifecycle", WARNING_FIELDS),
     Topic("result", "result", "publish", 1, True, True,
           "the result of the last test that ended", RESULT_FIELDS),
+    Topic("lives", "lives", "publish", 1, True, True,
+          "the station's lives for its site's life history (METHOD.md §7a): one retained snapshot "
+          "per station, published at the start, after every test and after every reconnect; every "
+          "gateway of the site subscribes to `<prefix>/<site>/+/+/+/lives` (`mqtt.share_lives`, "
+          "on by default)", LIVES_FIELDS),
     Topic("reply", "reply", "publish", 1, False, True,
           "the answer to every command received on cmd/… (MQTT 5: on the request's Response Topic "
           "instead, when it names one below `mqtt.reply_prefix`)", REPLY_FIELDS),
@@ -561,6 +577,13 @@ def _examples() -> dict[str, dict[str, Any]]:
         "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
                    "t_set": 0.5, "test_status": "completed", "end_reason": "completed",
                    "result": {"status": "failure", "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545}},
+        "lives": {**_env(1041, t, "st1"), "lives": [
+            {"test_id": "20260228T080000Z-S-0040", "grade": "I", "t_set": 0.5, "status": "failure",
+             "t_life": 7012.4, "censored_s": None, "n_slots": 350621, "ts": 0.02, "k_b": 180000,
+             "stop_reasons": None, "end_reason": "completed", "t_end": 36000.0},
+            {"test_id": "20260301T000000Z-S-0041", "grade": "I", "t_set": 0.5, "status": "aborted",
+             "t_life": None, "censored_s": 5400.0, "n_slots": 270000, "ts": 0.02, "k_b": 180000,
+             "stop_reasons": ["STOPPED"], "end_reason": "hook_replaced", "t_end": 36000.0}]},
         "reply": reply_payload(1047, t, "st1", "start", "r-17", False, 1,
                                "a test is already running; stop it first"),
         "cmd_start": {"sample_id": "S-0043", "grade": "I", "t_set": 0.5, "request_id": "r-17"},

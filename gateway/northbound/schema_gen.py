@@ -57,6 +57,21 @@ NESTED: dict[tuple[str, str], dict[str, Any]] = {
                        "mu_th": {"type": ["number", "null"]}}},
 }
 
+_NUM_OR_NULL = {"type": ["number", "null"]}
+NESTED[("lives", "lives")] = {
+    "type": "array", "maxItems": 500,
+    "items": {"type": "object", "additionalProperties": False,
+              "required": ["test_id", "grade", "t_set", "status", "t_life", "censored_s", "n_slots",
+                           "ts", "k_b", "stop_reasons", "end_reason", "t_end"],
+              "properties": {
+                  "test_id": {"type": "string"}, "grade": {"type": "string"},
+                  "t_set": {"type": "number"}, "status": {"enum": ["failure", "no_failure", "aborted"]},
+                  "t_life": _NUM_OR_NULL, "censored_s": _NUM_OR_NULL,
+                  "n_slots": {"type": "integer", "minimum": 1}, "ts": {"type": "number"},
+                  "k_b": {"type": ["integer", "null"]},
+                  "stop_reasons": {"type": ["array", "null"], "items": {"type": "string"}},
+                  "end_reason": {"type": ["string", "null"]}, "t_end": {"type": "number"}}}}
+
 #: command fields that must be present
 REQUIRED_CMD = {"cmd_start": ("sample_id", "t_set"), "cmd_setpoint": ("t_set",)}
 

@@ -37,13 +37,12 @@ from typing import Any
 from ..method.prior import STOPPED, PastTest
 from ..ratelog import RateLog, clip
 from .cmdparse import Refused, bounded_pairs, read_bounded_json
+from .schema import SCHEMA_VERSION
 
 log = logging.getLogger("hookwatch.site")
 
 #: the topic below a station's base that holds its lives (retained)
 LIVES = "lives"
-#: the payload's schema number
-LIVES_SCHEMA = 1
 #: lives one station shares (its newest)
 MAX_LIVES_PER_STATION = 500
 #: one station's message, bytes (500 lives of ≈ 300 bytes)
@@ -174,7 +173,7 @@ def snapshot(station: str, tests: Iterable[PastTest], time_iso: str) -> dict[str
     that fit :data:`MAX_LIVES_BYTES`, with room for the stream's ``seq``)."""
     recs = [r for r in (record_of(t) for t in tests) if r is not None][-MAX_LIVES_PER_STATION:]
     while True:
-        doc = {"schema": LIVES_SCHEMA, "station": station, "time": time_iso, "lives": recs}
+        doc = {"schema": SCHEMA_VERSION, "station": station, "time": time_iso, "lives": recs}
         size = len(json.dumps(doc, separators=(",", ":"), allow_nan=False).encode())
         if size <= MAX_LIVES_BYTES - 64 or not recs:
             return doc
@@ -187,8 +186,9 @@ def parse_snapshot(payload: bytes, station: str) -> tuple[list[PastTest], list[s
     obj = read_bounded_json(payload, max_bytes=MAX_LIVES_BYTES, max_depth=4, pairs=_pairs)
     if not isinstance(obj, dict) or not isinstance(obj.get("lives"), list):
         raise Refused("not a lives message (an object with a `lives` list)")
-    if obj.get("schema") != LIVES_SCHEMA:
-        raise Refused(f"schema {clip(obj.get('schema'), 20)}; this gateway reads {LIVES_SCHEMA}")
+    sv = obj.get("schema")
+    if not isinstance(sv, int) or isinstance(sv, bool) or sv < 1:
+        raise Refused(f"schema {clip(sv, 20)} is not a schema version")
     if any(k not in ("schema", "seq", "station", "time", "lives") for k in obj):
         raise Refused("unknown keys in a lives message")
     if obj.get("station") != station:
