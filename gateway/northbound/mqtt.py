@@ -230,7 +230,7 @@ class MqttOutput:
         """A station of the site published its lives (pump thread)."""
         site = self.site
         if site is not None and site.receive(topic, payload):
-            log.info("%s: the site's lives: %d tests of %d other stations", self.s.station_id,
+            log.info("%s: the site's lives: %d tests of %d other station(s)", self.s.station_id,
                      len(site.tests()), site.stations())
             self._give_station()
 

@@ -254,7 +254,7 @@ class SiteLives:
 
     def receive(self, topic: str, payload: bytes) -> bool:
         """A retained message of a station of the site (pump thread): True when the store changed
-        (and was saved)."""
+        (and was saved); the same snapshot again (a reconnect) changes nothing."""
         station = station_of(topic)
         if station is None or station == self.own:
             return False
@@ -275,9 +275,9 @@ class SiteLives:
             self.counters["refused_records"] += len(bad)
             self.refused.warning(("record", station), "%s: %d record(s) of station %s refused, e.g. %s",
                                  self.own, len(bad), clip(station, 40), bad[0])
-        if not self._accept(station, good):
-            return False
         self.counters["snapshots"] += 1
+        if not self._accept(station, good):     # refused by a bound, or nothing new
+            return False
         self._save()
         return True
 
@@ -289,8 +289,9 @@ class SiteLives:
             elif others + len(tests) > MAX_SITE_LIVES:
                 why = f"more than {MAX_SITE_LIVES} lives in all"
             else:
+                changed = self._by_station.get(station) != tuple(tests)
                 self._by_station[station] = tuple(tests)
-                return True
+                return changed
         self.counters["refused_messages"] += 1
         self.refused.warning(("bound", station), "%s: the lives of station %s not kept: %s",
                              self.own, clip(station, 40), why)

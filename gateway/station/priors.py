@@ -90,7 +90,8 @@ def origin(station_id: str, tests: list[PastTest]) -> tuple[int, str]:
     here = sum(1 for t in tests if (t.station or station_id) == station_id)
     if names == {station_id}:
         return 1, f"this station: {len(tests)} tests"
-    return len(names), f"the site: {len(tests)} tests from {len(names)} stations ({here} of this station)"
+    k = len(names)
+    return k, f"the site: {len(tests)} tests from {k} station{'' if k == 1 else 's'} ({here} of this station)"
 
 
 class PriorBook:
