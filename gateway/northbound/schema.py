@@ -95,7 +95,9 @@ FORECAST_STATE_FIELDS = FORECAST_FIELDS + (
     Field("prior_mean", "float|null", "the test's life prior, mean, s (§7a)"),
     Field("prior_sd", "float|null", "the test's life prior, SD, s"),
     Field("prior_source", "str|null", "where the prior came from: `method` (fixed in the station's "
-          "method section), `config` (forecast.priors), `history:N` (N recorded failures), null: none"),
+          "method section), `config` (forecast.priors), `history:N` (N recorded failures; from other "
+          "stations too: `history:N (the site: T tests from K stations (M of this station))`, "
+          "METHOD.md §7a), null: none"),
     Field("lead_s", "float|null", "the planner's lead (§5b `lead`), s"),
     Field("p_due", "float|null", "the bound P is held against (§5b `p_due`)"),
     Field("test_started_utc", "str|null", "UTC time of the test's slot 0, ISO 8601"),
@@ -715,6 +717,52 @@ def render() -> str:
         "in the station's alarm "
         "store (`alarm.json` in its records folder), which the PLC registers read as well: after a "
         "gateway restart the alarms stand until the next test start clears them.",
+        "",
+        "## The site's life history",
+        "",
+        "The life prior of a new test (METHOD.md §7a) comes from the lives of earlier hooks of "
+        "its grade and T_set — on every box of the site, not only this one. Every gateway "
+        "publishes, per station, the retained `<base>/lives`: the station's completed tests that "
+        "give the history a life (failures, and tests that found their baseline and ended on "
+        "purpose or at t_end: right-censored lives), its newest 500, at the start, after every "
+        "test and after every (re)connect; and it subscribes to "
+        "`<prefix>/<site>/+/+/+/lives` and pools what the other stations of its `station.site` "
+        "share into the history, each test once (by test id). `mqtt.share_lives: false` turns "
+        "both off. Why this design: *retained*, so a gateway that joins late (or restarts) gets "
+        "the whole site history from the broker at once, with no request and nothing to replay; "
+        "*one snapshot per station*, so the broker holds a bounded amount per station (one message "
+        "of at most 256 KiB) and never a growing number of retained topics, and a new snapshot "
+        "replaces the last whole; *published again on every connect*, so a broker that lost its "
+        "retained store gets it back; *kept locally* (`site_lives.json` in the station's records "
+        "folder), so a gateway that restarts while the broker is down still has the site's lives. "
+        "A retired station's lives are removed by clearing its retained topic (an empty retained "
+        "message). What a gateway receives goes through the one bounded JSON reader (bytes, depth, "
+        "numbers, keys, strings), then every record is checked (a test id, a grade, a plausible "
+        "T_set and planned duration, a life > 0 and within the planned duration, a censored life "
+        "that is `n_slots` · `ts` of a test with a baseline ended on purpose or at t_end, no NaN); "
+        "a malformed message or an implausible record is refused with one counted, rate-limited "
+        "log line and never reaches a prior. At most 500 lives per station, 256 stations and "
+        "20,000 lives in all are kept. The sidecar of a test says where its prior came from "
+        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_stations`, "
+        "`prior_from`: `this station: N tests` or `the site: N tests from K stations (M of this "
+        "station)`); the state's `prior_source` adds the same words to `history:N`.",
+        "",
+        "Only gateways may publish there. A site's broker should say so in its ACL, e.g. "
+        "Mosquitto's `acl_file` with one MQTT user per gateway box:",
+        "",
+        "```",
+        "# every client of the site may read the lives; only the box that runs a station writes",
+        "# its topics (hookwatch/<site>/<area>/<line>/<station>/…)",
+        "pattern read hookwatch/plant-a/+/+/+/lives",
+        "user gw-box-07",
+        "topic readwrite hookwatch/plant-a/+/+/loom-13/#",
+        "topic readwrite hookwatch/plant-a/+/+/loom-14/#",
+        "topic read hookwatch/plant-a/+/+/+/lives",
+        "```",
+        "",
+        "A record that passes the checks is still taken as true: a compromised gateway account "
+        "can skew a prior within the plausible range (its lives are 1 of K stations' in "
+        "`prior_from`), which is why the ACL matters.",
         "",
         "## Payloads",
         "",
