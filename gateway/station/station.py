@@ -182,8 +182,7 @@ class Station:
         self.health.set_disk(store, ok, info)
 
     def site_lives(self, tests: tuple[Any, ...]) -> None:
-        """The site's lives changed (the MQTT output, via the thread hand-over): they join the
-        §7a history of the next test's prior (fitted off the loop)."""
+        """The site's lives (the MQTT output, via the hand-over) join the §7a history."""
         self.tests.priors.set_site(tuple(t for t in tests if isinstance(t, PastTest)))
 
     def intake_rejected(self, data: dict[str, Any]) -> None:
