@@ -69,6 +69,12 @@
     const st = s.test_started_utc;
     return `projected end ${wall(wallAt(st, s.end_p10))} – ${wall(wallAt(st, s.end_p90))} (median ${wall(wallAt(st, s.end_p50))}), P_end ${fmt(s.p_end, 2)}`;
   }
+  // where the test's life prior came from (METHOD.md §7a): method / config / history:N, with
+  // "the site: T tests from K stations" when other stations' lives are in it
+  function priorText(s) {
+    if (s.prior_mean == null || !s.prior_source) return "none";
+    return `${fmt(s.prior_mean, 0)} ± ${fmt(s.prior_sd, 0)} s from ${esc(s.prior_source)}`;
+  }
   function wearWarning(s) {
     if (!s.wear_warning && (!s.warning_alarm || s.warning_alarm === "normal")) return "none";
     const r = (s.warn_reasons || []).map(esc).join(", ");
@@ -200,6 +206,7 @@
         <span>μ now</span><span>${fmt(s.mu_now)} (μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</span>
         <span>headroom</span><span id="headroom">${headroomBar(s.headroom, s.past_threshold)} ${s.t_cross != null ? "projected crossing at " + fmt(s.t_cross, 0) + " s" : ""}</span>
         <span>forecast</span><span id="projection">${projection(s) || "–"}</span>
+        <span>life prior</span><span id="prior">${priorText(s)}</span>
         <span>wear</span><span>${wearWarning(s)}</span>
         <span>t_life</span><span id="t-life">${s.t_life != null ? fmt(s.t_life, 2) + " s" : "–"}</span>
         <span>alarm</span><span id="alarm">${alarmBadge(s.alarm)}</span>

@@ -143,10 +143,14 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         _wait_js(page, "document.querySelector('#projection') && "
                        "document.querySelector('#projection').textContent.includes('projected end')")
         assert "P_end 0.12" in page.locator("#projection").inner_text()
+        # where the life prior came from (issue 29): the site's lives of other stations
+        assert page.locator("#prior").inner_text() == (
+            "5400 ± 600 s from history:3 (the site: 5 tests from 2 stations (0 of this station))")
         page.goto(url + "/#/station/loom-c")
         _wait_js(page, "document.querySelector('#state') && "
                        "document.querySelector('#state').textContent === 'end_of_life'")
         assert page.locator("#projection").inner_text() == "–"
+        assert page.locator("#prior").inner_text() == "none"
         assert "projected crossing" not in page.locator("#headroom").inner_text()
         assert page.locator("#headroom .bar.past").count() == 1
 
