@@ -3,13 +3,15 @@ grade I at 0.5 N: 3 failures and 2 hooks replaced early (STOPPED). Box B — its
 no history, no configured prior — receives A's retained lives, and a test it starts of that grade
 and T_set gets the §7a prior of A's lives in its sidecar (`prior_source: history`, 3 failures,
 2 censored, from the site). B keeps the site's lives locally (`site_lives.json`), and the MES sees
-A's snapshot on its `lives` topic (valid for docs/schemas/lives.json)."""
+A's snapshot on its `lives` topic (valid for docs/schemas/lives.json). Restarted while the broker
+is down, B still starts its next test with the site's prior (from its local copy)."""
 import json
 import os
 
 import pytest
 import yaml
 
+from gateway.history import read_history
 from gateway.method.prior import history_prior
 from gateway.northbound import schema as S
 from gateway.northbound.sitelives import STORE_NAME
@@ -69,6 +71,14 @@ def test_box_b_starts_with_the_site_prior_of_box_a(tmp_path):
                 meta_path = wait_for(lambda: _sidecar(root_b / "b"), 60, what="B's test started")
                 with open(meta_path) as f:
                     meta = yaml.safe_load(f)
+                gw_b.stop()
+                # B restarts while the broker is down: the site's lives come from its local copy
+                b.stop()
+                gw_b = run_gateway(tmp_path, st_b, "--start", name="gw-b2")
+                wait_log(gw_b, "the site's lives: 5 tests of 1 stations from", 60)
+                meta2_path = wait_for(lambda: _sidecar(root_b / "b", 2), 60, what="B's second test")
+                with open(meta2_path) as f:
+                    meta2 = yaml.safe_load(f)
         finally:
             for gw in (gw_b, gw_a):
                 if gw is not None:
@@ -84,13 +94,21 @@ def test_box_b_starts_with_the_site_prior_of_box_a(tmp_path):
     with open(root_b / "b" / STORE_NAME) as f:
         kept = json.load(f)["stations"]
     assert list(kept) == ["a"] and len(kept["a"]) == 5
+    # the second test of B (the broker down): A's lives and B's own first test, if it gave one
+    own = [t.life() for t in read_history(str(root_b / "b")) if t.life() is not None]
+    xs = list(FAILURES) + [v for k, v in own if k == "failure"]
+    cs = [n * 0.02 for n in STOPPED] + [v for k, v in own if k == "censored"]
+    again = history_prior(xs, cs)
+    assert meta2["prior_source"] == "history" and (meta2["prior_n"], meta2["prior_n_censored"]) == (
+        len(xs), len(cs))
+    assert meta2["method"]["prior_mean"] == pytest.approx(again[0], rel=1e-12)
+    assert meta2["method"]["prior_sd"] == pytest.approx(again[1], rel=1e-12)
 
 
-def _sidecar(station_dir):
+def _sidecar(station_dir, nth=1):
+    """The sidecar of the station's ``nth`` test (None before it started)."""
     if not station_dir.exists():
         return None
-    for d in sorted(os.listdir(station_dir)):
-        p = station_dir / d / "log.meta.yaml"
-        if p.exists():
-            return str(p)
-    return None
+    found = [station_dir / d / "log.meta.yaml" for d in sorted(os.listdir(station_dir))
+             if (station_dir / d / "log.meta.yaml").exists()]
+    return str(found[nth - 1]) if len(found) >= nth else None
