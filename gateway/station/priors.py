@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 from ..history import past_test, read_history
@@ -34,10 +35,10 @@ from ..method.prior import (
     PastTest,
     Prior,
     PriorEntry,
-    group_lives,
     group_tests,
     prior_of_lives,
     resolve_prior,
+    same_t_set,
 )
 
 __all__ = ["PriorBook", "SOURCE_METHOD"]
@@ -59,28 +60,48 @@ def _key(xs: list[float], cs: list[float]) -> FitKey:
     return tuple(sorted(xs)), tuple(sorted(cs))
 
 
-def fit_groups(history: list[PastTest]) -> dict[FitKey, Prior]:
+@dataclass(frozen=True)
+class Fitted:
+    """What the reading worker found: the fits by their lives, and per (grade, T_set) of the tests
+    read the prior as a test of that grade and T_set gets it (with its origin) and the test ids
+    it holds — a start then only looks it up (no scan of 40,000 tests on the slot loop)."""
+    by_lives: dict[FitKey, Prior]
+    by_group: dict[tuple[str, float], tuple[Prior, frozenset[str], list[tuple[PastTest, str, float]]]]
+
+
+def fit_groups(history: list[PastTest], station_id: str = "") -> Fitted:
     """The §7a prior of every (grade, T_set) group of ``history`` (each group as a test of that
-    grade at that T_set sees it), by its lives. Run by the reading worker, off the loop."""
-    out: dict[FitKey, Prior] = {}
-    done: set[tuple[str, float]] = set()
+    grade at that T_set sees it). Run by the reading worker, off the loop."""
+    out = Fitted({}, {})
     for t in history:
-        if t.grade is None or t.t_set is None or (t.grade, t.t_set) in done:
+        if t.grade is None or t.t_set is None or (t.grade, t.t_set) in out.by_group:
             continue
-        if len(done) >= MAX_GROUPS:
+        if len(out.by_group) >= MAX_GROUPS:
             break
-        done.add((t.grade, t.t_set))
-        xs, cs = group_lives(history, t.grade, t.t_set)
+        group = group_tests(history, t.grade, t.t_set)
+        xs = [v for _, k, v in group if k == OBSERVED]
+        cs = [v for _, k, v in group if k != OBSERVED]
         k = _key(xs, cs)
-        if k not in out:
-            out[k] = prior_of_lives(xs, cs)
+        if k not in out.by_lives:
+            out.by_lives[k] = prior_of_lives(xs, cs)
+        ids = frozenset(x.test_id for x, _, _ in group if x.test_id is not None)
+        out.by_group[(t.grade, t.t_set)] = (_labelled(out.by_lives[k], station_id, group), ids, group)
     return out
 
 
-def _read_and_fit(root: str, site: tuple[PastTest, ...] = ()) -> tuple[list[PastTest], dict[FitKey, Prior]]:
+def _labelled(pr: Prior, station_id: str, group: list[tuple[PastTest, str, float]]) -> Prior:
+    """A history prior with where it came from (NO_PRIOR for none)."""
+    if pr.source != SOURCE_HISTORY:
+        return NO_PRIOR
+    k, words = origin(station_id, [t for t, _, _ in group])
+    label = f"history:{pr.n}" if k == 1 else f"history:{pr.n} ({words})"
+    return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k, origin=words)
+
+
+def _read_and_fit(root: str, site: tuple[PastTest, ...] = (), station_id: str = "") -> tuple[list[PastTest], Fitted]:
     """The records root's history, and the fits of its groups with the site's lives."""
     hist = read_history(root)
-    return hist, fit_groups(hist + list(site))
+    return hist, fit_groups(hist + list(site), station_id)
 
 
 def origin(station_id: str, tests: list[PastTest]) -> tuple[int, str]:
@@ -103,9 +124,10 @@ class PriorBook:
         self.entries: tuple[PriorEntry, ...] = tuple(entries)
         #: the last history read (None: none finished yet)
         self.history: list[PastTest] | None = None
-        #: the fits of the last read's groups (by their lives)
-        self.fits: dict[FitKey, Prior] = {}
-        self._reading: asyncio.Future[tuple[list[PastTest], dict[FitKey, Prior]]] | None = None
+        #: the fits of the last read's groups (by their lives, and by grade and T_set)
+        self.fitted = Fitted({}, {})
+        self._fitted_site: tuple[PastTest, ...] = ()
+        self._reading: asyncio.Future[tuple[list[PastTest], Fitted]] | None = None
         #: results of this station's tests ended since the last read began (kept until a read
         #: that began after them has finished)
         self._recent: list[PastTest] = []
@@ -124,10 +146,11 @@ class PriorBook:
             return
         recent = list(self._recent)
         self._again = False
-        fut = loop.run_in_executor(None, _read_and_fit, self.records_root, self.site)
+        site = self.site
+        fut = loop.run_in_executor(None, _read_and_fit, self.records_root, site, self.station_id)
         self._reading = fut
 
-        def done(f: asyncio.Future[tuple[list[PastTest], dict[FitKey, Prior]]]) -> None:
+        def done(f: asyncio.Future[tuple[list[PastTest], Fitted]]) -> None:
             if f.cancelled():
                 return
             exc = f.exception()
@@ -135,7 +158,8 @@ class PriorBook:
                 log.warning("%s: the life history under %s could not be read (%s)", self.station_id,
                             self.records_root, exc)
                 return
-            self.history, self.fits = f.result()
+            self.history, self.fitted = f.result()
+            self._fitted_site = site
             if self._again:
                 self.refresh()
             self._recent = [t for t in self._recent if t not in recent]
@@ -169,22 +193,51 @@ class PriorBook:
         pr = resolve_prior(self.entries, (), grade, t_set)
         if pr.source == SOURCE_CONFIG or grade is None:
             return pr
+        quick = self._looked_up(grade, t_set)
+        if quick is not None:
+            return quick
         group = group_tests(self.known(), grade, t_set)
         xs = [v for _, k, v in group if k == OBSERVED]
         cs = [v for _, k, v in group if k != OBSERVED]
-        pr = self.fits.get(_key(xs, cs)) or self._fit(grade, t_set, xs, cs)
-        if pr.source == SOURCE_HISTORY:
-            k, words = origin(self.station_id, [t for t, _, _ in group])
-            label = f"history:{pr.n}" if k == 1 else f"history:{pr.n} ({words})"
-            return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k,
-                         origin=words)
-        return NO_PRIOR
+        return _labelled(self.fitted.by_lives.get(_key(xs, cs)) or self._fit(grade, t_set, xs, cs),
+                         self.station_id, group)
+
+    def _looked_up(self, grade: str, t_set: float) -> Prior | None:
+        """The worker's group of this grade and T_set (None: it has none, the start computes):
+        its prior when nothing changed since it read (the same site's lives, no test of the group
+        ended since); with the tests ended since, fitted at the start when the group is small, else
+        the worker's fit (one log line; the next read fits them)."""
+        if self._fitted_site is not self.site:
+            return None
+        hit = self.fitted.by_group.get((grade, t_set))
+        if hit is None:
+            return None
+        pr, ids, group = hit
+        extra = []
+        for t in self._recent:
+            lf = t.life()
+            if (lf is not None and t.grade == grade and t.t_set is not None and same_t_set(t.t_set, t_set)
+                    and (t.test_id is None or t.test_id not in ids)):
+                extra.append((t, lf[0], lf[1]))
+        if not extra:
+            return pr
+        if len(group) + len(extra) > SYNC_FIT_MAX:
+            log.info("%s: the life history of %s at %g N (%d lives) is being fitted again off the "
+                     "loop; this test starts with the last fit", self.station_id, grade, t_set,
+                     len(group) + len(extra))
+            return pr
+        both = group + extra
+        xs = [v for _, k, v in both if k == OBSERVED]
+        cs = [v for _, k, v in both if k != OBSERVED]
+        return _labelled(prior_of_lives(xs, cs), self.station_id, both)
 
     def _fit(self, grade: str, t_set: float, xs: list[float], cs: list[float]) -> Prior:
-        """A group the reading worker did not fit: at once when small, else the last read's fit."""
+        """A group the reading worker did not fit: at once when small, else the worker's fit of
+        the nearest group of the grade (one log line)."""
         if len(xs) + len(cs) <= SYNC_FIT_MAX:
             return prior_of_lives(xs, cs)
-        old = self.fits.get(_key(*group_lives(self.history or [], grade, t_set)), NO_PRIOR)
+        near = next((v[0] for (g, ts), v in self.fitted.by_group.items()
+                     if g == grade and same_t_set(ts, t_set)), NO_PRIOR)
         log.info("%s: the life history of %s at %g N (%d lives) is being fitted again off the loop; "
                  "this test starts with the last fit", self.station_id, grade, t_set, len(xs) + len(cs))
-        return old
+        return near

@@ -244,7 +244,7 @@ def test_censored_lives_enter_the_prior_fitted_off_the_loop(tmp_path, caplog, mo
         await _until(lambda: book.history is not None)
     asyncio.run(read())
     # the worker fitted the group: the start only looks it up
-    assert len(book.fits) == 1
+    assert len(book.fitted.by_lives) == 1 and len(book.fitted.by_group) == 1
     h = book.resolve("I", 0.5, {})
     assert (h.source, h.label, h.n, h.n_censored) == ("history", "history:4", 4, 3)
     assert abs(h.mean - 3156.10905968845) <= 1e-10 * 3156 and abs(h.sd - 182.25402648037655) <= 1e-8
