@@ -148,3 +148,29 @@ def test_the_store_counts_refusals_in_one_line_keeps_bounds_and_persists(tmp_pat
         assert SL.SiteLives(path, "b").load() == 0
     assert any("cannot be read" in r.getMessage() for r in caplog.records)
     st.close()
+
+
+def test_on_by_default_for_mqtt_stations_and_one_key_turns_it_off(tmp_path):
+    from gateway.config import load_station
+    from gateway.northbound.mqtt import MqttOutput
+    from gateway.northbound.wiring import mqtt_settings
+
+    base = ("station: {id: s1, site: plant}\nmeter: {port: /dev/a-meter}\nstm32: {port: /dev/a-stm32}\n"
+            f"recorder: {{dir: {tmp_path / 'rec'}}}\n")
+    on = tmp_path / "on.yaml"
+    on.write_text(base + "mqtt: {enabled: true}\n")
+    off = tmp_path / "off.yaml"
+    off.write_text(base + "mqtt: {enabled: true, share_lives: false}\n")
+    s_on, s_off = mqtt_settings(load_station(str(on))), mqtt_settings(load_station(str(off)))
+    assert s_on.share_lives and s_on.records_dir == str(tmp_path / "rec" / "s1")
+    assert not s_off.share_lives
+    out_on, out_off = MqttOutput(s_on), MqttOutput(s_off)
+    try:
+        # on: the pump subscribes to the site's lives and hands them to the store; off: neither
+        assert out_on.site is not None and out_on.pump.on_lives is not None
+        assert out_on.site.path == str(tmp_path / "rec" / "s1" / SL.STORE_NAME)
+        assert out_off.site is None and out_off.pump.on_lives is None
+    finally:
+        out_on.pump.join(0)
+        out_off.pump.join(0)
+        out_on.site.close()
