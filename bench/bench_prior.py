@@ -57,16 +57,16 @@ def main():
     print("fit of n lives (60 % failures): median time, Newton steps")
     for n in (10, 100, 1000, 10000, 40000):
         xs, cs = lives(n)
-        steps = []
+        steps: list[int] = []
         orig = P._ell
 
-        def counting(*a, orig=orig):
+        def counting(*a, orig=orig, steps=steps):
             steps.append(1)
             return orig(*a)
         P._ell = counting
         history_prior(xs, cs)
         P._ell = orig
-        t = median_s(lambda: history_prior(xs, cs), 3 if n > 5000 else 7)
+        t = median_s(lambda xs=xs, cs=cs: history_prior(xs, cs), 3 if n > 5000 else 7)
         print(f"  n={n:6d}: {t * 1e3:9.2f} ms  (ℓ evaluations {len(steps)})")
     hist = tests(20000, "a", 1)
     site = tuple(t for k in range(40) for t in tests(500, f"s{k}", 100 + k))

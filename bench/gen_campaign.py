@@ -432,7 +432,10 @@ def forecast_campaign(*, compress: float = 40.0, reps: int = 6, grades=("I", "II
                     method.update(prior_mean=prior.mean, prior_sd=prior.sd)
                 p = build_params(method)
                 res = analyze_readings(t, a, b, p)
-                history.append(PastTest(g, sp, res.status, res.t_life))
+                # §7a: a failure, or a right-censored life (a baseline, then t_end: no_failure)
+                history.append(PastTest(g, sp, res.status, res.t_life, k_b=res.k_b,
+                                        stop_reasons=None if res.stop_reasons is None
+                                        else tuple(res.stop_reasons), n_slots=res.n_slots, ts=p.ts))
                 band = None
                 if res.t_life is not None and prior.mean is not None and prior.sd is not None:
                     f = band_at_half_life(res.t_life, prior.mean, prior.sd, p.lead, p.n_ss * p.ts)
@@ -463,7 +466,8 @@ def _write_forecast_test(root: str, i: int, row: ForecastRow, t, a, b, method: d
     with open(os.path.join(d, "result.json"), "w", encoding="utf-8") as f:
         json.dump({"test_id": test_id, "station": PLANT_STATION, "test_status": "completed",
                    "end_reason": "completed", "sample_id": row.sample_id, "grade": row.grade,
-                   "t_set": row.t_set, "method": res}, f, indent=1)
+                   "t_set": row.t_set, "ts": method.get("ts", 0.02), "t_end": method.get("t_end"),
+                   "method": res}, f, indent=1)
 
 
 def _row_line(r: ForecastRow) -> str:
