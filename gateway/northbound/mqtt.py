@@ -122,6 +122,8 @@ class MqttOutput:
             self._share(first=True)
 
     async def stop(self) -> None:
+        if self._site_jobs:         # the lives of a test that ended at the stop go out with the rest
+            await asyncio.wait(list(self._site_jobs), timeout=15.0)
         self._flush_telemetry(time.monotonic())
         self.pump.request_stop()
         if self.pump.started:
