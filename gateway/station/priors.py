@@ -50,6 +50,9 @@ SOURCE_METHOD = "method"
 #: a group of at most this many lives that the reading worker has not fitted is fitted at the start
 SYNC_FIT_MAX = 400
 
+#: a history of at most this many tests may be scanned at a start (≈ 3 ms); beyond it a start
+#: that finds the worker's fit out of date uses it all the same (one log line)
+SCAN_MAX = 5000
 #: (grade, T_set) groups the reading worker fits, at most
 MAX_GROUPS = 256
 #: a group's lives, as the key of its fit
@@ -207,12 +210,18 @@ class PriorBook:
         its prior when nothing changed since it read (the same site's lives, no test of the group
         ended since); with the tests ended since, fitted at the start when the group is small, else
         the worker's fit (one log line; the next read fits them)."""
-        if self._fitted_site is not self.site:
-            return None
         hit = self.fitted.by_group.get((grade, t_set))
         if hit is None:
             return None
         pr, ids, group = hit
+        if self._fitted_site is not self.site:
+            # the site's lives changed since the worker's fit (it is fitting them now): a small
+            # history is scanned at the start, a large one starts with the last fit
+            if len(self.history or ()) + len(self.site) <= SCAN_MAX:
+                return None
+            log.info("%s: the site's lives changed and are being fitted off the loop; this test "
+                     "starts with the last fit", self.station_id)
+            return pr
         extra = []
         for t in self._recent:
             lf = t.life()

@@ -260,3 +260,36 @@ def test_censored_lives_enter_the_prior_fitted_off_the_loop(tmp_path, caplog, mo
         h3 = book.resolve("I", 0.5, {})
     assert (h3.mean, h3.n_censored) == (h.mean, 3)
     assert sum("fitted again off the loop" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_site_lives_that_change_are_refitted_off_the_loop_and_a_start_meanwhile_never_scans_a_large_history(
+        tmp_path, caplog, monkeypatch):
+    import gateway.station.priors as P
+    from gateway.method.prior import PastTest
+    root = tmp_path / "records"
+    for i, life in enumerate((100.0, 120.0, 110.0)):
+        _result(root / "a", f"T{i}", "I", 0.5, "failure", life)
+    book = PriorBook("a", str(root))
+    site = tuple(PastTest("I", 0.5, "failure", x, test_id=f"S{i}", station="s2", t_end=600.0)
+                 for i, x in enumerate((90.0, 95.0)))
+
+    async def go():
+        book.refresh()
+        await _until(lambda: book.history is not None)
+        before = book.resolve("I", 0.5, {})
+        book.set_site(site)               # received from the broker: fitted again off the loop
+        during = book.resolve("I", 0.5, {})          # a small history: scanned at once
+        await _until(lambda: book._fitted_site is site)
+        return before, during, book.resolve("I", 0.5, {})
+    before, during, after = asyncio.run(go())
+    assert before.n == 3 and before.origin == "this station: 3 tests"
+    assert during == after and after.n == 5
+    assert after.origin == "the site: 5 tests from 2 stations (3 of this station)"
+    assert after.label == "history:5 (the site: 5 tests from 2 stations (3 of this station))"
+    # a large history: a start before the refit uses the last fit (one log line), never a scan
+    monkeypatch.setattr(P, "SCAN_MAX", 2)
+    book.site = site + (PastTest("I", 0.5, "failure", 80.0, test_id="S9", station="s3", t_end=600.0),)
+    with caplog.at_level(logging.INFO, logger="hookwatch.station"):
+        stale = book.resolve("I", 0.5, {})
+    assert stale == after
+    assert sum("being fitted off the loop" in r.getMessage() for r in caplog.records) == 1
