@@ -4,9 +4,10 @@ In this order: a fixed ``prior_mean``/``prior_sd`` in the station's ``method:`` 
 source ``method``); else its ``forecast.priors`` entry for the test's grade and T_set (``config``);
 else the recorded history — every completed test under the records root (``recorder.dir``: in a
 fleet, every station of the box) and every one the site's other stations shared (MQTT,
-gateway/northbound/sitelives.py), each test once by test id, with the same grade and T_set: its failures (at least 3) and its
-right-censored lives (a test that found its baseline and ended on purpose or at t_end), the
-maximum-likelihood normal of both (``history:N``, N failures); else none. The sidecar records the
+gateway/northbound/sitelives.py), each test once by test id, with the same grade and T_set: its
+failures (at least 3) and its right-censored lives (a test that found its baseline and ended on
+purpose or at t_end), the maximum-likelihood normal of both (``history:N``, N failures); else
+none. The sidecar records the
 §7a source (``config`` or ``history``) with ``prior_n`` and ``prior_n_censored``.
 
 The history is read off the slot loop (a worker thread of the loop's default executor) when the
@@ -17,8 +18,8 @@ slot loop's time) with the results of this station's tests ended since: a group'
 by its lives; a group the worker has not fitted (a test just ended) is fitted at the start when it
 holds at most :data:`SYNC_FIT_MAX` lives (≈ 2 ms), else the last read's fit of the group is used
 (one log line); a start while the site's lives are being fitted again scans a history of at most
-:data:`SCAN_MAX` tests, else uses the last fit. Bounded by :mod:`gateway.history` (the newest 20,000 result files, 1 MiB each); a
-damaged result is skipped there with one log line.
+:data:`SCAN_MAX` tests, else uses the last fit. Bounded by :mod:`gateway.history` (the newest
+20,000 result files, 1 MiB each); a damaged result is skipped there with one log line.
 """
 from __future__ import annotations
 
