@@ -32,7 +32,7 @@ from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
 from ..northbound import schema as mqtt_schema
-from ..osprio import die_with_parent, realtime_thread
+from ..osprio import die_with_parent, freeze_heap, realtime_thread
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
@@ -256,6 +256,7 @@ def run(args) -> int:
             st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
             if console is not None:
                 st.outputs.append(console.output_for(st))
+            freeze_heap()               # as `hookwatch run`: no full GC pass walks it again
             loop = asyncio.get_running_loop()
             for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):     # SIGHUP: the terminal closed
                 loop.add_signal_handler(s, stop.set)
