@@ -113,7 +113,8 @@ def one_round(args, work: str, camp: str | None, k: int) -> dict:
         yaml.safe_dump(sc, f)
     sim_events = os.path.join(rd, "sim-events.jsonl")
     sim_log = open(os.path.join(rd, "sim.log"), "w")
-    sim = subprocess.Popen([EXE, "sim", scp, "--link-dir", links, "--events", sim_events],
+    nice = [] if args.nice is None else ["nice", "-n", str(args.nice)]
+    sim = subprocess.Popen([*nice, EXE, "sim", scp, "--link-dir", links, "--events", sim_events],
                            stdout=subprocess.PIPE, stderr=sim_log, text=True)
     for _ in range(2):
         sim.stdout.readline()
@@ -139,7 +140,7 @@ def one_round(args, work: str, camp: str | None, k: int) -> dict:
     if args.no_freeze:
         env["BENCH_NO_FREEZE"] = "1"
     gw_log = open(os.path.join(rd, "gw.log"), "w")
-    gw = subprocess.Popen([sys.executable, "-c", GC_PROBE, "run", st, "--start", "--realtime", "20",
+    gw = subprocess.Popen([*nice, sys.executable, "-c", GC_PROBE, "run", st, "--start", "--realtime", "20",
                            "--duration", str(m["t_end"] + 30), "--exit-when-done",
                            "--stats-json", stats, "--log-level", "warning"],
                           stdout=subprocess.DEVNULL, stderr=gw_log, env=env)
@@ -206,6 +207,8 @@ def main() -> int:
     ap.add_argument("--watchdog", type=float, default=None, metavar="S",
                     help="stm32.watchdog_s of the station (default: null, stop_after + 0.5 s)")
     ap.add_argument("--no-freeze", action="store_true", help="the gateway without gc.freeze")
+    ap.add_argument("--nice", type=int, default=-5, help="niceness of the gateway and the simulator "
+                    "(default -5, as the units' Nice=-5; 0: as an ordinary process)")
     ap.add_argument("--keep", action="store_true", help="keep the work folder")
     args = ap.parse_args()
     work = tempfile.mkdtemp(prefix="hw-bench-stall-")
@@ -221,7 +224,7 @@ def main() -> int:
                   f"(p99 {r['lateness_ms_p99']:.2f}), filled {r['filled_pct']:.2f} %; GC "
                   f"{r['gc_n']} passes, max {r['gc_max_ms']:.1f} ms, gen-2 {r['gc2_n']} "
                   f"(max {r['gc2_max_ms']:.1f} ms), {r['gc_over_10ms']} over 10 ms", flush=True)
-        wd = f", watchdog {args.watchdog:g} s" if args.watchdog else ""
+        wd = (f", watchdog {args.watchdog:g} s" if args.watchdog else "") + f", nice {args.nice}"
         print(f"sum: {len(rows)} rounds ({'quiet' if args.quiet else 'beside chromium, report, pip'}"
               f"{wd}"
               f"{', no gc.freeze' if args.no_freeze else ''}): aborted tests "

@@ -88,3 +88,21 @@ def freeze_heap() -> None:
     never walked again; what the station allocates from then on is collected as before. Cheap
     (a list splice) and cumulative: each station of a process may call it after its build."""
     gc.freeze()
+
+
+#: the niceness of the systemd units (deploy/systemd: ``Nice=-5``): every thread of the gateway
+#: ahead of the box's ordinary work, so a thread that holds the GIL is not kept off the CPU by a
+#: browser or a compile while the SCHED_FIFO slot thread waits for the GIL
+DEPLOYED_NICE = -5
+
+
+def deployed_nice() -> str | None:
+    """Lower this process' niceness to :data:`DEPLOYED_NICE` as the units deploy it (threads
+    and processes started afterwards inherit it). None on success, else why not."""
+    try:
+        cur = os.getpriority(os.PRIO_PROCESS, 0)
+        if cur > DEPLOYED_NICE:
+            os.setpriority(os.PRIO_PROCESS, 0, DEPLOYED_NICE)
+    except OSError as e:
+        return e.strerror or str(e)
+    return None

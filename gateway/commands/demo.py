@@ -32,7 +32,7 @@ from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
 from ..northbound import schema as mqtt_schema
-from ..osprio import die_with_parent, freeze_heap, realtime_thread
+from ..osprio import deployed_nice, die_with_parent, freeze_heap, realtime_thread
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
@@ -198,6 +198,9 @@ def run(args) -> int:
         cfg = load_station(args.station)
     except ConfigError as e:
         raise CliError(str(e), 1) from None
+    # as deployed (the units' Nice=-5): the demo's threads and its simulator (started below,
+    # it inherits this) ahead of a browser or a compile on the same box; elsewhere as is
+    deployed_nice()
     work = args.dir or tempfile.mkdtemp(prefix="hookwatch-demo-")
     os.makedirs(work, exist_ok=True)
     print(f"hookwatch demo: a virtual loom station (scenario {os.path.relpath(args.scenario)}), "
