@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -113,7 +114,7 @@ def one_round(args, work: str, camp: str | None, k: int) -> dict:
         yaml.safe_dump(sc, f)
     sim_events = os.path.join(rd, "sim-events.jsonl")
     sim_log = open(os.path.join(rd, "sim.log"), "w")
-    nice = [] if args.nice is None else ["nice", "-n", str(args.nice)]
+    nice = ["nice", "-n", str(args.nice)] if args.nice else []
     sim = subprocess.Popen([*nice, EXE, "sim", scp, "--link-dir", links, "--events", sim_events],
                            stdout=subprocess.PIPE, stderr=sim_log, text=True)
     for _ in range(2):
@@ -188,10 +189,18 @@ def one_round(args, work: str, camp: str | None, k: int) -> dict:
     # the passes once the station is built (its slot loop runs): those are the stalls that count
     pauses = [(g, d) for g, d, live in pauses if live]
     gc2 = [d for g, d in pauses if g == 2]
+    # the station's own words on late slot starts (a slot passed over late: the process stalled)
+    with open(os.path.join(rd, "gw.log")) as f:
+        glog = f.read()
+    late = [int(a or b) for a, b in re.findall(r"started (\d+) ms late|the worst (\d+) ms late", glog)]
     return {"tests": len(results),
             "aborted": sum(r["test_status"] != "completed" for r in results),
             "end": [r.get("end_reason") for r in results],
             "watchdog_stops": len(stops), "lateness_ms_max": s["lateness_ms_max"],
+            "late_start_ms_max": max(late, default=0), "missing": sum(
+                r["method"]["reasons"].get("MISSING", 0) for r in results),
+            "n_slots": sum(r["method"]["n_slots"] for r in results),
+            "status": [r["method"]["status"] for r in results],
             "lateness_ms_p99": s["lateness_ms_p99"], "filled_pct": 100 * s["filled_ratio"],
             "gc_n": len(pauses), "gc_max_ms": max((d for _g, d in pauses), default=0.0),
             "gc2_n": len(gc2), "gc2_max_ms": max(gc2, default=0.0),
@@ -220,8 +229,11 @@ def main() -> int:
             rows.append(r)
             print(f"round {k + 1}: load {os.getloadavg()[0]:.1f}; tests {r['tests']}, aborted "
                   f"{r['aborted']} ({', '.join(map(str, r['end']))}); watchdog stops "
-                  f"{r['watchdog_stops']}; slot lateness max {r['lateness_ms_max']:.1f} ms "
-                  f"(p99 {r['lateness_ms_p99']:.2f}), filled {r['filled_pct']:.2f} %; GC "
+                  f"{r['watchdog_stops']}; method status {', '.join(r['status'])}, MISSING "
+                  f"{r['missing']} of {r['n_slots']} slots; worst late slot start "
+                  f"{r['late_start_ms_max']} ms; lateness of the polled slots max "
+                  f"{r['lateness_ms_max']:.1f} ms (p99 {r['lateness_ms_p99']:.2f}), filled "
+                  f"{r['filled_pct']:.2f} %; GC "
                   f"{r['gc_n']} passes, max {r['gc_max_ms']:.1f} ms, gen-2 {r['gc2_n']} "
                   f"(max {r['gc2_max_ms']:.1f} ms), {r['gc_over_10ms']} over 10 ms", flush=True)
         wd = (f", watchdog {args.watchdog:g} s" if args.watchdog else "") + f", nice {args.nice}"
@@ -229,7 +241,8 @@ def main() -> int:
               f"{wd}"
               f"{', no gc.freeze' if args.no_freeze else ''}): aborted tests "
               f"{sum(r['aborted'] for r in rows)} (must be 0), watchdog stops "
-              f"{sum(r['watchdog_stops'] for r in rows)}, worst slot lateness "
+              f"{sum(r['watchdog_stops'] for r in rows)}, worst late slot start (stall) "
+              f"{max(r['late_start_ms_max'] for r in rows)} ms, worst lateness of a polled slot "
               f"{max(r['lateness_ms_max'] for r in rows):.1f} ms, worst GC pause "
               f"{max(r['gc_max_ms'] for r in rows):.1f} ms")
         return 1 if any(r["aborted"] for r in rows) else 0
