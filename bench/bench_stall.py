@@ -115,7 +115,8 @@ def one_round(args, work: str, camp: str | None, k: int) -> dict:
     sim_events = os.path.join(rd, "sim-events.jsonl")
     sim_log = open(os.path.join(rd, "sim.log"), "w")
     nice = ["nice", "-n", str(args.nice)] if args.nice else []
-    sim = subprocess.Popen([*nice, EXE, "sim", scp, "--link-dir", links, "--events", sim_events],
+    sim = subprocess.Popen([*nice, EXE, "sim", scp, "--link-dir", links, "--events", sim_events,
+                            *([] if args.sim_normal else ["--realtime", "10"])],
                            stdout=subprocess.PIPE, stderr=sim_log, text=True)
     for _ in range(2):
         sim.stdout.readline()
@@ -218,6 +219,8 @@ def main() -> int:
     ap.add_argument("--no-freeze", action="store_true", help="the gateway without gc.freeze")
     ap.add_argument("--nice", type=int, default=-5, help="niceness of the gateway and the simulator "
                     "(default -5, as the units' Nice=-5; 0: as an ordinary process)")
+    ap.add_argument("--sim-normal", action="store_true", help="the simulator at normal priority "
+                    "(default: hookwatch sim --realtime 10, as the demo starts it)")
     ap.add_argument("--keep", action="store_true", help="keep the work folder")
     args = ap.parse_args()
     work = tempfile.mkdtemp(prefix="hw-bench-stall-")

@@ -95,7 +95,10 @@ def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
     os.makedirs(links, exist_ok=True)
     truth = os.path.join(work, "truth.json")
     cmd = [sys.executable, "-m", "gateway.cli", "sim", args.scenario, "--link-dir", links,
-           "--seed", str(args.seed), "--truth", truth]
+           "--seed", str(args.seed), "--truth", truth,
+           # the twin stands for hardware: its loop under SCHED_FIFO 10 where permitted (below
+           # the station's 20), so a browser starting beside the demo does not starve it
+           "--realtime", "10"]
     log = open(os.path.join(work, "sim.log"), "w")
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, preexec_fn=die_with_parent)
     assert p.stdout is not None
