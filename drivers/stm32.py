@@ -62,6 +62,7 @@ from .stm32_protocol import (
     decode_reply,
     exchange_time_s,
     speed_payload,
+    watchdog_for,
     watchdog_payload,
 )
 from .ttyio import hung_up, set_low_latency
@@ -198,13 +199,18 @@ class Stm32Link:
         self.low_latency = False             # the kernel took low-latency mode for the port
 
     @classmethod
-    def from_config(cls, cfg) -> Stm32Link:
+    def from_config(cls, cfg, *, watchdog_s: float | None = None) -> Stm32Link:
+        """``watchdog_s``: the period to set at enable (the station's, derived from its
+        protection stop when ``stm32.watchdog_s`` is null); else the section's, else the one
+        for the method's default protection stop (1 s + WATCHDOG_MARGIN_S)."""
         def get(name, default):
             v = getattr(cfg, name, None)
             return default if v is None else v
+        if watchdog_s is None:
+            watchdog_s = float(get("watchdog_s", watchdog_for(1.0)))
         return cls(cfg.port, baud=int(get("baud", DEFAULT_BAUD)),
                    timeout_s=float(get("timeout_s", 0.01)), retries=int(get("retries", 1)),
-                   watchdog_s=float(get("watchdog_s", 0.2)),
+                   watchdog_s=watchdog_s,
                    budget_s=float(get("budget_s", 0.018)))
 
     # ------------------------------------------------------------------ port
@@ -566,10 +572,17 @@ class Stm32Link:
         """Set the firmware watchdog to the configured period (unless it already has it), then
         ENABLE (speed command 0). Up to 3 calls if there is no answer at all."""
         self._want_enabled = True
+        want = int(round(self.watchdog_s * 1000))
         st = self.last_status
-        if st is None or st.watchdog_ms != int(round(self.watchdog_s * 1000)):
+        if st is None or st.watchdog_ms != want:
             await self._status(Cmd.SET_WATCHDOG, watchdog_payload(self.watchdog_s), attempts=2)
-        return await self._status(Cmd.ENABLE, attempts=3)
+        st = await self._status(Cmd.ENABLE, attempts=3)
+        if st is not None and st.watchdog_ms != want:
+            # the SET_WATCHDOG before went unanswered (or the firmware restarted since): the
+            # drive now runs on the firmware's period, so set ours (allowed while enabled)
+            st = await self._status(Cmd.SET_WATCHDOG, watchdog_payload(self.watchdog_s),
+                                    attempts=2) or st
+        return st
 
     async def disable(self) -> Status | None:
         self._want_enabled = False          # no keep-alive from now on, whatever the answer

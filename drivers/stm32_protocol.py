@@ -24,6 +24,22 @@ RPM_SCALE = 100           # speeds on the wire: signed 32-bit, 0.01 rpm per coun
 DEFAULT_MAX_RPM = 600.0   # SET_SPEED range of the firmware: 0 … max_rpm
 WATCHDOG_MS_MIN = 20
 WATCHDOG_MS_MAX = 60000
+#: the firmware's watchdog period after power-on, until the gateway sets its own (SET_WATCHDOG)
+WATCHDOG_POWER_ON_S = 0.2
+#: the gateway's watchdog period is the protection stop's `stop_after` plus this margin
+#: (docs/protocols/stm32.md, "Safety argument"): a stall of the gateway's process shorter than
+#: `stop_after` leaves at most stop_after + one slot (the last frame before the stall) + the
+#: resumed process' first slot without a frame on the wire; 0.5 s covers the last two many times
+WATCHDOG_MARGIN_S = 0.5
+
+
+def watchdog_for(stop_after_s: float) -> float:
+    """The watchdog period a gateway whose protection stop comes after ``stop_after_s`` of
+    unsafe slots sets in the firmware: long enough that a stall of the gateway shorter than the
+    protection stop never stops the drive, short enough that a dead gateway's motor stops
+    within stop_after + WATCHDOG_MARGIN_S (clipped to the firmware's range)."""
+    s = max(0.0, float(stop_after_s)) + WATCHDOG_MARGIN_S
+    return min(WATCHDOG_MS_MAX / 1000.0, max(WATCHDOG_MS_MIN / 1000.0, s))
 
 
 class Cmd(enum.IntEnum):

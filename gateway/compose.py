@@ -37,7 +37,7 @@ def build_meter(cfg) -> MeterPort:
 
 def build_stm32(cfg) -> Stm32Port:
     """The take-up motor controller of the ``stm32:`` section."""
-    return Stm32Link.from_config(cfg.stm32)
+    return Stm32Link.from_config(cfg.stm32, watchdog_s=cfg.stm32_watchdog_s())
 
 
 def northbound_outputs(cfg, station: StationLinks, *, modbus: bool = True, sparkplug: bool = True) -> list[Output]:

@@ -158,7 +158,8 @@ class SimStation:
         self.stm32 = VirtualStm32(Stm32Firmware(self.scenario.watchdog_s),
                                   LiveMotor(self.plant, self.now),
                                   os.path.join(self.link_dir, "stm32"),
-                                  baud=self.scenario.stm32_baud, tick_s=STM32_TICK_S)
+                                  baud=self.scenario.stm32_baud, tick_s=STM32_TICK_S,
+                                  on_drive=lambda rec: self._event("drive", **rec))
         await self.meter.start()
         await self.stm32.start(own_ticker=not shared_tick)
         self._write_truth()

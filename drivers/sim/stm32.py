@@ -18,8 +18,10 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,6 +45,8 @@ from ..stm32_protocol import (
     wire_time_s,
 )
 from .pty import PtyLink
+
+log = logging.getLogger("hookwatch.sim.stm32")
 
 #: stop reasons a STOP command may carry
 GATEWAY_STOP_REASONS = (StopReason.COMMAND, StopReason.PROTECTION, StopReason.TEST_END,
@@ -288,7 +292,8 @@ class VirtualStm32:
 
     def __init__(self, *args, firmware=None, motor=None, link_path: str | None = None,
                  watchdog_s: float = 0.2, baud: int = DEFAULT_BAUD, processing_s: float = 0.0002,
-                 tick_s: float = 0.005, gap_s: float = 0.005, link: Any = None):
+                 tick_s: float = 0.005, gap_s: float = 0.005, link: Any = None,
+                 on_drive: Callable[[dict[str, Any]], None] | None = None):
         rest = list(args)
         if rest and not hasattr(rest[0], "set_command"):
             firmware = rest.pop(0)
@@ -322,6 +327,9 @@ class VirtualStm32:
         # what the motor was last told: (enabled, rpm)
         self._out: tuple[bool | None, float | None] = (None, None)
         self._handles: set[asyncio.TimerHandle] = set()
+        #: called with a record whenever the drive is enabled or stops (see ``_apply``)
+        self.on_drive = on_drive
+        self.drive_log: list[dict[str, Any]] = []
 
     @staticmethod
     def _make_firmware(spec, watchdog_s: float) -> Stm32Firmware:
@@ -401,9 +409,35 @@ class VirtualStm32:
         en, rpm = fw.drive_enabled, fw.drive_rpm
         if en != self._out[0]:
             self.motor.enable(en)
+            if self._out[0] is not None:
+                self._report_drive(en)
         if rpm != self._out[1]:
             self.motor.set_command(rpm)
         self._out = (en, rpm)
+
+    def _report_drive(self, enabled: bool) -> None:
+        """The drive was enabled or stopped: one log line and record (a stop by the watchdog
+        says how long the line had been silent: the gateway's silence, as the firmware saw it)."""
+        fw = self.firmware
+        now = self._loop.time() if self._loop is not None else time.monotonic()
+        rec: dict[str, Any] = {"enabled": enabled, "reason": fw.stop_reason.name,
+                               "watchdog_ms": fw.watchdog_ms}
+        if not enabled and fw.last_valid_rx is not None:
+            rec["silent_s"] = round(now - fw.last_valid_rx, 4)
+        if enabled:
+            log.info("stm32: drive enabled (watchdog %d ms)", fw.watchdog_ms)
+        elif fw.stop_reason == StopReason.WATCHDOG:
+            log.warning("stm32: drive stopped: WATCHDOG (no valid command for %.3f s; watchdog "
+                        "%d ms)", rec.get("silent_s", math.nan), fw.watchdog_ms)
+        else:
+            log.info("stm32: drive stopped: %s", fw.stop_reason.name)
+        if len(self.drive_log) < 1000:
+            self.drive_log.append(rec)
+        if self.on_drive is not None:
+            try:
+                self.on_drive(rec)
+            except Exception:  # a broken observer must not stop the device
+                log.exception("stm32: on_drive")
 
     def _measure(self, now: float) -> None:
         try:

@@ -32,7 +32,7 @@ from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.server import ConsoleServer, ConsoleSettings
 from ..northbound import schema as mqtt_schema
-from ..osprio import die_with_parent, realtime_thread
+from ..osprio import deployed_nice, die_with_parent, freeze_heap, realtime_thread
 from ..ports import Output
 from ..records import EventType
 from ..report.pipeline import build_report
@@ -95,7 +95,10 @@ def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
     os.makedirs(links, exist_ok=True)
     truth = os.path.join(work, "truth.json")
     cmd = [sys.executable, "-m", "gateway.cli", "sim", args.scenario, "--link-dir", links,
-           "--seed", str(args.seed), "--truth", truth]
+           "--seed", str(args.seed), "--truth", truth,
+           # the twin stands for hardware: its loop under SCHED_FIFO 10 where permitted (below
+           # the station's 20), so a browser starting beside the demo does not starve it
+           "--realtime", "10"]
     log = open(os.path.join(work, "sim.log"), "w")
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=log, text=True, preexec_fn=die_with_parent)
     assert p.stdout is not None
@@ -198,6 +201,9 @@ def run(args) -> int:
         cfg = load_station(args.station)
     except ConfigError as e:
         raise CliError(str(e), 1) from None
+    # as deployed (the units' Nice=-5): the demo's threads and its simulator (started below,
+    # it inherits this) ahead of a browser or a compile on the same box; elsewhere as is
+    deployed_nice()
     work = args.dir or tempfile.mkdtemp(prefix="hookwatch-demo-")
     os.makedirs(work, exist_ok=True)
     print(f"hookwatch demo: a virtual loom station (scenario {os.path.relpath(args.scenario)}), "
@@ -242,26 +248,45 @@ def run(args) -> int:
             print("MES     : no MQTT (Mosquitto is not installed: apt-get install mosquitto)", flush=True)
 
         ended: dict[str, int] = {}
+        verdict: list[int] = []
 
         async def main():
             # as deployed (`hookwatch run --realtime 20`): the slot loop (this thread) under
             # SCHED_FIFO where permitted, so a busy box does not stall the demo's life; threads it
             # starts later (MQTT, the executor) begin under normal scheduling. Elsewhere: as is
             realtime_thread(20)
-            stop = asyncio.Event()
-            outs: list[Output] = [TerminalOutput(every_s=args.every), _EndWatcher(stop), _EolWatcher(ended)]
+            stop = asyncio.Event()          # Ctrl-C, SIGTERM, a closed terminal: the demo ends
+            life_over = asyncio.Event()     # the test ended (or its start failed)
+            outs: list[Output] = [TerminalOutput(every_s=args.every), _EndWatcher(life_over),
+                                  _EolWatcher(ended)]
             st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
             if console is not None:
                 st.outputs.append(console.output_for(st))
+            freeze_heap()               # as `hookwatch run`: no full GC pass walks it again
             loop = asyncio.get_running_loop()
             for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):     # SIGHUP: the terminal closed
                 loop.add_signal_handler(s, stop.set)
             task = asyncio.create_task(st.run(stop))
-            try:
-                await asyncio.wait_for(stop.wait(), args.timeout)
-            except TimeoutError:
+            either = [asyncio.create_task(stop.wait()), asyncio.create_task(life_over.wait())]
+            _done, pending = await asyncio.wait(either, timeout=args.timeout,
+                                                return_when=asyncio.FIRST_COMPLETED)
+            for t in pending:
+                t.cancel()
+            if not stop.is_set() and not life_over.is_set():
                 print("hookwatch demo: timed out", file=sys.stderr)
-                stop.set()
+            elif not stop.is_set():
+                # the result is kept right after its event: wait for it (a bound, not a goal)
+                for _ in range(200):
+                    if st.results or stop.is_set():
+                        break
+                    await asyncio.sleep(0.05)
+                # the closing words beside the idle station (the analysis and the figure run
+                # on a worker thread: the station's loop, the console and the PLC map answer on)
+                verdict.append(await asyncio.to_thread(_closing, st, cfg, links, work, ended))
+                if console is not None or broker is not None:
+                    print(AFTER_LIFE, flush=True)
+                    await stop.wait()
+            stop.set()
             await task
             return st
 
@@ -271,6 +296,19 @@ def run(args) -> int:
         if console is not None:
             console.stop()
         _stop_proc(broker)
+    if verdict:
+        return verdict[0]
+    return _closing(st, cfg, links, work, ended)
+
+
+#: said once the life is over and the console and broker stay up (a CI script waits for this
+#: exact line, then sends SIGINT: keep it)
+AFTER_LIFE = "hookwatch demo: the life is over; the console and the broker stay up until Ctrl-C"
+
+
+def _closing(st, cfg, links: dict[str, str], work: str, ended: dict[str, int]) -> int:
+    """The closing words (what happened, online against offline, the files) and the demo's
+    verdict: 0 when the life ended in a detected end of life and online == offline."""
     if not st.results:
         print(f"hookwatch demo: no test was completed (files under {work})", file=sys.stderr)
         return 1
@@ -290,6 +328,9 @@ def run(args) -> int:
     print()
     print(f"test {res['test_id']}: " + _plain_words(m, ended, onset, float(st.method_values.get("tau", 60.0)),
                                                      st.ts, same, completed, res.get("end_reason")))
+    why = _lead_words(m)
+    if why:
+        print(f"  warning: {why}")
     print(f"  online : {m['status']}, μ_ss {_num(m['mu_ss'], 4)}, μ_th {_num(m['mu_th'], 4)}, "
           f"t_life {_num(m['t_life'], 1)} s, valid {m['n_valid']} of {m['n_slots']} slots")
     print(f"  offline: hookwatch analyze {log_path}"
@@ -297,11 +338,29 @@ def run(args) -> int:
     print(f"  records: {test_dir}/ (log.csv.gz, log.meta.yaml, events.jsonl, result.json)")
     fig = _fig7(test_dir, os.path.join(work, "report"))
     print(f"  Fig. 7 : {fig}" if fig else "  Fig. 7 : not written (see hookwatch report)")
-    print(f"  files  : everything the demo wrote is under {work} (remove it with: rm -r {work})")
+    print(f"  files  : everything the demo wrote is under {work} (remove it with: rm -r {work})",
+          flush=True)
+    detected = m.get("t_life") is not None and ended.get("k_detect") is not None
     if not completed:
         print(f"hookwatch demo: the test did not complete ({res.get('end_reason')})", file=sys.stderr)
-        return 1
-    return 0 if same else 1
+    if not detected:
+        print("hookwatch demo: no end of life was detected", file=sys.stderr)
+    return 0 if detected and same else 1
+
+
+#: where an early warning's lead comes from (METHOD.md §5b: the result's warn_reasons)
+LEAD_SOURCES = {
+    "prior": "the life prior (what earlier hooks of this grade at this T_set lasted)",
+    "trend": "the trend of μ (its rise extrapolated to μ_th)",
+    "headroom": "the wear headroom (μ close to μ_th for n_warn windows)",
+}
+
+
+def _lead_words(m: dict) -> str:
+    reasons = m.get("warn_reasons") or []
+    if m.get("warn_slot") is None or not reasons:
+        return ""
+    return "its lead came from " + " and ".join(LEAD_SOURCES.get(r, r) for r in reasons)
 
 
 def _num(v: float | None, digits: int) -> str:
@@ -324,12 +383,15 @@ def _plain_words(m: dict, ended: dict, onset: float | None, tau: float, ts: floa
     """What happened, in one sentence, from the real numbers (rounded as a person reads them)."""
     agrees = "offline analysis of the recorded log agrees" if same else "OFFLINE ANALYSIS DISAGREES"
     t_life = m.get("t_life")
-    if not completed:
-        return f"the test did not complete ({end_reason}); {agrees}"
+    # a test that ended early still says what it had found before the stop
+    early = [] if completed else [f"the test ended early ({end_reason}); before the stop"]
     if t_life is None:
-        return (f"no end of life within the test (status {m.get('status')})"
-                + (f"; simulated wear onset {onset:.1f} s" if onset is not None else "") + f"; {agrees}")
-    parts = [f"the hook reached its end of life {t_life:.1f} s after the start"]
+        return "; ".join(early + [f"no end of life {'was found' if early else 'within the test'} "
+                                  f"(status {m.get('status')})"]
+                         + _warned_early(m, ts)
+                         + ([f"simulated wear onset {onset:.1f} s"] if onset is not None else [])
+                         + [agrees])
+    parts = early + [f"the hook reached its end of life {t_life:.1f} s after the start"]
     k = ended.get("k_detect")
     if k is not None:
         t_det = (k + 1) * ts
@@ -351,6 +413,15 @@ def _warned(m: dict, t_life: float, ts: float) -> str:
     if t_warn <= t_life:
         return f"warned {t_life - t_warn:.1f} s before the end of life (reasons: {why})"
     return f"warned only {t_warn - t_life:.1f} s after the end of life began (reasons: {why})"
+
+
+def _warned_early(m: dict, ts: float) -> list[str]:
+    """An early warning that came although no end of life was found (yet)."""
+    warn_slot = m.get("warn_slot")
+    if warn_slot is None:
+        return []
+    why = ", ".join(m.get("warn_reasons") or [])
+    return [f"warned at {(int(warn_slot) + 1) * ts:.1f} s (reasons: {why})"]
 
 
 def _fig7(test_dir: str, out: str) -> str | None:

@@ -15,7 +15,7 @@ from .. import sdnotify
 from ..cli import CliError
 from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_sparkplug_nodes
 from ..config import ConfigError, load_fleet, load_station
-from ..osprio import MAX_PRIORITY
+from ..osprio import DEPLOYED_NICE, MAX_PRIORITY, deployed_nice
 from ..ports import Runtime
 from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
@@ -59,7 +59,8 @@ def add_arguments(ap):
     ap.add_argument("--realtime", type=_rt_priority, default=None, metavar="PRIO",
                     help="run each station's slot-loop thread under SCHED_FIFO at PRIO "
                          f"(1–{MAX_PRIORITY}) where permitted (root, CAP_SYS_NICE or "
-                         "LimitRTPRIO=); otherwise a warning and normal scheduling "
+                         "LimitRTPRIO=); otherwise a warning and normal scheduling; and the "
+                         f"process at niceness {DEPLOYED_NICE} as the units (where permitted) "
                          "(docs/runtime.md, 'Real-time priority')")
     ap.add_argument("--worker-watchdog", type=float, default=5.0, metavar="S",
                     help="a fleet: a worker silent this long is killed and restarted (default 5)")
@@ -106,6 +107,14 @@ def _console(cfgs):
 def run(args) -> int:
     """Build the runtime (the stations in this process, or a supervisor with a worker process
     per station) and drive it in the one main loop (:func:`drive`)."""
+    if args.realtime:
+        # as the units deploy it (Nice=-5), before any thread or worker starts (they inherit
+        # it): a thread holding the GIL while the SCHED_FIFO slot thread waits for it is not
+        # kept off the CPU by the box's ordinary work (issue 27: a slot started 244 ms late
+        # beside Chromium at niceness 0, 63 ms at -5; bench/bench_stall.py)
+        why = deployed_nice()
+        if why is not None:
+            logging.getLogger("hookwatch.run").info("niceness %d not taken: %s", DEPLOYED_NICE, why)
     if os.path.isdir(args.path) and not args.in_process:
         made = _supervised(args)
     else:

@@ -14,6 +14,7 @@ from drivers.sim.scenario import ScenarioError, load_scenario
 from drivers.sim.station import EventLog, SimStation, fleet_from_dict, fleet_of_count, is_fleet_file, run_fleet
 
 from ..cli import CliError
+from ..osprio import realtime_thread
 
 MAX_FLEET = 64
 
@@ -47,6 +48,11 @@ def add_arguments(ap):
     ap.add_argument("--events", metavar="PATH", help="write events (faults firing and clearing, "
                     "wear onset, …) as JSON lines here (default: stderr)")
     ap.add_argument("--log-level", default="warning", help="debug, info, warning, error")
+    ap.add_argument("--realtime", type=int, default=None, metavar="PRIO",
+                    help="run the simulator's loop (plant, meter, STM32 firmware) under "
+                         "SCHED_FIFO at PRIO where permitted (below the gateway's slot loops, "
+                         "e.g. 10 beside --realtime 20): the twin stands for hardware, which a "
+                         "browser or a compile on the same box does not slow down")
 
 
 def _peek_fleet(path: str | None) -> dict | None:
@@ -138,7 +144,7 @@ def run(args) -> int:
         duration = args.duration if args.duration is not None else (
             entries[0].scenario.duration_s if fleet_data is None else None)
         try:
-            asyncio.run(_main(stations, duration, multi))
+            asyncio.run(_main(stations, duration, multi, args.realtime))
         except OSError as e:
             raise CliError(f"cannot run the virtual station: {e}", 1) from None
     finally:
@@ -146,8 +152,13 @@ def run(args) -> int:
     return 0
 
 
-async def _main(stations, duration, multi: bool) -> None:
+async def _main(stations, duration, multi: bool, realtime: int | None = None) -> None:
 
+    if realtime:
+        why = realtime_thread(realtime)
+        if why is not None:
+            logging.getLogger("hookwatch.sim").warning("simulator at normal priority: SCHED_FIFO "
+                                                       "%d %s", realtime, why)
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

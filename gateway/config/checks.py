@@ -162,9 +162,21 @@ def _speeds(cfg, ld, r):
         r.warning(("control", "n_max_rpm"), f"{cfg.control.n_max_rpm:g} rpm is above the STM32 "
                   f"firmware's speed range (0 … {P.DEFAULT_MAX_RPM:g} rpm): commands above it are refused",
                   anchor=("control",))
-    if cfg.stm32.watchdog_s < 5 * cfg.method["ts"]:
-        r.warning(("stm32", "watchdog_s"), f"{cfg.stm32.watchdog_s:g} s is less than 5 slots: one "
-                  "late slot can stop the motor", anchor=("stm32",))
+    wd = cfg.stm32.watchdog_s
+    if wd is None:
+        return          # null: method.stop_after + the margin, as the design needs
+    stop_after = float(cfg.method.get("stop_after", 1.0) or 0.0)
+    need = P.watchdog_for(stop_after)
+    if wd < stop_after:
+        r.error(("stm32", "watchdog_s"), f"{wd:g} s is shorter than the protection stop "
+                f"(method.stop_after = {stop_after:g} s): a stall of the gateway the method "
+                "tolerates would stop the drive and end the test; allowed: ≥ "
+                f"{stop_after:g} s (recommended: null = {need:g} s)", anchor=("stm32",))
+    elif wd < need:
+        r.warning(("stm32", "watchdog_s"), f"{wd:g} s leaves less than {P.WATCHDOG_MARGIN_S:g} s "
+                  f"over the protection stop (method.stop_after = {stop_after:g} s): a stall "
+                  "just shorter than it can still stop the drive (recommended: null = "
+                  f"{need:g} s)", anchor=("stm32",))
 
 
 def _ports(cfg, ld, r):
@@ -229,8 +241,9 @@ CHECKS: tuple[Check, ...] = (
     Check("`test.t_set_n` is below the saturation `sat_ratio · full_scale` (error) and at most "
           "half of it (warning).", _setpoint),
     Check("`test.t_end_s` is longer than `method.w_hold` (warning).", _duration),
-    Check("`control.n_max_rpm` within the STM32 firmware's range; `stm32.watchdog_s` at least 5 "
-          "slots (warnings).", _speeds),
+    Check("`control.n_max_rpm` within the STM32 firmware's range (warning); `stm32.watchdog_s` "
+          "not shorter than `method.stop_after` (error) and at least "
+          f"`stop_after` + {P.WATCHDOG_MARGIN_S:g} s (warning).", _speeds),
     Check("The serial ports exist here (warning).", _ports, local=True),
     Check("`recorder.dir` is writable; the MQTT password variable/file and TLS files exist "
           "(warnings).", _files, local=True),

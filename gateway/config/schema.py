@@ -24,6 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
+from drivers.stm32_protocol import watchdog_for
+
 from ..control import ControlParams, NotchParams
 from ..method.params import PARAMS as METHOD_PARAMS
 from ..method.prior import PriorEntry, same_t_set
@@ -208,9 +210,13 @@ class Stm32Config:
                            "for this slot", kind="float", unit="s", lo=0.0, hi=1.0, lo_open=True)
     retries: int = key(1, "retries of a request that got no valid reply, within one slot",
                        kind="int", lo=0, hi=5)
-    watchdog_s: float = key(0.2, "the STM32 stops the motor when it hears nothing for this long "
-                            "(sent to the controller with the enable command)", kind="float",
-                            unit="s", lo=0.02, hi=60.0)
+    watchdog_s: float | None = key(None, "the STM32 stops the motor when it hears nothing for "
+                                   "this long (sent to the controller with the enable command); "
+                                   "shorter than `method.stop_after` is refused: a stall of the "
+                                   "gateway that the protection stop tolerates would stop the "
+                                   "drive (docs/protocols/stm32.md, safety argument)",
+                                   kind="float", unit="s", lo=0.02, hi=60.0, nullable=True,
+                                   null_means="`method.stop_after` + 0.5 s (1.5 s)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -705,6 +711,13 @@ class StationConfig:
     #: not a key: the station file this configuration was read from, and its fleet file
     source: str = field(default="", metadata={"internal": True})
     fleet_file: str | None = field(default=None, metadata={"internal": True})
+
+    def stm32_watchdog_s(self) -> float:
+        """The STM32 watchdog period the gateway sets at enable: ``stm32.watchdog_s``, or when
+        null `method.stop_after` + WATCHDOG_MARGIN_S (docs/protocols/stm32.md, safety argument)."""
+        if self.stm32.watchdog_s is not None:
+            return float(self.stm32.watchdog_s)
+        return watchdog_for(float(self.method.get("stop_after", 1.0) or 0.0))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
-from ..osprio import realtime_thread
+from ..osprio import freeze_heap, realtime_thread
 from ..threadloop import ThreadLoop
 from .station import Station
 
@@ -89,6 +89,7 @@ class StationRunner:
             try:
                 self.station = None
                 self.station = self.factory()
+                freeze_heap()          # no full GC pass walks the built station again
                 self.station.reloaded = reloaded
                 if self.on_started:
                     self.on_started(self.station)

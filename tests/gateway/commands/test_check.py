@@ -105,6 +105,27 @@ def test_warnings_pass_unless_strict(tmp_path):
     assert rc == 1
 
 
+def test_watchdog_margin_over_the_protection_stop(tmp_path):
+    """Issue 27: the watchdog must outlast the protection stop (a stall the method tolerates
+    must not stop the drive): below stop_after an error, within its margin a warning, null or
+    ≥ stop_after + 0.5 s clean."""
+    def run(stm32_extra, method=""):
+        p = tmp_path / "s.yaml"
+        p.write_text("station: {id: s}\nmeter: {port: /dev/none-meter}\n"
+                     f"stm32: {{port: /dev/none-stm32{stm32_extra}}}\n{method}")
+        return check("--skip-local", str(p))
+
+    rc, out, _ = run(", watchdog_s: 1.2")
+    assert rc == 0 and "stm32.watchdog_s: 1.2 s leaves less than 0.5 s" in out, out
+    rc, out, _ = run(", watchdog_s: 1.5")
+    assert rc == 0 and "watchdog_s" not in out, out
+    rc, out, _ = run("")
+    assert rc == 0 and "watchdog_s" not in out, out
+    # a longer protection stop needs a longer watchdog
+    rc, out, _ = run(", watchdog_s: 1.5", "method: {stop_after: 3}\n")
+    assert rc == 1 and "shorter than the protection stop (method.stop_after = 3 s)" in out, out
+
+
 def test_local_checks(tmp_path):
     p = tmp_path / "s.yaml"
     ro = tmp_path / "ro"

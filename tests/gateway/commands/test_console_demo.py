@@ -12,6 +12,7 @@ import time
 import urllib.request
 
 from conftest import ROOT, hookwatch_cmd
+from gateway.commands.demo import AFTER_LIFE
 from kit.broker import check_message
 from kit.e2e import QUICK_END, QUICK_LEAD, QUICK_METHOD, QUICK_PRIOR, Proc, quick_scenario, read_json, station_yaml
 from kit.tools import require_tool
@@ -71,7 +72,17 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
             topic, _, payload = ln.partition(" ")
             bad = check_message(topic, payload)
             assert bad is None, bad
-        assert demo.p.wait(180) == 0, demo.log()
+        # after the life the console and the broker stay up until Ctrl-C, and the demo says so
+        assert demo.readline_until(AFTER_LIFE, timeout=180) == ""      # exactly this line
+        assert demo.p.poll() is None, demo.log()
+        with urllib.request.urlopen(url + "api/fleet", timeout=10) as r:
+            assert b'"demo"' in r.read()
+        q = subprocess.run(["mosquitto_sub"] + shlex.split(sub) + ["-W", "4"], capture_output=True,
+                           text=True, timeout=30)
+        assert "/demo/status" in q.stdout, q.stdout + q.stderr
+        # Ctrl-C: it stops cleanly, with the life's verdict (a detected end of life, online == offline)
+        demo.p.send_signal(signal.SIGINT)
+        assert demo.p.wait(60) == 0, demo.log()
     finally:
         demo.stop()
     out = "".join(demo.stdout_lines()) + demo.stdout_rest
@@ -89,6 +100,8 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
     result = read_json([os.path.join(dp, "result.json") for dp, _d, fs in os.walk(work / "records")
                         if "result.json" in fs][0])["method"]
     assert ahead > 0 and "prior" in reasons.split(", ") and reasons.split(", ") == result["warn_reasons"]
+    # … and the words say where the lead came from
+    assert "  warning: its lead came from the life prior (what earlier hooks" in out, out
     assert abs(t_life - (result["warn_slot"] + 1) * 0.02 - ahead) < 0.06
     t_det = t_life + later
     (res_path,) = [os.path.join(dp, "result.json") for dp, _d, fs in os.walk(work / "records") if "result.json" in fs]

@@ -81,7 +81,9 @@ def test_minimal_station_gets_every_default(tmp_path):
     assert cfg.station.id == "s1" and cfg.station.site == ""
     assert cfg.meter.baud is None and cfg.meter.timeout_s == 0.015
     assert os.path.isfile(cfg.meter.map) and cfg.meter.map.endswith("zn-s.yaml")
-    assert cfg.stm32.baud == 115200 and cfg.stm32.watchdog_s == 0.2
+    assert cfg.stm32.baud == 115200 and cfg.stm32.watchdog_s is None
+    # null: the protection stop (stop_after 1 s) + 0.5 s (docs/protocols/stm32.md, safety argument)
+    assert cfg.stm32_watchdog_s() == 1.5
     assert cfg.method == {p.name: p.default for p in PARAMS if p.name not in ("t_set", "t_end", "end_slot")}
     assert cfg.control.kp == ControlParams().kp and cfg.control.notch.q_max == NotchParams().q_max
     assert cfg.test.t_set_n == 0.5 and cfg.test.t_end_s == 36000.0 and cfg.test.autostart is False
