@@ -13,6 +13,7 @@ from ..cli import CliError
 from ..commission.probe import probe_station
 from ..config import cross_issues, station_files, validate_fleet, validate_station
 from ..config.checks import budget_text, bus_budget, feasibility
+from ..ratelog import safe
 
 HELP = "validate station files / fleet folders and check their feasibility (exit 0 ok, 1 errors)"
 DESCRIPTION = (HELP + ". Everything named in one call is checked as one box: station IDs, serial "
@@ -122,7 +123,7 @@ def run(args) -> int:
         n_err, n_warn = n_err + e, n_warn + w
         station_bad = had_errors[i] or ld.cfg is None
         bad_stations += station_bad
-        name = f"station {ld.name}" if ld.name else "station"
+        name = f"station {safe(ld.name, 64)}" if ld.name else "station"
         if args.quiet and not issues and not station_bad:
             continue
         head = f"{ld.path} ({name}): "
@@ -151,7 +152,7 @@ def _probe(loaded, args, out) -> int:
     failed = 0
     seen: set = set()
     for ld in loaded:
-        name = f"station {ld.name}" if ld.name else ld.path
+        name = f"station {safe(ld.name, 64)}" if ld.name else ld.path
         if ld.cfg is None:
             print(f"probe {name}: skipped (the file has errors)", file=out)
             continue

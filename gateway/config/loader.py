@@ -22,10 +22,15 @@ from typing import Any
 from drivers.zns_map import DEFAULT_MAP_PATH, load_map
 
 from ..method.params import ParamError, build_params
+from ..ratelog import clip
 from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
 from . import schema as S
 from .yamlpos import Pos, YamlError
 from .yamlpos import load as load_yaml
+
+#: longest piece of a bad value quoted in a message (a 1 MB station id is shown by its start and
+#: length: gateway/ratelog.py clip)
+ECHO = 64
 
 AUTO: Any = object()  # fleet_file: find it by the rule above
 
@@ -366,7 +371,7 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
                 return False, _bad(v, f"item {i + 1} ({show_value(item)}) is not a string; "
                                    f"allowed: {allowed}", allowed)
             if kind == "ip_list" and not S.check_ip(item.strip()):
-                return False, _bad(v, f"item {i + 1} ({item!r}) is not an IP address or network; "
+                return False, _bad(v, f"item {i + 1} ({clip(item, ECHO)}) is not an IP address or network; "
                                    f"allowed: {allowed}", allowed)
             out.append(item.strip())
         return True, tuple(out)
@@ -384,18 +389,18 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
         for c in k.choices or ():
             if v.strip().lower() == str(c).lower():
                 return True, c
-        return False, _bad(v, f"{v!r} is not allowed; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{clip(v, ECHO)} is not allowed; allowed: {allowed}", allowed)
     if kind == "str":
         return True, v
     s = v.strip()
     if not s:
-        return False, _bad(v, f"{v!r} is empty; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{clip(v, ECHO)} is empty; allowed: {allowed}", allowed)
     if kind == "ident" and not S.check_ident(s):
-        return False, _bad(v, f"{v!r} is not a valid name; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{clip(v, ECHO)} is not a valid name; allowed: {allowed}", allowed)
     if kind == "topic" and not S.TOPIC_RE.match(s):
-        return False, _bad(v, f"{v!r} is not a valid topic prefix; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{clip(v, ECHO)} is not a valid topic prefix; allowed: {allowed}", allowed)
     if kind == "envvar" and not S.ENV_RE.match(s):
-        return False, _bad(v, f"{v!r} is not a valid variable name; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{clip(v, ECHO)} is not a valid variable name; allowed: {allowed}", allowed)
     return True, s
 
 

@@ -40,9 +40,19 @@ EVENTS_NAME = "events.jsonl"
 RESULT_NAME = "result.json"
 
 
+def floor_ms(ts: float) -> tuple[int, int]:
+    """(whole seconds, milliseconds) of a Unix time, both floored: a time is never written as
+    later (or, wrapping, earlier) than it was — hh:mm:30.9996 is 30.999, not 31.000 or 30.000."""
+    total = math.floor(ts * 1000.0)
+    if total / 1000.0 > ts:          # ts * 1000 rounded up in the last bit
+        total -= 1
+    return total // 1000, total % 1000
+
+
 def utc_iso(ts: float | None = None) -> str:
-    ts = time.time() if ts is None else ts
-    return _dt.datetime.fromtimestamp(ts, _dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    """UTC ISO 8601 to the millisecond, floored (:func:`floor_ms`)."""
+    s, ms = floor_ms(time.time() if ts is None else ts)
+    return (_dt.datetime.fromtimestamp(s, _dt.UTC).strftime("%Y-%m-%dT%H:%M:%S") + f".{ms:03d}Z")
 
 
 def _f(x: float | None) -> str:
@@ -203,11 +213,11 @@ def _write_block(fd: int, data: bytes, good_offset: int) -> int:
 
 def new_test_dir(station_dir: str, sample_id: str, start_wall: float | None = None) -> tuple[str, str]:
     """A test id that cannot collide and its folder, created exclusively: UTC time to the
-    millisecond + the sample name; if that folder exists (two starts in one millisecond, a clock
-    step back), ``-2``, ``-3``, … is appended. Returns (test_id, path)."""
-    start_wall = time.time() if start_wall is None else start_wall
-    ms = int(round((start_wall % 1) * 1000)) % 1000
-    base = (time.strftime("%Y%m%dT%H%M%S", time.gmtime(start_wall)) + f".{ms:03d}Z-"
+    millisecond (floored: an id is never earlier, nor later, than the start it names) + the sample
+    name; if that folder exists (two starts in one millisecond, a clock step back), ``-2``, ``-3``,
+    … is appended. Returns (test_id, path)."""
+    s, ms = floor_ms(time.time() if start_wall is None else start_wall)
+    base = (time.strftime("%Y%m%dT%H%M%S", time.gmtime(s)) + f".{ms:03d}Z-"
             + safe_name(sample_id))
     os.makedirs(station_dir, exist_ok=True)
     for n in range(1, 10_000):

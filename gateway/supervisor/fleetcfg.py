@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..config import Issue, cross_issues, validate_fleet
+from ..ratelog import safe
 
 __all__ = ["FleetPlan", "Refused", "RunOptions", "apply_overrides", "fingerprint", "plan_fleet"]
 
@@ -100,7 +101,7 @@ def plan_fleet(folder: str) -> FleetPlan:
     for i, ld in enumerate(loaded):
         if i in bad:
             name = ld.name or os.path.splitext(os.path.basename(ld.path))[0]
-            plan.refused.append(Refused(ld.path, str(name), bad[i]))
+            plan.refused.append(Refused(ld.path, safe(name, 64), bad[i]))
         else:
             plan.accepted.append((ld.path, ld.cfg))
     return plan

@@ -158,6 +158,27 @@ def test_station_file_named_differently(tmp_path):
     assert "the unit hookwatch@loom-09 would run station loom-9" in out
 
 
+def test_a_huge_station_id_is_echoed_clipped(tmp_path):
+    """Issue 27.9: a 1 MB station id was printed whole, twice (the heading and the error). It is
+    quoted by its start and its length; in a fleet folder the refusal the supervisor logs (at the
+    start and on every reload) is as short (its name and message come from plan_fleet)."""
+    from gateway.supervisor.fleetcfg import plan_fleet
+    huge = "A" * 1_000_000
+    (tmp_path / "stations").mkdir()
+    (tmp_path / "stations" / "big.yaml").write_text(
+        f"station: {{id: {huge}}}\nmeter: {{port: /dev/a}}\nstm32: {{port: /dev/b}}\n")
+    (tmp_path / "stations" / "ok.yaml").write_text(
+        "station: {id: ok}\nmeter: {port: /dev/c}\nstm32: {port: /dev/d}\n")
+    rc, out, _ = check("--skip-local", str(tmp_path))
+    assert rc == 1
+    assert len(out) < 2000, len(out)
+    assert "(1000000 chars)" in out and "is not a valid name" in out
+    plan = plan_fleet(str(tmp_path))
+    [r] = plan.refused
+    assert len(r.name) < 100 and len(r.message()) < 1000, (len(r.name), len(r.message()))
+    assert [c.station.id for _, c in plan.accepted] == ["ok"]
+
+
 @pytest.mark.parametrize("args,fragment", [
     (["/no/such/file.yaml"], "/no/such/file.yaml: no such file or folder"),
     (["tests"], "tests: no station files (expected tests/stations/*.yaml)"),

@@ -14,7 +14,7 @@ from gateway.logio import read_log
 from gateway.method.rules import LOST
 from gateway.records import Command, CommandKind, SlotRecord
 from gateway.station import recorder as recmod
-from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, new_test_dir
+from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, floor_ms, new_test_dir, utc_iso
 from kit.e2e import analyze_cli, events, read_json, run_gateway, scenario_file, station_yaml, test_dirs, virtual_station
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.smallfs import fill, small_tmpfs
@@ -239,6 +239,22 @@ def test_test_dirs_are_exclusive_within_one_millisecond(tmp_path):
     assert [i for i, _ in ids] == ["20231114T221320.250Z-S_1", "20231114T221320.250Z-S_1-2",
                                    "20231114T221320.250Z-S_1-3"]
     assert len({p for _, p in ids}) == 3 and all(os.path.isdir(p) for _, p in ids)
+
+
+def test_a_test_id_is_never_earlier_nor_later_than_its_start(tmp_path):
+    """Issue 27.9: a start at hh:mm:30.9996 (the station's clock read at that instant; no real
+    clock here) was named ``…30.000Z`` (rounded to 1000 ms, then wrapped: 1 s early). Floored,
+    the id and the start time written beside it name the same millisecond, never a later one."""
+    base = 1_700_000_010.0                         # 2023-11-14T22:13:30Z
+    for frac, want in ((0.9996, "30.999"), (0.99999, "30.999"), (0.0004, "30.000"), (0.5, "30.500")):
+        tid, _ = new_test_dir(str(tmp_path), f"S{frac}", base + frac)
+        assert tid.startswith(f"20231114T2213{want}Z-"), (frac, tid)
+        assert utc_iso(base + frac) == f"2023-11-14T22:13:{want}Z", frac
+    # whatever the fraction, the named instant is at or before the start and within 1 ms of it
+    for i in range(1000):
+        ts = base + i / 1000.0 + 0.0009999
+        s, ms = floor_ms(ts)
+        assert s + ms / 1000.0 <= ts < s + (ms + 1) / 1000.0 + 1e-9, ts
 
 
 def test_two_tests_started_within_one_second_get_two_folders(tmp_path):
