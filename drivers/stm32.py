@@ -65,7 +65,7 @@ from .stm32_protocol import (
     watchdog_for,
     watchdog_payload,
 )
-from .ttyio import hung_up, set_low_latency
+from .ttyio import hung_up, open_exclusive, set_low_latency
 
 log = logging.getLogger("hookwatch.stm32")
 
@@ -224,8 +224,8 @@ class Stm32Link:
     def _try_open(self) -> bool:
         try:
             # serial_for_url: a device path as serial.Serial, or a pyserial URL (hwloop:// in tests)
-            ser = serial.serial_for_url(self.port, self.baud, bytesize=8, parity="N", stopbits=1,
-                                        timeout=0, write_timeout=0, exclusive=True)
+            ser = open_exclusive(self.port, baudrate=self.baud, bytesize=8, parity="N", stopbits=1,
+                                 timeout=0, write_timeout=0)
         except (serial.SerialException, OSError, ValueError) as e:
             if not self._open_error_logged:
                 log.warning("stm32 %s: cannot open (%s); retrying every %.1f s", self.port, e,

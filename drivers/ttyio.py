@@ -11,6 +11,8 @@ import struct
 import termios
 from typing import Any
 
+import serial
+
 _HANGUP = select.POLLHUP | select.POLLERR | select.POLLNVAL
 
 
@@ -126,3 +128,152 @@ def latency_timer_ms(port: str, sysfs: str = "/sys") -> int | None:
             return int(f.read(16).strip())
     except (OSError, ValueError):
         return None
+
+
+# ------------------------------------------------------------------------------ who holds a port
+# A station's drivers open their ports exclusively (pyserial's ``exclusive=True``: flock(2)
+# LOCK_EX on the open port). flock is advisory: a program that does not ask (pymodbus' client,
+# a terminal program) is not stopped by it, and a serial port's settings (baud, parity) belong to
+# the device, not to one opener — whoever opens it and sets 9600 baud sets it for the station
+# too. So anything of ours that opens a port asks first (:func:`port_in_use`), opens it
+# exclusively itself, and puts back what it changed (:func:`keep_settings`).
+
+class PortInUse(serial.SerialException):
+    """The port is locked by another open file (a running station, a probe): ``holders`` names
+    the processes that hold it (as far as this user can see)."""
+
+    def __init__(self, port: str, holders: str):
+        super().__init__(f"{port} is in use by {holders}")
+        self.port = port
+        self.holders = holders
+
+
+def port_in_use(port: str) -> bool | None:
+    """True when another open file holds the exclusive lock on ``port``; False when it is free
+    (the lock is taken and given back at once, nothing of the port is changed: no termios call);
+    None when it cannot be asked (no such device, no permission, a pyserial URL)."""
+    if "://" in port:
+        return None
+    try:
+        fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return None
+    finally:
+        os.close(fd)              # closing gives the lock back
+    return False
+
+
+class keep_settings:  # noqa: N801 - a context manager used like a function
+    """``with keep_settings(path):`` the port's settings (termios) as found on entry are put back
+    on exit, if the port is free then (its exclusive lock can be taken): whatever the block tried
+    (a probe's scan sets other bauds), a free port is left as it was, and a port someone else
+    took meanwhile is not touched. No lock is held during the block (pymodbus' client and the
+    drivers take their own)."""
+
+    def __init__(self, port: str):
+        self.port = port
+        self._fd: int | None = None
+        self._saved: list[Any] | None = None
+
+    def __enter__(self) -> keep_settings:
+        if "://" in self.port:
+            return self
+        try:
+            fd = os.open(self.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        except OSError:
+            return self
+        self._fd = fd
+        try:
+            self._saved = termios.tcgetattr(fd)
+        except termios.error:
+            self._saved = None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        fd, self._fd = self._fd, None
+        if fd is None:
+            return
+        try:
+            if self._saved is not None:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                termios.tcsetattr(fd, termios.TCSANOW, self._saved)
+        except (OSError, termios.error):
+            pass                               # in use now, or gone: left as it is
+        finally:
+            os.close(fd)
+
+
+def port_holders(port: str, proc: str = "/proc") -> list[int]:
+    """The processes (other than this one) with ``port`` open, from their file descriptors in
+    /proc — those this user may see (all of them as root; else the user's own)."""
+    try:
+        target = os.path.realpath(port)
+        st = os.stat(target)
+    except OSError:
+        return []
+    me, out = os.getpid(), []
+    try:
+        pids = [int(p) for p in os.listdir(proc) if p.isdigit()]
+    except OSError:
+        return []
+    for pid in pids:
+        if pid == me:
+            continue
+        d = f"{proc}/{pid}/fd"
+        try:
+            fds = os.listdir(d)
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                if os.readlink(f"{d}/{fd}") == target or os.stat(f"{d}/{fd}").st_rdev == st.st_rdev != 0:
+                    out.append(pid)
+                    break
+            except OSError:
+                continue
+    return sorted(out)
+
+
+def process_args(pid: int, proc: str = "/proc") -> list[str]:
+    """A process' command line (readable for every process), [] when it is gone."""
+    try:
+        with open(f"{proc}/{pid}/cmdline", "rb") as f:
+            raw = f.read(65536)
+    except OSError:
+        return []
+    return [a.decode("utf-8", "replace") for a in raw.split(b"\0") if a]
+
+
+def describe_holders(port: str) -> str:
+    """Who holds ``port``, in words: ``pid 1234 (hookwatch run /etc/hookwatch/l1.yaml)``, or
+    "another process" when this user cannot see which."""
+    pids = port_holders(port)
+    if not pids:
+        return "another process (not visible to this user: run as root to see which)"
+    parts = []
+    for pid in pids[:4]:
+        args = process_args(pid)
+        cmd = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(args))
+        if len(cmd) > 120:
+            cmd = cmd[:120] + "…"
+        parts.append(f"pid {pid} ({cmd})" if cmd else f"pid {pid}")
+    more = len(pids) - len(parts)
+    return ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+
+
+def open_exclusive(port: str, **settings: Any) -> Any:
+    """``serial.serial_for_url(port, exclusive=True, **settings)`` (a device path, or a pyserial
+    URL): the port's settings are applied only once the lock is held, so a port in use is left
+    as it is; a lock held by another open file raises :class:`PortInUse` naming who holds it."""
+    try:
+        return serial.serial_for_url(port, exclusive=True, **settings)
+    except serial.SerialException as e:
+        if "://" not in port and port_in_use(port):
+            raise PortInUse(port, describe_holders(port)) from e
+        raise

@@ -10,8 +10,13 @@ One read per 20 ms slot, never longer than ``timeout_s``, never raising:
   ``modbus_exceptions`` (the meter answered with an exception code; the last code is in
   ``last_exception_code``), ``decode_errors`` (registers that make no tension, e.g. NaN or a bad
   decimal-point register), ``stale_replies`` (a complete reply sooner than the wire can carry it:
-  a late answer to an earlier request), ``port_lost``, ``reopened``, ``not_connected`` (reads
-  skipped while the port is gone), ``late_bytes`` (chunks of bytes that arrived while no request
+  a late answer to an earlier request — only where the timing is physical, ``timing_physical``:
+  not on a pty or a pyserial URL, nor on a port whose replies all come sooner than the wire
+  allows, a virtual port, where replies are paired with their request by shape alone),
+  ``port_lost``, ``reopened``, ``not_connected`` (reads skipped while the port is gone),
+  ``port_in_use`` (opening attempts refused: another process holds the port's exclusive lock —
+  said once per episode with who holds it), ``late_bytes`` (chunks of bytes that arrived while no
+  request
   was open; discarded).
 * A bad CRC or garbage ends the read at once (the bytes are inspected as they arrive), it does not
   wait for the timeout.
@@ -50,16 +55,19 @@ import serial
 from gateway.ports import MeterReading
 
 from .crc import crc16_modbus
-from .ttyio import hung_up, set_low_latency, set_rs485
+from .ttyio import PortInUse, hung_up, open_exclusive, set_low_latency, set_rs485
 from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, load_map
 
 log = logging.getLogger("hookwatch.meter")
 
 DEFAULT_TIMEOUT_S = 0.015
 REOPEN_INTERVAL_S = 0.5
+#: complete replies in a row, all sooner than the wire can carry them and none ever paced, after
+#: which a port's timing is taken as not physical (a virtual port; ``timing_physical``)
+FAST_RUN = 5
 COUNTER_NAMES = ("reads", "reads_ok", "timeouts", "crc_errors", "garbage", "modbus_exceptions",
                  "decode_errors", "stale_replies", "port_lost", "reopened", "not_connected",
-                 "late_bytes", "errors")
+                 "late_bytes", "errors", "port_in_use")
 
 
 def _is_pty(path: str) -> bool:
@@ -93,7 +101,8 @@ class ZnsMeter:
         self.rs485: Any = rs485 if rs485 is not None and getattr(rs485, "enabled", False) else None
         self.rs485_error: str | None = None
         self.low_latency = False
-        self.last_failure: str | None = None   # why the latest read gave nothing (None: it gave a reading)
+        self._last_failure: str | None = None
+        self._last_cause: str | None = None    # why the latest read that gave nothing did
         self.map = meter_map
         self.timeout_s = float(timeout_s)
         self.swap_channels = bool(swap_channels)      # applied by the station
@@ -108,6 +117,7 @@ class ZnsMeter:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._reopen_task: asyncio.Task | None = None
         self._closed = False
+        self._in_use_logged = False            # "in use by …" said for the current episode
         # the open transaction
         self._pending = False
         self._rx = bytearray()
@@ -119,10 +129,31 @@ class ZnsMeter:
         self._request = build_request(self._unit, fc, self._address, self._count)
         self._resp_len = meter_map.response_bytes
         self._min_reply_s = 0.9 * meter_map.wire_time_s(meter_map.request_bytes + meter_map.response_bytes)
+        #: the port carries bytes at the wire's pace, so a reply sooner than the wire can carry it
+        #: is a late answer to an earlier request (``stale_replies``). False where the timing is
+        #: not physical: a pty or a pyserial URL from the start; any other port once its first
+        #: FAST_RUN complete replies all came sooner than the wire allows (a USB CDC meter, a
+        #: virtual COM port, a device server) — logged once. Replies are then paired with their
+        #: request by shape alone: input drained before each request, unit, function code, byte
+        #: count and CRC checked.
+        self.timing_physical = not (_is_pty(port) or "://" in port)
+        self._paced_seen = False               # a reply once took at least the wire time
+        self._fast_run = 0                     # complete replies in a row sooner than the wire
         if self.timeout_s < meter_map.poll_time_s():
             log.warning("meter %s: timeout_s %.1f ms is shorter than one poll on the wire "
                         "(%.1f ms at %d baud): every read will time out", port, self.timeout_s * 1e3,
                         meter_map.poll_time_s() * 1e3, meter_map.baud)
+
+    @property
+    def last_failure(self) -> str | None:
+        """Why the latest read gave nothing (None: it gave a reading)."""
+        return self._last_failure
+
+    @last_failure.setter
+    def last_failure(self, why: str | None) -> None:
+        self._last_failure = why
+        if why is not None:
+            self._last_cause = why
 
     @classmethod
     def from_config(cls, meter_cfg) -> ZnsMeter:
@@ -186,8 +217,17 @@ class ZnsMeter:
         m = self.map
         try:
             # serial_for_url: a device path, or a pyserial URL (the back-to-back tests' hwloop://)
-            ser = serial.serial_for_url(self.port, baudrate=m.baud, bytesize=m.bytesize, parity=parity,
-                                        stopbits=m.stopbits, timeout=0, write_timeout=0)
+            # exclusively (flock, taken before any setting is applied): a port another station or
+            # a probe holds is left as it is, and said once with who holds it
+            ser = open_exclusive(self.port, baudrate=m.baud, bytesize=m.bytesize, parity=parity,
+                                 stopbits=m.stopbits, timeout=0, write_timeout=0)
+        except PortInUse as e:
+            self.counters["port_in_use"] += 1
+            if not self._in_use_logged:
+                self._in_use_logged = True
+                log.warning("meter %s: %s; not opened (retrying every %.1f s)", self.port, e,
+                            self.reopen_interval_s)
+            return False
         except (OSError, ValueError, serial.SerialException) as e:
             log.debug("meter %s: open failed: %r", self.port, e)
             return False
@@ -206,6 +246,9 @@ class ZnsMeter:
             return False
         self._ser, self._fd = ser, fd
         self.connected = True
+        if self._in_use_logged:
+            self._in_use_logged = False
+            log.warning("meter %s: the port is free again: opened", self.port)
         return True
 
     def _set_rs485(self, fd: int) -> None:
@@ -223,11 +266,22 @@ class ZnsMeter:
     def diagnosis(self) -> str | None:
         """One sentence on why the latest read gave no reading (None after a good one), naming the
         port and its settings — what a silent meter looks like to an operator."""
-        why, where = self.last_failure, self.settings_text()
+        return self._sentence(self.last_failure)
+
+    def failure_text(self) -> str | None:
+        """:meth:`diagnosis` of the latest read that gave no reading, even if a good read came
+        after it (None: none failed yet) — what the station's counted line says."""
+        return self._sentence(self._last_cause)
+
+    def _sentence(self, why: str | None) -> str | None:
+        where = self.settings_text()
         if why is None:
             return None
-        if why in ("timeout", "stale"):
+        if why == "timeout":
             return f"meter not answering on {where}"
+        if why == "stale":
+            return (f"replies on {where} came sooner than {self.map.baud} baud can carry them: late "
+                    "answers to earlier requests (a meter slower than the slot)")
         if why in ("not_connected", "port_lost"):
             return f"meter port {self.port} is not open (unplugged, or a wrong path)"
         if why == "garbage":
@@ -401,11 +455,23 @@ class ZnsMeter:
             self.counters["errors"] += 1
 
     def _result(self, rtt: float) -> Reading | None:
-        if rtt < self._min_reply_s:
-            # faster than the wire can carry request and reply: the late answer to an earlier read
-            self.counters["stale_replies"] += 1
-            self.last_failure = "stale"
-            return None
+        if self.timing_physical:
+            if rtt >= self._min_reply_s:
+                self._paced_seen, self._fast_run = True, 0
+            else:
+                self._fast_run += 1
+                if not self._paced_seen and self._fast_run >= FAST_RUN:
+                    self.timing_physical = False
+                    log.warning("meter %s: every reply came sooner than %d baud can carry (%d in a "
+                                "row, under %.1f ms): a virtual port? Replies are paired with their "
+                                "request by their shape only from now on", self.port, self.map.baud,
+                                self._fast_run, self._min_reply_s * 1e3)
+                else:
+                    # faster than the wire can carry request and reply: the late answer to an
+                    # earlier read
+                    self.counters["stale_replies"] += 1
+                    self.last_failure = "stale"
+                    return None
         rx = self._rx
         regs = [(rx[i] << 8) | rx[i + 1] for i in range(3, 3 + 2 * self._count, 2)]
         try:

@@ -69,6 +69,17 @@ class MeterPort(Protocol):
     async def close(self) -> None: ...
 
 
+@runtime_checkable
+class MeterDiagnosis(Protocol):
+    """A meter port that can say why its reads give no reading (``drivers/zns.py``): one sentence
+    naming the port and its settings. ``diagnosis``: the latest read's (None after a good one);
+    ``failure_text``: the latest failed read's. The station says it in its once-a-second link
+    check (a counted line) when reads fail."""
+
+    def diagnosis(self) -> str | None: ...
+    def failure_text(self) -> str | None: ...
+
+
 class Stm32Port(Protocol):
     """The take-up motor controller. Calls never raise; None when there was no valid reply."""
     connected: bool

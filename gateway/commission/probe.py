@@ -33,11 +33,22 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 
 from drivers.stm32 import Stm32Link
 from drivers.stm32_protocol import Cmd, exchange_time_s
-from drivers.ttyio import latency_timer_ms, latency_timer_path, set_rs485
+from drivers.ttyio import (
+    describe_holders,
+    keep_settings,
+    latency_timer_ms,
+    latency_timer_path,
+    port_holders,
+    port_in_use,
+    process_args,
+    set_rs485,
+)
+from drivers.zns import FAST_RUN, Reading, ZnsMeter
 from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
 
 from ..config.schema import parse_server
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
+from ..ratelog import safe
 
 log = logging.getLogger("hookwatch.probe")
 
@@ -172,12 +183,119 @@ def scan_meter(port: str, m: MeterMap, parity: str,
     return None
 
 
+# ----------------------------------------------------------------------------------- ports in use
+def _station_of(pid: int, port: str) -> str | None:
+    """The station a process runs that uses ``port``: from the station file or fleet folder on
+    its command line (``hookwatch run …``, a fleet worker ``gateway.supervisor.worker FILE``)."""
+    from ..config import validate_fleet, validate_station
+
+    args = process_args(pid)
+    try:
+        cwd = os.readlink(f"/proc/{pid}/cwd")
+    except OSError:
+        cwd = None
+    want = os.path.realpath(port)
+    for a in args[1:]:
+        if a.startswith("-") or len(a) > 4096:
+            continue
+        path = a if os.path.isabs(a) else (os.path.join(cwd, a) if cwd else None)
+        if path is None:
+            continue
+        try:
+            if os.path.isfile(path) and path.endswith((".yaml", ".yml")):
+                loaded = [validate_station(path)]
+            elif os.path.isdir(path):
+                loaded = validate_fleet(path)
+            else:
+                continue
+        except (OSError, ValueError):
+            continue
+        for ld in loaded:
+            c = ld.cfg
+            if c is not None and want in (os.path.realpath(c.meter.port), os.path.realpath(c.stm32.port)):
+                return safe(c.station.id, 64)
+    return None
+
+
+def port_holder_text(port: str) -> str | None:
+    """None when ``port`` is free (or cannot be asked); else who holds it: ``station line-1
+    (pid 1234)`` when the holder runs a station file that names this port, else the process and
+    its command line. Asking takes the port's lock for a moment and changes nothing of it."""
+    if port_in_use(port) is not True:
+        return None
+    pids = port_holders(port)
+    if not pids:
+        return describe_holders(port)
+    parts = []
+    for pid in pids[:4]:
+        st = _station_of(pid, port)
+        parts.append(f"station {st} (pid {pid})" if st else describe_holders_of(pid))
+    return ", ".join(parts)
+
+
+def describe_holders_of(pid: int) -> str:
+    args = process_args(pid)
+    cmd = " ".join(os.path.basename(a) if i == 0 else a for i, a in enumerate(args))
+    return f"pid {pid} ({safe(cmd, 120)})" if cmd else f"pid {pid}"
+
+
+def _in_use(what: str, port: str, holder: str) -> Finding:
+    label = "STM32" if what == "stm32" else what
+    return Finding(what, False, f"{label} port {port} is in use by {holder}: the probe leaves a port "
+                   "in use as it is (no request sent, no setting changed); the running station's "
+                   "console and metrics show its link, or stop it before probing.")
+
+
+# ----------------------------------------------------------------------------------- the meter
+async def _driver_reads(meter_cfg: Any) -> tuple[Reading | None, str | None]:
+    """The station's own driver (drivers/zns.py, the station's settings and timeout) reads the
+    meter: the first good reading of up to FAST_RUN + 1 polls one slot apart, or why none."""
+    d = ZnsMeter.from_config(meter_cfg)
+    await d.open()
+    try:
+        for _ in range(FAST_RUN + 1):
+            r = await d.read()
+            if r is not None:
+                return r, None
+            await asyncio.sleep(SLOT_S)
+        return None, d.diagnosis()
+    finally:
+        await d.close()
+
+
+def driver_read(meter_cfg: Any) -> tuple[Reading | None, str | None]:
+    return asyncio.run(_driver_reads(meter_cfg))
+
+
 def probe_meter(meter_cfg: Any, *, scan: bool = False, sysfs: str = "/sys") -> list[Finding]:
     port = meter_cfg.port
     try:
         m = meter_map_of(meter_cfg)
     except (MapError, OSError) as e:
         return [Finding("meter", False, f"the meter's register map cannot be read ({e}): fix meter.map.")]
+    holder = port_holder_text(port)
+    if holder is not None:
+        return [_in_use("meter", port, holder)]
+    with keep_settings(port):
+        # pymodbus' client opens the port exclusively for each read (a station starting meanwhile
+        # finds it in use); the bauds a scan tried are undone at the end
+        out = _probe_meter_free(meter_cfg, m, port, scan, sysfs)
+    if out and out[0].ok and out[0].text.startswith("meter answered"):
+        # what answers pymodbus' client must answer the station's own driver too
+        r, why = driver_read(meter_cfg)
+        if r is None:
+            timeout = float(getattr(meter_cfg, "timeout_s", 0.015))
+            said = out[0].text[len("meter answered "):-1]
+            out[0] = Finding("meter", False, f"pymodbus' client reads the meter ({said}) but the "
+                             f"station's own driver does not: {why or 'no reading'}; check "
+                             f"meter.timeout_s ({timeout * 1e3:g} ms) and meter.local_echo.")
+        else:
+            out[0] = Finding("meter", True, out[0].text[:-1] + "; the station's driver read it too "
+                             f"(channel 1 {r.ch1:.3f} N).")
+    return out
+
+
+def _probe_meter_free(meter_cfg: Any, m: MeterMap, port: str, scan: bool, sysfs: str) -> list[Finding]:
     parity = "N" if _is_pty(port) else m.parity       # a pty carries no parity (as the driver)
     where = settings_text(port, m, parity, m.unit_id)
     out: list[Finding] = []
@@ -295,6 +413,9 @@ def probe_stm32(stm32_cfg: Any) -> Finding:
     if "://" not in port and not os.path.exists(port):
         return Finding("stm32", False, f"STM32 port {port} does not exist: check the cable and the "
                        "adapter (ls -l /dev/hookwatch/) and stm32.port.")
+    holder = port_holder_text(port)
+    if holder is not None:
+        return _in_use("stm32", port, holder)
     ok, detail = asyncio.run(_ping(stm32_cfg))
     where = f"{port} at {stm32_cfg.baud} baud"
     if ok:

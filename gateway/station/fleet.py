@@ -250,5 +250,6 @@ class Fleet:
         for r in self.runners:
             st = r.station
             out[r.name] = None if st is None else dict(
-                st.stats.summary(), results=st.results, start_failures=st.start_failures)
+                st.stats.summary(), results=st.results, start_failures=st.start_failures,
+                meter=dict(st.meter.counters))
         return out

@@ -8,15 +8,23 @@ the station's own loop (others hand over through ``gateway.threadloop``).
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import Any
 
-from ..ports import MeterPort, Stm32Port
+from ..ports import MeterDiagnosis, MeterPort, Stm32Port
+from ..ratelog import RateLog
 from ..records import EventType
 from ..threadloop import call_soon_on
 from .recorder import TestRecorder
 from .status import StatusBoard
 
 __all__ = ["Health"]
+
+log = logging.getLogger("hookwatch.station")
+
+#: the meter's counters of reads that gave no reading, by the cause they name
+_METER_FAILURES = ("timeouts", "crc_errors", "garbage", "modbus_exceptions", "decode_errors",
+                   "stale_replies", "not_connected", "errors")
 
 
 class Health:
@@ -28,6 +36,10 @@ class Health:
         self._port_lost_seen: dict[str, int] = {}
         self._uplinks: dict[str, bool] = {}
         self._disks: dict[str, bool] = {}
+        self.meter = meter
+        #: failing meter reads: one line per cause a window, with the count (RateLog)
+        self.meter_log = RateLog(log)
+        self._meter_seen: dict[str, int] = {}
 
     def set_uplink(self, name: str, ok: bool) -> None:
         """An uplink (MQTT) reports its connection; it reaches every output through the state
@@ -85,3 +97,26 @@ class Health:
             self._port_lost_seen[port] = lost_n
         self.board.update(meter_ok=bool(self._port_seen["meter"]),
                           stm32_ok=bool(self._port_seen["stm32"]), push=changed)
+        self.check_meter_reads()
+
+    def check_meter_reads(self) -> None:
+        """Reads that gave no reading since the last check, said in one counted line per cause
+        (the driver's own sentence: port, settings and why), whatever the cause — a silent
+        meter, a wrong unit ID, replies that fail their CRC or come sooner than the wire can
+        carry them. The counts of every cause are in the meter's counters (metrics)."""
+        c = self.meter.counters
+        now = {k: int(c.get(k, 0)) for k in ("reads", "reads_ok", "not_connected", *_METER_FAILURES)}
+        before, self._meter_seen = self._meter_seen, now
+        if not before:
+            before = {k: 0 for k in now}
+        d = {k: now[k] - before.get(k, 0) for k in now}
+        polls = d["reads"] + d["not_connected"]
+        failed = polls - d["reads_ok"]
+        if failed <= 0:
+            return
+        causes = ", ".join(f"{d[k]} {k}" for k in _METER_FAILURES if d[k] > 0) or "no cause counted"
+        why = self.meter.failure_text() if isinstance(self.meter, MeterDiagnosis) else None
+        kind = max(_METER_FAILURES, key=lambda k: d[k])
+        self.meter_log.warning(("meter", kind), "meter: %d of %d reads since the last check gave no "
+                               "reading (%s): %s", failed, polls, causes,
+                               why or "see the meter's counters")
