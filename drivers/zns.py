@@ -62,7 +62,7 @@ log = logging.getLogger("hookwatch.meter")
 
 DEFAULT_TIMEOUT_S = 0.015
 REOPEN_INTERVAL_S = 0.5
-#: complete replies in a row, all sooner than the wire can carry them and none ever paced, after
+#: complete replies sooner than the wire can carry them (and more of them than paced ones) after
 #: which a port's timing is taken as not physical (a virtual port; ``timing_physical``)
 FAST_RUN = 5
 COUNTER_NAMES = ("reads", "reads_ok", "timeouts", "crc_errors", "garbage", "modbus_exceptions",
@@ -131,14 +131,14 @@ class ZnsMeter:
         self._min_reply_s = 0.9 * meter_map.wire_time_s(meter_map.request_bytes + meter_map.response_bytes)
         #: the port carries bytes at the wire's pace, so a reply sooner than the wire can carry it
         #: is a late answer to an earlier request (``stale_replies``). False where the timing is
-        #: not physical: a pty or a pyserial URL from the start; any other port once its first
-        #: FAST_RUN complete replies all came sooner than the wire allows (a USB CDC meter, a
-        #: virtual COM port, a device server) — logged once. Replies are then paired with their
-        #: request by shape alone: input drained before each request, unit, function code, byte
-        #: count and CRC checked.
+        #: not physical: a pty or a pyserial URL from the start; any other port once FAST_RUN of
+        #: its complete replies, and most of them, came sooner than the wire allows (a USB CDC
+        #: meter, a virtual COM port, a device server; on a paced line a reply that early is a
+        #: rare late answer) — logged once. Replies are then paired with their request by shape
+        #: alone: input drained before each request, unit, function code, byte count and CRC.
         self.timing_physical = not (_is_pty(port) or "://" in port)
-        self._paced_seen = False               # a reply once took at least the wire time
-        self._fast_run = 0                     # complete replies in a row sooner than the wire
+        self._paced = 0                        # complete replies that took the wire time or more
+        self._fast = 0                         # complete replies sooner than the wire
         if self.timeout_s < meter_map.poll_time_s():
             log.warning("meter %s: timeout_s %.1f ms is shorter than one poll on the wire "
                         "(%.1f ms at %d baud): every read will time out", port, self.timeout_s * 1e3,
@@ -457,15 +457,15 @@ class ZnsMeter:
     def _result(self, rtt: float) -> Reading | None:
         if self.timing_physical:
             if rtt >= self._min_reply_s:
-                self._paced_seen, self._fast_run = True, 0
+                self._paced += 1
             else:
-                self._fast_run += 1
-                if not self._paced_seen and self._fast_run >= FAST_RUN:
+                self._fast += 1
+                if self._fast >= FAST_RUN and self._fast > self._paced:
                     self.timing_physical = False
-                    log.warning("meter %s: every reply came sooner than %d baud can carry (%d in a "
-                                "row, under %.1f ms): a virtual port? Replies are paired with their "
+                    log.warning("meter %s: every reply came sooner than %d baud can carry (%d of "
+                                "%d under %.1f ms): a virtual port? Replies are paired with their "
                                 "request by their shape only from now on", self.port, self.map.baud,
-                                self._fast_run, self._min_reply_s * 1e3)
+                                self._fast, self._fast + self._paced, self._min_reply_s * 1e3)
                 else:
                     # faster than the wire can carry request and reply: the late answer to an
                     # earlier read

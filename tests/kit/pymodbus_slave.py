@@ -43,9 +43,10 @@ def pymodbus_meter(tmp_path, unit: int = 1, ch1: float = 0.5, ch2: float = 0.25)
     d = tmp_path / "pymodbus"
     d.mkdir(exist_ok=True)
     server_end, meter_end = str(d / "server"), str(d / "meter")
+    logs = [open(d / "socat.log", "w"), open(d / "server.log", "w")]
     socat = subprocess.Popen(["socat", f"pty,raw,echo=0,link={server_end}",
                               f"pty,raw,echo=0,link={meter_end}"],
-                             stdout=subprocess.DEVNULL, stderr=open(d / "socat.log", "w"))
+                             stdout=subprocess.DEVNULL, stderr=logs[0])
     server = None
     try:
         t_end = time.monotonic() + 20
@@ -55,7 +56,7 @@ def pymodbus_meter(tmp_path, unit: int = 1, ch1: float = 0.5, ch2: float = 0.25)
         here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         server = subprocess.Popen([sys.executable, "-m", "kit.pymodbus_slave", server_end, str(unit),
                                    repr(ch1), repr(ch2)], cwd=here, stdout=subprocess.PIPE,
-                                  stderr=open(d / "server.log", "w"), text=True)
+                                  stderr=logs[1], text=True)
         assert server.stdout is not None
         line = server.stdout.readline()
         assert line.startswith("serving"), (d / "server.log").read_text()
@@ -72,6 +73,8 @@ def pymodbus_meter(tmp_path, unit: int = 1, ch1: float = 0.5, ch2: float = 0.25)
                     p.wait(10)
         if server is not None and server.stdout is not None:
             server.stdout.close()
+        for f in logs:
+            f.close()
 
 
 if __name__ == "__main__":
