@@ -209,9 +209,33 @@ class keep_settings:  # noqa: N801 - a context manager used like a function
             os.close(fd)
 
 
+def lock_holders(port: str, proc: str = "/proc") -> list[int]:
+    """The processes holding a flock(2) on ``port``, from /proc/locks (readable by every user):
+    the one that opened it exclusively, not whoever else has it open (a pty's other side)."""
+    try:
+        st = os.stat(os.path.realpath(port))
+        with open(f"{proc}/locks", encoding="ascii", errors="replace") as f:
+            lines = f.read(1 << 20).splitlines()
+    except OSError:
+        return []
+    want = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    out = set()
+    for ln in lines:
+        p = ln.split()
+        # "1: FLOCK  ADVISORY  WRITE 4242 00:1a:3 0 EOF" (a waiter's line has "->" after the id)
+        if len(p) >= 6 and p[1] == "FLOCK" and p[5] == want and p[4].isdigit():
+            out.add(int(p[4]))
+    out.discard(os.getpid())
+    return sorted(out)
+
+
 def port_holders(port: str, proc: str = "/proc") -> list[int]:
-    """The processes (other than this one) with ``port`` open, from their file descriptors in
-    /proc — those this user may see (all of them as root; else the user's own)."""
+    """The processes (other than this one) that hold ``port``: its lock's holders
+    (:func:`lock_holders`); else those with it open, from their file descriptors in /proc —
+    those this user may see (all of them as root; else the user's own)."""
+    held = lock_holders(port, proc)
+    if held:
+        return held
     try:
         target = os.path.realpath(port)
         st = os.stat(target)

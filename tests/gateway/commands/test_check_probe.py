@@ -5,13 +5,26 @@ a silent meter's failed zero check names the port and its settings."""
 import os
 import socket
 import subprocess
+import time
 
 import pytest
 import yaml
 
 from conftest import hookwatch_cmd
 from kit.broker import Broker
-from kit.e2e import run_gateway, station_yaml, virtual_station, wait_log
+from kit.e2e import (
+    STALL_TOLERANT,
+    assert_no_slot_lost,
+    missing_slots_between,
+    read_json,
+    run_gateway,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+    wait_exit,
+    wait_log,
+)
+from kit.pymodbus_slave import pymodbus_meter
 from kit.tools import free_port, require_tool
 
 
@@ -216,3 +229,55 @@ def test_the_probe_limits_are_documented_as_they_are():
     assert f"unit IDs {P.SCAN_UNITS[0]}–{P.SCAN_UNITS[-1]}" in text
     assert f"wire time + {P.METER_MARGIN_S:g} s" in text and f"wire time + {P.SCAN_MARGIN_S:g} s" in text
     assert f"{P.STM32_ATTEMPTS} PINGs" in text and f"CONNACK within {P.BROKER_TIMEOUT_S:g} s" in text
+
+
+# ------------------------------------------------------------------------------------------------
+def test_the_probe_beside_a_running_station_costs_it_no_slot_and_names_it(tmp_path):
+    """Issue 27.3: `check --probe --scan` beside a live station once reported its meter "not
+    answering", cost it 471 of 582 slots and a protection stop, and left the meter port at 9600
+    baud. The probe now finds both ports in use, names the station holding them and touches
+    neither: no slot of the running test is lost while it runs."""
+    with virtual_station(tmp_path, "config/scenarios/demo.yaml") as (_p, links):
+        path = station_yaml(tmp_path, links, name="live", method=STALL_TOLERANT, test={"t_end_s": 12})
+        gw = run_gateway(tmp_path, path, "--start", "--exit-when-done")
+        try:
+            wait_log(gw, "test_started {", timeout=90)
+            time.sleep(1.0)
+            t_from = time.time()
+            rc, out, _ = check("--probe", "--scan", path)
+            t_to = time.time()
+            assert rc == 1, out
+            who = f"station live (pid {gw.p.pid})"
+            assert f"meter port {links['meter']} is in use by {who}" in out, out
+            assert f"STM32 port {links['stm32']} is in use by {who}" in out, out
+            assert "not answering" not in out and "answered at" not in out, out
+            assert wait_exit(gw, 90) == 0, gw.log()
+            log = gw.log_all()
+        finally:
+            gw.stop()
+    [d] = test_dirs(tmp_path, "live")
+    res = read_json(os.path.join(d, "result.json"))
+    assert res["test_status"] == "completed", res
+    assert_no_slot_lost(d, res["method"])
+    assert missing_slots_between(d, t_from, t_to) == [], (t_from, t_to)
+    assert "port lost" not in log and "in use" not in log, log
+
+
+def test_the_probe_reads_an_independent_slave_with_the_station_s_own_driver(tmp_path):
+    """Issue 27.8: "meter answered" means the station's own driver read it, not only pymodbus'
+    client. pymodbus' serial server behind a pty pair: both read it. With meter.local_echo set
+    (the driver then takes the reply's first bytes for the echo of its request) pymodbus' client
+    still reads it, and the probe says that the station would not."""
+    require_tool("socat")
+    stm = tmp_path / "no-stm32"
+    with pymodbus_meter(tmp_path) as meter:
+        links = {"meter": meter, "stm32": str(stm)}
+        rc, out, _ = check("--probe", station(tmp_path, links, "pym"))
+        assert f"ok: meter answered on {meter} at 115200 8N1, unit 1: channel 1 0.500 N, channel 2 " \
+               "0.250 N; the station's driver read it too" in out, out
+        rc, out, _ = check("--probe", station(tmp_path, links, "pymecho", meter={"local_echo": True}))
+        assert rc == 1
+        assert "ok: meter answered" not in out, out
+        assert f"FAILED: pymodbus' client reads the meter (on {meter} at 115200 8N1, unit 1: channel 1" \
+               f" 0.500 N, channel 2 0.250 N) but the station's own driver does not: the bytes on {meter}" \
+               " at 115200 8N1, unit 1 are no reply of this unit" in out, out
