@@ -254,22 +254,3 @@ def assert_no_slot_lost(test_dir, online: dict, stats: dict | None = None, ts: f
         assert stats["slots"] - stats["filled"] >= missing, (test_dir, stats, missing)
     return missing
 
-
-def missing_slots_between(test_dir, wall_from: float, wall_to: float, ts: float = 0.02) -> list[int]:
-    """The slots of a recorded test whose time lies between two wall-clock instants (the test's
-    ``start_time`` in its sidecar is slot 0's) that have no reading: no row, or a row flagged
-    MISSING. What a test asserts empty when something ran beside the station then."""
-    import csv
-    import datetime as dt
-    import gzip
-
-    with open(os.path.join(test_dir, "log.meta.yaml")) as f:
-        start = yaml.safe_load(f)["start_time"]
-    t0 = dt.datetime.fromisoformat(str(start).replace("Z", "+00:00")).timestamp()
-    with gzip.open(os.path.join(test_dir, "log.csv.gz"), "rt", encoding="utf-8", newline="") as f:
-        rows = list(csv.reader(f))
-    head, body = rows[0], rows[1:]
-    it, imask = head.index("t"), head.index("mask")
-    read = {int(float(r[it]) / ts + 0.5) for r in body if not int(r[imask]) & 0x01}
-    k_from, k_to = int((wall_from - t0) / ts), int((wall_to - t0) / ts) + 1
-    return [k for k in range(max(0, k_from), k_to) if k not in read]

@@ -2,10 +2,11 @@
 ptys, a process of its own), a real Mosquitto with a password file and a port held by another
 program: each failure is one plain sentence with its fix, and the exit code says it. And at run time,
 a silent meter's failed zero check names the port and its settings."""
+import json
 import os
 import socket
 import subprocess
-import time
+import termios
 
 import pytest
 import yaml
@@ -15,7 +16,6 @@ from kit.broker import Broker
 from kit.e2e import (
     STALL_TOLERANT,
     assert_no_slot_lost,
-    missing_slots_between,
     read_json,
     run_gateway,
     station_yaml,
@@ -236,21 +236,35 @@ def test_the_probe_beside_a_running_station_costs_it_no_slot_and_names_it(tmp_pa
     """Issue 27.3: `check --probe --scan` beside a live station once reported its meter "not
     answering", cost it 471 of 582 slots and a protection stop, and left the meter port at 9600
     baud. The probe now finds both ports in use, names the station holding them and touches
-    neither: no slot of the running test is lost while it runs."""
-    with virtual_station(tmp_path, "config/scenarios/demo.yaml") as (_p, links):
+    neither: not one byte reaches the virtual meter but the station's own requests (the scan's
+    other units and bauds would), the port keeps the station's settings, no reply the station
+    reads is garbled, and the running test completes with every slot accounted for.
+
+    That no slot is MISSING while the probe runs is asserted as what it comes down to — nothing
+    on the station's line but its own exchanges — not as a count of MISSING slots in the window:
+    on a loaded test machine the virtual meter (a process at normal priority) answers late in any
+    2-s window, probe or not (measured: 5 MISSING slots in 2.5 s before the probe)."""
+    events_path = tmp_path / "sim-events.jsonl"
+    with virtual_station(tmp_path, "config/scenarios/demo.yaml",
+                         extra=["--events", str(events_path)]) as (_p, links):
         path = station_yaml(tmp_path, links, name="live", method=STALL_TOLERANT, test={"t_end_s": 12})
-        gw = run_gateway(tmp_path, path, "--start", "--exit-when-done")
+        stats_path = tmp_path / "stats.json"
+        gw = run_gateway(tmp_path, path, "--start", "--exit-when-done", "--stats-json", str(stats_path))
         try:
             wait_log(gw, "test_started {", timeout=90)
-            time.sleep(1.0)
-            t_from = time.time()
-            rc, out, _ = check("--probe", "--scan", path)
-            t_to = time.time()
+            fd = os.open(links["meter"], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+            try:
+                before = termios.tcgetattr(fd)
+                rc, out, _ = check("--probe", "--scan", path)
+                after = termios.tcgetattr(fd)
+            finally:
+                os.close(fd)
             assert rc == 1, out
             who = f"station live (pid {gw.p.pid})"
             assert f"meter port {links['meter']} is in use by {who}" in out, out
             assert f"STM32 port {links['stm32']} is in use by {who}" in out, out
             assert "not answering" not in out and "answered at" not in out, out
+            assert after == before and after[4] == termios.B115200, (before, after)
             assert wait_exit(gw, 90) == 0, gw.log()
             log = gw.log_all()
         finally:
@@ -258,8 +272,16 @@ def test_the_probe_beside_a_running_station_costs_it_no_slot_and_names_it(tmp_pa
     [d] = test_dirs(tmp_path, "live")
     res = read_json(os.path.join(d, "result.json"))
     assert res["test_status"] == "completed", res
-    assert_no_slot_lost(d, res["method"])
-    assert missing_slots_between(d, t_from, t_to) == [], (t_from, t_to)
+    stats = read_json(str(stats_path))["live"]
+    assert_no_slot_lost(d, res["method"], stats)
+    c = stats["meter"]
+    assert c["garbage"] == c["crc_errors"] == c["port_lost"] == c["port_in_use"] == 0, c
+    with open(events_path) as f:
+        [stop] = [e for e in map(json.loads, f) if e["event"] == "stop"]
+    seen = stop["counters"]["meter"]
+    # the virtual meter heard the station's requests and nothing else
+    assert seen.get("other_unit", 0) == seen.get("wrong_baud", 0) == seen.get("garbage", 0) == 0, seen
+    assert seen["requests"] <= c["reads"], (seen, c)
     assert "port lost" not in log and "in use" not in log, log
 
 
