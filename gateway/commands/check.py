@@ -32,7 +32,8 @@ def add_arguments(ap):
     ap.add_argument("--probe", action="store_true",
                     help="also ask the hardware and services: read both meter channels once (pymodbus' "
                          "client), PING the STM32, connect and log in to each broker, check that the "
-                         "Modbus TCP, console and metrics ports are free; stop the running gateway first")
+                         "Modbus TCP, console and metrics ports are free; a serial port a running station "
+                         "holds is named and left alone")
     ap.add_argument("--scan", action="store_true",
                     help="with --probe: when the meter does not answer, try the usual bauds and unit "
                          "IDs and say where it answered")

@@ -1,9 +1,13 @@
 """`hookwatch check --probe`: ask every device and service a station needs, once, before it runs.
 
+- a serial port a running station (or any program) holds — its exclusive lock taken — is left
+  alone: the probe names the holder (the lock's process from /proc/locks; the station from the
+  station file or fleet folder on its command line), sends nothing and changes no setting;
 - the meter: its port opened with the station's settings and both channels read once through
   pymodbus' client (an independent Modbus master: a meter this client reads is no artefact of our
-  own driver); ``scan`` tries the usual bauds and unit IDs and says where the meter answered;
-  the latency timer of a USB serial adapter (FTDI) against the slot; the kernel's RS-485 mode
+  own driver), then through the station's own driver (drivers/zns.py): "meter answered" means
+  both read it; ``scan`` tries the usual bauds and unit IDs and says where the meter answered
+  (the port's settings as found are put back after it); the latency timer of a USB serial adapter (FTDI) against the slot; the kernel's RS-485 mode
   when ``meter.rs485`` asks for it;
 - the STM32: a PING through the project's own link driver (drivers/stm32.py);
 - each configured broker (``mqtt:``, ``sparkplug:`` and every member of its server set): TCP
@@ -46,6 +50,7 @@ from drivers.ttyio import (
 from drivers.zns import FAST_RUN, Reading, ZnsMeter
 from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
 
+from ..config import validate_fleet, validate_station
 from ..config.schema import parse_server
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
 from ..ratelog import safe
@@ -187,8 +192,6 @@ def scan_meter(port: str, m: MeterMap, parity: str,
 def _station_of(pid: int, port: str) -> str | None:
     """The station a process runs that uses ``port``: from the station file or fleet folder on
     its command line (``hookwatch run …``, a fleet worker ``gateway.supervisor.worker FILE``)."""
-    from ..config import validate_fleet, validate_station
-
     args = process_args(pid)
     try:
         cwd = os.readlink(f"/proc/{pid}/cwd")
