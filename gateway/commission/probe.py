@@ -7,7 +7,8 @@
   pymodbus' client (an independent Modbus master: a meter this client reads is no artefact of our
   own driver), then through the station's own driver (drivers/zns.py): "meter answered" means
   both read it; ``scan`` tries the usual bauds and unit IDs and says where the meter answered
-  (the port's settings as found are put back after it); the latency timer of a USB serial adapter (FTDI) against the slot; the kernel's RS-485 mode
+  (the port's settings as found are put back after it); the latency timer of a USB serial
+  adapter (FTDI) against the slot; the kernel's RS-485 mode
   when ``meter.rs485`` asks for it;
 - the STM32: a PING through the project's own link driver (drivers/stm32.py);
 - each configured broker (``mqtt:``, ``sparkplug:`` and every member of its server set): TCP
