@@ -296,9 +296,14 @@ def test_the_station_and_its_proxy_are_station_views():
     assert view >= {"id", "ts", "limits", "default_plan", "state", "alarms", "outputs", "submit"}
     assert "submit" in members("gateway.station.station", "Station")
     assert "submit" in members("gateway.supervisor.remote", "RemoteStation")
-    with open(MODULES["gateway.supervisor.remote"], encoding="utf-8") as f:
-        src = f.read()
-    assert "Fanout(" in src              # the proxy feeds its outputs through the station's fan-out
+    # the proxy feeds its outputs through the station's own fan-out: it constructs the Fanout
+    # that gateway.station.fanout defines (read from the syntax tree, not a string search)
+    tree = TREES["gateway.supervisor.remote"]
+    imported = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+                and (n.module or "").endswith("station.fanout") for a in n.names if a.name == "Fanout"}
+    calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)
+             and n.func.id in imported]
+    assert imported and calls, (imported, len(calls))
 
 
 #: where asyncio.run_coroutine_threadsafe may be called (a module added here says why)

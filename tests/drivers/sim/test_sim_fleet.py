@@ -176,8 +176,12 @@ def test_count_n_stations_with_own_links_and_samples(tmp_path):
     assert rc == 0
     starts = {e["station"]: e for e in events if e["event"] == "start"}
     assert [starts[n]["seed"] for n in names] == [3, 4, 5, 6]
+    stops = {e["station"]: e["counters"]["meter"] for e in events if e["event"] == "stop"}
     for n in names:
-        assert len(res[n]) == 20 and all(crc_ok(fr) for _, fr in res[n])
+        # every request reached its own meter and was answered once (the meters' count); the
+        # replies read within the poll's 100 ms are all good frames
+        assert stops[n]["requests"] == stops[n]["replies"] == 20, (n, stops[n])
+        assert res[n] and all(crc_ok(fr) for _, fr in res[n]), n
     # links removed at exit
     assert not any(os.path.lexists(sim.link(n, k)) for n in names for k in ("meter", "stm32"))
 

@@ -79,14 +79,12 @@ def end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
                 sub.wait(lambda s: [m for m in s.messages("status") if m[2].get("status") == "online"], 60,
                          what="status online")
                 got = sub.wait(lambda s: s.messages("alarm/end_of_life"), 180, what="the end-of-life alarm")
-                _r, topic, alarm, t_recv = got[0]
+                _r, topic, alarm, _t = got[0]
                 assert topic == f"{base}/alarm/end_of_life"
                 assert list(alarm) == S.field_names("alarm")
                 assert alarm["state"] == "unacknowledged" and alarm["active"] and not alarm["acknowledged"]
-                # raised, then received (how fast is bench/bench_northbound.py latency's figure)
-                latency = t_recv - parse_time(alarm["raised_at"])
-                print(f"end of life → mosquitto_sub: {latency * 1e3:.1f} ms")
-                assert latency > -0.1, latency
+                # (how soon it is received after it was raised is bench/bench_northbound.py
+                # latency's figure, not asserted on a loaded machine)
                 # the PLC sees the same end of life
                 rc, v, err = mbpoll(mport, "-t", "3", "-r", "0", "-c", str(IR["alarm"].address + 1), unit=2)
                 assert rc == 0, err
@@ -115,6 +113,10 @@ def end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
                 assert res["result"]["t_life"] == alarm["t_life"]
                 d = test_dirs(tmp_path, "nb")[0]
                 assert read_json(os.path.join(d, "result.json"))["method"]["t_life"] == alarm["t_life"]
+                # raised by the gateway's clock during the test: after its start, t_life into it
+                with open(os.path.join(d, "log.meta.yaml")) as f:
+                    start = parse_time(yaml.safe_load(f)["start_time"])
+                assert start + alarm["t_life"] <= parse_time(alarm["raised_at"]) + 0.001, (start, alarm)
                 # kill -9: the broker publishes the Last Will
                 gw.p.send_signal(signal.SIGKILL)
                 gw.p.wait(20)
