@@ -94,12 +94,41 @@ def loop_thread():
 # `./run-tests` runs the suite on pytest-xdist workers (`-n 4 --dist loadgroup`): most tests wait
 # on real time (50 Hz stations, simulated lives), so several run side by side on two cores. The
 # tables below say, in one place, which tests are long (`slow`: left out of the quick loop
-# `-m "not slow"`) and which must share a worker (`xdist_group`). Modules that mark themselves
-# (`pytestmark = pytest.mark.slow`: the long end-to-end lives) are not repeated here.
+# `-m "not slow"`) and which must share a worker (`xdist_group`). No module marks itself: this is
+# the one declaration (tests/test_suite_schedule.py checks that, and that every entry names a test
+# that exists).
 
 #: long on the wall clock (a gateway with a fleet, a browser, a campaign report, a fuzzed live
 #: server, hypothesis at thousands of examples): module → test functions, "*" for all of them
 SLOW: dict[str, tuple[str, ...]] = {
+    # the end-to-end lives: a virtual station and a gateway over ptys, a compressed life each
+    **{m: ("*",) for m in (
+        "tests/gateway/supervisor/test_supervisor_e2e.py",
+        "tests/gateway/supervisor/test_supervisor_shared_e2e.py",
+        "tests/gateway/supervisor/test_supervisor_realtime.py",
+        "tests/gateway/supervisor/test_supervisor_sparkplug_e2e.py",
+        "tests/gateway/northbound/test_forecast_doors_e2e.py",
+        "tests/gateway/northbound/test_northbound_disk_state.py",
+        "tests/gateway/northbound/test_northbound_cutoff_result.py",
+        "tests/gateway/northbound/test_northbound_e2e.py",
+        "tests/gateway/northbound/sparkplug/test_sparkplug_doors_e2e.py",
+        "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py",
+        "tests/gateway/northbound/test_northbound_wear_e2e.py",
+        "tests/gateway/station/test_station_start_e2e.py",
+        "tests/gateway/station/test_station_e2e.py",
+        "tests/gateway/station/test_station_independent_slave.py",
+        "tests/gateway/station/test_fleet_e2e.py",
+        "tests/gateway/station/test_fleet_crash_restart.py",
+        "tests/gateway/commands/test_reload_hostile_yaml.py",
+        "tests/gateway/commands/test_reload_e2e.py",
+        "tests/deploy/test_release.py")},
+    "tests/gateway/station/test_retention_e2e.py": ("test_retention_over_many_short_tests_on_a_small_disk",),
+    "tests/gateway/station/test_recorder_disk.py": (
+        "test_station_on_a_disk_filled_then_freed_mid_test",
+        "test_station_folder_unwritable_mid_test_completes_and_keeps_its_result"),
+    "tests/gateway/station/test_lost_slots_e2e.py": ("test_disk_full_longer_than_the_reserve_offline_equals_online",),
+    "tests/gateway/commands/test_check_probe.py": (
+        "test_the_probe_beside_a_running_station_costs_it_no_slot_and_names_it",),
     "tests/gateway/method/test_method_property.py": (
         "test_streaming_equals_batch", "test_streaming_equals_batch_past_the_baseline",
         "test_streaming_equals_batch_with_lost_slots"),
@@ -127,7 +156,6 @@ SLOW: dict[str, tuple[str, ...]] = {
     "tests/gateway/console/test_console_browser.py": ("*",),
     "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
     "tests/gateway/commands/test_console_demo.py": ("*",),
-    "tests/gateway/test_logio_cache.py": ("test_analyze_cli_same_result_cold_and_warm",),
     "tests/gateway/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
     "tests/deploy/test_deploy.py": ("test_gateway_speaks_the_units_notify_protocol",),
     "tests/drivers/sim/test_plant.py": ("test_closed_loop_holds_setpoint_open_loop_wanders",),

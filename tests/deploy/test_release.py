@@ -24,8 +24,6 @@ import yaml
 from conftest import ROOT
 from kit.tools import require_tool
 
-pytestmark = pytest.mark.slow
-
 
 def _sh(argv, **kw):
     kw.setdefault("timeout", 900)

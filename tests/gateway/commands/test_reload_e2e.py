@@ -5,13 +5,11 @@ import contextlib
 import os
 import signal
 
-import pytest
 import yaml
 
 from conftest import ROOT
 from kit.e2e import fleet_dir, run_gateway, test_dirs, virtual_station, wait_log
 
-pytestmark = pytest.mark.slow
 
 def test_sighup_reloads_idle_stations_and_keeps_a_running_test(tmp_path):
     # the busy station's test only has to outlast the two reloads (a few seconds from its start)

@@ -5,13 +5,10 @@ import contextlib
 import os
 import signal
 
-import pytest
 import yaml
 
 from conftest import ROOT
 from kit.e2e import fleet_dir, run_gateway, virtual_station, wait_log
-
-pytestmark = pytest.mark.slow
 
 LAUGHS = "a: &a [lol,lol,lol,lol,lol,lol,lol,lol,lol]\n" + "".join(
     f"{chr(98 + i)}: &{chr(98 + i)} [" + ",".join([f"*{chr(97 + i)}"] * 9) + "]\n" for i in range(8))

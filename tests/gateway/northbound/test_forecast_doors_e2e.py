@@ -9,7 +9,6 @@ key exactly as the gateway found it online (the prior came through the sidecar).
 import math
 import os
 
-import pytest
 import yaml
 
 from gateway.northbound import registers as R
@@ -32,8 +31,6 @@ from kit.northbound import mbpoll
 from kit.prometheus import prometheus, query, wait_for  # noqa: F401  (fixture)
 from kit.sparkplug_host import PrimaryHost, metric_value
 from kit.tools import free_port, require_tool
-
-pytestmark = pytest.mark.slow
 
 TUNED = {"dead_band_n": 0.01}
 #: a lead of 10 s on the ~23 s life: the hook is due from ≈ 12 s until the end of life is detected

@@ -5,13 +5,9 @@ and carry the sample, grade and setpoint of its sidecar."""
 import os
 import signal
 
-import pytest
-
 from gateway.northbound import schema as S
 from kit.broker import Broker, Sub
 from kit.e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
-
-pytestmark = pytest.mark.slow
 
 
 def test_cut_off_test_result_names_the_test_over_mqtt(tmp_path):

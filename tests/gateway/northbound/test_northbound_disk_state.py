@@ -7,7 +7,6 @@ import time
 import urllib.request
 from pathlib import Path
 
-import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.northbound import metrics as M
@@ -18,8 +17,6 @@ from kit.broker import Broker, Sub
 from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
 from kit.smallfs import fill, small_tmpfs
 from kit.tools import free_port, require_tool, wait_for
-
-pytestmark = pytest.mark.slow
 
 BASE = "hw/disk/st1"
 IR = R.IR

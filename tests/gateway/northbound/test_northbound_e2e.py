@@ -28,8 +28,6 @@ from kit.e2e import (
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool, wait_for
 
-pytestmark = pytest.mark.slow
-
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 TUNED = {"dead_band_n": 0.01}
 METHOD = {"w_ss": 5, "w_hold": 20, "tau": 5}

@@ -27,8 +27,6 @@ from kit.e2e import (
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool
 
-pytestmark = pytest.mark.slow
-
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 TUNED = {"dead_band_n": 0.01}
 # the kit's twice-compressed life and its windows (2 s); the warning after 2 windows under h 0.8

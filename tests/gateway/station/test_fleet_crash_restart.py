@@ -7,8 +7,6 @@ import os
 import re
 import time
 
-import pytest
-
 from conftest import ROOT, hookwatch_cmd
 from gateway.northbound import registers as R
 from gateway.northbound import schema as S
@@ -17,8 +15,6 @@ from kit.e2e import station_yaml, virtual_station, wait_log
 from kit.northbound import mbpoll
 from kit.proc import Proc
 from kit.tools import free_port, require_tool
-
-pytestmark = pytest.mark.slow
 
 IR = R.IR
 

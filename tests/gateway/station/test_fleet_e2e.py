@@ -5,7 +5,6 @@ import contextlib
 import os
 import subprocess
 
-import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
@@ -23,8 +22,6 @@ from kit.e2e import (
     virtual_station,
 )
 from kit.tools import wait_for
-
-pytestmark = pytest.mark.slow
 
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 STATIONS = ("st-a", "st-b", "st-c", "st-d")

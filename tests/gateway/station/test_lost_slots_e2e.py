@@ -41,7 +41,6 @@ def _test_dir(tmp_path, station, timeout=60.0):
     raise AssertionError(f"no test folder with a log for {station}")
 
 
-@pytest.mark.slow
 def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monkeypatch):
     monkeypatch.setenv(RESERVE_ENV, str(RESERVE))
     sc = quick_scenario(tmp_path, "quick.yaml")

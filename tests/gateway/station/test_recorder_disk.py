@@ -8,8 +8,6 @@ import random
 import subprocess
 import time
 
-import pytest
-
 from gateway.logio import read_log
 from gateway.method.rules import LOST
 from gateway.records import Command, CommandKind, SlotRecord
@@ -168,7 +166,6 @@ def _first_test_dir(tmp_path, station, timeout=30.0):
     raise AssertionError(f"no test folder with a log for {station}")
 
 
-@pytest.mark.slow
 def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
     sc = scenario_file(tmp_path, "full", method={"t_end": 600})
     with small_tmpfs(tmp_path / "records", "2m"), virtual_station(tmp_path, sc) as (_sim, links):
@@ -201,7 +198,6 @@ def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
         assert out == res["method"], (out, res["method"])
 
 
-@pytest.mark.slow
 def test_station_folder_unwritable_mid_test_completes_and_keeps_its_result(tmp_path):
     sc = scenario_file(tmp_path, "ro", method={"t_end": 10})
     with small_tmpfs(tmp_path / "records", "8m"), virtual_station(tmp_path, sc) as (_sim, links):

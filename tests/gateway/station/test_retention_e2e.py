@@ -11,7 +11,6 @@ import sqlite3
 import time
 import urllib.request
 
-import pytest
 import yaml
 
 from gateway.records import Event, EventType
@@ -74,7 +73,6 @@ def _done(tmp_path):
     return [d for d in test_dirs(tmp_path, "ret") if os.path.exists(os.path.join(d, RESULT_NAME))]
 
 
-@pytest.mark.slow
 def test_retention_over_many_short_tests_on_a_small_disk(tmp_path):
     sc = scenario_file(tmp_path, "ret")
     rec = tmp_path / "records"

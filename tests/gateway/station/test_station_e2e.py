@@ -7,7 +7,6 @@ import signal
 import time
 
 import numpy as np
-import pytest
 import yaml
 
 from gateway.logio import read_log
@@ -28,8 +27,6 @@ from kit.e2e import (
     wait_exit,
     wait_log,
 )
-
-pytestmark = pytest.mark.slow
 
 # the virtual plant's tuned control: the paper's structure, a dead band of 0.01 N (the default
 # 0.02 N lets the mean settle anywhere within ±0.02 N of the setpoint)

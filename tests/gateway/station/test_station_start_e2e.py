@@ -5,7 +5,6 @@ import csv
 import os
 import time
 
-import pytest
 import yaml
 
 from conftest import ROOT
@@ -28,8 +27,6 @@ from kit.e2e import (
 )
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool
-
-pytestmark = pytest.mark.slow
 
 SCENARIOS = os.path.join(ROOT, "config", "scenarios")
 TUNED = {"dead_band_n": 0.01}

@@ -11,7 +11,6 @@ import subprocess
 import threading
 import time
 
-import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
@@ -31,8 +30,6 @@ from kit.e2e import (
     wait_log,
 )
 from kit.tools import wait_for
-
-pytestmark = pytest.mark.slow
 
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 

@@ -13,8 +13,6 @@ from kit.e2e import fleet_dir, run_gateway
 from kit.proc import Proc
 from kit.tools import wait_for
 
-pytestmark = pytest.mark.slow
-
 NAMES = ("sim01", "sim02")
 
 

@@ -12,7 +12,6 @@ import signal
 import time
 import urllib.request
 
-import pytest
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -24,8 +23,6 @@ from kit.northbound import mbpoll
 from kit.prometheus import prometheus, query  # noqa: F401 (prometheus: a fixture)
 from kit.prometheus import wait_for as prom_wait
 from kit.tools import free_port, require_tool, wait_for
-
-pytestmark = pytest.mark.slow
 
 NAMES = ("sim01", "sim02", "sim03")
 UNITS = {"sim01": 1, "sim02": 2, "sim03": 3}

@@ -10,15 +10,12 @@ from __future__ import annotations
 import os
 import signal
 
-import pytest
 import yaml
 
 from kit.broker import Broker
 from kit.e2e import fleet_dir, run_gateway, sim_fleet, wait_log, worker_pids
 from kit.sparkplug_host import PrimaryHost, metric_value
 from kit.tools import wait_for
-
-pytestmark = pytest.mark.slow
 
 GROUP, NODE = "lab", "hall-l1"          # fleet_dir's site / area-line: the shared default node
 NAMES = ("sim01", "sim02")

@@ -16,15 +16,11 @@ from __future__ import annotations
 import json
 import time
 
-import pytest
-
 from gateway.northbound.sparkplug.client import SparkplugSettings, node_figures
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.sparkplug_host import PrimaryHost
-
-pytestmark = pytest.mark.slow
 
 GROUP, NODE, DEV = "lab", "doors-l1", "loom-01"
 NODE_KINDS = ("NBIRTH", "NDEATH", "DBIRTH", "DDEATH", "NDATA", "DDATA")

@@ -7,15 +7,12 @@ import os
 import signal
 import sqlite3
 
-import pytest
 import yaml
 
 from conftest import ROOT
 from kit.broker import Broker
 from kit.e2e import run_gateway, station_yaml, virtual_station
 from kit.sparkplug_host import PrimaryHost, metric_value
-
-pytestmark = pytest.mark.slow
 
 METER_MAP = os.path.join(ROOT, "config", "meters", "zn-s.yaml")
 GROUP, NODE, DEV = "lab", "test-l1", "spb"

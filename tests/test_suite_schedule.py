@@ -1,0 +1,67 @@
+"""The suite's schedule (tests/conftest.py) is declared once and names only tests that exist: a
+renamed or deleted test in the slow tier silently moved its successor into the quick loop (a
+stale entry named tests/gateway/test_logio_cache.py, gone), and a module that marked itself slow
+besides the table was a second place to look."""
+import ast
+import os
+
+import conftest as C
+
+ROOT = C.ROOT
+
+
+def _tests_of(path: str) -> set[str]:
+    with open(os.path.join(ROOT, path), encoding="utf-8") as f:
+        tree = ast.parse(f.read())
+    return {n.name for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and n.name.startswith("test")}
+
+
+def schedule_problems() -> list[str]:
+    bad = []
+    for table in ("SLOW", "CPU"):
+        for path, names in getattr(C, table).items():
+            if not os.path.isfile(os.path.join(ROOT, path)):
+                bad.append(f"{table}: {path}: no such module")
+                continue
+            have = _tests_of(path)
+            bad += [f"{table}: {path}::{n}: no such test" for n in names if n != "*" and n not in have]
+    for path in (*C.MODULE_GROUPS, *C.FLEETS):
+        if not os.path.isfile(os.path.join(ROOT, path)):
+            bad.append(f"{path}: no such module")
+    return bad
+
+
+def slow_marks(src: str) -> list[int]:
+    """Lines of ``pytest.mark.slow`` in a module's source (its syntax tree: a mention in a
+    docstring is no mark)."""
+    return [n.lineno for n in ast.walk(ast.parse(src)) if isinstance(n, ast.Attribute) and n.attr == "slow"
+            and isinstance(n.value, ast.Attribute) and n.value.attr == "mark"]
+
+
+def test_every_entry_of_the_schedule_names_an_existing_test():
+    assert schedule_problems() == []
+
+
+def test_the_slow_tier_is_declared_in_conftest_only():
+    """No `pytestmark = pytest.mark.slow` nor `@pytest.mark.slow` in a test module."""
+    bad = []
+    for d, _, files in os.walk(os.path.join(ROOT, "tests")):
+        for f in files:
+            if f.startswith("test_") and f.endswith(".py"):
+                path = os.path.join(d, f)
+                with open(path, encoding="utf-8") as fh:
+                    bad += [f"{os.path.relpath(path, ROOT)}:{ln}" for ln in slow_marks(fh.read())]
+    assert bad == []
+
+
+def test_the_checks_see_a_stale_entry_and_a_mark(tmp_path, monkeypatch):
+    """The two checks above have teeth: a table naming a missing test, and a module marking
+    itself, are both found."""
+    monkeypatch.setattr(C, "SLOW", {"tests/test_suite_schedule.py": ("test_gone",),
+                                    "tests/nowhere.py": ("*",)})
+    found = schedule_problems()
+    assert "SLOW: tests/test_suite_schedule.py::test_gone: no such test" in found
+    assert "SLOW: tests/nowhere.py: no such module" in found
+    assert slow_marks("import pytest\npytestmark = pytest.mark.slow\n") == [2]
+    assert slow_marks('"""pytest.mark.slow in words"""\n@pytest.mark.slow\ndef test_x():\n    pass\n') == [2]
