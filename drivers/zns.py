@@ -16,8 +16,7 @@ One read per 20 ms slot, never longer than ``timeout_s``, never raising:
   ``port_lost``, ``reopened``, ``not_connected`` (reads skipped while the port is gone),
   ``port_in_use`` (opening attempts refused: another process holds the port's exclusive lock —
   said once per episode with who holds it), ``late_bytes`` (chunks of bytes that arrived while no
-  request
-  was open; discarded).
+  request was open; discarded).
 * A bad CRC or garbage ends the read at once (the bytes are inspected as they arrive), it does not
   wait for the timeout.
 * The port vanishing (USB adapter pulled) shows as an error on read or write: ``connected``

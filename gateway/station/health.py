@@ -37,6 +37,7 @@ class Health:
         self._uplinks: dict[str, bool] = {}
         self._disks: dict[str, bool] = {}
         self.meter = meter
+        self._diagnosis = meter if isinstance(meter, MeterDiagnosis) else None
         #: failing meter reads: one line per cause a window, with the count (RateLog)
         self.meter_log = RateLog(log)
         self._meter_seen: dict[str, int] = {}
@@ -105,7 +106,7 @@ class Health:
         meter, a wrong unit ID, replies that fail their CRC or come sooner than the wire can
         carry them. The counts of every cause are in the meter's counters (metrics)."""
         c = self.meter.counters
-        now = {k: int(c.get(k, 0)) for k in ("reads", "reads_ok", "not_connected", *_METER_FAILURES)}
+        now = {k: int(c.get(k, 0)) for k in ("reads", "reads_ok", *_METER_FAILURES)}
         before, self._meter_seen = self._meter_seen, now
         if not before:
             before = {k: 0 for k in now}
@@ -115,7 +116,7 @@ class Health:
         if failed <= 0:
             return
         causes = ", ".join(f"{d[k]} {k}" for k in _METER_FAILURES if d[k] > 0) or "no cause counted"
-        why = self.meter.failure_text() if isinstance(self.meter, MeterDiagnosis) else None
+        why = self._diagnosis.failure_text() if self._diagnosis is not None else None
         kind = max(_METER_FAILURES, key=lambda k: d[k])
         self.meter_log.warning(("meter", kind), "meter: %d of %d reads since the last check gave no "
                                "reading (%s): %s", failed, polls, causes,
