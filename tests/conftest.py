@@ -114,6 +114,8 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/northbound/sparkplug/test_sparkplug_doors_e2e.py",
         "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py",
         "tests/gateway/northbound/test_northbound_wear_e2e.py",
+        "tests/gateway/northbound/test_site_lives_e2e.py",
+        "tests/gateway/station/test_stall_e2e.py",
         "tests/gateway/station/test_station_start_e2e.py",
         "tests/gateway/station/test_station_e2e.py",
         "tests/gateway/station/test_station_independent_slave.py",

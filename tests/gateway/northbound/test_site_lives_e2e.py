@@ -19,8 +19,6 @@ from kit.broker import Broker, Sub, pub
 from kit.e2e import QUICK_END, QUICK_METHOD, quick_scenario, run_gateway, station_yaml, virtual_station, wait_log
 from kit.tools import wait_for
 
-pytestmark = pytest.mark.slow
-
 FAILURES = (20.0, 23.0, 26.5)
 STOPPED = (1100, 1250)          # slots (ts 0.02): 22 s and 25 s, hooks replaced early
 

@@ -19,8 +19,6 @@ import os
 import signal
 import time
 
-import pytest
-
 from gateway.station.recorder import LOG_NAME, RESULT_NAME
 from kit.e2e import (
     QUICK_END,
@@ -69,7 +67,6 @@ def _drive_records(path) -> list[dict]:
     return [e for e in _sim_events(path) if e.get("event") == "drive"]
 
 
-@pytest.mark.slow
 def test_a_station_stopped_for_0_6_s_mid_test_completes_the_test(tmp_path):
     sc = quick_scenario(tmp_path, "quick.yaml")
     ev_path = str(tmp_path / "sim-events.jsonl")
@@ -117,7 +114,6 @@ def test_a_station_stopped_for_0_6_s_mid_test_completes_the_test(tmp_path):
     assert enabled[0]["watchdog_ms"] == 1500, enabled
 
 
-@pytest.mark.slow
 def test_a_killed_gateway_leaves_the_motor_stopped_by_the_twin_watchdog(tmp_path):
     sc = quick_scenario(tmp_path, "quick.yaml")
     ev_path = str(tmp_path / "sim-events.jsonl")
