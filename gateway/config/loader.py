@@ -32,6 +32,12 @@ from .yamlpos import load as load_yaml
 #: length: gateway/ratelog.py clip)
 ECHO = 64
 
+
+def _shown(v: Any) -> str:
+    """A bad value in a message: a string quoted and clipped (ratelog.clip), anything else as
+    validation.show_value shows it."""
+    return clip(v, ECHO) if isinstance(v, str) else show_value(v)
+
 AUTO: Any = object()  # fleet_file: find it by the rule above
 
 #: the keys of fleet.yaml
@@ -263,7 +269,7 @@ def _read_fleet(file: str) -> tuple[dict | None, dict, list[Issue]]:
     if defaults is None:
         defaults = {}
     if not isinstance(defaults, dict):
-        issues.append(Issue("error", "defaults", f"{show_value(defaults)} is not a mapping; allowed: "
+        issues.append(Issue("error", "defaults", f"{_shown(defaults)} is not a mapping; allowed: "
                             "a station file's sections (meter:, method:, mqtt:, …)", file,
                             doc.pos[("defaults",)].line))
         return None, {}, issues
@@ -345,30 +351,30 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
     if kind in ("int", "float"):
         bad = isinstance(v, bool) or not isinstance(v, (int, float)) or (kind == "int" and isinstance(v, float))
         if bad:
-            return False, _bad(v, f"{show_value(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{_shown(v)} is not {_WRONG_TYPE[kind]}; allowed: {allowed}", allowed)
         if kind == "float":
             v = float(v)
             if not S.finite(v):
-                return False, _bad(v, f"{show_value(v)} is not a finite number; allowed: {allowed}", allowed)
+                return False, _bad(v, f"{_shown(v)} is not a finite number; allowed: {allowed}", allowed)
         if k.choices is not None:
             if v not in k.choices:
-                return False, _bad(v, f"{show_value(v)} is not allowed; allowed: {allowed}", allowed)
+                return False, _bad(v, f"{_shown(v)} is not allowed; allowed: {allowed}", allowed)
             return True, v
         if ((k.lo is not None and (v <= k.lo if k.lo_open else v < k.lo))
                 or (k.hi is not None and (v >= k.hi if k.hi_open else v > k.hi))):
-            return False, _bad(v, f"{show_value(v)} is out of range; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{_shown(v)} is out of range; allowed: {allowed}", allowed)
         return True, v
     if kind == "bool":
         if not isinstance(v, bool):
-            return False, _bad(v, f"{show_value(v)} is not true or false; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{_shown(v)} is not true or false; allowed: {allowed}", allowed)
         return True, v
     if kind in ("str_list", "ip_list"):
         if not isinstance(v, list):
-            return False, _bad(v, f"{show_value(v)} is not a list; allowed: {allowed}", allowed)
+            return False, _bad(v, f"{_shown(v)} is not a list; allowed: {allowed}", allowed)
         out = []
         for i, item in enumerate(v):
             if not isinstance(item, str) or not item.strip():
-                return False, _bad(v, f"item {i + 1} ({show_value(item)}) is not a string; "
+                return False, _bad(v, f"item {i + 1} ({_shown(item)}) is not a string; "
                                    f"allowed: {allowed}", allowed)
             if kind == "ip_list" and not S.check_ip(item.strip()):
                 return False, _bad(v, f"item {i + 1} ({clip(item, ECHO)}) is not an IP address or network; "
@@ -384,7 +390,7 @@ def convert(k: S.Key, v: Any) -> tuple[bool, Any]:
             hint = f" (put it in quotes: '{v}')"
         elif isinstance(v, list):
             hint = ""
-        return False, _bad(v, f"{show_value(v)} is not a string{hint}; allowed: {allowed}", allowed)
+        return False, _bad(v, f"{_shown(v)} is not a string{hint}; allowed: {allowed}", allowed)
     if kind == "enum":
         for c in k.choices or ():
             if v.strip().lower() == str(c).lower():
@@ -417,7 +423,7 @@ def _section(sec: S.Section, tree: Any, path: tuple, rep: _Report, ctx: dict):
     if tree is None:
         tree = {}
     if not isinstance(tree, dict):
-        rep.error(path, f"{show_value(tree)} is not a mapping; allowed: a section with the keys "
+        rep.error(path, f"{_shown(tree)} is not a mapping; allowed: a section with the keys "
                   f"{', '.join(e.name for e in sec.entries)}")
         return None
     names = [e.name for e in sec.entries]
@@ -473,7 +479,7 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
     if tree is None:
         tree = {}
     if not isinstance(tree, dict):
-        rep.error(path, f"{show_value(tree)} is not a mapping; allowed: method parameters "
+        rep.error(path, f"{_shown(tree)} is not a mapping; allowed: method parameters "
                   f"({', '.join(S.METHOD_KEYS)})")
         return None
     values: dict[str, Any] = {}

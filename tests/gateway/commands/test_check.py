@@ -166,13 +166,15 @@ def test_a_huge_station_id_is_echoed_clipped(tmp_path):
     huge = "A" * 1_000_000
     (tmp_path / "stations").mkdir()
     (tmp_path / "stations" / "big.yaml").write_text(
-        f"station: {{id: {huge}}}\nmeter: {{port: /dev/a}}\nstm32: {{port: /dev/b}}\n")
+        f"station: {{id: {huge}}}\nmeter: {{port: /dev/a}}\nstm32: {{port: /dev/b}}\n"
+        f"mqtt: {{enabled: {huge[:40_000]}}}\n")
     (tmp_path / "stations" / "ok.yaml").write_text(
         "station: {id: ok}\nmeter: {port: /dev/c}\nstm32: {port: /dev/d}\n")
     rc, out, _ = check("--skip-local", str(tmp_path))
     assert rc == 1
     assert len(out) < 2000, len(out)
     assert "(1000000 chars)" in out and "is not a valid name" in out
+    assert "(40000 chars) is not true or false" in out
     plan = plan_fleet(str(tmp_path))
     [r] = plan.refused
     assert len(r.name) < 100 and len(r.message()) < 1000, (len(r.name), len(r.message()))
