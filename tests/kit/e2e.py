@@ -253,4 +253,3 @@ def assert_no_slot_lost(test_dir, online: dict, stats: dict | None = None, ts: f
         assert stats["slots"] >= n, (test_dir, stats, n)
         assert stats["slots"] - stats["filled"] >= missing, (test_dir, stats, missing)
     return missing
-
