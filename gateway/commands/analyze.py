@@ -1,9 +1,9 @@
 """`hookwatch analyze LOG... [--set NAME=VALUE]... [--json]`: the method over recorded logs."""
 from __future__ import annotations
 
-import json
 import sys
 
+from .. import safeout
 from ..analysis import AnalysisError, analyze_log, parse_overrides
 from ..cli import CliError
 from ..logio import LogError, read_meta, sidecar_prior
@@ -46,7 +46,7 @@ def run(args) -> int:
             continue
         d = {"log": path, **res.as_dict()}
         if args.json:
-            print(json.dumps(d), flush=True)
+            print(safeout.dumps(d, compact=False), flush=True)
         else:
             # display only: the warning's time (end of its last window), s from test start
             d["warn_s"] = None if res.warn_slot is None else (res.warn_slot + 1) * p.ts

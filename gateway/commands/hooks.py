@@ -15,6 +15,7 @@ import os
 import secrets
 import threading
 
+from .. import safeout
 from ..cli import CliError
 from ..config import ConfigError, load_station
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
@@ -60,7 +61,7 @@ def run(args) -> int:
     hooks = read_hooks(d, MAX_LINES)
     if args.json:
         for h in hooks:
-            print(json.dumps(h, ensure_ascii=False))
+            print(safeout.dumps(h, compact=False, ensure_ascii=False))
         return 0
     if not hooks:
         print(f"{cfg.station.id}: no hook replaced yet ({os.path.join(d, HOOKS_NAME)})")

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import signal
@@ -11,7 +10,7 @@ import threading
 import time
 from typing import Any
 
-from .. import sdnotify
+from .. import safeout, sdnotify
 from ..cli import CliError
 from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_sparkplug_nodes
 from ..config import ConfigError, load_fleet, load_station
@@ -243,7 +242,7 @@ def drive(runtime: Runtime, args) -> int:
     report = runtime.report()
     if args.stats_json:
         with open(args.stats_json, "w") as fh:
-            json.dump(report, fh, indent=1, default=str)
+            safeout.dump(report, fh, indent=1)
     _print_report(report)
     return 0
 

@@ -27,6 +27,7 @@ from typing import Any
 from drivers.stm32_protocol import watchdog_for
 
 from ..control import ControlParams, NotchParams
+from ..method.params import MAX_TENSION, TEN_YEARS
 from ..method.params import PARAMS as METHOD_PARAMS
 from ..method.prior import PriorEntry, same_t_set
 from ..validation import show_yaml
@@ -101,7 +102,9 @@ class Key:
             s = "a list of IP addresses or networks, e.g. [10.10.4.20, 10.10.5.0/24]"
         elif k == "prior_list":
             s = ("a list of {grade, t_set_n, mean_s, sd_s[, n, n_censored]}, e.g. [{grade: I, "
-                 "t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (mean_s, sd_s > 0)")
+                 "t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (0 < t_set_n ≤ "
+                 f"{MAX_TENSION:g} N; 0 < mean_s, sd_s ≤ {TEN_YEARS:.0f} s, 10 years; "
+                 f"1 ≤ n ≤ {MAX_PRIOR_N}; 0 ≤ n_censored ≤ {MAX_PRIOR_N})")
         else:
             s = "a string"
         if self.nullable:
@@ -229,7 +232,8 @@ class TestConfig:
     t_set_n: float = key(0.5, "tension setpoint T_set of a test (the method's `t_set`)", kind="float",
                          unit="N", lo=0.0, lo_open=True, hi=1000.0)
     t_end_s: float = key(36000.0, "planned test duration (the method's `t_end`); the test ends as "
-                         "completed after this long", kind="float", unit="s", lo=0.0, lo_open=True)
+                         "completed after this long", kind="float", unit="s", lo=0.0, lo_open=True,
+                         hi=TEN_YEARS)
     autostart: bool = key(False, "start a test with these values as soon as the station runs",
                           kind="bool")
     restart_on_replace: bool = key(False, "a `hook_replaced` command starts the next test with the "
@@ -242,6 +246,10 @@ PRIOR_ENTRY_KEYS = ("grade", "t_set_n", "mean_s", "sd_s")
 PRIOR_ENTRY_OPTIONAL = ("n", "n_censored")
 #: entries a `forecast.priors` list may hold (grades × setpoints of one station)
 MAX_PRIOR_ENTRIES = 256
+#: the largest test count `n` of a prior entry
+MAX_PRIOR_N = 1_000_000
+#: the upper bound of each number of a prior entry (a tension; a life and its SD: 10 years)
+_PRIOR_HI = {"t_set_n": MAX_TENSION, "mean_s": TEN_YEARS, "sd_s": TEN_YEARS}
 
 
 def parse_prior_entries(v: Any) -> tuple[bool, Any]:
@@ -274,14 +282,18 @@ def parse_prior_entries(v: Any) -> tuple[bool, Any]:
                 return False, f"entry {i}: {k} {show_yaml(x)} is not a finite number"
             if not float(x) > 0:
                 return False, f"entry {i} (grade {g}): {k} {show_yaml(x)} is impossible; allowed: > 0"
+            if float(x) > _PRIOR_HI[k]:
+                most = f"{MAX_TENSION:g} N" if k == "t_set_n" else f"{TEN_YEARS:.0f} s (10 years)"
+                return False, f"entry {i} (grade {g}): {k} {show_yaml(x)} is out of range; allowed: ≤ {most}"
             nums[k] = float(x)
         n = item.get("n")
-        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
-            return False, f"entry {i}: n {show_yaml(n)} is not a count of tests (an integer ≥ 1)"
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_PRIOR_N):
+            return False, (f"entry {i}: n {show_yaml(n)} is not a count of tests (an integer from 1 "
+                           f"to {MAX_PRIOR_N})")
         nc = item.get("n_censored")
-        if nc is not None and (isinstance(nc, bool) or not isinstance(nc, int) or nc < 0):
+        if nc is not None and (isinstance(nc, bool) or not isinstance(nc, int) or not 0 <= nc <= MAX_PRIOR_N):
             return False, (f"entry {i}: n_censored {show_yaml(nc)} is not a count of tests (an "
-                           "integer ≥ 0)")
+                           f"integer from 0 to {MAX_PRIOR_N})")
         out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n, nc))
     return True, tuple(out)
 
@@ -344,7 +356,7 @@ class MqttOutboxConfig:
                            nullable=True, null_means="`<recorder.dir>/<station id>/outbox.sqlite`")
     telemetry_budget_mb: float = key(50.0, "telemetry kept while the broker is unreachable; the "
                                      "oldest telemetry is dropped (counted) beyond it — events and "
-                                     "results are never dropped", kind="float", unit="MB", lo=0.1)
+                                     "results are never dropped", kind="float", unit="MB", lo=0.1, hi=1e6)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -424,7 +436,7 @@ class SparkplugConfig(BrokerConfig):
                                  null_means="`<recorder.dir>/sparkplug-<group>-<edge node>.sqlite`")
     history_budget_mb: float = key(50.0, "measured values kept while the host is offline; the "
                                    "oldest are dropped (counted) beyond it — state and alarm "
-                                   "changes are never dropped", kind="float", unit="MB", lo=0.1)
+                                   "changes are never dropped", kind="float", unit="MB", lo=0.1, hi=1e6)
     servers: tuple[str, ...] | None = key(None, "the Sparkplug server set (3.0 §8.2), as `host:port` "
                                           "(`host` alone: `port`); the node connects to the first, and "
                                           "moves to the next on `Node Control/Next Server`, when the "
@@ -604,38 +616,41 @@ class LoggingConfig:
 CONTROL_KEYS: dict[str, dict[str, Any]] = {
     "mode": dict(doc="closed: PID on the tension; open: a fixed speed command (open_loop_rpm)",
                  choices=("closed", "open")),
-    "open_loop_rpm": dict(unit="rpm", doc="speed command in open-loop mode", lo=0.0),
-    "kp": dict(unit="rpm/N", doc="proportional gain", lo=0.0),
-    "ki": dict(unit="rpm/(N·s)", doc="integral gain", lo=0.0),
-    "kd": dict(unit="rpm·s/N", doc="derivative gain (on the low-passed derivative)", lo=0.0),
+    "open_loop_rpm": dict(unit="rpm", doc="speed command in open-loop mode", lo=0.0, hi=20000.0),
+    "kp": dict(unit="rpm/N", doc="proportional gain", lo=0.0, hi=1e6),
+    "ki": dict(unit="rpm/(N·s)", doc="integral gain", lo=0.0, hi=1e6),
+    "kd": dict(unit="rpm·s/N", doc="derivative gain (on the low-passed derivative)", lo=0.0,
+               hi=1e6),
     "plant_sign": dict(doc="+1: more take-up speed gives more tension; -1: the other way round",
                        choices=(1, -1)),
     "n_max_rpm": dict(unit="rpm", doc="upper clamp of the speed command (the lower one is 0); the "
                       "clamp is the anti-windup", lo=0.0, lo_open=True, hi=20000.0),
     "slew_rpm_per_slot": dict(unit="rpm per slot", doc="largest change of the command from one slot "
-                              "to the next", lo=0.0, lo_open=True),
-    "dead_band_n": dict(unit="N", doc="tension errors smaller than this count as zero", lo=0.0),
+                              "to the next", lo=0.0, lo_open=True, hi=20000.0),
+    "dead_band_n": dict(unit="N", doc="tension errors smaller than this count as zero", lo=0.0,
+                        hi=MAX_TENSION),
     "prefilter_fc_hz": dict(unit="Hz", doc="cut-off of the first-order pre-filter on the feedback; "
-                            "below the Nyquist frequency 1/(2·ts)", lo=0.0, lo_open=True),
+                            "below the Nyquist frequency 1/(2·ts)", lo=0.0, lo_open=True, hi=1000.0),
     "deriv_fc_hz": dict(unit="Hz", doc="cut-off of the derivative's low-pass; below 1/(2·ts)",
-                        lo=0.0, lo_open=True),
+                        lo=0.0, lo_open=True, hi=1000.0),
     "hold_missing_s": dict(unit="s", doc="a missing reading is replaced by the last one for at most "
                            "this long; then the command is held", lo=0.0, hi=60.0),
     # notch
     "enabled": dict(doc="speed-adaptive notch on the feedback (removes the ripple at the shaft "
                     "frequency)"),
     "bw_hz": dict(unit="Hz", doc="notch bandwidth B_w: Q = f0 / B_w, clamped to [q_min, q_max]",
-                  lo=0.0, lo_open=True),
-    "q_min": dict(doc="lower clamp of the notch quality factor", lo=0.0, lo_open=True),
-    "q_max": dict(doc="upper clamp of the notch quality factor (≥ q_min)", lo=0.0, lo_open=True),
+                  lo=0.0, lo_open=True, hi=1000.0),
+    "q_min": dict(doc="lower clamp of the notch quality factor", lo=0.0, lo_open=True, hi=1000.0),
+    "q_max": dict(doc="upper clamp of the notch quality factor (≥ q_min)", lo=0.0, lo_open=True,
+                  hi=1000.0),
     "alpha_f": dict(doc="smoothing factor of the notch frequency update", lo=0.0, hi=1.0, lo_open=True),
     "alpha_q": dict(doc="smoothing factor of the Q update", lo=0.0, hi=1.0, lo_open=True),
-    "n_min_rpm": dict(unit="rpm", doc="the notch is bypassed below this speed", lo=0.0),
+    "n_min_rpm": dict(unit="rpm", doc="the notch is bypassed below this speed", lo=0.0, hi=20000.0),
     "f_update_hz": dict(unit="Hz", doc="coefficients are recomputed when f0 moved more than this",
-                        lo=0.0),
-    "q_update": dict(doc="… or when Q moved more than this", lo=0.0),
+                        lo=0.0, hi=1000.0),
+    "q_update": dict(doc="… or when Q moved more than this", lo=0.0, hi=1000.0),
     "ratio_i": dict(doc="transmission ratio i: disturbance frequency f0 = speed/60 · i · h",
-                    lo=0.0, lo_open=True),
+                    lo=0.0, lo_open=True, hi=1000.0),
     "harmonic_h": dict(doc="harmonic order h of the disturbance", lo=1, hi=20),
 }
 

@@ -426,26 +426,6 @@ def due_list(cards: list[dict[str, Any]], line: str | None = None,
     return rows
 
 
-#: characters that make a spreadsheet read a cell as a formula (CSV injection, OWASP)
-_FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
-
-
-def csv_cell(v: Any) -> str:
-    """One CSV cell as text, defused: a cell that starts with ``= + - @`` (or a tab / carriage
-    return) gets a leading ``'`` so that no spreadsheet runs it as a formula."""
-    if v is None:
-        t = ""
-    elif isinstance(v, bool):
-        t = "true" if v else "false"
-    elif isinstance(v, list):
-        t = " ".join(str(x) for x in v)
-    elif isinstance(v, float):
-        t = repr(round(v, 6)) if math.isfinite(v) else ""
-    else:
-        t = str(v)
-    return "'" + t if t.startswith(_FORMULA_START) else t
-
-
 def journal_entries(ev: dict[str, Any]) -> list[dict[str, Any]]:
     """The journal lines of one station event (``Event.as_dict`` or a line of events.jsonl): one
     per ISA-18.2 transition it carries (``transitions``), with the event's type, test and source."""

@@ -28,9 +28,7 @@ with the user.
 from __future__ import annotations
 
 import asyncio
-import csv
 import hmac
-import io
 import ipaddress
 import json
 import logging
@@ -47,6 +45,7 @@ from typing import Any
 
 from aiohttp import web
 
+from .. import safeout
 from ..doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
 from ..northbound.cmdparse import intake, nesting_depth, rejected_event_data
 from ..ports import StationView
@@ -60,7 +59,6 @@ from .feed import (
     DUE_COLUMNS,
     ConsoleOutput,
     StationFeed,
-    csv_cell,
     due_list,
     hook_history,
     journal_from_disk,
@@ -69,6 +67,12 @@ from .feed import (
 from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
 
 log = logging.getLogger("hookwatch.console")
+
+
+def _json(data: Any, **kw: Any) -> web.Response:
+    """A JSON response, strict: never NaN/Infinity (a non-finite number is null; gateway.safeout)."""
+    return web.json_response(data, dumps=safeout.dumps, **kw)
+
 
 STATIC = os.path.join(os.path.dirname(os.path.abspath(__file__)), "static")
 #: largest request body accepted
@@ -329,7 +333,7 @@ class ConsoleServer:
                 msg = {"type": "update", "gen": feed.series.gen, "from": ch[0] if ch else None,
                        "rows": ch[1] if ch else [], "markers": feed.markers,
                        "summary": feed.summary(), "events": list(feed.events)[-20:]}
-            data = ("data: " + json.dumps(msg, separators=(",", ":")) + "\n\n").encode()
+            data = ("data: " + safeout.dumps(msg) + "\n\n").encode()
             for c in list(clients):
                 try:
                     c.q.put_nowait(data)
@@ -457,7 +461,7 @@ class ConsoleServer:
         return f
 
     async def h_fleet(self, request):
-        return web.json_response({"stations": [f.summary() for f in self.feeds.values()],
+        return _json({"stations": [f.summary() for f in self.feeds.values()],
                                   "time": time.time(),
                                   "console": {"cpu_s": self.cpu_s, "dropped_clients": self.dropped_clients,
                                               "live_clients": sum(len(c) for c in self.clients.values())}})
@@ -465,8 +469,8 @@ class ConsoleServer:
     async def h_session(self, request):
         s = self._session(request)
         if s is None:
-            return web.json_response({"user": None, "read": self._may_read(request)})
-        return web.json_response({"user": s.user, "csrf": s.csrf, "read": True})
+            return _json({"user": None, "read": self._may_read(request)})
+        return _json({"user": s.user, "csrf": s.csrf, "read": True})
 
     async def h_login(self, request):
         try:
@@ -508,14 +512,14 @@ class ConsoleServer:
         self.sessions.drop(request.cookies.get(COOKIE))
         token, s = self.sessions.create(user, remote)
         log.info("console: %s logged in from %s", user, remote)
-        resp = web.json_response({"user": user, "csrf": s.csrf})
+        resp = _json({"user": user, "csrf": s.csrf})
         resp.set_cookie(COOKIE, token, httponly=True, samesite="Strict", path="/",
                         secure=bool(self.settings.cert_file), max_age=int(self.settings.session_ttl_s))
         return resp
 
     async def h_logout(self, request):
         self.sessions.drop(request.cookies.get(COOKIE))
-        resp = web.json_response({"user": None})
+        resp = _json({"user": None})
         resp.del_cookie(COOKIE, path="/")
         return resp
 
@@ -524,7 +528,7 @@ class ConsoleServer:
             f = self._feed(request)
         except _HttpError as e:
             return _err(e.status, e.reason)
-        return web.json_response(f.snapshot())
+        return _json(f.snapshot())
 
     async def h_stream(self, request):
         try:
@@ -545,7 +549,7 @@ class ConsoleServer:
         _small_send_buffer(request.transport)
         c = _Client()
         f.drain()
-        first = ("data: " + json.dumps(f.snapshot(), separators=(",", ":")) + "\n\n").encode()
+        first = ("data: " + safeout.dumps(f.snapshot()) + "\n\n").encode()
         self.clients[f.name].add(c)
         try:
             await asyncio.wait_for(resp.write(first), WRITE_TIMEOUT_S)
@@ -616,7 +620,7 @@ class ConsoleServer:
         else:
             self._refusal_log.warning(("command", kind, int(code)), "console: command %s on %s by %s: refused: %s",
                                       kind, f.name, s.user, reply.reason)
-        return web.json_response({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
+        return _json({"ok": bool(reply.ok), "reason": reply.reason, "code": code},
                                  status=200 if reply.ok else status)
 
     # ----------------------------------------------------------------- campaign
@@ -657,7 +661,7 @@ class ConsoleServer:
             self._campaign_busy = False
         log.info("console: campaign report %s over %s (%d tests) by %s", cid, ", ".join(stations), n,
                  getattr(self._session(request), "user", "?"))
-        return web.json_response({"ok": True, "tests": n, "url": f"/api/campaign/{cid}/report.html"})
+        return _json({"ok": True, "tests": n, "url": f"/api/campaign/{cid}/report.html"})
 
     async def h_campaign_file(self, request):
         cid, path = request.match_info["cid"], request.match_info["path"]
@@ -689,7 +693,7 @@ class ConsoleServer:
         except _HttpError as e:
             return _err(e.status, e.reason)
         tests = await asyncio.get_running_loop().run_in_executor(None, list_tests, d)
-        return web.json_response({"station": request.match_info["sid"], "tests": tests})
+        return _json({"station": request.match_info["sid"], "tests": tests})
 
     def _file_rate(self, request) -> web.Response | None:
         """Disk reads (hooks, the CSV) are bounded per client address: 429 + Retry-After."""
@@ -710,7 +714,7 @@ class ConsoleServer:
         if refused is not None:
             return refused
         hooks = await asyncio.get_running_loop().run_in_executor(None, hook_history, d)
-        return web.json_response({"station": request.match_info["sid"], "hooks": hooks})
+        return _json({"station": request.match_info["sid"], "hooks": hooks})
 
     async def h_journal(self, request):
         """The alarm journal of a station: every ISA-18.2 transition with who and when, oldest
@@ -730,7 +734,7 @@ class ConsoleServer:
                 old = []
             f.drain()
             f.seed_journal(old)
-        return web.json_response({"station": f.name, "journal": list(f.journal)})
+        return _json({"station": f.name, "journal": list(f.journal)})
 
     def _due_filters(self, request) -> tuple[str | None, str | None]:
         out = []
@@ -754,12 +758,13 @@ class ConsoleServer:
         except _HttpError as e:
             return _err(e.status, e.reason)
         feeds = self.feeds.values()
-        return web.json_response({"time": time.time(), "columns": list(DUE_COLUMNS), "stations": rows,
+        return _json({"time": time.time(), "columns": list(DUE_COLUMNS), "stations": rows,
                                   "lines": sorted({f.line for f in feeds if f.line}),
                                   "areas": sorted({f.area for f in feeds if f.area})})
 
     async def h_due_csv(self, request):
-        """The due list as CSV (RFC 4180; every cell that starts with = + - @ gets a leading ')."""
+        """The due list as CSV (RFC 4180; every cell defused against formulas in any locale:
+        gateway.safeout.csv_text)."""
         try:
             rows = self._due(request)
         except _HttpError as e:
@@ -767,13 +772,9 @@ class ConsoleServer:
         refused = self._file_rate(request)
         if refused is not None:
             return refused
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\r\n")
-        w.writerow(DUE_COLUMNS)
-        for r in rows:
-            w.writerow([csv_cell(r.get(c)) for c in DUE_COLUMNS])
+        text = safeout.csv_text([DUE_COLUMNS, *([r.get(c) for c in DUE_COLUMNS] for r in rows)])
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        return web.Response(body=buf.getvalue().encode("utf-8"), headers={
+        return web.Response(body=text.encode("utf-8"), headers={
             "Content-Type": "text/csv; charset=utf-8",
             "Content-Disposition": f'attachment; filename="due-{stamp}.csv"'})
 
@@ -935,4 +936,4 @@ def _cut(text: str, n: int = 60) -> str:
 
 
 def _err(status: int, reason: str, headers: dict | None = None) -> web.Response:
-    return web.json_response({"ok": False, "reason": reason}, status=status, headers=headers)
+    return _json({"ok": False, "reason": reason}, status=status, headers=headers)

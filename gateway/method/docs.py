@@ -15,8 +15,14 @@ def render() -> str:
         "these names are the keys of a station's `method:` section, of a log's sidecar and of "
         "`hookwatch analyze --set`.",
         "",
-        "| name | default | unit | meaning |",
-        "|---|---|---|---|",
+        "Every value is a finite number (NaN and ±Infinity are refused wherever a parameter is read: "
+        "a station file, a log's sidecar, `--set`), and at most the *largest* value below: "
+        "plausible physical bounds, so that no derived figure (the §5b end quantiles, a window's "
+        "length in slots) can overflow. The lower bounds and the rules between parameters are "
+        "checked too; an error names the key, the value and what is allowed.",
+        "",
+        "| name | default | unit | largest | meaning |",
+        "|---|---|---|---|---|",
     ]
     for p in PARAMS:
         if p.required:
@@ -27,7 +33,7 @@ def render() -> str:
             d = "true" if p.default else "false"
         else:
             d = f"{p.default:g}"
-        out.append(f"| `{p.name}` | {d} | {p.unit} | {p.doc} |")
+        out.append(f"| `{p.name}` | {d} | {p.unit} | {p.bound() or '—'} | {p.doc} |")
     out += ["", "## Reason bits of a slot", "", "| bit | name | makes the slot unsafe (§3) |",
             "|---|---|---|"]
     for bit, name in REASONS:

@@ -22,48 +22,63 @@ class ParamSpec:
     required: bool = False
     optional: bool = False  # may be None (e.g. t_end)
     kind: str = "float"     # "float", "int" (a whole number) or "bool"
+    hi: float | None = None  # the largest plausible value (inclusive); every value is finite too
 
+    def bound(self) -> str:
+        """The upper bound as the docs and the error messages say it."""
+        if self.hi is None:
+            return ""
+        if self.hi == TEN_YEARS:
+            return f"≤ {TEN_YEARS:.0f} {self.unit} (10 years)"
+        return f"≤ {self.hi:g}" + (f" {self.unit}" if self.unit not in ("1", "slot", "") else "")
+
+
+#: the longest duration any parameter may have: 10 years of 365.25 days, in s. No needle hook
+#: lives that long; a larger value (1e308) is a typing error, and would overflow the §5b quantiles
+TEN_YEARS = 10 * 365.25 * 86400.0
+#: the largest plausible tension, N (the ZN-S meter's largest range is far below)
+MAX_TENSION = 1000.0
 
 PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("ts", 0.02, "s", "sampling period"),
+    ParamSpec("ts", 0.02, "s", "sampling period", hi=1.0),
     ParamSpec("theta_deg", 105.0, "deg", "wrap angle θ of the yarn around the hook"),
-    ParamSpec("t_set", None, "N", "regulated mean tension T_set", required=True),
-    ParamSpec("full_scale", 5.0, "N", "sensor full scale"),
+    ParamSpec("t_set", None, "N", "regulated mean tension T_set", required=True, hi=MAX_TENSION),
+    ParamSpec("full_scale", 5.0, "N", "sensor full scale", hi=MAX_TENSION),
     ParamSpec("sat_ratio", 0.98, "1", "T_sat = sat_ratio · full_scale"),
     ParamSpec("t_min_ratio", 0.05, "1", "T_min = t_min_ratio · t_set"),
-    ParamSpec("jump_ratio", 0.5, "1", "J_max = jump_ratio · t_set"),
-    ParamSpec("r_min", 1.01, "1", "lower bound of R = T2/T1"),
-    ParamSpec("r_max", 4.2, "1", "upper bound of R = T2/T1"),
-    ParamSpec("stop_after", 1.0, "s", "protection stop after this long unsafe"),
-    ParamSpec("w_ss", 60.0, "s", "baseline window length"),
+    ParamSpec("jump_ratio", 0.5, "1", "J_max = jump_ratio · t_set", hi=100.0),
+    ParamSpec("r_min", 1.01, "1", "lower bound of R = T2/T1", hi=1e6),
+    ParamSpec("r_max", 4.2, "1", "upper bound of R = T2/T1", hi=1e6),
+    ParamSpec("stop_after", 1.0, "s", "protection stop after this long unsafe", hi=3600.0),
+    ParamSpec("w_ss", 60.0, "s", "baseline window length", hi=3600.0),
     ParamSpec("valid_ratio_min", 0.9, "1", "N_eff / N_ss needed in a steady window"),
-    ParamSpec("sigma_max", 0.01, "1", "robust σ bound in a steady window"),
-    ParamSpec("g_max", 0.02, "1", "range bound (max − min of μ) in a steady window"),
-    ParamSpec("w_hold", 3600.0, "s", "steady duration needed for the baseline"),
-    ParamSpec("delta", 0.25, "1", "relative threshold increment δ"),
-    ParamSpec("tau", 60.0, "s", "persistence time τ"),
-    ParamSpec("tau_g", 1.0, "s", "tolerated interruption τ_g"),
-    ParamSpec("t_end", None, "s", "planned test duration (none: open-ended)", optional=True),
+    ParamSpec("sigma_max", 0.01, "1", "robust σ bound in a steady window", hi=10.0),
+    ParamSpec("g_max", 0.02, "1", "range bound (max − min of μ) in a steady window", hi=10.0),
+    ParamSpec("w_hold", 3600.0, "s", "steady duration needed for the baseline", hi=TEN_YEARS),
+    ParamSpec("delta", 0.25, "1", "relative threshold increment δ", hi=100.0),
+    ParamSpec("tau", 60.0, "s", "persistence time τ", hi=86400.0),
+    ParamSpec("tau_g", 1.0, "s", "tolerated interruption τ_g", hi=3600.0),
+    ParamSpec("t_end", None, "s", "planned test duration (none: open-ended)", optional=True, hi=TEN_YEARS),
     ParamSpec("end_slot", None, "slot", "first slot after a test ended on purpose (§3); written by "
-              "the gateway into the sidecar, not set in a station file", optional=True, kind="int"),
+              "the gateway into the sidecar, not set in a station file", optional=True, kind="int", hi=1e12),
     ParamSpec("h_warn", 0.5, "1", "headroom below which windows count toward a headroom run "
-              "(§5a, a reason of the early warning §5b)"),
-    ParamSpec("n_warn", 5, "1", "consecutive windows that make a headroom run (§5a)", kind="int"),
+              "(§5a, a reason of the early warning §5b)", hi=1.0),
+    ParamSpec("n_warn", 5, "1", "consecutive windows that make a headroom run (§5a)", kind="int", hi=10000),
     ParamSpec("trend_windows", 60, "1", "windows used by the projection's Theil–Sen slope (§5a)",
-              kind="int"),
+              kind="int", hi=100000),
     ParamSpec("prior_mean", None, "s", "mean life of hooks of this grade at this T_set (§5b, §7a); "
-              "written by the gateway into the sidecar at the start of a test", optional=True),
+              "written by the gateway into the sidecar at the start of a test", optional=True, hi=TEN_YEARS),
     ParamSpec("prior_sd", None, "s", "standard deviation of that life (§5b); without it, or ≤ 0 "
-              "in a log's sidecar, the forecast from the prior is null", optional=True),
+              "in a log's sidecar, the forecast from the prior is null", optional=True, hi=TEN_YEARS),
     ParamSpec("lead", 3600.0, "s", "the planner's lead time: a hook is due when its end may come "
-              "within it (§5b)"),
+              "within it (§5b)", hi=TEN_YEARS),
     ParamSpec("p_due", 0.1, "1", "chance of the end within the lead that makes a hook due (§5b)"),
     ParamSpec("zero_check", True, "bool", "zero check before the motor starts (§3a)", kind="bool"),
-    ParamSpec("zero_tol", 0.02, "N", "allowed offset of each channel at zero (§3a)"),
+    ParamSpec("zero_tol", 0.02, "N", "allowed offset of each channel at zero (§3a)", hi=MAX_TENSION),
     ParamSpec("settle_band", 0.1, "1", "slot 0 needs the mean tension within settle_band · t_set "
               "of t_set … (§3a)"),
-    ParamSpec("settle_time", 2.0, "s", "… for this long (§3a)"),
-    ParamSpec("start_timeout", 30.0, "s", "no settled tension after this long: the start fails (§3a)"),
+    ParamSpec("settle_time", 2.0, "s", "… for this long (§3a)", hi=3600.0),
+    ParamSpec("start_timeout", 30.0, "s", "no settled tension after this long: the start fails (§3a)", hi=3600.0),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(p.name for p in PARAMS)
 SPEC = {p.name: p for p in PARAMS}
@@ -234,6 +249,9 @@ def _num(name: str, value: Any, source: str) -> float | int | bool | None:
                    value, what) from None
     if not math.isfinite(f):
         raise _err(source, name, f"{value!r} is not a finite number", value, "a finite number")
+    if spec.hi is not None and f > spec.hi:
+        raise _err(source, name, f"{value!r} is out of range; allowed: {spec.bound()} ({spec.doc})",
+                   value, spec.bound())
     if spec.kind == "int":
         if f != int(f):
             raise _err(source, name, f"{value!r} is not a whole number ({spec.doc})", value,

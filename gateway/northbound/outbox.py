@@ -33,6 +33,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from .. import safeout
+
 log = logging.getLogger("hookwatch.outbox")
 
 #: bytes counted per row on top of topic and payload (index, row header)
@@ -266,7 +268,7 @@ class Outbox:
                         (str(max(max_seq, self._last_seq)),))
             for k, v in (meta or {}).items():
                 cur.execute("INSERT INTO meta (key, value) VALUES (?, ?) ON CONFLICT(key) DO UPDATE "
-                            "SET value=excluded.value", (k, json.dumps(v)))
+                            "SET value=excluded.value", (k, safeout.dumps(v)))
             cur.execute("COMMIT")
         except BaseException:
             _rollback(cur)

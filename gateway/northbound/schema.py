@@ -8,12 +8,11 @@ meaning or disappears (adding a field is compatible).
 from __future__ import annotations
 
 import datetime as _dt
-import json
-import math
 import re
 from dataclasses import dataclass
 from typing import Any
 
+from .. import safeout
 from ..method.rules import REASON_NAMES
 from ..records import AlarmState, CommandKind, Event, EventType, StationState, TestState
 from ..station.commands import REJECT_CODES
@@ -449,33 +448,13 @@ def iso_ms(t: float) -> str:
     return d.strftime("%Y-%m-%dT%H:%M:%S.") + f"{d.microsecond // 1000:03d}Z"
 
 
-def json_safe(v: Any) -> Any:
-    """Plain JSON values: NaN/inf → null, numpy scalars → Python, tuples → lists, enums → value."""
-    if v is None or isinstance(v, (bool, str)):
-        return v
-    if isinstance(v, int):
-        return int(v)
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, dict):
-        return {str(k): json_safe(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple, set)):
-        return [json_safe(x) for x in v]
-    if hasattr(v, "value") and isinstance(v.value, (str, int)):
-        return v.value
-    if hasattr(v, "item"):                     # numpy scalar
-        try:
-            return json_safe(v.item())
-        except Exception:
-            pass
-    if hasattr(v, "tolist"):
-        return json_safe(v.tolist())
-    return str(v)
+#: plain JSON values (non-finite numbers → null): the one definition, gateway.safeout
+json_safe = safeout.plain
 
 
 def encode(payload: dict[str, Any]) -> bytes:
-    return json.dumps(json_safe(payload), separators=(",", ":"), allow_nan=False,
-                      ensure_ascii=False).encode("utf-8")
+    """A payload as strict JSON (UTF-8): never NaN/Infinity (gateway.safeout)."""
+    return safeout.dumps(payload, ensure_ascii=False).encode("utf-8")
 
 
 def _env(seq: int, t: float, station: str) -> dict[str, Any]:
@@ -771,7 +750,7 @@ def render() -> str:
         out += [f"### `{t.path}`", "", t.doc + ".", "", "| field | type | meaning |", "|---|---|---|"]
         for f in t.fields:
             out.append(f"| `{f.name}` | {f.type} | {f.doc} |")
-        out += ["", "Example:", "", "```json", json.dumps(json_safe(ex[t.key]), ensure_ascii=False),
+        out += ["", "Example:", "", "```json", safeout.dumps(ex[t.key], compact=False, ensure_ascii=False),
                 "```", ""]
     out += ["## Results", "", "`result.result.status`, the method's verdict on the test, and what "
             "it means for the MES:", "", "| status | meaning |", "|---|---|"]

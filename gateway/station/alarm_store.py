@@ -23,6 +23,7 @@ import os
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
+from .. import safeout
 from ..alarms import Alarm, AlarmError, Transition
 from ..records import AlarmState, Event, EventType
 
@@ -180,8 +181,8 @@ class AlarmStore:
             os.makedirs(os.path.dirname(self.path) or ".", exist_ok=True)
             tmp = self.path + ".tmp"
             with open(tmp, "w", encoding="utf-8") as f:
-                json.dump({**self.record.as_json(), "isa": self.models[END_OF_LIFE].to_dict(),
-                           WARNING: {**self.warning.as_json(), "isa": self.models[WARNING].to_dict()}}, f)
+                safeout.dump({**self.record.as_json(), "isa": self.models[END_OF_LIFE].to_dict(),
+                              WARNING: {**self.warning.as_json(), "isa": self.models[WARNING].to_dict()}}, f)
             os.replace(tmp, self.path)
         except OSError as e:
             self.write_errors += 1

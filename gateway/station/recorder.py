@@ -12,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import datetime as _dt
 import gzip
-import json
 import logging
 import math
 import os
@@ -26,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from .. import logio
+from .. import logio, safeout
 from ..analysis import AnalysisError, analyze_file
 from ..method.rules import LOST
 from ..records import Event, SlotRecord
@@ -342,10 +341,11 @@ class TestRecorder:
             self.update_meta(["lost_spans"], [list(s) for s in self.lost_spans])
             self.update_meta(["lost_rows"], self.lost_rows)
         self._ev_pending[:0] = [
-            json.dumps({"utc": self._fail_utc, "type": "disk_full", "station": self.meta.get("station"),
-                        "test_id": self.meta.get("test_id"), "data": {"reason": self._fail_reason}}) + "\n",
-            json.dumps({"utc": utc_iso(), "type": "disk_ok", "station": self.meta.get("station"),
-                        "test_id": self.meta.get("test_id"), "data": info}) + "\n"]
+            safeout.dumps({"utc": self._fail_utc, "type": "disk_full", "station": self.meta.get("station"),
+                           "test_id": self.meta.get("test_id"), "data": {"reason": self._fail_reason}},
+                          compact=False) + "\n",
+            safeout.dumps({"utc": utc_iso(), "type": "disk_ok", "station": self.meta.get("station"),
+                           "test_id": self.meta.get("test_id"), "data": info}, compact=False) + "\n"]
         self._notify(True, info)
 
     def _notify(self, ok: bool, info: dict[str, Any]) -> None:
@@ -398,7 +398,7 @@ class TestRecorder:
     def on_event(self, ev: Event) -> None:
         if self.closed:
             return
-        self._ev_pending.append(json.dumps({"utc": utc_iso(ev.wall_time), **ev.as_dict()}) + "\n")
+        self._ev_pending.append(safeout.dumps({"utc": utc_iso(ev.wall_time), **ev.as_dict()}, compact=False) + "\n")
         self._flush_events()
 
     def _flush_events(self) -> bool:
@@ -537,7 +537,7 @@ def _write_result_file(test_dir: str, result: dict[str, Any]) -> None:
         finally:
             os.close(fd)
         del _pending_tails[test_dir]
-    _atomic_write(os.path.join(test_dir, RESULT_NAME), lambda f: json.dump(result, f, indent=1))
+    _atomic_write(os.path.join(test_dir, RESULT_NAME), lambda f: safeout.dump(result, f, indent=1))
 
 
 def _retry_results() -> None:
@@ -645,8 +645,8 @@ def recover_incomplete(station_dir: str, reason: str = "gateway restart") -> lis
         write_result(d, res)
         try:
             with open(os.path.join(d, EVENTS_NAME), "a", encoding="utf-8") as f:
-                f.write(json.dumps({"utc": utc_iso(), "type": "test_ended", "test_id": res["test_id"],
-                                    "reason": reason, "status": "aborted"}) + "\n")
+                f.write(safeout.dumps({"utc": utc_iso(), "type": "test_ended", "test_id": res["test_id"],
+                                       "reason": reason, "status": "aborted"}, compact=False) + "\n")
         except OSError:
             pass
         log.warning("%s: test was cut off; closed as aborted (%s)", d, reason)

@@ -55,9 +55,10 @@ import operator
 import socket
 import struct
 import threading
-from dataclasses import asdict, fields, is_dataclass
+from dataclasses import fields
 from typing import Any
 
+from .. import safeout
 from ..records import Event, EventType, SlotRecord, StationState, TestState
 from ..threadloop import Mailbox
 
@@ -125,24 +126,9 @@ class ProtocolError(Exception):
     """A frame that breaks the format (too long, unknown type, not a JSON object)."""
 
 
-def _clean(v: Any) -> Any:
-    if isinstance(v, float):
-        return v if math.isfinite(v) else None
-    if isinstance(v, enum.Enum):
-        return _clean(v.value)
-    if isinstance(v, dict):
-        return {str(k): _clean(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_clean(x) for x in v]
-    if is_dataclass(v) and not isinstance(v, type):
-        return _clean(asdict(v))
-    return v
-
-
 def encode(ftype: FrameType, body: dict[str, Any]) -> bytes:
     """One frame: header + strict JSON body (non-finite floats → null)."""
-    data = json.dumps(_clean(body), separators=(",", ":"), allow_nan=False,
-                      default=str).encode("utf-8")
+    data = safeout.dumps(body).encode("utf-8")
     if len(data) > MAX_BODY:
         raise ProtocolError(f"frame body of {len(data)} bytes exceeds {MAX_BODY}")
     return HEADER.pack(len(data) + 1, int(ftype)) + data

@@ -96,7 +96,7 @@ def valid_id(s: str) -> bool:
 
 # ----------------------------------------------------------------------------- payload helpers
 def set_value(m: Payload.Metric, dt: M.DataType, value: Any) -> None:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
         m.is_null = True
         return
     if dt in (M.DataType.Int8, M.DataType.Int16, M.DataType.Int32):

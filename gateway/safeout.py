@@ -1,0 +1,153 @@
+"""What leaves the box as text: the one strict JSON encoder and the one spreadsheet-safe CSV writer.
+
+JSON (every door: the console's API and event stream, MQTT payloads, the supervisor's frames,
+``result.json`` and the other recorded JSON files, ``analyze --json``, ``hooks``):
+
+- :func:`plain` turns a value into plain JSON values: numpy scalars and arrays into Python numbers
+  and lists, enums into their value, tuples and sets into lists, dataclasses into objects, and
+  **a number that is not finite (NaN, ±Infinity) into null** — JSON has no such numbers and a
+  strict parser (a browser's ``JSON.parse``, most MES) refuses the whole document for one of them.
+  Every number the box publishes is documented as "a number, or null when it has no value";
+  a non-finite one has none.
+- :func:`dumps` / :func:`dump` write :func:`plain` of the value with ``allow_nan=False``: should a
+  non-finite number ever slip past :func:`plain`, the write fails loudly instead of emitting
+  ``Infinity``.
+
+CSV (the console's due list, ``regmap --format csv``, the report's tables): :func:`csv_cell` makes
+a cell safe to open in any spreadsheet, whatever list separator its locale uses (``,`` in en,
+``;`` in de/fr/it/es, TAB when pasted), and :func:`csv_text` writes the rows:
+
+- every *piece* of a cell — the cell itself and each part that follows a ``,`` ``;`` TAB, CR or LF
+  inside it — that starts, after any leading blanks and quotes, with ``=`` ``+`` ``-`` ``@`` (or
+  a TAB / CR) gets a leading ``'`` — unless the whole cell is a plain decimal number (``-0.1`` is
+  a number to every spreadsheet, not a formula). So even a reader that splits the line on ``;`` or
+  TAB without honouring the quotes sees no cell that starts a formula (CSV injection, OWASP);
+- a cell that holds a ``,`` ``;`` TAB, quote, CR or LF, or starts or ends with a blank, is quoted
+  (RFC 4180, quotes doubled).
+
+This module imports nothing of the project.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import json
+import math
+import re
+from collections.abc import Iterable, Sequence
+from typing import IO, Any
+
+import numpy as np
+
+
+def plain(v: Any) -> Any:
+    """Plain JSON values: non-finite numbers → null, numpy → Python, enums → value, tuples/sets →
+    lists, dataclasses → objects, keys → strings; anything else → its ``str``."""
+    if v is None or isinstance(v, (bool, str)):
+        return v
+    if isinstance(v, int):
+        return int(v)
+    if isinstance(v, float):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, enum.Enum):
+        return plain(v.value)
+    if isinstance(v, dict):
+        return {str(plain(k)) if not isinstance(k, str) else k: plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, set, frozenset)):
+        return [plain(x) for x in v]
+    if dataclasses.is_dataclass(v) and not isinstance(v, type):
+        return plain(dataclasses.asdict(v))
+    if isinstance(v, (np.generic, np.ndarray)):
+        return plain(v.tolist())
+    return str(v)
+
+
+def dumps(v: Any, *, indent: int | None = None, compact: bool = True, sort_keys: bool = False,
+          ensure_ascii: bool = True) -> str:
+    """Strict JSON text of ``plain(v)`` (never NaN/Infinity; ``compact``: no blanks after ``,``/``:``
+    unless ``indent`` is given)."""
+    sep = (",", ":") if compact and indent is None else None
+    return json.dumps(plain(v), indent=indent, separators=sep, sort_keys=sort_keys,
+                      ensure_ascii=ensure_ascii, allow_nan=False)
+
+
+def dump(v: Any, f: IO[str], *, indent: int | None = None, sort_keys: bool = False) -> None:
+    """:func:`dumps` into an open text file."""
+    f.write(dumps(v, indent=indent, sort_keys=sort_keys))
+
+
+def loads_strict(text: str | bytes) -> Any:
+    """JSON as a strict parser reads it: ``NaN``/``Infinity`` are an error (as in a browser)."""
+    def refuse(name: str) -> Any:
+        raise ValueError(f"non-standard JSON constant {name}")
+    return json.loads(text, parse_constant=refuse)
+
+
+# ----------------------------------------------------------------------------------------- CSV
+#: characters that make a spreadsheet read a piece of a cell as a formula (OWASP CSV injection)
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+#: list separators of any locale, and line breaks: a piece of a cell starts after each of them
+SEPARATORS = ",;\t\r\n"
+_PIECE = re.compile(r"([,;\t\r\n])")
+_LEAD = re.compile(r"[ \t\r\n\"'\u00a0]*")
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+_QUOTE_IF = re.compile(r"[,;\t\r\n\"]|^\s|\s$")
+
+
+def _defuse_piece(p: str) -> str:
+    if not p:
+        return p
+    lead = _LEAD.match(p)
+    rest = p[lead.end():] if lead else p
+    return "'" + p if p.startswith(FORMULA_START) or rest.startswith(FORMULA_START) else p
+
+
+def defuse(t: str) -> str:
+    """``t`` with every piece that a spreadsheet could start a formula with prefixed by ``'``."""
+    if not t or _NUMBER.fullmatch(t):
+        return t
+    parts = _PIECE.split(t)
+    # parts: piece, sep, piece, sep, …, piece; a piece is checked together with the separator
+    # before it only for the cell's own start (a leading TAB/CR is itself a formula start)
+    out = [_defuse_piece(parts[0])]
+    for i in range(1, len(parts), 2):
+        out.append(parts[i])
+        out.append(_defuse_piece(parts[i + 1]))
+    s = "".join(out)
+    if t.startswith(("\t", "\r")) and not s.startswith("'"):
+        s = "'" + s
+    return s
+
+
+def csv_text_of(v: Any) -> str:
+    """A value as the text of one CSV cell (None → empty, bool → true/false, a list → its items
+    separated by blanks, a non-finite number → empty), not yet defused."""
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return " ".join(csv_text_of(x) for x in v)
+    if isinstance(v, float):
+        return repr(round(v, 6)) if math.isfinite(v) else ""
+    return str(v)
+
+
+def csv_cell(v: Any) -> str:
+    """One CSV cell as text, defused (:func:`defuse`); quoting is :func:`csv_text`'s."""
+    return defuse(csv_text_of(v))
+
+
+def _quoted(cell: str) -> str:
+    return '"' + cell.replace('"', '""') + '"' if _QUOTE_IF.search(cell) else cell
+
+
+def csv_row(cells: Sequence[Any]) -> str:
+    """One CSV line without the line end: each cell defused and quoted when it holds a separator
+    of any locale."""
+    return ",".join(_quoted(csv_cell(c)) for c in cells)
+
+
+def csv_text(rows: Iterable[Sequence[Any]], *, line_end: str = "\r\n") -> str:
+    """The rows (the first usually the header) as CSV text, every cell defused and quoted."""
+    return "".join(csv_row(r) + line_end for r in rows)
