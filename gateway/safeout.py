@@ -34,6 +34,7 @@ import enum
 import json
 import math
 import re
+import urllib.parse
 from collections.abc import Iterable, Sequence
 from typing import IO, Any
 
@@ -151,3 +152,22 @@ def csv_row(cells: Sequence[Any]) -> str:
 def csv_text(rows: Iterable[Sequence[Any]], *, line_end: str = "\r\n") -> str:
     """The rows (the first usually the header) as CSV text, every cell defused and quoted."""
     return "".join(csv_row(r) + line_end for r in rows)
+
+
+# ------------------------------------------------------------------------------------ Markdown
+_MD_SPECIAL = re.compile(r"([\\`<>\[\]|])")
+_LINE_BREAK = re.compile(r"[\r\n\u2028\u2029\x0b\x0c\x85]+")
+
+
+def md_text(s: Any) -> str:
+    """Text from outside (a sample ID, a folder name, a message that quotes a file) as one line of
+    Markdown that reads as the text itself: line breaks become a blank (no new heading, list item
+    or table row), and ``\\ ` < > [ ] |`` are backslash-escaped (no raw HTML, link, image, code
+    span or table cell)."""
+    return _MD_SPECIAL.sub(r"\\\1", _LINE_BREAK.sub(" ", str(s)))
+
+
+def md_link_target(path: str) -> str:
+    """A relative path as a Markdown link target: percent-encoded (a blank, ``)`` or ``<`` cannot
+    end or leave the link)."""
+    return urllib.parse.quote(path, safe="/._-~")

@@ -357,7 +357,6 @@ LATE_IMPORTS_ALLOWED = {
     ("gateway.logio", "_decompress"): "reading a log (analyze, report), never `hookwatch run`",
     ("gateway.logio", "_parse_forked"): "reading a log (analyze, report), never `hookwatch run`",
     ("gateway.logio", "_parse_arrow"): "reading a log (analyze, report): pyarrow only there",
-    ("gateway.northbound.registers", "render_csv"): "the register map's CSV (docs, `regmap`)",
 }
 
 

@@ -14,6 +14,7 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
+from .. import safeout
 from ..alarms import ALARMS, SHELVE_MAX_S
 from ..method.rules import REASONS
 from ..ports import StationLimits
@@ -599,28 +600,17 @@ def render(station: dict[str, Any] | None = None) -> str:
 
 
 def render_csv(station: dict[str, Any] | None = None) -> str:
-    import csv
-    import io
-
-    buf = io.StringIO()
+    """The register map as CSV, every cell defused against spreadsheet formulas (gateway.safeout)."""
     rs = rows(station)
-    w = csv.DictWriter(buf, fieldnames=list(rs[0].keys()), lineterminator="\n")
-    w.writeheader()
-    for r in rs:
-        w.writerow(r)
-    for bit, name, doc in STATUS_BITS:
-        w.writerow({**({"station": station["id"], "unit_id": station["unit_id"],
-                        "word_order": station["word_order"]} if station else {}),
-                    "table": "input.status", "address": IR["status"].address, "reference": IR["status"].reference,
-                    "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "", "allowed": "",
-                    "meaning": doc})
-    for bit, name, doc in WARN_REASON_BITS:
-        w.writerow({**({"station": station["id"], "unit_id": station["unit_id"],
-                        "word_order": station["word_order"]} if station else {}),
-                    "table": "input.warn_reasons", "address": IR["warn_reasons"].address,
-                    "reference": IR["warn_reasons"].reference, "count": 1, "name": f"bit{bit}:{name}",
-                    "type": "bit", "unit": "", "allowed": "", "meaning": doc})
-    return buf.getvalue()
+    keys = list(rs[0].keys())
+    ident = ({"station": station["id"], "unit_id": station["unit_id"],
+              "word_order": station["word_order"]} if station else {})
+    bits = [{**ident, "table": f"input.{reg}", "address": IR[reg].address, "reference": IR[reg].reference,
+             "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "", "allowed": "",
+             "meaning": doc}
+            for reg, table in (("status", STATUS_BITS), ("warn_reasons", WARN_REASON_BITS))
+            for bit, name, doc in table]
+    return safeout.csv_text([keys, *([r.get(k) for k in keys] for r in [*rs, *bits])], line_end="\n")
 
 
 if __name__ == "__main__":

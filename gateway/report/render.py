@@ -2,13 +2,12 @@
 figures are PNG files beside them, linked relatively)."""
 from __future__ import annotations
 
-import csv
 import html
-import io
 import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from .. import safeout
 from .stats import round_half_up
 from .tables import Column, Table
 
@@ -82,12 +81,10 @@ def fmt_csv(v: Any, c: Column) -> str:
 
 
 def table_csv(t: Table) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow([c.key for c in t.columns])
-    for r in t.rows:
-        w.writerow([fmt_csv(r.get(c.key), c) for c in t.columns])
-    return buf.getvalue()
+    """A table as CSV, every cell defused against spreadsheet formulas (gateway.safeout)."""
+    return safeout.csv_text([[c.key for c in t.columns],
+                             *([fmt_csv(r.get(c.key), c) for c in t.columns] for r in t.rows)],
+                            line_end="\n")
 
 
 def write_csvs(tables: list[Table], out_dir: str) -> list[str]:
@@ -110,8 +107,8 @@ def _write(path: str, text: str) -> None:
 # Markdown
 # ---------------------------------------------------------------------------------------------
 
-def _md_cell(s: str) -> str:
-    return s.replace("|", "\\|").replace("\n", " ")
+#: text as one line of Markdown, escaped (line breaks, raw HTML, links, table cells): gateway.safeout
+_md_cell = safeout.md_text
 
 
 def _right(c: Column) -> bool:
@@ -120,9 +117,9 @@ def _right(c: Column) -> bool:
 
 def table_md(t: Table, level: int = 3) -> str:
     cols = [c for c in t.columns if c.show]
-    out = [f"{'#' * level} {t.title}", ""]
+    out = [f"{'#' * level} {_md_cell(t.title)}", ""]
     if t.intro:
-        out += [t.intro, ""]
+        out += [_md_cell(t.intro), ""]
     if t.rows:
         out.append("| " + " | ".join(_md_cell(c.label) for c in cols) + " |")
         out.append("|" + "|".join("---:" if _right(c) else "---" for c in cols) + "|")
@@ -131,7 +128,7 @@ def table_md(t: Table, level: int = 3) -> str:
     else:
         out.append("*(no rows)*")
     out.append("")
-    out.append(f"CSV: [`{t.name}.csv`]({t.name}.csv)")
+    out.append(f"CSV: [{_md_cell(t.name)}.csv]({safeout.md_link_target(t.name)}.csv)")
     if t.notes:
         out.append("")
         out += [f"- {_md_cell(n)}" for n in t.notes]
@@ -140,26 +137,28 @@ def table_md(t: Table, level: int = 3) -> str:
 
 
 def document_md(doc: Document) -> str:
-    out = [f"# {doc.title}", ""]
+    out = [f"# {_md_cell(doc.title)}", ""]
     for k, v in doc.info:
-        out.append(f"- **{k}:** {v}")
+        out.append(f"- **{_md_cell(k)}:** {_md_cell(v)}")
     out.append("")
-    out.append("Contents: " + " · ".join(f"[{s.title}](#{s.anchor})" for s in doc.sections if s.anchor))
+    out.append("Contents: " + " · ".join(f"[{_md_cell(s.title)}](#{safeout.md_link_target(s.anchor)})"
+                                         for s in doc.sections if s.anchor))
     out.append("")
     for s in doc.sections:
         if s.anchor:
             out.append(f'<a id="{s.anchor}"></a>')
             out.append("")
-        out += [f"## {s.title}", ""]
+        out += [f"## {_md_cell(s.title)}", ""]
         for p in s.paragraphs:
-            out += [p, ""]
+            out += [_md_cell(p), ""]
         if s.bullets:
             out += [f"- {_md_cell(b)}" for b in s.bullets]
             out.append("")
         for t in s.tables:
             out.append(table_md(t))
         for f in s.figures:
-            out += [f"![{_md_cell(f.caption)}]({f.path})", "", f"*{f.caption}*", ""]
+            out += [f"![{_md_cell(f.caption)}]({safeout.md_link_target(f.path)})", "",
+                    f"*{_md_cell(f.caption)}*", ""]
     return "\n".join(out).rstrip() + "\n"
 
 

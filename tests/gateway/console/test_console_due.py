@@ -16,7 +16,8 @@ import json
 import logging
 import os
 
-from gateway.console.feed import MAX_JOURNAL, csv_cell
+from gateway.console.feed import MAX_JOURNAL
+from gateway.safeout import csv_cell
 from gateway.console.server import FILE_READS_PER_MIN
 from gateway.logio import tail_jsonl
 from gateway.records import Event, EventType
@@ -87,10 +88,11 @@ def test_due_csv_cells_defused_against_formulas(tmp_path):
         for r in body:
             for v in r:
                 assert not v.startswith(("=", "+", "-", "@")), v
-        # past its end of life: the sample "-S-C" and the negative headroom are defused too
+        # past its end of life: the sample "-S-C" is defused; the negative headroom is a plain
+        # number, which no spreadsheet reads as a formula, and stays one (gateway.safeout)
         full = list(csv.reader(io.StringIO(c.opener.open(url + "/api/due.csv", timeout=30).read().decode())))
         rc = dict(zip(full[0], full[1], strict=True))
-        assert rc["station"] == "loom-c" and rc["sample_id"] == "'-S-C" and rc["headroom"] == "'-0.1"
+        assert rc["station"] == "loom-c" and rc["sample_id"] == "'-S-C" and rc["headroom"] == "-0.1"
         assert csv_cell("\tcmd") == "'\tcmd" and csv_cell("a=b") == "a=b" and csv_cell(None) == ""
         # reads from disk are rate-bounded per address: 429 + Retry-After beyond the budget
         statuses = []

@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from conftest import ROOT, hookwatch_cmd
+from gateway.safeout import md_text
 
 sys.path.insert(0, os.path.join(ROOT, "bench"))
 import gen_campaign as G  # noqa: E402
@@ -83,7 +84,7 @@ def test_exit_zero_and_a_warning_naming_each_bad_file(messy):
     md = (out / "report.md").read_text(encoding="utf-8")
     html = (out / "report.html").read_text(encoding="utf-8")
     for line in problems:
-        assert line.replace("|", "\\|") in md
+        assert md_text(line) in md
     assert "orphan.csv.gz: no sidecar" in html
 
 
