@@ -22,6 +22,7 @@ import os
 from typing import Any
 
 from . import safeyaml
+from .method.params import TEN_YEARS
 from .method.prior import STOPPED, PastTest
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,7 @@ def past_test(result: Any, ts: float | None = None) -> PastTest | None:
     return PastTest(grade=grade if isinstance(grade, str) else None,
                     t_set=_num(result.get("t_set")),
                     status=status if isinstance(status, str) else None,
-                    t_life=_num(method.get("t_life")),
+                    t_life=_life(method.get("t_life")),
                     k_b=_int(method.get("k_b")),
                     stop_reasons=(tuple(reasons) if isinstance(reasons, list)
                                   and all(isinstance(x, str) for x in reasons) else None),
@@ -70,6 +71,13 @@ def past_test(result: Any, ts: float | None = None) -> PastTest | None:
                     test_id=tid if isinstance(tid, str) else None,
                     station=station if isinstance(station, str) else None,
                     t_end=_num(result.get("t_end")), end_reason=why if isinstance(why, str) else None)
+
+
+def _life(v: Any) -> float | None:
+    """A recorded life, s: a finite number of at most 10 years (method.params.TEN_YEARS), else none
+    (a damaged or forged result.json must not make a prior that overflows the §5b forecast)."""
+    f = _num(v)
+    return f if f is not None and f <= TEN_YEARS else None
 
 
 def _may_be_censored(t: PastTest) -> bool:

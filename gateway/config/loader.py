@@ -21,7 +21,7 @@ from typing import Any
 
 from drivers.zns_map import DEFAULT_MAP_PATH, load_map
 
-from ..method.params import ParamError, build_params
+from ..method.params import PRIOR_NAMES, ParamError, build_params
 from ..ratelog import clip
 from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
 from . import schema as S
@@ -510,6 +510,8 @@ def _method(tree: Any, path: tuple, rep: _Report, test) -> dict | None:
                 break
             bad.update(mine)
             rep.problem(path + (mine[-1],), pr)
+            if bad & set(PRIOR_NAMES):      # the prior is one value: its other half is not
+                bad.update(PRIOR_NAMES)     # reported as "without" the refused one
     if not ok or params is None:
         return None
     return {k: getattr(params, k) for k in S.METHOD_KEYS}

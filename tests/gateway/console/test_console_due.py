@@ -17,10 +17,10 @@ import logging
 import os
 
 from gateway.console.feed import MAX_JOURNAL
-from gateway.safeout import csv_cell
 from gateway.console.server import FILE_READS_PER_MIN
 from gateway.logio import tail_jsonl
 from gateway.records import Event, EventType
+from gateway.safeout import csv_cell
 from kit.console_helpers import INJECT, Client, start_console
 
 
