@@ -491,14 +491,15 @@ def render(station: dict[str, Any] | None = None) -> str:
                 "`hookwatch regmap STATION.yaml [--format md|csv]` prints it for one station.", ""]
     out += [f"Register map version **{MAP_VERSION}** (input register 1).", ""]
     if station is not None:
-        out += [f"Station **{station['id']}**: Modbus TCP server {station['host']}:{station['port']}, "
-                f"unit ID **{station['unit_id']}**, {station['word_order']}-endian word order, writes "
-                + (f"allowed from {', '.join(station['allowed_clients']) or 'no client'}"
+        md = safeout.md_text           # the configuration's strings, shown as text
+        out += [f"Station **{md(station['id'])}**: Modbus TCP server {md(station['host'])}:{station['port']}, "
+                f"unit ID **{station['unit_id']}**, {md(station['word_order'])}-endian word order, writes "
+                + (f"allowed from {md(', '.join(station['allowed_clients'])) or 'no client'}"
                    if station['writes'] else "disabled") + ".", ""]
         grades = station.get("grades") or []
         if grades:
             out += ["Grades (holding register `grade`): 0 none, " +
-                    ", ".join(f"{i} {g}" for i, g in enumerate(grades, 1)) + ".", ""]
+                    ", ".join(f"{i} {md(g)}" for i, g in enumerate(grades, 1)) + ".", ""]
     out += [
         "## Conventions",
         "",

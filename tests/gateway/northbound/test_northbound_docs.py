@@ -5,6 +5,7 @@ import io
 import json
 import math
 import os
+import re
 import subprocess
 
 import pytest
@@ -161,3 +162,21 @@ def test_regmap_cli_errors(tmp_path):
     assert r.returncode == 1 and "word_order" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run(hookwatch_cmd() + ["regmap"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout == R.render()
+
+
+def test_regmap_shows_the_configurations_strings_as_text(tmp_path):
+    """Grades from the station file go into the generated Markdown as text: a newline starts no
+    heading, a tag is no tag (issue 27, item 4); the CSV has no cell a spreadsheet runs."""
+    import yaml
+
+    path = _station_yaml(tmp_path)
+    with open(path, encoding="utf-8") as f:
+        cfg = yaml.safe_load(f)
+    cfg["grades"] = ["I\n# injected", "<img src=x onerror=alert(1)>", "x;=1+1"]
+    with open(path, "w", encoding="utf-8") as f:
+        yaml.safe_dump(cfg, f)
+    r = subprocess.run(hookwatch_cmd() + ["regmap", path], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert not [ln for ln in r.stdout.splitlines() if ln.startswith("# injected")]
+    assert not re.search(r"(?<!\\)<img", r.stdout) and "\\<img src=x onerror=alert(1)\\>" in r.stdout
+    assert "1 I # injected, 2 \\<img" in r.stdout
