@@ -146,7 +146,8 @@ def _quoted(cell: str) -> str:
 def csv_row(cells: Sequence[Any]) -> str:
     """One CSV line without the line end: each cell defused and quoted when it holds a separator
     of any locale."""
-    return ",".join(_quoted(csv_cell(c)) for c in cells)
+    line = ",".join(_quoted(csv_cell(c)) for c in cells)
+    return '""' if line == "" and len(cells) == 1 else line     # one empty cell is not an empty line
 
 
 def csv_text(rows: Iterable[Sequence[Any]], *, line_end: str = "\r\n") -> str:
