@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import http.cookiejar
 import json
+import math
 import os
 import subprocess
 import urllib.error
@@ -130,6 +131,28 @@ def fleet_states() -> dict[str, StationState]:
                      t_life=1000.0, end_p10=900.0, end_p50=1000.0, end_p90=1100.0, p_end=0.99,
                      due=True, t_cross=950.0, alarm="unacknowledged", elapsed_s=1200.0)
     d = StationState(station="loom-d")
+    return {"loom-a": a, "loom-b": b, "loom-c": c, "loom-d": d}
+
+
+#: cells a spreadsheet in some locale would read as a formula
+HOSTILE_IDS = ("x;=1+1;y", "\t=cmd", '"=1"', "a\t@SUM(1)", " +1;-2", "x,=1")
+
+
+def hostile_states() -> dict[str, StationState]:
+    """The four stations with every figure ±Infinity or NaN and formula-hiding IDs (issue 27)."""
+    a = StationState(station="loom-a", state=R.TestState.MONITORING, test_id="20261126T060000Z-A",
+                     sample_id=HOSTILE_IDS[0], grade="=G1", test_started_utc=START, t_set=0.5,
+                     mu_ss=math.nan, mu_th=math.inf, k_b=7, headroom=-math.inf, t_cross=math.inf, end_p10=math.inf,
+                     end_p50=math.inf, end_p90=math.nan, p_end=math.nan, prior_mean=1e308 * 10, prior_sd=math.nan,
+                     lead_s=math.inf, p_due=math.nan, elapsed_s=1200.0)
+    b = StationState(station="loom-b", state=R.TestState.MONITORING, test_id="20261126T060000Z-B",
+                     sample_id=HOSTILE_IDS[1], grade=HOSTILE_IDS[2], test_started_utc=START,
+                     headroom=math.nan, end_p10=-math.inf, end_p50=1800.0, end_p90=math.inf, p_end=math.inf, due=True,
+                     t_cross=-math.inf, elapsed_s=1200.0)
+    c = StationState(station="loom-c", state=R.TestState.END_OF_LIFE, test_id="20261126T060000Z-C",
+                     sample_id=HOSTILE_IDS[3], grade=HOSTILE_IDS[4], test_started_utc=START,
+                     t_life=math.inf, mu_ss=0.2, mu_th=math.nan, due=True, elapsed_s=1200.0)
+    d = StationState(station="loom-d", sample_id=HOSTILE_IDS[5], t_life=math.nan, elapsed_s=1200.0)
     return {"loom-a": a, "loom-b": b, "loom-c": c, "loom-d": d}
 
 

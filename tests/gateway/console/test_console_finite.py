@@ -16,34 +16,11 @@ import math
 import re
 import urllib.request
 
-from gateway import records as R
-from gateway.records import StationState
 from gateway.safeout import loads_strict
-from kit.console_helpers import START, Client, start_console
+from kit.console_helpers import HOSTILE_IDS, Client, hostile_states, start_console
 
-INF = math.inf
-NAN = math.nan
-#: cells a spreadsheet in some locale would read as a formula
-HOSTILE_IDS = ("x;=1+1;y", "\t=cmd", '"=1"', "a\t@SUM(1)", " +1;-2", "x,=1")
 FORMULA = ("=", "+", "-", "@")
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
-
-
-def hostile_states() -> dict[str, StationState]:
-    a = StationState(station="loom-a", state=R.TestState.MONITORING, test_id="20261126T060000Z-A",
-                     sample_id=HOSTILE_IDS[0], grade="=G1", test_started_utc=START, t_set=0.5,
-                     mu_ss=NAN, mu_th=INF, k_b=7, headroom=-INF, t_cross=INF, end_p10=INF,
-                     end_p50=INF, end_p90=NAN, p_end=NAN, prior_mean=1e308 * 10, prior_sd=NAN,
-                     lead_s=INF, p_due=NAN, elapsed_s=1200.0)
-    b = StationState(station="loom-b", state=R.TestState.MONITORING, test_id="20261126T060000Z-B",
-                     sample_id=HOSTILE_IDS[1], grade=HOSTILE_IDS[2], test_started_utc=START,
-                     headroom=NAN, end_p10=-INF, end_p50=1800.0, end_p90=INF, p_end=INF, due=True,
-                     t_cross=-INF, elapsed_s=1200.0)
-    c = StationState(station="loom-c", state=R.TestState.END_OF_LIFE, test_id="20261126T060000Z-C",
-                     sample_id=HOSTILE_IDS[3], grade=HOSTILE_IDS[4], test_started_utc=START,
-                     t_life=INF, mu_ss=0.2, mu_th=NAN, due=True, elapsed_s=1200.0)
-    d = StationState(station="loom-d", sample_id=HOSTILE_IDS[5], t_life=NAN, elapsed_s=1200.0)
-    return {"loom-a": a, "loom-b": b, "loom-c": c, "loom-d": d}
 
 
 def _raw(url: str) -> tuple[int, str]:

@@ -26,7 +26,7 @@ import pytest
 
 from gateway.records import CommandKind
 from gateway.station.commands import COMMAND_KEYS
-from kit.console_helpers import CONSOLE_PW, INJECT, console_fleet, start_console
+from kit.console_helpers import CONSOLE_PW, HOSTILE_IDS, INJECT, console_fleet, hostile_states, start_console
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -282,3 +282,29 @@ def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browse
         assert "console:alice" in gw.log_all()
         assert errors == []
         ctx.close()
+
+
+def test_pages_draw_with_non_finite_figures_and_formula_ids(tmp_path, browser):
+    """Station states whose every figure is ±Infinity or NaN and whose sample IDs hide formulas
+    (issue 27): the due list, the fleet cards and a station page are drawn — before, one
+    `Infinity` in the JSON made the browser's parser refuse it and the page stayed empty."""
+    srv, url, _outs, _dirs = start_console(tmp_path, hostile_states())
+    try:
+        page = browser.new_context(viewport={"width": 1300, "height": 1000}, bypass_csp=True).new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "/#/due")
+        _wait_js(page, "window.hw.due && window.hw.due.length === 4", 30)
+        assert HOSTILE_IDS[0] in page.locator('#due tr[data-station="loom-a"]').inner_text()
+        page.goto(url + "/#/")
+        page.wait_for_selector('.card[data-station="loom-d"]', timeout=30000)
+        assert page.locator(".card").count() == 4
+        page.goto(url + "/#/station/loom-a")
+        _wait_js(page, "document.querySelector('#state') && "
+                       "document.querySelector('#state').textContent === 'monitoring'", 30)
+        assert "Infinity" not in page.locator("body").inner_text()
+        assert "NaN" not in page.locator("body").inner_text()
+        page.screenshot(path=str(tmp_path / "non-finite.png"), full_page=True)
+        assert errors == []
+    finally:
+        srv.stop()
