@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import collections
 import itertools
-import json
 import logging
 import os
 import signal
@@ -38,6 +37,7 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from .. import safeout
 from ..compose import process_budget
 from ..config import Issue
 from ..doors import RateLog, budget
@@ -352,7 +352,7 @@ class Supervisor:
         #: of modbus, sparkplug, console, metrics): its worker then streams what they need and serves none
         self.served_for = served_for
         self.opts = opts
-        self.opts_json = json.dumps(opts.as_dict())
+        self.opts_json = safeout.dumps(opts.as_dict())
         self.watchdog_s = watchdog_s
         self.backoff_s = backoff_s
         self.backoff_max_s = backoff_max_s

@@ -71,7 +71,7 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "yes", "unit test"),
     ("tck-id-topics-nbirth-metric-reqs, tck-id-topics-dbirth-metric-reqs, "
      "tck-id-operational-behavior-data-publish-dbirth(-values)",
-     "births carry every metric with name, datatype and current value (is_null when none)", "yes",
+     "births carry every metric with name, datatype and current value (is_null when none or not finite)", "yes",
      "the tables below; e2e checks names, aliases, datatypes; unit test: DBIRTH = DEVICE_METRICS"),
     ("tck-id-topics-nbirth-rebirth-metric, tck-id-operational-behavior-data-commands-rebirth-*",
      "`Node Control/Rebirth` Boolean false, without alias", "yes", "unit test"),
