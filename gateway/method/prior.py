@@ -29,6 +29,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from .params import TEN_YEARS
+
 #: two setpoints are the same within this much (N)
 T_SET_TOL = 0.001
 #: the history needs at least this many failures of the grade at the T_set
@@ -97,7 +99,8 @@ class PastTest:
     def life(self) -> tuple[str, float] | None:
         """What the test gives the §7a history: (``failure``, x = t_life), (``censored``,
         c = n_slots · Ts) or None (no baseline, a protection stop, or figures that are not
-        plausible: a life must be a finite number > 0)."""
+        plausible: a life must be a finite number > 0 and at most 10 years, so that a forged
+        ``ts`` or ``n_slots`` in a result cannot carry a huge censored life into the fit)."""
         if self.status == "failure":
             x = self.t_life
             return (OBSERVED, x) if _positive(x) and x is not None else None
@@ -110,7 +113,7 @@ class PastTest:
 
 
 def _positive(v: float | None) -> bool:
-    return v is not None and math.isfinite(v) and v > 0
+    return v is not None and math.isfinite(v) and 0 < v <= TEN_YEARS
 
 
 @dataclass(frozen=True)

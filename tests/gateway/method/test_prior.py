@@ -193,3 +193,19 @@ def test_reader_gives_the_censored_lives_their_ts_from_the_result_or_the_sidecar
     assert (p.source, p.n, p.n_censored) == ("history", 4, 3)
     assert p.mean == pytest.approx(3156.10905968845, rel=1e-10)
     assert p.sd == pytest.approx(182.25402648037655, rel=1e-10)
+
+
+def test_a_forged_sampling_period_gives_no_huge_censored_life():
+    """A result.json whose ``ts`` (or ``n_slots``) is forged must not carry a censored life beyond
+    10 years into the §7a fit (the observed lives are bounded the same way by the reader)."""
+    from gateway.method.params import TEN_YEARS
+    from gateway.method.prior import CENSORED, PastTest
+    ok = PastTest(grade="I", t_set=0.5, status="no_failure", t_life=None, k_b=10, n_slots=150_000,
+                  ts=0.02)
+    assert ok.life() == (CENSORED, 3000.0)
+    forged = PastTest(grade="I", t_set=0.5, status="no_failure", t_life=None, k_b=10,
+                      n_slots=150_000, ts=1e300)
+    assert forged.life() is None
+    edge = PastTest(grade="I", t_set=0.5, status="failure", t_life=TEN_YEARS * 1.5, k_b=10,
+                    n_slots=1, ts=0.02)
+    assert edge.life() is None
