@@ -17,6 +17,7 @@ from .console.server import ConsoleServer, ConsoleSettings
 from .doors import Budget, DoorLimits, budget
 from .northbound.metrics import MetricsRelay
 from .northbound.modbus_server import ModbusOutput
+from .northbound.mqtt import MqttOutput
 from .northbound.sparkplug.output import SparkplugOutput
 from .northbound.sparkplug.output import settings_from_config as sparkplug_settings
 from .northbound.wiring import metrics_outputs, modbus_settings, outbox_path, outputs_for
@@ -84,6 +85,10 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
     if console is not None and st.id in console.feeds:
         st.outputs.append(console.output_for(st))
+        # the console's site view rides on this station's MQTT session (the first that has one)
+        mq = next((o for o in st.outputs if isinstance(o, MqttOutput)), None)
+        if mq is not None:
+            console.attach_site(st.id, mq.s.base_topic, mq.pump.add_site_feed)
     st.slot_phase = slot_phase
     return st
 

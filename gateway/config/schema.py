@@ -589,6 +589,10 @@ class ConsoleConfig:
     stream_connects_total: int = key(120, "live-stream (SSE) connects per minute from all "
                                      "clients together; beyond, HTTP 429 with Retry-After",
                                      kind="int", lo=1, hi=100000, unit="1/min")
+    site_view: bool = key(True, "the due list and the fleet cards can show every station of this "
+                          "station.site (a `whole site` switch): the other boxes' stations, read-only, "
+                          "learned from their retained MQTT state and status on the session of the "
+                          "first MQTT-enabled station of this process (docs/console.md)", kind="bool")
     connections: ConsoleDoorConfig = section(ConsoleDoorConfig, "connection limits of the "  # type: ignore[valid-type]
                                              "console")
 

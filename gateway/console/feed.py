@@ -385,7 +385,8 @@ def _wall(start: Any, offset_s: Any) -> str | None:
 #: the columns of the planner's due list (JSON keys and CSV header, in this order)
 DUE_COLUMNS = ("station", "line", "area", "sample_id", "grade", "state", "due", "end_utc_p10",
                "end_utc_p50", "end_utc_p90", "p_end", "reasons", "t_life_utc", "headroom",
-               "alarm", "test_id", "test_started_utc", "end_p10", "end_p50", "end_p90", "t_life")
+               "alarm", "test_id", "test_started_utc", "end_p10", "end_p50", "end_p90", "t_life",
+               "remote", "silent_since")
 
 
 def due_row(s: dict[str, Any]) -> dict[str, Any]:
@@ -398,7 +399,7 @@ def due_row(s: dict[str, Any]) -> dict[str, Any]:
                end_utc_p90=_wall(start, s.get("end_p90")), t_life_utc=_wall(start, life),
                reasons=[str(r) for r in reasons] if isinstance(reasons, list) else [],
                due=bool(s.get("due")) or life is not None,
-               line=s.get("line") or "", area=s.get("area") or "")
+               line=s.get("line") or "", area=s.get("area") or "", remote=bool(s.get("remote")))
     # how soon it is due: the hook past its end of life first (at the wall time of t_life), then
     # by the median projected end (p50, then p10), then running tests without a projection, then
     # the rest; the station's name breaks ties

@@ -5,14 +5,15 @@ Pages (static, shipped in ``static/``; uPlot vendored, nothing from the internet
 
 JSON API (reading: open from the loopback address, else a login — ``console.read_without_login``)::
 
-    GET  /api/fleet                         fleet cards
+    GET  /api/fleet[?site=1]                fleet cards (site=1: with the site's other boxes)
     GET  /api/station/<id>                  snapshot: decimated series from slot 0, markers, events
     GET  /api/station/<id>/stream           Server-Sent Events: snapshot, then changes (~4/s)
     GET  /api/station/<id>/tests            recorded tests
     GET  /api/station/<id>/hooks            the successive hooks and their lives (hooks.jsonl)
     GET  /api/station/<id>/journal          the ISA-18.2 alarm journal (every transition, who, when)
-    GET  /api/due[?line=&area=]             the planner's due list (every station, soonest first)
-    GET  /api/due.csv[?line=&area=]         the same as CSV (cells defused against formulas)
+    GET  /api/due[?line=&area=&site=1]      the planner's due list (every station, soonest first;
+                                            site=1: the stations of the site's other boxes too)
+    GET  /api/due.csv[?line=&area=&site=1]  the same as CSV (cells defused against formulas)
     GET  /api/station/<id>/tests/<test>/fig7.png        the report's Fig. 7 of a test
     GET  /api/station/<id>/tests/<test>/files/<name>    log.csv.gz, log.meta.yaml, events.jsonl, result.json
     GET  /api/session                       who is logged in (+ CSRF token)
@@ -41,6 +42,7 @@ import ssl
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from typing import Any
 
 from aiohttp import web
@@ -65,6 +67,8 @@ from .feed import (
     series_from_log,
 )
 from .guard import Busy, HostAllow, LogLimit, RateBound, ReportPool, ServerLog
+from .site import SiteView
+from .site import filters as site_filters
 
 log = logging.getLogger("hookwatch.console")
 
@@ -104,7 +108,7 @@ class ConsoleSettings:
                  users_file: str, read_without_login="local", session_ttl_s=28800.0,
                  lockout_attempts=5, lockout_s=300.0, login_failures_per_address=20,
                  allowed_hosts=(), report_jobs=1, report_queue=8, stream_connects_per_address=30,
-                 stream_connects_total=120, door: DoorLimits | None = None):
+                 stream_connects_total=120, door: DoorLimits | None = None, site_view: bool = True):
         self.listen = tuple(listen)
         self.cert_file, self.key_file = cert_file, key_file
         self.users_file = users_file
@@ -120,6 +124,8 @@ class ConsoleSettings:
         self.stream_connects_total = int(stream_connects_total)
         #: connection cap, request deadline, idle timeout (console.connections)
         self.door = door or DoorLimits(256, 10.0, 60.0)
+        #: show the stations of the site's other boxes (console.site_view; gateway/console/site.py)
+        self.site_view = bool(site_view)
 
     @classmethod
     def from_config(cls, cfg) -> ConsoleSettings:
@@ -133,7 +139,8 @@ class ConsoleSettings:
                    report_queue=c.report_queue,
                    stream_connects_per_address=c.stream_connects_per_address,
                    stream_connects_total=c.stream_connects_total,
-                   door=DoorLimits.from_config(c.connections))
+                   door=DoorLimits.from_config(c.connections),
+                   site_view=bool(getattr(c, "site_view", True)))
 
 
 def parse_listen(addr: str) -> tuple[str, int]:
@@ -174,6 +181,9 @@ class ConsoleServer:
         for name, (line, area) in (places or {}).items():
             if name in self.feeds:
                 self.feeds[name].line, self.feeds[name].area = str(line or ""), str(area or "")
+        #: the stations of the site's other boxes (fed by one MQTT session of this box: attach_site)
+        self.site: SiteView | None = SiteView(set(stations)) if settings.site_view else None
+        self._site_carrier: str | None = None
         self.tl = ThreadLoop("console")
         self.sessions = auth.Sessions(settings.session_ttl_s)
         self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
@@ -201,6 +211,21 @@ class ConsoleServer:
         """The station output that feeds this console (one per Station object)."""
         return ConsoleOutput(self.feeds[station.id], station)
 
+    def attach_site(self, station_id: str, base_topic: str,
+                    add_feed: Callable[[tuple[str, ...], Callable[[str, bytes], object]], None]) -> bool:
+        """Let the site view ride on the MQTT session of station ``station_id`` (``add_feed``: its
+        pump's :meth:`~gateway.northbound.mqtt_pump.MqttPump.add_site_feed`): the first station
+        with MQTT carries it, and carries it again when it is rebuilt. True when attached."""
+        site = self.site
+        if site is None or (self._site_carrier not in (None, station_id)):
+            return False
+        site.filters = site_filters(base_topic)
+        self._site_carrier = station_id
+        add_feed(site.filters, site.receive)
+        log.info("console: the site view reads %s (on the MQTT session of %s)",
+                 ", ".join(site.filters), station_id)
+        return True
+
     def add_station(self, name: str, records_dir: str, mqtt_enabled: bool = False,
                     timeout: float = 10.0, line: str = "", area: str = "") -> None:
         """A station that joined while the console runs (a fleet's SIGHUP with a new station
@@ -214,6 +239,8 @@ class ConsoleServer:
             self.records = {**self.records, name: records_dir}
             self.clients = {**self.clients, name: set()}
             self.feeds = {**self.feeds, name: feed}
+        if self.site is not None:
+            self.site.local.add(name)
         if self.tl.running:
             self.tl.submit(add()).result(timeout)
 
@@ -281,6 +308,8 @@ class ConsoleServer:
             await self._runner.cleanup()
         self._refusal_log.close()       # the counts of the last window, and no timer after
         self.refusals.close()
+        if self.site is not None:
+            self.site.close()
 
     def make_app(self) -> web.Application:
         app = web.Application(client_max_size=MAX_BODY, middlewares=[self._guard])
@@ -460,11 +489,29 @@ class ConsoleServer:
             raise _HttpError(404, f"no station {request.match_info['sid']!r}")
         return f
 
+    def _with_site(self, request) -> bool:
+        return request.query.get("site") in ("1", "true") and self.site is not None
+
+    def _cards(self, request) -> list[dict[str, Any]]:
+        """This box's fleet cards (``remote`` false), and with ``?site=1`` the site view's
+        cards of the site's other boxes (``remote`` true: read-only)."""
+        cards = [{**f.summary(), "remote": False} for f in self.feeds.values()]
+        if self._with_site(request):
+            assert self.site is not None
+            cards.extend(self.site.cards())
+        return cards
+
+    def _site_info(self) -> dict[str, Any]:
+        site = self.site
+        return {"enabled": site is not None, "fed": site is not None and site.filters is not None,
+                "stations": site.stations() if site is not None else 0,
+                "refused": site.counters["refused"] if site is not None else 0}
+
     async def h_fleet(self, request):
-        return _json({"stations": [f.summary() for f in self.feeds.values()],
-                                  "time": time.time(),
-                                  "console": {"cpu_s": self.cpu_s, "dropped_clients": self.dropped_clients,
-                                              "live_clients": sum(len(c) for c in self.clients.values())}})
+        return _json({"stations": self._cards(request), "site": self._site_info(),
+                      "time": time.time(),
+                      "console": {"cpu_s": self.cpu_s, "dropped_clients": self.dropped_clients,
+                                  "live_clients": sum(len(c) for c in self.clients.values())}})
 
     async def h_session(self, request):
         s = self._session(request)
@@ -749,7 +796,7 @@ class ConsoleServer:
         line, area = self._due_filters(request)
         for f in self.feeds.values():
             f.drain()
-        return due_list([f.summary() for f in self.feeds.values()], line, area)
+        return due_list(self._cards(request), line, area)
 
     async def h_due(self, request):
         """The planner's due list: every station, the soonest due first (docs/console.md)."""
@@ -757,10 +804,11 @@ class ConsoleServer:
             rows = self._due(request)
         except _HttpError as e:
             return _err(e.status, e.reason)
-        feeds = self.feeds.values()
+        cards = self._cards(request)
         return _json({"time": time.time(), "columns": list(DUE_COLUMNS), "stations": rows,
-                                  "lines": sorted({f.line for f in feeds if f.line}),
-                                  "areas": sorted({f.area for f in feeds if f.area})})
+                      "lines": sorted({c["line"] for c in cards if c.get("line")}),
+                      "areas": sorted({c["area"] for c in cards if c.get("area")}),
+                      "site": self._site_info()})
 
     async def h_due_csv(self, request):
         """The due list as CSV (RFC 4180; every cell defused against formulas in any locale:

@@ -86,6 +86,10 @@ class MqttPump:
         self.on_command = on_command
         #: the site's retained lives (topic, payload), when the station shares them
         self.on_lives = on_lives
+        #: more subscriptions of the site (the console's site view: other stations' state and
+        #: status) and where their messages go (pump thread); set by :meth:`add_site_feed`
+        self._site_filters: tuple[str, ...] = ()
+        self.on_site: Callable[[str, bytes], object] | None = None
         self._cmd_prefix = M.command_filter(settings.base_topic)[:-1]
         self.outbox = Outbox(settings.outbox_path, settings.telemetry_budget_bytes)
         self._queue: Mailbox[Row] = Mailbox(QUEUE_MAX)
@@ -131,6 +135,13 @@ class MqttPump:
             self._queue.put_nowait(Row(seq, msg.kind, msg.topic, payload, msg.qos, msg.retain, time.time(),
                                        msg.correlation))
         return seq
+
+    def add_site_feed(self, topic_filters: tuple[str, ...], on_site: Callable[[str, bytes], object]) -> None:
+        """Also subscribe to ``topic_filters`` (on every connect) and hand what arrives on them to
+        ``on_site`` (pump thread): the console's site view rides on this session (before
+        :meth:`start`)."""
+        self._site_filters = tuple(topic_filters)
+        self.on_site = on_site
 
     def start(self) -> None:
         if self._thread is None:
@@ -410,6 +421,8 @@ class MqttPump:
         client.subscribe(M.command_filter(self.s.base_topic), qos=1)
         if self.on_lives is not None:
             client.subscribe(site_filter(self.s.base_topic), qos=1)
+        for f in self._site_filters:
+            client.subscribe(f, qos=1)
         client.publish(self._status_topic, self._status(True), qos=1, retain=True)
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
@@ -445,9 +458,13 @@ class MqttPump:
                 log.debug("%s: sent seq %d (%s)", self.s.station_id, row.seq, row.kind)
 
     def _on_message(self, client, userdata, msg) -> None:
-        if self.on_lives is not None and not msg.topic.startswith(self._cmd_prefix):
-            self.counters["site_lives"] += 1
-            self.on_lives(msg.topic, bytes(msg.payload))
+        if not msg.topic.startswith(self._cmd_prefix):
+            if self.on_lives is not None and msg.topic.endswith("/lives"):
+                self.counters["site_lives"] += 1
+                self.on_lives(msg.topic, bytes(msg.payload))
+            elif self.on_site is not None:
+                self.counters["site_view"] += 1
+                self.on_site(msg.topic, bytes(msg.payload))
             return
         self.counters["commands"] += 1
         self.on_command(msg.topic.rsplit("/", 1)[-1], msg.payload, self._response_of(msg))
