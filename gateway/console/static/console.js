@@ -92,20 +92,83 @@
       ? `<span class="alarm-${esc(a)}${needsAck(a) ? " alarm-active" : ""}">${esc(a)}</span>` : "normal";
   }
 
+  // ------------------------------------------------------------------ the site's other boxes
+  // Text from other boxes (the site view, gateway/console/site.py) is never parsed as HTML: it is
+  // set as text nodes by el(); the server has clipped it to short printable ASCII as well.
+  function el(tag, attrs, ...kids) {
+    const e = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs || {})) if (v != null) { if (k === "class") e.className = v; else e.setAttribute(k, String(v)); }
+    for (const k of kids) if (k != null) e.append(k instanceof Node ? k : String(k));
+    return e;
+  }
+  function liveness(s) {
+    if (!s.remote) return "this box";
+    return s.online ? "other box · online" : "other box · silent since " + wall(s.silent_since);
+  }
+  function barNode(h, past) {
+    if (past || (h != null && h <= 0)) return el("div", { class: "bar out past", title: "past its threshold" }, el("div", { style: "width:100%" }), el("span", null, "past threshold"));
+    if (h == null || !isFinite(h)) return el("div", { class: "bar", title: "no headroom yet" });
+    return el("div", { class: "bar" + (h < 0.5 ? " low" : ""), title: "headroom " + fmt(h, 2) }, el("div", { style: "width:" + (Math.max(0, Math.min(1, Number(h))) * 100) + "%" }));
+  }
+  // a station of another box: read-only (no command buttons), its box's liveness first
+  function remoteCard(s) {
+    const alarm = s.alarm && s.alarm !== "normal" ? s.alarm : "normal";
+    const wear = s.wear_warning ? "wear warning" + ((s.warn_reasons || []).length ? ": " + s.warn_reasons.join(", ") : "") : "none";
+    return el("div", { class: "card remote" + (s.online ? "" : " silent"), "data-station": s.station, "data-remote": "1" },
+      el("h3", null, s.station, " ", el("small", null, "(read-only)")),
+      el("div", { class: "kv" },
+        el("span", null, "box"), el("span", { class: "liveness " + (s.online ? "ok" : "bad") }, liveness(s)),
+        el("span", null, "state"), el("span", { class: "state" }, (s.state || "–") + (s.sample_id ? " · " + s.sample_id : "")),
+        el("span", null, "μ"), el("span", null, `μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)}`),
+        el("span", null, "headroom"), el("span", null, barNode(s.headroom, s.past_threshold)),
+        el("span", null, "forecast"), el("span", null, projection(s) || "–"),
+        el("span", null, "wear"), el("span", { class: "wear-cell" }, wear),
+        el("span", null, "alarm"), el("span", { class: "alarm" }, alarm),
+        el("span", null, "links"), el("span", null, `meter ${s.meter_ok == null ? "–" : s.meter_ok ? "ok" : "lost"} · STM32 ${s.stm32_ok == null ? "–" : s.stm32_ok ? "ok" : "lost"}`),
+        el("span", null, "place"), el("span", null, [s.line, s.area].filter(Boolean).join(" · ") || "–")));
+  }
+  function matches(s, f) {
+    if (!f) return true;
+    f = f.toLowerCase();
+    return [s.station, s.line, s.area, s.sample_id, s.grade, s.state].some(v => v != null && String(v).toLowerCase().includes(f));
+  }
+  function siteToggle(id) {
+    const cb = $(id);
+    cb.checked = localStorage.getItem("hw-site") === "1";
+    return cb;
+  }
+
   function fleetPage() {
     main.innerHTML = `<div class="row"><h2 style="margin:0">Fleet</h2>
-      <label>sort by <select id="sort"><option value="headroom">headroom (least first)</option><option value="name">name</option></select></label></div>
+      <label><input type="checkbox" id="site"> whole site</label>
+      <label>filter <input id="filter" maxlength="64" placeholder="station, line, area, sample …"></label>
+      <label>sort by <select id="sort"><option value="headroom">headroom (least first)</option><option value="name">name</option><option value="silent">silent boxes first</option></select></label>
+      <small id="fleet-note"></small></div>
       <div class="cards" id="cards"></div>`;
-    const sortSel = $("#sort");
+    const sortSel = $("#sort"), siteCb = siteToggle("#site"), filt = $("#filter");
     sortSel.value = localStorage.getItem("hw-sort") || "headroom";
     sortSel.addEventListener("change", () => { localStorage.setItem("hw-sort", sortSel.value); load(); });
+    siteCb.addEventListener("change", () => { localStorage.setItem("hw-site", siteCb.checked ? "1" : "0"); load(); });
+    filt.addEventListener("input", () => load());
     async function load() {
-      const r = await api("/api/fleet");
+      const r = await api("/api/fleet" + (siteCb.checked ? "?site=1" : ""));
       if (r.status !== 200) { say(r.reason); return; }
-      const st = r.stations.slice();
-      if (sortSel.value === "headroom") st.sort((a, b) => (a.headroom == null ? 1e9 : a.headroom) - (b.headroom == null ? 1e9 : b.headroom) || a.station.localeCompare(b.station));
-      else st.sort((a, b) => a.station.localeCompare(b.station));
-      $("#cards").innerHTML = st.map(s => `<div class="card" data-station="${esc(s.station)}">
+      const st = r.stations.filter(s => matches(s, filt.value));
+      const byName = (a, b) => String(a.station).localeCompare(String(b.station));
+      if (sortSel.value === "headroom") st.sort((a, b) => (a.headroom == null ? 1e9 : a.headroom) - (b.headroom == null ? 1e9 : b.headroom) || byName(a, b));
+      else if (sortSel.value === "silent") st.sort((a, b) => (a.remote && !a.online ? 0 : 1) - (b.remote && !b.online ? 0 : 1) || byName(a, b));
+      else st.sort(byName);
+      hw.fleet = st.map(s => s.station);
+      const cards = $("#cards");
+      cards.replaceChildren(...st.map(s => s.remote ? remoteCard(s) : localCard(s)));
+      const n = r.stations.filter(s => s.remote).length;
+      $("#fleet-note").textContent = siteCb.checked ? `${r.stations.length - n} of this box, ${n} of the site's other boxes${r.site && !r.site.fed ? " (no MQTT session carries the site view)" : ""}` : "";
+      main.querySelectorAll("button.ack").forEach(b => b.addEventListener("click", () => command(b.dataset.sid, { command: "ack" }).then(load)));
+    }
+    // a station of this box: its own text escaped (esc), with its command buttons
+    function localCard(s) {
+      const t = document.createElement("template");
+      t.innerHTML = `<div class="card" data-station="${esc(s.station)}">
         <h3><a href="#/station/${encodeURIComponent(s.station)}">${esc(s.station)}</a></h3>
         <div class="kv">
           <span>state</span><span class="state">${esc(s.state || (s.online ? "" : "offline"))}${s.sample_id ? " · " + esc(s.sample_id) : ""}</span>
@@ -116,8 +179,8 @@
           <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
           <span>slots</span><span>${slotsText(s)}</span>
         </div>
-        <a href="#/history/${encodeURIComponent(s.station)}">history</a></div>`).join("");
-      main.querySelectorAll("button.ack").forEach(b => b.addEventListener("click", () => command(b.dataset.sid, { command: "ack" }).then(load)));
+        <a href="#/history/${encodeURIComponent(s.station)}">history</a></div>`;
+      return t.content.firstElementChild;
     }
     load();
     const t = setInterval(load, 1000);
@@ -268,44 +331,75 @@
   }
 
   // ------------------------------------------------------------------ the planner's due list
+  // the due list: the server's order (the soonest due first), or sorted by a column (click its
+  // header, again to reverse); filtered by line / area (server) and by text (here)
+  const DUE_SORT = {
+    station: x => String(x.station), box: x => (x.remote ? (x.online ? 1 : 2) : 0), p_end: x => (x.p_end == null ? -1 : x.p_end),
+    state: x => String(x.state || ""), grade: x => String(x.grade || ""), sample: x => String(x.sample_id || ""),
+    line: x => String(x.line || ""), area: x => String(x.area || ""),
+  };
   function duePage() {
     const q = new URLSearchParams(location.hash.split("?")[1] || "");
     main.innerHTML = `<div class="row"><h2 style="margin:0">Due list</h2>
+      <label><input type="checkbox" id="f-site"> whole site</label>
       <label>line <select id="f-line"><option value="">all</option></select></label>
       <label>area <select id="f-area"><option value="">all</option></select></label>
+      <label>filter <input id="f-text" maxlength="64" placeholder="station, sample, grade …"></label>
       <a id="csv" href="/api/due.csv" download>CSV</a> <small id="due-note"></small></div>
-      <table id="due"><thead><tr><th>station</th><th>projected end p10 – p90 (median)</th><th>P_end</th><th>reasons</th><th>state</th><th>grade</th><th>sample</th><th>line</th><th>area</th></tr></thead><tbody></tbody></table>`;
-    const fl = $("#f-line"), fa = $("#f-area");
+      <table id="due"><thead><tr><th data-sort="station">station</th><th data-sort="box">box</th><th data-sort="when">projected end p10 – p90 (median)</th><th data-sort="p_end">P_end</th><th>reasons</th><th data-sort="state">state</th><th data-sort="grade">grade</th><th data-sort="sample">sample</th><th data-sort="line">line</th><th data-sort="area">area</th></tr></thead><tbody></tbody></table>`;
+    const fl = $("#f-line"), fa = $("#f-area"), siteCb = siteToggle("#f-site"), ft = $("#f-text");
     const want = { line: q.get("line") || "", area: q.get("area") || "" };
+    const sort = { key: "when", dir: 1 };
     function query() {
       const p = new URLSearchParams();
       if (fl.value) p.set("line", fl.value);
       if (fa.value) p.set("area", fa.value);
+      if (siteCb.checked) p.set("site", "1");
       const s = p.toString();
       return s ? "?" + s : "";
     }
     function fill(sel, values, cur) {
       const have = [...sel.options].map(o => o.value).slice(1).join("\n");
-      if (have !== values.join("\n")) sel.innerHTML = '<option value="">all</option>' + values.map(v => `<option value="${esc(v)}">${esc(v)}</option>`).join("");
+      if (have !== values.join("\n")) sel.replaceChildren(el("option", { value: "" }, "all"), ...values.map(v => el("option", { value: v }, v)));
       if ([...sel.options].some(o => o.value === cur)) sel.value = cur;
+    }
+    function row(x) {
+      const when = x.t_life != null ? `past its end of life since ${wall(x.t_life_utc)}`
+        : x.end_utc_p50 ? `${wall(x.end_utc_p10)} – ${wall(x.end_utc_p90)} (${wall(x.end_utc_p50)})` : "–";
+      const name = x.remote ? el("span", { class: "remote-name", title: "a station of another box (read-only)" }, x.station)
+        : el("a", { href: "#/station/" + encodeURIComponent(x.station) }, x.station);
+      return el("tr", { "data-station": x.station, "data-remote": x.remote ? "1" : null, class: (x.due ? "due" : "") + (x.remote && !x.online ? " silent" : "") },
+        el("td", null, name), el("td", { class: "box" }, liveness(x)), el("td", { class: "when" }, when),
+        el("td", null, fmt(x.p_end, 2)), el("td", null, (x.reasons || []).join(", ")), el("td", null, x.state || ""),
+        el("td", null, x.grade || ""), el("td", null, x.sample_id || ""), el("td", null, x.line || ""), el("td", null, x.area || ""));
+    }
+    let last = null;
+    function render() {
+      if (!last) return;
+      let rows = last.stations.map((x, i) => ({ ...x, _i: i })).filter(x => matches(x, ft.value));
+      const f = DUE_SORT[sort.key];
+      if (f) rows.sort((a, b) => { const va = f(a), vb = f(b); return (va < vb ? -1 : va > vb ? 1 : a._i - b._i) * sort.dir; });
+      else if (sort.dir < 0) rows.reverse();
+      hw.due = rows.map(x => x.station);
+      $("#due tbody").replaceChildren(...rows.map(row));
+      main.querySelectorAll("#due th[data-sort]").forEach(th => th.classList.toggle("sorted", th.dataset.sort === sort.key));
+      $("#due-note").textContent = `${rows.length} stations, ${rows.filter(x => x.due).length} due` +
+        (siteCb.checked ? `, ${rows.filter(x => x.remote).length} of other boxes` : "");
     }
     async function load() {
       const r = await api("/api/due" + query());
       if (r.status !== 200) { say(r.reason); return; }
       fill(fl, r.lines, fl.value || want.line); fill(fa, r.areas, fa.value || want.area);
       $("#csv").href = "/api/due.csv" + query();
-      hw.due = r.stations.map(x => x.station);
-      $("#due tbody").innerHTML = r.stations.map(x => {
-        const when = x.t_life != null ? `past its end of life since ${wall(x.t_life_utc)}`
-          : x.end_utc_p50 ? `${wall(x.end_utc_p10)} – ${wall(x.end_utc_p90)} (${wall(x.end_utc_p50)})` : "–";
-        return `<tr data-station="${esc(x.station)}" class="${x.due ? "due" : ""}">
-          <td><a href="#/station/${encodeURIComponent(x.station)}">${esc(x.station)}</a></td><td class="when">${when}</td>
-          <td>${fmt(x.p_end, 2)}</td><td>${x.reasons.map(esc).join(", ")}</td><td>${esc(x.state)}</td><td>${esc(x.grade)}</td>
-          <td>${esc(x.sample_id)}</td><td>${esc(x.line)}</td><td>${esc(x.area)}</td></tr>`; }).join("");
-      $("#due-note").textContent = `${r.stations.length} stations, ${r.stations.filter(x => x.due).length} due`;
+      last = r; render();
     }
+    main.querySelectorAll("#due th[data-sort]").forEach(th => th.addEventListener("click", () => {
+      sort.dir = sort.key === th.dataset.sort ? -sort.dir : 1; sort.key = th.dataset.sort; render();
+    }));
     fl.addEventListener("change", () => { want.line = fl.value; load(); });
     fa.addEventListener("change", () => { want.area = fa.value; load(); });
+    siteCb.addEventListener("change", () => { localStorage.setItem("hw-site", siteCb.checked ? "1" : "0"); load(); });
+    ft.addEventListener("input", render);
     load();
     const t = setInterval(load, 2000);
     cleanup.push(() => clearInterval(t));
