@@ -386,7 +386,7 @@ def _wall(start: Any, offset_s: Any) -> str | None:
 DUE_COLUMNS = ("station", "line", "area", "sample_id", "grade", "state", "due", "end_utc_p10",
                "end_utc_p50", "end_utc_p90", "p_end", "reasons", "t_life_utc", "headroom",
                "alarm", "test_id", "test_started_utc", "end_p10", "end_p50", "end_p90", "t_life",
-               "remote", "silent_since")
+               "remote", "online", "silent_since")
 
 
 def due_row(s: dict[str, Any]) -> dict[str, Any]:
