@@ -743,6 +743,30 @@ def render() -> str:
         "can skew a prior within the plausible range (its lives are 1 of K stations' in "
         "`prior_from`), which is why the ACL matters.",
         "",
+        "## The console's site view",
+        "",
+        "The operator console of a box can show every station of its `station.site` in its due "
+        "list and fleet cards (`console.site_view`, on by default; docs/console.md). It learns the "
+        "other boxes' stations from the broker: the session of the first MQTT-enabled station of "
+        "the console's process also subscribes to `<prefix>/<site>/+/+/+/state` and "
+        "`<prefix>/<site>/+/+/+/status` (both retained: a console that starts late sees every "
+        "station at once) — no second MQTT session. Those stations are read-only there: the "
+        "console sends commands only to its own stations. A station is *silent* when its `status` "
+        "is `offline` (its gateway's Last Will, or a clean stop) or its last `state` arrived more "
+        "than 35 s ago (a state comes at least every 10 s: a box cut off with its edge broker "
+        "leaves an `online` status behind); the console then shows it *silent since* the `time` of "
+        "its last state. What arrives goes through the one bounded JSON reader (at most 8 KiB, "
+        "depth 3), then every field the console keeps is type-checked and every string clipped "
+        "to 64 printable ASCII characters; a malformed message is refused with one counted, "
+        "rate-limited log line; at most 256 stations of other boxes are kept. The box's MQTT user "
+        "needs read permission there, e.g. in the ACL above:",
+        "",
+        "```",
+        "user gw-box-07",
+        "topic read hookwatch/plant-a/+/+/+/state",
+        "topic read hookwatch/plant-a/+/+/+/status",
+        "```",
+        "",
         "## Payloads",
         "",
     ]
