@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 
 from gateway.console import site as S
 from gateway.console.feed import due_list
@@ -105,3 +106,42 @@ def test_stations_of_the_site_are_bounded():
     # a station already kept still gets its news
     assert v.receive(f"{BASE}/s0/state", state("s0", grade="II"), now=1.0)
     v.close()
+
+
+def test_the_pump_routes_site_messages_lives_and_commands_apart(tmp_path):
+    """One MQTT session carries the station's commands, the site's lives and the console's site
+    view: each message goes to its own consumer."""
+    from types import SimpleNamespace
+
+    from gateway.northbound.mqtt_pump import MqttPump, MqttSettings
+
+    got: dict[str, list] = {"cmd": [], "lives": [], "site": []}
+    base = "hookwatch/plant/hall-1/l1/a-1"
+    pump = MqttPump(MqttSettings(station_id="a-1", base_topic=base, outbox_path=str(tmp_path / "o.sqlite")),
+                    on_command=lambda n, p, r: got["cmd"].append(n),
+                    on_lives=lambda t, p: got["lives"].append(t))
+    pump.add_site_feed(S.filters(base), lambda t, p: got["site"].append(t))
+    for topic in (f"{base}/cmd/ack", f"{BASE}/b-1/lives", f"{BASE}/b-1/state", f"{BASE}/b-1/status"):
+        pump._on_message(None, None, SimpleNamespace(topic=topic, payload=b"{}", properties=None))
+    assert got == {"cmd": ["ack"], "lives": [f"{BASE}/b-1/lives"],
+                   "site": [f"{BASE}/b-1/state", f"{BASE}/b-1/status"]}
+    pump.outbox.close()
+
+
+def test_the_console_attaches_the_site_view_to_one_session(tmp_path):
+    from gateway.console.server import ConsoleServer, ConsoleSettings
+
+    feeds: list[tuple] = []
+    srv = ConsoleServer(ConsoleSettings(users_file=str(tmp_path / "u.json")),
+                        {"a-1": str(tmp_path / "a-1"), "a-2": str(tmp_path / "a-2")})
+    add = lambda f, cb: feeds.append((f, cb))                            # noqa: E731
+    assert srv.attach_site("a-1", "hookwatch/plant/hall-1/l1/a-1", add)
+    assert not srv.attach_site("a-2", "hookwatch/plant/hall-1/l1/a-2", add)   # one session only
+    assert srv.attach_site("a-1", "hookwatch/plant/hall-1/l1/a-1", add)       # a-1 rebuilt: again
+    assert [f for f, _ in feeds] == [S.filters("hookwatch/plant/hall-1/l1/a-1")] * 2
+    assert srv.site is not None and srv.site.local == {"a-1", "a-2"}
+    off = ConsoleServer(ConsoleSettings(users_file=str(tmp_path / "u.json"), site_view=False),
+                        {"a-1": str(tmp_path / "a-1")})
+    assert off.site is None and not off.attach_site("a-1", "hookwatch/plant/hall-1/l1/a-1", add)
+    for c in (srv, off):
+        shutil.rmtree(c._cache, ignore_errors=True)

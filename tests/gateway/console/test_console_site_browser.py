@@ -159,8 +159,8 @@ def test_site_view_three_gateways_in_a_browser(tmp_path, browser):  # noqa: F811
             _wait_js(page, "window.hw.fleet[0] === 'c-1'")
             page.screenshot(path=str(tmp_path / "site-fleet.png"), full_page=True)
             page.goto(url + "/#/due")
-            _wait_js(page, "document.querySelector('#due tr[data-station=\"c-1\"] .box') && "
-                     "document.querySelector('#due tr[data-station=\"c-1\"] .box').textContent.includes('silent since')")
+            box = "document.querySelector('#due tr[data-station=\"c-1\"] .box')"
+            _wait_js(page, f"{box} && {box}.textContent.includes('silent since')")
             assert not errors, errors
             assert srv.site is not None and srv.site.counters["refused"] == 0
             ctx.close()
