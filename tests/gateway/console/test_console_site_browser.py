@@ -21,6 +21,7 @@ import os
 import signal
 import sys
 import threading
+import time
 
 import pytest
 from test_console_planner_browser import _wait_js, browser  # noqa: F401 (the fixture)
@@ -41,10 +42,10 @@ HTML = '<img src=x onerror="window.pwned=1">'
 START = "2026-11-26T05:00:00.000Z"     # an hour before the console fixture's tests
 
 
-def _box(tmp_path, port, name, stations):
+def _box(tmp_path, port, name, stations, site=SITE):
     d = tmp_path / name
     d.mkdir()
-    spec = {"prefix": PREFIX, "site": SITE, "stations": stations}
+    spec = {"prefix": PREFIX, "site": site, "stations": stations}
     p = Proc([sys.executable, os.path.join(os.path.dirname(__file__), "..", "..", "kit", "site_box.py"),
               str(port), str(d), json.dumps(spec)], str(tmp_path / f"{name}.log"))
     p.readline_until("connected", timeout=60)
@@ -175,3 +176,49 @@ def test_site_view_three_gateways_in_a_browser(tmp_path, browser):  # noqa: F811
             closer.join(30)
             if srv is not None:
                 srv.stop()
+
+
+def test_hookwatch_run_feeds_its_console_the_site_from_its_own_session(tmp_path):
+    """`hookwatch run` as deployed (a station file: the console in the station's process): the
+    console's site view rides on the station's MQTT session (gateway/compose.py) and lists the
+    station of another box; the station's own state is not shown twice."""
+    from kit.console_helpers import Client as HttpClient
+    from kit.e2e import run_gateway, station_yaml, wait_log
+
+    with Broker(tmp_path) as broker:
+        procs: list[Proc] = []
+        try:
+            procs.append(_box(tmp_path, broker.port, "box-b", [{**B[0], "area": "test", "line": "l2"}],
+                              site="lab"))
+            dev = tmp_path / "absent"            # no instruments: a state, not a crash
+            st = station_yaml(tmp_path, {"meter": str(dev / "meter"), "stm32": str(dev / "stm32")},
+                              name="a", mqtt={"enabled": True, "port": broker.port},
+                              extra={"console": {"enabled": True, "listen": ["127.0.0.1:0"],
+                                                 "users_file": str(tmp_path / "users.json")}})
+            gw = run_gateway(tmp_path, st, name="gw-a")
+            procs.append(gw)
+            url = gw.readline_until("console:", timeout=60).strip().rstrip("/")
+            wait_log(gw, "the site view reads hookwatch/lab/+/+/+/state, hookwatch/lab/+/+/+/status "
+                         "(on the MQTT session of a)", 60)
+            c = HttpClient(url)
+
+            def site_cards():
+                st_, body, _ = c.get("/api/fleet?site=1")
+                assert st_ == 200, body
+                return body
+
+            body = site_cards()
+            t_end = time.monotonic() + 60
+            while not any(s["station"] == "b-1" for s in body["stations"]) and time.monotonic() < t_end:
+                time.sleep(0.5)
+                body = site_cards()
+            cards = {s["station"]: s for s in body["stations"]}
+            assert sorted(cards) == ["a", "b-1"], sorted(cards)
+            assert cards["a"]["remote"] is False and cards["b-1"]["remote"] is True
+            assert cards["b-1"]["online"] is True and cards["b-1"]["line"] == "l2"
+            assert body["site"]["fed"] is True and body["site"]["refused"] == 0
+            st_, body, _ = c.get("/api/fleet")                          # this box only
+            assert [s["station"] for s in body["stations"]] == ["a"]
+        finally:
+            for p in procs:
+                p.stop()
