@@ -14,6 +14,7 @@ from .. import safeout, sdnotify
 from ..cli import CliError
 from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_sparkplug_nodes
 from ..config import ConfigError, load_fleet, load_station
+from ..northbound.wiring import mqtt_settings
 from ..osprio import DEPLOYED_NICE, MAX_PRIORITY, deployed_nice
 from ..ports import Runtime
 from ..station.fleet import Fleet, StationRunner
@@ -191,11 +192,21 @@ def _supervised(args) -> tuple[Runtime, Any] | None:
     # by each worker over IPC (docs/runtime.md)
     console = _console(cfgs)
 
+    # the console's site view rides on the MQTT session of one worker: the first station with MQTT
+    carrier = next((c for c in cfgs if c.mqtt.enabled), None) if with_nb else None
+    site = console.site if console is not None else None
+    if site is not None and carrier is not None:
+        console.attach_site(carrier.station.id, mqtt_settings(carrier).base_topic, lambda f, cb: None)
+
     def served(cfg) -> frozenset[str]:
-        return served_by_supervisor(cfg, console=console is not None, with_northbound=with_nb)
+        out = served_by_supervisor(cfg, console=console is not None, with_northbound=with_nb)
+        if site is not None and carrier is not None and cfg.station.id == carrier.station.id:
+            out |= {"site"}
+        return out
 
     sup = Supervisor(args.path, opts, watchdog_s=args.worker_watchdog, backoff_s=args.restart_backoff,
-                     served_for=served, shared=RemoteFleet(console, with_northbound=with_nb))
+                     served_for=served, shared=RemoteFleet(console, with_northbound=with_nb),
+                     on_site=site.receive if site is not None else None)
     return sup, console
 
 

@@ -35,6 +35,11 @@ type  name         body
 6     REPLY        ``{id, ok, reason, code, request_id}`` to a COMMAND (``code``: the rejection
                    code of gateway/station/commands.py, 0 when accepted)
 7     FINAL        ``{stats, results}`` when the worker stops cleanly
+9     SITE         ``{topic, payload}``: a retained state/status of a station of the site, for the
+                   supervisor's console (its site view, gateway/console/site.py), from the one
+                   worker that carries it (``site`` in ``--served-by-supervisor``); ``payload``
+                   is the message's text, cut to the site view's bound + 1 byte (the console
+                   refuses it, counted)
 ====  ===========  ============================================================================
 
 Supervisor → worker (commands flow back):
@@ -78,6 +83,7 @@ class FrameType(enum.IntEnum):
     REPLY = 6
     FINAL = 7
     METRICS = 8
+    SITE = 9
     COMMAND = 16
     RELOAD = 17
     GO = 18

@@ -279,6 +279,10 @@ class WorkerHandle:
                     elif ftype == FrameType.FINAL:
                         hub.results.extend(body.get("results") or [])
                         hub.stats = body.get("stats")
+                    elif ftype == FrameType.SITE and self.sup.on_site is not None:
+                        t, p = body.get("topic"), body.get("payload")
+                        if isinstance(t, str) and isinstance(p, str):
+                            self.sup.on_site(t, p.encode("utf-8"))
         except (OSError, ProtocolError) as e:
             log.error("%s: worker link broken: %s", hub.name, e)
         finally:
@@ -344,8 +348,11 @@ class Supervisor:
                  hold_s: float = 300.0, stable_s: float = 60.0, startup_s: float = 60.0,
                  summary_every: int = 10,
                  served_for: Callable[[Any], frozenset[str]] | None = None,
-                 shared: SharedOutputs | None = None) -> None:
+                 shared: SharedOutputs | None = None,
+                 on_site: Callable[[str, bytes], object] | None = None) -> None:
         self.folder = folder
+        #: the console's site view (SITE frames of the worker that carries it), or None
+        self.on_site = on_site
         #: the shared outputs (Modbus TCP units, Sparkplug devices, console, metrics), or None
         self.shared = shared
         #: what the supervisor's shared outputs serve for a station (its configuration → a subset

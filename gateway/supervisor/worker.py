@@ -24,8 +24,11 @@ from typing import Any
 
 from ..compose import build_station
 from ..config import ConfigError, load_station
+from ..console.site import MAX_MESSAGE_BYTES
+from ..console.site import filters as site_filters
 from ..northbound.cmdparse import intake
 from ..northbound.metrics import MetricsOutput
+from ..northbound.mqtt import MqttOutput
 from ..ratelog import safe
 from ..records import Event, SlotRecord, StationState
 from ..station import commands as C
@@ -44,7 +47,7 @@ HEARTBEAT_S = 0.5
 #: one METRICS frame per this many heartbeats (1 s)
 METRICS_EVERY = 2
 #: what a supervisor may serve for its workers' stations (``--served-by-supervisor``)
-SERVED = ("modbus", "console", "metrics", "sparkplug")
+SERVED = ("modbus", "console", "metrics", "sparkplug", "site")
 #: served things that need every slot record (the others live on the summaries and snapshots)
 ROW_SERVED = frozenset({"modbus", "console", "sparkplug"})
 
@@ -150,8 +153,17 @@ class Worker:
             st = build_station(cfg, outputs=[self.out], with_northbound=not self.opts.no_northbound,
                                served_by_supervisor=self.served)
             st.slot_phase = self.phase
+            mq = next((o for o in st.outputs if isinstance(o, MqttOutput)), None)
+            if "site" in self.served and mq is not None:
+                # the supervisor's console sees the site through this station's MQTT session
+                mq.pump.add_site_feed(site_filters(mq.s.base_topic), self._site)
             return st
         return make
+
+    def _site(self, topic: str, payload: bytes) -> None:
+        """A retained state/status of the site (the pump thread) → the supervisor's console."""
+        self.chan.send(FrameType.SITE, {"topic": topic[:1024],
+                                        "payload": payload[:MAX_MESSAGE_BYTES + 1].decode("utf-8", "replace")})
 
     def _started(self, st: Station) -> None:
         if self.station is not None:

@@ -222,3 +222,46 @@ def test_hookwatch_run_feeds_its_console_the_site_from_its_own_session(tmp_path)
         finally:
             for p in procs:
                 p.stop()
+
+
+def test_a_supervised_fleet_feeds_its_console_the_site_through_one_worker(tmp_path):
+    """`hookwatch run FLEET_DIR`: the console lives in the supervisor, the MQTT sessions in the
+    workers; one worker's session carries the site view to it (IPC frame SITE)."""
+    import yaml
+
+    from kit.console_helpers import Client as HttpClient
+    from kit.e2e import fleet_dir, run_gateway, wait_log
+
+    with Broker(tmp_path) as broker:
+        procs: list[Proc] = []
+        try:
+            procs.append(_box(tmp_path, broker.port, "box-b", [{**B[0], "area": "hall", "line": "l2"}],
+                              site="lab"))
+            fleet = fleet_dir(tmp_path, mqtt={"enabled": True, "port": broker.port},
+                              console={"enabled": True, "listen": ["127.0.0.1:0"],
+                                       "users_file": str(tmp_path / "users.json")})
+            dev = tmp_path / "absent"            # no instruments: a state, not a crash
+            for sid in ("a1", "a2"):
+                (fleet / "stations" / f"{sid}.yaml").write_text(yaml.safe_dump({
+                    "station": {"id": sid}, "meter": {"port": str(dev / f"{sid}-meter")},
+                    "stm32": {"port": str(dev / f"{sid}-stm32")}}))
+            gw = run_gateway(tmp_path, str(fleet), name="gw-a")
+            procs.append(gw)
+            url = gw.readline_until("console:", timeout=60).strip().rstrip("/")
+            wait_log(gw, "the site view reads hookwatch/lab/+/+/+/state", 60)
+            c = HttpClient(url)
+            t_end = time.monotonic() + 90
+            while True:
+                st_, body, _ = c.get("/api/fleet?site=1")
+                assert st_ == 200, body
+                cards = {s["station"]: s for s in body["stations"]}
+                if "b-1" in cards or time.monotonic() > t_end:
+                    break
+                time.sleep(0.5)
+            assert sorted(cards) == ["a1", "a2", "b-1"], sorted(cards)
+            assert cards["b-1"]["remote"] is True and cards["b-1"]["online"] is True
+            assert not cards["a1"]["remote"] and not cards["a2"]["remote"]
+            assert body["site"]["fed"] is True and body["site"]["refused"] == 0
+        finally:
+            for p in procs:
+                p.stop()
