@@ -297,7 +297,7 @@ def _certs(d):
     key = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes"]
     sh("req", "-x509", *key, "-keyout", "ca.key", "-out", "ca.crt", "-days", "2", "-subj", "/CN=hookwatch-test-ca")
     (d / "san.ext").write_text("subjectAltName=IP:127.0.0.1,DNS:localhost\n")
-    for name, ext in (("mqtt-central", True), ("edge-box01", False)):
+    for name, ext in (("mqtt-central", True), ("edge-box01", False), ("edge-box02", False)):
         sh("req", *key, "-keyout", f"{name}.key", "-out", f"{name}.csr", "-subj", f"/CN={name}")
         sh("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.crt", "-CAkey", "ca.key", "-CAcreateserial",
            "-out", f"{name}.crt", "-days", "2", *(["-extfile", "san.ext"] if ext else []))
@@ -477,6 +477,18 @@ def test_edge_broker_bridges_to_central_and_queues_through_an_outage(tmp_path):
                  "-t", f"{base}/cmd/ack", "-m", '{"request_id": "r1"}'])
         assert r.returncode == 0, r.stderr
         op.until(lambda ls: f'{base}/cmd/ack {{"request_id": "r1"}}' in ls)
+
+        # the console's site view: another box's retained state and status come down to this box
+        other = "hookwatch/plant-a/knitting-hall-3/line-2/loom-31"
+        site = LineReader([sub, "-h", "127.0.0.1", "-p", str(edge_port), "-u", "operator", "-P", "op-pw",
+                           "-q", "1", "-v", "-t", "hookwatch/+/+/+/+/state", "-t", "hookwatch/+/+/+/+/status"])
+        readers.append(site)
+        for kind in ("state", "status"):
+            r = run([pub, "-h", "127.0.0.1", "-p", str(central_tls), "--cafile", str(certs / "ca.crt"),
+                     "--cert", str(certs / "edge-box02.crt"), "--key", str(certs / "edge-box02.key"),
+                     "-q", "1", "-r", "-t", f"{other}/{kind}", "-m", f'{{"{kind}": 31}}'])
+            assert r.returncode == 0, r.stderr
+        site.until(lambda ls: f'{other}/state {{"state": 31}}' in ls and f'{other}/status {{"status": 31}}' in ls)
 
         # the plant link drops; the stations keep publishing; the edge broker even restarts
         proxy.down()
