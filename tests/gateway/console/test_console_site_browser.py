@@ -30,10 +30,11 @@ from gateway import records as R
 from gateway.console.site import MAX_TEXT
 from gateway.northbound import schema
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
-from kit.broker import Broker
+from kit.broker import Broker, pub
 from kit.console_helpers import CONSOLE_PW, INJECT, Client, start_console
 from kit.northbound import LoopThread
 from kit.proc import Proc
+from kit.tools import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -164,6 +165,15 @@ def test_site_view_three_gateways_in_a_browser(tmp_path, browser):  # noqa: F811
             _wait_js(page, f"{box} && {box}.textContent.includes('silent since')")
             assert not errors, errors
             assert srv.site is not None and srv.site.counters["refused"] == 0
+            # a malformed or oversized state from a box is refused (counted), never shown
+            evil = "hookwatch/plant/hall-9/l9/evil/state"
+            pub(broker.port, evil, '{"station": "evil", "test_state": 5}', retain=True)
+            pub(broker.port, evil.replace("evil", "huge"), '{"station": "huge", "test_state": "idle", '
+                '"sample_id": "' + "x" * 100_000 + '"}', retain=True)
+            wait_for(lambda: srv.site.counters["refused"] >= 2, 30, what="the bad states refused")
+            page.evaluate("window.hw.due = null")                     # the page's next refresh
+            _wait_js(page, "window.hw.due && window.hw.due.length > 0")
+            assert "evil" not in page.evaluate("window.hw.due") and len(page.evaluate("window.hw.due")) == 7
             ctx.close()
         finally:
             for p in procs:
