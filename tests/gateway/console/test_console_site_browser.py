@@ -23,7 +23,6 @@ import sys
 import threading
 import time
 
-import pytest
 from test_console_planner_browser import _wait_js, browser  # noqa: F401 (the fixture)
 
 from gateway import records as R
@@ -35,8 +34,6 @@ from kit.console_helpers import CONSOLE_PW, INJECT, Client, start_console
 from kit.northbound import LoopThread
 from kit.proc import Proc
 from kit.tools import wait_for
-
-pytestmark = pytest.mark.slow
 
 PREFIX, SITE = "hookwatch", "plant"
 HTML = '<img src=x onerror="window.pwned=1">'
