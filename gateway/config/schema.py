@@ -464,7 +464,8 @@ class SparkplugConfig(BrokerConfig):
                                      lo=0.0, hi=31536000.0)
 
 
-def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0) -> dict[str, Any]:
+def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0,
+               per_address: int = 16) -> dict[str, Any]:
     """The keys of a listening door (gateway/doors.py: one mechanism for every TCP port)."""
     return {
         "max_connections": key(cap, f"connections open at once on {what}; one more is closed at "
@@ -486,11 +487,18 @@ def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: fl
                              "the kernel's backlog: a connect flood costs the process a bounded "
                              "amount of work, whatever its rate", kind="float", unit="1/s",
                              lo=1.0, hi=100000.0),
+        "max_per_address": key(per_address, f"connections of one client address open at once on "
+                               f"{what}; one more closes that address's connection idle longest "
+                               "(≥ 1 s) or is closed at once (counted). At max_connections a "
+                               "newcomer closes the oldest connection of the address holding the "
+                               "most: one client cannot starve the others", kind="int", lo=1,
+                               hi=100000),
     }
 
 
-def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: str) -> type:
-    keys = _door_keys(cap, request_s, idle_s, what)
+def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: str,
+                  per_address: int) -> type:
+    keys = _door_keys(cap, request_s, idle_s, what, per_address=per_address)
     cls = dataclasses.make_dataclass(name, [(k, float if k.endswith(("_s", "per_s")) else int, f)
                                             for k, f in keys.items()], frozen=True, kw_only=True)
     cls.__doc__ = f"connection limits of {what}"
@@ -498,10 +506,10 @@ def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: st
     return cls
 
 
-ModbusDoorConfig = _door_section("ModbusDoorConfig", 64, 10.0, 60.0, "the Modbus TCP port")
-MetricsDoorConfig = _door_section("MetricsDoorConfig", 8, 5.0, 30.0, "the metrics endpoint")
+ModbusDoorConfig = _door_section("ModbusDoorConfig", 64, 10.0, 60.0, "the Modbus TCP port", 16)
+MetricsDoorConfig = _door_section("MetricsDoorConfig", 8, 5.0, 30.0, "the metrics endpoint", 4)
 ConsoleDoorConfig = _door_section("ConsoleDoorConfig", 256, 10.0, 60.0, "the console (every "
-                                  "listen address together)")
+                                  "listen address together)", 32)
 
 
 @dataclass(frozen=True, kw_only=True)

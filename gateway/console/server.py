@@ -119,7 +119,7 @@ class ConsoleSettings:
         self.stream_connects_per_address = int(stream_connects_per_address)
         self.stream_connects_total = int(stream_connects_total)
         #: connection cap, request deadline, idle timeout (console.connections)
-        self.door = door or DoorLimits(256, 10.0, 60.0)
+        self.door = door or DoorLimits(256, 10.0, 60.0, max_per_address=32)
 
     @classmethod
     def from_config(cls, cfg) -> ConsoleSettings:
