@@ -582,6 +582,20 @@ class ConsoleConfig:
     login_failures_per_address: int = key(20, "failed logins from one client address, any user "
                                            "(within lockout_s), before the address is locked out",
                                            kind="int", lo=1, hi=10000)
+    login_hashes_per_s: float = key(4.0, "password hashes (scrypt, one per login) per second "
+                                    "over all logins, in one worker thread at nice 19; a login "
+                                    "beyond gets HTTP 429 with Retry-After without hashing "
+                                    "(counted, one log line a minute)", kind="float", unit="1/s",
+                                    lo=0.1, hi=1000.0)
+    login_hash_burst: int = key(10, "password hashes allowed at once beyond login_hashes_per_s "
+                                "(the token bucket's size)", kind="int", lo=1, hi=10000)
+    login_hashes_per_user_per_s: float = key(1.0, "password hashes per second for one user name "
+                                             "(a flood on one name leaves the budget of the "
+                                             "others); beyond, HTTP 429 with Retry-After",
+                                             kind="float", unit="1/s", lo=0.01, hi=1000.0)
+    login_hash_burst_per_user: int = key(5, "password hashes allowed at once for one user name "
+                                         "beyond login_hashes_per_user_per_s", kind="int", lo=1,
+                                         hi=10000)
     allowed_hosts: tuple[str, ...] = key((), "host names the console answers in the HTTP Host "
                                          "header besides the addresses it listens on (and "
                                          "`localhost` on a loopback address); other names get "
