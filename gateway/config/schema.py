@@ -445,7 +445,10 @@ class SparkplugConfig(BrokerConfig):
                                           null_means="`[<host>:<port>]`")
     rebirth_min_interval_s: float = key(2.0, "at most one birth (NBIRTH and the DBIRTHs) per this "
                                         "interval: `Node Control/Rebirth` requests inside it are "
-                                        "coalesced into one rebirth when it has passed", kind="float",
+                                        "coalesced into one rebirth when it has passed; likewise "
+                                        "at most one session end (`Reboot`, `Next Server`: NDEATH "
+                                        "and a new connection) per interval after the birth and "
+                                        "the last one, requests inside it coalesced", kind="float",
                                         unit="s", lo=0.0, hi=3600.0)
     max_command_bytes: int = key(16384, "largest NCMD / DCMD payload decoded; a larger one is "
                                  "ignored (counted, logged)", kind="int", unit="bytes", lo=256,
