@@ -210,7 +210,7 @@ docs/metrics.md).
 | metrics per NCMD / DCMD | @max_command_metrics@ | `sparkplug.max_command_metrics` |
 | metric name, string value | @max_string_chars@ characters | `sparkplug.max_string_chars` |
 | births | one per @rebirth_min_interval_s@ s, Rebirths coalesced | `sparkplug.rebirth_min_interval_s` |
-| session ends (Reboot, Next Server) | one per @rebirth_min_interval_s@ s, coalesced | `sparkplug.rebirth_min_interval_s` |
+| Reboot, Next Server | one per @rebirth_min_interval_s@ s, coalesced | `sparkplug.rebirth_min_interval_s` |
 | STATE time ahead of the node | @state_future_skew_s@ s, then "now" | `sparkplug.state_future_skew_s` |
 
 The STATE nesting is counted on the bytes before `json.loads` runs; NaN, Infinity and a key given
