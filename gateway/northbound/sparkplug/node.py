@@ -465,7 +465,7 @@ class EdgeNode:
         if not self._birth_due(now_ms):
             return []
         self.counters["rebirths"] += 1
-        return self._births(now_ms)
+        return list(self._births(now_ms))
 
     def _ddeath(self, dev: Device, now_ms: int) -> Publish:
         dev.born = False
