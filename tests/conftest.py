@@ -67,6 +67,16 @@ def virtual_station(tmp_path):
 
 
 @pytest.fixture
+def browser():
+    """Playwright driving Debian's chromium (kit.browser.launch): skipped where either is
+    missing, failed in CI."""
+    from kit.browser import launch
+
+    with launch() as b:
+        yield b
+
+
+@pytest.fixture
 def fake_meter():
     from kit.fakes import FakeMeter
 
