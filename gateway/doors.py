@@ -5,7 +5,7 @@ anything added later) is a :class:`Door`: our own accept loop on a non-blocking 
 with
 
 - a **connection cap** (:attr:`DoorLimits.max_connections`): at the cap a newcomer whose address
-  holds fewer connections than the busiest other address closes that address's oldest connection
+  holds at least two fewer connections than the busiest other address closes that address's oldest connection
   not serving a request (:meth:`Door.evict_busiest`: one client cannot starve another by holding
   the door's room); else the newcomer is closed at once (a door's ``make_room`` hook replaces the
   rule: the Modbus door keeps room for the PLC's allow-list);
@@ -364,9 +364,9 @@ class Door:
     def evict_busiest(self, peer: str, exclude: Callable[[str], bool] | None = None,
                       fair: bool = True) -> bool:
         """Room for ``peer``: close the oldest connection of the other address holding the most
-        (one not serving a request if it has one). ``fair``: only when that address holds more
-        than ``peer`` does (so that two busy clients do not take turns closing each other's
-        connections). Addresses ``exclude`` names are never chosen. True if one was closed."""
+        (one not serving a request if it has one). ``fair``: only when that address holds at
+        least two more than ``peer`` does (so that two clients do not take turns closing each
+        other's connections). Addresses ``exclude`` names are never chosen. True if one was closed."""
         counts = {a: n for a, n in self.per_address.items()
                   if a != peer and not (exclude is not None and exclude(a))}
         if not counts:
