@@ -178,6 +178,10 @@ SLOW: dict[str, tuple[str, ...]] = {
         "test_journal_actions_and_hook_replaced_reach_a_real_station",),
     "tests/gateway/supervisor/test_doors_flood_e2e.py": ("*",),
     "tests/gateway/test_doors_station_e2e.py": ("*",),
+    # 300 re-opened idle sockets against the console and the metrics door (5–8 s each)
+    "tests/gateway/test_doors_fair.py": (
+        "test_300_reopened_idle_sockets_from_one_address_do_not_starve_the_operators_console",
+        "test_300_reopened_idle_sockets_from_one_address_do_not_starve_prometheus"),
     "tests/gateway/northbound/test_northbound_refusal_flood.py": ("*",),
     "tests/gateway/console/test_console_command_intake.py": ("*",),
     "tests/gateway/supervisor/test_supervisor_emfile.py": ("*",),
