@@ -4,8 +4,15 @@ Every port the gateway listens on (the console, the metrics endpoint, each Modbu
 anything added later) is a :class:`Door`: our own accept loop on a non-blocking listening socket
 with
 
-- a **connection cap** (:attr:`DoorLimits.max_connections`): one over it is closed at once (the
-  door's ``make_room`` hook may close another one first: the Modbus door keeps room for the PLC);
+- a **connection cap** (:attr:`DoorLimits.max_connections`): at the cap a newcomer whose address
+  holds at least two fewer connections than the busiest other address closes that address's oldest connection
+  not serving a request (:meth:`Door.evict_busiest`: one client cannot starve another by holding
+  the door's room); else the newcomer is closed at once (a door's ``make_room`` hook replaces the
+  rule: the Modbus door keeps room for the PLC's allow-list);
+- a **per-address cap** (:attr:`DoorLimits.max_per_address`): a newcomer from an address that
+  holds as many closes that address's connection idle longest if it has been idle ≥
+  :data:`EVICT_IDLE_S` (a client that re-connects instead of re-using), else it is closed at once
+  (counted ``refused_per_address``, one log line a minute with the count);
 - a **request deadline** (:attr:`DoorLimits.request_timeout_s`): a request must be complete (for
   HTTP: the request line, the headers and the body; for Modbus: the whole frame) within this long
   of its first byte, however the bytes trickle in (a deadline, not a per-``recv`` timeout);
@@ -16,7 +23,9 @@ with
 - an **accept rate** (:attr:`DoorLimits.accepts_per_s`, a token bucket): beyond it the door waits
   before its next accept and further connects queue in the kernel's backlog, so that a connect
   flood (e.g. live-stream churn answered 429) costs the process — and the slot loop sharing its
-  interpreter — a bounded amount of work per second, whatever the flood's rate;
+  interpreter — a bounded amount of work per second, whatever the flood's rate; a connection
+  refused at once costs a tenth of an accept (:data:`REFUSAL_COST`), so the backlog (:data:`BACKLOG`)
+  a re-opening client fills drains fast and another client's connect does not wait behind it long;
 - **accept errors** (``EMFILE``, ``ENFILE``, ``ENOBUFS`` …) are a *state*: counted, one log line
   (then at most one a minute, with the count), and the door stops accepting for
   :attr:`DoorLimits.accept_pause_s` instead of spinning; the pending connections wait in the
@@ -64,6 +73,16 @@ SWEEP_S = 0.5
 LOG_INTERVAL_S = 60.0
 #: the smallest cap a door is granted, whatever the budget (it can still serve someone)
 MIN_CAP = 2
+#: an address at its per-address cap replaces its connection idle at least this long
+EVICT_IDLE_S = 1.0
+#: a connection refused at once (a cap, the reserve) costs this share of an accept of the accept
+#: rate: a client re-opening what the door closes drains the kernel's backlog ten times as fast
+#: as served connections do, so that another client's connect waits behind fewer of its
+REFUSAL_COST = 0.1
+#: the listening backlog of a door (the kernel caps it at net.core.somaxconn): room for a
+#: re-opening client's connects and the others' behind them
+BACKLOG = 512
+_GONE = object()
 
 
 @dataclass(frozen=True)
@@ -74,13 +93,16 @@ class DoorLimits:
     accept_pause_s: float = 0.5
     #: new connections accepted per second at most (a token bucket with a burst of as many)
     accepts_per_s: float = 100.0
+    #: connections of one client address at once
+    max_per_address: int = 16
 
     @classmethod
     def from_config(cls, c: Any) -> DoorLimits:
         """From a configuration section with the door keys (``max_connections``,
-        ``request_timeout_s``, ``idle_timeout_s``, ``accept_pause_s``, ``accepts_per_s``)."""
+        ``request_timeout_s``, ``idle_timeout_s``, ``accept_pause_s``, ``accepts_per_s``,
+        ``max_per_address``)."""
         return cls(int(c.max_connections), float(c.request_timeout_s), float(c.idle_timeout_s),
-                   float(c.accept_pause_s), float(c.accepts_per_s))
+                   float(c.accept_pause_s), float(c.accepts_per_s), int(c.max_per_address))
 
 
 class RateLog(_ratelog.RateLog):
@@ -243,17 +265,19 @@ class Door:
         self.rlog = RateLog(self.log)
         self.cap = limits.max_connections
         self.conns: dict[Conn, None] = {}
+        #: open connections per client address (the keys of :attr:`conns`, counted)
+        self.per_address: dict[str, int] = {}
         #: counted here (a server may pass its own dict: the door's keys are added to it)
         self.counters = counters if counters is not None else {}
-        for k in ("accepted", "accepts_paced", "refused_connections", "refused_reserve", "accept_errors",
-                  "request_timeouts", "idle_closed", "evicted"):
+        for k in ("accepted", "accepts_paced", "refused_connections", "refused_per_address",
+                  "refused_reserve", "accept_errors", "request_timeouts", "idle_closed", "evicted"):
             self.counters.setdefault(k, 0)
         self.paused_until = 0.0
         self.sockets: list[socket.socket] = []
         self._tasks: list[asyncio.Task] = []
 
     # -- life
-    async def listen(self, host: str, port: int, backlog: int = 128) -> socket.socket:
+    async def listen(self, host: str, port: int, backlog: int = BACKLOG) -> socket.socket:
         fam = socket.AF_INET6 if ":" in host else socket.AF_INET
         sock = socket.create_server((host, port), family=fam, backlog=backlog)
         sock.setblocking(False)
@@ -296,18 +320,66 @@ class Door:
 
     def gone(self, conn: Conn) -> None:
         """The connection ended (the protocol side calls it once)."""
-        self.conns.pop(conn, None)
+        self._forget(conn)
 
     def evict(self, conn: Conn) -> None:
         self.counters["evicted"] += 1
         self._close(conn)
 
+    def _add(self, conn: Conn) -> None:
+        self.conns[conn] = None
+        self.per_address[conn.peer] = self.per_address.get(conn.peer, 0) + 1
+
+    def _forget(self, conn: Conn) -> None:
+        if self.conns.pop(conn, _GONE) is _GONE:
+            return
+        n = self.per_address.get(conn.peer, 1) - 1
+        if n > 0:
+            self.per_address[conn.peer] = n
+        else:
+            self.per_address.pop(conn.peer, None)
+
     def _close(self, conn: Conn) -> None:
-        self.conns.pop(conn, None)
+        self._forget(conn)
         try:
             conn.close()
         except Exception:  # already closed
             pass
+
+    # -- room (at a cap)
+    def evict_idle(self, peer: str | None = None, exclude: Callable[[str], bool] | None = None,
+                   min_idle_s: float = EVICT_IDLE_S) -> bool:
+        """Close the connection (of ``peer``, or of any address ``exclude`` does not name) idle
+        longest — between requests, not mid-request — if idle ≥ ``min_idle_s``; True if closed."""
+        cands = [c for c in self.conns if not c.busy and c.first_byte is None
+                 and (peer is None or c.peer == peer) and not (exclude is not None and exclude(c.peer))]
+        if not cands:
+            return False
+        c = min(cands, key=lambda x: x.idle_since)
+        if time.monotonic() - c.idle_since < min_idle_s:
+            return False
+        self.evict(c)
+        return True
+
+    def evict_busiest(self, peer: str, exclude: Callable[[str], bool] | None = None,
+                      fair: bool = True) -> bool:
+        """Room for ``peer``: close the oldest connection of the other address holding the most
+        (one not serving a request if it has one). ``fair``: only when that address holds at
+        least two more than ``peer`` does (so that two clients do not take turns closing each
+        other's connections). Addresses ``exclude`` names are never chosen. True if one was closed."""
+        counts = {a: n for a, n in self.per_address.items()
+                  if a != peer and not (exclude is not None and exclude(a))}
+        if not counts:
+            return False
+        busiest = max(counts, key=lambda a: counts[a])
+        if fair and counts[busiest] <= self.per_address.get(peer, 0) + 1:
+            return False
+        mine = [c for c in self.conns if c.peer == busiest]
+        if not mine:
+            return False
+        quiet = [c for c in mine if not c.busy]
+        self.evict(min(quiet or mine, key=lambda c: c.accepted))
+        return True
 
     # -- accepting
     async def _accept(self, lsock: socket.socket) -> None:
@@ -345,25 +417,43 @@ class Door:
                 self.rlog(logging.ERROR, "reserve", "%s: connection from %s refused: the process's "
                           "free descriptors are down to the reserve (%d of %d in use; %d refused)",
                           self.name, peer, b.soft - b.reserve, b.soft, c["refused_reserve"])
+                tokens += 1.0 - REFUSAL_COST
                 continue
-            if len(self.conns) >= self.cap and not (self.make_room is not None and self.make_room(peer)):
+            if self.per_address.get(peer, 0) >= self.limits.max_per_address \
+                    and not self.evict_idle(peer):
+                sock.close()
+                c["refused_connections"] += 1
+                c["refused_per_address"] += 1
+                self.rlog(logging.WARNING, "per address", "%s: connection from %s refused (it holds "
+                          "%d, at most %d per address; %d refused)", self.name, peer,
+                          self.per_address.get(peer, 0), self.limits.max_per_address,
+                          c["refused_per_address"])
+                tokens += 1.0 - REFUSAL_COST
+                continue
+            if len(self.conns) >= self.cap and not self._make_room(peer):
                 sock.close()
                 c["refused_connections"] += 1
                 self.rlog(logging.WARNING, "cap", "%s: connection from %s refused (%d open, at most "
                           "%d; %d refused)", self.name, peer, len(self.conns), self.cap, c["refused_connections"])
+                tokens += 1.0 - REFUSAL_COST
                 continue
             c["accepted"] += 1
             conn = Conn(peer, sock.close, self, self.first_request_deadline)
-            self.conns[conn] = None
+            self._add(conn)
             try:
                 r = self.serve(sock, conn)
                 if r is not None:
                     await r
             except OSError as e:
-                self.conns.pop(conn, None)
+                self._forget(conn)
                 sock.close()
                 self.rlog(logging.ERROR, "serve", "%s: cannot serve a connection from %s: %s",
                           self.name, peer, e)
+
+    def _make_room(self, peer: str) -> bool:
+        if self.make_room is not None:
+            return self.make_room(peer)
+        return self.evict_busiest(peer)
 
     # -- deadlines
     async def _sweep(self) -> None:

@@ -445,7 +445,10 @@ class SparkplugConfig(BrokerConfig):
                                           null_means="`[<host>:<port>]`")
     rebirth_min_interval_s: float = key(2.0, "at most one birth (NBIRTH and the DBIRTHs) per this "
                                         "interval: `Node Control/Rebirth` requests inside it are "
-                                        "coalesced into one rebirth when it has passed", kind="float",
+                                        "coalesced into one rebirth when it has passed; likewise "
+                                        "at most one session end (`Reboot`, `Next Server`: NDEATH "
+                                        "and a new connection) per interval after the birth and "
+                                        "the last one, requests inside it coalesced", kind="float",
                                         unit="s", lo=0.0, hi=3600.0)
     max_command_bytes: int = key(16384, "largest NCMD / DCMD payload decoded; a larger one is "
                                  "ignored (counted, logged)", kind="int", unit="bytes", lo=256,
@@ -464,7 +467,8 @@ class SparkplugConfig(BrokerConfig):
                                      lo=0.0, hi=31536000.0)
 
 
-def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0) -> dict[str, Any]:
+def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0,
+               per_address: int = 16) -> dict[str, Any]:
     """The keys of a listening door (gateway/doors.py: one mechanism for every TCP port)."""
     return {
         "max_connections": key(cap, f"connections open at once on {what}; one more is closed at "
@@ -486,11 +490,18 @@ def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: fl
                              "the kernel's backlog: a connect flood costs the process a bounded "
                              "amount of work, whatever its rate", kind="float", unit="1/s",
                              lo=1.0, hi=100000.0),
+        "max_per_address": key(per_address, f"connections of one client address open at once on "
+                               f"{what}; one more closes that address's connection idle longest "
+                               "(≥ 1 s) or is closed at once (counted). At max_connections a "
+                               "newcomer closes the oldest connection of the address holding the "
+                               "most: one client cannot starve the others", kind="int", lo=1,
+                               hi=100000),
     }
 
 
-def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: str) -> type:
-    keys = _door_keys(cap, request_s, idle_s, what)
+def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: str,
+                  per_address: int) -> type:
+    keys = _door_keys(cap, request_s, idle_s, what, per_address=per_address)
     cls = dataclasses.make_dataclass(name, [(k, float if k.endswith(("_s", "per_s")) else int, f)
                                             for k, f in keys.items()], frozen=True, kw_only=True)
     cls.__doc__ = f"connection limits of {what}"
@@ -498,10 +509,10 @@ def _door_section(name: str, cap: int, request_s: float, idle_s: float, what: st
     return cls
 
 
-ModbusDoorConfig = _door_section("ModbusDoorConfig", 64, 10.0, 60.0, "the Modbus TCP port")
-MetricsDoorConfig = _door_section("MetricsDoorConfig", 8, 5.0, 30.0, "the metrics endpoint")
+ModbusDoorConfig = _door_section("ModbusDoorConfig", 64, 10.0, 60.0, "the Modbus TCP port", 16)
+MetricsDoorConfig = _door_section("MetricsDoorConfig", 8, 5.0, 30.0, "the metrics endpoint", 4)
 ConsoleDoorConfig = _door_section("ConsoleDoorConfig", 256, 10.0, 60.0, "the console (every "
-                                  "listen address together)")
+                                  "listen address together)", 32)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -574,6 +585,20 @@ class ConsoleConfig:
     login_failures_per_address: int = key(20, "failed logins from one client address, any user "
                                            "(within lockout_s), before the address is locked out",
                                            kind="int", lo=1, hi=10000)
+    login_hashes_per_s: float = key(4.0, "password hashes (scrypt, one per login) per second "
+                                    "over all logins, in one worker thread at nice 19; a login "
+                                    "beyond gets HTTP 429 with Retry-After without hashing "
+                                    "(counted, one log line a minute)", kind="float", unit="1/s",
+                                    lo=0.1, hi=1000.0)
+    login_hash_burst: int = key(10, "password hashes allowed at once beyond login_hashes_per_s "
+                                "(the token bucket's size)", kind="int", lo=1, hi=10000)
+    login_hashes_per_user_per_s: float = key(1.0, "password hashes per second for one user name "
+                                             "(a flood on one name leaves the budget of the "
+                                             "others); beyond, HTTP 429 with Retry-After",
+                                             kind="float", unit="1/s", lo=0.01, hi=1000.0)
+    login_hash_burst_per_user: int = key(5, "password hashes allowed at once for one user name "
+                                         "beyond login_hashes_per_user_per_s", kind="int", lo=1,
+                                         hi=10000)
     allowed_hosts: tuple[str, ...] = key((), "host names the console answers in the HTTP Host "
                                          "header besides the addresses it listens on (and "
                                          "`localhost` on a loopback address); other names get "

@@ -21,17 +21,32 @@ user name): ``lockout_attempts`` failures within ``lockout_s`` lock that pair fo
 a stranger at another address cannot lock the operator out; and per client address for any
 user: ``login_failures_per_address`` failures lock the address. A successful login takes its
 own count back and clears its pair.
+
+Hashing budget (:class:`Hasher`): every scrypt of a login (a real check, or the same work for an
+unknown user name, so the answer time does not tell which users exist) runs off the console's
+loop in **one** worker thread at the lowest CPU priority (nice 19), and only within a budget: a
+token bucket of hashes per second over all logins (``console.login_hashes_per_s``, burst
+``login_hash_burst``) and one per user name (``login_hashes_per_user_per_s``, burst
+``login_hash_burst_per_user``). A login beyond the budget is answered 429 with ``Retry-After``
+without hashing (counted, one rate-limited log line): a flood of wrong logins from rotating
+addresses costs at most that many hashes a second, in one thread the slot loops preempt, and a
+flood on some user names leaves the budget of the others.
 """
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import hmac
 import json
 import os
 import re
 import secrets
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+
+from .guard import RateBound
 
 SCRYPT_N = 2 ** 14
 SCRYPT_R = 8
@@ -44,6 +59,8 @@ PASSWORD_MIN = 8
 PASSWORD_MAX = 1024
 #: the most sessions kept at once (oldest dropped first)
 MAX_SESSIONS = 256
+#: the niceness of the thread that hashes passwords (the lowest priority: the slot loops first)
+HASH_NICE = 19
 
 
 class UsersError(Exception):
@@ -240,3 +257,53 @@ class Lockout:
             lst = self._fail.get(k)
             if lst:
                 lst.pop()
+
+
+def _lowest_priority() -> None:
+    """In the hashing thread: nice 19 for this thread only (Linux schedules threads)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), HASH_NICE)
+    except (OSError, AttributeError):     # not permitted or not Linux: normal priority
+        pass
+
+
+class Hasher:
+    """Password hashes of logins within a budget, in one low-priority worker thread (see the
+    module docstring). Used on the console's loop only (no locks)."""
+
+    def __init__(self, per_s: float, burst: float, per_user_per_s: float, per_user_burst: float,
+                 clock=time.monotonic):
+        self.all = RateBound(per_s * 60.0, clock, burst=burst)
+        self.per_user = RateBound(per_user_per_s * 60.0, clock, burst=per_user_burst)
+        #: hashes begun (each one scrypt), and logins refused for the budget
+        self.hashes = 0
+        self.refused = 0
+        self._pool: ThreadPoolExecutor | None = None
+
+    def wait(self, user: str) -> float:
+        """0 when a hash for ``user`` is within the budget now (nothing taken); else the seconds
+        until it is."""
+        return max(self.all.wait(), self.per_user.wait("u:" + user))
+
+    def take(self, user: str) -> None:
+        """Take one hash of the budget (after :meth:`wait` said 0, with no await in between)."""
+        self.all.take()
+        self.per_user.take("u:" + user)
+
+    async def verify(self, password: str, entry: dict | None) -> bool:
+        """The password against ``entry`` (None: an unknown user: the same work, then False),
+        in the hashing thread; one hash counted."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="hookwatch-login-hash",
+                                            initializer=_lowest_priority)
+        self.hashes += 1
+        loop = asyncio.get_running_loop()
+        if entry is None:
+            await loop.run_in_executor(self._pool, hash_password, password)
+            return False
+        return await loop.run_in_executor(self._pool, verify_password, password, entry)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None

@@ -108,7 +108,9 @@ class ConsoleSettings:
                  users_file: str, read_without_login="local", session_ttl_s=28800.0,
                  lockout_attempts=5, lockout_s=300.0, login_failures_per_address=20,
                  allowed_hosts=(), report_jobs=1, report_queue=8, stream_connects_per_address=30,
-                 stream_connects_total=120, door: DoorLimits | None = None, site_view: bool = True):
+                 stream_connects_total=120, door: DoorLimits | None = None, site_view: bool = True,
+                 login_hashes_per_s=4.0, login_hash_burst=10, login_hashes_per_user_per_s=1.0,
+                 login_hash_burst_per_user=5):
         self.listen = tuple(listen)
         self.cert_file, self.key_file = cert_file, key_file
         self.users_file = users_file
@@ -122,8 +124,13 @@ class ConsoleSettings:
         self.report_queue = int(report_queue)
         self.stream_connects_per_address = int(stream_connects_per_address)
         self.stream_connects_total = int(stream_connects_total)
+        #: the password-hashing budget (gateway/console/auth.py, Hasher)
+        self.login_hashes_per_s = float(login_hashes_per_s)
+        self.login_hash_burst = int(login_hash_burst)
+        self.login_hashes_per_user_per_s = float(login_hashes_per_user_per_s)
+        self.login_hash_burst_per_user = int(login_hash_burst_per_user)
         #: connection cap, request deadline, idle timeout (console.connections)
-        self.door = door or DoorLimits(256, 10.0, 60.0)
+        self.door = door or DoorLimits(256, 10.0, 60.0, max_per_address=32)
         #: show the stations of the site's other boxes (console.site_view; gateway/console/site.py)
         self.site_view = bool(site_view)
 
@@ -140,7 +147,10 @@ class ConsoleSettings:
                    stream_connects_per_address=c.stream_connects_per_address,
                    stream_connects_total=c.stream_connects_total,
                    door=DoorLimits.from_config(c.connections),
-                   site_view=bool(getattr(c, "site_view", True)))
+                   site_view=bool(c.site_view),
+                   login_hashes_per_s=c.login_hashes_per_s, login_hash_burst=c.login_hash_burst,
+                   login_hashes_per_user_per_s=c.login_hashes_per_user_per_s,
+                   login_hash_burst_per_user=c.login_hash_burst_per_user)
 
 
 def parse_listen(addr: str) -> tuple[str, int]:
@@ -187,6 +197,9 @@ class ConsoleServer:
         self.tl = ThreadLoop("console")
         self.sessions = auth.Sessions(settings.session_ttl_s)
         self.lockout = auth.Lockout(settings.lockout_attempts, settings.lockout_s)
+        self.hasher = auth.Hasher(settings.login_hashes_per_s, settings.login_hash_burst,
+                                  settings.login_hashes_per_user_per_s,
+                                  settings.login_hash_burst_per_user)
         self.hosts = HostAllow(settings.allowed_hosts, (parse_listen(a)[0] for a in settings.listen))
         self.reports = ReportPool(settings.report_jobs, settings.report_queue)
         self.stream_rate = RateBound(settings.stream_connects_per_address)
@@ -310,6 +323,7 @@ class ConsoleServer:
         self.refusals.close()
         if self.site is not None:
             self.site.close()
+        self.hasher.close()
 
     def make_app(self) -> web.Application:
         app = web.Application(client_max_size=MAX_BODY, middlewares=[self._guard])
@@ -538,20 +552,26 @@ class ConsoleServer:
                                "(%.0f s left)", user, remote, left)
             return _err(429, f"too many failed logins; try again in {left:.0f} s",
                         headers={"Retry-After": str(int(left) + 1)})
+        # the hashing budget (after the lockout, which costs no hash): none beyond it; checked
+        # here and taken below, with no await in between. Not a try: the attempt is taken back
+        wait = self.hasher.wait(user)
+        if wait > 0:
+            self.lockout.forgive(one=(pair, addr))
+            self.hasher.refused += 1
+            self.refusals.warn("hash budget", "login of %r from %s refused: over the password-"
+                               "hashing budget (%d refused so far)", user, remote, self.hasher.refused)
+            return _err(429, "too many logins right now; try again shortly",
+                        headers={"Retry-After": str(max(1, math.ceil(wait)))})
         try:
             users = auth.load_users(self.settings.users_file)
         except auth.UsersError as e:
             self.lockout.forgive(one=(pair, addr))
             log.error("console: %s", e)
             return _err(500, "users file unreadable; see the gateway log")
-        entry = users.get(user)
-        loop = asyncio.get_running_loop()
-        if entry is None:
-            # the same work as a real check, so the answer time does not tell which users exist
-            await loop.run_in_executor(None, auth.hash_password, pw)
-            ok = False
-        else:
-            ok = await loop.run_in_executor(None, auth.verify_password, pw, entry)
+        # an unknown user name: the same work as a real check, so the answer time does not tell
+        # which users exist; one hash of the budget either way
+        self.hasher.take(user)
+        ok = await self.hasher.verify(pw, users.get(user))
         if not ok:
             self.refusals.warn("failed login " + remote, "failed login of %r from %s", user, remote)
             return _err(401, "wrong user or password")

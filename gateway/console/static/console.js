@@ -118,7 +118,7 @@
       el("h3", null, s.station, " ", el("small", null, "(read-only)")),
       el("div", { class: "kv" },
         el("span", null, "box"), el("span", { class: "liveness " + (s.online ? "ok" : "bad") }, liveness(s)),
-        el("span", null, "state"), el("span", { class: "state" }, (s.state || "–") + (s.sample_id ? " · " + s.sample_id : "")),
+        el("span", null, "state"), el("span", { class: "state", "data-state": s.state || "" }, (stateWords(s) || "–") + (s.sample_id ? " · " + s.sample_id : "")),
         el("span", null, "μ"), el("span", null, `μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)}`),
         el("span", null, "headroom"), el("span", null, barNode(s.headroom, s.past_threshold)),
         el("span", null, "forecast"), el("span", null, projection(s) || "–"),
@@ -137,6 +137,80 @@
     cb.checked = localStorage.getItem("hw-site") === "1";
     return cb;
   }
+  // ------------------------------------------------------------------ operator words
+  // a duration in words: "2 h 13 min", "4 min 05 s", "12.3 s"
+  function dur(s) {
+    if (s == null || !isFinite(s)) return "–";
+    s = Number(s);
+    if (s < 60) return s.toFixed(1) + " s";
+    const t = Math.round(s);
+    if (t < 3600) return `${Math.floor(t / 60)} min ${String(t % 60).padStart(2, "0")} s`;
+    return `${Math.floor(t / 3600)} h ${String(Math.floor((t % 3600) / 60)).padStart(2, "0")} min`;
+  }
+  function alarmName(a) { return a === "end_of_life" ? "end of life" : a === "wear_warning" ? "wear warning" : String(a || "the alarms"); }
+  function by(who) { return who ? " by " + who : ""; }
+  const REASON_WORDS = { headroom: "the headroom is below its bound", prior: "the life prior puts the end near",
+                         trend: "the μ trend reaches the threshold soon" };
+  const END_WORDS = { stop: "stopped", "protection stop": "stopped by a protection stop", hook_replaced: "ended: the hook was replaced",
+                      shutdown: "ended: the gateway shut down", completed: "completed" };
+  // a test's end in words; `t_life` known: "end of life found at …, then stopped"
+  function endWords(testStatus, endReason, tLife, status) {
+    const how = END_WORDS[endReason] || (endReason ? "ended (" + endReason + ")" : testStatus === "completed" ? "completed" : "stopped");
+    if (tLife != null && isFinite(tLife)) {
+      return testStatus === "completed" ? `completed; end of life found at ${dur(tLife)}` : `end of life found at ${dur(tLife)}, then ${how}`;
+    }
+    if (testStatus === "completed") return status === "no_baseline" ? "completed without a baseline" : "completed without an end of life";
+    return how;
+  }
+  // a station's state in words (the end of a test says what was found before it)
+  function stateWords(s) {
+    const st = s.state || "";
+    if ((st === "aborted" || st === "completed") && s.t_life != null) return endWords(st, s.end_reason, s.t_life, s.status);
+    if (st === "end_of_life" && s.t_life != null) return `end of life found at ${dur(s.t_life)}`;
+    return st.replace(/_/g, " ");
+  }
+  hw.dur = dur;
+  // one sentence per event type (gateway/records.py EventType; the keys: gateway/northbound/schema.py EVENT_DATA)
+  function eventText(e) {
+    const n = x => fmt(x, 2), r = e.result || {};
+    switch (e.type) {
+      case "test_starting": return `Start accepted for sample ${e.sample_id} at ${n(e.t_set)} N: ${e.zero_check ? "zero check, then spin-up" : "spin-up"}.`;
+      case "start_failed": return `The start of sample ${e.sample_id} failed: ${e.reason}.`;
+      case "test_started": return `Test started${by(e.source)}: sample ${e.sample_id}${e.grade ? " (" + e.grade + ")" : ""} at ${n(e.t_set)} N` +
+        (e.t_end != null ? `, planned for ${dur(e.t_end)}` : "") +
+        (e.prior_mean != null ? `; life prior ${dur(e.prior_mean)} ± ${dur(e.prior_sd)} (${e.prior_source})` : "") + ".";
+      case "baseline_established": return `Baseline found: μ_ss ${fmt(e.mu_ss, 3)}, so the threshold μ_th is ${fmt(e.mu_th, 3)}.`;
+      case "end_of_life": return `End of life detected at ${dur(e.t_life)} (μ above the threshold ${fmt(e.mu_th, 3)}; baseline μ_ss ${fmt(e.mu_ss, 3)}).`;
+      case "wear_warning": {
+        const why = (e.reasons || []).map(x => REASON_WORDS[x] || x).join(", ");
+        return `Wear warning at ${dur(e.t_warn)}: headroom ${n(e.headroom)}` + (why ? `; ${why}` : "") +
+          (e.t_cross != null ? `; projected crossing at ${dur(e.t_cross)}` : "") +
+          (e.end_p50 != null ? `; end expected between ${dur(e.end_p10)} and ${dur(e.end_p90)} (median ${dur(e.end_p50)})` : "") + ".";
+      }
+      case "protection_stop": return `Protection stop: ${(e.stop_reasons || []).join(", ") || "unsafe run"}; the drive was stopped.`;
+      case "test_ended": {
+        const w = endWords(e.test_status, e.reason, r.t_life, r.status);
+        return `Test ${w}${by(e.source)}.`.replace(/^Test end of life/, "Test: end of life");
+      }
+      case "port_lost": return `The ${e.port === "stm32" ? "STM32" : e.port} port was lost${e.times > 1 ? " (" + e.times + " times)" : ""}.`;
+      case "port_back": return `The ${e.port === "stm32" ? "STM32" : e.port} port is back.`;
+      case "alarm_acknowledged": return `Alarm acknowledged${by(e.source)}.`;
+      case "alarm_cleared": return `Alarms closed${e.reason === "hook_replaced" ? ": the hook was replaced" : e.reason ? ": " + e.reason : ""}${by(e.source)}.`;
+      case "alarm_shelved": return `The ${alarmName(e.alarm)} alarm was shelved${by(e.source)}${e.until ? " until " + wall(new Date(e.until * 1000).toISOString()) : ""}.`;
+      case "alarm_unshelved": return e.expired ? `The shelving of the ${alarmName(e.alarm)} alarm ran out.` : `The ${alarmName(e.alarm)} alarm was unshelved${by(e.source)}.`;
+      case "alarm_out_of_service": return `Alarms taken out of service${by(e.source)}.`;
+      case "alarm_in_service": return `Alarms returned to service${by(e.source)}.`;
+      case "hook_replaced": return `Hook ${e.old_sample_id || "?"} replaced by ${e.new_sample_id}${e.grade ? " (" + e.grade + ")" : ""}${by(e.by)}` +
+        (e.life_s != null ? `; its life ${dur(e.life_s)}` : "") + (e.logged === false ? "; NOT written to hooks.jsonl (disk)" : "") + ".";
+      case "command_rejected": return `${e.count > 1 ? e.count + " " + e.command + " commands" : "A " + e.command + " command"} from ${e.source} refused: ${e.reason}${e.code != null ? " (code " + e.code + ")" : ""}.`;
+      case "config_reloaded": return "Configuration reloaded.";
+      case "disk_full": return `The ${e.store} cannot be written: ${e.reason}.`;
+      case "disk_ok": return `The ${e.store} can be written again.`;
+      case "records_pruned": return `Record retention removed ${(e.tests || []).length} old test(s), ${fmt((e.bytes || 0) / 1e6, 1)} MB.`;
+      default: return String(e.type).replace(/_/g, " ") + ".";
+    }
+  }
+  hw.eventText = eventText;
 
   function fleetPage() {
     main.innerHTML = `<div class="row"><h2 style="margin:0">Fleet</h2>
@@ -171,7 +245,7 @@
       t.innerHTML = `<div class="card" data-station="${esc(s.station)}">
         <h3><a href="#/station/${encodeURIComponent(s.station)}">${esc(s.station)}</a></h3>
         <div class="kv">
-          <span>state</span><span class="state">${esc(s.state || (s.online ? "" : "offline"))}${s.sample_id ? " · " + esc(s.sample_id) : ""}</span>
+          <span>state</span><span class="state" data-state="${esc(s.state)}">${esc(stateWords(s) || (s.online ? "" : "offline"))}${s.sample_id ? " · " + esc(s.sample_id) : ""}</span>
           <span>μ now</span><span>${fmt(s.mu_now)} <small>(μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</small></span>
           <span>headroom</span><span>${headroomBar(s.headroom, s.past_threshold)}</span>
           <span>wear</span><span class="wear-cell">${wearWarning(s)}</span>
@@ -264,7 +338,7 @@
     }
     function info(events) {
       const s = summary;
-      $("#st-info").innerHTML = `<span>state</span><span id="state">${esc(s.state)}</span>
+      $("#st-info").innerHTML = `<span>state</span><span id="state" data-state="${esc(s.state)}">${esc(stateWords(s))}</span>
         <span>test</span><span>${esc(s.test_id)} · sample ${esc(s.sample_id)} · grade ${esc(s.grade)} · T_set ${fmt(s.t_set, 2)} N</span>
         <span>μ now</span><span>${fmt(s.mu_now)} (μ_ss ${fmt(s.mu_ss)}, μ_th ${fmt(s.mu_th)})</span>
         <span>headroom</span><span id="headroom">${headroomBar(s.headroom, s.past_threshold)} ${s.t_cross != null ? "projected crossing at " + fmt(s.t_cross, 0) + " s" : ""}</span>
@@ -275,8 +349,36 @@
         <span>alarm</span><span id="alarm">${alarmBadge(s.alarm)}</span>
         <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
         <span>slots</span><span>${slotsText(s)}</span>`;
-      if (events) $("#events").innerHTML = events.slice().reverse().map(e => `<div>${new Date(e.time * 1000).toISOString().slice(11, 19)} ${esc(e.type)} ${esc(JSON.stringify(Object.fromEntries(Object.entries(e).filter(([k]) => !["type", "time", "station", "test_id"].includes(k)))))}</div>`).join("");
+      if (events) renderEvents(events);
     }
+    // the events in plain words, newest first; each one's raw JSON one click away (kept open
+    // across updates: the list is drawn again only when it changed)
+    const openRaw = new Set();
+    let eventsSig = null;
+    function renderEvents(events) {
+      const last = events[events.length - 1];
+      const sig = events.length + "|" + (last ? last.time + last.type + (last.count || "") : "");
+      if (sig === eventsSig) return;
+      eventsSig = sig;
+      hw.events = events.length;
+      $("#events").innerHTML = events.map((e, i) => [e, i]).reverse().map(([e, i]) => {
+        const key = e.time + "|" + e.type + "|" + i;
+        let text;
+        try { text = eventText(e); } catch (err) { text = String(e.type); }
+        return `<div class="event" data-type="${esc(e.type)}" data-key="${esc(key)}">
+          <span class="ev-time">${new Date(e.time * 1000).toISOString().slice(11, 19)}</span> <span class="ev-text">${esc(text)}</span>
+          <button type="button" class="raw-toggle" title="the event as recorded (JSON)" aria-expanded="${openRaw.has(key)}">{…}</button>
+          <pre class="raw${openRaw.has(key) ? "" : " hidden"}">${esc(JSON.stringify(e, null, 1))}</pre></div>`;
+      }).join("");
+    }
+    $("#events").addEventListener("click", ev => {
+      const b = ev.target.closest("button.raw-toggle");
+      if (!b) return;
+      const row = b.closest(".event"), pre = row.querySelector("pre.raw");
+      const open = pre.classList.toggle("hidden") === false;
+      b.setAttribute("aria-expanded", String(open));
+      if (open) openRaw.add(row.dataset.key); else openRaw.delete(row.dataset.key);
+    });
     const es = new EventSource("/api/station/" + encodeURIComponent(sid) + "/stream");
     let gen = null;
     es.onmessage = ev => {
@@ -420,7 +522,7 @@
     if (r.status !== 200) { $("#tests").textContent = r.reason; return; }
     const base = "/api/station/" + encodeURIComponent(sid) + "/tests/";
     $("#tests").innerHTML = r.tests.length ? `<table><tr><th>test</th><th>sample</th><th>grade</th><th>status</th><th>t_life (s)</th><th>μ_ss</th><th>headroom at end</th><th>files</th><th></th></tr>` +
-      r.tests.map(t => `<tr><td>${esc(t.test_id)}</td><td>${esc(t.sample_id)}</td><td>${esc(t.grade)}</td><td>${esc(t.test_status)} / ${esc(t.status)}</td><td>${fmt(t.t_life, 2)}</td><td>${fmt(t.mu_ss)}</td><td>${fmt(t.headroom, 2)}</td>
+      r.tests.map(t => `<tr><td>${esc(t.test_id)}</td><td>${esc(t.sample_id)}</td><td>${esc(t.grade)}</td><td class="status" title="${esc(t.test_status)} / ${esc(t.status)}${t.end_reason ? " (" + esc(t.end_reason) + ")" : ""}">${esc(t.test_status === "running" || t.test_status === "unreadable" ? t.test_status : endWords(t.test_status, t.end_reason, t.t_life, t.status))}</td><td>${fmt(t.t_life, 2)}</td><td>${fmt(t.mu_ss)}</td><td>${fmt(t.headroom, 2)}</td>
         <td>${t.files.map(f => `<a href="${base}${encodeURIComponent(t.test_id)}/files/${f}">${f}</a>`).join(" ")}</td>
         <td>${t.files.includes("result.json") ? `<button class="fig7" data-tid="${esc(t.test_id)}">Fig. 7</button>` : ""}</td></tr>`).join("") + "</table>" : "no recorded tests";
     main.querySelectorAll("button.fig7").forEach(b => b.addEventListener("click", () => {

@@ -39,7 +39,10 @@ MAX_LINE = 8190
 RETRY_S = 5.0
 #: niceness added to the thread that answers scrapes
 SCRAPE_NICE = 5
-DEFAULT_LIMITS = DoorLimits(MAX_CONNECTIONS, REQUEST_TIMEOUT_S, IDLE_TIMEOUT_S)
+#: connections of one client address (``metrics.connections.max_per_address``)
+MAX_PER_ADDRESS = 4
+DEFAULT_LIMITS = DoorLimits(MAX_CONNECTIONS, REQUEST_TIMEOUT_S, IDLE_TIMEOUT_S,
+                            max_per_address=MAX_PER_ADDRESS)
 
 
 class EndpointSource:
@@ -138,7 +141,7 @@ class Endpoint:
             while not self._stop.is_set():
                 door = AiohttpDoor(f"metrics {self.host}:{self.port}", self.limits, runner, logger=log)
                 try:
-                    sock = await door.listen(self.host, self.port, backlog=16)
+                    sock = await door.listen(self.host, self.port)
                 except OSError as e:   # address in use, permission, no such address: a state
                     await door.close()
                     self.error = f"metrics {self.host}:{self.port}: cannot listen: {e.strerror or e}"

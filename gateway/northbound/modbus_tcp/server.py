@@ -2,7 +2,8 @@
 
 - connections: a :class:`~gateway.doors.Door` (the one mechanism of every listening port): at most
   ``max_connections`` per server (:data:`MAX_CONNECTIONS`, within the process's descriptor
-  budget) and :data:`MAX_PER_CLIENT` per client address. The PLC always finds room: clients in
+  budget) and :data:`MAX_PER_CLIENT` per client address (the door's per-address cap and
+  eviction, as on every door). The PLC always finds room: clients in
   the stations' ``allowed_clients`` (the allow-list) have :data:`RESERVED_FOR_ALLOWED` slots no
   other address may take, and at the cap an allowed client's connection closes the oldest
   connection of the address holding the most (busy or idle). Any other client at a cap closes
@@ -26,12 +27,13 @@ The units are duck-typed: ``input_image()`` (the input registers), ``hr`` (the h
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import socket
 import time
 from typing import Any
 
-from ...doors import Conn, Door, DoorLimits, RateLog
+from ...doors import EVICT_IDLE_S, Conn, Door, DoorLimits, RateLog
 from . import pdu as P
 from .framer import FrameError, Framer, encode
 
@@ -41,13 +43,12 @@ MAX_CONNECTIONS = 64
 MAX_PER_CLIENT = 16
 IDLE_TIMEOUT_S = 60.0
 REQUEST_TIMEOUT_S = 10.0
-EVICT_IDLE_S = 1.0
 #: slots only clients of the allow-list may take
 RESERVED_FOR_ALLOWED = 4
 READ_CHUNK = 4096
 LOG_INTERVAL_S = 60.0
 
-__all__ = ["ModbusTcpServer", "Pacer", "RateLog", "Store"]
+__all__ = ["EVICT_IDLE_S", "ModbusTcpServer", "Pacer", "RateLog", "Store"]
 
 
 class Pacer:
@@ -96,19 +97,21 @@ class ModbusTcpServer:
                  limits: DoorLimits | None = None):
         self.store = store
         self.pacer = pacer
-        lim = limits or DoorLimits(MAX_CONNECTIONS, REQUEST_TIMEOUT_S, IDLE_TIMEOUT_S)
+        lim = limits or DoorLimits(MAX_CONNECTIONS, REQUEST_TIMEOUT_S, IDLE_TIMEOUT_S,
+                                   max_per_address=MAX_PER_CLIENT)
         if max_connections is not None:
-            lim = DoorLimits(max_connections, lim.request_timeout_s, lim.idle_timeout_s, lim.accept_pause_s)
+            lim = dataclasses.replace(lim, max_connections=max_connections)
         if idle_timeout_s is not None:
-            lim = DoorLimits(lim.max_connections, min(lim.request_timeout_s, idle_timeout_s),
-                             idle_timeout_s, lim.accept_pause_s)
+            lim = dataclasses.replace(lim, request_timeout_s=min(lim.request_timeout_s, idle_timeout_s),
+                                      idle_timeout_s=idle_timeout_s)
+        if max_per_client is not None:
+            lim = dataclasses.replace(lim, max_per_address=max_per_client)
         self.limits = lim
-        self.max_per_client = MAX_PER_CLIENT if max_per_client is None else max_per_client
+        self.max_per_client = lim.max_per_address
         self.idle_timeout_s = lim.idle_timeout_s
         self.rlog = RateLog(log)
         self.door: Door | None = None
         self._tasks: set[asyncio.Task] = set()
-        self._per_client: dict[str, int] = {}
         self._writers: dict[Conn, asyncio.StreamWriter] = {}
 
     @property
@@ -143,57 +146,24 @@ class ModbusTcpServer:
                 return True
         return False
 
-    # -- admission (the door calls it at its cap; the per-client cap and the reserve are ours)
+    # -- admission (the door calls it at its cap; the per-address cap is the door's, the
+    #    allow-list's reserve is ours)
     def _make_room(self, peer: str) -> bool:
         door = self.door
         if door is None:
             return False
         if self._allowed(peer):
-            return self._evict_busiest(door)
-        return self._evict_idle(door, None, others_only=True)
+            return door.evict_busiest(peer, exclude=self._allowed, fair=False)
+        return door.evict_idle(exclude=self._allowed)
 
     def _admit(self, door: Door, peer: str) -> bool:
-        """Room for a connection ``peer`` the door has accepted (within its cap)."""
-        allowed = self._allowed(peer)
-        if self._per_client.get(peer, 0) >= self.max_per_client and not self._evict_idle(door, peer):
-            return False
-        if not allowed:
+        """Room for a connection ``peer`` the door has accepted (within its caps)."""
+        if not self._allowed(peer):
             others = sum(1 for c in door.conns if not self._allowed(c.peer))
             # ``others`` counts this connection too (the door registered it)
-            if others > max(1, door.cap - RESERVED_FOR_ALLOWED) and not self._evict_idle(door, None, others_only=True):
+            if others > max(1, door.cap - RESERVED_FOR_ALLOWED) and not door.evict_idle(exclude=self._allowed):
                 return False
         return True
-
-    def _evict_idle(self, door: Door, client: str | None, others_only: bool = False) -> bool:
-        """Close the connection (of ``client``, or any) idle longest, if idle ≥ EVICT_IDLE_S."""
-        now = time.monotonic()
-        cands = [c for c in door.conns if not c.busy and (client is None or c.peer == client)
-                 and c.first_byte is None and c in self._writers
-                 and not (others_only and self._allowed(c.peer))]
-        if not cands:
-            return False
-        c = min(cands, key=lambda x: x.idle_since)
-        if now - c.idle_since < EVICT_IDLE_S:
-            return False
-        self._drop(door, c)
-        return True
-
-    def _evict_busiest(self, door: Door) -> bool:
-        """For an allowed client: close the oldest connection of the other address holding the most."""
-        by: dict[str, list[Conn]] = {}
-        for c in door.conns:
-            if c in self._writers and not self._allowed(c.peer):
-                by.setdefault(c.peer, []).append(c)
-        if not by:
-            return False
-        peer = max(by, key=lambda p: len(by[p]))
-        self._drop(door, min(by[peer], key=lambda c: c.accepted))
-        return True
-
-    def _drop(self, door: Door, c: Conn) -> None:
-        if self._writers.pop(c, None) is not None:
-            self._release(c.peer)
-        door.evict(c)
 
     # -- connections
     async def _serve_conn(self, sock: socket.socket, conn: Conn) -> None:
@@ -212,7 +182,6 @@ class ModbusTcpServer:
         conn.transport = writer.transport
         conn.close = writer.transport.abort
         self._writers[conn] = writer
-        self._per_client[conn.peer] = self._per_client.get(conn.peer, 0) + 1
         t = asyncio.get_running_loop().create_task(self._connection(reader, writer, conn))
         self._tasks.add(t)
         t.add_done_callback(self._tasks.discard)
@@ -256,16 +225,8 @@ class ModbusTcpServer:
         finally:
             if door is not None:
                 door.gone(conn)
-            if self._writers.pop(conn, None) is not None:      # (an evicted one is counted off)
-                self._release(peer)
+            self._writers.pop(conn, None)
             writer.transport.abort()
-
-    def _release(self, key: str) -> None:
-        n = self._per_client.get(key, 1) - 1
-        if n > 0:
-            self._per_client[key] = n
-        else:
-            self._per_client.pop(key, None)
 
     # -- requests
     async def handle(self, unit_id: int, raw: bytes, peer: str | None) -> bytes:

@@ -210,6 +210,7 @@ docs/metrics.md).
 | metrics per NCMD / DCMD | @max_command_metrics@ | `sparkplug.max_command_metrics` |
 | metric name, string value | @max_string_chars@ characters | `sparkplug.max_string_chars` |
 | births | one per @rebirth_min_interval_s@ s, Rebirths coalesced | `sparkplug.rebirth_min_interval_s` |
+| Reboot, Next Server | one per @rebirth_min_interval_s@ s, coalesced | `sparkplug.rebirth_min_interval_s` |
 | STATE time ahead of the node | @state_future_skew_s@ s, then "now" | `sparkplug.state_future_skew_s` |
 
 The STATE nesting is counted on the bytes before `json.loads` runs; NaN, Infinity and a key given
@@ -243,6 +244,10 @@ during the replay loses the batch in flight (at most 50 payloads), not the rest 
     "| `Node Control/Reboot` = true | restarts the Sparkplug session exactly like Next Server but on the same "
     "server. It does NOT reboot the box, restart the gateway or touch a station or its running test: a test rig "
     "is never stopped by a SCADA write |\n"
+    "| rate of Reboot / Next Server | at most one session end per `sparkplug.rebirth_min_interval_s`, counted from "
+    "the session's birth and from the last one: requests inside the interval are coalesced into one (Next Server "
+    "over Reboot), carried out when it has passed (e2e: 300 Reboot NCMDs → a bounded number of NDEATH/NBIRTH "
+    "pairs) |\n"
     """
 ## Alarms
 

@@ -10,8 +10,8 @@ Outputs: :class:`Publish` (topic, payload bytes, qos, retain), :class:`Disconnec
 
 Everything received is parsed within bounds (:mod:`.inbound`); a bad payload is counted
 (``counters["bad_<kind>"]``) and noted in :attr:`EdgeNode.bad` for the caller's rate-limited log,
-never raised. STATE timestamps follow the rule of :meth:`EdgeNode.host_state`; rebirths are
-rate-limited (:meth:`EdgeNode.rebirth`, :meth:`EdgeNode.tick`).
+never raised. STATE timestamps follow the rule of :meth:`EdgeNode.host_state`; rebirths, Reboots and
+Next Servers are rate-limited (:meth:`EdgeNode.rebirth`, :meth:`EdgeNode.reboot`, :meth:`EdgeNode.tick`).
 
 Store and forward: while no primary host is online (or no connection), device data goes to a
 :class:`Buffer` as DDATA payloads whose metrics carry ``is_historical = true`` and their original
@@ -190,6 +190,9 @@ class EdgeNode:
         self.state_future_skew_ms = int(state_future_skew_ms)
         self._last_birth_ms: int | None = None
         self.rebirth_pending = False
+        #: a Reboot / Next Server asked within the interval: carried out by :meth:`tick`
+        self.disconnect_pending: Disconnect | None = None
+        self._last_reboot_ms: int | None = None
         #: bad inputs not yet taken by the caller (kind, reason), at most BAD_MAX kept
         self.bad: list[tuple[str, str]] = []
         self.devices: dict[str, Device] = {}
@@ -198,6 +201,7 @@ class EdgeNode:
         self._dirty: dict[str, set[str]] = {}
         self.counters: dict[str, int] = {"stored": 0, "replayed": 0, "births": 0, "rebirths": 0,
                                          "ignored_commands": 0, "rebirths_coalesced": 0,
+                                         "reboots": 0, "reboots_coalesced": 0,
                                          "bad_state": 0, "bad_ncmd": 0, "bad_dcmd": 0, "bad_topic": 0,
                                          "stale_state": 0, "future_state": 0}
         self._node_alias = M.node_aliases()
@@ -275,6 +279,7 @@ class EdgeNode:
     def disconnected(self) -> None:
         self.connected = False
         self.node_born = False
+        self.disconnect_pending = None     # the session it asked to end has ended
         self._replaying = False
         for d in self.devices.values():
             d.born = False
@@ -409,8 +414,49 @@ class EdgeNode:
         self.counters["rebirths"] += 1
         return self._births(now_ms)
 
-    def tick(self, now_ms: int) -> list[Publish]:
-        """Called often by the runtime: the pending (coalesced) rebirth once it is due."""
+    def _reboot_due(self, now_ms: int) -> bool:
+        """A Reboot / Next Server may end the session now: the interval has passed since the
+        session's birth and since the last one (a reconnect is a birth too)."""
+        for last in (self._last_birth_ms, self._last_reboot_ms):
+            if last is not None and last <= now_ms and now_ms - last < self.rebirth_min_interval_ms:
+                return False
+        return True
+
+    def reboot(self, name: str, now_ms: int) -> list[Publish | Disconnect]:
+        """Node Control/Reboot or Next Server: NDEATH, then the session ends (the runtime
+        reconnects: to the next server for Next Server) — at most one per
+        ``rebirth_min_interval_ms``, as births: a request inside that interval is coalesced into
+        one pending one (Next Server over Reboot), carried out by :meth:`tick` when it is due."""
+        d = Disconnect(name, next_server=name == M.NEXT_SERVER)
+        if not self._reboot_due(now_ms):
+            if self.disconnect_pending is not None:
+                self.counters["reboots_coalesced"] += 1
+            if self.disconnect_pending is None or d.next_server:
+                self.disconnect_pending = d
+            return []
+        return self._end_session(d, now_ms)
+
+    def _end_session(self, d: Disconnect, now_ms: int) -> list[Publish | Disconnect]:
+        out: list[Publish | Disconnect] = []
+        self.disconnect_pending = None
+        self._last_reboot_ms = int(now_ms)
+        self.counters["reboots"] += 1
+        if self.connected:
+            out.append(self.ndeath())
+        self.node_born = False
+        out.append(d)
+        return out
+
+    def tick(self, now_ms: int) -> list[Publish | Disconnect]:
+        """Called often by the runtime: the pending (coalesced) Reboot / Next Server, then the
+        pending (coalesced) rebirth, once due."""
+        pending = self.disconnect_pending
+        if pending is not None:
+            if not self.connected:
+                self.disconnect_pending = None
+            elif self._reboot_due(now_ms):
+                self.rebirth_pending = False      # the next session's births carry everything
+                return self._end_session(pending, now_ms)
         if not self.rebirth_pending:
             return []
         if not (self.connected and self.host_online and self.node_born):
@@ -419,7 +465,7 @@ class EdgeNode:
         if not self._birth_due(now_ms):
             return []
         self.counters["rebirths"] += 1
-        return self._births(now_ms)
+        return list(self._births(now_ms))
 
     def _ddeath(self, dev: Device, now_ms: int) -> Publish:
         dev.born = False
@@ -584,10 +630,7 @@ class EdgeNode:
                 if name == M.REBIRTH:
                     out.extend(self.rebirth(now_ms))
                 elif name in (M.NEXT_SERVER, M.REBOOT):
-                    if self.connected:
-                        out.append(self.ndeath())
-                    self.node_born = False
-                    out.append(Disconnect(name, next_server=name == M.NEXT_SERVER))
+                    out.extend(self.reboot(name, now_ms))
                 else:
                     self.counters["ignored_commands"] += 1
             return out

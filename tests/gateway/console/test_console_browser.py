@@ -7,44 +7,13 @@ Screenshots are written to the test's tmp folder (fleet.png, station-mid.png, st
 station-acked.png, history.png)."""
 from __future__ import annotations
 
-import os
-import shutil
 import time
 
-import pytest
-
+from kit.browser import wait_js
 from kit.console_helpers import console_fleet
 from kit.e2e import wait_log
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync"]
 PW = "correct horse battery"
-
-
-@pytest.fixture
-def browser():
-    missing = None
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        missing = "playwright is not installed (pip install playwright)"
-    if missing is None and not (os.path.exists(CHROMIUM) or shutil.which("chromium")):
-        missing = "Debian's chromium is not installed (scripts/setup.sh --tools)"
-    if missing:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(missing)
-        pytest.skip(missing)
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
-        try:
-            yield b
-        finally:
-            b.close()
-
-
-def _wait_js(page, expr, timeout_s=60.0):
-    page.wait_for_function(expr, timeout=timeout_s * 1000, polling=250)
 
 
 def test_console_in_a_browser(tmp_path, browser):
@@ -60,16 +29,16 @@ def test_console_in_a_browser(tmp_path, browser):
         page.wait_for_selector('.card[data-station="loom-b"]', timeout=20000)
         cards = page.locator(".card").evaluate_all("els => els.map(e => e.dataset.station)")
         assert sorted(cards) == ["loom-a", "loom-b"]
-        _wait_js(page, "document.querySelector('.card .state').textContent.includes('baseline')", 20)
+        wait_js(page, "document.querySelector('.card .state').textContent.includes('baseline')", 20)
         page.screenshot(path=str(tmp_path / "fleet.png"), full_page=True)
 
         # --- station page: the μ curve grows
         page.goto(url + "/#/station/loom-a")
-        _wait_js(page, "window.hw.points > 10", 30)
+        wait_js(page, "window.hw.points > 10", 30)
         n1 = page.evaluate("window.hw.points")
         t1 = page.evaluate("window.hw.lastT")
         time.sleep(3)
-        _wait_js(page, f"window.hw.lastT > {t1} + 1", 20)
+        wait_js(page, f"window.hw.lastT > {t1} + 1", 20)
         assert page.evaluate("window.hw.points") > n1
 
         # --- a page opened mid-test shows the curve from slot 0
@@ -77,7 +46,7 @@ def test_console_in_a_browser(tmp_path, browser):
             time.sleep(0.5)
         late = ctx.new_page()
         late.goto(url + "/#/station/loom-a")
-        _wait_js(late, "window.hw.points > 0", 20)
+        wait_js(late, "window.hw.points > 0", 20)
         assert late.evaluate("window.hw.firstT") == 0
         # … up to where the first page had been (how far the test got in 30 s is the machine's)
         assert late.evaluate("window.hw.lastT") > t1 + 1
@@ -121,7 +90,10 @@ def test_console_in_a_browser(tmp_path, browser):
         page.goto(url + "/#/history/loom-a")
         page.wait_for_selector("button.fig7", timeout=20000)
         row = page.locator("#tests tr").nth(1).inner_text()
-        assert "S-loom-a" in row and "failure" in row
+        # in words: the life ran to its planned end after the end of life (the method's status in
+        # the cell's title)
+        assert "S-loom-a" in row and "completed; end of life found at" in row, row
+        assert "failure" in page.locator("#tests td.status").first.get_attribute("title")
         page.click("button.fig7")
         page.wait_for_function("document.querySelector('img.fig') && document.querySelector('img.fig')"
                                ".complete && document.querySelector('img.fig').naturalWidth > 1000",

@@ -160,8 +160,11 @@ def test_dns_rebinding_page_in_the_browser_reads_nothing(tmp_path, rebinding_bro
 
 def test_lockout_is_atomic_and_per_address_and_user(tmp_path, caplog):
     caplog.set_level(logging.INFO)
+    # (the lockout alone: the hashing budget is ample here; it has its own test,
+    # test_console_login_budget.py)
     srv, url, port = _server(tmp_path, lockout_attempts=3, login_failures_per_address=8,
-                             lockout_s=60)
+                             lockout_s=60, login_hashes_per_s=100.0, login_hash_burst=100,
+                             login_hashes_per_user_per_s=100.0, login_hash_burst_per_user=100)
     try:
         # a concurrent burst of wrong passwords from a stranger's address: exactly 3 are checked
         with cf.ThreadPoolExecutor(24) as ex:

@@ -18,45 +18,16 @@ import csv
 import glob
 import io
 import json
-import os
-import shutil
 import time
 
 import pytest
 
 from gateway.records import CommandKind
 from gateway.station.commands import COMMAND_KEYS
+from kit.browser import wait_js
 from kit.console_helpers import CONSOLE_PW, HOSTILE_IDS, INJECT, console_fleet, hostile_states, start_console
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync"]
 PW = "correct horse battery"
-
-
-@pytest.fixture
-def browser():
-    missing = None
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        missing = "playwright is not installed (pip install playwright)"
-    if missing is None and not (os.path.exists(CHROMIUM) or shutil.which("chromium")):
-        missing = "Debian's chromium is not installed (scripts/setup.sh --tools)"
-    if missing:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(missing)
-        pytest.skip(missing)
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
-        try:
-            yield b
-        finally:
-            b.close()
-
-
-def _wait_js(page, expr, timeout_s=60.0):
-    page.wait_for_function(expr, timeout=timeout_s * 1000, polling=250)
 
 
 def _login(page, user, pw):
@@ -94,7 +65,7 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         page.on("pageerror", lambda e: errors.append(str(e)))
         # --- the due list: every station, soonest due first, the due ones highlighted
         page.goto(url + "/#/due")
-        _wait_js(page, "window.hw.due && window.hw.due.length === 4")
+        wait_js(page, "window.hw.due && window.hw.due.length === 4")
         assert page.evaluate("window.hw.due") == ["loom-c", "loom-b", "loom-a", "loom-d"]
         assert page.locator("#due tbody tr").evaluate_all("els => els.map(e => e.dataset.station)") == \
             ["loom-c", "loom-b", "loom-a", "loom-d"]
@@ -112,7 +83,7 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         page.screenshot(path=str(tmp_path / "due.png"), full_page=True)
         # --- filters by line, then area
         page.select_option("#f-line", "line-1")
-        _wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\",\"loom-a\"]'")
+        wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\",\"loom-a\"]'")
         assert page.get_attribute("#csv", "href") == "/api/due.csv?line=line-1"
         with page.expect_download() as dl:
             page.click("#csv")
@@ -123,10 +94,10 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         a = dict(zip(head, rows[2], strict=True))
         assert a["sample_id"] == "'" + INJECT and a["grade"] == "'+G1"
         page.select_option("#f-area", "hall-2")
-        _wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\"]'")
+        wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\"]'")
         assert page.get_attribute("#csv", "href") == "/api/due.csv?line=line-1&area=hall-2"
         page.select_option("#f-line", "")
-        _wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\",\"loom-d\"]'")
+        wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\",\"loom-d\"]'")
 
         # --- fleet cards: the wear warning; a hook past its threshold drawn as past it
         page.goto(url + "/#/")
@@ -140,15 +111,16 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
 
         # --- station pages: a projection while running; none after the end of life
         page.goto(url + "/#/station/loom-a")
-        _wait_js(page, "document.querySelector('#projection') && "
+        wait_js(page, "document.querySelector('#projection') && "
                        "document.querySelector('#projection').textContent.includes('projected end')")
         assert "P_end 0.12" in page.locator("#projection").inner_text()
         # where the life prior came from (issue 29): the site's lives of other stations
         assert page.locator("#prior").inner_text() == (
             "5400 ± 600 s from history:3 (the site: 5 tests from 2 stations (0 of this station))")
         page.goto(url + "/#/station/loom-c")
-        _wait_js(page, "document.querySelector('#state') && "
-                       "document.querySelector('#state').textContent === 'end_of_life'")
+        wait_js(page, "document.querySelector('#state') && "
+                       "document.querySelector('#state').dataset.state === 'end_of_life'")
+        assert page.locator("#state").inner_text() == "end of life found at 16 min 40 s"
         assert page.locator("#projection").inner_text() == "–"
         assert page.locator("#prior").inner_text() == "none"
         assert "projected crossing" not in page.locator("#headroom").inner_text()
@@ -210,23 +182,23 @@ def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browse
         page.on("pageerror", lambda e: errors.append(str(e)))
         # the due list shows the real station with its line and area (station.line / .area)
         page.goto(url + "/#/due")
-        _wait_js(page, "window.hw.due && window.hw.due.length === 1")
+        wait_js(page, "window.hw.due && window.hw.due.length === 1")
         row = page.locator('#due tr[data-station="loom-a"]').inner_text()
         assert "l1" in row and "hall" in row
         page.goto(url + "/#/station/loom-a")
-        _wait_js(page, "window.hw.points > 0", 60)
+        wait_js(page, "window.hw.points > 0", 60)
         _login(page, "alice", PW)
         sent = _commands(page)
 
         # --- out of service, then in service: the station's state and its events say so
         _click_command(page, "#b-oos", "out_of_service")
         page.wait_for_selector("#alarm .alarm-out_of_service", timeout=30000)
-        _wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].filter(r => "
+        wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].filter(r => "
                        "r.textContent.includes('out_of_service') && "
                        "r.textContent.includes('console:alice')).length === 2")
         _wait(lambda: _station_events(tmp_path, "alarm_out_of_service", source="console:alice"))
         _click_command(page, "#b-ins", "in_service")
-        _wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].some(r => "
+        wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].some(r => "
                        "r.textContent.includes('return_to_service') && r.textContent.includes('console:alice'))")
         _wait(lambda: _station_events(tmp_path, "alarm_in_service", source="console:alice"))
         page.wait_for_selector("#alarm:not(:has(.alarm-out_of_service))", timeout=30000)
@@ -239,7 +211,7 @@ def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browse
         page.wait_for_selector("#alarm .alarm-shelved", timeout=30000)
         ev = _wait(lambda: _station_events(tmp_path, "alarm_shelved", source="console:alice"))
         assert ev[0]["until"] - ev[0]["time"] == pytest.approx(1800, abs=5)
-        _wait_js(page, "[...document.querySelectorAll('#journal tbody tr.j-shelved')].some(r => "
+        wait_js(page, "[...document.querySelectorAll('#journal tbody tr.j-shelved')].some(r => "
                        "r.textContent.includes('end_of_life') && r.textContent.includes('console:alice'))")
         _click_command(page, "#b-unshelve", "unshelve")
         page.wait_for_selector("#alarm .alarm-active", timeout=30000)
@@ -266,7 +238,7 @@ def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browse
             # the station takes the new hook (issue 20 item 5, branch fc-runtime): its alarm is
             # closed by the replacement, its life log has the line, the history page lists it
             assert "hook_replaced: accepted" in msg, msg
-            _wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].some(r => "
+            wait_js(page, "[...document.querySelectorAll('#journal tbody tr')].some(r => "
                            "r.textContent.includes('hook_replaced') && r.textContent.includes('console:alice'))")
             hooks = tmp_path / "records" / "loom-a" / "hooks.jsonl"
             line = _wait(lambda: hooks.exists() and [json.loads(x) for x in hooks.read_text().splitlines()])
@@ -294,13 +266,13 @@ def test_pages_draw_with_non_finite_figures_and_formula_ids(tmp_path, browser):
         errors: list[str] = []
         page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(url + "/#/due")
-        _wait_js(page, "window.hw.due && window.hw.due.length === 4", 30)
+        wait_js(page, "window.hw.due && window.hw.due.length === 4", 30)
         assert HOSTILE_IDS[0] in page.locator('#due tr[data-station="loom-a"]').inner_text()
         page.goto(url + "/#/")
         page.wait_for_selector('.card[data-station="loom-d"]', timeout=30000)
         assert page.locator(".card").count() == 4
         page.goto(url + "/#/station/loom-a")
-        _wait_js(page, "document.querySelector('#state') && "
+        wait_js(page, "document.querySelector('#state') && "
                        "document.querySelector('#state').textContent === 'monitoring'", 30)
         assert "Infinity" not in page.locator("body").inner_text()
         assert "NaN" not in page.locator("body").inner_text()

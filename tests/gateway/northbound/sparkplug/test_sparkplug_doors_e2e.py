@@ -7,7 +7,8 @@ compiled here from sparkplug_b.proto (not the gateway's code):
 - an internal error in the node's thread drops the session *without* DISCONNECT: the broker sends
   the Will (NDEATH with the session's bdSeq), the node comes back (NBIRTH, bdSeq + 1) and
   publishes on;
-- 3,000 Rebirth NCMDs give a bounded number of births;
+- 3,000 Rebirth NCMDs give a bounded number of births, 300 Reboot NCMDs a bounded number of
+  session ends;
 - the server set (Sparkplug 3.0 §8.2) over TWO Mosquittos: Next Server, the host's STATE going
   offline and a server that is gone move the node to the next one.
 """
@@ -193,6 +194,45 @@ def test_rebirth_flood_gives_a_bounded_number_of_births(tmp_path):
         assert host.wait(lambda: [m for m in host.all("DDATA", since=mark) if m.t > t_last], 20,
                          "DDATA after the last birth")
         assert not host.all("NDEATH", since=mark)
+    finally:
+        if node is not None:
+            node.close()
+        host.close()
+        b.stop()
+
+
+def test_reboot_flood_gives_a_bounded_number_of_session_ends(tmp_path):
+    """Issue 27: 300 `Node Control/Reboot` NCMDs over ~9 s (before: one session end per
+    reconnect, 46 NDEATH in the attack) end the session at most once
+    per `rebirth_min_interval_s` after its birth: the NDEATH/NBIRTH pairs are bounded by the
+    run's own measured duration, and the node publishes on afterwards."""
+    interval = 2.0
+    b = Broker(tmp_path).start()
+    host = PrimaryHost(b.port, "scada", GROUP, tmp_path)
+    node = None
+    try:
+        host.state(True)
+        node = Node(tmp_path, settings(tmp_path, [("127.0.0.1", b.port)], rebirth_min_interval_s=interval))
+        host.wait(lambda: host.all("DDATA"), 30, "DDATA after the births")
+        mark = host.mark()
+        t0 = time.monotonic()
+        for _ in range(300):             # spread over ~9 s: each new session meets more of them
+            host.command(NCMD, [{"name": "Node Control/Reboot", "boolean_value": True}])
+            time.sleep(0.03)
+        host.wait(lambda: host.all("NDEATH", since=mark), 30, "an NDEATH after the Reboots")
+        time.sleep(interval + 1.5)       # a pending (coalesced) one would be carried out by now
+        elapsed = time.monotonic() - t0
+        deaths = host.all("NDEATH", since=mark)
+        # one end per interval, counted from the session's birth: the first may come at once
+        assert 1 <= len(deaths) <= 1 + elapsed / interval, (len(deaths), elapsed)
+        host.wait(lambda: len(host.all("NBIRTH", since=mark)) >= len(deaths), 30,
+                  "the births after the last session end")
+        births = host.all("NBIRTH", since=mark)
+        assert len(births) == len(deaths) == len(host.all("NDEATH", since=mark)), (len(births), len(deaths))
+        t_last = births[-1].t
+        assert host.wait(lambda: [m for m in host.all("DDATA", since=mark) if m.t > t_last], 20,
+                         "DDATA after the last birth")
+        assert node.rt.node.counters["reboots"] == len(deaths)
     finally:
         if node is not None:
             node.close()

@@ -124,6 +124,46 @@ def test_rebirth_flood_gives_one_birth_per_interval_and_one_coalesced():
     assert not n.rebirth_pending and n.tick(10_000) == []
 
 
+def test_reboot_and_next_server_floods_end_one_session_per_interval():
+    """Issue 27: Reboot and Next Server are rate-limited like Rebirth (one session end per
+    interval after the birth and after the last one; the rest coalesced into one, Next Server
+    over Reboot, carried out by tick when due)."""
+    n = online_node(rebirth_min_interval_ms=2000)       # born at 3 ms
+    ends: list[Disconnect] = []
+    deaths = 0
+    for i in range(300):                         # 300 requests within 300 ms of node time
+        t = 4 + i
+        name = M.NEXT_SERVER if i == 150 else M.REBOOT
+        for o in list(n.command(NCMD, ncmd(name), t)) + list(n.tick(t)):
+            if isinstance(o, Disconnect):
+                ends.append(o)
+            elif isinstance(o, Publish) and "/NDEATH/" in o.topic:
+                deaths += 1
+    # inside the interval of the session's own birth: nothing yet, one pending (Next Server wins)
+    assert ends == [] and deaths == 0
+    assert n.disconnect_pending == Disconnect(M.NEXT_SERVER, next_server=True)
+    assert n.counters["reboots_coalesced"] == 299
+    out = n.tick(2003)
+    assert kinds(out) == ["NDEATH"] and out[-1] == Disconnect(M.NEXT_SERVER, next_server=True)
+    assert n.disconnect_pending is None and n.counters["reboots"] == 1
+    # a new session (born at 2100); a Reboot right after its birth waits for the interval
+    n.disconnected()
+    n.connecting()
+    assert n.connected_ok(2050) == []
+    assert kinds(n.host_state(state(True, 20), 2100)) == ["NBIRTH", "DBIRTH"]
+    assert n.command(NCMD, ncmd(M.REBOOT), 2200) == [] and n.tick(4099) == []
+    out = n.tick(4100)
+    assert kinds(out) == ["NDEATH"] and out[-1] == Disconnect(M.REBOOT)
+    # a session that ends otherwise takes its pending request with it
+    n.disconnected()
+    n.connecting()
+    n.connected_ok(4200)
+    n.host_state(state(True, 30), 4300)
+    assert n.command(NCMD, ncmd(M.REBOOT), 4400) == []
+    n.disconnected()
+    assert n.disconnect_pending is None and n.tick(10_000) == []
+
+
 def test_a_state_from_the_future_cannot_lock_the_host_out():
     now = 1_800_000_000_000
     n = EdgeNode("plant-a", "hall-2-line-3", primary_host_id="scada", state_future_skew_ms=300_000)
