@@ -23,13 +23,12 @@ import sys
 import threading
 import time
 
-from test_console_planner_browser import _wait_js, browser  # noqa: F401 (the fixture)
-
 from gateway import records as R
 from gateway.console.site import MAX_TEXT
 from gateway.northbound import schema
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import Broker, pub
+from kit.browser import wait_js as _wait_js
 from kit.console_helpers import CONSOLE_PW, INJECT, Client, start_console
 from kit.northbound import LoopThread
 from kit.proc import Proc
