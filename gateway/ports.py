@@ -123,6 +123,10 @@ class CommandSink(Protocol):
 
     async def submit(self, cmd: Command) -> CommandReply: ...
 
+    def refused(self, data: dict[str, Any]) -> None:
+        """A door refused a request before it became a command (``command``, ``source``,
+        ``reason``, ``code``): counted in the sink's bounded ``command_rejected`` events."""
+
 
 class CommandSource(Protocol):
     """A door for commands (MQTT ``cmd/…`` topics, PLC holding registers). It builds
@@ -178,7 +182,7 @@ class PlanView(Protocol):
     def t_end(self) -> float: ...
 
 
-class StationView(Protocol):
+class StationView(CommandSink, Protocol):
     """What an output may read of its station and call on it, and nothing more: the station in
     its own process and its proxy in a fleet's supervisor both are one. Reads are of the
     station's own loop (an output on another thread reads ``state``, a copy, or hands over)."""
@@ -198,12 +202,10 @@ class StationView(Protocol):
     @property
     def outputs(self) -> Sequence[Output]: ...
 
-    async def submit(self, cmd: Command) -> CommandReply: ...
-
 
 class StationLinks(StationView, Protocol):
     """A station in this process as its own outputs see it: its view plus what they report
-    back on the station's loop (their uplink, their disk, a request refused at the door), and
+    back on the station's loop (their uplink, their disk), and
     its alarm store itself (``gateway.station.alarm_store.AlarmStore``, which the pure core cannot
     name: Any here), which the MQTT output publishes from."""
 
@@ -212,7 +214,6 @@ class StationLinks(StationView, Protocol):
 
     def set_uplink(self, name: str, ok: bool) -> None: ...
     def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None: ...
-    def intake_rejected(self, data: dict[str, Any]) -> None: ...
     def site_lives(self, tests: tuple[Any, ...]) -> None:
         """The other stations' lives of the site (``gateway.method.prior.PastTest``), as the
         MQTT output last received them (METHOD.md §7a)."""

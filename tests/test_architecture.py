@@ -292,10 +292,11 @@ def test_the_station_and_its_proxy_are_station_views():
     def members(mod: str, cls: str) -> set[str]:
         node = next(n for n in TREES[mod].body if isinstance(n, ast.ClassDef) and n.name == cls)
         return {n.name for n in node.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
-    view = members("gateway.ports", "StationView")
-    assert view >= {"id", "ts", "limits", "default_plan", "state", "alarms", "outputs", "submit"}
-    assert "submit" in members("gateway.station.station", "Station")
-    assert "submit" in members("gateway.supervisor.remote", "RemoteStation")
+    view = members("gateway.ports", "StationView") | members("gateway.ports", "CommandSink")
+    assert view >= {"id", "ts", "limits", "default_plan", "state", "alarms", "outputs", "submit",
+                    "refused"}
+    assert {"submit", "refused"} <= members("gateway.station.station", "Station")
+    assert {"submit", "refused"} <= members("gateway.supervisor.remote", "RemoteStation")
     # the proxy feeds its outputs through the station's own fan-out: it constructs the Fanout
     # that gateway.station.fanout defines (read from the syntax tree, not a string search)
     tree = TREES["gateway.supervisor.remote"]

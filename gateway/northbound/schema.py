@@ -811,6 +811,17 @@ def render() -> str:
         "payloads that are not JSON objects are refused (code 9). Client text is never echoed "
         "longer than 40 characters, and always escaped.",
         "",
+        "Every command acts once. A station carries out one command at a time, each checked "
+        "against the state the one before left (two stops at once: one ends the test, the other "
+        "is answered 2 NOT_RUNNING). A command sent again with the same `request_id` from the same "
+        "source within 600 s (the station remembers the last 1,024) is answered with the first "
+        "answer (its `ok` and `code`; the reason says `duplicate of request_id …`) and not carried "
+        "out again; the same `request_id` naming another command or other arguments is refused "
+        "(code 9). Give every command its own `request_id` and resend it unchanged when no reply "
+        "came. Commands that would act are limited per source (`mqtt`, `sparkplug`, "
+        "`console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
+        "refused with code 14 and counted (refused or repeated commands cost nothing of it).",
+        "",
         "| code | name | meaning |",
         "|---|---|---|",
     ]

@@ -103,6 +103,8 @@ class RemoteStation:
         self.last_k: int | None = None
         #: slot records the IPC lost (frames dropped by a stalled supervisor), counted
         self.lost = 0
+        #: requests the supervisor's doors refused before they became commands
+        self.intake_refusals = 0
         self._failed: set[tuple[str, str]] = set()
 
     @property
@@ -143,6 +145,11 @@ class RemoteStation:
         return await loop.run_in_executor(
             None, lambda: self.hub.command(cmd.kind.value, dict(cmd.args), source=cmd.source,
                                            request_id=cmd.request_id, timeout=COMMAND_TIMEOUT_S))
+
+    def refused(self, data: dict[str, Any]) -> None:
+        """A door of the supervisor refused a request before it became a command: counted here
+        (the door logs it once a minute with the count); the worker's station never saw it."""
+        self.intake_refusals += 1
 
     # ------------------------------------------------------------ frames (the hub's reader thread)
     def on_frame(self, ftype: FrameType, body: dict[str, Any]) -> None:

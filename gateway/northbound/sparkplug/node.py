@@ -651,7 +651,7 @@ class EdgeNode:
             subs: list[Publish | Disconnect | Submit] = []
             for name, ck in M.COMMANDS.items():
                 if vals.get(name) is True:      # each command takes the arguments it knows
-                    keys = COMMAND_KEYS[CommandKind(ck)]
+                    keys = COMMAND_KEYS[CommandKind(ck)] + ("request_id",)
                     subs.append(Submit(dev.device_id, ck, {k: v for k, v in args.items() if k in keys}))
             return subs
         self.counters["ignored_commands"] += 1
@@ -659,7 +659,7 @@ class EdgeNode:
 
     def command_result(self, device_id: str, kind: str, ok: bool, code: int, reason: str,
                        now_ms: int) -> list[Publish]:
-        text = f"{kind}: accepted" if ok else f"{kind}: rejected: {reason}"
+        text = (f"{kind}: accepted" + (f" ({reason})" if reason else "")) if ok else f"{kind}: rejected: {reason}"
         return self.device_update(device_id, {"Device Control/Last Command": text,
                                               "Device Control/Last Result Code": 0 if ok else int(code)},
                                   now_ms)
