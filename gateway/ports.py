@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-from .records import Command, CommandReply, Event, SlotRecord, StationState
+from .records import Command, CommandReply, Event, RefusalData, SlotRecord, StationState
 
 #: longest sample ID (also the size of the PLC's sample ID registers: 16 registers × 2 chars)
 SAMPLE_ID_MAX = 32
@@ -118,14 +118,15 @@ class Output(Protocol):
 
 # ----------------------------------------------------------------------------- commands
 class CommandSink(Protocol):
-    """Where commands go: one validation, one set of events, whichever door they came in by.
-    Must be awaited on the sink's own loop (from another thread: ``ThreadLoop``/``submit_to``)."""
+    """Where every door's commands go (MQTT, Sparkplug, the console, the PLC, the CLI and the
+    supervisor's channel): a station's command desk (one at a time, a repeated request_id once,
+    one validation, a rate per source, one set of bounded events) or a worker's proxy.
+    ``submit`` a command the intake made; ``refused`` a request the intake refused (``command``,
+    ``source``, ``reason``, ``code``), counted in the sink's ``command_rejected`` events.
+    Both on the sink's own loop (from another thread: ``submit_to``/``call_soon_on``)."""
 
     async def submit(self, cmd: Command) -> CommandReply: ...
-
-    def refused(self, data: dict[str, Any]) -> None:
-        """A door refused a request before it became a command (``command``, ``source``,
-        ``reason``, ``code``): counted in the sink's bounded ``command_rejected`` events."""
+    def refused(self, data: RefusalData) -> None: ...
 
 
 class CommandSource(Protocol):

@@ -16,10 +16,10 @@ from typing import Any
 
 from .. import safeout
 from ..alarms import ALARMS, SHELVE_MAX_S
+from ..commandtypes import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 from ..method.rules import REASONS
 from ..ports import StationLimits
 from ..records import AlarmState, CommandKind, TestState
-from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
 MAP_VERSION = 4    # 4: the §5b forecast (end_p10/50/90_left, p_end, warn_reasons), status bit 14

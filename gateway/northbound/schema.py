@@ -13,9 +13,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import safeout
+from ..commandtypes import REJECT_CODES
 from ..method.rules import REASON_NAMES
 from ..records import AlarmState, CommandKind, Event, EventType, StationState, TestState
-from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
 #: version of the topic tree and payloads (every payload carries it as "schema")
@@ -792,7 +792,7 @@ def render() -> str:
         "## Commands",
         "",
         "A command is a JSON object published to `cmd/<name>` (an empty payload counts as `{}`). "
-        "MQTT and PLC commands go through the same validation (`gateway/station/commands.py`) and "
+        "MQTT and PLC commands go through the same validation (`gateway/commandtypes.py`) and "
         "the same station command path; every command is answered on `reply` — or, over MQTT 5, on "
         "the Response Topic the request names, with the request's Correlation Data (same payload, "
         "QoS 1, not retained, through the outbox). A Response Topic is obeyed only below "

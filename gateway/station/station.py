@@ -90,7 +90,7 @@ class Station:
         self.link = Stm32Drive(station_id, stm32)
         #: every door's commands: once, one at a time, validated once, rate-limited, refusals counted
         self.desk = CommandDesk(self.validate, self._act,
-                                lambda data: self.board.emit(EventType.COMMAND_REJECTED, **data))
+                                lambda data: self.board.emit_data(EventType.COMMAND_REJECTED, data))
         #: the start or the test in progress, its method and its speed command
         self.tests = TestLifecycle(
             TestSetup(station_id, self.station_dir, self.ts, self.method_values, control,
@@ -203,7 +203,7 @@ class Station:
         await HANDLERS[cmd.kind](self, cmd)
 
     def validate(self, cmd: Command) -> Rejection | None:
-        """The one validation shared by CLI, MQTT and PLC (gateway/station/commands.py)."""
+        """The one validation of every door's commands (gateway/commandtypes.py), called by the desk."""
         return validate(cmd, self.limits, self.state)
 
     def reload_requested(self, apply: Callable[[], None]) -> bool:

@@ -37,6 +37,7 @@ import threading
 import time
 from typing import Any
 
+from ..commandtypes import CODE, Rejection
 from ..compose import shared_outputs, station_facts
 from ..console.server import ConsoleServer
 from ..northbound.sparkplug import client as sparkplug_client
@@ -44,7 +45,6 @@ from ..northbound.sparkplug.output import SparkplugOutput, state_values
 from ..ports import Output, PlanView, StationLimits, StationView
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from ..station.alarm_store import KIND_OF, MODEL_NAME
-from ..station.commands import CODE, Rejection
 from ..station.fanout import Fanout
 from ..threadloop import ThreadLoop
 from .fleetcfg import apply_overrides

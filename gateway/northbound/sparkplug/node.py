@@ -26,8 +26,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ...commandtypes import COMMAND_KEYS
 from ...records import CommandKind
-from ...station.commands import COMMAND_KEYS
 from . import metrics as M
 from .inbound import BadInput, InboundLimits, parse_payload, parse_state
 from .sparkplug_b_pb2 import Payload
