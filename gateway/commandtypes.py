@@ -39,9 +39,9 @@ from .records import (
 )
 
 __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "RUNNING",
-           "ALARM_COMMAND_EVENTS", "Rejection", "reject", "check_t_set", "check_sample_id",
-           "check_grade", "check_t_end", "validate", "StationLimits", "ArgValue", "CommandArgs", "text_arg",
-           "reply_code"]
+           "ALARM_COMMAND_EVENTS", "NUMERIC_FIELDS", "TEXT_FIELDS", "Rejection", "reject", "check_t_set",
+           "check_sample_id", "check_grade", "check_t_end", "validate", "StationLimits", "ArgValue",
+           "CommandArgs", "text_arg", "reply_code"]
 
 #: test states in which a test is running (or starting: a stop cancels the start, §3a)
 RUNNING = frozenset({TestState.STARTING, TestState.BASELINE_SEARCH, TestState.MONITORING,
@@ -79,6 +79,11 @@ COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
     CommandKind.OUT_OF_SERVICE: (),
     CommandKind.IN_SERVICE: (),
 }
+
+#: the payload's types: the arguments that are numbers (finite, not booleans) and those that are
+#: text (printable ASCII); the one intake holds every door to them (gateway/northbound/cmdparse.py)
+NUMERIC_FIELDS = frozenset({"t_set", "t_end", "duration_s"})
+TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id"})
 
 #: the ISA-18.2 alarm commands and the station event each becomes (the alarm store applies it)
 ALARM_COMMAND_EVENTS: dict[CommandKind, EventType] = {

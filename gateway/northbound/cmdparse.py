@@ -42,7 +42,7 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from ..commandtypes import CODE, COMMAND_KEYS, SAMPLE_ID_MAX, Rejection, check_sample_id
+from ..commandtypes import CODE, COMMAND_KEYS, NUMERIC_FIELDS, SAMPLE_ID_MAX, TEXT_FIELDS, Rejection, check_sample_id
 from ..ratelog import ECHO_CHARS, clip, safe
 from ..records import Command, CommandKind, RefusalData
 
@@ -65,8 +65,6 @@ MAX_INT = 2 ** 53
 #: the key that names the command in a body that carries it (the web console)
 COMMAND_KEY = "command"
 
-NUMERIC_FIELDS = frozenset({"t_set", "t_end", "duration_s"})
-TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id"})
 
 
 class Refused(ValueError):
