@@ -36,7 +36,7 @@ from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
 from ..records import Command, CommandReply, EventType, SlotRecord, StationState
 from .alarm_store import AlarmStore
 from .clock import LateStarts, SlotClock, SlotStats
-from .commands import CommandDesk, Rejection, validate
+from .commands import CommandDesk, validate
 from .dispatch import HANDLERS
 from .fanout import Fanout
 from .health import Health
@@ -89,7 +89,7 @@ class Station:
         self.health = Health(self.board, meter, stm32)
         self.link = Stm32Drive(station_id, stm32)
         #: every door's commands: once, one at a time, validated once, rate-limited, refusals counted
-        self.desk = CommandDesk(self.validate, self._act,
+        self.desk = CommandDesk(lambda cmd: validate(cmd, self.limits, self.state), self._act,
                                 lambda data: self.board.emit_data(EventType.COMMAND_REJECTED, data))
         #: the start or the test in progress, its method and its speed command
         self.tests = TestLifecycle(
@@ -201,10 +201,6 @@ class Station:
 
     async def _act(self, cmd: Command) -> None:
         await HANDLERS[cmd.kind](self, cmd)
-
-    def validate(self, cmd: Command) -> Rejection | None:
-        """The one validation of every door's commands (gateway/commandtypes.py), called by the desk."""
-        return validate(cmd, self.limits, self.state)
 
     def reload_requested(self, apply: Callable[[], None]) -> bool:
         """A new configuration is ready (on this loop, so no start can slip in between the check
