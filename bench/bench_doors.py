@@ -11,13 +11,18 @@ is flooded from another loopback address (127.0.0.3):
 - ``metrics``: IDLE idle TCP connections to the metrics endpoint;
 - ``modbus``: 80 connections that each send a valid read request every 10 ms;
 - ``trickle``: 64 connections to each HTTP door sending one byte every 2 s;
-- ``sse``: live-stream (SSE) connects as fast as they are answered (connect churn).
+- ``sse``: live-stream (SSE) connects as fast as they are answered (connect churn);
+- ``hooks``: HOOKS ``hook_replaced`` commands (issue 27: each with a new sample id) from the
+  allow-listed PLC (127.0.0.1) as fast as they are answered: the station's command desk carries
+  out a burst and then its rate (code 14 RATE_LIMITED, exception 06 for the rest); reported: the
+  commands accepted and refused and the lines in hooks.jsonl (= accepted).
 
 Per run: the station's slots filled (% of the grid), slot-lateness p99 (ms), the PLC's reads that
 failed, and whether the test was aborted. The goal (issue 21): ≥ 99.9 % of the slots and the PLC
 link kept under a flood on any one door, no test aborted.
 
-    bench/bench_doors.py [--duration 40] [--idle 3000] [--doors none,console,…] [--in-process]
+    bench/bench_doors.py [--duration 40] [--idle 3000] [--doors none,console,…,hooks] [--hooks 1000]
+                         [--in-process]
 """
 from __future__ import annotations
 
@@ -135,6 +140,8 @@ def flood(kind: str, ports: dict[str, int], idle: int, stop: threading.Event) ->
         for door in ("console", "metrics"):
             for _ in range(64):
                 threading.Thread(target=trickle, args=(ports[door],), daemon=True).start()
+    elif kind == "hooks":
+        threading.Thread(target=_hook_flood, args=(ports["modbus"], HOOKS[0], stop), daemon=True).start()
     elif kind == "sse":
         def churn():
             while not stop.is_set():
@@ -150,6 +157,39 @@ def flood(kind: str, ports: dict[str, int], idle: int, stop: threading.Event) ->
         for _ in range(8):
             threading.Thread(target=churn, daemon=True).start()
     return held
+
+
+#: hook_replaced commands of the ``hooks`` flood; what the gateway answered
+HOOKS = [1000]
+HOOK_ANSWERS: dict[str, int] = {}
+
+
+def _hook_flood(port: int, n: int, stop: threading.Event) -> None:
+    """The PLC's hook_replaced n times: the new hook's sample id, then command 5 (FC 16 each)."""
+    from gateway.northbound import registers as R
+
+    sid, cmd = R.HR["sample_id"], R.HR["command"]
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+
+    def write(tid: int, addr: int, regs: list[int]) -> int:
+        body = struct.pack(">BHHB", 16, addr, len(regs), 2 * len(regs)) + struct.pack(f">{len(regs)}H", *regs)
+        s.sendall(struct.pack(">HHHB", tid, 0, len(body) + 1, 1) + body)
+        data = s.recv(256)
+        return data[8] if len(data) >= 9 and data[7] & 0x80 else 0
+
+    try:
+        for i in range(n):
+            if stop.is_set():
+                break
+            write(2 * i & 0xFFFF, sid.address, R.encode_value(sid, f"F-{i}"))
+            exc = write((2 * i + 1) & 0xFFFF, cmd.address, [R.COMMAND_CODE["hook_replaced"]])
+            key = "accepted" if exc == 0 else f"exception_{exc:02d}"
+            HOOK_ANSWERS[key] = HOOK_ANSWERS.get(key, 0) + 1
+    except OSError as e:
+        HOOK_ANSWERS["error"] = HOOK_ANSWERS.get("error", 0) + 1
+        print("hooks flood:", e, flush=True)
+    finally:
+        s.close()
 
 
 def _plc_read(port: int) -> bool:
@@ -211,9 +251,18 @@ def run(kind: str, duration: float, idle: int) -> dict:
         if "result.json" in fs:
             with open(os.path.join(dp, "result.json")) as f:
                 aborted |= json.load(f).get("end_reason") == "protection stop"
+    hook_lines = 0
+    for dp, _d, fs in os.walk(os.path.join(work, "records")):
+        if "hooks.jsonl" in fs:
+            with open(os.path.join(dp, "hooks.jsonl")) as f:
+                hook_lines += sum(1 for _ in f)
     out = {"door": kind, "filled_pct": 100 * s["filled_ratio"], "p99_ms": s["lateness_ms_p99"],
            "plc_ok": plc.ok, "plc_failed": plc.failed, "plc_errors": plc.errors, "held": len(held),
            "aborted": aborted}
+    if kind == "hooks":
+        out.update(hook_answers=dict(HOOK_ANSWERS), hooks_jsonl_lines=hook_lines,
+                   missing_slots=s.get("slots", 0) - s.get("filled", 0))
+        print(f"hooks   : answers {HOOK_ANSWERS}, hooks.jsonl {hook_lines} lines", flush=True)
     print(f"{kind:8s}: filled {out['filled_pct']:.3f} %, p99 lateness {out['p99_ms']:.2f} ms, PLC reads "
           f"{plc.ok} ok / {plc.failed} failed {plc.errors or ''}, {len(held)} connections held, "
           f"aborted {aborted}", flush=True)
@@ -225,11 +274,13 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=40.0)
     ap.add_argument("--idle", type=int, default=3000)
     ap.add_argument("--doors", default="none,console,metrics,modbus,trickle,sse")
+    ap.add_argument("--hooks", type=int, default=1000, help="hook_replaced commands of the hooks flood")
     ap.add_argument("--in-process", action="store_true", help="the station in the doors' process "
                     "(hookwatch run --in-process); default: a worker process under the supervisor")
     a = ap.parse_args()
     if a.in_process:
         RUN_EXTRA.append("--in-process")
+    HOOKS[0] = a.hooks
     with open("/proc/loadavg") as f:
         print("load before:", f.read().split()[:3], flush=True)
     res = [run(k, a.duration, a.idle) for k in a.doors.split(",")]

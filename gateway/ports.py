@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-from .records import Command, CommandReply, Event, SlotRecord, StationState
+from .records import Command, CommandReply, Event, RefusalData, SlotRecord, StationState
 
 #: longest sample ID (also the size of the PLC's sample ID registers: 16 registers × 2 chars)
 SAMPLE_ID_MAX = 32
@@ -118,10 +118,15 @@ class Output(Protocol):
 
 # ----------------------------------------------------------------------------- commands
 class CommandSink(Protocol):
-    """Where commands go: one validation, one set of events, whichever door they came in by.
-    Must be awaited on the sink's own loop (from another thread: ``ThreadLoop``/``submit_to``)."""
+    """Where every door's commands go (MQTT, Sparkplug, the console, the PLC, the CLI and the
+    supervisor's channel): a station's command desk (one at a time, a repeated request_id once,
+    one validation, a rate per source, one set of bounded events) or a worker's proxy.
+    ``submit`` a command the intake made; ``refused`` a request the intake refused (``command``,
+    ``source``, ``reason``, ``code``), counted in the sink's ``command_rejected`` events.
+    Both on the sink's own loop (from another thread: ``submit_to``/``call_soon_on``)."""
 
     async def submit(self, cmd: Command) -> CommandReply: ...
+    def refused(self, data: RefusalData) -> None: ...
 
 
 class CommandSource(Protocol):
@@ -178,7 +183,7 @@ class PlanView(Protocol):
     def t_end(self) -> float: ...
 
 
-class StationView(Protocol):
+class StationView(CommandSink, Protocol):
     """What an output may read of its station and call on it, and nothing more: the station in
     its own process and its proxy in a fleet's supervisor both are one. Reads are of the
     station's own loop (an output on another thread reads ``state``, a copy, or hands over)."""
@@ -198,12 +203,10 @@ class StationView(Protocol):
     @property
     def outputs(self) -> Sequence[Output]: ...
 
-    async def submit(self, cmd: Command) -> CommandReply: ...
-
 
 class StationLinks(StationView, Protocol):
     """A station in this process as its own outputs see it: its view plus what they report
-    back on the station's loop (their uplink, their disk, a request refused at the door), and
+    back on the station's loop (their uplink, their disk), and
     its alarm store itself (``gateway.station.alarm_store.AlarmStore``, which the pure core cannot
     name: Any here), which the MQTT output publishes from."""
 
@@ -212,7 +215,6 @@ class StationLinks(StationView, Protocol):
 
     def set_uplink(self, name: str, ok: bool) -> None: ...
     def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None: ...
-    def intake_rejected(self, data: dict[str, Any]) -> None: ...
     def site_lives(self, tests: tuple[Any, ...]) -> None:
         """The other stations' lives of the site (``gateway.method.prior.PastTest``), as the
         MQTT output last received them (METHOD.md §7a)."""

@@ -14,6 +14,8 @@ window is counted and logged as one line when the window ends (``×2999 in the l
 flood of 3,000 refused writes is two lines, not 3,000. :class:`RefusalWindow` is the same
 bookkeeping without the logger and without a clock of its own (pure: the caller passes the time);
 the station's bounded ``command_rejected`` events use it (gateway/station/commands.py).
+:class:`RateBound` is the one token bucket of requests per key (the console's stream and file
+reads, every door's commands at the station's command desk).
 
 This module imports nothing of the project: every door may use it.
 """
@@ -192,3 +194,41 @@ class RateLog:
             due = self._w.due(now)
             self._arm(now)
         self._emit(due)
+
+
+class RateBound:
+    """At most ``per_min`` events per key within any minute, with a burst of ``per_min``
+    (a token bucket refilled at ``per_min`` / 60 per second), or of ``burst`` when given.
+    ``max_keys`` keys are kept (the one not seen the longest is forgotten). The one token bucket
+    of requests per key: the console's stream and file reads and logins, every door's commands
+    at the station's command desk."""
+
+    def __init__(self, per_min: float, clock: Callable[[], float] = time.monotonic,
+                 max_keys: int = 4096, burst: float | None = None):
+        self.per_min = max(1e-3, float(per_min))
+        self.burst = max(1.0, float(self.per_min if burst is None else burst))
+        self.clock = clock
+        self.max_keys = max_keys
+        self._b: dict[str, tuple[float, float]] = {}     # key → (tokens, time)
+
+    def _tokens(self, key: str, now: float) -> float:
+        tokens, t = self._b.get(key, (self.burst, now))
+        return min(self.burst, tokens + (now - t) * self.per_min / 60.0)
+
+    def wait(self, key: str = "") -> float:
+        """0 when one more is allowed now (nothing taken); else the seconds until it is."""
+        tokens = self._tokens(key, self.clock())
+        return 0.0 if tokens >= 1.0 else (1.0 - tokens) * 60.0 / self.per_min
+
+    def take(self, key: str = "") -> float:
+        """0 when allowed (and counted); else the seconds until the next one is allowed."""
+        now = self.clock()
+        tokens = self._tokens(key, now)
+        self._b.pop(key, None)
+        if len(self._b) >= self.max_keys:          # forget the key not seen the longest
+            self._b.pop(next(iter(self._b)))
+        if tokens >= 1.0:
+            self._b[key] = (tokens - 1.0, now)
+            return 0.0
+        self._b[key] = (tokens, now)
+        return (1.0 - tokens) * 60.0 / self.per_min

@@ -150,11 +150,21 @@ class CommandKind(str, enum.Enum):
     IN_SERVICE = "in_service"
 
 
+#: a command argument's value, as the one intake lets it through (gateway/northbound/cmdparse.py:
+#: numbers finite and not booleans, text printable ASCII)
+ArgValue = str | int | float
+#: a command's arguments by name (gateway/commandtypes.py COMMAND_KEYS: which each command takes)
+CommandArgs = dict[str, ArgValue]
+#: a refusal as the command_rejected event reports it: command, source, reason, code (and, once
+#: counted, count and window_s)
+RefusalData = dict[str, str | int | float]
+
+
 @dataclass
 class Command:
     kind: CommandKind
     source: str                          # "cli", "mqtt", "plc:<addr>"
-    args: dict[str, Any] = field(default_factory=dict)
+    args: CommandArgs = field(default_factory=dict)
     request_id: str | None = None
 
 
@@ -163,3 +173,5 @@ class CommandReply:
     ok: bool
     reason: str = ""
     request_id: str | None = None
+    #: 0 when accepted, else the refusal code (gateway/commandtypes.py REJECT_CODES)
+    code: int = 0

@@ -292,10 +292,11 @@ def test_the_station_and_its_proxy_are_station_views():
     def members(mod: str, cls: str) -> set[str]:
         node = next(n for n in TREES[mod].body if isinstance(n, ast.ClassDef) and n.name == cls)
         return {n.name for n in node.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
-    view = members("gateway.ports", "StationView")
-    assert view >= {"id", "ts", "limits", "default_plan", "state", "alarms", "outputs", "submit"}
-    assert "submit" in members("gateway.station.station", "Station")
-    assert "submit" in members("gateway.supervisor.remote", "RemoteStation")
+    view = members("gateway.ports", "StationView") | members("gateway.ports", "CommandSink")
+    assert view >= {"id", "ts", "limits", "default_plan", "state", "alarms", "outputs", "submit",
+                    "refused"}
+    assert {"submit", "refused"} <= members("gateway.station.station", "Station")
+    assert {"submit", "refused"} <= members("gateway.supervisor.remote", "RemoteStation")
     # the proxy feeds its outputs through the station's own fan-out: it constructs the Fanout
     # that gateway.station.fanout defines (read from the syntax tree, not a string search)
     tree = TREES["gateway.supervisor.remote"]
@@ -425,3 +426,40 @@ def test_a_station_thread_imports_nothing_while_it_runs_a_life(tmp_path):
                                     text=True, check=True).stdout)
     assert {"window", "forecast", "wear_warning"} <= set(out["events"])
     assert out["new"] == []
+
+
+#: the command path behind every door: the pure command types, the station's desk, its handlers
+COMMAND_PATH = ("gateway.commandtypes", "gateway.station.commands", "gateway.station.dispatch")
+#: the doors (and the pure tables they print) that reach the command path
+COMMAND_DOORS = ("gateway.northbound.mqtt", "gateway.northbound.modbus_server",
+                 "gateway.northbound.sparkplug.client", "gateway.northbound.sparkplug.node",
+                 "gateway.console.server", "gateway.supervisor.worker", "gateway.supervisor.remote",
+                 "gateway.northbound.cmdparse", "gateway.northbound.registers",
+                 "gateway.northbound.schema", "gateway.northbound.schema_gen",
+                 "gateway.northbound.mqtt_messages")
+
+
+def test_the_command_path_is_typed_and_holds_no_module_state():
+    """Issue 30.1: no ``Any``, no ``getattr``/``hasattr`` in the command path, no module-level
+    mutable state (the refusal gate is a member of the station's desk); the doors and the pure
+    register/schema tables take the command types from the pure gateway.commandtypes, never from
+    the runtime gateway.station.commands, and hand commands to their CommandSink."""
+    bad = []
+    for m in COMMAND_PATH:
+        tree = TREES[m]
+        for n in ast.walk(tree):
+            if isinstance(n, ast.Name) and n.id == "Any":
+                bad.append(f"{m}:{n.lineno} Any")
+            if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id in ("getattr", "hasattr"):
+                bad.append(f"{m}:{n.lineno} {n.func.id}")
+        for n in tree.body:
+            if isinstance(n, (ast.Assign, ast.AnnAssign)) and isinstance(n.value, ast.Call):
+                name = ast.unparse(n.value.func)
+                if name.split(".")[-1] in ("WeakKeyDictionary", "WeakValueDictionary", "dict", "list", "set",
+                                           "defaultdict", "OrderedDict"):
+                    bad.append(f"{m}:{n.lineno} module state {ast.unparse(n)[:60]}")
+    assert bad == []
+    via_runtime = [m for m in COMMAND_DOORS if "gateway.station.commands" in SCANS[m].edges]
+    assert via_runtime == []
+    assert all("gateway.commandtypes" in SCANS[m].edges for m in ("gateway.northbound.registers",
+                                                                  "gateway.northbound.schema"))

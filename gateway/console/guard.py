@@ -15,7 +15,7 @@ from typing import Any
 
 from aiohttp.http_exceptions import HttpProcessingError
 
-from ..ratelog import RateLog
+from ..ratelog import RateBound, RateLog  # noqa: F401 - RateBound: the console's, now in ratelog
 
 #: names a browser on the same host uses for a console bound to a loopback address
 LOCAL_NAMES = ("localhost", "localhost.localdomain", "ip6-localhost", "ip6-loopback")
@@ -75,41 +75,6 @@ class HostAllow:
             mapped = getattr(local, "ipv4_mapped", None)
             return local.is_loopback or (mapped is not None and mapped.is_loopback)
         return False
-
-
-class RateBound:
-    """At most ``per_min`` events per key within any minute, with a burst of ``per_min``
-    (a token bucket refilled at ``per_min`` / 60 per second), or of ``burst`` when given."""
-
-    def __init__(self, per_min: float, clock: Callable[[], float] = time.monotonic,
-                 max_keys: int = MAX_KEYS, burst: float | None = None):
-        self.per_min = max(1e-3, float(per_min))
-        self.burst = max(1.0, float(self.per_min if burst is None else burst))
-        self.clock = clock
-        self.max_keys = max_keys
-        self._b: dict[str, tuple[float, float]] = {}     # key → (tokens, time)
-
-    def _tokens(self, key: str, now: float) -> float:
-        tokens, t = self._b.get(key, (self.burst, now))
-        return min(self.burst, tokens + (now - t) * self.per_min / 60.0)
-
-    def wait(self, key: str = "") -> float:
-        """0 when one more is allowed now (nothing taken); else the seconds until it is."""
-        tokens = self._tokens(key, self.clock())
-        return 0.0 if tokens >= 1.0 else (1.0 - tokens) * 60.0 / self.per_min
-
-    def take(self, key: str = "") -> float:
-        """0 when allowed (and counted); else the seconds until the next one is allowed."""
-        now = self.clock()
-        tokens = self._tokens(key, now)
-        self._b.pop(key, None)
-        if len(self._b) >= self.max_keys:          # forget the key not seen the longest
-            self._b.pop(next(iter(self._b)))
-        if tokens >= 1.0:
-            self._b[key] = (tokens - 1.0, now)
-            return 0.0
-        self._b[key] = (tokens, now)
-        return (1.0 - tokens) * 60.0 / self.per_min
 
 
 class LogLimit(RateLog):

@@ -48,13 +48,12 @@ from typing import Any
 from aiohttp import web
 
 from .. import safeout
+from ..commandtypes import CODE, Rejection, reply_code
 from ..doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
 from ..northbound.cmdparse import intake, nesting_depth, rejected_event_data
 from ..ports import StationView
 from ..ratelog import RateLog
 from ..records import CommandKind
-from ..station import commands as C
-from ..station.commands import CODE, Rejection
 from ..threadloop import ThreadLoop, call_soon_on, submit_to
 from . import auth
 from .feed import (
@@ -658,7 +657,7 @@ class ConsoleServer:
         if isinstance(cmd, Rejection):
             if st is not None and loop is not None:
                 name = cmd.reason.split(":", 1)[0]
-                call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, source))
+                call_soon_on(loop, st.refused, rejected_event_data(name, cmd, source))
             return self._reply(f, s, "command", cmd, status=400)
         kind = cmd.kind.value
         hook = cmd.kind == CommandKind.HOOK_REPLACED
@@ -666,7 +665,7 @@ class ConsoleServer:
             return self._reply(f, s, kind, Rejection(False, f"station {f.name} is not running", None,
                                                      CODE["NO_STATION"]))
         try:
-            fut = submit_to(loop, C.submit(st, cmd))   # the one hand-over (gateway/threadloop.py)
+            fut = submit_to(loop, st.submit(cmd))   # the one hand-over (gateway/threadloop.py)
             if fut is None:
                 raise RuntimeError("its loop is closed")
             reply = await asyncio.wait_for(asyncio.wrap_future(fut), 5.0)
@@ -681,7 +680,7 @@ class ConsoleServer:
     def _reply(self, f: StationFeed, s: auth.Session, kind: str, reply, status: int = 409) -> web.Response:
         """The answer: 200 accepted; 409 refused by the station; 400 refused by the intake (the
         request itself is malformed); ``reason`` and ``code`` as over MQTT and the PLC."""
-        code = getattr(reply, "code", 0 if reply.ok else CODE["BAD_REQUEST"])
+        code = reply_code(reply)
         if reply.ok:
             log.info("console: command %s on %s by %s: accepted", kind, f.name, s.user)
         else:

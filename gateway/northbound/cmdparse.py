@@ -42,9 +42,9 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from ..commandtypes import CODE, COMMAND_KEYS, NUMERIC_FIELDS, SAMPLE_ID_MAX, TEXT_FIELDS, Rejection, check_sample_id
 from ..ratelog import ECHO_CHARS, clip, safe
-from ..records import Command, CommandKind
-from ..station.commands import CODE, COMMAND_KEYS, SAMPLE_ID_MAX, Rejection, check_sample_id
+from ..records import Command, CommandKind, RefusalData
 
 __all__ = ["intake", "parse_command", "read_bounded_json", "Refused", "bounded_pairs",
            "rejected_event_data", "clip", "safe", "nesting_depth", "bad",
@@ -65,8 +65,6 @@ MAX_INT = 2 ** 53
 #: the key that names the command in a body that carries it (the web console)
 COMMAND_KEY = "command"
 
-NUMERIC_FIELDS = frozenset({"t_set", "t_end", "duration_s"})
-TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id"})
 
 
 class Refused(ValueError):
@@ -292,7 +290,7 @@ def parse_command(name: str, payload: bytes, source: str = "mqtt") -> Command | 
     return intake(name, payload, source)
 
 
-def rejected_event_data(command: Any, rejection: Rejection, source: str) -> dict[str, Any]:
+def rejected_event_data(command: object, rejection: Rejection, source: str) -> RefusalData:
     """Data of the ``command_rejected`` event for an intake refusal (docs/mqtt.md, Events)."""
     return {"command": safe(command, MAX_NAME_CHARS), "source": safe(source, 80),
             "reason": rejection.reason, "code": int(rejection.code)}

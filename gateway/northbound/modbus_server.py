@@ -12,7 +12,7 @@ event loop, so PLC traffic never runs on a station's loop.
   snapshot. The heartbeat is advanced by that same loop: it stops when the station is stuck.
 - Writes: refused with exception 01 unless the station's YAML enables them and the client's
   address is listed (an address or a network, e.g. ``10.10.5.0/24``); every value is checked against the
-  register map and the shared command rules (gateway/station/commands.py) before anything changes
+  register map and the shared command rules (gateway/commandtypes.py) before anything changes
   (exception 03 when out of range); commands go to ``station.submit`` on the station's own loop
   (source ``plc:<address>``), a refused command answers the exception its reason code maps to
   (``registers.refusal_exception``: 06 busy, 03 refused value, 04 only when the station failed to
@@ -33,13 +33,12 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import __version__
+from ..commandtypes import CODE, Rejection, check_sample_id, reply_code
 from ..doors import DoorLimits
 from ..method.rules import REASONS
 from ..ports import CommandSink, StationLimits, StationView
 from ..ratelog import RateLog, safe
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
-from ..station import commands as C
-from ..station.commands import CODE, Rejection, check_sample_id
 from ..threadloop import call_soon_on, submit_to
 from . import registers as R
 from .cmdparse import intake, rejected_event_data
@@ -470,18 +469,18 @@ class ModbusOutput:
         name = next((n for c, n, _ in R.COMMAND_CODES if c == code), "command")
         if isinstance(cmd, Rejection):
             if st is not None and loop is not None:
-                call_soon_on(loop, C.refused, st, rejected_event_data(name, cmd, "plc"))
+                call_soon_on(loop, st.refused, rejected_event_data(name, cmd, "plc"))
             fut = None
             result = int(cmd.code)
             self.refusal_log.info(("command", name, result), "%s: PLC command %s refused: %s",
                                   self.station_id, name, cmd.reason)
         else:
-            fut = submit_to(loop, C.submit(st, cmd)) if st is not None else None
+            fut = submit_to(loop, st.submit(cmd)) if st is not None else None
         if fut is not None and isinstance(cmd, Command):
             try:
                 reply = await asyncio.wait_for(asyncio.wrap_future(fut), COMMAND_TIMEOUT_S)
                 ok = bool(reply.ok)
-                result = 0 if ok else int(getattr(reply, "code", 0) or CODE["BAD_REQUEST"])
+                result = reply_code(reply)
                 if not ok:
                     self.refusal_log.info(("command", cmd.kind.value, result),
                                           "%s: PLC command %s from %s refused: %s", self.station_id,

@@ -28,14 +28,14 @@ import logging
 import os
 import threading
 import time
+from concurrent.futures import Future
 from typing import Any
 
+from ..commandtypes import CODE, Rejection
 from ..history import read_history
 from ..ports import CommandSink, StationLinks
-from ..records import Event, EventType, SlotRecord, StationState
-from ..station import commands as C
+from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from ..station.alarm_store import AlarmStore
-from ..station.commands import CODE, Rejection
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
 from . import schema
@@ -249,19 +249,21 @@ class MqttOutput:
             self._intake_rejected(name, cmd)
             return
         sink = self.sink
-        fut = submit_to(self.loop, C.submit(sink, cmd)) if sink is not None else None
+        fut = submit_to(self.loop, sink.submit(cmd)) if sink is not None else None
         if fut is None:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
                                                         CODE["NO_STATION"]), response)
             return
 
-        def done(f: Any, cmd: Any = cmd) -> None:
+        acc: Command = cmd
+
+        def done(f: Future[CommandReply]) -> None:
             try:
                 r = f.result()
             except Exception as e:  # the station failed to carry it out
-                r = Rejection(False, f"the station failed: {type(e).__name__}: {e}", cmd.request_id,
+                r = Rejection(False, f"the station failed: {type(e).__name__}: {e}", acc.request_id,
                               CODE["NO_STATION"])
-            self._reply(cmd.kind.value, cmd.request_id, r, response)
+            self._reply(acc.kind.value, acc.request_id, r, response)
 
         fut.add_done_callback(done)
 
@@ -271,9 +273,9 @@ class MqttOutput:
         (gateway/station/commands.py, RefusalGate)."""
         if self.station is None:
             return
-        call_soon_on(self.loop, C.refused, self.station, rejected_event_data(name, rej, "mqtt"))
+        call_soon_on(self.loop, self.station.refused, rejected_event_data(name, rej, "mqtt"))
 
-    def _reply(self, command: str, request_id: str | None, r: Any,
+    def _reply(self, command: str, request_id: str | None, r: CommandReply,
                response: tuple[str, bytes | None] | None = None) -> None:
         self.pump.put(M.reply_message(self._base, self.s.station_id, time.time(), command, request_id, r,
                                       response))

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import __version__
+from ..commandtypes import reply_code
 from ..method.rules import REASONS
 from ..records import CommandReply, Event, EventType, SlotRecord, StationState
 from ..station.alarm_store import AlarmRecord
-from ..station.commands import CODE
 from . import schema
 from .registers import MAP_VERSION
 
@@ -193,7 +193,7 @@ def reply_message(base: str, station: str, t: float, command: str, request_id: s
                   r: CommandReply, response: tuple[str, bytes | None] | None = None) -> Message:
     """The answer to a command: on ``reply``, or (MQTT 5) on the request's Response Topic with its
     Correlation Data, ``response = (topic, correlation)``."""
-    code = 0 if r.ok else int(getattr(r, "code", CODE["BAD_REQUEST"]) or CODE["BAD_REQUEST"])
+    code = reply_code(r)
     rid = request_id if request_id is not None else r.request_id
     msg = _message("reply", base,
                    lambda seq: schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))

@@ -16,10 +16,10 @@ from typing import Any
 
 from .. import safeout
 from ..alarms import ALARMS, SHELVE_MAX_S
+from ..commandtypes import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 from ..method.rules import REASONS
 from ..ports import StationLimits
 from ..records import AlarmState, CommandKind, TestState
-from ..station.commands import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 
 #: version of the register map (input register 1)
 MAP_VERSION = 4    # 4: the §5b forecast (end_p10/50/90_left, p_end, warn_reasons), status bit 14
@@ -287,8 +287,8 @@ EXC_DEVICE_FAILURE = 4
 EXC_DEVICE_BUSY = 6
 
 #: rejection codes (``last_result``) a PLC may retry later unchanged: the station is busy with a
-#: running test (Modbus 06 SERVER DEVICE BUSY)
-BUSY_REJECTIONS = ("BUSY", "SETPOINT_LOCKED")
+#: running test, or the source sent more commands than its rate allows (Modbus 06 SERVER DEVICE BUSY)
+BUSY_REJECTIONS = ("BUSY", "SETPOINT_LOCKED", "RATE_LIMITED")
 #: rejection codes that are no refusal but a failure: the station did not answer (04)
 FAILURE_REJECTIONS = ("NO_STATION",)
 _REJECTION_NAME = {code: name for code, name, _ in REJECT_CODES}
@@ -552,6 +552,17 @@ def render(station: dict[str, Any] | None = None) -> str:
         "in address order with the `command` register last. Commands from a PLC go through the "
         "same validation and the same command path as MQTT commands (source `plc:<address>`), "
         "with the same events.",
+        "",
+        "A register write has no request id: **each write of the `command` register is one "
+        "command, carried out once** (the register reads 0 again). A Modbus TCP retry of a write "
+        "whose answer was lost is a second command: before resending, read `command_count` (it "
+        "counts every command processed) and `last_command`/`last_result` — if the count moved "
+        "past the value read before the write, the write arrived. A repeated command cannot do "
+        "harm twice: a second stop finds no test (2 NOT_RUNNING), a second start a running one "
+        "(1 BUSY), a second hook replaced with the `sample_id` still staged (now the station's own) no "
+        "alarm and no test (3 NO_ALARM). More "
+        "than 20 commands at once or 60 a minute from one PLC address are refused (14 "
+        "RATE_LIMITED, exception 06).",
         "",
         "To start a test: write `sample_id`, `grade`, `t_end` (optional) and `t_set`, then 1 to "
         "`command`. Read `last_command`, `last_result` and `command_count` to see the outcome.",

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from .. import safeout
+from ..commandtypes import REJECT_CODES
 from ..method.rules import REASON_NAMES
 from ..records import AlarmState, CommandKind, Event, EventType, StationState, TestState
-from ..station.commands import REJECT_CODES
 from .registers import MAP_VERSION
 
 #: version of the topic tree and payloads (every payload carries it as "schema")
@@ -792,7 +792,7 @@ def render() -> str:
         "## Commands",
         "",
         "A command is a JSON object published to `cmd/<name>` (an empty payload counts as `{}`). "
-        "MQTT and PLC commands go through the same validation (`gateway/station/commands.py`) and "
+        "MQTT and PLC commands go through the same validation (`gateway/commandtypes.py`) and "
         "the same station command path; every command is answered on `reply` — or, over MQTT 5, on "
         "the Response Topic the request names, with the request's Correlation Data (same payload, "
         "QoS 1, not retained, through the outbox). A Response Topic is obeyed only below "
@@ -810,6 +810,17 @@ def render() -> str:
         "characters (`sample_id` ≤ 32, `request_id` ≤ 64); unknown keys, unknown commands and "
         "payloads that are not JSON objects are refused (code 9). Client text is never echoed "
         "longer than 40 characters, and always escaped.",
+        "",
+        "Every command acts once. A station carries out one command at a time, each checked "
+        "against the state the one before left (two stops at once: one ends the test, the other "
+        "is answered 2 NOT_RUNNING). A command sent again with the same `request_id` from the same "
+        "source within 600 s (the station remembers the last 1,024) is answered with the first "
+        "answer (its `ok` and `code`; the reason says `duplicate of request_id …`) and not carried "
+        "out again; the same `request_id` naming another command or other arguments is refused "
+        "(code 9). Give every command its own `request_id` and resend it unchanged when no reply "
+        "came. Commands that would act are limited per source (`mqtt`, `sparkplug`, "
+        "`console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
+        "refused with code 14 and counted (refused or repeated commands cost nothing of it).",
         "",
         "| code | name | meaning |",
         "|---|---|---|",

@@ -13,9 +13,9 @@ import os
 import sys
 from typing import Any
 
+from ..commandtypes import REJECT_CODES
 from ..method.rules import REASON_NAMES
 from ..records import AlarmState, TestState
-from ..station.commands import REJECT_CODES
 from . import schema as S
 from .cmdparse import MAX_STRING_CHARS, REQUEST_ID_MAX, SAMPLE_ID_MAX
 

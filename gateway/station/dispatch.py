@@ -9,11 +9,11 @@ from __future__ import annotations
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import Protocol
 
+from ..commandtypes import ALARM_COMMAND_EVENTS, text_arg
 from ..ports import StationLimits
-from ..records import Command, CommandKind, EventType
-from .commands import ALARM_COMMAND_EVENTS
+from ..records import Command, CommandArgs, CommandKind, EventType
 from .lifecycle import TestLifecycle
 from .session import TestPlan
 from .status import StatusBoard
@@ -36,11 +36,11 @@ class CommandTarget(Protocol):
 Handler = Callable[[CommandTarget, Command], Awaitable[None]]
 
 
-def plan_of(st: CommandTarget, args: dict[str, Any]) -> TestPlan:
+def plan_of(st: CommandTarget, args: CommandArgs) -> TestPlan:
     """The test plan a (validated) start asks for; a start without t_end runs the default's."""
     t_end = args.get("t_end") or (st.default_plan.t_end if st.default_plan
                                   else st.limits.t_end_default_s)
-    return TestPlan(sample_id=str(args["sample_id"]), grade=args.get("grade"),
+    return TestPlan(sample_id=str(args["sample_id"]), grade=text_arg(args, "grade"),
                     t_set=float(args["t_set"]), t_end=float(t_end))
 
 
@@ -59,18 +59,18 @@ async def _ack(st: CommandTarget, cmd: Command) -> None:
 
 async def _hook_replaced(st: CommandTarget, cmd: Command) -> None:
     a = cmd.args
-    await st.tests.hook_replaced(cmd.source, a.get("sample_id"), a.get("grade"), st.default_plan,
+    await st.tests.hook_replaced(cmd.source, text_arg(a, "sample_id"), text_arg(a, "grade"), st.default_plan,
                                  st.limits.sample_id_max)
 
 
 async def _alarm(st: CommandTarget, cmd: Command) -> None:
     """ISA-18.2 shelve / unshelve / out of service / in service: an event the alarm store applies."""
-    data: dict[str, Any] = {"source": cmd.source}
+    data: dict[str, str | float] = {"source": cmd.source}
     if cmd.args.get("alarm") is not None:
         data["alarm"] = str(cmd.args["alarm"])
     if cmd.kind == CommandKind.SHELVE:
         data["until"] = time.time() + float(cmd.args["duration_s"])
-    st.board.emit(ALARM_COMMAND_EVENTS[cmd.kind], **data)
+    st.board.emit_data(ALARM_COMMAND_EVENTS[cmd.kind], data)
     st.board.push()
 
 

@@ -12,6 +12,7 @@ Every state change goes through the station's :class:`~.status.StatusBoard`.
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import os
@@ -25,7 +26,7 @@ from ..records import EventType
 from .health import Health
 from .hooks import append_hook, next_sample_id
 from .priors import PriorBook
-from .recorder import utc_iso
+from .recorder import disk_thread, utc_iso
 from .session import RecorderOutput, TestPlan, TestSession
 from .starting import StartAttempt, StartStep
 from .status import StatusBoard
@@ -34,6 +35,9 @@ from .stm32link import Stm32Drive
 __all__ = ["SlotResult", "TestLifecycle", "TestSetup"]
 
 log = logging.getLogger("hookwatch.station")
+
+#: a clean stop waits this long at most for an end of the test already under way (a command's)
+CLOSE_WAIT_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -90,7 +94,8 @@ class TestLifecycle:
     @property
     def drives_motor(self) -> bool:
         """The take-up gets a speed command this slot (a test running, or a start spinning up)."""
-        mon, att = self.monitor, self.starting
+        sess, att = self.session, self.starting
+        mon = sess.monitor if sess is not None and not sess.ending else None
         return ((mon is not None and mon.stop_slot is None and not mon.finished)
                 or (att is not None and att.motor_on))
 
@@ -217,10 +222,18 @@ class TestLifecycle:
     async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
         """End the running test (completed at t_end, or aborted) and write its result."""
         sess = self.session
-        if sess is None:
-            return None
+        if sess is None or sess.ending:      # no test, or its end is already being carried out:
+            return None                      # one test_ended, one result, whatever races
+        sess.ending = True                   # claimed before the first await (issue 27)
+        try:
+            return await self._end(sess, reason, source)
+        finally:
+            sess.ended.set()
+
+    async def _end(self, sess: TestSession, reason: str, source: str) -> dict[str, Any]:
         mon = sess.monitor
         self.motor_off_k = self.k
+        self.speed_cmd = 0.0
         await self.link.stop(reason)         # a speed command not yet sent is withdrawn
         if reason in ("completed", "protection stop"):
             res = mon.close()          # slots up to the planned end that never came: MISSING
@@ -236,8 +249,9 @@ class TestLifecycle:
         self.results.append(out)
         self.priors.add_result(out)          # what §7a learns from (this station's and the box's)
         self.priors.refresh()
-        self.session = None
-        self.recorder_out.recorder = None
+        if self.session is sess:
+            self.session = None
+            self.recorder_out.recorder = None
         self.speed_cmd = 0.0
         self.board.push()
         return out
@@ -253,6 +267,8 @@ class TestLifecycle:
         if self.starting is not None:
             await self.start_failed(f"start cancelled: hook replaced ({source})")
         last = await self.end_test("hook_replaced", source=source) if sess is not None else None
+        if sess is not None and last is None:    # another end of this test came first: its result
+            await sess.ended.wait()
         old_sid = old_plan.sample_id if old_plan is not None else st.sample_id
         if last is None and self.results and self.results[-1].get("sample_id") == old_sid:
             last = self.results[-1]          # the old hook's last test (none: it never ran one)
@@ -271,7 +287,10 @@ class TestLifecycle:
             "test_id": last.get("test_id") if last is not None else None, "life_s": life}
         if self.board.alarms.highest() is not None:
             self.board.emit(EventType.ALARM_CLEARED, source=source, reason="hook_replaced")
-        err = append_hook(self.setup.station_dir, rec)
+        # written and synced by the disk thread (never on the slot loop: a flood of replacements
+        # once cost 42 slots of 100), in order; the command's answer waits for it
+        err = await asyncio.get_running_loop().run_in_executor(
+            disk_thread(), append_hook, self.setup.station_dir, rec)
         if err is not None:
             log.error("%s: hooks.jsonl cannot be written (%s); the replacement is in the event only",
                       self.setup.station_id, err)
@@ -290,8 +309,11 @@ class TestLifecycle:
         try:
             if self.starting is not None:
                 await self.start_failed(f"{reason} before slot 0")
-            if self.session is not None:
-                await self.end_test(reason)
+            sess = self.session
+            if sess is not None and await self.end_test(reason) is None:
+                # its end is being carried out by a command: the result is written before the
+                # ports close (bounded: the STM32's stop has its own timeout)
+                await asyncio.wait_for(sess.ended.wait(), CLOSE_WAIT_S)
         finally:
             self.starting = None
             self.session = None

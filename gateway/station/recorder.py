@@ -147,12 +147,18 @@ def _fsync_dup(fd: int) -> None:
         os.close(fd)
 
 
-def _fsync_in_background(fd: int) -> None:
+def disk_thread() -> ThreadPoolExecutor:
+    """The process's one thread for disk syncs off the slot loop (one: what it is given is done
+    in order): the recorder's fsyncs, the hooks.jsonl appends (gateway/station/hooks.py)."""
     global _fsync_pool
     with _fsync_lock:
         if _fsync_pool is None:
             _fsync_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fsync")
-    _fsync_pool.submit(_fsync_dup, os.dup(fd))
+        return _fsync_pool
+
+
+def _fsync_in_background(fd: int) -> None:
+    disk_thread().submit(_fsync_dup, os.dup(fd))
 
 
 #: rows kept in memory while the disk refuses writes (5 minutes at 50 Hz, about 1 MB): the

@@ -10,9 +10,10 @@ is fed through :class:`RecorderOutput`, an ordinary output placed first in the s
 """
 from __future__ import annotations
 
+import asyncio
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from .. import __version__
@@ -52,6 +53,12 @@ class TestSession:
     controller: Controller
     recorder: TestRecorder
     k_start: int | None = None        # the loop's slot that is the test's slot 0
+    #: the test's end is claimed (:meth:`~.lifecycle.TestLifecycle.end_test`, synchronously,
+    #: before its first await): whoever comes second (a stop, the planned end, a protection stop,
+    #: a replaced hook, the shutdown) finds it taken and ends nothing
+    ending: bool = False
+    #: set once the test's result is written (what a second ender waits for)
+    ended: asyncio.Event = field(default_factory=asyncio.Event)
 
     @classmethod
     def begin(cls, *, station_id: str, station_dir: str, plan: TestPlan,

@@ -36,7 +36,7 @@ from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
 from ..records import Command, CommandReply, EventType, SlotRecord, StationState
 from .alarm_store import AlarmStore
 from .clock import LateStarts, SlotClock, SlotStats
-from .commands import Rejection, validate
+from .commands import CommandDesk, validate
 from .dispatch import HANDLERS
 from .fanout import Fanout
 from .health import Health
@@ -88,6 +88,9 @@ class Station:
                                                         station_id), self.fanout, lambda: self.test_id)
         self.health = Health(self.board, meter, stm32)
         self.link = Stm32Drive(station_id, stm32)
+        #: every door's commands: once, one at a time, validated once, rate-limited, refusals counted
+        self.desk = CommandDesk(lambda cmd: validate(cmd, self.limits, self.state), self._act,
+                                lambda data: self.board.emit_data(EventType.COMMAND_REJECTED, data))
         #: the start or the test in progress, its method and its speed command
         self.tests = TestLifecycle(
             TestSetup(station_id, self.station_dir, self.ts, self.method_values, control,
@@ -185,24 +188,19 @@ class Station:
         """The site's lives (the MQTT output, via the hand-over) join the §7a history."""
         self.tests.priors.set_site(tuple(t for t in tests if isinstance(t, PastTest)))
 
-    def intake_rejected(self, data: dict[str, Any]) -> None:
-        """A command source refused a request before it became a command (malformed, too large:
-        code 9); it is a ``command_rejected`` event like every other refusal."""
-        self.board.emit(EventType.COMMAND_REJECTED, **data)
+    def refused(self, data: dict[str, Any]) -> None:
+        """A door refused a request before it became a command (malformed, too large: code 9); it
+        is a (bounded) ``command_rejected`` event like every other refusal."""
+        self.desk.refused(data)
 
     async def submit(self, cmd: Command) -> CommandReply:
-        """One command path for CLI, MQTT and PLC: validate, then act (``dispatch.HANDLERS``)."""
-        reply = self.validate(cmd)
-        if reply is not None:
-            self.board.emit(EventType.COMMAND_REJECTED, command=cmd.kind.value, source=cmd.source,
-                            reason=reply.reason)
-            return reply
-        await HANDLERS[cmd.kind](self, cmd)
-        return CommandReply(True, "", cmd.request_id)
+        """The one command path of every door (the :class:`~.commands.CommandDesk`): one at a
+        time, a repeated request_id once, validated once, rate-limited per source, then carried
+        out (``dispatch.HANDLERS``)."""
+        return await self.desk.submit(cmd)
 
-    def validate(self, cmd: Command) -> Rejection | None:
-        """The one validation shared by CLI, MQTT and PLC (gateway/station/commands.py)."""
-        return validate(cmd, self.limits, self.state)
+    async def _act(self, cmd: Command) -> None:
+        await HANDLERS[cmd.kind](self, cmd)
 
     def reload_requested(self, apply: Callable[[], None]) -> bool:
         """A new configuration is ready (on this loop, so no start can slip in between the check

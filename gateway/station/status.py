@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import fields, replace
 from typing import Any
 
@@ -71,6 +71,13 @@ class StatusBoard:
              **data: Any) -> Event:
         """One event to the alarm store and every output; ``of_test``: the test it belongs to
         when that is not the running one (a cut-off test closed at start-up)."""
+        return self.emit_data(etype, data, k, of_test=of_test)
+
+    def emit_data(self, etype: EventType, data: Mapping[str, object], k: int | None = None, *,
+                  of_test: str | None = None) -> Event:
+        """:meth:`emit` with the event's data as one mapping (a command's refusal, an alarm
+        command's arguments)."""
+        data = dict(data)
         ev = Event(type=etype, station=self.id, wall_time=time.time(),
                    test_id=of_test if of_test is not None else self._test_id(), k=k, data=data)
         log.info("%s: %s %s", self.id, etype.value, data or "")

@@ -33,7 +33,7 @@ type  name         body
                    ``SNAPSHOT_VERSION``) once a second, when the fleet has a metrics endpoint
 5     EVENT        :meth:`~gateway.records.Event.as_dict`
 6     REPLY        ``{id, ok, reason, code, request_id}`` to a COMMAND (``code``: the rejection
-                   code of gateway/station/commands.py, 0 when accepted)
+                   code of gateway/commandtypes.py, 0 when accepted)
 7     FINAL        ``{stats, results}`` when the worker stops cleanly
 9     SITE         ``{topic, payload}``: a retained state/status of a station of the site, for the
                    supervisor's console (its site view, gateway/console/site.py), from the one

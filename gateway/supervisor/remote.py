@@ -37,6 +37,7 @@ import threading
 import time
 from typing import Any
 
+from ..commandtypes import CODE, Rejection
 from ..compose import shared_outputs, station_facts
 from ..console.server import ConsoleServer
 from ..northbound.sparkplug import client as sparkplug_client
@@ -44,7 +45,6 @@ from ..northbound.sparkplug.output import SparkplugOutput, state_values
 from ..ports import Output, PlanView, StationLimits, StationView
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from ..station.alarm_store import KIND_OF, MODEL_NAME
-from ..station.commands import CODE, Rejection
 from ..station.fanout import Fanout
 from ..threadloop import ThreadLoop
 from .fleetcfg import apply_overrides
@@ -103,6 +103,8 @@ class RemoteStation:
         self.last_k: int | None = None
         #: slot records the IPC lost (frames dropped by a stalled supervisor), counted
         self.lost = 0
+        #: requests the supervisor's doors refused before they became commands
+        self.intake_refusals = 0
         self._failed: set[tuple[str, str]] = set()
 
     @property
@@ -143,6 +145,11 @@ class RemoteStation:
         return await loop.run_in_executor(
             None, lambda: self.hub.command(cmd.kind.value, dict(cmd.args), source=cmd.source,
                                            request_id=cmd.request_id, timeout=COMMAND_TIMEOUT_S))
+
+    def refused(self, data: dict[str, Any]) -> None:
+        """A door of the supervisor refused a request before it became a command: counted here
+        (the door logs it once a minute with the count); the worker's station never saw it."""
+        self.intake_refusals += 1
 
     # ------------------------------------------------------------ frames (the hub's reader thread)
     def on_frame(self, ftype: FrameType, body: dict[str, Any]) -> None:

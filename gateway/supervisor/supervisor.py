@@ -38,12 +38,12 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from .. import safeout
+from ..commandtypes import CODE, Rejection
 from ..compose import process_budget
 from ..config import Issue
 from ..doors import RateLog, budget
 from ..records import CommandReply
 from ..station.build import records_dir_ok
-from ..station.commands import CODE, Rejection
 from ..threadloop import Mailbox
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
 from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames

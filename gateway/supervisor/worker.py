@@ -19,9 +19,11 @@ import socket
 import sys
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import asdict
 from typing import Any
 
+from ..commandtypes import Rejection, reply_code
 from ..compose import build_station
 from ..config import ConfigError, load_station
 from ..console.site import MAX_MESSAGE_BYTES
@@ -30,9 +32,7 @@ from ..northbound.cmdparse import intake
 from ..northbound.metrics import MetricsOutput
 from ..northbound.mqtt import MqttOutput
 from ..ratelog import safe
-from ..records import Event, SlotRecord, StationState
-from ..station import commands as C
-from ..station.commands import Rejection
+from ..records import CommandReply, Event, SlotRecord, StationState
 from ..station.fleet import StationRunner
 from ..station.station import Station
 from ..threadloop import submit_to
@@ -208,15 +208,15 @@ class Worker:
         if isinstance(cmd, Rejection):
             self._reply(fid, False, cmd.reason, None, int(cmd.code))
             return
-        fut = submit_to(r.loop if r is not None else None, C.submit(st, cmd)) if st is not None else None
+        fut = submit_to(r.loop if r is not None else None, st.submit(cmd)) if st is not None else None
         if fut is None:
             self._reply(fid, False, "station is not running", cmd.request_id)
             return
 
-        def done(f: Any) -> None:
+        def done(f: Future[CommandReply]) -> None:
             try:
                 rep = f.result()
-                self._reply(fid, bool(rep.ok), rep.reason, rep.request_id, int(getattr(rep, "code", 0) or 0))
+                self._reply(fid, bool(rep.ok), rep.reason, rep.request_id, reply_code(rep))
             except Exception as e:  # the station's submit failed: an answer all the same
                 self._reply(fid, False, f"{type(e).__name__}: {e}", cmd.request_id)
         fut.add_done_callback(done)

@@ -204,7 +204,8 @@ def pub(port: int, topic: str, payload: str, *, retain: bool = False, qos: int =
 
 
 @contextlib.contextmanager
-def station_on_broker(tmp_path, base: str, station_id: str, *, modbus_port: int | None = None):
+def station_on_broker(tmp_path, base: str, station_id: str, *, modbus_port: int | None = None,
+                      stm32=None):
     """A station running on its own loop with its MQTT output on a fresh Mosquitto (the MES is a
     :class:`Sub` on ``base/#``) and, with ``modbus_port``, its Modbus TCP server (unit 1, writes
     from loopback: the PLC is mbpoll). Yields (broker, sub, station, loop thread) once both answer."""
@@ -215,7 +216,7 @@ def station_on_broker(tmp_path, base: str, station_id: str, *, modbus_port: int 
     lt = LoopThread()
     with Broker(tmp_path) as b:
         sub = Sub(b.port, base + "/#")
-        st = make_station(tmp_path, [], station_id=station_id)
+        st = make_station(tmp_path, [], station_id=station_id, stm32=stm32)
         out = MqttOutput(MqttSettings(station_id=station_id, base_topic=base, port=b.port,
                                       outbox_path=str(tmp_path / "outbox.sqlite"),
                                       reconnect_min_s=0.2, reconnect_max_s=1.0), st)

@@ -33,10 +33,14 @@ class FakeMeter:
 
 
 class FakeStm32:
-    def __init__(self):
+    """``stop_delay_s``: the stop is answered after this long (a real STM32's reply comes after
+    a serial round trip: the station's loop runs on meanwhile)."""
+
+    def __init__(self, stop_delay_s: float = 0.0):
         self.connected = True
         self.counters = {}
         self.calls = []
+        self.stop_delay_s = stop_delay_s
 
     async def open(self):
         pass
@@ -49,6 +53,8 @@ class FakeStm32:
 
     async def stop(self, reason=""):
         self.calls.append(f"stop:{reason}")
+        if self.stop_delay_s:
+            await asyncio.sleep(self.stop_delay_s)
 
     async def read_status(self):
         return None

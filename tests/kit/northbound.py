@@ -55,12 +55,13 @@ class LoopThread:
 FAKE_PLANT_START = {"zero_check": False, "settle_band": 0.5, "settle_time": 0.2}
 
 
-def make_station(tmp_path, outputs, station_id="st1", **kw):
+def make_station(tmp_path, outputs, station_id="st1", stm32=None, **kw):
     from gateway.control import ControlParams
     from gateway.station.station import Station, TestPlan
 
     return Station(station_id=station_id, method=dict(FAKE_PLANT_START), control=ControlParams(),
-                   meter=FakeMeter(), stm32=FakeStm32(), records_dir=str(tmp_path / "records"), outputs=outputs,
+                   meter=FakeMeter(), stm32=stm32 or FakeStm32(), records_dir=str(tmp_path / "records"),
+                   outputs=outputs,
                    default_plan=TestPlan("S-0", "I", 0.5, 600.0), **kw)
 
 

@@ -29,6 +29,7 @@ import socket
 import sqlite3
 import threading
 import time
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -36,10 +37,9 @@ import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
 from ... import __version__
+from ...commandtypes import Rejection, reply_code
 from ...ratelog import RateLog, safe
-from ...records import CommandKind
-from ...station import commands as C
-from ...station.commands import Rejection
+from ...records import CommandKind, CommandReply
 from ...threadloop import call_soon_on, submit_to
 from ..broker_settings import BrokerSettings, SecretError
 from ..cmdparse import intake, rejected_event_data
@@ -387,17 +387,17 @@ class NodeRuntime:
         if isinstance(cmd, Rejection):
             self._act(self.node.command_result(sub.device_id, sub.kind, False, int(cmd.code), cmd.reason,
                                                self._now()))
-            call_soon_on(out.loop, C.refused, out.station, rejected_event_data(ck.value, cmd, "sparkplug"))
+            call_soon_on(out.loop, out.station.refused, rejected_event_data(ck.value, cmd, "sparkplug"))
             return
-        fut = submit_to(out.loop, C.submit(out.station, cmd))
+        fut = submit_to(out.loop, out.station.submit(cmd))
         if fut is None:
             self.post(("result", sub.device_id, sub.kind, False, 10, "the station is not running"))
             return
 
-        def done(f, dev=sub.device_id, kind=sub.kind):
+        def done(f: Future[CommandReply], dev: str = sub.device_id, kind: str = sub.kind) -> None:
             try:
                 r = f.result()
-                self.post(("result", dev, kind, bool(r.ok), int(getattr(r, "code", 0) or 0), r.reason))
+                self.post(("result", dev, kind, bool(r.ok), reply_code(r), r.reason))
             except Exception as e:  # noqa: BLE001 - the station failed to carry it out
                 self.post(("result", dev, kind, False, 10, f"the station failed: {type(e).__name__}: {e}"))
 

@@ -73,6 +73,7 @@ ARG_T_SET = "Device Control/Setpoint"
 ARG_T_END = "Device Control/Planned End"
 ARG_ALARM = "Device Control/Alarm"
 ARG_DURATION = "Device Control/Shelve Duration"
+ARG_REQUEST_ID = "Device Control/Request ID"
 
 #: the forecast's metrics (METHOD.md §5a, §5b, §7a)
 FC_STARTED = "Test/Started"
@@ -99,7 +100,7 @@ COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_repla
             UNSHELVE: "unshelve"}
 #: DCMD argument metric → key of the command's arguments (gateway.station.commands.COMMAND_KEYS)
 COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end",
-                ARG_ALARM: "alarm", ARG_DURATION: "duration_s"}
+                ARG_ALARM: "alarm", ARG_DURATION: "duration_s", ARG_REQUEST_ID: "request_id"}
 
 
 def _alarm_metrics(name: str, what: str) -> tuple[MetricDef, ...]:
@@ -202,6 +203,10 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef(FC_PRIOR_SOURCE, DataType.String, description="method | config | history:N (empty: "
               "no prior)"),
     MetricDef(FC_LEAD, DataType.Double, "s", "the planner's lead the hook is judged against (§5b)"),
+    # appended so that the aliases above stay what they were
+    MetricDef(ARG_REQUEST_ID, DataType.String, description="any command's argument: the host's id "
+              "of the request (1–64 printable ASCII); a DCMD repeated with the same id within 600 s "
+              "is answered again and not carried out again (docs/limits.md)", writable=True),
 )
 
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}

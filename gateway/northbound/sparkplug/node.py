@@ -26,8 +26,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ...commandtypes import COMMAND_KEYS
 from ...records import CommandKind
-from ...station.commands import COMMAND_KEYS
 from . import metrics as M
 from .inbound import BadInput, InboundLimits, parse_payload, parse_state
 from .sparkplug_b_pb2 import Payload
@@ -651,7 +651,7 @@ class EdgeNode:
             subs: list[Publish | Disconnect | Submit] = []
             for name, ck in M.COMMANDS.items():
                 if vals.get(name) is True:      # each command takes the arguments it knows
-                    keys = COMMAND_KEYS[CommandKind(ck)]
+                    keys = COMMAND_KEYS[CommandKind(ck)] + ("request_id",)
                     subs.append(Submit(dev.device_id, ck, {k: v for k, v in args.items() if k in keys}))
             return subs
         self.counters["ignored_commands"] += 1
@@ -659,7 +659,7 @@ class EdgeNode:
 
     def command_result(self, device_id: str, kind: str, ok: bool, code: int, reason: str,
                        now_ms: int) -> list[Publish]:
-        text = f"{kind}: accepted" if ok else f"{kind}: rejected: {reason}"
+        text = (f"{kind}: accepted" + (f" ({reason})" if reason else "")) if ok else f"{kind}: rejected: {reason}"
         return self.device_update(device_id, {"Device Control/Last Command": text,
                                               "Device Control/Last Result Code": 0 if ok else int(code)},
                                   now_ms)

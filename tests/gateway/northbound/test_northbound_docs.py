@@ -103,10 +103,11 @@ def test_refusals_answer_the_modbus_exception_the_specification_means():
 
     assert R.refusal_exception(CODE["BUSY"]) == 6               # server device busy: retry later
     assert R.refusal_exception(CODE["SETPOINT_LOCKED"]) == 6
+    assert R.refusal_exception(CODE["RATE_LIMITED"]) == 6       # too many commands: retry later
     assert R.refusal_exception(CODE["NO_STATION"]) == 4         # the only real failure
     assert R.refusal_exception(999) == 4
     for code, name, _ in REJECT_CODES:
-        if code and name not in ("BUSY", "SETPOINT_LOCKED", "NO_STATION"):
+        if code and name not in ("BUSY", "SETPOINT_LOCKED", "RATE_LIMITED", "NO_STATION"):
             assert R.refusal_exception(code) == 3, name         # a refused value / state
     # the map only grew: the added input registers come after every earlier one
     assert R.IR["run_sample_id"].address == R.IR["command_count"].address + 1

@@ -174,7 +174,7 @@ def test_hook_replaced_ends_the_test_logs_it_and_restarts_with_the_new_hook(tmp_
     ev = [e for e in out.events if e.type == EventType.HOOK_REPLACED]
     assert [e.data["new_sample_id"] for e in ev] == ["S-2", "S-2-R1"] and ev[0].data["logged"]
     refused = [e for e in out.events if e.type == EventType.COMMAND_REJECTED]
-    assert len(refused) == 6
+    assert st.desk.gate.refusals == 6 and 1 <= len(refused) <= 6    # counted; events per kind
 
 
 def test_hook_replaced_without_restart_leaves_the_station_idle(tmp_path):

@@ -86,6 +86,16 @@ def test_dcmd_metrics_are_typed_and_bounded_like_every_other_door(tmp_path):
         assert code == 0, text
         (h,) = read_hooks(str(tmp_path / "records" / DEV))
         assert (h["old_sample_id"], h["new_sample_id"], h["by"]) == ("SPB-2", "SPB-3", "sparkplug")
+        # issue 27: a DCMD repeated with the same Request ID is answered again, carried out once
+        text, code = send([{"name": "Device Control/Acknowledge Alarm", "boolean_value": True}])
+        assert code != 0, text
+        again = [hook, {"name": "Device Control/Sample ID", "string_value": "SPB-4"},
+                 {"name": "Device Control/Request ID", "string_value": "host-r1"}]
+        text, code = send(again)
+        assert code == 0 and text == "hook_replaced: accepted", text
+        text, code = send(again)
+        assert code == 0 and "duplicate" in text and "host-r1" in text, text
+        assert [h["new_sample_id"] for h in read_hooks(str(tmp_path / "records" / DEV))] == ["SPB-3", "SPB-4"]
     finally:
         if run is not None:
             run.stop()
