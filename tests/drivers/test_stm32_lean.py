@@ -8,7 +8,8 @@ import random
 from drivers import stm32_protocol as p
 from drivers.sim.loopback import LoopbackLink
 from drivers.sim.stm32 import SimpleMotor, Stm32Firmware, VirtualStm32
-from drivers.stm32 import Stm32Link, fast_ack
+from drivers.stm32 import Stm32Link
+from drivers.stm32_wire import fast_ack
 
 
 def run(coro, timeout=40.0):
@@ -73,7 +74,7 @@ def test_concurrent_calls_one_exchange_at_a_time_in_order():
         await asyncio.gather(*tasks)
         assert victim.cancelled()
         st = await link.read_status()
-        return order, st, dict(link.counters), link._busy
+        return order, st, dict(link.counters), link.busy
 
     order, st, counters, busy = run(_with_virtual_stm32(body))
     assert order == [(i, True) for i in range(7)]
@@ -108,12 +109,12 @@ def test_posted_speed_commands_collected_without_waiting():
         got = []
         for i in range(30):                  # as the station: post, next slot collect
             assert link.post_speed(100.0 + i)
-            assert not link._watching        # the ACK does not wake the loop
+            assert not link.wire.watching        # the ACK does not wake the loop
             await asyncio.sleep(0.02)
             got.append(link.collect())
         acked_before = link.counters["acked"]
         st = await link.read_status()        # an awaited exchange watches the port again
-        return got, acked_before, st, dict(link.counters), link._watching
+        return got, acked_before, st, dict(link.counters), link.wire.watching
 
     got, acked_before, st, c, watching = run(_with_virtual_stm32(body))
     assert all(s is not None for s in got)

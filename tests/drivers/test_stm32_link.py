@@ -361,7 +361,7 @@ def test_a_stale_readiness_event_is_no_hang_up_a_real_one_is(tmp_path):
             try:
                 for _ in range(5):
                     assert await link.stop("test") is not None
-                    link._on_readable()          # the stale event: nothing to read, no hang-up
+                    link.wire.on_readable()          # the stale event: nothing to read, no hang-up
                     assert link.connected, link.counters
                 sim.proc.terminate()
                 await sim.proc.wait()
