@@ -24,6 +24,11 @@ One read per 20 ms slot, never longer than ``timeout_s``, never raising:
   every ``REOPEN_INTERVAL_S`` until it exists again. Use a stable path (``/dev/serial/by-id/...``
   or the simulator's symlink): a re-plugged adapter gets a new node.
 
+Two parts: :class:`~drivers.zns_line.MeterLine` (``drivers/zns_line.py``) is the port — opened,
+reopened, watched, written, drained, put into low-latency and RS-485 mode — and hands the bytes
+that arrive to :class:`ZnsMeter`, the Modbus RTU transaction on it (one request, its reply checked
+as it arrives, the decoded reading, the counters and the diagnosis of a read that gave none).
+
 Why not pymodbus' client (it was used until issue 16): its transaction layer (a task, a framer, a
 PDU object and a transaction record per request) cost ≈ 0.4 ms of CPU per read, a large part of
 a station's slot budget (bench/bench_slot_cpu.py); the one exchange this driver needs is ~150
@@ -42,19 +47,15 @@ Details and timings: ``docs/protocols/zn-s.md``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
-import os
 import time
 from typing import Any
-
-import serial
 
 from gateway.ports import MeterReading
 
 from .crc import crc16_modbus
-from .ttyio import PortInUse, hung_up, open_exclusive, set_low_latency, set_rs485
+from .zns_line import MeterLine, is_pty
 from .zns_map import DEFAULT_MAP_PATH, DecodeError, MeterMap, load_map
 
 log = logging.getLogger("hookwatch.meter")
@@ -67,10 +68,6 @@ FAST_RUN = 5
 COUNTER_NAMES = ("reads", "reads_ok", "timeouts", "crc_errors", "garbage", "modbus_exceptions",
                  "decode_errors", "stale_replies", "port_lost", "reopened", "not_connected",
                  "late_bytes", "errors", "port_in_use")
-
-
-def _is_pty(path: str) -> bool:
-    return os.path.realpath(path).startswith("/dev/pts/")
 
 
 #: one poll: ch1, ch2 (N) and rtt_s (request handed to the port → reply decoded); the type of the
@@ -96,27 +93,18 @@ class ZnsMeter:
                  local_echo: bool = False, rs485: Any = None):
         self.port = port
         self.local_echo = bool(local_echo)
-        #: the ``meter.rs485`` section (enabled, rts_on_send, rts_after_send, delay_*_s) or None
-        self.rs485: Any = rs485 if rs485 is not None and getattr(rs485, "enabled", False) else None
-        self.rs485_error: str | None = None
-        self.low_latency = False
         self._last_failure: str | None = None
         self._last_cause: str | None = None    # why the latest read that gave nothing did
         self.map = meter_map
         self.timeout_s = float(timeout_s)
         self.swap_channels = bool(swap_channels)      # applied by the station
         self.reopen_interval_s = reopen_interval_s
-        self.connected = False
         self.counters: dict[str, int] = {k: 0 for k in COUNTER_NAMES}
+        #: the port (open, reopened, watched, written, drained): drivers/zns_line.py
+        self.line = MeterLine(port, meter_map, self.counters, self, reopen_interval_s=reopen_interval_s,
+                              rs485=rs485)
         self.last_exception_code: int | None = None
         self.last_rtt_s = math.nan
-        self._ser: Any = None                # pyserial port (opens and configures the device)
-        self._fd: int | None = None
-        self._parity_used = meter_map.parity
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._reopen_task: asyncio.Task | None = None
-        self._closed = False
-        self._in_use_logged = False            # "in use by …" said for the current episode
         # the open transaction
         self._pending = False
         self._rx = bytearray()
@@ -135,7 +123,7 @@ class ZnsMeter:
         #: meter, a virtual COM port, a device server; on a paced line a reply that early is a
         #: rare late answer) — logged once. Replies are then paired with their request by shape
         #: alone: input drained before each request, unit, function code, byte count and CRC.
-        self.timing_physical = not (_is_pty(port) or "://" in port)
+        self.timing_physical = not (is_pty(port) or "://" in port)
         self._paced = 0                        # complete replies that took the wire time or more
         self._fast = 0                         # complete replies sooner than the wire
         if self.timeout_s < meter_map.poll_time_s():
@@ -169,98 +157,43 @@ class ZnsMeter:
                    local_echo=bool(getattr(meter_cfg, "local_echo", False)),
                    rs485=getattr(meter_cfg, "rs485", None))
 
-    # ------------------------------------------------------------------ lifecycle
+    # ------------------------------------------------------------------ the port
+    @property
+    def connected(self) -> bool:
+        return self.line.connected
+
+    @connected.setter
+    def connected(self, value: bool) -> None:
+        self.line.connected = value
+
+    @property
+    def low_latency(self) -> bool:
+        return self.line.low_latency
+
+    @property
+    def rs485(self) -> Any:
+        """The ``meter.rs485`` section in use (enabled), or None."""
+        return self.line.rs485
+
+    @property
+    def rs485_error(self) -> str | None:
+        """Why the port refused the kernel's RS-485 mode (None: it did not)."""
+        return self.line.rs485_error
+
     async def open(self) -> None:
         """Open the port; if it is not there, keep trying in the background (never raises)."""
-        self._loop = asyncio.get_running_loop()
-        self._closed = False
-        if not await self._try_connect():
-            log.warning("meter %s: cannot open the port; retrying every %.1f s", self.port,
-                        self.reopen_interval_s)
-            self._start_reopen()
+        await self.line.open()
 
     async def close(self) -> None:
-        self._closed = True
-        if self._reopen_task is not None:
-            self._reopen_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._reopen_task
-            self._reopen_task = None
-        self._release()
-        self.connected = False
+        await self.line.close()
 
-    def _release(self) -> None:
-        """Stop watching and close the port (idempotent)."""
-        if self._fd is not None and self._loop is not None:
-            with contextlib.suppress(Exception):
-                self._loop.remove_reader(self._fd)
-        self._fd = None
-        if self._ser is not None:
-            with contextlib.suppress(Exception):
-                self._ser.close()
-        self._ser = None
-
-    async def _try_connect(self) -> bool:
-        if "://" not in self.port and not os.path.exists(self.port):   # a URL: pyserial decides
-            return False
-        parity = self.map.parity
-        if parity != "N" and _is_pty(self.port):
-            # A pseudo-terminal (the simulator) carries no parity bit, and some kernels refuse
-            # PARENB on a pty (termios EINVAL, which also leaves pyserial's port locked).
-            parity = "N"
-            if self._parity_used != "N":
-                log.info("meter %s: %s is a pseudo-terminal; parity %s not set there", self.port,
-                         os.path.realpath(self.port), self.map.parity)
-        self._parity_used = parity
-        self._release()
-        m = self.map
-        try:
-            # serial_for_url: a device path, or a pyserial URL (the back-to-back tests' hwloop://)
-            # exclusively (flock, taken before any setting is applied): a port another station or
-            # a probe holds is left as it is, and said once with who holds it
-            ser = open_exclusive(self.port, baudrate=m.baud, bytesize=m.bytesize, parity=parity,
-                                 stopbits=m.stopbits, timeout=0, write_timeout=0)
-        except PortInUse as e:
-            self.counters["port_in_use"] += 1
-            if not self._in_use_logged:
-                self._in_use_logged = True
-                log.warning("meter %s: %s; not opened (retrying every %.1f s)", self.port, e,
-                            self.reopen_interval_s)
-            return False
-        except (OSError, ValueError, serial.SerialException) as e:
-            log.debug("meter %s: open failed: %r", self.port, e)
-            return False
-        loop = self._loop or asyncio.get_running_loop()
-        self.low_latency = set_low_latency(ser, self.port, log)
-        try:
-            fd = ser.fileno()
-            if self.rs485 is not None:
-                self._set_rs485(fd)
-            os.set_blocking(fd, False)
-            loop.add_reader(fd, self._on_readable)
-        except (OSError, ValueError) as e:
-            log.debug("meter %s: cannot watch the port: %r", self.port, e)
-            with contextlib.suppress(Exception):
-                ser.close()
-            return False
-        self._ser, self._fd = ser, fd
-        self.connected = True
-        if self._in_use_logged:
-            self._in_use_logged = False
-            log.warning("meter %s: the port is free again: opened", self.port)
-        return True
-
-    def _set_rs485(self, fd: int) -> None:
-        r = self.rs485
-        err = set_rs485(fd, r.rts_on_send, r.rts_after_send, r.delay_before_send_s, r.delay_after_send_s)
-        if err and err != self.rs485_error:
-            log.error("meter %s: meter.rs485: %s; the port is used without it", self.port, err)
-        self.rs485_error = err
+    def lost(self) -> None:
+        self._fail_now("port_lost")
 
     def settings_text(self) -> str:
         """Where and how the meter is asked: ``/dev/… at 115200 8N1, unit 1``."""
         m = self.map
-        return f"{self.port} at {m.baud} {m.bytesize}{self._parity_used}{m.stopbits}, unit {self._unit}"
+        return f"{self.port} at {m.baud} {m.bytesize}{self.line.parity_used}{m.stopbits}, unit {self._unit}"
 
     def diagnosis(self) -> str | None:
         """One sentence on why the latest read gave no reading (None after a good one), naming the
@@ -292,56 +225,10 @@ class ZnsMeter:
             return f"the meter on {where} answers Modbus exception {self.last_exception_code:02d}"
         return f"the meter on {where} gives no usable reading ({why})"
 
-    def _start_reopen(self) -> None:
-        if self._closed or self._loop is None:
-            return
-        if self._reopen_task is None or self._reopen_task.done():
-            self._reopen_task = self._loop.create_task(self._reopen_loop())
-
-    async def _reopen_loop(self) -> None:
-        while not self._closed and not self.connected:
-            await asyncio.sleep(self.reopen_interval_s)
-            if self._closed:
-                return
-            if await self._try_connect():
-                self.counters["reopened"] += 1
-                log.warning("meter %s: port reopened", self.port)
-                return
-
-    def _port_lost(self, why: Any) -> None:
-        if self.connected:
-            self.connected = False
-            self.counters["port_lost"] += 1
-            log.warning("meter %s: port lost (%s)", self.port, why)
-        self._release()
-        self._fail_now("port_lost")
-        self._start_reopen()
-
     # ------------------------------------------------------------------ receiving
-    def _read_chunk(self, readable: bool) -> bytes:
-        """What the OS holds for us now (b'' if nothing); a read error is the port going away, and
-        so is an empty read when the port reports a hang-up. (With VMIN 0, as pyserial sets it, an
-        empty read otherwise just means no data — also when the loop said "readable": under load
-        the loop can run a readiness callback after :meth:`_drain` in the same turn has already
-        taken the bytes, and that stale event is no hang-up.)"""
-        fd = self._fd
-        if fd is None:
-            return b""
-        try:
-            data = os.read(fd, 256)
-        except BlockingIOError:
-            return b""
-        except OSError as e:
-            self._port_lost(e)
-            return b""
-        if not data and readable and hung_up(fd):
-            self._port_lost("end of file")
-        return data
-
-    def _on_readable(self) -> None:
-        data = self._read_chunk(True)
-        if not data:
-            return
+    def received(self, data: bytes) -> None:
+        """Bytes from the line: the reply inspected as it arrives (a bad CRC or garbage ends the
+        read at once)."""
         if not self._pending:
             self.counters["late_bytes"] += 1
             return
@@ -374,26 +261,22 @@ class ZnsMeter:
         if f is not None and not f.done():
             f.set_result(why)
 
-    def _drain(self) -> None:
-        """Discard what the OS holds for us (a late reply), counting it as late bytes."""
-        while self._read_chunk(False):
-            self.counters["late_bytes"] += 1
-
     # ------------------------------------------------------------------ reading
     async def read(self) -> Reading | None:
         """One poll. Reading or None (counted); never raises, never takes longer than timeout_s."""
-        if not self.connected or self._fd is None:
+        line = self.line
+        if not line.connected or line.fd is None:
             self.counters["not_connected"] += 1
             self.last_failure = "not_connected"
-            self._start_reopen()
+            line.start_reopen()
             return None
         if self._pending:                 # a concurrent caller: one transaction at a time
             self.counters["errors"] += 1
             return None
         self.counters["reads"] += 1
-        loop = self._loop or asyncio.get_running_loop()
-        self._drain()
-        if self._fd is None:             # lost while draining
+        loop = asyncio.get_running_loop()
+        line.drain()
+        if line.fd is None:              # lost while draining
             return None
         self._rx.clear()
         self._echo_left = len(self._request) if self.local_echo else 0
@@ -402,12 +285,8 @@ class ZnsMeter:
         timer = None
         try:
             t0 = time.monotonic()
-            try:
-                n = os.write(self._fd, self._request)
-            except BlockingIOError:
-                n = 0
-            except OSError as e:
-                self._port_lost(e)
+            n = line.write(self._request)
+            if n is None:                 # the port is gone (lost now)
                 return None
             if n != len(self._request):
                 self.counters["errors"] += 1
@@ -424,7 +303,7 @@ class ZnsMeter:
                 return None
             self._count_failure(why)
             if why != "port_lost":
-                self._flush_input()
+                line.flush_input()
             return None
         except Exception as e:            # never raise into the slot loop
             self.counters["errors"] += 1
@@ -436,11 +315,6 @@ class ZnsMeter:
             self._pending = False
             self._fail = None
 
-    def _flush_input(self) -> None:
-        """Discard what the OS holds for us, so a late reply cannot be read as the next answer."""
-        with contextlib.suppress(Exception):
-            self._ser.reset_input_buffer()
-
     def _count_failure(self, why: str) -> None:
         if why == "timeout":
             self.counters["timeouts"] += 1
@@ -449,7 +323,7 @@ class ZnsMeter:
         elif why == "garbage":
             self.counters["garbage"] += 1
         elif why == "port_lost":
-            pass                              # counted once in _port_lost
+            pass                              # counted once by the line (MeterLine.port_lost)
         else:
             self.counters["errors"] += 1
 

@@ -317,7 +317,7 @@ def test_a_stale_readiness_event_is_no_hang_up_a_real_one_is(meter_proc):
         try:
             for _ in range(5):
                 await read_ok(m)
-                m._on_readable()        # the stale event: nothing to read, and no hang-up
+                m.line.on_readable()   # the stale event: nothing to read, and no hang-up
                 assert m.connected, m.counters
             assert m.counters["port_lost"] == 0
             mp.stop()                   # the meter's process ends: its pty master closes
