@@ -15,6 +15,10 @@ socketpair, and then only supervises:
   RELOAD frame (its station decides on its own loop: idle → restarts with it, in a test → keeps its
   parameters); a broken file keeps its running station; new files start, removed files stop.
 
+The restarts, the watchdog and the pace of starts are one part, :class:`WorkerWatch`, run on
+every tick; :class:`Supervisor` reads the folder, holds the workers and hubs, releases the start
+barrier, reloads and stops (the ``Runtime`` of ``hookwatch run``).
+
 Per station the supervisor keeps a :class:`StationHub`: the latest state, the last slot summary,
 a bounded stream of slot summaries and events, and a command path back to the station. The
 outputs that stay in the supervisor process (the Modbus TCP ports with one unit per station, the
@@ -48,7 +52,7 @@ from ..threadloop import Mailbox
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
 from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
 
-__all__ = ["StationHub", "Supervisor", "WorkerHandle"]
+__all__ = ["StationHub", "Supervisor", "WorkerHandle", "WorkerWatch"]
 
 log = logging.getLogger("hookwatch.supervisor")
 
@@ -342,6 +346,116 @@ class WorkerHandle:
             self.sock = None
 
 
+class WorkerWatch:
+    """The supervision of a fleet's workers, once per tick: starts paced (at most ``max_starting``
+    loading at a time), a worker that exits restarted after ``backoff_s · 2^(n-1)`` s (n = crashes
+    in a row, capped at ``backoff_max_s``; a run of ``stable_s`` resets n) or held back ``hold_s``
+    after ``hold_after`` crashes in a row, one silent for ``watchdog_s`` (``startup_s`` while it
+    loads) killed, a start that fails (EMFILE …) retried with its own back-off. A stall of the
+    supervisor itself (> STALL_S between ticks) pauses the watchdog GRACE_S."""
+
+    def __init__(self, rlog: RateLog, *, watchdog_s: float, backoff_s: float, backoff_max_s: float,
+                 hold_after: int, hold_s: float, stable_s: float, startup_s: float) -> None:
+        self.rlog = rlog
+        self.watchdog_s = watchdog_s
+        self.backoff_s = backoff_s
+        self.backoff_max_s = backoff_max_s
+        self.hold_after = hold_after
+        self.hold_s = hold_s
+        self.stable_s = stable_s
+        self.startup_s = startup_s
+        self.max_starting = max(1, os.cpu_count() or 1)
+        #: worker starts that failed (EMFILE, ENFILE …), all stations
+        self.spawn_failures = 0
+        self._last_tick = 0.0
+        #: no watchdog kill before this time (after a stall of the supervisor itself)
+        self._grace_until = 0.0
+
+    def tick(self, workers: list[WorkerHandle], now: float) -> None:
+        if self._last_tick and now - self._last_tick > STALL_S:
+            # the supervisor itself did not run (stopped, swapped out, starved): the workers'
+            # heartbeats wait unread in the sockets; let the readers catch up before judging them
+            log.warning("supervisor did not run for %.1f s; worker watchdog paused %.0f s",
+                        now - self._last_tick, GRACE_S)
+            self._grace_until = now + GRACE_S
+        self._last_tick = now
+        # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
+        # opening) costs about a second of CPU, and N at once would starve the running stations
+        starting = sum(1 for w in workers if w.running and not w.hello)
+        for w in workers:
+            name = w.hub.name
+            if w.proc is None:
+                if not w.stopping and now >= w.next_start and starting < self.max_starting:
+                    starting += 1
+                    try:
+                        w.spawn()
+                    except OSError as e:        # EMFILE, ENFILE, EAGAIN: a state, never the end
+                        self._spawn_failed(w, e, now)
+                        continue
+                    w.spawn_failures_in_row = 0
+                    if w.spawned > 1:
+                        w.restarts += 1
+                        w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
+                                                     "restarts": w.restarts, "time": time.time()})
+                continue
+            rc = w.proc.poll()
+            if rc is not None:
+                self._exited(w, rc, now)
+                continue
+            if w.hello and not w.go_t:
+                continue                     # loaded, waiting at the start barrier
+            age = now - max(w.hub.heartbeat_t, w.go_t, w.started_at)
+            limit = self.watchdog_s if w.go_t else self.startup_s
+            if age > limit and not w.stopping and now >= self._grace_until:
+                log.error("%s: worker pid %d silent for %.1f s (stuck loop?): killed (SIGKILL)",
+                          name, w.proc.pid, age)
+                w.hub.publish("supervisor", {"type": "worker_stuck", "station": name,
+                                             "silent_s": round(age, 1), "time": time.time()})
+                w.proc.kill()
+
+    def _spawn_failed(self, w: WorkerHandle, e: OSError, now: float) -> None:
+        """A worker that cannot be started (no descriptor for its socketpair, no process): tried
+        again after SPAWN_RETRY_S, doubling to SPAWN_RETRY_MAX_S; one log line a minute per
+        station with the count; the running workers go on."""
+        w.spawn_failures += 1
+        w.spawn_failures_in_row += 1
+        delay = min(SPAWN_RETRY_MAX_S, SPAWN_RETRY_S * 2 ** (w.spawn_failures_in_row - 1))
+        w.next_start = now + delay
+        self.spawn_failures += 1
+        self.rlog(logging.ERROR, f"spawn:{w.hub.name}", "%s: cannot start the worker: %s; "
+                  "retrying in %.1f s (%d failed starts)", w.hub.name, e.strerror or e, delay,
+                  w.spawn_failures)
+        if w.spawn_failures_in_row == 1:
+            w.hub.publish("supervisor", {"type": "worker_start_failed", "station": w.hub.name,
+                                         "reason": str(e.strerror or e), "retry_in_s": delay,
+                                         "time": time.time()})
+
+    def _exited(self, w: WorkerHandle, rc: int, now: float) -> None:
+        w.reap()
+        w.proc = None
+        w.hub.heartbeat = None
+        name = w.hub.name
+        if w.stopping:
+            return
+        why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
+        if now - w.started_at >= self.stable_s:
+            w.crashes_in_row = 0
+        w.crashes_in_row += 1
+        n = w.crashes_in_row
+        if n >= self.hold_after:
+            delay = self.hold_s
+            log.error("%s: worker keeps crashing (%d times in a row, last: %s): held back for %.0f s",
+                      name, n, why, delay)
+            kind = "worker_held_back"
+        else:
+            delay = min(self.backoff_max_s, self.backoff_s * 2 ** (n - 1))
+            log.error("%s: worker ended (%s); restarting in %.1f s", name, why, delay)
+            kind = "worker_exited"
+        w.next_start = now + delay
+        w.hub.publish("supervisor", {"type": kind, "station": name, "reason": why,
+                                     "crashes_in_row": n, "restart_in_s": delay, "time": time.time()})
+
+
 class Supervisor:
     def __init__(self, folder: str, opts: RunOptions, *, watchdog_s: float = 5.0,
                  backoff_s: float = 1.0, backoff_max_s: float = 60.0, hold_after: int = 5,
@@ -360,15 +474,13 @@ class Supervisor:
         self.served_for = served_for
         self.opts = opts
         self.opts_json = safeout.dumps(opts.as_dict())
-        self.watchdog_s = watchdog_s
-        self.backoff_s = backoff_s
-        self.backoff_max_s = backoff_max_s
-        self.hold_after = hold_after
-        self.hold_s = hold_s
-        self.stable_s = stable_s
         self.startup_s = startup_s
         self.summary_every = summary_every
-        self.max_starting = max(1, os.cpu_count() or 1)
+        self.rlog = RateLog(log)
+        #: restarts, hold-backs, the watchdog and the pace of starts
+        self.watch = WorkerWatch(self.rlog, watchdog_s=watchdog_s, backoff_s=backoff_s,
+                                 backoff_max_s=backoff_max_s, hold_after=hold_after, hold_s=hold_s,
+                                 stable_s=stable_s, startup_s=startup_s)
         #: at start, loaded workers wait until all are loaded (then GO for all at once)
         self.barrier = True
         self.t_start = time.monotonic()
@@ -376,14 +488,8 @@ class Supervisor:
         self.hubs: dict[str, StationHub] = {}
         self.workers: dict[str, WorkerHandle] = {}        # by station file path
         self._retired: list[WorkerHandle] = []             # removed or renamed, stopping
-        self._last_tick = 0.0
-        #: no watchdog kill before this time (after a stall of the supervisor itself)
-        self._grace_until = 0.0
         self._ready = False
         self._started_any = False
-        #: worker starts that failed (EMFILE, ENFILE …), all stations
-        self.spawn_failures = 0
-        self.rlog = RateLog(log)
 
     # ------------------------------------------------------------ start
     def refuse(self, r: Refused, reload: bool = False) -> None:
@@ -475,18 +581,8 @@ class Supervisor:
     # ------------------------------------------------------------ supervision
     def tick(self, now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
-        if self._last_tick and now - self._last_tick > STALL_S:
-            # the supervisor itself did not run (stopped, swapped out, starved): the workers'
-            # heartbeats wait unread in the sockets; let the readers catch up before judging them
-            log.warning("supervisor did not run for %.1f s; worker watchdog paused %.0f s",
-                        now - self._last_tick, GRACE_S)
-            self._grace_until = now + GRACE_S
-        self._last_tick = now
         if any(h.in_test for h in self.hubs.values()):
             self._started_any = True
-        # workers start at most ``max_starting`` at a time: a worker's start-up (imports, port
-        # opening) costs about a second of CPU, and N at once would starve the running stations
-        starting = sum(1 for w in self.workers.values() if w.running and not w.hello)
         if self.barrier and (now - self.t_start > self.startup_s or not any(
                 w.proc is None or (w.running and not w.hello) for w in self.workers.values())):
             # every worker of the fleet has loaded (or the start-up time is over): all stations
@@ -495,78 +591,12 @@ class Supervisor:
             for w in self.workers.values():
                 if w.running and w.hello and not w.go_t:
                     w.go()
-        for w in list(self.workers.values()):
-            name = w.hub.name
-            if w.proc is None:
-                if not w.stopping and now >= w.next_start and starting < self.max_starting:
-                    starting += 1
-                    try:
-                        w.spawn()
-                    except OSError as e:        # EMFILE, ENFILE, EAGAIN: a state, never the end
-                        self._spawn_failed(w, e, now)
-                        continue
-                    w.spawn_failures_in_row = 0
-                    if w.spawned > 1:
-                        w.restarts += 1
-                        w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
-                                                     "restarts": w.restarts, "time": time.time()})
-                continue
-            rc = w.proc.poll()
-            if rc is not None:
-                self._exited(w, rc, now)
-                continue
-            if w.hello and not w.go_t:
-                continue                     # loaded, waiting at the start barrier
-            age = now - max(w.hub.heartbeat_t, w.go_t, w.started_at)
-            limit = self.watchdog_s if w.go_t else self.startup_s
-            if age > limit and not w.stopping and now >= self._grace_until:
-                log.error("%s: worker pid %d silent for %.1f s (stuck loop?): killed (SIGKILL)",
-                          name, w.proc.pid, age)
-                w.hub.publish("supervisor", {"type": "worker_stuck", "station": name,
-                                             "silent_s": round(age, 1), "time": time.time()})
-                w.proc.kill()
+        self.watch.tick(list(self.workers.values()), now)
 
-    def _spawn_failed(self, w: WorkerHandle, e: OSError, now: float) -> None:
-        """A worker that cannot be started (no descriptor for its socketpair, no process): tried
-        again after SPAWN_RETRY_S, doubling to SPAWN_RETRY_MAX_S; one log line a minute per
-        station with the count; the running workers go on."""
-        w.spawn_failures += 1
-        w.spawn_failures_in_row += 1
-        delay = min(SPAWN_RETRY_MAX_S, SPAWN_RETRY_S * 2 ** (w.spawn_failures_in_row - 1))
-        w.next_start = now + delay
-        self.spawn_failures += 1
-        self.rlog(logging.ERROR, f"spawn:{w.hub.name}", "%s: cannot start the worker: %s; "
-                  "retrying in %.1f s (%d failed starts)", w.hub.name, e.strerror or e, delay,
-                  w.spawn_failures)
-        if w.spawn_failures_in_row == 1:
-            w.hub.publish("supervisor", {"type": "worker_start_failed", "station": w.hub.name,
-                                         "reason": str(e.strerror or e), "retry_in_s": delay,
-                                         "time": time.time()})
-
-    def _exited(self, w: WorkerHandle, rc: int, now: float) -> None:
-        w.reap()
-        w.proc = None
-        w.hub.heartbeat = None
-        name = w.hub.name
-        if w.stopping:
-            return
-        why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
-        if now - w.started_at >= self.stable_s:
-            w.crashes_in_row = 0
-        w.crashes_in_row += 1
-        n = w.crashes_in_row
-        if n >= self.hold_after:
-            delay = self.hold_s
-            log.error("%s: worker keeps crashing (%d times in a row, last: %s): held back for %.0f s",
-                      name, n, why, delay)
-            kind = "worker_held_back"
-        else:
-            delay = min(self.backoff_max_s, self.backoff_s * 2 ** (n - 1))
-            log.error("%s: worker ended (%s); restarting in %.1f s", name, why, delay)
-            kind = "worker_exited"
-        w.next_start = now + delay
-        w.hub.publish("supervisor", {"type": kind, "station": name, "reason": why,
-                                     "crashes_in_row": n, "restart_in_s": delay, "time": time.time()})
+    @property
+    def spawn_failures(self) -> int:
+        """Worker starts that failed (EMFILE, ENFILE …), all stations."""
+        return self.watch.spawn_failures
 
     def healthy(self, max_age_s: float = 3.0) -> bool:
         """Every running worker's station loop answered within ``max_age_s`` (systemd watchdog).
