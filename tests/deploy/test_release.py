@@ -41,6 +41,26 @@ def _offline(script: str, **kw):
 _BUILT: dict[str, int] = {}
 
 
+def _extract(tarball: str, dest: str) -> None:
+    """Unpack the tarball, refusing members that would land outside ``dest`` (absolute paths, ``..``,
+    links out). ``extractall(filter="tar")`` does this but is Python 3.11.4+; Debian 12 ships 3.11.2."""
+    top = os.path.realpath(dest)
+    with tarfile.open(tarball) as t:
+        members = t.getmembers()
+        for m in members:
+            target = os.path.realpath(os.path.join(top, m.name))
+            assert target == top or target.startswith(top + os.sep), f"{m.name} leaves the tarball's folder"
+            if m.issym() or m.islnk():
+                base = top if m.islnk() else os.path.dirname(target)
+                link = os.path.realpath(os.path.join(base, m.linkname))
+                assert link.startswith(top + os.sep), f"{m.name} links out of the tarball's folder: {m.linkname}"
+            assert not (m.ischr() or m.isblk() or m.isfifo()), f"{m.name} is a device or fifo"
+        if hasattr(tarfile, "tar_filter"):      # 3.11.4+ (3.12+ warns without a filter)
+            t.extractall(top, members, filter="tar")
+        else:
+            t.extractall(top, members)
+
+
 @pytest.fixture(scope="module")
 def release(tmp_path_factory):
     if os.geteuid() != 0:
@@ -52,8 +72,7 @@ def release(tmp_path_factory):
     _BUILT["tarball_bytes"] = os.path.getsize(tarball)
     assert r.stdout.strip() == tarball
     unpacked = tmp_path_factory.mktemp("unpacked")
-    with tarfile.open(tarball) as t:
-        t.extractall(unpacked, filter="tar")
+    _extract(tarball, str(unpacked))
     (top,) = os.listdir(unpacked)
     return os.path.join(unpacked, top)
 
