@@ -122,14 +122,17 @@ class ThreadLoop:
 class Mailbox(Generic[ItemT]):
     """A bounded, non-blocking stream from a slot loop to another thread.
 
-    :meth:`put_nowait` never blocks and never fails: when ``maxlen`` items wait, the oldest is
-    dropped and counted in :attr:`dropped`. The consumer takes everything with :meth:`drain`
+    :meth:`put_nowait` never blocks and never fails: when ``maxlen`` items wait, one is dropped
+    and counted in :attr:`dropped` — the oldest, or the one the drop policy ``evict`` names (the
+    index of the item to drop, None: the oldest). The consumer takes everything with :meth:`drain`
     (optionally after :meth:`wait`)."""
 
-    def __init__(self, maxlen: int) -> None:
+    def __init__(self, maxlen: int,
+                 evict: Callable[[collections.deque[ItemT]], int | None] | None = None) -> None:
         if maxlen < 1:
             raise ValueError("Mailbox maxlen must be at least 1")
         self.maxlen = maxlen
+        self._evict = evict
         self._q: collections.deque[ItemT] = collections.deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -140,7 +143,11 @@ class Mailbox(Generic[ItemT]):
         with self._lock:
             full = len(self._q) >= self.maxlen
             if full:
-                self._q.popleft()
+                i = self._evict(self._q) if self._evict is not None else None
+                if i is None:
+                    self._q.popleft()
+                else:
+                    del self._q[i]
                 self.dropped += 1
             self._q.append(item)
         self._wake.set()

@@ -1,18 +1,21 @@
 """The one definition of an MQTT broker connection, shared by both northbound MQTT clients.
 
-The JSON tree's pump (:mod:`.mqtt_pump`, a station's ``mqtt:`` section) and the Sparkplug edge
-node (:mod:`.sparkplug.client`, its ``sparkplug:`` section) connect the same way: host, port,
-client ID, keep-alive, user and password (never inline: an environment variable or a file), TLS
-with an optional client certificate, and the reconnect back-off. Their settings derive from
-:class:`BrokerSettings`; :func:`broker_kwargs` reads those keys from either configuration section
-(both derive from ``gateway.config.schema.BrokerConfig``), so the keys a user writes are the same
-in both sections and mean the same.
+The JSON tree's pump (:mod:`.mqtt_pump`, a station's ``mqtt:`` section) and the Sparkplug edge node
+(:mod:`.sparkplug.client`, its ``sparkplug:`` section) connect the same way: host, port, client ID,
+keep-alive, user and password (never inline: an environment variable or a file), TLS with an
+optional client certificate, the reconnect back-off, and the server list (``servers``: the nodes of
+a clustered broker, or Sparkplug's server set; one ``host:port`` when not configured). Their
+settings derive from :class:`BrokerSettings`; :func:`broker_kwargs` reads those keys from either
+configuration section (both derive from ``gateway.config.schema.BrokerConfig``), so the keys a user
+writes are the same in both sections and mean the same.
 """
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
+
+from ..config.schema import parse_server
 
 __all__ = ["SecretError", "BrokerSettings", "broker_kwargs"]
 
@@ -38,9 +41,16 @@ class BrokerSettings:
     poll_s: float = 0.02              # network loop wait when connected (bounds the latency)
     reconnect_min_s: float = 1.0
     reconnect_max_s: float = 10.0
+    #: the brokers to connect to, in order of preference (empty: ``[(host, port)]``)
+    servers: list[tuple[str, int]] = field(default_factory=list)
 
     #: the configuration section the messages name (`mqtt.password_env: …`)
     section: ClassVar[str] = "mqtt"
+
+    def __post_init__(self) -> None:
+        if not self.servers:
+            self.servers = [(self.host, int(self.port))]
+        self.host, self.port = self.servers[0]
 
     def password(self) -> str | None:
         """The broker password from its environment variable or file (None: no password)."""
@@ -70,7 +80,12 @@ class BrokerSettings:
 def broker_kwargs(section: Any) -> dict[str, Any]:
     """The :class:`BrokerSettings` fields from a configuration section (``mqtt:`` or ``sparkplug:``)."""
     tls = section.tls
-    return dict(host=section.host, port=int(section.port), client_id=section.client_id,
+    servers: list[tuple[str, int]] = []
+    for item in getattr(section, "servers", None) or ():
+        hp = parse_server(item, int(section.port))
+        if hp is not None and hp not in servers:       # the loader refused malformed ones
+            servers.append(hp)
+    return dict(servers=servers, host=section.host, port=int(section.port), client_id=section.client_id,
                 keepalive_s=int(section.keepalive_s), username=section.username,
                 password_env=section.password_env, password_file=getattr(section, "password_file", None),
                 tls_enabled=bool(tls.enabled), ca_file=tls.ca_file, cert_file=tls.cert_file,

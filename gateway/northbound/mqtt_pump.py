@@ -3,15 +3,21 @@
 The pump thread owns the paho client and the SQLite outbox: it moves queued messages (a bounded
 :class:`gateway.threadloop.Mailbox` filled by the station's loop) into the outbox (one transaction
 per batch), publishes them strictly in seq order with at most ``window`` in flight, deletes them
-when the broker confirms (``on_publish``), runs paho's network loop (``client.loop``) and
-reconnects with back-off. Because one thread does all of this, paho's own resend of in-flight
-messages after a reconnect always happens before anything newer is published: the order on the
-wire is the seq order. The thread is supervised (``_main``): a fault anywhere in it (a callback,
-the outbox, paho) is counted and logged at most once a minute, the client is dropped (the link goes
-down through ``on_link``; the broker publishes the Will) and the pump restarts with back-off,
-keeping the outbox and the queued messages; unconfirmed rows are sent again. It knows nothing of
-stations: link changes and received commands go to
-the two callbacks it is given (called on the pump thread).
+when the broker confirms (``on_publish``), runs paho's network loop (``client.loop``) and reconnects
+with back-off over the server list (:class:`.paho_session.PahoSession`, the session engine it shares
+with the Sparkplug node: a clustered broker's nodes, tried in turn). Because one thread does all of
+this, paho's own resend of in-flight messages after a reconnect always happens before anything newer
+is published: the order on the wire is the seq order. The thread is supervised (``_main``): a fault
+anywhere in it (a callback, the outbox, paho) is counted and logged at most once a minute, the
+client is dropped (the link goes down through ``on_link``; the broker publishes the Will) and the
+pump restarts with back-off, keeping the outbox and the queued messages; unconfirmed rows are sent
+again. It knows nothing of stations: link changes and received commands go to the two callbacks it
+is given (called on the pump thread).
+
+Retained topics are never left to the broker alone (a clustered broker keeps a retained message on
+the node that received it, and loses it with that node): the latest confirmed message of every
+retained topic (``state``, ``alarm``, the last ``result`` …) is published again, with its original
+``seq``, after every (re)connect, before anything newer; ``status`` is published on every connect.
 """
 from __future__ import annotations
 
@@ -23,7 +29,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import paho.mqtt.client as paho
-from paho.mqtt.enums import CallbackAPIVersion
 from paho.mqtt.packettypes import PacketTypes
 from paho.mqtt.properties import Properties
 
@@ -33,6 +38,7 @@ from . import mqtt_messages as M
 from . import schema
 from .broker_settings import BrokerSettings, SecretError
 from .outbox import Outbox, Row
+from .paho_session import PahoSession
 from .sitelives import site_filter
 
 log = logging.getLogger("hookwatch.mqtt")
@@ -49,6 +55,11 @@ RESPONSE_TOPIC_MAX = 256
 CORRELATION_MAX = 256
 #: values of ``mqtt.protocol``
 PROTOCOLS = ("auto", "5", "3.1.1")
+#: retained topics whose last message is published again after a (re)connect, at most
+RETAINED_TOPICS_MAX = 256
+#: what MQTT 3.1.1 costs against MQTT 5 (the one log line of a fallback; docs/mqtt.md says the same)
+V311_COSTS = ("no Response Topic / Correlation Data (command replies go to `reply`, matched by "
+              "`request_id`), no user properties, no message expiry")
 
 
 #: where an MQTT 5 request wants its answer: (Response Topic, Correlation Data)
@@ -75,12 +86,13 @@ class MqttSettings(BrokerSettings):
     records_dir: str | None = None
 
 
-class MqttPump:
+class MqttPump(PahoSession):
     """Store-and-forward of one station's messages (see the module docstring)."""
 
     def __init__(self, settings: MqttSettings, on_link: Callable[[bool], None] = lambda ok: None,
                  on_command: Callable[[str, bytes, Response | None], None] = lambda name, payload, response: None,
                  on_lives: Callable[[str, bytes], None] | None = None) -> None:
+        super().__init__(settings, settings.station_id, log)
         self.s = settings
         self.on_link = on_link
         self.on_command = on_command
@@ -103,15 +115,10 @@ class MqttPump:
         self._refusals = RateLog(log)
         self.connected = False
         self.counters: dict[str, int] = collections.Counter()
-        self._client: paho.Client | None = None
-        self._sock_open = False
         self._sent_upto = 0
         self._mid2seq: dict[int, int] = {}
         self._acked: collections.deque = collections.deque()
-        self._next_attempt = 0.0
-        self._backoff = settings.reconnect_min_s
         self._setup_error: str | None = None
-        self._connect_error_logged = False
         self._refused: str | None = None
         # supervision (see _main): rows taken from the queue but not yet stored, fault counting
         self._unstored: list[Row] = []
@@ -125,6 +132,11 @@ class MqttPump:
         self._connack = False
         self._v5_ok = False         # the broker accepted MQTT 5 once: never fall back
         self._v5_closed = 0         # MQTT 5 connections closed before their CONNACK, in a row
+        # retained topics (see the module docstring): the latest row of each topic not yet
+        # confirmed (seq → row), and the latest confirmed one (topic → row), published on connect
+        self._retained_latest: dict[str, int] = {}
+        self._retained_unconfirmed: dict[int, Row] = {}
+        self._republish: dict[str, Row] = {}
 
     # ================================================================ any thread
     def put(self, msg: M.Message) -> int:
@@ -229,18 +241,10 @@ class MqttPump:
         self._sock_open = False
         self._mid2seq.clear()
         self._sent_upto = 0
-        self._next_attempt = 0.0
+        self._retry_now()
         if c is not None:
-            self._close_socket(c)
+            self._drop_socket(c)
         self._set_connected(False)
-
-    def _close_socket(self, c: paho.Client) -> None:
-        try:
-            sock = c.socket()
-            if sock is not None:
-                sock.close()
-        except Exception:
-            log.debug("%s: error while closing the socket", self.s.station_id, exc_info=True)
 
     def _drain_queue(self) -> None:
         # rows and confirmations leave their holders only once the outbox took them (a fault in
@@ -252,12 +256,33 @@ class MqttPump:
             self._dropped_logged = self._queue.dropped
         if self._unstored:
             self.outbox.add(self._unstored, self._sent_upto)
+            for row in self._unstored:
+                if row.retain:
+                    self._retained_row(row)
             self._unstored = []
         acked = list(self._acked)
         if acked:
             self.outbox.confirm(acked)
-            for _ in acked:
+            for seq in acked:
                 self._acked.popleft()
+                done = self._retained_unconfirmed.pop(seq, None)
+                if done is not None:
+                    self._republish[done.topic] = done
+
+    def _retained_row(self, row: Row) -> None:
+        """A retained row stored: the newest of its topic (an older one is no longer published
+        again; the topics are bounded, the oldest forgotten beyond RETAINED_TOPICS_MAX)."""
+        old = self._retained_latest.pop(row.topic, None)
+        if old is not None:
+            self._retained_unconfirmed.pop(old, None)
+        self._republish.pop(row.topic, None)
+        self._retained_latest[row.topic] = row.seq
+        self._retained_unconfirmed[row.seq] = row
+        while len(self._retained_latest) > RETAINED_TOPICS_MAX:
+            topic = next(iter(self._retained_latest))
+            self._retained_unconfirmed.pop(self._retained_latest.pop(topic), None)
+            self._republish.pop(topic, None)
+            self.counters["retained_topics_forgotten"] += 1
 
     def _pump(self) -> None:
         stop_deadline = None
@@ -278,20 +303,16 @@ class MqttPump:
                 if rc != paho.MQTT_ERR_SUCCESS:
                     self._lost(f"network loop: {paho.error_string(rc)}")
             else:
-                now = time.monotonic()
-                if now >= self._next_attempt:
+                wait = self._attempt_wait()
+                if wait <= 0:
                     self._connect()
                 else:
-                    self._queue.wait(min(0.1, self._next_attempt - now))
+                    self._queue.wait(min(0.1, wait))
 
     def _make_client(self) -> paho.Client:
         s = self.s
-        c = paho.Client(CallbackAPIVersion.VERSION2, client_id=s.client_id or f"hookwatch-{s.station_id}",
-                        clean_session=None if self.v5 else True,
-                        protocol=paho.MQTTv5 if self.v5 else paho.MQTTv311)
+        c = self._paho_client(s.client_id or f"hookwatch-{s.station_id}", v5=self.v5)
         c.max_inflight_messages_set(max(1, s.window))
-        c.max_queued_messages_set(0)
-        s.apply(c)
         st = self._status_topic
         c.will_set(st, self._status(False), qos=1, retain=True)
         c.on_connect = self._on_connect
@@ -317,26 +338,9 @@ class MqttPump:
             self._client = None
             self._schedule_retry(max_delay=True)
             return
-        try:
-            self._connack = False
-            # MQTT 5: a clean start and no session expiry, as the clean session of 3.1.1
-            if self.v5:
-                self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s), clean_start=True)
-            else:
-                self._client.connect(s.host, int(s.port), keepalive=int(s.keepalive_s))
-        except (OSError, ValueError) as e:
-            if not self._connect_error_logged:
-                log.warning("%s: MQTT broker %s:%s unreachable (%s); retrying, messages are kept in the "
-                            "outbox", s.station_id, s.host, s.port, e)
-                self._connect_error_logged = True
-            self._schedule_retry()
-            return
-        self._sock_open = True
-
-    def _schedule_retry(self, max_delay: bool = False) -> None:
-        delay = self.s.reconnect_max_s if max_delay else self._backoff
-        self._next_attempt = time.monotonic() + delay
-        self._backoff = min(self.s.reconnect_max_s, self._backoff * 2)
+        self._connack = False
+        if not self._open(self._client, v5=self.v5):
+            self.counters["connect_errors"] += 1
 
     def _lost(self, why: str) -> None:
         if self.connected:
@@ -357,8 +361,10 @@ class MqttPump:
         (a new client, at once)."""
         if not (self.v5 and self.s.protocol == "auto") or self._v5_ok:
             return
-        log.warning("%s: MQTT broker %s:%s refused MQTT 5 (%s); using MQTT 3.1.1 (commands are "
-                    "answered on `reply`)", self.s.station_id, self.s.host, self.s.port, why)
+        host, port = self.server
+        log.warning("%s: MQTT broker %s:%s refused MQTT 5 (%s); using MQTT 3.1.1 from now on, which "
+                    "costs: %s", self.s.station_id, host, port, why, V311_COSTS)
+        self.counters["mqtt311_fallbacks"] += 1
         self.v5 = False
         self._abandon_client()
 
@@ -382,7 +388,7 @@ class MqttPump:
         finally:
             self._set_connected(False)
             self._sock_open = False
-            self._close_socket(c)
+            self._drop_socket(c)
             self._client = None
 
     def _set_connected(self, ok: bool) -> None:
@@ -410,13 +416,13 @@ class MqttPump:
             self._sock_open = False
             self._schedule_retry(max_delay=True)
             return
+        host, port = self.server
         log.info("%s: MQTT %s connected to %s:%s", self.s.station_id, "5" if self.v5 else "3.1.1",
-                 self.s.host, self.s.port)
+                 host, port)
         self._set_connected(True)
         self._v5_ok = self._v5_ok or self.v5
-        self._connect_error_logged = False
         self._refused = None
-        self._backoff = self.s.reconnect_min_s
+        self._session_up()
         self.counters["connects"] += 1
         client.subscribe(M.command_filter(self.s.base_topic), qos=1)
         if self.on_lives is not None:
@@ -424,6 +430,17 @@ class MqttPump:
         for f in self._site_filters:
             client.subscribe(f, qos=1)
         client.publish(self._status_topic, self._status(True), qos=1, retain=True)
+        self._publish_retained(client)
+
+    def _publish_retained(self, client: paho.Client) -> None:
+        """The latest confirmed message of every retained topic again (its original seq; a topic
+        with a newer message still to be sent is left to that one): a retained message held by a
+        broker node that is gone, or by another node of a cluster, is never the only copy. Paho
+        puts these on the wire before it resends what was in flight: older first."""
+        for row in sorted(self._republish.values(), key=lambda r: r.seq):
+            info = client.publish(row.topic, row.payload, qos=row.qos, retain=True)
+            if info.rc == paho.MQTT_ERR_SUCCESS:
+                self.counters["retained_republished"] += 1
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
         if self.connected:

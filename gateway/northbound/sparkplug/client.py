@@ -4,7 +4,8 @@ One :class:`NodeRuntime` per edge node (per broker, group and edge node ID) in a
 stations of that node attach to it (:mod:`.output`). Its thread owns the paho client, the pure
 :class:`~.node.EdgeNode` and the SQLite outbox (:mod:`gateway.northbound.outbox`, public API
 only) that holds the bdSeq and the store-and-forward DDATA. Stations hand inputs over through one
-bounded queue (``post``), never blocking their slot loop; paho's callbacks run on this thread
+bounded :class:`~gateway.threadloop.Mailbox` (``post``; beyond its bound the oldest telemetry-only
+update is dropped, counted), never blocking their slot loop; paho's callbacks run on this thread
 (``client.loop``), so the state machine is only ever touched here.
 
 Each connection attempt takes the next bdSeq, persists it (kill -9 safe: a WAL commit), and
@@ -18,32 +19,33 @@ an NDEATH) and a new session starts after a back-off. Commands reach a station's
 one thread→loop hand-over (:func:`gateway.threadloop.submit_to`).
 
 ``servers`` is the Sparkplug 3.0 server set (§8.2): ``Node Control/Next Server``, the primary
-host's STATE going offline and a server that cannot be reached move the node to the next one.
+host's STATE going offline and a server that cannot be reached move the node to the next one. The
+server list, the back-off, the client's set-up and the unclean drop are the session engine it
+shares with the JSON tree's pump (:class:`..paho_session.PahoSession`).
 """
 from __future__ import annotations
 
 import collections
 import logging
 import os
-import socket
 import sqlite3
 import threading
 import time
 from concurrent.futures import Future
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import paho.mqtt.client as paho
-from paho.mqtt.enums import CallbackAPIVersion
 
 from ... import __version__
 from ...commandtypes import Rejection, reply_code
 from ...ratelog import RateLog, safe
 from ...records import CommandKind, CommandReply
-from ...threadloop import call_soon_on, submit_to
+from ...threadloop import Mailbox, call_soon_on, submit_to
 from ..broker_settings import BrokerSettings, SecretError
 from ..cmdparse import intake, rejected_event_data
 from ..outbox import Outbox, Row
+from ..paho_session import PahoSession
 from .inbound import InboundLimits
 from .node import Disconnect, EdgeNode, MemoryBuffer, Publish, Submit
 
@@ -62,7 +64,6 @@ class SparkplugSettings(BrokerSettings):
     group_id: str
     edge_node_id: str
     device_id: str
-    servers: list[tuple[str, int]] = field(default_factory=list)
     primary_host_id: str | None = None
     data_interval_s: float = 1.0
     store_path: str = "sparkplug.sqlite"
@@ -80,10 +81,6 @@ class SparkplugSettings(BrokerSettings):
     state_future_skew_s: float = 300.0
 
     section: ClassVar[str] = "sparkplug"
-
-    def __post_init__(self) -> None:
-        if not self.servers:
-            self.servers = [(self.host, int(self.port))]
 
     def node_key(self) -> tuple:
         return (tuple(self.servers), self.group_id, self.edge_node_id)
@@ -167,10 +164,19 @@ class OutboxBuffer:
         return n + len(self.memory)
 
 
-class NodeRuntime:
+def _oldest_telemetry(q: collections.deque) -> int | None:
+    """The Mailbox's drop policy: the oldest telemetry-only update (None: the oldest item)."""
+    for i, it in enumerate(q):
+        if it[0] == "update" and it[3]:
+            return i
+    return None
+
+
+class NodeRuntime(PahoSession):
     """The edge node's thread: paho client + EdgeNode + outbox (see the module docstring)."""
 
     def __init__(self, s: SparkplugSettings):
+        super().__init__(s, f"sparkplug {s.edge_node_id}", log)
         self.s = s
         self.outbox: Outbox | None = None
         last = None
@@ -188,16 +194,9 @@ class NodeRuntime:
                              state_future_skew_ms=int(round(s.state_future_skew_s * 1000)))
         self.node.buffer = OutboxBuffer(self.outbox) if self.outbox is not None else MemoryBuffer()
         self.outputs: dict[str, Any] = {}          # device id → SparkplugOutput
-        self._q: collections.deque = collections.deque()
-        self._lock = threading.Lock()
-        self._wake = threading.Event()
+        self._q: Mailbox[tuple] = Mailbox(QUEUE_MAX, evict=_oldest_telemetry)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._client: paho.Client | None = None
-        self._sock = False
-        self._server = 0
-        self._next_attempt = 0.0
-        self._backoff = s.reconnect_min_s
         self._disconnect: Disconnect | None = None
         self._qos1: list = []              # QoS 1 publishes (NDEATH) not yet acknowledged
         self.counters: dict[str, int] = collections.Counter()
@@ -207,15 +206,7 @@ class NodeRuntime:
 
     # ------------------------------------------------------------------ any thread
     def post(self, item: tuple) -> None:
-        with self._lock:
-            if len(self._q) >= QUEUE_MAX:
-                for i, it in enumerate(self._q):
-                    if it[0] == "update" and it[3]:       # oldest telemetry-only update
-                        del self._q[i]
-                        self.counters["dropped_updates"] += 1
-                        break
-            self._q.append(item)
-        self._wake.set()
+        self._q.put_nowait(item)
 
     def start(self) -> None:
         if self._thread is None:
@@ -226,7 +217,7 @@ class NodeRuntime:
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()
-        self._wake.set()
+        self._q.wake()
         if self._thread is not None:
             self._thread.join(timeout)
         self._rlog.close()          # the counts of the last window
@@ -234,7 +225,7 @@ class NodeRuntime:
     def figures(self) -> dict[str, Any]:
         """For the metrics endpoint (any thread): the node's identity, whether its session is up,
         and its counters (the runtime's and the node's; ``bad_<kind>``: bad payloads by kind)."""
-        counters: dict[str, int] = {}
+        counters: dict[str, int] = {"dropped_updates": self._q.dropped}
         for src in (self.counters, self.node.counters):
             for _ in range(3):          # another thread may add a key while this one copies
                 try:
@@ -242,7 +233,7 @@ class NodeRuntime:
                     break
                 except RuntimeError:
                     continue
-        return {"group": self.s.group_id, "node": self.s.edge_node_id, "connected": bool(self._sock),
+        return {"group": self.s.group_id, "node": self.s.edge_node_id, "connected": bool(self._sock_open),
                 "counters": counters}
 
     # ------------------------------------------------------------------ node thread
@@ -289,23 +280,23 @@ class NodeRuntime:
             self._abort()
         except Exception:  # noqa: BLE001 - a broken client: dropped
             self._client = None
-            self._sock = False
+            self._sock_open = False
 
     def _run(self) -> None:
         while True:
-            self._wake.clear()
+            self._q.clear_wake()
             self._inputs()
             if self._stop.is_set():
                 self._inputs()
                 break
             self._housekeeping()
-            if self._sock:
+            if self._sock_open:
                 if self.node.replaying and self.node.publishing:
                     pubs, keys = self.node.drain(self._now())
                     self._act(pubs)
                     self.node.buffer.remove(keys)
                 client = self._client
-                if client is None:      # not reached: _sock is True only with a client
+                if client is None:      # not reached: _sock_open is True only with a client
                     continue
                 rc = client.loop(timeout=self.s.poll_s)
                 if self._disconnect is not None:
@@ -313,15 +304,15 @@ class NodeRuntime:
                 elif rc != paho.MQTT_ERR_SUCCESS:
                     self._lost(f"network loop: {paho.error_string(rc)}")
             else:
-                now = time.monotonic()
-                if now >= self._next_attempt:
+                wait = self._attempt_wait()
+                if wait <= 0:
                     self._connect()
                 else:
-                    self._wake.wait(min(0.1, self._next_attempt - now))
+                    self._q.wait(min(0.1, wait))
 
     def _housekeeping(self) -> None:
         """The coalesced rebirth when it is due; the rate-limited lines about bad inputs."""
-        if self._sock:
+        if self._sock_open:
             self._act(self.node.tick(self._now()))
         self._log_bad()
 
@@ -334,11 +325,7 @@ class NodeRuntime:
                                kind, reason)
 
     def _inputs(self) -> None:
-        while True:
-            with self._lock:
-                if not self._q:
-                    return
-                item = self._q.popleft()
+        for item in self._q.drain():
             kind = item[0]
             now = self._now()
             if kind == "up":
@@ -354,7 +341,7 @@ class NodeRuntime:
     def _act(self, outs) -> None:
         for o in outs:
             if isinstance(o, Publish):
-                if self._client is None or not self._sock:
+                if self._client is None or not self._sock_open:
                     continue
                 info = self._client.publish(o.topic, o.payload, qos=o.qos, retain=o.retain)
                 if o.qos:
@@ -407,13 +394,8 @@ class NodeRuntime:
         s = self.s
         will = self.node.connecting()
         self._persist_bdseq()
-        host, port = s.servers[self._server % len(s.servers)]
-        c = paho.Client(CallbackAPIVersion.VERSION2,
-                        client_id=s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}",
-                        clean_session=True, protocol=paho.MQTTv311)
-        c.max_queued_messages_set(0)
-        try:
-            s.apply(c)                  # credentials and TLS
+        try:                            # credentials and TLS
+            c = self._paho_client(s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}")
         except (SecretError, OSError, ValueError) as e:     # ssl.SSLError is an OSError
             self.counters["tls_errors"] += 1
             if self.counters["tls_errors"] == 1:
@@ -422,27 +404,18 @@ class NodeRuntime:
             self._client = None
             self.node.connect_failed()
             self._persist_bdseq()
-            self._retry()
+            self._schedule_retry()
             return
         c.will_set(will.topic, will.payload, qos=will.qos, retain=will.retain)
         c.on_connect = self._on_connect
         c.on_disconnect = self._on_disconnect
         c.on_message = self._on_message
         self._client = c
-        try:
-            c.connect(host, port, keepalive=s.keepalive_s)
-        except OSError as e:
-            if self.counters["connect_errors"] == 0 or self._backoff >= s.reconnect_max_s:
-                log.warning("sparkplug %s: cannot connect to %s:%s: %s", s.edge_node_id, host, port, e)
+        if not self._open(c):                   # the server set: the next one is tried (§8.2)
             self.counters["connect_errors"] += 1
             self._client = None
             self.node.connect_failed()          # no CONNECT packet was sent: bdSeq not used
             self._persist_bdseq()
-            if len(s.servers) > 1:              # the server set: try the next one (§8.2)
-                self._server = (self._server + 1) % len(s.servers)
-            self._retry()
-            return
-        self._sock = True
 
     def _persist_bdseq(self) -> None:
         """The bdSeq of the coming CONNECT, or the last one used, kept for the next process."""
@@ -455,40 +428,25 @@ class NodeRuntime:
             self.counters["bdseq_store_errors"] += 1
             log.error("sparkplug: cannot persist bdSeq %s: %s", last, e)
 
-    def _retry(self) -> None:
-        self._next_attempt = time.monotonic() + self._backoff
-        self._backoff = min(self.s.reconnect_max_s, self._backoff * 2)
-
     def _lost(self, why: str) -> None:
         log.warning("sparkplug %s: connection lost (%s)", self.s.edge_node_id, why)
         self._abort()
-        self._retry()
+        self._schedule_retry()
 
     def _abort(self) -> None:
         """End the session without DISCONNECT: the broker publishes the Will (the NDEATH)."""
         c, self._client = self._client, None
-        was = self._sock
-        self._sock = False
+        self._sock_open = False
         self._qos1 = []
         if c is not None:
-            if was:
-                try:
-                    sock = c.socket()
-                    if isinstance(sock, socket.socket):      # ssl.SSLSocket is one too
-                        sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-            try:
-                c.loop(timeout=0.01)        # paho notices the closed socket and closes it
-            except Exception:  # noqa: BLE001 - a broken client: it is dropped anyway
-                pass
+            self._drop_socket(c)
         self.node.disconnected()
 
     def _planned_disconnect(self, d: Disconnect) -> None:
         self._disconnect = None
         log.info("sparkplug %s: disconnecting: %s", self.s.edge_node_id, d.reason)
         if d.next_server:
-            self._server = (self._server + 1) % len(self.s.servers)
+            self._next_server()
         self._close(clean=False)
         self._next_attempt = time.monotonic() + 0.2
 
@@ -496,19 +454,19 @@ class NodeRuntime:
         c = self._client
         if c is None:
             return
-        if clean and self._sock and self.node.connected:
+        if clean and self._sock_open and self.node.connected:
             # a deliberate end: the NDEATH ourselves (the broker only sends the Will on a failure)
             self._qos1.append(c.publish(*_pub_args(self.node.ndeath())))
         # what is queued (DDEATH, NDEATH) goes out before the DISCONNECT: wait for the QoS 1 ones
         t_end = time.monotonic() + 2.0
-        while self._sock and time.monotonic() < t_end and (c.want_write() or self._unacked(c)):
+        while self._sock_open and time.monotonic() < t_end and (c.want_write() or self._unacked(c)):
             if c.loop(timeout=0.05) != paho.MQTT_ERR_SUCCESS:
                 break
-        if self._sock and self._unacked(c):
+        if self._sock_open and self._unacked(c):
             # the NDEATH is not acknowledged: no DISCONNECT, so that the broker sends the Will
             self._abort()
             return
-        self._sock = False
+        self._sock_open = False
         try:
             c.disconnect()
             c.loop(timeout=0.05)
@@ -527,21 +485,21 @@ class NodeRuntime:
         if reason_code.is_failure:
             log.error("sparkplug %s: broker refused the connection: %s", self.s.edge_node_id, reason_code)
             self._close(clean=False)
-            self._retry()
+            self._schedule_retry()
             return
         log.info("sparkplug %s/%s: connected (bdSeq %d)", self.s.group_id, self.s.edge_node_id,
                  self.node.bdseq)
-        self._backoff = self.s.reconnect_min_s
+        self._session_up()
         for t, q in self.node.subscriptions():
             client.subscribe(t, qos=q)
         self._act(self.node.connected_ok(self._now()))
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties) -> None:
-        if self._sock:
-            self._sock = False
+        if self._sock_open:
+            self._sock_open = False
             self._client = None
             self.node.disconnected()
-            self._retry()
+            self._schedule_retry()
 
     def _on_message(self, client, userdata, msg) -> None:
         """Whatever arrives: handled within bounds (bad payloads are counted by the node); an

@@ -15,7 +15,6 @@ import time
 from typing import Any
 
 from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
-from ...config.schema import parse_server
 from ...ports import StationView
 from ...records import Event, EventType, SlotRecord, StationState
 from ..broker_settings import broker_kwargs
@@ -189,15 +188,9 @@ def settings_from_config(cfg) -> SparkplugSettings:
     sp, st = cfg.sparkplug, cfg.station
     group = sp.group_id or st.site or "hookwatch"
     node = sp.edge_node_id or "-".join(x for x in (st.area, st.line) if x) or "edge"
-    kw = broker_kwargs(sp)
-    servers = []
-    for item in sp.servers or ():
-        hp = parse_server(item, int(sp.port))
-        if hp is not None and hp not in servers:       # the loader refused malformed ones
-            servers.append(hp)
     return SparkplugSettings(
-        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id, **kw,
-        servers=servers, primary_host_id=sp.primary_host_id, data_interval_s=float(sp.data_interval_s),
+        group_id=group, edge_node_id=node, device_id=sp.device_id or st.id, **broker_kwargs(sp),
+        primary_host_id=sp.primary_host_id, data_interval_s=float(sp.data_interval_s),
         store_path=sp.store_path or _client.default_store(cfg.recorder.dir, group, node),
         history_budget_bytes=int(float(sp.history_budget_mb) * 1024 * 1024),
         rebirth_min_interval_s=float(sp.rebirth_min_interval_s), max_command_bytes=int(sp.max_command_bytes),
