@@ -398,6 +398,12 @@ class MqttConfig(BrokerConfig):
                                    "counted, so a client allowed only `cmd/…` cannot make the gateway "
                                    "publish elsewhere", kind="topic", nullable=True,
                                    null_means="`<base>/reply` (the station's own reply topic)")
+    servers: tuple[str, ...] | None = key(None, "the broker's servers, as `host:port` (`host` alone: "
+                                          "`port`), e.g. the nodes of a clustered broker: the output "
+                                          "connects to the first, moves to the next when one cannot be "
+                                          "reached, and publishes its retained topics again after every "
+                                          "(re)connect (docs/mqtt.md)", kind="str_list", nullable=True,
+                                          null_means="`[<host>:<port>]`")
     telemetry_interval_s: float = key(1.0, "one telemetry message (slot aggregates) this often",
                                       kind="float", unit="s", lo=0.1, hi=3600.0)
     share_lives: bool = key(True, "share every completed test's life with the gateways of this "
@@ -907,23 +913,24 @@ def parse_server(item: str, default_port: int) -> tuple[str, int] | None:
 
 
 def _servers(cfg, r):
-    sp = cfg.sparkplug
-    if sp.servers is None:
-        return
-    if not sp.servers:
-        r.error(("sparkplug", "servers"), "an empty server set; list at least one `host:port`, or "
-                "leave the key out to use sparkplug.host and port")
-        return
-    seen = set()
-    for i, item in enumerate(sp.servers):
-        hp = parse_server(item, int(sp.port))
-        if hp is None:
-            r.error(("sparkplug", "servers"), f"item {i + 1} ({item!r}) is not `host:port` (port 1 … "
-                    "65535; an IPv6 address in brackets: `[::1]:1883`)")
-        elif hp in seen:
-            r.error(("sparkplug", "servers"), f"item {i + 1} ({item!r}) is listed twice")
-        else:
-            seen.add(hp)
+    for name in ("mqtt", "sparkplug"):
+        sec = getattr(cfg, name)
+        if sec.servers is None:
+            continue
+        if not sec.servers:
+            r.error((name, "servers"), "an empty server set; list at least one `host:port`, or "
+                    f"leave the key out to use {name}.host and port")
+            continue
+        seen = set()
+        for i, item in enumerate(sec.servers):
+            hp = parse_server(item, int(sec.port))
+            if hp is None:
+                r.error((name, "servers"), f"item {i + 1} ({item!r}) is not `host:port` (port 1 … "
+                        "65535; an IPv6 address in brackets: `[::1]:1883`)")
+            elif hp in seen:
+                r.error((name, "servers"), f"item {i + 1} ({item!r}) is listed twice")
+            else:
+                seen.add(hp)
 
 
 def _control(cfg, r):
@@ -952,7 +959,8 @@ RULES: tuple[Rule, ...] = (
     Rule("`forecast.priors` names only grades of `grades`, each grade and T_set (±0.001 N) once.",
          _forecast),
     Rule("`meter.port` and `stm32.port` differ.", _ports),
-    Rule("`sparkplug.servers`: each `host:port` (or `host`, on `sparkplug.port`), none twice.", _servers),
+    Rule("`mqtt.servers` and `sparkplug.servers`: each `host:port` (or `host`, on the section's "
+         "`port`), none twice.", _servers),
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
          "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
          _control),

@@ -133,7 +133,7 @@ def test_protocol_3_1_1_answers_on_reply(tmp_path):
 
 
 @pytest.mark.parametrize("refusal", ["connack", "close"])
-def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path, refusal):
+def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path, refusal, caplog):
     """A broker that speaks only 3.1.1 (a socket server answering CONNECT by the protocol level the
     client asks for: 5 → return code 1, unacceptable protocol version, or the connection closed
     without an answer; 4 → accepted). A closed connection counts as a refusal the second time in a
@@ -175,6 +175,11 @@ def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path, refus
         lt.call(out.start())
         wait_for(lambda: out.connected, 20, what="connected with 3.1.1")
         assert levels == ([5, 4] if refusal == "connack" else [5, 5, 4]) and not out.pump.v5
+        # one log line says so, and what 3.1.1 costs (docs/mqtt.md)
+        lines = [r.getMessage() for r in caplog.records if "refused MQTT 5" in r.getMessage()]
+        assert len(lines) == 1, lines
+        assert "Response Topic" in lines[0] and "user properties" in lines[0] and "message expiry" in lines[0]
+        assert out.counters["mqtt311_fallbacks"] == 1
     finally:
         out.s.drain_on_stop_s = 0.0
         lt.call(out.stop())
