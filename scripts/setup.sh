@@ -56,6 +56,7 @@ if [ "$mode" = "--tools" ]; then
   want setpriv util-linux
   want ps procps
   want prometheus prometheus
+  want rabbitmq-server rabbitmq-server /usr/lib/rabbitmq/bin/rabbitmq-server
   # the console's browser tests: Playwright (PyPI, test extras) drives Debian's chromium; its
   # bundled node needs libatomic1 (without it Playwright only says "Connection closed while
   # reading from the driver")

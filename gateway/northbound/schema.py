@@ -837,8 +837,49 @@ def render() -> str:
         "`tls: {enabled, ca_file, cert_file, key_file}`, `telemetry_interval_s`, `outbox: {path, "
         "telemetry_budget_mb}`, `protocol` (`auto`: MQTT 5, falling back to 3.1.1 when the broker "
         "refuses it; `5`; `3.1.1`), `reply_prefix` (MQTT 5 Response Topics obeyed only below it; "
-        "default `<base>/reply`). One MQTT connection per station (its own Last Will). The client "
-        "reconnects by itself (after 1 s, doubling up to 10 s).",
+        "default `<base>/reply`), `servers` (a server list, below). One MQTT connection per "
+        "station (its own Last Will). The client reconnects by itself (after 1 s, doubling up to "
+        "10 s).",
+        "",
+        "### Clustered brokers",
+        "",
+        "`mqtt.servers: [\"mq1:1883\", \"mq2:1883\", \"mq3:1883\"]` lists the nodes of a clustered "
+        "broker (EMQX, HiveMQ, RabbitMQ …; `host` alone uses `mqtt.port`; the single `host`/`port` "
+        "form stays valid and is the list's default). The output connects to the first; a node that "
+        "cannot be reached moves it to the next one at once, and only when every node failed in a "
+        "row does it wait (the back-off above); a lost connection is tried again after 1 s, and if "
+        "its node is gone the next one takes over: a node's loss costs a station about a second of "
+        "link (measured: bench/README.md, site bench). Nothing is lost on the way: the outbox "
+        "sends again, in `seq` order, whatever the broker had not confirmed (duplicates carry "
+        "their `seq`: see De-duplication). The Sparkplug node's `sparkplug.servers` is the same "
+        "session engine (`gateway/northbound/paho_session.py`).",
+        "",
+        "A retained message is never left to one node: clustered brokers keep it on the node that "
+        "received it (RabbitMQ 3.10) or lose it with a node's store. After every (re)connect the "
+        "output publishes `status` `online` and then the latest confirmed message of every "
+        "retained topic again (`state`, `alarm/end_of_life`, `alarm/warning`, the last `result`), "
+        "with its original `seq` and the retain flag, before anything newer — a live subscriber "
+        "receives it as a duplicate (`seq ≤ H`, drop it), a new one finds it retained on the node "
+        "it subscribes on once its own gateway published there. Counted as "
+        "`retained_republished`.",
+        "",
+        "### MQTT 3.1.1 brokers",
+        "",
+        "With `protocol: auto` the output asks for MQTT 5; a broker that refuses it (CONNACK "
+        "*unacceptable protocol version*, or the connection closed before CONNACK twice in a row: "
+        "RabbitMQ 3.10 drops an MQTT 5 CONNECT) is spoken to in MQTT 3.1.1 for the rest of the run, "
+        "with one warning line: `refused MQTT 5 (…); using MQTT 3.1.1 from now on, which costs: …`. "
+        "What 3.1.1 costs:",
+        "",
+        "- **no Response Topic / Correlation Data**: a command is answered on `<base>/reply` (QoS 1, "
+        "through the outbox), matched to its request by the `request_id` the request carries — "
+        "send one with every command you need to match;",
+        "- **no user properties** (hookwatch sends none today: the payload carries everything);",
+        "- **no message expiry** (hookwatch sets none: a late message is still a valid one, its "
+        "`time` says when);",
+        "- no reason codes on PUBACK: a broker that denies a publish (an ACL) either acknowledges "
+        "and drops it or closes the connection (RabbitMQ), instead of saying why; set the ACL "
+        "before the gateways connect (docs/deploy.md).",
         "",
     ]
     return "\n".join(out)

@@ -16,6 +16,7 @@ import contextlib
 import os
 import signal
 import subprocess
+import threading
 import time
 
 from kit.tools import free_port, require_tool, wait_port
@@ -76,6 +77,9 @@ class Node:
         conf = self.dir / "rabbitmq.conf"
         conf.write_text(f"mqtt.listeners.tcp.default = 127.0.0.1:{self.mqtt_port}\n"
                         "mqtt.allow_anonymous = true\n"
+                        # a persistent MQTT session's queue replicated on the nodes: it outlives
+                        # the node its subscriber was connected to (docs/deploy.md)
+                        "mqtt.durable_queue_type = quorum\n"
                         f"listeners.tcp.default = 127.0.0.1:{self.amqp_port}\n"
                         "log.file.level = warning\n"
                         "log.console = false\n")
@@ -209,4 +213,74 @@ class Cluster:
         self.stop()
 
 
-__all__ = ["Cluster", "Node", "require_rabbitmq"]
+class Mes:
+    """An MES on the cluster: a paho MQTT 3.1.1 client with a persistent session (clean session
+    off, QoS 1: its queue is a quorum queue, replicated) and a server list, reconnecting to the
+    next node whenever its node goes. Every message is kept (topic, payload, retained); a
+    payload is checked against its topic's JSON Schema (kit.broker.check_message)."""
+
+    def __init__(self, servers: list[tuple[str, int]], topic: str, client_id: str = "mes"):
+        import paho.mqtt.client as paho
+        from paho.mqtt.enums import CallbackAPIVersion
+
+        self._paho = paho
+        self.servers = servers
+        self.topic = topic
+        self.messages: list[tuple[str, bytes, bool]] = []
+        self.violations: list[str] = []
+        self.connects = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._i = 0
+        self.c = paho.Client(CallbackAPIVersion.VERSION2, client_id=client_id, clean_session=False,
+                             protocol=paho.MQTTv311)
+        self.c.on_connect = self._on_connect
+        self.c.on_message = self._on_message
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def start(self) -> Mes:
+        self._t.start()
+        return self
+
+    def _on_connect(self, client, userdata, flags, rc, props) -> None:
+        if not rc.is_failure:
+            self.connects += 1
+            client.subscribe(self.topic, qos=1)
+
+    def _on_message(self, client, userdata, msg) -> None:
+        from kit.broker import check_message
+        bad = check_message(msg.topic, msg.payload)
+        with self._lock:
+            self.messages.append((msg.topic, bytes(msg.payload), bool(msg.retain)))
+            if bad:
+                self.violations.append(bad)
+
+    def _run(self) -> None:
+        paho = self._paho
+        connected = False
+        while not self._stop.is_set():
+            if not connected:
+                host, port = self.servers[self._i % len(self.servers)]
+                try:
+                    self.c.connect(host, port, keepalive=10)
+                    connected = True
+                except OSError:
+                    self._i += 1
+                    self._stop.wait(0.2)
+                    continue
+            if self.c.loop(timeout=0.1) != paho.MQTT_ERR_SUCCESS:
+                connected = False
+                self._i += 1
+        with contextlib.suppress(Exception):
+            self.c.disconnect()
+
+    def snapshot(self) -> list[tuple[str, bytes, bool]]:
+        with self._lock:
+            return list(self.messages)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._t.join(10)
+
+
+__all__ = ["Cluster", "Mes", "Node", "require_rabbitmq"]
