@@ -101,7 +101,10 @@ class Node:
             "RABBITMQ_ADVANCED_CONFIG_FILE": str(self.dir / "advanced.config"),
             "RABBITMQ_PID_FILE": str(self.dir / "rabbit.pid"),
             # the distribution listens on loopback only
-            "RABBITMQ_SERVER_ADDITIONAL_ERL_ARGS": "-kernel inet_dist_use_interface {127,0,0,1}",
+            # one scheduler without busy-waiting: three nodes share a small box with real-time
+            # stations (the default spins its schedulers, a core's worth of CPU per node)
+            "RABBITMQ_SERVER_ADDITIONAL_ERL_ARGS": "-kernel inet_dist_use_interface {127,0,0,1} "
+                                                   "+S 1:1 +sbwt none +sbwtdcpu none +sbwtdio none",
         }
         self.p: subprocess.Popen | None = None
         self.log_file = self.dir / "stdout.log"
