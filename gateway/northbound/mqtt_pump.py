@@ -127,6 +127,7 @@ class MqttPump(PahoSession):
         self._fault_logged_at = -FAULT_LOG_INTERVAL_S
         self._restart_delay = settings.reconnect_min_s
         self._session = 0       # the status's own counter (see schema.STATUS_FIELDS)
+        self._client_cid = ""   # the client ID the current paho client was made with
         #: MQTT 5 for the next connection (auto: until the broker refuses it)
         self.v5 = settings.protocol in ("auto", "5")
         self._connack = False
@@ -309,9 +310,9 @@ class MqttPump(PahoSession):
                 else:
                     self._queue.wait(min(0.1, wait))
 
-    def _make_client(self) -> paho.Client:
+    def _make_client(self, client_id: str) -> paho.Client:
         s = self.s
-        c = self._paho_client(s.client_id or f"hookwatch-{s.station_id}", v5=self.v5)
+        c = self._paho_client(client_id, v5=self.v5)
         c.max_inflight_messages_set(max(1, s.window))
         st = self._status_topic
         c.will_set(st, self._status(False), qos=1, retain=True)
@@ -325,8 +326,14 @@ class MqttPump(PahoSession):
         s = self.s
         try:
             self._new_session()
+            cid = self.client_id_for(s.client_id or f"hookwatch-{s.station_id}")
+            if self._client is not None and cid != self._client_cid:
+                # another server of the list: a client of its own (what was in flight is sent
+                # again from the outbox, in seq order)
+                self._abandon_client()
             if self._client is None:
-                self._client = self._make_client()
+                self._client = self._make_client(cid)
+                self._client_cid = cid
             else:   # the Last Will carries this session's number
                 self._client.will_set(self._status_topic, self._status(False), qos=1, retain=True)
             self._setup_error = None

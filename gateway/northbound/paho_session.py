@@ -12,6 +12,13 @@ share lives here, once:
   is tried), so a clustered broker losing a node costs about ``reconnect_min_s``;
 - **the back-off**: doubling from ``reconnect_min_s`` to ``reconnect_max_s``, reset by a
   connection the broker accepted;
+- **the client ID per server**: with more than one server, the session on server *i* (1-based)
+  uses ``<client id>-<i>``. A clustered broker may keep a session's server-side state on the node
+  it was made on: RabbitMQ 3.10 homes a subscriber's queue there, and while that node is down a
+  new session under the same client ID on another node is refused (its queue's home node is
+  unreachable), so the same ID would lock the station out for as long as the node is away. One
+  ID per server keeps each node's state its own; the ``status`` ``session`` counter tells an MES
+  which session is the current one. With one server the ID is the configured one, unchanged;
 - **the client**: paho 2.x, no queue of its own beyond what is in flight (the engines keep their
   data in their SQLite outbox), credentials and TLS from the settings, a Will set before CONNECT;
 - **dropping a session** without DISCONNECT (so that the broker publishes the Will);
@@ -67,6 +74,12 @@ class PahoSession:
 
     def _next_server(self) -> None:
         self._server = (self._server + 1) % len(self.servers)
+
+    def client_id_for(self, base: str) -> str:
+        """The client ID on the current server (see the module docstring)."""
+        if len(self.servers) == 1:
+            return base
+        return f"{base}-{self._server % len(self.servers) + 1}"
 
     # ------------------------------------------------------------------ back-off
     def _schedule_retry(self, max_delay: bool = False) -> None:

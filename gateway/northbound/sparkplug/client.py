@@ -395,7 +395,7 @@ class NodeRuntime(PahoSession):
         will = self.node.connecting()
         self._persist_bdseq()
         try:                            # credentials and TLS
-            c = self._paho_client(s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}")
+            c = self._paho_client(self.client_id_for(s.client_id or f"hookwatch-spb-{s.group_id}-{s.edge_node_id}"))
         except (SecretError, OSError, ValueError) as e:     # ssl.SSLError is an OSError
             self.counters["tls_errors"] += 1
             if self.counters["tls_errors"] == 1:

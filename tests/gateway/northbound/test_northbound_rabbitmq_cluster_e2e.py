@@ -206,3 +206,50 @@ def test_three_gateways_on_a_rabbitmq_cluster_lose_nothing_while_nodes_are_kille
                 res = read_json(os.path.join(td, "result.json"))
                 stats = read_json(str(tmp_path / f"gw{g}" / f"stats-{life}.json"))[f"st{g}"]
                 assert_no_slot_lost(td, res["method"], stats)
+
+
+def test_a_node_that_stays_down_does_not_lock_its_stations_out(tmp_path):
+    """RabbitMQ homes a subscriber's queue on the node the session was made on; while that node is
+    down, a new session under the same client ID on another node is refused (the queue's home
+    node is unreachable) — a station that kept one client ID would stay cut off until the node
+    came back. With a client ID per server (paho_session.PahoSession.client_id_for) the output
+    moves to the other node and delivers there while the first stays down."""
+    from gateway.northbound.mqtt import MqttOutput, MqttSettings
+    from kit.northbound import LoopThread, RunningStation, make_station
+
+    base = "hookwatch/lab/hall/l1/st1"
+    with Cluster(tmp_path) as cluster:       # three nodes: the MES's quorum queue keeps a majority
+        a, b = cluster.nodes[:2]
+        mes = Mes([("127.0.0.1", b.mqtt_port)], base + "/#").start()
+        lt = LoopThread()
+        station = make_station(tmp_path, [])
+        out = MqttOutput(MqttSettings(station_id="st1", base_topic=base, protocol="3.1.1",
+                                      servers=[("127.0.0.1", a.mqtt_port), ("127.0.0.1", b.mqtt_port)],
+                                      outbox_path=str(tmp_path / "outbox.sqlite"),
+                                      reconnect_min_s=0.2, reconnect_max_s=1.0), station)
+        station.outputs.append(out)
+        run = None
+        try:
+            wait_for(lambda: mes.connects >= 1, 60, what="the MES connected")
+            run = RunningStation(lt, station)
+            wait_for(lambda: out.connected and out.pump.server[1] == a.mqtt_port, 60, what="on node 1")
+            wait_for(lambda: out.outbox.count() == 0, 60, what="confirmed by node 1")
+            cluster.kill(0)                     # and it stays down
+            wait_for(lambda: out.connected and out.pump.server[1] == b.mqtt_port, 60, what="on node 2")
+            # a command sent now on node 2 reaches the station (its subscription on node 2) and
+            # its reply comes back through the outbox, confirmed by node 2
+            def replies():
+                return [json.loads(p) for t, p, _r in mes.snapshot() if t == base + "/reply"]
+            mes.c.publish(base + "/cmd/ack", b'{"request_id": "after-the-kill"}', qos=1)
+            try:
+                wait_for(lambda: any(r.get("request_id") == "after-the-kill" for r in replies()), 60,
+                         what="the reply to a command sent on node 2")
+            except AssertionError as e:
+                raise AssertionError(f"{e}: {dict(out.counters)}, {out.pump._client_cid}, "
+                                     f"{[t for t, _p, _r in mes.snapshot()][-5:]}") from None
+            assert not a.running
+        finally:
+            if run is not None:
+                run.stop()
+            lt.close()
+            mes.stop()
