@@ -851,8 +851,12 @@ def render() -> str:
         "its node is gone the next one takes over: a node's loss costs a station about a second of "
         "link (measured: bench/README.md, site bench). Nothing is lost on the way: the outbox "
         "sends again, in `seq` order, whatever the broker had not confirmed (duplicates carry "
-        "their `seq`: see De-duplication). The Sparkplug node's `sparkplug.servers` is the same "
-        "session engine (`gateway/northbound/paho_session.py`).",
+        "their `seq`: see De-duplication). With more than one server the client ID on server *i* "
+        "is `<client_id>-<i>` (1-based): RabbitMQ keeps a session's queue on the node it was made "
+        "on and refuses the same ID on another node while that one is down; one ID per server "
+        "keeps each node's state its own (the `status` `session` counter says which session is "
+        "current). The Sparkplug node's `sparkplug.servers` is the same session engine "
+        "(`gateway/northbound/paho_session.py`).",
         "",
         "A retained message is never left to one node: clustered brokers keep it on the node that "
         "received it (RabbitMQ 3.10) or lose it with a node's store. After every (re)connect the "
