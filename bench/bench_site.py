@@ -9,7 +9,11 @@ off until it is back), on the cluster one node in turn (the gateways on it move 
 
 Per setup: the slots held (filled / slots of every life, from ``--stats-json``), and the reconnect
 time of every link loss a gateway saw (from its log: the `connection lost` / `disconnected` line
-to the next `connected to` line), p50/p99/max. Results as JSON lines on stdout.
+to the next `connected to` line), p50/p99/max; then the site-history sync of a joining gateway
+(``mqtt.share_lives``, gateway/northbound/sitelives.py): a new gateway of the same site (its own
+virtual station, no test, the first server of gateway 0's list) runs 30 s; how many of the N
+stations' retained lives it received and how long after its start the last of them came. Results
+as JSON lines on stdout.
 
     bench/bench_site.py [--gateways 3] [--lives 3] [--kill-every 25] [--setups mosquitto,cluster]
 """
@@ -25,6 +29,7 @@ import re
 import sys
 import tempfile
 import threading
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -122,10 +127,33 @@ def run_setup(base: pathlib.Path, name: str, servers_of, kill_restart, args) -> 
     finally:
         killer.stop_evt.set()
         killer.join(120)
-    return {"setup": name, "gateways": args.gateways, "lives": args.lives, "kills": killer.kills,
+    sync = join(base / name / "join", servers_of(0))
+    return {**sync, "setup": name, "gateways": args.gateways, "lives": args.lives, "kills": killer.kills,
             "kill_every_s": args.kill_every, "slots_held_pct": round(100.0 * filled / max(1, slots), 3),
             "reconnects": len(rec), "reconnect_p50_s": pct(rec, 0.5), "reconnect_p99_s": pct(rec, 0.99),
             "reconnect_max_s": max(rec) if rec else None}
+
+
+SITE_LINE = re.compile(r"the site's lives: (\d+) tests of (\d+) other station")
+
+
+def join(d: pathlib.Path, servers: list[str]) -> dict:
+    """A gateway joining the site: the stations whose lives it received, and when (s after start)."""
+    d.mkdir(parents=True, exist_ok=True)
+    sc = quick_scenario(d, "quick.yaml")
+    with virtual_station(d, sc, seed=99) as (_sim, links):
+        st = station_yaml(d, links, name="joiner", method=QUICK_METHOD,
+                          mqtt={"enabled": True, "servers": servers, "protocol": "3.1.1", "prefix": "bench"})
+        t0 = time.time()
+        gw = run_gateway(d, st, "--duration", "30", name="join")
+        wait_exit(gw, 120)
+    best, at = 0, None
+    for line in gw.log_all().splitlines():
+        m = SITE_LINE.search(line)
+        t = _t(line)
+        if m and t is not None and int(m.group(2)) > best:
+            best, at = int(m.group(2)), t - t0
+    return {"join_stations_received": best, "join_sync_s": None if at is None else round(at, 2)}
 
 
 def on_mosquitto(base: pathlib.Path, args) -> dict:
