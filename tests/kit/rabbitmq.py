@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import signal
+import socket
 import subprocess
 import threading
 import time
@@ -32,6 +34,30 @@ def require_rabbitmq() -> str:
     if not os.path.exists(os.path.join(RABBIT_BIN, "rabbitmq-server")):
         require_tool("rabbitmq-server")          # skips (or fails in CI) with the apt hint
     return RABBIT_BIN
+
+
+#: the nodes' ports come from below the kernel's ephemeral range (32768 and up): a port from
+#: kit.tools.free_port is one an outgoing connection (a gateway's, the CLI's) may take as its
+#: local port while a killed node is away, and the node then cannot listen there again (seen:
+#: `dist_port_already_used … not_erlang`)
+QUIET_PORTS = (20000, 32000)
+_taken: set[int] = set()
+_rng = random.Random()
+
+
+def quiet_port() -> int:
+    """A free loopback port below the ephemeral range, none handed out twice in this process."""
+    while True:
+        port = _rng.randrange(*QUIET_PORTS)
+        if port in _taken:
+            continue
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _taken.add(port)
+        return port
 
 
 def _group_members(pgid: int) -> list[int]:
@@ -68,9 +94,9 @@ class Node:
     def __init__(self, base, index: int, epmd_port: int, home: str):
         self.index = index
         self.name = f"rabbit{index}@localhost"
-        self.mqtt_port = free_port()
-        self.amqp_port = free_port()
-        self.dist_port = free_port()
+        self.mqtt_port = quiet_port()
+        self.amqp_port = quiet_port()
+        self.dist_port = quiet_port()
         self.dir = base / f"rabbit{index}"
         (self.dir / "mnesia").mkdir(parents=True, exist_ok=True)
         (self.dir / "log").mkdir(exist_ok=True)
@@ -161,7 +187,7 @@ class Cluster:
         cookie = home / ".erlang.cookie"
         cookie.write_text(f"HOOKWATCHTEST{os.getpid()}{free_port()}")
         os.chmod(cookie, 0o400)
-        self.epmd_port = free_port()
+        self.epmd_port = quiet_port()
         self.epmd: subprocess.Popen | None = None
         self.nodes = [Node(self.base, i + 1, self.epmd_port, str(home)) for i in range(n)]
 
