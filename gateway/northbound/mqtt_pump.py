@@ -86,6 +86,41 @@ class MqttSettings(BrokerSettings):
     records_dir: str | None = None
 
 
+class RetainedTopics:
+    """The latest message of every retained topic, for publishing again after a (re)connect (a
+    retained message held by a broker node that is gone, or by another node of a cluster, is
+    never the only copy). A topic whose newest message is not confirmed yet is left to that one;
+    at most RETAINED_TOPICS_MAX topics, the oldest forgotten beyond (counted)."""
+
+    def __init__(self, counters: dict[str, int]) -> None:
+        self.counters = counters
+        self._latest: dict[str, int] = {}           # topic → seq of its newest stored row
+        self._unconfirmed: dict[int, Row] = {}      # seq → that row, until the broker confirms it
+        self._confirmed: dict[str, Row] = {}        # topic → its newest row, confirmed
+
+    def stored(self, row: Row) -> None:
+        old = self._latest.pop(row.topic, None)
+        if old is not None:
+            self._unconfirmed.pop(old, None)
+        self._confirmed.pop(row.topic, None)
+        self._latest[row.topic] = row.seq
+        self._unconfirmed[row.seq] = row
+        while len(self._latest) > RETAINED_TOPICS_MAX:
+            topic = next(iter(self._latest))
+            self._unconfirmed.pop(self._latest.pop(topic), None)
+            self._confirmed.pop(topic, None)
+            self.counters["retained_topics_forgotten"] += 1
+
+    def confirmed(self, seq: int) -> None:
+        row = self._unconfirmed.pop(seq, None)
+        if row is not None:
+            self._confirmed[row.topic] = row
+
+    def to_publish(self) -> list[Row]:
+        """The confirmed newest row of each topic, in seq order."""
+        return sorted(self._confirmed.values(), key=lambda r: r.seq)
+
+
 class MqttPump(PahoSession):
     """Store-and-forward of one station's messages (see the module docstring)."""
 
@@ -133,11 +168,7 @@ class MqttPump(PahoSession):
         self._connack = False
         self._v5_ok = False         # the broker accepted MQTT 5 once: never fall back
         self._v5_closed = 0         # MQTT 5 connections closed before their CONNACK, in a row
-        # retained topics (see the module docstring): the latest row of each topic not yet
-        # confirmed (seq → row), and the latest confirmed one (topic → row), published on connect
-        self._retained_latest: dict[str, int] = {}
-        self._retained_unconfirmed: dict[int, Row] = {}
-        self._republish: dict[str, Row] = {}
+        self.retained = RetainedTopics(self.counters)
 
     # ================================================================ any thread
     def put(self, msg: M.Message) -> int:
@@ -259,31 +290,14 @@ class MqttPump(PahoSession):
             self.outbox.add(self._unstored, self._sent_upto)
             for row in self._unstored:
                 if row.retain:
-                    self._retained_row(row)
+                    self.retained.stored(row)
             self._unstored = []
         acked = list(self._acked)
         if acked:
             self.outbox.confirm(acked)
             for seq in acked:
                 self._acked.popleft()
-                done = self._retained_unconfirmed.pop(seq, None)
-                if done is not None:
-                    self._republish[done.topic] = done
-
-    def _retained_row(self, row: Row) -> None:
-        """A retained row stored: the newest of its topic (an older one is no longer published
-        again; the topics are bounded, the oldest forgotten beyond RETAINED_TOPICS_MAX)."""
-        old = self._retained_latest.pop(row.topic, None)
-        if old is not None:
-            self._retained_unconfirmed.pop(old, None)
-        self._republish.pop(row.topic, None)
-        self._retained_latest[row.topic] = row.seq
-        self._retained_unconfirmed[row.seq] = row
-        while len(self._retained_latest) > RETAINED_TOPICS_MAX:
-            topic = next(iter(self._retained_latest))
-            self._retained_unconfirmed.pop(self._retained_latest.pop(topic), None)
-            self._republish.pop(topic, None)
-            self.counters["retained_topics_forgotten"] += 1
+                self.retained.confirmed(seq)
 
     def _pump(self) -> None:
         stop_deadline = None
@@ -437,14 +451,9 @@ class MqttPump(PahoSession):
         for f in self._site_filters:
             client.subscribe(f, qos=1)
         client.publish(self._status_topic, self._status(True), qos=1, retain=True)
-        self._publish_retained(client)
-
-    def _publish_retained(self, client: paho.Client) -> None:
-        """The latest confirmed message of every retained topic again (its original seq; a topic
-        with a newer message still to be sent is left to that one): a retained message held by a
-        broker node that is gone, or by another node of a cluster, is never the only copy. Paho
-        puts these on the wire before it resends what was in flight: older first."""
-        for row in sorted(self._republish.values(), key=lambda r: r.seq):
+        # the latest confirmed message of every retained topic again (see RetainedTopics); paho
+        # puts these on the wire before it resends what was in flight: older first
+        for row in self.retained.to_publish():
             info = client.publish(row.topic, row.payload, qos=row.qos, retain=True)
             if info.rc == paho.MQTT_ERR_SUCCESS:
                 self.counters["retained_republished"] += 1

@@ -47,10 +47,12 @@ TUNED = {"dead_band_n": 0.01}
 
 
 class Killer:
-    """Kills a node (kill -9) every 30–60 s, the nodes in turn, and starts it again at once."""
+    """Kills a node (kill -9) every 30–60 s and starts it again at once: a node a running
+    gateway is connected to (from the gateways' logs), so that every kill cuts one off."""
 
-    def __init__(self, cluster: Cluster, seed: int = 29):
+    def __init__(self, cluster: Cluster, tmp_path, seed: int = 29):
         self.cluster = cluster
+        self.tmp_path = tmp_path
         self.rng = random.Random(seed)
         self.kills: list[str] = []
         self.errors: list[str] = []
@@ -61,11 +63,28 @@ class Killer:
         self._t.start()
         return self
 
+    def _target(self) -> int | None:
+        """The node the most recently connected running gateway is on (None: none is)."""
+        ports = {n.mqtt_port: i for i, n in enumerate(self.cluster.nodes)}
+        best = None
+        for log in self.tmp_path.glob("gw*/gw-*.log"):
+            text = log.read_text(errors="replace")
+            if "slot stats" in text:            # that run has ended
+                continue
+            hits = re.findall(r"^(\S+ \S+) .*connected to 127\.0\.0\.1:(\d+)", text, re.M)
+            if hits and (best is None or hits[-1][0] > best[0]):
+                best = hits[-1]
+        return None if best is None else ports.get(int(best[1]))
+
     def _run(self) -> None:
-        i = 1
         while not self._stop.wait(self.rng.uniform(*KILL_EVERY_S)):
-            node = i % len(self.cluster.nodes)
-            i += 1
+            node = None
+            for _ in range(60):                 # between two lives no gateway is connected
+                node = self._target()
+                if node is not None or self._stop.wait(0.5):
+                    break
+            if node is None:
+                continue
             try:
                 self.cluster.kill(node)
                 self.kills.append(self.cluster.nodes[node].name)
@@ -121,7 +140,7 @@ def test_three_gateways_on_a_rabbitmq_cluster_lose_nothing_while_nodes_are_kille
         killer = None
         try:
             wait_for(lambda: mes.connects >= 1, 60, what="the MES connected")
-            killer = Killer(cluster).start()
+            killer = Killer(cluster, tmp_path).start()
             lives = []
             for life in range(LIVES_UNDER_KILLS):
                 lives.append(_life(tmp_path, cluster, life))
