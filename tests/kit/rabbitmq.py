@@ -126,6 +126,7 @@ class Node:
             "RABBITMQ_CONF_ENV_FILE": str(self.dir / "rabbitmq-env.conf"),     # none: no site file
             "RABBITMQ_ADVANCED_CONFIG_FILE": str(self.dir / "advanced.config"),
             "RABBITMQ_PID_FILE": str(self.dir / "rabbit.pid"),
+            "ERL_CRASH_DUMP": str(self.dir / "erl_crash.dump"),     # not in the working directory
             # the distribution listens on loopback only
             # one scheduler without busy-waiting: three nodes share a small box with real-time
             # stations (the default spins its schedulers, a core's worth of CPU per node)
@@ -137,7 +138,7 @@ class Node:
 
     def start(self) -> Node:
         with open(self.log_file, "ab") as out:
-            self.p = subprocess.Popen([os.path.join(RABBIT_BIN, "rabbitmq-server")], env=self.env,
+            self.p = subprocess.Popen([os.path.join(RABBIT_BIN, "rabbitmq-server")], env=self.env, cwd=self.dir,
                                       stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT,
                                       start_new_session=True)
         return self
