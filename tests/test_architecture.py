@@ -24,7 +24,7 @@ PACKAGES = ("gateway", "drivers")
 #: what drivers may import of gateway: the contracts, records, the pure method and control, and the
 #: two leaves every file reader shares (one bounded YAML reader, one validation style)
 PURE_CORE = ("gateway.ports", "gateway.records", "gateway.method", "gateway.control", "gateway.validation",
-             "gateway.safeyaml")
+             "gateway.safeyaml", "gateway.slotwindow")
 
 
 def _modules() -> dict[str, str]:

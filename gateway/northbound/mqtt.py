@@ -35,24 +35,23 @@ from ..commandtypes import CODE, Rejection
 from ..history import read_history
 from ..ports import CommandSink, StationLinks
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
+from ..slotwindow import SlotWindow
 from ..station.alarm_store import AlarmStore
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
 from . import schema
 from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
-from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
+from .mqtt_messages import SOFTWARE, alarm_fields, telemetry_summary
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
 from .sitelives import STORE_NAME, SiteLives, lives_topic, snapshot
 
 __all__ = ["MqttOutput", "MqttSettings", "SecretError", "SOFTWARE", "STATE_REFRESH_S",
-           "alarm_fields", "Telemetry"]
+           "alarm_fields"]
 
 log = logging.getLogger("hookwatch.mqtt")
 
 STATE_REFRESH_S = 10.0
-#: the aggregation's old name (tests)
-_Telemetry = Telemetry
 
 
 class MqttOutput:
@@ -81,7 +80,7 @@ class MqttOutput:
         self._base = settings.base_topic
         # station-loop state
         self._test_id: str | None = None
-        self._agg: Telemetry | None = None
+        self._agg: SlotWindow | None = None
         self._last_state: StationState | None = None
         self._last_state_key: tuple[Any, ...] | None = None
         self._last_state_pub = 0.0
@@ -138,7 +137,7 @@ class MqttOutput:
         agg = self._agg
         now = time.monotonic()
         if agg is None:
-            agg = self._agg = Telemetry(now)
+            agg = self._agg = SlotWindow(now)
         agg.add(rec)
         if now - agg.t0 >= self.s.telemetry_interval_s:
             self._flush_telemetry(now)
@@ -147,10 +146,10 @@ class MqttOutput:
         agg = self._agg
         if agg is None or agg.n == 0:
             return
-        self._agg = Telemetry(now)
+        self._agg = SlotWindow(now)
         st = self._last_state           # §5a: the headroom of the last window, as in `state`
-        summary = agg.summary(now, self._test_id, st.headroom if st is not None else None,
-                              st.t_cross if st is not None else None)
+        summary = telemetry_summary(agg, now, self._test_id, st.headroom if st is not None else None,
+                                    st.t_cross if st is not None else None)
         summary.update(schema.forecast_fields(st if self._test_id else None, state=False))
         self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(), summary))
 

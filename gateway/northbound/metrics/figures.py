@@ -17,6 +17,7 @@ from bisect import bisect_left
 from typing import Any
 
 from ...records import StationState, TestState
+from ...slotwindow import SlotWindow
 
 SNAPSHOT_VERSION = 1
 
@@ -58,13 +59,15 @@ class Histogram:
 
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
-    __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
+    __slots__ = ("station", "life", "overruns", "lateness", "rtt", "mu", "mu_ss",
                  "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
                  "pruned_tests", "pruned_bytes", "forecast")
 
     def __init__(self, station: str):
         self.station = station
-        self.slots = self.filled = self.overruns = 0
+        #: every slot of the station's life in this process (Prometheus counters never reset)
+        self.life = SlotWindow()
+        self.overruns = 0
         self.lateness = Histogram(LATENESS_BUCKETS_S)
         self.rtt = Histogram(RTT_BUCKETS_S)
         self.mu: float | None = None
@@ -158,7 +161,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
     state = f.state
     return {
         "v": SNAPSHOT_VERSION, "station": station_id, "time": time.time(), "ts": ts,
-        "slots": f.slots, "filled": f.filled, "overruns": f.overruns,
+        "slots": f.life.n, "filled": f.life.n_present, "overruns": f.overruns,
         "lateness_s": f.lateness.snapshot(), "rtt_s": f.rtt.snapshot(),
         "links": links, "outbox": outbox, "plc": plc,
         "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
