@@ -375,7 +375,7 @@ class ModbusOutput:
             "saturation": now - self._sat_t <= 1.0,
             "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
             "starting": st.state == TestState.STARTING,
-            "disk_ok": bool(getattr(st, "disk_ok", True)),
+            "disk_ok": bool(st.disk_ok),
             "hook_due": bool(st.due),
         }
         v = {

@@ -33,7 +33,7 @@ from typing import Any
 
 from ..commandtypes import CODE, Rejection
 from ..history import read_history
-from ..ports import CommandSink, StationLinks
+from ..ports import AlarmStoreView, CommandSink, StationLinks
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from ..slotwindow import SlotWindow
 from ..station.alarm_store import AlarmStore
@@ -65,9 +65,14 @@ class MqttOutput:
         self.sink: CommandSink | None = station
         self.loop: asyncio.AbstractEventLoop | None = None
         #: the one alarm store: the station's; an output on its own keeps one in memory and feeds it
-        self._own_alarms = alarms is None and station is None
-        self.alarms: AlarmStore = (alarms if alarms is not None else station.alarms if station is not None
-                                   else AlarmStore(None, settings.station_id))
+        self._own_alarms: AlarmStore | None = None
+        self.alarms: AlarmStoreView
+        if alarms is not None:
+            self.alarms = alarms
+        elif station is not None:
+            self.alarms = station.alarms
+        else:
+            self.alarms = self._own_alarms = AlarmStore(None, settings.station_id)
         #: the site's lives (None: `mqtt.share_lives` off, or no records folder)
         self.site: SiteLives | None = None
         if settings.share_lives and settings.records_dir:
@@ -106,8 +111,8 @@ class MqttOutput:
     # ================================================================ output (station loop)
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
-        set_disk = getattr(self.station, "set_disk", None)
-        if set_disk is not None:
+        if self.station is not None:
+            set_disk = self.station.set_disk
             # the outbox reports from the pump thread: handed over to the station's loop
             loop = self.loop
 
@@ -156,8 +161,8 @@ class MqttOutput:
     def on_event(self, ev: Event) -> None:
         if ev.type == EventType.TEST_STARTED:
             self._test_id = ev.test_id
-        if self._own_alarms:
-            self.alarms.on_event(ev)
+        if self._own_alarms is not None:
+            self._own_alarms.on_event(ev)
         for msg in M.event_messages(self._base, ev, self._last_state, self.alarms.record,
                                     self.alarms.warning):
             self.pump.put(msg)

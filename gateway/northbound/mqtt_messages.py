@@ -127,7 +127,7 @@ def state_key(st: StationState) -> tuple[Any, ...]:
     return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
             st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
             st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
-            st.warning_alarm, getattr(st, "disk_ok", True), st.end_p10, st.end_p50, st.end_p90,
+            st.warning_alarm, st.disk_ok, st.end_p10, st.end_p50, st.end_p90,
             st.p_end, st.due, tuple(st.warn_reasons), st.prior_mean, st.prior_sd, st.prior_source,
             st.lead_s, st.p_due, st.test_started_utc)
 

@@ -18,6 +18,7 @@ from typing import Any
 
 from ...records import StationState, TestState
 from ...slotwindow import SlotWindow
+from ..modbus_server import ModbusOutput
 
 SNAPSHOT_VERSION = 1
 
@@ -144,15 +145,14 @@ class OutboxGauge:
         with self._lock:
             self.close_locked()
 
-def plc_figures(modbus) -> dict[str, Any] | None:
+def plc_figures(modbus: ModbusOutput | None) -> dict[str, Any] | None:
     """The ``plc`` part of a snapshot: the Modbus TCP server a ``ModbusOutput`` serves on."""
     if modbus is None:
         return None
-    srv = getattr(modbus, "server", None)
-    store = getattr(srv, "store", None)
+    srv = modbus.server
     return {"listen": f"{modbus.s.host}:{modbus.s.port}",
             "listening": bool(srv is not None and srv.listening.is_set()),
-            "counters": _counters(getattr(store, "counters", None))}
+            "counters": _counters(srv.store.counters if srv is not None else None)}
 
 
 def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: dict[str, Any],

@@ -40,8 +40,7 @@ def _alarm_values(name: str, value: str, shelved_until: float | None = None) -> 
 
 def _shelved_until(station: StationView | None, name: str) -> float | None:
     """When the station's alarm store shelved alarm ``name`` until (None: not shelved / no store)."""
-    store = getattr(station, "alarms", None)
-    return store.shelved_until(name) if store is not None else None
+    return station.alarms.shelved_until(name) if station is not None else None
 
 
 def state_values(st: StationState, station: StationView | None = None) -> dict[str, Any]:
@@ -100,8 +99,7 @@ class SparkplugOutput:
 
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
-        st = getattr(self.station, "state", None)
-        self._last = state_values(st, self.station) if st is not None else {}
+        self._last = state_values(self.station.state, self.station) if self.station is not None else {}
         self.rt = _client.attach(self.s, self)
         self.rt.post(("up", self.s.device_id, dict(self._last)))
 
