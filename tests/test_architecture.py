@@ -604,3 +604,19 @@ def test_one_slot_window_accumulator():
     assert counting == []
     # the accumulator itself sits on the pure core
     assert set(SCANS["gateway.slotwindow"].edges) <= {"gateway.records", "gateway.method", "gateway.method.rules"}
+
+
+#: the restarts and retries of stations and workers (their waits come from gateway/backoff.py)
+BACKOFF_USERS = ("gateway.station.fleet", "gateway.supervisor.supervisor")
+
+
+def test_one_restart_back_off():
+    """The restart back-off is written once (gateway/backoff.py): the station runner and the
+    supervisor use it, and no module of the station or the supervisor computes a doubling wait
+    of its own (``… * 2 ** n``)."""
+    for m in BACKOFF_USERS:
+        assert "gateway.backoff" in SCANS[m].edges, m
+    doubling = [f"{m}:{n.lineno}" for m, t in TREES.items() if _in(m, ("gateway.station", "gateway.supervisor"))
+                for n in ast.walk(t) if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Pow)
+                and isinstance(n.left, ast.Constant) and n.left.value in (2, 2.0)]
+    assert doubling == []
