@@ -620,3 +620,13 @@ def test_one_restart_back_off():
                 for n in ast.walk(t) if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Pow)
                 and isinstance(n.left, ast.Constant) and n.left.value in (2, 2.0)]
     assert doubling == []
+
+
+def test_the_composition_root_wires_through_constructors_and_methods():
+    """gateway/compose.py builds parts and hands them their configuration (constructors, methods):
+    it never assigns into a part's parts (``st.tests.priors.entries = …``)."""
+    deep = [f"{n.lineno} {ast.unparse(tg)}" for n in ast.walk(TREES["gateway.compose"])
+            if isinstance(n, (ast.Assign, ast.AugAssign, ast.AnnAssign))
+            for tg in (n.targets if isinstance(n, ast.Assign) else [n.target])
+            if isinstance(tg, ast.Attribute) and isinstance(tg.value, ast.Attribute)]
+    assert deep == []
