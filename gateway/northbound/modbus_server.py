@@ -43,7 +43,7 @@ from ..threadloop import call_soon_on, submit_to
 from . import registers as R
 from .cmdparse import intake, rejected_event_data
 from .modbus_tcp.pdu import Exc as ExcCodes
-from .modbus_tcp.server import ModbusTcpServer, Pacer, Store
+from .modbus_tcp.tcp_server import ModbusTcpServer, Pacer, Store
 
 log = logging.getLogger("hookwatch.modbus")
 
