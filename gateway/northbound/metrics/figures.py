@@ -3,7 +3,7 @@
 :class:`StationFigures` are plain ints and floats that a station's loop updates in O(1) per slot
 (no lock, no prometheus_client call on the slot path), kept per station id for the life of the
 process; :func:`figures_snapshot` makes the plain, JSON-serializable **snapshot** (the shape in
-gateway/northbound/metrics/__init__.py) that the renderer (render.py) turns into metric
+gateway/northbound/metrics/__init__.py) that the renderer (exposition.py) turns into metric
 families and a fleet worker sends to its supervisor.
 """
 from __future__ import annotations
