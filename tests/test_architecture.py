@@ -630,3 +630,26 @@ def test_the_composition_root_wires_through_constructors_and_methods():
             for tg in (n.targets if isinstance(n, ast.Assign) else [n.target])
             if isinstance(tg, ast.Attribute) and isinstance(tg.value, ast.Attribute)]
     assert deep == []
+
+
+#: module file names still shared, each with why (a new shared name fails the test below)
+SHARED_NAMES = {
+    "docs.py": "each renders its own package's document (config, method, Sparkplug) from its one definition",
+    "schema.py": "config/schema.py (station file sections) and northbound/schema.py (topics and payloads): "
+                 "to be renamed once the command path and broker work that edit both are merged",
+    "hooks.py": "commands/hooks.py is the `hookwatch hooks` command (commands are named after themselves); "
+                "station/hooks.py the life log it reads",
+}
+
+
+def test_module_names_say_what_they_hold():
+    """No two modules of gateway/ and drivers/ share a file name a reader could confuse (the
+    virtual twins are ``twin_*.py``, the Modbus transport's server ``tcp_server.py``, …), except
+    the names listed with their reason."""
+    by_name: dict[str, list[str]] = defaultdict(list)
+    for mod, path in MODULES.items():
+        if not path.endswith("__init__.py"):
+            by_name[os.path.basename(path)].append(mod)
+    shared = {n: sorted(ms) for n, ms in by_name.items() if len(ms) > 1}
+    assert set(shared) <= set(SHARED_NAMES), {n: ms for n, ms in shared.items() if n not in SHARED_NAMES}
+    assert set(SHARED_NAMES) <= set(shared), "a listed name is no longer shared: drop it from SHARED_NAMES"
