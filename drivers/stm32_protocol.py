@@ -1,6 +1,6 @@
 """The STM32 link protocol (docs/protocols/stm32.md): the one definition of frames, commands,
 status and CRC, used by the gateway's driver (drivers/stm32.py) and by the virtual STM32
-(drivers/sim/stm32.py) alike. Pure: bytes in, bytes/objects out; no I/O, no clock.
+(drivers/sim/twin_stm32.py) alike. Pure: bytes in, bytes/objects out; no I/O, no clock.
 
 Frame (every multi-byte field little-endian, as the STM32 stores it):
 

@@ -71,9 +71,8 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         flush_interval_s=float(cfg.recorder.flush_interval_s), default_plan=default_plan(cfg),
         autostart=bool(cfg.test.autostart), limits=station_limits(cfg, mv),
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
+        priors=cfg.forecast.priors, restart_on_replace=bool(cfg.test.restart_on_replace),
     )
-    st.tests.priors.entries = tuple(cfg.forecast.priors)      # §7a, METHOD.md
-    st.tests.restart_on_replace = bool(cfg.test.restart_on_replace)
     if with_northbound:
         st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor,
                                              sparkplug="sparkplug" not in served_by_supervisor))

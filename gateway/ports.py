@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
-from .records import Command, CommandReply, Event, RefusalData, SlotRecord, StationState
+from .records import AlarmRecord, Command, CommandReply, Event, RefusalData, SlotRecord, StationState
 
 #: longest sample ID (also the size of the PLC's sample ID registers: 16 registers × 2 chars)
 SAMPLE_ID_MAX = 32
@@ -204,20 +204,60 @@ class StationView(CommandSink, Protocol):
     def outputs(self) -> Sequence[Output]: ...
 
 
-class StationLinks(StationView, Protocol):
-    """A station in this process as its own outputs see it: its view plus what they report
-    back on the station's loop (their uplink, their disk), and
-    its alarm store itself (``gateway.station.alarm_store.AlarmStore``, which the pure core cannot
-    name: Any here), which the MQTT output publishes from."""
+class AlarmStoreView(AlarmExpiries, Protocol):
+    """A station's persisted alarm store (``gateway.station.alarm_store.AlarmStore``) as the MQTT
+    output publishes from it: the end-of-life alarm and the wear warning as they stand."""
 
     @property
-    def alarms(self) -> Any: ...
+    def record(self) -> AlarmRecord: ...
+    @property
+    def warning(self) -> AlarmRecord: ...
+
+
+class PortLink(Protocol):
+    """A southbound port's health as the metrics read it (a :class:`MeterPort`, a
+    :class:`Stm32Port`): whether it is connected, and its counters."""
+
+    @property
+    def connected(self) -> bool: ...
+    @property
+    def counters(self) -> dict[str, int]: ...
+
+
+#: a JSON object (an event's data, a disk's details): what outputs report back with
+JsonObject = dict[str, object]
+
+
+class StationLinks(StationView, Protocol):
+    """A station in this process as its own outputs see it: its view plus what they report
+    back on the station's loop (their uplink, their disk), its alarm store itself, which the
+    MQTT output publishes from, and its southbound ports' health, which the metrics report."""
+
+    @property
+    def alarms(self) -> AlarmStoreView: ...
+    @property
+    def meter(self) -> PortLink: ...
+    @property
+    def stm32(self) -> PortLink: ...
 
     def set_uplink(self, name: str, ok: bool) -> None: ...
-    def set_disk(self, store: str, ok: bool, info: dict[str, Any] | None = None) -> None: ...
-    def site_lives(self, tests: tuple[Any, ...]) -> None:
+    def set_disk(self, store: str, ok: bool, info: JsonObject | None = None) -> None: ...
+    def site_lives(self, tests: tuple[object, ...]) -> None:
         """The other stations' lives of the site (``gateway.method.prior.PastTest``), as the
         MQTT output last received them (METHOD.md §7a)."""
+
+
+@runtime_checkable
+class WorkerHooks(Protocol):
+    """The hooks an output may take besides :class:`Output`'s, from a fleet's supervisor (its
+    station proxy, ``gateway.supervisor.remote.RemoteStation``): the station's worker process
+    came up or went down (``on_worker``), ``n`` slot records were lost before they reached the
+    output (``on_lost``), the worker's metrics snapshot (``on_metrics``). The fan-out calls them
+    on the outputs that are one (``Fanout.worker``/``lost``/``metrics``)."""
+
+    def on_worker(self, up: bool, restarts: int = 0) -> None: ...
+    def on_lost(self, n: int) -> None: ...
+    def on_metrics(self, snap: JsonObject) -> None: ...
 
 
 # ----------------------------------------------------------------------------- the runtime

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 
@@ -52,6 +52,72 @@ class AlarmState(str, enum.Enum):
     RTN_UNACKNOWLEDGED = "rtn_unacknowledged"  # returned to normal before anyone acknowledged
     SHELVED = "shelved"                        # silenced by an operator until its expiry
     OUT_OF_SERVICE = "out_of_service"          # taken out of service (a needle is being changed)
+
+
+#: the alarm store's alarm kinds and their priority (1 = most urgent; ISA-18.2 style): end of life
+#: outranks the wear warning
+ALARM_END_OF_LIFE = "end_of_life"
+ALARM_WARNING = "warning"
+ALARM_PRIORITY = {ALARM_END_OF_LIFE: 1, ALARM_WARNING: 2}
+#: the old alarm.json states (before ISA-18.2) → the model's
+_OLD_ALARM_STATES = {"none": AlarmState.NORMAL, "active": AlarmState.UNACKNOWLEDGED,
+                     "acknowledged": AlarmState.ACKNOWLEDGED}
+
+
+@dataclass(frozen=True)
+class AlarmRecord:
+    """One alarm of a station's persisted alarm store (``gateway/station/alarm_store.py``) as it
+    stands (also after it was cleared: what it was about); the MQTT output publishes it."""
+    state: AlarmState = AlarmState.NORMAL
+    raised: bool = False                 # False: there never was an alarm (nothing to publish)
+    acknowledged: bool = False
+    test_id: str | None = None
+    sample_id: str | None = None
+    t_life: float | None = None
+    k_life: int | None = None
+    mu_ss: float | None = None
+    mu_th: float | None = None
+    raised_at: str | None = None
+    acknowledged_at: str | None = None
+    acknowledged_by: str | None = None
+    cleared_at: str | None = None
+    kind: str = ALARM_END_OF_LIFE              # ALARM_END_OF_LIFE or ALARM_WARNING
+    priority: int = ALARM_PRIORITY[ALARM_END_OF_LIFE]
+    # the wear warning's figures (§5a); None for the end of life
+    warn_slot: int | None = None
+    t_warn: float | None = None
+    headroom: float | None = None
+    t_cross: float | None = None
+    # … and its §5b forecast: the reasons of the due window, the end quantiles, P and the lead
+    reasons: list[str] | None = None
+    end_p10: float | None = None
+    end_p50: float | None = None
+    end_p90: float | None = None
+    p_end: float | None = None
+    lead_s: float | None = None
+    condition: bool = False              # ISA-18.2: the process condition stands (the hook is worn)
+    shelved_until: str | None = None     # UTC time a shelving expires
+
+    @property
+    def active(self) -> bool:
+        """The alarm stands in some way (any state but normal)."""
+        return self.state != AlarmState.NORMAL
+
+    def as_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["alarm"] = d.pop("state").value          # the key alarm.json always had
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any], kind: str = ALARM_END_OF_LIFE) -> AlarmRecord:
+        v = d.get("alarm", "normal")
+        state = _OLD_ALARM_STATES[v] if v in _OLD_ALARM_STATES else AlarmState(v)
+        names = {f for f in cls.__dataclass_fields__ if f not in ("state", "kind", "priority")}
+        kw = {k: v for k, v in d.items() if k in names}
+        kw.setdefault("raised", state != AlarmState.NORMAL)
+        kw.setdefault("acknowledged", state in (AlarmState.ACKNOWLEDGED, AlarmState.NORMAL))
+        kw.setdefault("condition", state in (AlarmState.UNACKNOWLEDGED, AlarmState.ACKNOWLEDGED))
+        return cls(state=state, kind=kind, priority=ALARM_PRIORITY[kind], **kw)
 
 
 class EventType(str, enum.Enum):

@@ -123,16 +123,16 @@ class Mailbox(Generic[ItemT]):
     """A bounded, non-blocking stream from a slot loop to another thread.
 
     :meth:`put_nowait` never blocks and never fails: when ``maxlen`` items wait, one is dropped
-    and counted in :attr:`dropped` — the oldest, or the one the drop policy ``evict`` names (the
-    index of the item to drop, None: the oldest). The consumer takes everything with :meth:`drain`
-    (optionally after :meth:`wait`)."""
+    and counted in :attr:`dropped`. The drop policy says which: the oldest item (the default), or,
+    with ``droppable``, the oldest item it accepts (e.g. a measured value, never a birth or a
+    command reply) and only when none waits, the oldest one, so the bound holds whatever comes.
+    The consumer takes everything with :meth:`drain` (optionally after :meth:`wait`)."""
 
-    def __init__(self, maxlen: int,
-                 evict: Callable[[collections.deque[ItemT]], int | None] | None = None) -> None:
+    def __init__(self, maxlen: int, droppable: Callable[[ItemT], bool] | None = None) -> None:
         if maxlen < 1:
             raise ValueError("Mailbox maxlen must be at least 1")
         self.maxlen = maxlen
-        self._evict = evict
+        self.droppable = droppable
         self._q: collections.deque[ItemT] = collections.deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -141,17 +141,23 @@ class Mailbox(Generic[ItemT]):
     def put_nowait(self, item: ItemT) -> bool:
         """Queue ``item``; False when an older item had to be dropped to make room."""
         with self._lock:
-            full = len(self._q) >= self.maxlen
+            q = self._q
+            full = len(q) >= self.maxlen
             if full:
-                i = self._evict(self._q) if self._evict is not None else None
-                if i is None:
-                    self._q.popleft()
-                else:
-                    del self._q[i]
+                self._drop_one(q)
                 self.dropped += 1
-            self._q.append(item)
+            q.append(item)
         self._wake.set()
         return not full
+
+    def _drop_one(self, q: collections.deque[ItemT]) -> None:
+        pick = self.droppable
+        if pick is not None:
+            for i, it in enumerate(q):
+                if pick(it):
+                    del q[i]
+                    return
+        q.popleft()
 
     def drain(self) -> list[ItemT]:
         """Everything queued, oldest first (empties the mailbox)."""

@@ -11,7 +11,7 @@ import sys
 import yaml
 
 from drivers.sim.scenario import ScenarioError, load_scenario
-from drivers.sim.station import EventLog, SimStation, fleet_from_dict, fleet_of_count, is_fleet_file, run_fleet
+from drivers.sim.twin_station import EventLog, SimStation, fleet_from_dict, fleet_of_count, is_fleet_file, run_fleet
 
 from ..cli import CliError
 from ..osprio import realtime_thread

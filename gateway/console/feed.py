@@ -1,12 +1,12 @@
 """From a station's slot loop to the console: one bounded, non-blocking hand-over per station.
 
 :class:`ConsoleOutput` is an ordinary station output. On the slot loop it does nothing but append
-the object it is given (the slot record, event or state copy the station already made) to a
-``collections.deque`` with a maximum length: no lock, no allocation of its own, never blocks. If the
-console thread stalls for longer than the deque holds (:data:`HANDOVER_SLOTS` slots), the oldest
-items are dropped and counted; the station and its recorder are never affected.
+the object it is given (the slot record, event or state copy the station already made) to the
+station's :class:`~gateway.threadloop.Mailbox` (the project's one bounded hand-over): never blocks.
+If the console thread stalls for longer than the mailbox holds (:data:`HANDOVER_SLOTS` slots), the
+oldest items are dropped and counted; the station and its recorder are never affected.
 
-The console thread drains the deque a few times a second (:meth:`StationFeed.drain`) into a
+The console thread drains the mailbox a few times a second (:meth:`StationFeed.drain`) into a
 :class:`Series`: μ(t) and the slow signals of the running test from slot 0, min/max-decimated
 into at most :data:`MAX_BUCKETS` buckets. When the buckets are full, neighbours are merged and the
 bucket width doubles, so a 10-hour test costs the same memory and the same bytes to a browser as a
@@ -30,6 +30,7 @@ from ..ports import StationView
 from ..records import Event, EventType, SlotRecord, StationState
 from ..station.hooks import read_hooks
 from ..station.recorder import LOG_COLUMNS
+from ..threadloop import Mailbox
 
 #: slots the hand-over holds (2 min 44 s at 50 Hz) before the oldest are dropped
 HANDOVER_SLOTS = 8192
@@ -215,12 +216,14 @@ def series_from_log(path: str, ts: float = 0.02, max_buckets: int = MAX_BUCKETS)
 
 
 class StationFeed:
-    """What the console knows about one station; lives on the console thread (except ``q``)."""
+    """What the console knows about one station; lives on the console thread (except ``q``, the
+    hand-over from the slot loop)."""
 
     def __init__(self, name: str, ts: float = 0.02):
         self.name = name
-        self.q: collections.deque = collections.deque(maxlen=HANDOVER_SLOTS)
-        self.dropped = 0
+        self.q: Mailbox[SlotRecord | Event | StationState] = Mailbox(HANDOVER_SLOTS)
+        #: records lost before they reached this station's output (a fleet worker's IPC hand-over)
+        self.lost_upstream = 0
         self.series = Series(ts)
         self.state: StationState | None = None
         self.events: collections.deque = collections.deque(maxlen=MAX_EVENTS)
@@ -247,15 +250,17 @@ class StationFeed:
         self.journal_seeded = False
 
     # ----------------------------------------------------------------- console thread
-    def drain(self, budget: int = 100_000) -> bool:
+    @property
+    def dropped(self) -> int:
+        """Items lost on the way: dropped by the full hand-over, or before it (``lost_upstream``)."""
+        return self.q.dropped + self.lost_upstream
+
+    def drain(self) -> bool:
         """Move what the slot loop handed over into the series; True if anything changed."""
-        q = self.q
-        n = 0
-        changed = False
-        while q and n < budget:
-            item = q.popleft()
-            n += 1
-            changed = True
+        items = self.q.drain()
+        n = len(items)
+        changed = n > 0
+        for item in items:
             if isinstance(item, SlotRecord):
                 if self.pending is not None:
                     if len(self.pending) < HANDOVER_SLOTS * 8:
@@ -263,18 +268,14 @@ class StationFeed:
                 elif self.running:
                     self.series.add(item)
                     self.last_k = item.k
-                    for name in ("headroom", "t_cross"):
-                        v = getattr(item, name, None)
-                        if v is not None:
-                            setattr(self, name, v)
             elif isinstance(item, Event):
                 self._event(item)
             elif isinstance(item, StationState):
                 self.state = item
-                for name in ("headroom", "t_cross"):
-                    v = getattr(item, name, None)
-                    if v is not None:
-                        setattr(self, name, v)
+                if item.headroom is not None:
+                    self.headroom = item.headroom
+                if item.t_cross is not None:
+                    self.t_cross = item.t_cross
         if n:
             self.last_seen = time.time()
         if self.dropped != self._dropped_seen:
@@ -353,11 +354,8 @@ class StationFeed:
         s["past_threshold"] = bool(st is not None and (st.t_life is not None or st.state.value == 3))
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
-        elif not s.get("mqtt_ok"):
-            # until StationState.mqtt_ok is filled by the station (issue 11), ask the MQTT output
-            outs = getattr(self.station, "outputs", ()) or ()
-            s["mqtt_ok"] = any(type(o).__name__ == "MqttOutput" and getattr(o, "connected", False)
-                               for o in list(outs))
+        # else the station's state says it (StationState.mqtt_ok, from the MQTT output's uplink
+        # through Station.set_uplink, in a fleet worker as in one process)
         return s
 
     def snapshot(self) -> dict[str, Any]:
@@ -513,8 +511,7 @@ class ConsoleOutput:
     def __init__(self, feed: StationFeed, station: StationView | None = None):
         self.feed = feed
         self.station = station
-        self._q = feed.q
-        self._max = HANDOVER_SLOTS
+        self._put = feed.q.put_nowait
 
     async def start(self) -> None:
         self.feed.loop = asyncio.get_running_loop()
@@ -524,12 +521,6 @@ class ConsoleOutput:
         if self.feed.station is self.station:
             self.feed.station = None
             self.feed.loop = None
-
-    def _put(self, item) -> None:
-        q = self._q
-        if len(q) >= self._max:
-            self.feed.dropped += 1
-        q.append(item)
 
     def on_record(self, rec: SlotRecord) -> None:
         self._put(rec)
@@ -549,4 +540,7 @@ class ConsoleOutput:
     def on_lost(self, n: int) -> None:
         """``n`` slot records were lost before they reached this output (the IPC hand-over): the
         console rebuilds the running test's curve from the recorder's log, as for its own losses."""
-        self.feed.dropped += int(n)
+        self.feed.lost_upstream += int(n)
+
+    def on_metrics(self, snap: dict[str, object]) -> None:
+        pass        # the console shows the station's own figures, not the worker's snapshot

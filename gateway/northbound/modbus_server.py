@@ -35,15 +35,15 @@ from typing import Any
 from .. import __version__
 from ..commandtypes import CODE, Rejection, check_sample_id, reply_code
 from ..doors import DoorLimits
-from ..method.rules import REASONS
 from ..ports import CommandSink, StationLimits, StationView
 from ..ratelog import RateLog, safe
 from ..records import Command, CommandKind, Event, EventType, SlotRecord, StationState, TestState
+from ..slotwindow import SlotWindow
 from ..threadloop import call_soon_on, submit_to
 from . import registers as R
 from .cmdparse import intake, rejected_event_data
 from .modbus_tcp.pdu import Exc as ExcCodes
-from .modbus_tcp.server import ModbusTcpServer, Pacer, Store
+from .modbus_tcp.tcp_server import ModbusTcpServer, Pacer, Store
 
 log = logging.getLogger("hookwatch.modbus")
 
@@ -283,8 +283,8 @@ class ModbusOutput:
         self._speed_act = math.nan
         self._in_test = False
         self._elapsed = 0.0
-        self._slots = self._valid = 0
-        self._counts = [0] * len(REASONS)
+        #: the running test's slots (its valid ratio and reason counts), opened at each test start
+        self._test = SlotWindow()
         #: refused writes and commands: one log line per kind per minute, with the count
         self.refusal_log = RateLog(log)
 
@@ -341,23 +341,15 @@ class ModbusOutput:
             self._sat_t = now
         self._speed_cmd, self._speed_act = rec.speed_cmd, rec.speed_act
         if self._in_test:
-            self._slots += 1
+            self._test.add(rec)
             self._elapsed = rec.t
-            if rec.q:
-                self._valid += 1
-            m = rec.mask
-            if m:
-                for i, (bit, _) in enumerate(REASONS):
-                    if m & bit:
-                        self._counts[i] += 1
         if now - self._last_update >= self.s.live_update_s:
             self._update(now=now)
 
     def on_event(self, ev: Event) -> None:
         if ev.type == EventType.TEST_STARTED:
             self._in_test = True
-            self._slots = self._valid = 0
-            self._counts = [0] * len(REASONS)
+            self._test = SlotWindow()
             self._elapsed = 0.0
         elif ev.type == EventType.TEST_ENDED and ev.test_id is not None:
             self._in_test = False
@@ -372,6 +364,7 @@ class ModbusOutput:
     def values(self, now: float | None = None) -> dict[str, Any]:
         now = time.monotonic() if now is None else now
         st = self._state
+        w = self._test
         running = st.state in (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE)
         flags = {
             "running": running, "baseline_found": st.mu_ss is not None,
@@ -382,7 +375,7 @@ class ModbusOutput:
             "saturation": now - self._sat_t <= 1.0,
             "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
             "starting": st.state == TestState.STARTING,
-            "disk_ok": bool(getattr(st, "disk_ok", True)),
+            "disk_ok": bool(st.disk_ok),
             "hook_due": bool(st.due),
         }
         v = {
@@ -393,15 +386,15 @@ class ModbusOutput:
             "t1": self._t1, "t2": self._t2, "tension": self._tension,
             "mu": self._mu if now - self._mu_t <= 1.0 else math.nan,
             "mu_ss": st.mu_ss, "mu_th": st.mu_th, "t_set": st.t_set,
-            "valid_ratio": self._valid / self._slots if self._slots else math.nan,
+            "valid_ratio": w.n_valid / w.n if w.n else math.nan,
             "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
-            "t_life": st.t_life, "elapsed": self._elapsed, "slots": self._slots,
-            "valid_slots": self._valid, "headroom": st.headroom, "t_cross": st.t_cross,
+            "t_life": st.t_life, "elapsed": self._elapsed, "slots": w.n,
+            "valid_slots": w.n_valid, "headroom": st.headroom, "t_cross": st.t_cross,
             "run_sample_id": st.sample_id or "", "run_test_id": st.test_id or "",
             "warning_alarm": (R.ALARM_STATES.index(st.warning_alarm)
                               if st.warning_alarm in R.ALARM_STATES else 0),
         }
-        for (_, name), c in zip(REASONS, self._counts):
+        for name, c in w.reason_counts().items():
             v[f"count_{name.lower()}"] = c
         # §5b: the remaining time to each end quantile, as the forecast stood at its last window
         el = float(st.elapsed_s)

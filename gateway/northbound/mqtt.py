@@ -33,26 +33,25 @@ from typing import Any
 
 from ..commandtypes import CODE, Rejection
 from ..history import read_history
-from ..ports import CommandSink, StationLinks
+from ..ports import AlarmStoreView, CommandSink, StationLinks
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
+from ..slotwindow import SlotWindow
 from ..station.alarm_store import AlarmStore
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
 from . import schema
 from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
-from .mqtt_messages import SOFTWARE, Telemetry, alarm_fields
+from .mqtt_messages import SOFTWARE, alarm_fields, telemetry_summary
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
 from .sitelives import STORE_NAME, SiteLives, lives_topic, snapshot
 
 __all__ = ["MqttOutput", "MqttSettings", "SecretError", "SOFTWARE", "STATE_REFRESH_S",
-           "alarm_fields", "Telemetry"]
+           "alarm_fields"]
 
 log = logging.getLogger("hookwatch.mqtt")
 
 STATE_REFRESH_S = 10.0
-#: the aggregation's old name (tests)
-_Telemetry = Telemetry
 
 
 class MqttOutput:
@@ -66,9 +65,14 @@ class MqttOutput:
         self.sink: CommandSink | None = station
         self.loop: asyncio.AbstractEventLoop | None = None
         #: the one alarm store: the station's; an output on its own keeps one in memory and feeds it
-        self._own_alarms = alarms is None and station is None
-        self.alarms: AlarmStore = (alarms if alarms is not None else station.alarms if station is not None
-                                   else AlarmStore(None, settings.station_id))
+        self._own_alarms: AlarmStore | None = None
+        self.alarms: AlarmStoreView
+        if alarms is not None:
+            self.alarms = alarms
+        elif station is not None:
+            self.alarms = station.alarms
+        else:
+            self.alarms = self._own_alarms = AlarmStore(None, settings.station_id)
         #: the site's lives (None: `mqtt.share_lives` off, or no records folder)
         self.site: SiteLives | None = None
         if settings.share_lives and settings.records_dir:
@@ -81,7 +85,7 @@ class MqttOutput:
         self._base = settings.base_topic
         # station-loop state
         self._test_id: str | None = None
-        self._agg: Telemetry | None = None
+        self._agg: SlotWindow | None = None
         self._last_state: StationState | None = None
         self._last_state_key: tuple[Any, ...] | None = None
         self._last_state_pub = 0.0
@@ -107,8 +111,8 @@ class MqttOutput:
     # ================================================================ output (station loop)
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
-        set_disk = getattr(self.station, "set_disk", None)
-        if set_disk is not None:
+        if self.station is not None:
+            set_disk = self.station.set_disk
             # the outbox reports from the pump thread: handed over to the station's loop
             loop = self.loop
 
@@ -138,7 +142,7 @@ class MqttOutput:
         agg = self._agg
         now = time.monotonic()
         if agg is None:
-            agg = self._agg = Telemetry(now)
+            agg = self._agg = SlotWindow(now)
         agg.add(rec)
         if now - agg.t0 >= self.s.telemetry_interval_s:
             self._flush_telemetry(now)
@@ -147,18 +151,18 @@ class MqttOutput:
         agg = self._agg
         if agg is None or agg.n == 0:
             return
-        self._agg = Telemetry(now)
+        self._agg = SlotWindow(now)
         st = self._last_state           # §5a: the headroom of the last window, as in `state`
-        summary = agg.summary(now, self._test_id, st.headroom if st is not None else None,
-                              st.t_cross if st is not None else None)
+        summary = telemetry_summary(agg, now, self._test_id, st.headroom if st is not None else None,
+                                    st.t_cross if st is not None else None)
         summary.update(schema.forecast_fields(st if self._test_id else None, state=False))
         self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(), summary))
 
     def on_event(self, ev: Event) -> None:
         if ev.type == EventType.TEST_STARTED:
             self._test_id = ev.test_id
-        if self._own_alarms:
-            self.alarms.on_event(ev)
+        if self._own_alarms is not None:
+            self._own_alarms.on_event(ev)
         for msg in M.event_messages(self._base, ev, self._last_state, self.alarms.record,
                                     self.alarms.warning):
             self.pump.put(msg)

@@ -8,15 +8,14 @@ a function of the stream's sequence number, which the pump stamps when it queues
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from .. import __version__
 from ..commandtypes import reply_code
-from ..method.rules import REASONS
-from ..records import CommandReply, Event, EventType, SlotRecord, StationState
+from ..records import CommandReply, Event, EventType, StationState
+from ..slotwindow import SlotWindow
 from ..station.alarm_store import AlarmRecord
 from . import schema
 from .registers import MAP_VERSION
@@ -42,70 +41,26 @@ def _r(x: float) -> float:
     return round(x, 6)
 
 
-class Telemetry:
-    """Per-interval aggregation of slot records (O(1) per record)."""
-    __slots__ = ("n", "n_read", "s1", "s2", "sm", "mn", "mx", "n_valid", "smu", "nmu", "counts",
-                 "n_sat", "speed_cmd", "speed_act", "t0")
-
-    def __init__(self, t0: float):
-        self.t0 = t0
-        self.n = self.n_read = self.n_valid = self.nmu = self.n_sat = 0
-        self.s1 = self.s2 = self.sm = self.smu = 0.0
-        self.mn = math.inf
-        self.mx = -math.inf
-        self.counts = [0] * len(REASONS)
-        self.speed_cmd = 0.0
-        self.speed_act = math.nan
-
-    def add(self, rec: SlotRecord) -> None:
-        self.n += 1
-        if rec.present:
-            t1, t2 = rec.t1, rec.t2
-            if t1 == t1 and t2 == t2:
-                self.n_read += 1
-                self.s1 += t1
-                self.s2 += t2
-                m = (t1 + t2) * 0.5
-                self.sm += m
-                if m < self.mn:
-                    self.mn = m
-                if m > self.mx:
-                    self.mx = m
-        if rec.q:
-            self.n_valid += 1
-            if rec.mu is not None:
-                self.smu += rec.mu
-                self.nmu += 1
-        mask = rec.mask
-        if mask:
-            for i, (bit, _) in enumerate(REASONS):
-                if mask & bit:
-                    self.counts[i] += 1
-        if rec.saturated:
-            self.n_sat += 1
-        self.speed_cmd = rec.speed_cmd
-        self.speed_act = rec.speed_act
-
-    def summary(self, now: float, test_id: str | None, headroom: float | None = None,
-                t_cross: float | None = None) -> dict[str, Any]:
-        """The interval's figures; ``headroom`` and ``t_cross`` are the §5a figures of the last
-        complete window of the running test (the station's state)."""
-        nr = self.n_read
-        return {
-            "test_id": test_id, "interval_s": round(now - self.t0, 3), "slots": self.n,
-            "t1": _r(self.s1 / nr) if nr else None, "t2": _r(self.s2 / nr) if nr else None,
-            "tension": {"mean": _r(self.sm / nr) if nr else None, "min": _r(self.mn) if nr else None,
-                        "max": _r(self.mx) if nr else None},
-            "mu": _r(self.smu / self.nmu) if self.nmu else None,
-            "valid_ratio": (self.n_valid / self.n if self.n else None) if test_id else None,
-            "counts": {name: c for (_, name), c in zip(REASONS, self.counts)},
-            "speed_cmd": self.speed_cmd, "speed_act": self.speed_act,
-            "saturated_slots": self.n_sat, "saturation": self.n_sat > 0,
-            "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
-            # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
-            **schema.forecast_fields(None, state=False),
-        }
-
+def telemetry_summary(w: SlotWindow, now: float, test_id: str | None, headroom: float | None = None,
+                      t_cross: float | None = None) -> dict[str, Any]:
+    """A telemetry interval's figures from its window of slots (``gateway/slotwindow.py``, opened
+    at ``w.t0`` on the output's monotonic clock); ``headroom`` and ``t_cross`` are the §5a figures
+    of the last complete window of the running test (the station's state)."""
+    nr = w.n_read
+    return {
+        "test_id": test_id, "interval_s": round(now - w.t0, 3), "slots": w.n,
+        "t1": _r(w.s1 / nr) if nr else None, "t2": _r(w.s2 / nr) if nr else None,
+        "tension": {"mean": _r(w.sm / nr) if nr else None, "min": _r(w.mn) if nr else None,
+                    "max": _r(w.mx) if nr else None},
+        "mu": _r(w.s_mu / w.n_mu) if w.n_mu else None,
+        "valid_ratio": w.valid_ratio if test_id else None,
+        "counts": w.reason_counts(),
+        "speed_cmd": w.speed_cmd, "speed_act": w.speed_act,
+        "saturated_slots": w.n_sat, "saturation": w.n_sat > 0,
+        "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
+        # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
+        **schema.forecast_fields(None, state=False),
+    }
 
 
 def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
@@ -172,7 +127,7 @@ def state_key(st: StationState) -> tuple[Any, ...]:
     return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
             st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
             st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
-            st.warning_alarm, getattr(st, "disk_ok", True), st.end_p10, st.end_p50, st.end_p90,
+            st.warning_alarm, st.disk_ok, st.end_p10, st.end_p50, st.end_p90,
             st.p_end, st.due, tuple(st.warn_reasons), st.prior_mean, st.prior_sd, st.prior_source,
             st.lead_s, st.p_due, st.test_started_utc)
 

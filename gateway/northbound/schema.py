@@ -478,7 +478,7 @@ def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
             "wear_warning": bool(st.wear_warning), **forecast_fields(st),
             "warning_alarm": st.warning_alarm,
             "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok),
-            "disk_ok": bool(getattr(st, "disk_ok", True))}
+            "disk_ok": bool(st.disk_ok)}
 
 
 def telemetry_payload(seq: int, t: float, station: str, agg: dict[str, Any]) -> dict[str, Any]:

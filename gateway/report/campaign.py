@@ -410,7 +410,7 @@ def run_parallel(fn: Callable, tasks: list, jobs: int, on_done: Callable[[], Non
     ctx = mp.get_context("forkserver") if "forkserver" in mp.get_all_start_methods() \
         else mp.get_context("spawn")
     if ctx.get_start_method() == "forkserver":
-        ctx.set_forkserver_preload(["gateway.report.worker"])
+        ctx.set_forkserver_preload(["gateway.report.per_log"])
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx,
                              initializer=_init_worker) as ex:
         futs = {ex.submit(fn, t): i for i, t in enumerate(tasks)}

@@ -24,9 +24,9 @@ from .campaign import (
     discover,
     run_parallel,
 )
-from .figures import render_fig9
+from .per_log import run_task
+from .plots import render_fig9
 from .render import Document, Figure, Section, write_csvs, write_document
-from .worker import run_task
 
 
 @dataclass

@@ -20,87 +20,27 @@ import datetime as _dt
 import json
 import logging
 import os
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 from .. import safeout
 from ..alarms import Alarm, AlarmError, Transition
-from ..records import AlarmState, Event, EventType
+from ..records import ALARM_END_OF_LIFE, ALARM_PRIORITY, ALARM_WARNING, AlarmRecord, AlarmState, Event, EventType
 
 log = logging.getLogger("hookwatch.alarms")
 
-END_OF_LIFE = "end_of_life"
-WARNING = "warning"
+END_OF_LIFE = ALARM_END_OF_LIFE
+WARNING = ALARM_WARNING
 #: the store's alarm kinds → the model's alarm names (gateway.alarms.ALARMS)
 MODEL_NAME = {END_OF_LIFE: "end_of_life", WARNING: "wear_warning"}
 KIND_OF = {v: k for k, v in MODEL_NAME.items()}
-#: the old alarm.json states (before ISA-18.2) → the model's
-_OLD_STATES = {"none": AlarmState.NORMAL, "active": AlarmState.UNACKNOWLEDGED,
-               "acknowledged": AlarmState.ACKNOWLEDGED}
-#: the alarm kinds and their priority (1 = most urgent; ISA-18.2 style): end of life outranks
-#: the wear warning
-PRIORITY = {END_OF_LIFE: 1, WARNING: 2}
+PRIORITY = ALARM_PRIORITY
 
 
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
     d = _dt.datetime.fromtimestamp(round(float(t), 3), tz=_dt.UTC)
     return d.strftime("%Y-%m-%dT%H:%M:%S.") + f"{d.microsecond // 1000:03d}Z"
-
-
-@dataclass(frozen=True)
-class AlarmRecord:
-    """One alarm as it stands (also after it was cleared: what it was about)."""
-    state: AlarmState = AlarmState.NORMAL
-    raised: bool = False                 # False: there never was an alarm (nothing to publish)
-    acknowledged: bool = False
-    test_id: str | None = None
-    sample_id: str | None = None
-    t_life: float | None = None
-    k_life: int | None = None
-    mu_ss: float | None = None
-    mu_th: float | None = None
-    raised_at: str | None = None
-    acknowledged_at: str | None = None
-    acknowledged_by: str | None = None
-    cleared_at: str | None = None
-    kind: str = END_OF_LIFE              # END_OF_LIFE or WARNING
-    priority: int = PRIORITY[END_OF_LIFE]
-    # the wear warning's figures (§5a); None for the end of life
-    warn_slot: int | None = None
-    t_warn: float | None = None
-    headroom: float | None = None
-    t_cross: float | None = None
-    # … and its §5b forecast: the reasons of the due window, the end quantiles, P and the lead
-    reasons: list[str] | None = None
-    end_p10: float | None = None
-    end_p50: float | None = None
-    end_p90: float | None = None
-    p_end: float | None = None
-    lead_s: float | None = None
-    condition: bool = False              # ISA-18.2: the process condition stands (the hook is worn)
-    shelved_until: str | None = None     # UTC time a shelving expires
-
-    @property
-    def active(self) -> bool:
-        """The alarm stands in some way (any state but normal)."""
-        return self.state != AlarmState.NORMAL
-
-    def as_json(self) -> dict[str, Any]:
-        d = asdict(self)
-        d["alarm"] = d.pop("state").value          # the key alarm.json always had
-        return d
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any], kind: str = END_OF_LIFE) -> AlarmRecord:
-        v = d.get("alarm", "normal")
-        state = _OLD_STATES[v] if v in _OLD_STATES else AlarmState(v)
-        names = {f for f in cls.__dataclass_fields__ if f not in ("state", "kind", "priority")}
-        kw = {k: v for k, v in d.items() if k in names}
-        kw.setdefault("raised", state != AlarmState.NORMAL)
-        kw.setdefault("acknowledged", state in (AlarmState.ACKNOWLEDGED, AlarmState.NORMAL))
-        kw.setdefault("condition", state in (AlarmState.UNACKNOWLEDGED, AlarmState.ACKNOWLEDGED))
-        return cls(state=state, kind=kind, priority=PRIORITY[kind], **kw)
 
 
 class AlarmStore:

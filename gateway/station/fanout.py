@@ -11,9 +11,8 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from collections.abc import Sequence
-from typing import Any
 
-from ..ports import Output
+from ..ports import JsonObject, Output, WorkerHooks
 from ..records import Event, SlotRecord, StationState
 
 log = logging.getLogger("hookwatch.station")
@@ -34,7 +33,7 @@ class Fanout:
     def all(self) -> list[Output]:
         return [*self.head, *self.outputs]
 
-    def _failed(self, o: Output, what: str) -> None:
+    def _failed(self, o: object, what: str) -> None:
         key = f"{type(o).__name__}.{what}"
         self.failures[key] += 1
         if self.failures[key] == 1:
@@ -62,17 +61,33 @@ class Fanout:
             except Exception:
                 self._failed(o, "state")
 
-    def optional(self, method: str, *args: Any) -> None:
-        """Call ``method`` on every output that has it (a hook only some outputs take, e.g. a
-        fleet proxy's ``on_worker``/``on_metrics``/``on_lost``), failures caught and counted."""
-        for o in (*self.head, *self.outputs):
-            fn = getattr(o, method, None)
-            if fn is None:
-                continue
+    def _hooked(self) -> list[WorkerHooks]:
+        """The outputs that take a fleet proxy's hooks (:class:`gateway.ports.WorkerHooks`)."""
+        return [o for o in (*self.head, *self.outputs) if isinstance(o, WorkerHooks)]
+
+    def worker(self, up: bool, restarts: int = 0) -> None:
+        """The station's worker process came up or went down (``WorkerHooks.on_worker``)."""
+        for o in self._hooked():
             try:
-                fn(*args)
+                o.on_worker(up, restarts)
             except Exception:
-                self._failed(o, method)
+                self._failed(o, "on_worker")
+
+    def lost(self, n: int) -> None:
+        """``n`` slot records were lost before the fan-out (``WorkerHooks.on_lost``)."""
+        for o in self._hooked():
+            try:
+                o.on_lost(n)
+            except Exception:
+                self._failed(o, "on_lost")
+
+    def metrics(self, snap: JsonObject) -> None:
+        """A worker's metrics snapshot (``WorkerHooks.on_metrics``)."""
+        for o in self._hooked():
+            try:
+                o.on_metrics(snap)
+            except Exception:
+                self._failed(o, "on_metrics")
 
     async def start(self) -> None:
         """Start every output. An output that cannot start raises: the station does not run

@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
+from ..backoff import Backoff
 from ..osprio import freeze_heap, realtime_thread
 from ..threadloop import ThreadLoop
 from .station import Station
@@ -34,13 +35,10 @@ class StationRunner:
         #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/osprio.py)
         self.rt_priority = rt_priority
         self.factory = factory
-        #: the first restart comes after ``backoff`` s; each further crash in a row doubles it,
-        #: up to ``backoff_max``; an instance that ran ``stable_after_s`` resets the row
-        self.backoff = restart_backoff_s
-        self.backoff_max = restart_backoff_max_s
-        self.stable_after_s = stable_after_s
-        #: crashes in a row (since the last instance that ran stable_after_s)
-        self.crash_streak = 0
+        #: the first restart comes after ``restart_backoff_s``; each further crash in a row
+        #: doubles it, up to ``restart_backoff_max_s``; an instance that ran ``stable_after_s``
+        #: starts a new row (gateway/backoff.py)
+        self.restart = Backoff(restart_backoff_s, restart_backoff_max_s, stable_after_s)
         self.max_slots = max_slots
         self.on_started = on_started
         self.station: Station | None = None
@@ -103,12 +101,10 @@ class StationRunner:
             except Exception as e:  # isolate: close, log, back off, restart this station only
                 await self._after_crash(e, time.monotonic() - t_start)
 
-    def next_backoff(self, ran_s: float) -> float:
-        """The wait before the next restart: growing while the station crashes in a row."""
-        if ran_s >= self.stable_after_s:
-            self.crash_streak = 0
-        self.crash_streak += 1
-        return min(self.backoff_max, self.backoff * 2 ** (self.crash_streak - 1))
+    @property
+    def crash_streak(self) -> int:
+        """Crashes in a row (since the last instance that ran ``stable_after_s``)."""
+        return self.restart.in_row
 
     async def _after_crash(self, e: Exception, ran_s: float) -> None:
         self.crashes += 1
@@ -122,7 +118,7 @@ class StationRunner:
             except Exception:
                 log.exception("station %s: closing the crashed instance failed", self.name)
         self.station = None
-        delay = self.next_backoff(ran_s)
+        delay = self.restart.failed(ran_s)
         if self.crashes == 1:       # the traceback once; later crashes one line with the count
             log.error("station %s crashed; closed; restarting in %.1f s", self.name, delay,
                       exc_info=e)

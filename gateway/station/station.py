@@ -24,14 +24,14 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterable
 from typing import Any
 
 from .. import ratelog
 from ..control import Controller, ControlParams
 from ..method.core import StreamingMonitor
 from ..method.params import MethodParams
-from ..method.prior import PastTest
+from ..method.prior import PastTest, PriorEntry
 from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
 from ..records import Command, CommandReply, EventType, SlotRecord, StationState
 from .alarm_store import AlarmStore
@@ -55,12 +55,11 @@ log = logging.getLogger("hookwatch.station")
 class Station:
     """One station's slot loop and the test it runs (see the module doc)."""
 
-    def __init__(self, *, station_id: str, method: dict[str, Any], control: ControlParams,
-                 meter: MeterPort, stm32: Stm32Port, records_dir: str,
-                 swap_channels: bool = False, outputs: list[Output] | None = None,
-                 flush_interval_s: float = 1.0, default_plan: TestPlan | None = None,
-                 limits: StationLimits | None = None, identity: dict[str, Any] | None = None,
-                 idle_status_interval_s: float = 0.5, autostart: bool = False) -> None:
+    def __init__(self, *, station_id: str, method: dict[str, Any], control: ControlParams, meter: MeterPort,
+                 stm32: Stm32Port, records_dir: str, swap_channels: bool = False, outputs: list[Output] | None = None,
+                 flush_interval_s: float = 1.0, default_plan: TestPlan | None = None, restart_on_replace: bool = False,
+                 limits: StationLimits | None = None, identity: dict[str, Any] | None = None, autostart: bool = False,
+                 idle_status_interval_s: float = 0.5, priors: Iterable[PriorEntry] = ()) -> None:
         self.id = station_id
         self.method_values = dict(method)          # §10 values without t_set / t_end
         self.control_params = control
@@ -96,6 +95,7 @@ class Station:
             TestSetup(station_id, self.station_dir, self.ts, self.method_values, control,
                       self.identity, flush_interval_s), self.board, self.health, self.link, meter,
             self._recorder_out)
+        self.tests.priors.entries, self.tests.restart_on_replace = tuple(priors), bool(restart_on_replace)
         self._stop_evt: asyncio.Event | None = None
         self._closed = False
         self.clock: SlotClock | None = None

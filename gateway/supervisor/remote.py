@@ -181,7 +181,7 @@ class RemoteStation:
             self.state = st
             self.fanout.state(st)
         elif ftype == FrameType.METRICS:
-            self.fanout.optional("on_metrics", body)
+            self.fanout.metrics(body)
 
     def _record(self, rec: SlotRecord) -> None:
         last = self.last_k
@@ -190,7 +190,7 @@ class RemoteStation:
             # (the console reads the test so far from the recorder's log)
             n = rec.k - last - 1
             self.lost += n
-            self.fanout.optional("on_lost", n)
+            self.fanout.lost(n)
         self.last_k = rec.k
         self.fanout.record(rec)
 
@@ -202,7 +202,7 @@ class RemoteStation:
             down = dataclasses.replace(self.state, meter_ok=False, stm32_ok=False, mqtt_ok=False)
             self.state = down
             self.fanout.state(down)
-        self.fanout.optional("on_worker", self.up, restarts)
+        self.fanout.worker(self.up, restarts)
 
     def _bad(self, what: str, e: Exception) -> None:
         key = ("frame", what)
@@ -250,6 +250,12 @@ class SparkplugDevice(SparkplugOutput):
                 self._flush(time.monotonic())
                 self._agg = None
                 self.rt.post(("down", self.s.device_id))
+
+    def on_lost(self, n: int) -> None:
+        pass        # a device reports the slots it is given; a lost span is not published
+
+    def on_metrics(self, snap: dict[str, Any]) -> None:
+        pass        # the worker's figures go to the metrics endpoint, not to the device
 
     def on_record(self, rec: SlotRecord) -> None:
         if self.up:

@@ -42,6 +42,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from .. import safeout
+from ..backoff import Backoff
 from ..commandtypes import CODE, Rejection
 from ..compose import process_budget
 from ..config import Issue
@@ -193,12 +194,13 @@ class WorkerHandle:
         self.go_t = 0.0                  # when GO was sent (the station runs from then on)
         self.started_at = 0.0
         self.next_start = 0.0
-        self.crashes_in_row = 0
+        #: the restart back-off of this worker (crashes in a row) and of its failed starts
+        self.restart = sup.watch.restart_backoff()
+        self.spawn_retry = Backoff(SPAWN_RETRY_S, SPAWN_RETRY_MAX_S)
         self.spawned = 0
         self.restarts = 0
-        #: starts that failed (EMFILE …): in all, and in a row (the retry back-off)
+        #: starts that failed (EMFILE …), in all
         self.spawn_failures = 0
-        self.spawn_failures_in_row = 0
         self.stopping = False
         self.fingerprint = ""
         #: what the supervisor serves for this station (Modbus TCP unit, Sparkplug device, console, metrics)
@@ -371,6 +373,11 @@ class WorkerWatch:
         #: no watchdog kill before this time (after a stall of the supervisor itself)
         self._grace_until = 0.0
 
+    def restart_backoff(self) -> Backoff:
+        """A worker's restart back-off (gateway/backoff.py): ``backoff_s`` doubling to
+        ``backoff_max_s``, a run of ``stable_s`` starting a new row."""
+        return Backoff(self.backoff_s, self.backoff_max_s, self.stable_s)
+
     def tick(self, workers: list[WorkerHandle], now: float) -> None:
         if self._last_tick and now - self._last_tick > STALL_S:
             # the supervisor itself did not run (stopped, swapped out, starved): the workers'
@@ -392,7 +399,7 @@ class WorkerWatch:
                     except OSError as e:        # EMFILE, ENFILE, EAGAIN: a state, never the end
                         self._spawn_failed(w, e, now)
                         continue
-                    w.spawn_failures_in_row = 0
+                    w.spawn_retry.reset()
                     if w.spawned > 1:
                         w.restarts += 1
                         w.hub.publish("supervisor", {"type": "worker_restarted", "station": name,
@@ -418,14 +425,13 @@ class WorkerWatch:
         again after SPAWN_RETRY_S, doubling to SPAWN_RETRY_MAX_S; one log line a minute per
         station with the count; the running workers go on."""
         w.spawn_failures += 1
-        w.spawn_failures_in_row += 1
-        delay = min(SPAWN_RETRY_MAX_S, SPAWN_RETRY_S * 2 ** (w.spawn_failures_in_row - 1))
+        delay = w.spawn_retry.failed()
         w.next_start = now + delay
         self.spawn_failures += 1
         self.rlog(logging.ERROR, f"spawn:{w.hub.name}", "%s: cannot start the worker: %s; "
                   "retrying in %.1f s (%d failed starts)", w.hub.name, e.strerror or e, delay,
                   w.spawn_failures)
-        if w.spawn_failures_in_row == 1:
+        if w.spawn_retry.in_row == 1:
             w.hub.publish("supervisor", {"type": "worker_start_failed", "station": w.hub.name,
                                          "reason": str(e.strerror or e), "retry_in_s": delay,
                                          "time": time.time()})
@@ -438,17 +444,14 @@ class WorkerWatch:
         if w.stopping:
             return
         why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
-        if now - w.started_at >= self.stable_s:
-            w.crashes_in_row = 0
-        w.crashes_in_row += 1
-        n = w.crashes_in_row
+        delay = w.restart.failed(now - w.started_at)
+        n = w.restart.in_row
         if n >= self.hold_after:
             delay = self.hold_s
             log.error("%s: worker keeps crashing (%d times in a row, last: %s): held back for %.0f s",
                       name, n, why, delay)
             kind = "worker_held_back"
         else:
-            delay = min(self.backoff_max_s, self.backoff_s * 2 ** (n - 1))
             log.error("%s: worker ended (%s); restarting in %.1f s", name, why, delay)
             kind = "worker_exited"
         w.next_start = now + delay

@@ -33,6 +33,7 @@ from ..northbound.metrics import MetricsOutput
 from ..northbound.mqtt import MqttOutput
 from ..ratelog import safe
 from ..records import CommandReply, Event, SlotRecord, StationState
+from ..slotwindow import SlotWindow
 from ..station.fleet import StationRunner
 from ..station.station import Station
 from ..threadloop import submit_to
@@ -64,14 +65,7 @@ class IpcOutput:
         self.every = max(1, int(every))
         self.rows = rows
         self._recs: list[SlotRecord] = []
-        self._reset()
-
-    def _reset(self) -> None:
-        self._n = self._filled = self._valid = self._tn = 0
-        self._mu = self._t = 0.0
-        self._late = self._rtt = 0.0
-        if self._recs:
-            self._recs = []
+        self._win = SlotWindow()
 
     async def start(self) -> None:
         pass
@@ -80,34 +74,25 @@ class IpcOutput:
         pass
 
     def on_record(self, rec: SlotRecord) -> None:
-        self._n += 1
+        w = self._win
+        w.add(rec)
         if self.rows:
             self._recs.append(rec)
-        if rec.present:
-            self._filled += 1
-            self._t += (rec.t1 + rec.t2) * 0.5
-            self._tn += 1
-            if rec.rtt_s == rec.rtt_s and rec.rtt_s > self._rtt:
-                self._rtt = rec.rtt_s
-        if rec.q and rec.mu is not None:
-            self._valid += 1
-            self._mu += rec.mu
-        if rec.lateness_s > self._late:
-            self._late = rec.lateness_s
-        if self._n >= self.every:
+        if w.n >= self.every:
             self._flush(rec)
 
     def _flush(self, rec: SlotRecord) -> None:
+        w = self._win
         body: dict[str, Any] = {
-            "k": rec.k, "n": self._n, "filled": self._filled, "valid": self._valid,
-            "mu_mean": self._mu / self._valid if self._valid else None,
-            "t_mean": self._t / self._tn if self._tn else None,
-            "lateness_ms_max": self._late * 1e3, "rtt_ms_max": self._rtt * 1e3,
+            "k": rec.k, "n": w.n, "filled": w.n_present, "valid": w.n_mu,
+            "mu_mean": w.mu_mean, "t_mean": w.tension_mean,
+            "lateness_ms_max": w.late_max * 1e3, "rtt_ms_max": w.rtt_max * 1e3,
             "last": asdict(rec)}
         if self.rows:
             body["rows"] = [slot_row(r) for r in self._recs]
+            self._recs = []
         self.chan.send(FrameType.SLOTS, body)
-        self._reset()
+        self._win = SlotWindow()
 
     def _in_order(self) -> None:
         # with rows, the supervisor's outputs must see records, events and states in the order

@@ -5,7 +5,7 @@ import re
 
 from conftest import ROOT
 from gateway.northbound.cmdparse import MAX_DEPTH, MAX_PAYLOAD_BYTES
-from gateway.northbound.modbus_tcp import server as S
+from gateway.northbound.modbus_tcp import tcp_server as S
 from gateway.northbound.outbox import RESERVE_MAX_ROWS
 from gateway.station.recorder import MAX_PENDING_ROWS
 

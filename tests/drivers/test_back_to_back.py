@@ -11,7 +11,7 @@ from drivers import stm32_protocol as p
 from drivers.sim.loopback import LoopbackLink
 from drivers.sim.meter import VirtualMeter
 from drivers.sim.pty import PtyLink
-from drivers.sim.stm32 import SimpleMotor, Stm32Firmware, VirtualStm32
+from drivers.sim.twin_stm32 import SimpleMotor, Stm32Firmware, VirtualStm32
 from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
 from drivers.zns_map import DEFAULT_MAP_PATH, load_map

@@ -7,7 +7,7 @@ import random
 
 from drivers import stm32_protocol as p
 from drivers.sim.loopback import LoopbackLink
-from drivers.sim.stm32 import SimpleMotor, Stm32Firmware, VirtualStm32
+from drivers.sim.twin_stm32 import SimpleMotor, Stm32Firmware, VirtualStm32
 from drivers.stm32 import Stm32Link
 from drivers.stm32_wire import fast_ack
 

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import ROOT
 from drivers import stm32_protocol as p
-from drivers.sim.stm32 import SimpleMotor, VirtualStm32
+from drivers.sim.twin_stm32 import SimpleMotor, VirtualStm32
 from drivers.stm32 import Stm32Link, stop_reason_code
 
 
@@ -20,7 +20,7 @@ def run(coro, timeout=40.0):
 
 
 class SimProc:
-    """`python -m drivers.sim.stm32` as a child process; control lines over stdin."""
+    """`python -m drivers.sim.twin_stm32` as a child process; control lines over stdin."""
 
     def __init__(self, proc, link):
         self.proc, self.link = proc, link
@@ -42,7 +42,7 @@ async def sim_process(tmp_path, *args):
     link = str(tmp_path / "stm32")
     errlog = open(tmp_path / "sim-stm32.log", "w")
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "drivers.sim.stm32", "--link", link, *args, cwd=ROOT,
+        sys.executable, "-m", "drivers.sim.twin_stm32", "--link", link, *args, cwd=ROOT,
         stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE, stderr=errlog)
     try:
         line = (await asyncio.wait_for(proc.stdout.readline(), 20)).decode()
@@ -337,7 +337,7 @@ def test_port_missing_at_open_then_appears(tmp_path):
 
 
 def test_virtual_stm32_accepts_the_simulator_call_form(tmp_path):
-    from drivers.sim.stm32 import Stm32Firmware
+    from drivers.sim.twin_stm32 import Stm32Firmware
 
     class Cfg:
         watchdog_s = 0.35

@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as hs
 
 from drivers import stm32_protocol as p
-from drivers.sim.stm32 import SimpleMotor, Stm32Firmware
+from drivers.sim.twin_stm32 import SimpleMotor, Stm32Firmware
 
 
 # ---------------------------------------------------------------------------------------- CRC, frames

@@ -66,3 +66,18 @@ def test_mailbox_is_bounded_never_blocks_and_counts_drops():
     assert got == ["x"]
     with pytest.raises(ValueError):
         Mailbox(0)
+
+
+def test_a_mailbox_drop_policy_drops_the_oldest_droppable_item_and_stays_bounded():
+    """With ``droppable``, a full mailbox gives up its oldest droppable item (a measured value),
+    keeps the others (births, replies) in order, and when none is droppable drops the oldest all
+    the same: the bound holds whatever comes."""
+    mb = Mailbox(4, droppable=lambda it: it[0] == "data")
+    for it in [("birth", 0), ("data", 1), ("data", 2), ("reply", 3), ("data", 4), ("death", 5)]:
+        mb.put_nowait(it)
+    assert mb.drain() == [("birth", 0), ("reply", 3), ("data", 4), ("death", 5)]
+    assert mb.dropped == 2
+    for i in range(6):
+        assert len(mb) <= 4
+        mb.put_nowait(("reply", i))
+    assert mb.drain() == [("reply", i) for i in range(2, 6)] and mb.dropped == 4

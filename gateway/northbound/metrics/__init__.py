@@ -10,7 +10,7 @@ Four modules, one job each (docs/metrics.md lists every metric):
   **snapshot**: a plain, JSON-serializable dict (shape below) that also pulls the drivers'
   ``counters``, link states and the MQTT outbox depth. The snapshot is the unit of hand-over: a
   supervisor of per-station worker processes can receive it over IPC and serve it unchanged.
-* ``render`` — :func:`families` renders snapshots as Prometheus metric families at scrape time
+* ``exposition`` — :func:`families` renders snapshots as Prometheus metric families at scrape time
   (a custom collector, :class:`SnapshotCollector`); pure.
 * ``http`` — :class:`Endpoint`: the HTTP server (aiohttp, the gateway's one HTTP stack) on its
   own thread, shared by the stations of a process that name the same ``metrics.host:port``,
@@ -44,6 +44,7 @@ the PLC server counters (a Modbus TCP server may serve several stations; labelle
 from __future__ import annotations
 
 from ... import __version__
+from .exposition import CONTENT_TYPE, PREFIX, SnapshotCollector, families, render
 from .figures import (
                       LATENESS_BUCKETS_S,
                       LINKS,
@@ -69,7 +70,6 @@ from .http import (
                       shutdown_all,
 )
 from .outputs import MetricsOutput, MetricsRelay
-from .render import CONTENT_TYPE, PREFIX, SnapshotCollector, families, render
 
 __all__ = ["__version__", "CONTENT_TYPE",
            "LATENESS_BUCKETS_S", "LINKS", "MAX_CONNECTIONS", "MAX_LINE", "OPERATION_KINDS",

@@ -3,7 +3,7 @@
 :class:`StationFigures` are plain ints and floats that a station's loop updates in O(1) per slot
 (no lock, no prometheus_client call on the slot path), kept per station id for the life of the
 process; :func:`figures_snapshot` makes the plain, JSON-serializable **snapshot** (the shape in
-gateway/northbound/metrics/__init__.py) that the renderer (render.py) turns into metric
+gateway/northbound/metrics/__init__.py) that the renderer (exposition.py) turns into metric
 families and a fleet worker sends to its supervisor.
 """
 from __future__ import annotations
@@ -17,6 +17,8 @@ from bisect import bisect_left
 from typing import Any
 
 from ...records import StationState, TestState
+from ...slotwindow import SlotWindow
+from ..modbus_server import ModbusOutput
 
 SNAPSHOT_VERSION = 1
 
@@ -58,13 +60,15 @@ class Histogram:
 
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
-    __slots__ = ("station", "slots", "filled", "overruns", "lateness", "rtt", "mu", "mu_ss",
+    __slots__ = ("station", "life", "overruns", "lateness", "rtt", "mu", "mu_ss",
                  "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
                  "pruned_tests", "pruned_bytes", "forecast")
 
     def __init__(self, station: str):
         self.station = station
-        self.slots = self.filled = self.overruns = 0
+        #: every slot of the station's life in this process (Prometheus counters never reset)
+        self.life = SlotWindow()
+        self.overruns = 0
         self.lateness = Histogram(LATENESS_BUCKETS_S)
         self.rtt = Histogram(RTT_BUCKETS_S)
         self.mu: float | None = None
@@ -141,15 +145,14 @@ class OutboxGauge:
         with self._lock:
             self.close_locked()
 
-def plc_figures(modbus) -> dict[str, Any] | None:
+def plc_figures(modbus: ModbusOutput | None) -> dict[str, Any] | None:
     """The ``plc`` part of a snapshot: the Modbus TCP server a ``ModbusOutput`` serves on."""
     if modbus is None:
         return None
-    srv = getattr(modbus, "server", None)
-    store = getattr(srv, "store", None)
+    srv = modbus.server
     return {"listen": f"{modbus.s.host}:{modbus.s.port}",
             "listening": bool(srv is not None and srv.listening.is_set()),
-            "counters": _counters(getattr(store, "counters", None))}
+            "counters": _counters(srv.store.counters if srv is not None else None)}
 
 
 def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: dict[str, Any],
@@ -158,7 +161,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
     state = f.state
     return {
         "v": SNAPSHOT_VERSION, "station": station_id, "time": time.time(), "ts": ts,
-        "slots": f.slots, "filled": f.filled, "overruns": f.overruns,
+        "slots": f.life.n, "filled": f.life.n_present, "overruns": f.overruns,
         "lateness_s": f.lateness.snapshot(), "rtt_s": f.rtt.snapshot(),
         "links": links, "outbox": outbox, "plc": plc,
         "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,

@@ -26,7 +26,7 @@ from aiohttp import web
 from prometheus_client import CollectorRegistry, PlatformCollector, ProcessCollector
 
 from ...doors import AiohttpDoor, DoorLimits, door_middleware, door_runner_kwargs
-from .render import CONTENT_TYPE, SnapshotCollector, render
+from .exposition import CONTENT_TYPE, SnapshotCollector, render
 
 log = logging.getLogger("hookwatch.metrics")
 

@@ -164,12 +164,10 @@ class OutboxBuffer:
         return n + len(self.memory)
 
 
-def _oldest_telemetry(q: collections.deque) -> int | None:
-    """The Mailbox's drop policy: the oldest telemetry-only update (None: the oldest item)."""
-    for i, it in enumerate(q):
-        if it[0] == "update" and it[3]:
-            return i
-    return None
+def _telemetry_only(it: tuple) -> bool:
+    """The Mailbox's drop policy: a telemetry-only update may go (the oldest such first; when none
+    waits, the oldest item of all), never a birth, a command reply or an event."""
+    return bool(it[0] == "update" and it[3])
 
 
 class NodeRuntime(PahoSession):
@@ -194,7 +192,7 @@ class NodeRuntime(PahoSession):
                              state_future_skew_ms=int(round(s.state_future_skew_s * 1000)))
         self.node.buffer = OutboxBuffer(self.outbox) if self.outbox is not None else MemoryBuffer()
         self.outputs: dict[str, Any] = {}          # device id → SparkplugOutput
-        self._q: Mailbox[tuple] = Mailbox(QUEUE_MAX, evict=_oldest_telemetry)
+        self._q: Mailbox[tuple] = Mailbox(QUEUE_MAX, droppable=_telemetry_only)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._disconnect: Disconnect | None = None

@@ -10,13 +10,13 @@ from __future__ import annotations
 import asyncio
 import datetime as _dt
 import logging
-import math
 import time
 from typing import Any
 
 from ...alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...ports import StationView
 from ...records import Event, EventType, SlotRecord, StationState
+from ...slotwindow import SlotWindow
 from ..broker_settings import broker_kwargs
 from . import client as _client
 from . import metrics as M
@@ -39,8 +39,7 @@ def _alarm_values(name: str, value: str, shelved_until: float | None = None) -> 
 
 def _shelved_until(station: StationView | None, name: str) -> float | None:
     """When the station's alarm store shelved alarm ``name`` until (None: not shelved / no store)."""
-    store = getattr(station, "alarms", None)
-    return store.shelved_until(name) if store is not None else None
+    return station.alarms.shelved_until(name) if station is not None else None
 
 
 def state_values(st: StationState, station: StationView | None = None) -> dict[str, Any]:
@@ -76,39 +75,14 @@ def forecast_values(st: StationState) -> dict[str, Any]:
             M.FC_LEAD: st.lead_s}
 
 
-class _Agg:
-    __slots__ = ("t0", "n", "nr", "s1", "s2", "nv", "smu", "nmu", "sat", "cmd", "act")
-
-    def __init__(self, t0: float):
-        self.t0 = t0
-        self.n = self.nr = self.nv = self.nmu = 0
-        self.s1 = self.s2 = self.smu = 0.0
-        self.sat = False
-        self.cmd = self.act = math.nan
-
-    def add(self, r: SlotRecord) -> None:
-        self.n += 1
-        if r.present and r.t1 == r.t1 and r.t2 == r.t2:
-            self.nr += 1
-            self.s1 += r.t1
-            self.s2 += r.t2
-        if r.q:
-            self.nv += 1
-            if r.mu is not None:
-                self.smu += r.mu
-                self.nmu += 1
-        self.sat = self.sat or r.saturated
-        self.cmd = r.speed_cmd
-        self.act = r.speed_act
-
-    def values(self) -> dict[str, Any]:
-        nr = self.nr
-        return {"Tension/T1": self.s1 / nr if nr else None, "Tension/T2": self.s2 / nr if nr else None,
-                "Tension/Mean": (self.s1 + self.s2) / (2 * nr) if nr else None,
-                "Friction/mu": self.smu / self.nmu if self.nmu else None,
-                "Quality/Valid Ratio": self.nv / self.n if self.n else None,
-                "Control/Speed Command": self.cmd, "Control/Speed Actual": self.act,
-                "Control/Saturation": self.sat}
+def window_values(w: SlotWindow) -> dict[str, Any]:
+    """A data interval's device metrics from its window of slots (``gateway/slotwindow.py``)."""
+    nr = w.n_read
+    return {"Tension/T1": w.s1 / nr if nr else None, "Tension/T2": w.s2 / nr if nr else None,
+            "Tension/Mean": (w.s1 + w.s2) / (2 * nr) if nr else None,
+            "Friction/mu": w.mu_mean, "Quality/Valid Ratio": w.valid_ratio,
+            "Control/Speed Command": w.speed_cmd, "Control/Speed Actual": w.speed_act,
+            "Control/Saturation": w.n_sat > 0}
 
 
 class SparkplugOutput:
@@ -119,13 +93,12 @@ class SparkplugOutput:
         self.station = station
         self.loop: asyncio.AbstractEventLoop | None = None
         self.rt: _client.NodeRuntime | None = None
-        self._agg: _Agg | None = None
+        self._agg: SlotWindow | None = None
         self._last: dict[str, Any] = {}
 
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
-        st = getattr(self.station, "state", None)
-        self._last = state_values(st, self.station) if st is not None else {}
+        self._last = state_values(self.station.state, self.station) if self.station is not None else {}
         self.rt = _client.attach(self.s, self)
         self.rt.post(("up", self.s.device_id, dict(self._last)))
 
@@ -143,7 +116,7 @@ class SparkplugOutput:
         now = time.monotonic()
         agg = self._agg
         if agg is None:
-            agg = self._agg = _Agg(now)
+            agg = self._agg = SlotWindow(now)
         agg.add(rec)
         if now - agg.t0 >= self.s.data_interval_s:
             self._flush(now)
@@ -152,8 +125,8 @@ class SparkplugOutput:
         agg = self._agg
         if agg is None or agg.n == 0 or self.rt is None:
             return
-        self._agg = _Agg(now)
-        self.rt.post(("update", self.s.device_id, agg.values(), True))
+        self._agg = SlotWindow(now)
+        self.rt.post(("update", self.s.device_id, window_values(agg), True))
 
     def on_state(self, st: StationState) -> None:
         vals = state_values(st, self.station)

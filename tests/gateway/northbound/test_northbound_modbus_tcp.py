@@ -18,7 +18,7 @@ import pytest
 from conftest import HERE
 from gateway.northbound import registers as R
 from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
-from gateway.northbound.modbus_tcp import server as S
+from gateway.northbound.modbus_tcp import tcp_server as S
 from gateway.northbound.modbus_tcp.framer import FrameError, Framer, encode
 from gateway.northbound.modbus_tcp.pdu import Exc, decode
 from kit.northbound import LoopThread, RunningStation, make_station, mbpoll

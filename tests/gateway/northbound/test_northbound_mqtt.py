@@ -13,9 +13,11 @@ import pytest
 from conftest import ROOT
 from gateway.method.rules import JUMP, MISSING
 from gateway.northbound import schema as S
-from gateway.northbound.mqtt import MqttOutput, MqttSettings, _Telemetry
+from gateway.northbound.mqtt import MqttOutput, MqttSettings
+from gateway.northbound.mqtt_messages import telemetry_summary
 from gateway.records import Event, EventType, SlotRecord, StationState
 from gateway.records import TestState as TState
+from gateway.slotwindow import SlotWindow
 from kit.broker import Broker, Sub, pub
 from kit.certs import make_certs as _certs
 from kit.northbound import LoopThread, RunningStation, make_station
@@ -36,13 +38,13 @@ def data_msgs(sub, suffix=None):
 
 
 def test_telemetry_aggregation():
-    agg = _Telemetry(0.0)
+    agg = SlotWindow(0.0)
     for k in range(50):
         miss = k % 10 == 0
         agg.add(SlotRecord(k, k * 0.02, not miss, math.nan if miss else 0.4, math.nan if miss else 0.6,
                            0 if miss or k % 10 == 1 else 1, MISSING if miss else (JUMP if k % 10 == 1 else 0),
                            None, None if miss else 0.25, 0.5, 100.0 + k, 99.0, k == 7))
-    s = agg.summary(1.0, "T")
+    s = telemetry_summary(agg, 1.0, "T")
     assert s["slots"] == 50 and s["t1"] == 0.4 and s["t2"] == 0.6
     assert s["tension"] == {"mean": 0.5, "min": 0.5, "max": 0.5}
     assert s["counts"]["MISSING"] == 5 and s["counts"]["JUMP"] == 5
@@ -50,7 +52,7 @@ def test_telemetry_aggregation():
     assert s["saturated_slots"] == 1 and s["saturation"] is True
     assert s["speed_cmd"] == 149.0
     assert list(s) == S.field_names("telemetry")[4:]
-    assert _Telemetry(0.0).summary(1.0, None)["valid_ratio"] is None
+    assert telemetry_summary(SlotWindow(0.0), 1.0, None)["valid_ratio"] is None
 
 
 def test_alarm_lifecycle_and_payloads_as_documented(tmp_path):

@@ -6,7 +6,7 @@ import pytest
 
 from gateway.method.core import gate_and_baseline, life_result, to_slots
 from gateway.method.params import MethodParams
-from gateway.report import figures as F
+from gateway.report import plots as F
 from kit.images import png_info
 
 

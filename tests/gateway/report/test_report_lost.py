@@ -8,7 +8,7 @@ import yaml
 from conftest import ROOT
 from gateway.analysis import analyze_file, params_for
 from gateway.logio import read_meta
-from gateway.report.worker import analyze_test
+from gateway.report.per_log import analyze_test
 
 VECTORS = os.path.join(ROOT, "tests", "vectors")
 

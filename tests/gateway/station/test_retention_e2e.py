@@ -190,9 +190,14 @@ def test_metrics_count_the_records_pruned_events():
     """The two counters follow the events (a snapshot of an older worker without them reads 0)."""
     from gateway.northbound.metrics import MetricsOutput, families
 
-    class View:
+    class Port:             # a southbound port's health (gateway.ports.PortLink)
+        connected = True
+        counters: dict = {}
+
+    class View:             # what the metrics read of their station (gateway.ports.StationLinks)
         id = "mx-ret"
         ts = 0.02
+        meter = stm32 = Port()
 
     m = MetricsOutput(View(), serve=False)
     for tests, n in ((["a", "b"], 1000), (["c"], 234)):

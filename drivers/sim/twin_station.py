@@ -25,7 +25,7 @@ from typing import Any, TextIO
 from .meter import VirtualMeter
 from .plant import Plant
 from .scenario import DEFAULT_SCENARIO, FaultSpec, Scenario, ScenarioError, load_scenario
-from .stm32 import Stm32Firmware, VirtualStm32
+from .twin_stm32 import Stm32Firmware, VirtualStm32
 
 log = logging.getLogger("hookwatch.sim")
 

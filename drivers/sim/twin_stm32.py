@@ -11,7 +11,7 @@ link's baud rate, ticks the firmware (watchdog, trips) every ``tick_s`` and driv
 with ``set_command(rpm)``, ``enable(bool)``, ``speed_rpm`` and ``stalled`` (the simulator's plant;
 :class:`SimpleMotor` here is a first-order stand-in for tests).
 
-``python -m drivers.sim.stm32 --link PATH`` serves one with a SimpleMotor, prints
+``python -m drivers.sim.twin_stm32 --link PATH`` serves one with a SimpleMotor, prints
 ``stm32: /dev/pts/N`` and takes control lines on stdin (see ``_control``).
 """
 from __future__ import annotations
@@ -617,7 +617,7 @@ async def _serve(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m drivers.sim.stm32",
+    ap = argparse.ArgumentParser(prog="python -m drivers.sim.twin_stm32",
                                  description="Serve a virtual STM32 (SimpleMotor) on a pty.")
     ap.add_argument("--link", default=None, help="stable symlink to create for the pty")
     ap.add_argument("--watchdog-s", type=float, default=0.2)

@@ -13,7 +13,7 @@ import numpy as np
 from ..analysis import AnalysisError, log_slots
 from ..logio import LogError, read_log
 from ..method.core import gate_and_baseline, life_result
-from .figures import fig7_data, loop_series, render_fig7, render_fig8, time_unit
+from .plots import fig7_data, loop_series, render_fig7, render_fig8, time_unit
 
 
 def analyze_test(task: dict[str, Any]) -> dict[str, Any]:
