@@ -607,19 +607,26 @@ def test_one_slot_window_accumulator():
 
 
 #: the restarts and retries of stations and workers (their waits come from gateway/backoff.py)
-BACKOFF_USERS = ("gateway.station.fleet", "gateway.supervisor.supervisor")
+BACKOFF_USERS = ("gateway.station.fleet", "gateway.supervisor.supervisor", "gateway.northbound.paho_session",
+                 "gateway.northbound.sparkplug.client")
 
 
 def test_one_restart_back_off():
-    """The restart back-off is written once (gateway/backoff.py): the station runner and the
-    supervisor use it, and no module of the station or the supervisor computes a doubling wait
-    of its own (``… * 2 ** n``)."""
+    """The restart back-off is written once (gateway/backoff.py): the station runner, the
+    supervisor and the MQTT/Sparkplug session engines use it, and no module of the station or the
+    supervisor computes a doubling wait of its own (``… * 2 ** n``)."""
     for m in BACKOFF_USERS:
         assert "gateway.backoff" in SCANS[m].edges, m
     doubling = [f"{m}:{n.lineno}" for m, t in TREES.items() if _in(m, ("gateway.station", "gateway.supervisor"))
                 for n in ast.walk(t) if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Pow)
                 and isinstance(n.left, ast.Constant) and n.left.value in (2, 2.0)]
     assert doubling == []
+    # nor a wait doubled by hand anywhere (``self._backoff * 2``: the MQTT and Sparkplug sessions had one)
+    by_hand = [f"{m}:{n.lineno}" for m, t in TREES.items() for n in ast.walk(t)
+               if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Mult)
+               and any(isinstance(x, ast.Constant) and x.value in (2, 2.0) for x in (n.left, n.right))
+               and any("backoff" in ast.unparse(x).lower() for x in (n.left, n.right))]
+    assert by_hand == []
 
 
 def test_the_composition_root_wires_through_constructors_and_methods():

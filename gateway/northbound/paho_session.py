@@ -37,6 +37,7 @@ import time
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
+from ..backoff import Backoff
 from .broker_settings import BrokerSettings
 
 __all__ = ["PahoSession"]
@@ -56,7 +57,10 @@ class PahoSession:
         self._server = 0
         self._failed_in_row = 0
         self._next_attempt = 0.0
-        self._backoff = settings.reconnect_min_s
+        #: the reconnect back-off (gateway/backoff.py, the one back-off): doubling from
+        #: reconnect_min_s to reconnect_max_s while connects fail, reset by an accepted session
+        self._retry = Backoff(settings.reconnect_min_s,
+                              max(settings.reconnect_min_s, settings.reconnect_max_s))
         self._unreachable_logged = False
         #: connections the broker accepted / connect attempts that failed (any server)
         self.session_connects = 0
@@ -83,16 +87,16 @@ class PahoSession:
 
     # ------------------------------------------------------------------ back-off
     def _schedule_retry(self, max_delay: bool = False) -> None:
-        delay = self.bs.reconnect_max_s if max_delay else self._backoff
+        wait = self._retry.failed()
+        delay = self.bs.reconnect_max_s if max_delay else wait
         self._next_attempt = time.monotonic() + delay
-        self._backoff = min(self.bs.reconnect_max_s, self._backoff * 2)
 
     def _retry_now(self) -> None:
         self._next_attempt = 0.0
 
     def _session_up(self) -> None:
         """The broker accepted the connection: the back-off starts again from its shortest."""
-        self._backoff = self.bs.reconnect_min_s
+        self._retry.reset()
         self._failed_in_row = 0
         self._unreachable_logged = False
         self.session_connects += 1

@@ -38,6 +38,7 @@ from typing import Any, ClassVar
 import paho.mqtt.client as paho
 
 from ... import __version__
+from ...backoff import Backoff
 from ...commandtypes import Rejection, reply_code
 from ...ratelog import RateLog, safe
 from ...records import CommandKind, CommandReply
@@ -200,7 +201,10 @@ class NodeRuntime(PahoSession):
         self.counters: dict[str, int] = collections.Counter()
         #: bad payloads and internal errors: one line per kind per minute with a count
         self._rlog = RateLog(log)
-        self._crash_backoff = CRASH_BACKOFF_MIN_S
+        #: the back-off after a crash of the node thread (the one back-off, gateway/backoff.py):
+        #: doubling from CRASH_BACKOFF_MIN_S to reconnect_max_s, a new row after a minute's run
+        self._crash = Backoff(CRASH_BACKOFF_MIN_S, max(s.reconnect_max_s, CRASH_BACKOFF_MIN_S),
+                              stable_s=60.0)
 
     # ------------------------------------------------------------------ any thread
     def post(self, item: tuple) -> None:
@@ -250,17 +254,13 @@ class NodeRuntime(PahoSession):
                     break
                 except Exception:
                     self.counters["crashes"] += 1
-                    if time.monotonic() - started > 60.0:
-                        self._crash_backoff = CRASH_BACKOFF_MIN_S
+                    pause = self._crash.failed(time.monotonic() - started)
                     log.exception("sparkplug %s: node thread failed (%d so far); the session is dropped "
                                   "(the broker sends the NDEATH) and restarts in %.1f s, stored data stays "
-                                  "in %s", self.s.edge_node_id, self.counters["crashes"], self._crash_backoff,
+                                  "in %s", self.s.edge_node_id, self.counters["crashes"], pause,
                                   self.s.store_path)
                     self._abort_quietly()
                     self.node.disconnected()
-                    pause = self._crash_backoff
-                    self._crash_backoff = min(max(self.s.reconnect_max_s, CRASH_BACKOFF_MIN_S),
-                                              self._crash_backoff * 2)
                     self._next_attempt = time.monotonic()
                     if self._stop.wait(pause):
                         break
