@@ -137,8 +137,9 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
 
 def long_test(hours: float = 10.0) -> dict:
     """A 10-hour test through the hand-over, then time to a drawn curve."""
+    from gateway.console.app import ConsoleServer
     from gateway.console.feed import ConsoleOutput
-    from gateway.console.server import ConsoleServer, ConsoleSettings
+    from gateway.console.settings import ConsoleSettings
     from gateway.records import Event, EventType, SlotRecord
 
     work = tempfile.mkdtemp(prefix="hw-bench-console-long-")

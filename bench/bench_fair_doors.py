@@ -33,7 +33,8 @@ ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
 from gateway.console import auth  # noqa: E402
-from gateway.console.server import ConsoleServer, ConsoleSettings  # noqa: E402
+from gateway.console.app import ConsoleServer  # noqa: E402
+from gateway.console.settings import ConsoleSettings  # noqa: E402
 
 
 def console(tmp: str) -> tuple[ConsoleServer, int]:

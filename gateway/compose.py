@@ -13,7 +13,8 @@ import os
 from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
 
-from .console.server import ConsoleServer, ConsoleSettings
+from .console.app import ConsoleServer
+from .console.settings import ConsoleSettings
 from .doors import Budget, DoorLimits, budget
 from .northbound.metrics import MetricsRelay
 from .northbound.modbus_server import ModbusOutput

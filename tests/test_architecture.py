@@ -301,6 +301,28 @@ def test_every_class_over_the_bound_is_named_in_the_architecture_doc():
         assert f"| {ceiling} |" in rows[c], rows[c]
 
 
+def test_no_class_in_the_console_is_over_300_lines():
+    """Issue 30.3: the console in small rooms (the old ``ConsoleServer`` was 669 lines): the app
+    and its lifecycle, the shared context, a route module per subject; the same bound as the
+    station's."""
+    sizes = {f"{m}.{n.name}": n.end_lineno - n.lineno + 1 for m, t in TREES.items()
+             if _in(m, ("gateway.console",)) for n in ast.walk(t) if isinstance(n, ast.ClassDef)}
+    assert "gateway.console.app.ConsoleServer" in sizes and len(sizes) > 10
+    assert {k: v for k, v in sizes.items() if v > STATION_CLASS_MAX} == {}
+
+
+def test_the_console_route_modules_never_import_the_app():
+    """The route modules (and the context they share) see the console only through
+    ``ConsoleContext``: none imports the app (``app.py``, or its old path ``server.py``), so the
+    rooms of the console form no cycle among themselves (the package graph cannot see this)."""
+    rooms = [m for m in MODULES if m.startswith("gateway.console.routes_")]
+    assert len(rooms) >= 3
+    app = {"gateway.console.app", "gateway.console.server"}
+    back = [f"{m} → {t}" for m in (*rooms, "gateway.console.context") for t in SCANS[m].edges if t in app]
+    assert back == []
+    assert all("gateway.console.context" in SCANS[m].edges for m in rooms)
+
+
 #: where outputs (and the station proxy they share) live
 OUTPUT_PACKAGES = ("gateway.northbound", "gateway.console", "gateway.supervisor.remote", "gateway.compose")
 #: what a ``station`` parameter may be typed as: the contract (or the station itself, in the
@@ -486,7 +508,7 @@ COMMAND_PATH = ("gateway.commandtypes", "gateway.station.commands", "gateway.sta
 #: the doors (and the pure tables they print) that reach the command path
 COMMAND_DOORS = ("gateway.northbound.mqtt", "gateway.northbound.modbus_server",
                  "gateway.northbound.sparkplug.client", "gateway.northbound.sparkplug.node",
-                 "gateway.console.server", "gateway.supervisor.worker", "gateway.supervisor.remote",
+                 "gateway.console.routes_station", "gateway.supervisor.worker", "gateway.supervisor.remote",
                  "gateway.northbound.cmdparse", "gateway.northbound.registers",
                  "gateway.northbound.schema", "gateway.northbound.schema_gen",
                  "gateway.northbound.mqtt_messages")

@@ -30,7 +30,8 @@ from ..cli import CliError
 from ..compose import build_station
 from ..config import ConfigError, load_station
 from ..console import auth
-from ..console.server import ConsoleServer, ConsoleSettings
+from ..console.app import ConsoleServer
+from ..console.settings import ConsoleSettings
 from ..northbound import schema as mqtt_schema
 from ..osprio import deployed_nice, die_with_parent, freeze_heap, realtime_thread
 from ..ports import Output

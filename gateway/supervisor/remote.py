@@ -39,7 +39,7 @@ from typing import Any
 
 from ..commandtypes import CODE, Rejection
 from ..compose import shared_outputs, station_facts
-from ..console.server import ConsoleServer
+from ..console.app import ConsoleServer
 from ..northbound.sparkplug import client as sparkplug_client
 from ..northbound.sparkplug.output import SparkplugOutput, state_values
 from ..ports import Output, PlanView, StationLimits, StationView

@@ -13,7 +13,8 @@ import threading
 import time
 
 from gateway.console import auth
-from gateway.console.server import ConsoleServer, ConsoleSettings
+from gateway.console.app import ConsoleServer
+from gateway.console.settings import ConsoleSettings
 from gateway.northbound.metrics.http import Endpoint
 
 HOSTILE = "127.0.0.1"

@@ -16,8 +16,9 @@ import yaml
 from conftest import ROOT, hookwatch_cmd
 from gateway import records as R
 from gateway.console import auth
+from gateway.console.app import ConsoleServer
 from gateway.console.feed import ConsoleOutput
-from gateway.console.server import ConsoleServer, ConsoleSettings
+from gateway.console.settings import ConsoleSettings
 from gateway.records import StationState
 from kit.e2e import fleet_dir, run_gateway, virtual_station
 

@@ -9,7 +9,8 @@ import stat
 import pytest
 
 from gateway.console import auth
-from gateway.console.server import ConsoleServer, ConsoleSettings
+from gateway.console.app import ConsoleServer
+from gateway.console.settings import ConsoleSettings
 from kit.console_helpers import Client
 
 

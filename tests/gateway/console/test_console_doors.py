@@ -19,7 +19,8 @@ import pytest
 
 from conftest import ROOT
 from gateway.console import auth
-from gateway.console.server import ConsoleServer, ConsoleSettings
+from gateway.console.app import ConsoleServer
+from gateway.console.settings import ConsoleSettings
 from kit.console_helpers import Client, console_fleet
 
 PW = "a long password"

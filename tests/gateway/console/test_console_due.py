@@ -16,8 +16,8 @@ import json
 import logging
 import os
 
+from gateway.console.common import FILE_READS_PER_MIN
 from gateway.console.feed import MAX_JOURNAL
-from gateway.console.server import FILE_READS_PER_MIN
 from gateway.logio import tail_jsonl
 from gateway.records import Event, EventType
 from gateway.safeout import csv_cell

@@ -12,7 +12,8 @@ import threading
 import time
 
 from gateway.console import auth
-from gateway.console.server import ConsoleServer, ConsoleSettings
+from gateway.console.app import ConsoleServer
+from gateway.console.settings import ConsoleSettings
 
 PW = "a long password"
 NAMES = ("admin", "root", "plc")

@@ -129,7 +129,8 @@ def test_the_pump_routes_site_messages_lives_and_commands_apart(tmp_path):
 
 
 def test_the_console_attaches_the_site_view_to_one_session(tmp_path):
-    from gateway.console.server import ConsoleServer, ConsoleSettings
+    from gateway.console.app import ConsoleServer
+    from gateway.console.settings import ConsoleSettings
 
     feeds: list[tuple] = []
     srv = ConsoleServer(ConsoleSettings(users_file=str(tmp_path / "u.json")),
