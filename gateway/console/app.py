@@ -43,7 +43,6 @@ import logging
 import os
 import shutil
 import ssl
-import tempfile
 import time
 from collections.abc import Callable
 
@@ -81,12 +80,7 @@ class ConsoleServer:
         self.settings = settings
         self.ts = ts
         #: what the route modules share (feeds, records, clients, sessions, bounds)
-        self.ctx = ctx = ConsoleContext(settings, stations, ts, tempfile.mkdtemp(prefix="hookwatch-console-"))
-        for name, on in (mqtt_enabled or {}).items():
-            ctx.feeds[name].mqtt_enabled = bool(on)
-        for name, (line, area) in (places or {}).items():
-            if name in ctx.feeds:
-                ctx.feeds[name].line, ctx.feeds[name].area = str(line or ""), str(area or "")
+        self.ctx = ctx = ConsoleContext(settings, stations, ts, mqtt_enabled, places)
         self._site_carrier: str | None = None
         self.tl = ThreadLoop("console")
         self.station_routes = StationRoutes(ctx)

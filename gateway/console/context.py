@@ -13,6 +13,7 @@ import json
 import logging
 import math
 import os
+import tempfile
 
 from aiohttp import web
 
@@ -49,11 +50,18 @@ class Client:
 class ConsoleContext:
     """The console's shared state and request helpers (one per console, used on its loop)."""
 
-    def __init__(self, settings: ConsoleSettings, stations: dict[str, str], ts: float, cache: str):
+    def __init__(self, settings: ConsoleSettings, stations: dict[str, str], ts: float,
+                 mqtt_enabled: dict[str, bool] | None = None,
+                 places: dict[str, tuple[str, str]] | None = None):
         self.settings = settings
         self.ts = ts
         self.records = dict(stations)
         self.feeds = {name: StationFeed(name, ts) for name in stations}
+        for name, on in (mqtt_enabled or {}).items():
+            self.feeds[name].mqtt_enabled = bool(on)
+        for name, (line, area) in (places or {}).items():
+            if name in self.feeds:
+                self.feeds[name].line, self.feeds[name].area = str(line or ""), str(area or "")
         #: the stations of the site's other boxes (fed by one MQTT session of this box: attach_site)
         self.site: SiteView | None = SiteView(set(stations)) if settings.site_view else None
         self.sessions = auth.Sessions(settings.session_ttl_s)
@@ -71,7 +79,7 @@ class ConsoleContext:
         self.dropped_clients = 0
         self.cpu_s = 0.0
         #: the console's scratch folder (figures, campaign reports); removed at stop
-        self.cache = cache
+        self.cache = tempfile.mkdtemp(prefix="hookwatch-console-")
 
     # ----------------------------------------------------------------- live clients
     def drop(self, name: str, c: Client, why: str) -> None:
