@@ -126,6 +126,9 @@ class ZnsMeter:
         self.timing_physical = not (is_pty(port) or "://" in port)
         self._paced = 0                        # complete replies that took the wire time or more
         self._fast = 0                         # complete replies sooner than the wire
+        #: the last read timed out: a reply sooner than the wire now is most likely its late
+        #: answer (a USB adapter's latency timer over the timeout), no sign of a virtual port
+        self._after_timeout = False
         if self.timeout_s < meter_map.poll_time_s():
             log.warning("meter %s: timeout_s %.1f ms is shorter than one poll on the wire "
                         "(%.1f ms at %d baud): every read will time out", port, self.timeout_s * 1e3,
@@ -318,6 +321,7 @@ class ZnsMeter:
     def _count_failure(self, why: str) -> None:
         if why == "timeout":
             self.counters["timeouts"] += 1
+            self._after_timeout = True
         elif why == "crc":
             self.counters["crc_errors"] += 1
         elif why == "garbage":
@@ -328,11 +332,15 @@ class ZnsMeter:
             self.counters["errors"] += 1
 
     def _result(self, rtt: float) -> Reading | None:
+        after_timeout, self._after_timeout = self._after_timeout, False
         if self.timing_physical:
             if rtt >= self._min_reply_s:
                 self._paced += 1
             else:
-                self._fast += 1
+                # only a fast reply with no read left unanswered before it says "virtual port": the
+                # one right after a timeout is that read's late answer on any paced line (an FTDI
+                # at a 16 ms latency timer and a 15 ms timeout gives nothing else)
+                self._fast += 0 if after_timeout else 1
                 if self._fast >= FAST_RUN and self._fast > self._paced:
                     self.timing_physical = False
                     log.warning("meter %s: every reply came sooner than %d baud can carry (%d of "

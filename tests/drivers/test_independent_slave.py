@@ -121,3 +121,20 @@ def test_a_port_another_process_holds_is_not_opened_nor_reconfigured(slave, capl
         holder.stdout.close()
     m, out = _reads(slave, 5)
     assert m.counters["port_in_use"] == 0 and any(r is not None for r in out), m.counters
+
+
+def test_late_answers_after_timeouts_never_make_a_paced_line_virtual():
+    """On a paced line whose adapter holds every reply past the timeout (an FTDI at its 16 ms
+    latency timer, a 15 ms timeout), every complete reply is the late answer to the read that
+    timed out just before: sooner than the wire after the *next* request. Those must stay refused
+    as stale, however many there are — taking them for a virtual port's pace (as the rule did)
+    turned them into readings one request old."""
+    m = ZnsMeter("/dev/ttyUSB-not-opened", load_map(DEFAULT_MAP_PATH), timeout_s=0.015)
+    assert m.timing_physical is True
+    m._rx = bytearray(m._resp_len)              # the reply's content is never reached: refused first
+    fast = m._min_reply_s / 2
+    for _ in range(5 * FAST_RUN):
+        m._count_failure("timeout")             # the read times out ...
+        assert m._result(fast) is None          # ... and its late answer meets the next one
+    assert m.timing_physical is True
+    assert m.counters["stale_replies"] == 5 * FAST_RUN and m.counters["reads_ok"] == 0
