@@ -125,6 +125,7 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py",
         "tests/gateway/northbound/test_northbound_wear_e2e.py",
         "tests/gateway/northbound/test_site_lives_e2e.py",
+        "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py",
         "tests/gateway/station/test_stall_e2e.py",
         "tests/gateway/station/test_station_start_e2e.py",
         "tests/gateway/station/test_station_e2e.py",
@@ -133,7 +134,8 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/station/test_fleet_crash_restart.py",
         "tests/gateway/commands/test_reload_hostile_yaml.py",
         "tests/gateway/commands/test_reload_e2e.py",
-        "tests/deploy/test_release.py")},
+        "tests/deploy/test_release.py",
+        "tests/deploy/test_setup.py")},
     "tests/gateway/station/test_retention_e2e.py": ("test_retention_over_many_short_tests_on_a_small_disk",),
     "tests/gateway/station/test_recorder_disk.py": (
         "test_station_on_a_disk_filled_then_freed_mid_test",

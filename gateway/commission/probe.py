@@ -443,8 +443,9 @@ _Settings: dict[str, type[BrokerSettings]] = {"mqtt": BrokerSettings, "sparkplug
 
 
 def broker_addresses(name: str, section: Any) -> list[tuple[str, int]]:
-    """The brokers a section connects to: host:port, or each of a Sparkplug server set."""
-    servers = getattr(section, "servers", None) if name == "sparkplug" else None
+    """The brokers a section connects to: host:port, or each of its server list (``mqtt.servers``,
+    a Sparkplug server set)."""
+    servers = getattr(section, "servers", None)
     if not servers:
         return [(section.host, int(section.port))]
     out = [hp for hp in (parse_server(str(x), int(section.port)) for x in servers) if hp is not None]
@@ -456,7 +457,9 @@ def probe_broker(name: str, section: Any, address: tuple[str, int] | None = None
     ``address`` with that section's credentials (a member of a Sparkplug server set)."""
     kw = broker_kwargs(section)
     if address is not None:
+        # this member alone (the settings' server list would put its first server first)
         kw["host"], kw["port"] = address
+        kw["servers"] = [address]
     s = _Settings[name](**kw)
     where = f"{s.host}:{s.port}"
     c = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"hookwatch-check-{os.getpid()}",

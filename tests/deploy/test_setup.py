@@ -8,12 +8,8 @@ import os
 import subprocess
 import sys
 
-import pytest
-
 from conftest import ROOT
 from kit.tools import require_tool
-
-pytestmark = pytest.mark.slow
 
 
 def _run(argv, cwd, **kw):

@@ -18,8 +18,6 @@ import random
 import re
 import threading
 
-import pytest
-
 from gateway.northbound.outbox import Outbox
 from kit.e2e import (
     QUICK_END,
@@ -36,8 +34,6 @@ from kit.e2e import (
 )
 from kit.rabbitmq import Cluster, Mes
 from kit.tools import wait_for
-
-pytestmark = pytest.mark.slow
 
 N_GATEWAYS = 3
 #: lives per gateway while nodes are killed; then one more with every node up
