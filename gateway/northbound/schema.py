@@ -441,6 +441,18 @@ def topic_for(base: str, key: str, **kw: Any) -> str:
     return f"{base}/{TOPIC[key].path.format(**kw)}"
 
 
+#: the one topic of the site level (``<prefix>/<site>/lives_request``, not below a station): a
+#: gateway's station that (re)connects asks there, not retained, for the lives of every station
+#: of its site (payload: the asking station's id as text); every station of the site that hears
+#: it publishes its ``lives`` again, at most once per ``sitelives.ANSWER_INTERVAL_S``
+LIVES_REQUEST = "lives_request"
+
+
+def lives_request_topic(base: str) -> str:
+    """``<prefix>/<site>/lives_request`` of a station's base topic."""
+    return "/".join(base.split("/")[:-3] + [LIVES_REQUEST])
+
+
 # ----------------------------------------------------------------------------- payloads
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
