@@ -334,30 +334,30 @@ class SiteLives:
 # ----------------------------------------------------------------------------- the answers
 class LivesAnswers:
     """One station's answers to the site's lives requests (module docstring): at most one per
-    ``interval_s``; a request within the interval after the last publication is answered once at
-    its end (one timer at most), so a gateway joining then still gets the lives. ``publish`` puts
+    ``interval_s`` (:data:`ANSWER_INTERVAL_S`); the requests within the interval after the last
+    answer are answered once at its end (one timer at most), so a gateway joining then still gets
+    the lives; any publication of the lives in between answers them instead. ``publish`` puts
     the station's lives message on its way (False: not read yet; it goes out when read); the counts
     go to ``counters`` (the MQTT pump's: ``lives_requests``, ``lives_answers``,
     ``lives_requests_deferred``). Thread-safe (the pump thread asks, a timer thread answers)."""
 
     def __init__(self, station: str, publish: Callable[[], bool], counters: MutableMapping[str, int],
-                 interval_s: float = ANSWER_INTERVAL_S) -> None:
+                 interval_s: float | None = None) -> None:
         self.station = station
         self._own = station.encode()
         self._publish = publish
         self.counters = counters
-        self.interval_s = interval_s
-        self._gate = RateBound(60.0 / interval_s, burst=1)
+        self.interval_s = ANSWER_INTERVAL_S if interval_s is None else interval_s
+        self._gate = RateBound(60.0 / self.interval_s, burst=1)
         self._lock = threading.Lock()
         self._timer: threading.Timer | None = None
         self._closed = False
         self.flood = RateLog(log)
 
     def published(self) -> None:
-        """The station's lives just went out (its start, a test, a connect): that answers every
-        request so far; the next answer waits an interval."""
+        """The station's lives just went out (its start, a test, a connect, an answer): that
+        answers every request so far (a deferred answer is dropped)."""
         with self._lock:
-            self._gate.take()
             self._cancel()
 
     def request(self, payload: bytes) -> None:
