@@ -6,8 +6,8 @@ Topic design — one retained message per station, ``<base>/lives`` (base = ``<p
 <area>/<line>/<station>``), holding that station's newest :data:`MAX_LIVES_PER_STATION` lives;
 every gateway subscribes to ``<prefix>/<site>/+/+/+/lives``. Why:
 
-- *retained*: a gateway that joins late (or was away) gets every station's lives from the broker
-  at once, with no request/response and nothing to replay;
+- *retained*: on a single broker, a gateway that joins late (or was away) gets every station's
+  lives from the broker at once (and the request below makes sure of it on any broker);
 - *one message per station, a snapshot*: the broker keeps a bounded amount per station (one
   message of at most :data:`MAX_LIVES_BYTES`), never a growing number of retained topics; a
   snapshot replaces the last one whole (no partial state, nothing to delete); a retired station is
