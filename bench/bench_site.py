@@ -10,10 +10,11 @@ off until it is back), on the cluster one node in turn (the gateways on it move 
 Per setup: the slots held (filled / slots of every life, from ``--stats-json``), and the reconnect
 time of every link loss a gateway saw (from its log: the `connection lost` / `disconnected` line
 to the next `connected to` line), p50/p99/max; then the site-history sync of a joining gateway
-(``mqtt.share_lives``, gateway/northbound/sitelives.py): a new gateway of the same site (its own
+(``mqtt.share_lives``, gateway/northbound/sitelives.py): while the N gateways run again (what
+they recorded, without their instruments: no test), a new gateway of the same site (its own
 virtual station, no test, the first server of gateway 0's list) runs 30 s; how many of the N
-stations' retained lives it received and how long after its start the last of them came. Results
-as JSON lines on stdout.
+stations' lives it received (retained on its node, or answering its lives request) and how long
+after its start the last of them came. Results as JSON lines on stdout.
 
     bench/bench_site.py [--gateways 3] [--lives 3] [--kill-every 25] [--setups mosquitto,cluster]
 """
@@ -46,6 +47,7 @@ from kit.e2e import (  # noqa: E402
     station_yaml,
     virtual_station,
     wait_exit,
+    wait_log,
 )
 from kit.rabbitmq import Cluster  # noqa: E402
 
@@ -127,7 +129,8 @@ def run_setup(base: pathlib.Path, name: str, servers_of, kill_restart, args) -> 
     finally:
         killer.stop_evt.set()
         killer.join(120)
-    sync = join(base / name / "join", servers_of(0))
+    sync = join(base / name / "join", servers_of(0),
+                [(base / name / f"gw{g}", f"st{g}", servers_of(g)) for g in range(args.gateways)])
     return {**sync, "setup": name, "gateways": args.gateways, "lives": args.lives, "kills": killer.kills,
             "kill_every_s": args.kill_every, "slots_held_pct": round(100.0 * filled / max(1, slots), 3),
             "reconnects": len(rec), "reconnect_p50_s": pct(rec, 0.5), "reconnect_p99_s": pct(rec, 0.99),
@@ -137,11 +140,22 @@ def run_setup(base: pathlib.Path, name: str, servers_of, kill_restart, args) -> 
 SITE_LINE = re.compile(r"the site's lives: (\d+) tests of (\d+) other station")
 
 
-def join(d: pathlib.Path, servers: list[str]) -> dict:
-    """A gateway joining the site: the stations whose lives it received, and when (s after start)."""
+def join(d: pathlib.Path, servers: list[str], site: list[tuple[pathlib.Path, str, list[str]]]) -> dict:
+    """A gateway joining the site while the site's gateways run (each again, with what it recorded
+    and without its instruments: no test, its lives shared): the stations whose lives it received,
+    and when (s after its start). Their lives reach it retained (when on its node) or through its
+    request on ``<prefix>/<site>/lives_request``."""
     d.mkdir(parents=True, exist_ok=True)
     sc = quick_scenario(d, "quick.yaml")
-    with virtual_station(d, sc, seed=99) as (_sim, links):
+    with contextlib.ExitStack() as stack:
+        for gd, name, srv in site:
+            absent = {"meter": str(gd / "absent-meter"), "stm32": str(gd / "absent-stm32")}
+            st = station_yaml(gd, absent, name=name, method=QUICK_METHOD,
+                              mqtt={"enabled": True, "servers": srv, "protocol": "3.1.1", "prefix": "bench"})
+            g = run_gateway(gd, st, "--duration", "90", name="site")
+            stack.callback(g.stop)
+            wait_log(g, "connected to", 120)
+        _sim, links = stack.enter_context(virtual_station(d, sc, seed=99))
         st = station_yaml(d, links, name="joiner", method=QUICK_METHOD,
                           mqtt={"enabled": True, "servers": servers, "protocol": "3.1.1", "prefix": "bench"})
         t0 = time.time()

@@ -19,7 +19,10 @@ Threads:
   own lives (its records folder, read on a worker thread at the start and after each test) go out
   as the retained ``<base>/lives``, again after every reconnect; the other stations' lives of the
   site arrive on the pump thread, are checked, kept and saved by :class:`SiteLives` there, and
-  reach the station through the hand-over (``station.site_lives``).
+  reach the station through the hand-over (``station.site_lives``). A (re)connected station asks
+  the site for its lives (``<prefix>/<site>/lives_request``, non-retained: a clustered broker's
+  retained store is per node); the station answers others' requests with its lives, at most once
+  per ``sitelives.ANSWER_INTERVAL_S`` (:class:`LivesAnswers`, off the station's loop).
 """
 from __future__ import annotations
 
@@ -44,7 +47,7 @@ from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
 from .mqtt_messages import SOFTWARE, alarm_fields, telemetry_summary
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
 from .outbox import Outbox
-from .sitelives import STORE_NAME, SiteLives, lives_topic, snapshot
+from .sitelives import STORE_NAME, LivesAnswers, SiteLives, lives_topic, snapshot
 
 __all__ = ["MqttOutput", "MqttSettings", "SecretError", "SOFTWARE", "STATE_REFRESH_S",
            "alarm_fields"]
@@ -82,7 +85,12 @@ class MqttOutput:
         self._site_jobs: set[asyncio.Future[None]] = set()
         self.pump = MqttPump(settings, on_link=self._link_changed, on_command=self._command,
                              on_lives=self._lives if self.site is not None else None)
+        #: the answers to the site's lives requests (None: not shared)
+        self.answers: LivesAnswers | None = None
+        if self.site is not None:
+            self.answers = LivesAnswers(settings.station_id, self._put_lives, self.pump.counters)
         self._base = settings.base_topic
+        self._lives_request = schema.lives_request_topic(self._base)
         # station-loop state
         self._test_id: str | None = None
         self._agg: SlotWindow | None = None
@@ -137,6 +145,8 @@ class MqttOutput:
             self.pump.join(0)
         if self.site is not None:
             self.site.close()
+        if self.answers is not None:
+            self.answers.close()
 
     def on_record(self, rec: SlotRecord) -> None:
         agg = self._agg
@@ -187,9 +197,8 @@ class MqttOutput:
         station's lives go out again (a broker may have lost its retained messages)."""
         if self.station is not None:
             call_soon_on(self.loop, self.station.set_uplink, "mqtt", ok)
-        msg = self._lives_msg
-        if ok and msg is not None:
-            self.pump.put(msg)
+        if ok:
+            self._put_lives()
 
     # ================================================================ the site's lives
     def _share(self, first: bool = False, ended: str | None = None) -> None:
@@ -230,10 +239,24 @@ class MqttOutput:
                 return {**d, "seq": seq}
             msg = M.Message("lives", lives_topic(self._base), payload, qos=1, retain=True)
             self._lives_msg = msg
-            self.pump.put(msg)
+            self._put_lives()
+
+    def _put_lives(self) -> bool:
+        """Publish the station's lives (again); False: not read yet (any thread)."""
+        msg = self._lives_msg
+        if msg is None:
+            return False
+        self.pump.put(msg)
+        if self.answers is not None:
+            self.answers.published()
+        return True
 
     def _lives(self, topic: str, payload: bytes) -> None:
-        """A station of the site published its lives (pump thread)."""
+        """A station of the site published its lives, or a gateway asks for them (pump thread)."""
+        if topic == self._lives_request:
+            if self.answers is not None:
+                self.answers.request(payload)
+            return
         site = self.site
         if site is not None and site.receive(topic, payload):
             log.info("%s: the site's lives: %d tests of %d other station(s)", self.s.station_id,

@@ -121,6 +121,20 @@ class RetainedTopics:
         return sorted(self._confirmed.values(), key=lambda r: r.seq)
 
 
+def join_site(client: paho.Client, s: MqttSettings, lives: bool, filters: tuple[str, ...]) -> None:
+    """The site's subscriptions of a connected session: with ``lives``, the site's lives and its
+    lives requests, and a request of this station (non-retained: a clustered broker's retained
+    store is per node, so a late joiner is never left to it; gateway/northbound/sitelives.py);
+    and ``filters`` (the console's site view)."""
+    if lives:
+        client.subscribe(site_filter(s.base_topic), qos=1)
+        client.subscribe(schema.lives_request_topic(s.base_topic), qos=1)
+    for f in filters:
+        client.subscribe(f, qos=1)
+    if lives:
+        client.publish(schema.lives_request_topic(s.base_topic), s.station_id.encode(), qos=1, retain=False)
+
+
 class MqttPump(PahoSession):
     """Store-and-forward of one station's messages (see the module docstring)."""
 
@@ -131,7 +145,7 @@ class MqttPump(PahoSession):
         self.s = settings
         self.on_link = on_link
         self.on_command = on_command
-        #: the site's retained lives (topic, payload), when the station shares them
+        #: the site's retained lives and its lives requests (topic, payload), when the station shares them
         self.on_lives = on_lives
         #: more subscriptions of the site (the console's site view: other stations' state and
         #: status) and where their messages go (pump thread); set by :meth:`add_site_feed`
@@ -446,10 +460,7 @@ class MqttPump(PahoSession):
         self._session_up()
         self.counters["connects"] += 1
         client.subscribe(M.command_filter(self.s.base_topic), qos=1)
-        if self.on_lives is not None:
-            client.subscribe(site_filter(self.s.base_topic), qos=1)
-        for f in self._site_filters:
-            client.subscribe(f, qos=1)
+        join_site(client, self.s, self.on_lives is not None, self._site_filters)
         client.publish(self._status_topic, self._status(True), qos=1, retain=True)
         # the latest confirmed message of every retained topic again (see RetainedTopics); paho
         # puts these on the wire before it resends what was in flight: older first
@@ -492,7 +503,7 @@ class MqttPump(PahoSession):
 
     def _on_message(self, client, userdata, msg) -> None:
         if not msg.topic.startswith(self._cmd_prefix):
-            if self.on_lives is not None and msg.topic.endswith("/lives"):
+            if self.on_lives is not None and msg.topic.endswith(("/lives", "/" + schema.LIVES_REQUEST)):
                 self.counters["site_lives"] += 1
                 self.on_lives(msg.topic, bytes(msg.payload))
             elif self.on_site is not None:

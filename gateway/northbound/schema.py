@@ -313,7 +313,8 @@ TOPICS: tuple[Topic, ...] = (
           "the result of the last test that ended", RESULT_FIELDS),
     Topic("lives", "lives", "publish", 1, True, True,
           "the station's lives for its site's life history (METHOD.md §7a): one retained snapshot "
-          "per station, published at the start, after every test and after every reconnect; every "
+          "per station, published at the start, after every test, after every reconnect and in "
+          "answer to a site's `<prefix>/<site>/lives_request` (at most once per 10 s); every "
           "gateway of the site subscribes to `<prefix>/<site>/+/+/+/lives` (`mqtt.share_lives`, "
           "on by default)", LIVES_FIELDS),
     Topic("reply", "reply", "publish", 1, False, True,
@@ -439,6 +440,18 @@ def base_topic(prefix: str, site: Any, area: Any, line: Any, station: str) -> st
 
 def topic_for(base: str, key: str, **kw: Any) -> str:
     return f"{base}/{TOPIC[key].path.format(**kw)}"
+
+
+#: the one topic of the site level (``<prefix>/<site>/lives_request``, not below a station): a
+#: gateway's station that (re)connects asks there, not retained, for the lives of every station
+#: of its site (payload: the asking station's id as text); every station of the site that hears
+#: it publishes its ``lives`` again, at most once per ``sitelives.ANSWER_INTERVAL_S``
+LIVES_REQUEST = "lives_request"
+
+
+def lives_request_topic(base: str) -> str:
+    """``<prefix>/<site>/lives_request`` of a station's base topic."""
+    return "/".join(base.split("/")[:-3] + [LIVES_REQUEST])
 
 
 # ----------------------------------------------------------------------------- payloads
@@ -707,12 +720,26 @@ def render() -> str:
         "test and after every (re)connect; and it subscribes to "
         "`<prefix>/<site>/+/+/+/lives` and pools what the other stations of its `station.site` "
         "share into the history, each test once (by test id). `mqtt.share_lives: false` turns "
-        "both off. Why this design: *retained*, so a gateway that joins late (or restarts) gets "
-        "the whole site history from the broker at once, with no request and nothing to replay; "
+        "both off. Why this design: *retained*, so a gateway that joins late (or restarts) on a "
+        "single broker gets the whole site history from the broker at once; "
         "*one snapshot per station*, so the broker holds a bounded amount per station (one message "
         "of at most 256 KiB) and never a growing number of retained topics, and a new snapshot "
         "replaces the last whole; *published again on every connect*, so a broker that lost its "
-        "retained store gets it back; *kept locally* (`site_lives.json` in the station's records "
+        "retained store gets it back; *asked for on every (re)connect*, because a retained message "
+        "is never relied on: a clustered broker keeps it on the node that received it (RabbitMQ "
+        "3.10) and loses it with that node, so a gateway joining through another node would get "
+        "nothing — each station of a gateway that (re)connects publishes one small non-retained "
+        "request on the site's `<prefix>/<site>/lives_request` (QoS 1; payload: its station id "
+        "as text, so that it ignores its own), and every station of the site that hears it "
+        "publishes its `lives` snapshot again, retained as always: it reaches the asking gateway "
+        "on any node through the cluster's routing, and gives the answering station's node its "
+        "retained copy back. A station answers at most once per 10 s however many requests "
+        "arrive (the requests within those 10 s share one answer at their end, or the next "
+        "publication of its lives); a flood of requests is counted (`lives_requests`, "
+        "`lives_requests_deferred`, `lives_answers` in the MQTT counters) and logged in one "
+        "rate-limited line, and costs nothing else. A receiver keeps each station's newest "
+        "snapshot, each test once by test id: a duplicate changes nothing. "
+        "*Kept locally* (`site_lives.json` in the station's records "
         "folder), so a gateway that restarts while the broker is down still has the site's lives. "
         "A retired station's lives are removed by clearing its retained topic (an empty retained "
         "message). What a gateway receives goes through the one bounded JSON reader (bytes, depth, "
@@ -731,12 +758,13 @@ def render() -> str:
         "",
         "```",
         "# every client of the site may read the lives; only the box that runs a station writes",
-        "# its topics (hookwatch/<site>/<area>/<line>/<station>/…)",
+        "# its topics (hookwatch/<site>/<area>/<line>/<station>/…) and asks for the site's lives",
         "pattern read hookwatch/plant-a/+/+/+/lives",
         "user gw-box-07",
         "topic readwrite hookwatch/plant-a/+/+/loom-13/#",
         "topic readwrite hookwatch/plant-a/+/+/loom-14/#",
         "topic read hookwatch/plant-a/+/+/+/lives",
+        "topic readwrite hookwatch/plant-a/lives_request",
         "```",
         "",
         "A record that passes the checks is still taken as true: a compromised gateway account "

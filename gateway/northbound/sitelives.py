@@ -6,8 +6,8 @@ Topic design — one retained message per station, ``<base>/lives`` (base = ``<p
 <area>/<line>/<station>``), holding that station's newest :data:`MAX_LIVES_PER_STATION` lives;
 every gateway subscribes to ``<prefix>/<site>/+/+/+/lives``. Why:
 
-- *retained*: a gateway that joins late (or was away) gets every station's lives from the broker
-  at once, with no request/response and nothing to replay;
+- *retained*: on a single broker, a gateway that joins late (or was away) gets every station's
+  lives from the broker at once (and the request below makes sure of it on any broker);
 - *one message per station, a snapshot*: the broker keeps a bounded amount per station (one
   message of at most :data:`MAX_LIVES_BYTES`), never a growing number of retained topics; a
   snapshot replaces the last one whole (no partial state, nothing to delete); a retired station is
@@ -15,7 +15,19 @@ every gateway subscribes to ``<prefix>/<site>/+/+/+/lives``. Why:
 - *published again after every (re)connect*: a broker that lost its retained store (a restart
   without persistence, another node of a cluster) gets it back;
 - *persisted locally* (``<station folder>/site_lives.json``): a gateway that restarts while the
-  broker is down still has the site's history.
+  broker is down still has the site's history;
+- *asked for on every (re)connect, never left to the retained store alone*: a clustered broker
+  keeps a retained message on the node that received it (RabbitMQ 3.10), and a killed node loses
+  it, so a gateway joining through another node gets nothing retained. A station that (re)connects
+  publishes one small, non-retained request on the site's ``<prefix>/<site>/lives_request``
+  (:func:`gateway.northbound.schema.lives_request_topic`; payload: its station id); every station
+  of the site that hears it publishes its snapshot again on its ``lives`` topic — retained, the same
+  message as always: it reaches the asking gateway through the cluster's routing on any node, and
+  it also gives the answering station's node its retained copy back. :class:`LivesAnswers` bounds
+  the answers: at most one per station per :data:`ANSWER_INTERVAL_S` however many requests (the
+  requests within an interval share one answer at its end), a flood is counted and logged as one
+  rate-limited line, and costs nothing else (no parsing, no queue, at most one timer). The receiver
+  keeps each station's newest snapshot (each test once by test id): a duplicate changes nothing.
 
 Bounded everywhere: a message is read by the one bounded JSON reader
 (:func:`gateway.northbound.cmdparse.read_bounded_json`: bytes, depth, numbers, keys, strings);
@@ -31,11 +43,11 @@ import logging
 import math
 import os
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, MutableMapping
 from typing import Any
 
 from ..method.prior import STOPPED, PastTest
-from ..ratelog import RateLog, clip
+from ..ratelog import RateBound, RateLog, clip
 from .cmdparse import Refused, bounded_pairs, read_bounded_json
 from .schema import SCHEMA_VERSION
 
@@ -63,6 +75,9 @@ MAX_T_END_S = 1e7
 MAX_T_SET_N = 100.0
 #: the file beside a station's tests that holds the other stations' lives
 STORE_NAME = "site_lives.json"
+#: a station publishes its lives again at most once per this many seconds, however many requests
+#: (the requests within one interval are answered together at its end)
+ANSWER_INTERVAL_S = 10.0
 
 _STATUSES = ("failure", "no_failure", "aborted")
 _RECORD_KEYS = ("test_id", "grade", "t_set", "status", "t_life", "censored_s", "n_slots", "ts",
@@ -314,3 +329,93 @@ class SiteLives:
 
     def close(self) -> None:
         self.refused.close()
+
+
+# ----------------------------------------------------------------------------- the answers
+class LivesAnswers:
+    """One station's answers to the site's lives requests (module docstring): at most one per
+    ``interval_s`` (:data:`ANSWER_INTERVAL_S`); the requests within the interval after the last
+    answer are answered once at its end (one timer at most), so a gateway joining then still gets
+    the lives; any publication of the lives in between answers them instead. ``publish`` puts
+    the station's lives message on its way (False: not read yet; it goes out when read); the counts
+    go to ``counters`` (the MQTT pump's: ``lives_requests``, ``lives_answers``,
+    ``lives_requests_deferred``). Thread-safe (the pump thread asks, a timer thread answers)."""
+
+    def __init__(self, station: str, publish: Callable[[], bool], counters: MutableMapping[str, int],
+                 interval_s: float | None = None) -> None:
+        self.station = station
+        self._own = station.encode()
+        self._publish = publish
+        self.counters = counters
+        self.interval_s = ANSWER_INTERVAL_S if interval_s is None else interval_s
+        self._gate = RateBound(60.0 / self.interval_s, burst=1)
+        self._lock = threading.Lock()
+        self._timer: threading.Timer | None = None
+        self._closed = False
+        self.flood = RateLog(log)
+
+    def published(self) -> None:
+        """The station's lives just went out (its start, a test, a connect, an answer): that
+        answers every request so far (a deferred answer is dropped)."""
+        with self._lock:
+            self._cancel()
+
+    def request(self, payload: bytes) -> None:
+        """A lives request heard on the site's topic (pump thread); the station's own is ignored."""
+        if payload == self._own:
+            return
+        with self._lock:
+            if self._closed:
+                return
+            self.counters["lives_requests"] += 1
+            wait = self._gate.take()
+            if wait > 0:
+                self.counters["lives_requests_deferred"] += 1
+                self._arm(wait)
+            else:
+                self._cancel()
+        if wait > 0:
+            self.flood.info("deferred", "%s: lives requests of the site are answered at most once per "
+                            "%.0f s (the next answer in %.1f s)", self.station, self.interval_s, wait)
+            return
+        self._answer()
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            self._cancel()
+        self.flood.close()
+
+    def _answer(self) -> None:
+        if self._publish():
+            with self._lock:
+                self.counters["lives_answers"] += 1
+
+    def _arm(self, wait: float) -> None:
+        if self._timer is not None:
+            return
+        t = threading.Timer(wait + 0.01, self._fire)
+        t.daemon = True
+        try:
+            t.start()
+        except RuntimeError:        # no thread to be had: the next request tries again
+            return
+        self._timer = t
+
+    def _cancel(self) -> None:
+        t, self._timer = self._timer, None
+        if t is not None:
+            t.cancel()
+
+    def _fire(self) -> None:
+        with self._lock:
+            if self._timer is not threading.current_thread():     # cancelled (or replaced)
+                return
+            self._timer = None
+            if self._closed:
+                return
+            wait = self._gate.take()
+            if wait > 0:
+                self._arm(wait)
+                return
+        self._answer()

@@ -99,7 +99,7 @@ def check_message(topic: str, payload: str | bytes, schema: str | None = None) -
     docs/schemas, for a topic the tree does not name, e.g. an MQTT 5 response topic), else a
     description of the violation: topic, payload, schema path and the validator's message."""
     key = schema or schema_key(topic)
-    if key == "":
+    if key == "" or payload in ("", b""):      # an empty payload clears a retained topic
         return None
     if isinstance(payload, bytes):
         payload = payload.decode("utf-8", "replace")
