@@ -24,6 +24,7 @@ from gateway.method.params import TEN_YEARS
 from gateway.method.prior import resolve_prior
 from gateway.safeout import loads_strict
 from gateway.station.recorder import write_result
+from kit.jsondoc import numbers
 
 V1 = os.path.join(VECTORS, "v1_failure")
 
@@ -32,18 +33,6 @@ def analyze(*args):
     return subprocess.run(hookwatch_cmd() + ["analyze", *args], capture_output=True, text=True,
                           cwd=ROOT, timeout=120)
 
-
-def _numbers(v):
-    if isinstance(v, bool) or v is None or isinstance(v, str):
-        return
-    if isinstance(v, (int, float)):
-        yield v
-    elif isinstance(v, dict):
-        for x in v.values():
-            yield from _numbers(x)
-    elif isinstance(v, list):
-        for x in v:
-            yield from _numbers(x)
 
 
 @pytest.mark.parametrize("sets,key", [
@@ -78,7 +67,7 @@ def test_the_largest_prior_allowed_gives_finite_forecasts():
     assert p.returncode == 0, p.stderr
     out = loads_strict(p.stdout)
     assert out["status"] == "failure" and out["end_p90"] is not None
-    assert all(math.isfinite(x) for x in _numbers(out))
+    assert all(math.isfinite(x) for x in numbers(out))
 
 
 def test_result_json_is_strict_whatever_the_result_holds(tmp_path):

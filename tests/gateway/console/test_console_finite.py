@@ -18,6 +18,7 @@ import urllib.request
 
 from gateway.safeout import loads_strict
 from kit.console_helpers import HOSTILE_IDS, Client, hostile_states, start_console
+from kit.jsondoc import numbers
 
 FORMULA = ("=", "+", "-", "@")
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
@@ -27,19 +28,6 @@ def _raw(url: str) -> tuple[int, str]:
     with urllib.request.urlopen(url, timeout=30) as r:
         return r.status, r.read().decode("utf-8")
 
-
-def _numbers(v):
-    """Every number in a parsed JSON document."""
-    if isinstance(v, bool) or v is None or isinstance(v, str):
-        return
-    if isinstance(v, (int, float)):
-        yield v
-    elif isinstance(v, dict):
-        for x in v.values():
-            yield from _numbers(x)
-    elif isinstance(v, list):
-        for x in v:
-            yield from _numbers(x)
 
 
 def test_no_json_door_of_the_console_emits_infinity_or_nan(tmp_path):
@@ -52,7 +40,7 @@ def test_no_json_door_of_the_console_emits_infinity_or_nan(tmp_path):
             assert st == 200, path
             assert "Infinity" not in text and "NaN" not in text, (path, text[:300])
             docs[path] = loads_strict(text)                   # as JSON.parse in a browser
-            assert all(math.isfinite(x) for x in _numbers(docs[path])), path
+            assert all(math.isfinite(x) for x in numbers(docs[path])), path
         cards = {c["station"]: c for c in docs["/api/fleet"]["stations"]}
         # a non-finite number has no value: null, the documented "none" of every figure
         assert cards["loom-a"]["t_cross"] is None and cards["loom-a"]["headroom"] is None
@@ -69,7 +57,7 @@ def test_no_json_door_of_the_console_emits_infinity_or_nan(tmp_path):
             line = r.readline().decode("utf-8")
         assert line.startswith("data: ")
         first = loads_strict(line[len("data: "):])
-        assert first["summary"]["end_p10"] is None and all(math.isfinite(x) for x in _numbers(first))
+        assert first["summary"]["end_p10"] is None and all(math.isfinite(x) for x in numbers(first))
     finally:
         srv.stop()
 

@@ -16,6 +16,7 @@ from gateway.records import Event, EventType, StationState
 from gateway.records import TestState as TState
 from gateway.safeout import loads_strict
 from kit.broker import Broker, Sub
+from kit.jsondoc import numbers
 from kit.sparkplug_host import PrimaryHost, metric_value
 from kit.tools import wait_for
 
@@ -30,18 +31,6 @@ def hostile_state() -> StationState:
                         p_end=NAN, prior_mean=INF, prior_sd=NAN, lead_s=INF, p_due=NAN,
                         test_started_utc="2026-11-26T06:00:00.000Z", elapsed_s=12.0)
 
-
-def _numbers(v):
-    if isinstance(v, bool) or v is None or isinstance(v, str):
-        return
-    if isinstance(v, (int, float)):
-        yield v
-    elif isinstance(v, dict):
-        for x in v.values():
-            yield from _numbers(x)
-    elif isinstance(v, list):
-        for x in v:
-            yield from _numbers(x)
 
 
 def test_mqtt_and_sparkplug_never_carry_a_non_finite_number(tmp_path):
@@ -82,7 +71,7 @@ def test_mqtt_and_sparkplug_never_carry_a_non_finite_number(tmp_path):
             for topic, payload in raw:
                 assert "Infinity" not in payload and "NaN" not in payload, (topic, payload)
                 doc = loads_strict(payload)
-                assert all(math.isfinite(x) for x in _numbers(doc)), (topic, payload)
+                assert all(math.isfinite(x) for x in numbers(doc)), (topic, payload)
             state = next(loads_strict(p) for t, p in raw if t.endswith("/state"))
             assert state["mu_ss"] is None and state["mu_th"] is None and state["t_cross"] is None
             assert state["end_p50"] is None and state["sample_id"] == "x;=1+1;y" and state["t_set"] == 0.5
