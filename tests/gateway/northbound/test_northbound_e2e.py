@@ -49,9 +49,10 @@ def parse_time(s):
 
 
 def live(sub, suffix=None):
-    """Messages as the MES processes them: not status, not retained replays."""
+    """Messages as the MES processes them: not status, not retained replays, not the gateways'
+    site-level lives request (docs/mqtt.md)."""
     return [m for m in sub.messages(suffix) if not m[0] and not m[1].endswith("/status")
-            and not m[1].endswith("/probe")]
+            and not m[1].endswith("/probe") and not m[1].endswith("/" + S.LIVES_REQUEST)]
 
 
 def end_of_life_alarm_at_mosquitto_sub_plc_ack_and_last_will(tmp_path):
