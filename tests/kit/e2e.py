@@ -89,6 +89,17 @@ def test_dirs(tmp_path, station="e2e"):
     return sorted(str(d / x) for x in os.listdir(d) if (d / x).is_dir()) if d.exists() else []
 
 
+def first_test_dir(tmp_path, station="e2e", timeout=60.0):
+    """The station's first test folder, once its log exists (AssertionError after ``timeout``)."""
+    t_wait = time.monotonic() + timeout
+    while time.monotonic() < t_wait:
+        dirs = test_dirs(tmp_path, station)
+        if dirs and os.path.exists(os.path.join(dirs[0], "log.csv.gz")):
+            return dirs[0]
+        time.sleep(0.2)
+    raise AssertionError(f"no test folder with a log for {station}")
+
+
 def read_json(path):
     with open(path) as f:
         return json.load(f)

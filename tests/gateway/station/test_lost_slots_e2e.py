@@ -18,11 +18,11 @@ from kit.e2e import (
     QUICK_METHOD,
     analyze_cli,
     events,
+    first_test_dir,
     quick_scenario,
     read_json,
     run_gateway,
     station_yaml,
-    test_dirs,
     virtual_station,
 )
 from kit.smallfs import fill, small_tmpfs
@@ -31,14 +31,6 @@ TUNED = {"dead_band_n": 0.01}
 RESERVE = 100          # rows: 2 s at 50 Hz
 
 
-def _test_dir(tmp_path, station, timeout=60.0):
-    t_wait = time.monotonic() + timeout
-    while time.monotonic() < t_wait:
-        dirs = test_dirs(tmp_path, station)
-        if dirs and os.path.exists(os.path.join(dirs[0], LOG_NAME)):
-            return dirs[0]
-        time.sleep(0.2)
-    raise AssertionError(f"no test folder with a log for {station}")
 
 
 def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monkeypatch):
@@ -49,7 +41,7 @@ def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monke
                           test={"t_end_s": QUICK_END})
         gw = run_gateway(tmp_path, st, "--start", "--duration", str(QUICK_END + 40))
         try:
-            d = _test_dir(tmp_path, "lost")
+            d = first_test_dir(tmp_path, "lost", timeout=60.0)
             time.sleep(3)
             filler = fill(str(tmp_path / "records"))
             time.sleep(7)                     # full for 7 s > the 2 s reserve

@@ -13,7 +13,17 @@ from gateway.method.rules import LOST
 from gateway.records import Command, CommandKind, SlotRecord
 from gateway.station import recorder as recmod
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, floor_ms, new_test_dir, utc_iso
-from kit.e2e import analyze_cli, events, read_json, run_gateway, scenario_file, station_yaml, test_dirs, virtual_station
+from kit.e2e import (
+    analyze_cli,
+    events,
+    first_test_dir,
+    read_json,
+    run_gateway,
+    scenario_file,
+    station_yaml,
+    test_dirs,
+    virtual_station,
+)
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.smallfs import fill, small_tmpfs
 from kit.tools import wait_for
@@ -156,14 +166,6 @@ def test_rows_still_in_memory_at_close_reach_the_log_with_the_result(tmp_path, m
 
 
 # ------------------------------------------------------------------ a real station on a small disk
-def _first_test_dir(tmp_path, station, timeout=30.0):
-    t_wait = time.monotonic() + timeout
-    while time.monotonic() < t_wait:
-        dirs = test_dirs(tmp_path, station)
-        if dirs and os.path.exists(os.path.join(dirs[0], LOG_NAME)):
-            return dirs[0]
-        time.sleep(0.2)
-    raise AssertionError(f"no test folder with a log for {station}")
 
 
 def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
@@ -172,7 +174,7 @@ def test_station_on_a_disk_filled_then_freed_mid_test(tmp_path):
         st = station_yaml(tmp_path, links, name="full", control=TUNED, test={"t_end_s": 600})
         gw = run_gateway(tmp_path, st, "--start", "--duration", "40")
         try:
-            d = _first_test_dir(tmp_path, "full")
+            d = first_test_dir(tmp_path, "full", timeout=30.0)
             time.sleep(3)
             filler = fill(str(tmp_path / "records"))
             time.sleep(5)
@@ -205,7 +207,7 @@ def test_station_folder_unwritable_mid_test_completes_and_keeps_its_result(tmp_p
         gw = run_gateway(tmp_path, st, "--start", "--duration", "30")
         d = None
         try:
-            d = _first_test_dir(tmp_path, "ro")
+            d = first_test_dir(tmp_path, "ro", timeout=30.0)
             time.sleep(2)
             # the test folder becomes unwritable (immutable: no new file, also for root)
             subprocess.run(["chattr", "+i", d], check=True)

@@ -26,11 +26,11 @@ from kit.e2e import (
     analyze_cli,
     assert_no_slot_lost,
     events,
+    first_test_dir,
     quick_scenario,
     read_json,
     run_gateway,
     station_yaml,
-    test_dirs,
     virtual_station,
     wait_log,
 )
@@ -46,14 +46,6 @@ STALL_S = 0.6
 SIM_ARGS = ["--realtime", "10"]
 
 
-def _test_dir(tmp_path, station, timeout=60.0):
-    t_wait = time.monotonic() + timeout
-    while time.monotonic() < t_wait:
-        dirs = test_dirs(tmp_path, station)
-        if dirs and os.path.exists(os.path.join(dirs[0], LOG_NAME)):
-            return dirs[0]
-        time.sleep(0.2)
-    raise AssertionError(f"no test folder with a log for {station}")
 
 
 def _sim_events(path) -> list[dict]:
@@ -76,7 +68,7 @@ def test_a_station_stopped_for_0_6_s_mid_test_completes_the_test(tmp_path):
         gw = run_gateway(tmp_path, st, "--start", "--duration", str(QUICK_END + 60),
                          "--stats-json", str(tmp_path / "stats.json"))
         try:
-            d = _test_dir(tmp_path, "stall")
+            d = first_test_dir(tmp_path, "stall", timeout=60.0)
             # the drive is enabled by the test's start, with the gateway's watchdog period
             t_wait = time.monotonic() + 60
             while time.monotonic() < t_wait and not any(r["enabled"] for r in _drive_records(ev_path)):
@@ -122,7 +114,7 @@ def test_a_killed_gateway_leaves_the_motor_stopped_by_the_twin_watchdog(tmp_path
                           test={"t_end_s": QUICK_END})
         gw = run_gateway(tmp_path, st, "--start", "--duration", str(QUICK_END + 60))
         try:
-            _test_dir(tmp_path, "dead")
+            first_test_dir(tmp_path, "dead", timeout=60.0)
             t_wait = time.monotonic() + 60
             while time.monotonic() < t_wait and not any(r["enabled"] for r in _drive_records(ev_path)):
                 time.sleep(0.2)
