@@ -32,7 +32,7 @@ from ..config import ConfigError, load_station
 from ..console import auth
 from ..console.app import ConsoleServer
 from ..console.settings import ConsoleSettings
-from ..northbound import schema as mqtt_schema
+from ..northbound import mqtt_schema
 from ..osprio import deployed_nice, die_with_parent, freeze_heap, realtime_thread
 from ..ports import Output
 from ..records import EventType

@@ -19,8 +19,8 @@ from .. import safeout
 from ..cli import CliError
 from ..config import ConfigError, load_station
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
-from ..northbound.schema import base_topic
-from ..station.hooks import HOOKS_NAME, MAX_LINES, read_hooks
+from ..northbound.mqtt_schema import base_topic
+from ..station.hook_log import HOOKS_NAME, MAX_LINES, read_hooks
 
 HELP = "list a station's replaced hooks (hooks.jsonl), or tell the running station its hook was replaced"
 DESCRIPTION = HELP + (". --replaced sends `hook_replaced` over the station's MQTT broker "

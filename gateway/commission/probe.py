@@ -52,7 +52,7 @@ from drivers.zns import FAST_RUN, Reading, ZnsMeter
 from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
 
 from ..config import validate_fleet, validate_station
-from ..config.schema import parse_server
+from ..config.sections import parse_server
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
 from ..ratelog import safe
 

@@ -1,7 +1,7 @@
 """Station configuration: ``load_station(path)``, ``load_fleet(folder)``, ``ConfigError``.
 
 The schema — every key, its type, default, unit, allowed values and documentation — is one
-declarative definition in :mod:`gateway.config.schema`; validation (:mod:`.loader`) and
+declarative definition in :mod:`gateway.config.sections`; validation (:mod:`.loader`) and
 ``docs/configuration.md`` (:mod:`.docs`) are generated from it.
 """
 from .loader import (
@@ -16,7 +16,7 @@ from .loader import (
                      validate_fleet,
                      validate_station,
 )
-from .schema import StationConfig
+from .sections import StationConfig
 
 __all__ = ["ConfigError", "Issue", "Loaded", "StationConfig", "cross_issues", "fleet_file_for",
            "load_fleet", "load_station", "station_files", "validate_fleet", "validate_station"]

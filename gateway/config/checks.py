@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from drivers import stm32_protocol as P
 
-from . import schema as S
+from . import sections as S
 from .loader import Loaded, load_meter_map
 
 #: share of the slot kept free for jitter, the method and the outputs

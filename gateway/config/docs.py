@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from .. import safeyaml
 from ..method.params import PARAMS
-from . import schema as S
+from . import sections as S
 from .checks import CHECKS
 from .loader import FLEET_KEYS
 
@@ -36,7 +36,7 @@ def render() -> str:
     out = [
         "# Station configuration",
         "",
-        "Generated from `gateway/config/schema.py` (`python -m gateway.config.docs > "
+        "Generated from `gateway/config/sections.py` (`python -m gateway.config.docs > "
         "docs/configuration.md`); do not edit by hand.",
         "",
         "## Files",

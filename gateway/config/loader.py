@@ -1,4 +1,4 @@
-"""Read, merge and validate station files against the schema (:mod:`gateway.config.schema`).
+"""Read, merge and validate station files against the schema (:mod:`gateway.config.sections`).
 
 The merge rule
 --------------
@@ -24,7 +24,7 @@ from drivers.zns_map import DEFAULT_MAP_PATH, load_map
 from ..method.params import PRIOR_NAMES, ParamError, build_params
 from ..ratelog import clip
 from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
-from . import schema as S
+from . import sections as S
 from .yamlpos import Pos, YamlError
 from .yamlpos import load as load_yaml
 

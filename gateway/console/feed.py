@@ -28,7 +28,7 @@ from typing import Any
 from ..logio import tail_jsonl
 from ..ports import StationView
 from ..records import Event, EventType, SlotRecord, StationState
-from ..station.hooks import read_hooks
+from ..station.hook_log import read_hooks
 from ..station.recorder import LOG_COLUMNS
 from ..threadloop import Mailbox
 
@@ -489,7 +489,7 @@ HOOK_FIELDS = ("station", "old_sample_id", "new_sample_id", "grade", "by", "utc"
 
 def hook_history(station_dir: str) -> list[dict[str, Any]]:
     """The successive hooks of a station (``<station dir>/hooks.jsonl``, read by
-    :func:`gateway.station.hooks.read_hooks`: bounded, a damaged line skipped), newest first, each
+    :func:`gateway.station.hook_log.read_hooks`: bounded, a damaged line skipped), newest first, each
     with the :data:`HOOK_FIELDS` only, texts clipped, ``life_s`` a finite number or None."""
     rows = read_hooks(station_dir)
     out = []

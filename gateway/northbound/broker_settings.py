@@ -6,7 +6,7 @@ keep-alive, user and password (never inline: an environment variable or a file),
 optional client certificate, the reconnect back-off, and the server list (``servers``: the nodes of
 a clustered broker, or Sparkplug's server set; one ``host:port`` when not configured). Their
 settings derive from :class:`BrokerSettings`; :func:`broker_kwargs` reads those keys from either
-configuration section (both derive from ``gateway.config.schema.BrokerConfig``), so the keys a user
+configuration section (both derive from ``gateway.config.sections.BrokerConfig``), so the keys a user
 writes are the same in both sections and mean the same.
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from ..config.schema import parse_server
+from ..config.sections import parse_server
 
 __all__ = ["SecretError", "BrokerSettings", "broker_kwargs"]
 

@@ -1,7 +1,7 @@
 """MQTT output of one station, in three layers:
 
 - ``mqtt_messages.py`` (pure): telemetry aggregation and the messages of records, events, state,
-  alarm and replies — (topic, payload, QoS, retain), built from the topic tree in ``schema.py``;
+  alarm and replies — (topic, payload, QoS, retain), built from the topic tree in ``mqtt_schema.py``;
 - ``mqtt_pump.py`` (transport): one thread with the paho client and the on-disk outbox;
 - this module: :class:`MqttOutput`, the station output that joins them, and the command intake.
 
@@ -42,7 +42,7 @@ from ..slotwindow import SlotWindow
 from ..station.alarm_store import AlarmStore
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
-from . import schema
+from . import mqtt_schema
 from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
 from .mqtt_messages import SOFTWARE, alarm_fields, telemetry_summary
 from .mqtt_pump import MqttPump, MqttSettings, SecretError
@@ -90,7 +90,7 @@ class MqttOutput:
         if self.site is not None:
             self.answers = LivesAnswers(settings.station_id, self._put_lives, self.pump.counters)
         self._base = settings.base_topic
-        self._lives_request = schema.lives_request_topic(self._base)
+        self._lives_request = mqtt_schema.lives_request_topic(self._base)
         # station-loop state
         self._test_id: str | None = None
         self._agg: SlotWindow | None = None
@@ -165,7 +165,7 @@ class MqttOutput:
         st = self._last_state           # §5a: the headroom of the last window, as in `state`
         summary = telemetry_summary(agg, now, self._test_id, st.headroom if st is not None else None,
                                     st.t_cross if st is not None else None)
-        summary.update(schema.forecast_fields(st if self._test_id else None, state=False))
+        summary.update(mqtt_schema.forecast_fields(st if self._test_id else None, state=False))
         self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(), summary))
 
     def on_event(self, ev: Event) -> None:
@@ -234,7 +234,7 @@ class MqttOutput:
                     break
                 time.sleep(0.25)
                 own = read_history(folder)
-            doc = snapshot(self.s.station_id, own, schema.iso_ms(time.time()))
+            doc = snapshot(self.s.station_id, own, mqtt_schema.iso_ms(time.time()))
             def payload(seq: int, d: dict[str, Any] = doc) -> dict[str, Any]:
                 return {**d, "seq": seq}
             msg = M.Message("lives", lives_topic(self._base), payload, qos=1, retain=True)

@@ -4,7 +4,7 @@ No I/O, no clock, no threads: each function turns a slot record summary, an even
 state, the alarm store's record or a command reply into :class:`Message` objects. The payload is
 a function of the stream's sequence number, which the pump stamps when it queues the message
 (``gateway/northbound/mqtt_pump.py``). The topic tree and payload fields are defined once in
-``schema.py``.
+``mqtt_schema.py``.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from ..commandtypes import reply_code
 from ..records import CommandReply, Event, EventType, StationState
 from ..slotwindow import SlotWindow
 from ..station.alarm_store import AlarmRecord
-from . import schema
+from . import mqtt_schema
 from .registers import MAP_VERSION
 
 SOFTWARE = f"hookwatch {__version__}"
@@ -34,7 +34,7 @@ class Message:
     correlation: bytes | None = None            # MQTT 5 Correlation Data (a reply to a request)
 
     def encode(self, seq: int) -> bytes:
-        return schema.encode(self.payload(seq))
+        return mqtt_schema.encode(self.payload(seq))
 
 
 def _r(x: float) -> float:
@@ -59,7 +59,7 @@ def telemetry_summary(w: SlotWindow, now: float, test_id: str | None, headroom: 
         "saturated_slots": w.n_sat, "saturation": w.n_sat > 0,
         "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
         # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
-        **schema.forecast_fields(None, state=False),
+        **mqtt_schema.forecast_fields(None, state=False),
     }
 
 
@@ -79,23 +79,23 @@ def alarm_fields(rec: AlarmRecord) -> dict[str, Any]:
 
 
 def _message(key: str, base: str, payload: Callable[[int], dict[str, Any]], **path: str) -> Message:
-    """A message on topic ``key`` of the tree; QoS and retain as ``schema.TOPICS`` defines them."""
-    t = schema.TOPIC[key]
-    return Message(key, schema.topic_for(base, key, **path), payload, t.qos, t.retain)
+    """A message on topic ``key`` of the tree; QoS and retain as ``mqtt_schema.TOPICS`` defines them."""
+    t = mqtt_schema.TOPIC[key]
+    return Message(key, mqtt_schema.topic_for(base, key, **path), payload, t.qos, t.retain)
 
 
 def telemetry_message(base: str, station: str, t: float, summary: dict[str, Any]) -> Message:
-    return _message("telemetry", base, lambda seq: schema.telemetry_payload(seq, t, station, summary))
+    return _message("telemetry", base, lambda seq: mqtt_schema.telemetry_payload(seq, t, station, summary))
 
 
 def alarm_message(base: str, station: str, t: float, rec: AlarmRecord) -> Message:
     fields = alarm_fields(rec)
-    return _message("alarm", base, lambda seq: schema.alarm_payload(seq, t, station, fields))
+    return _message("alarm", base, lambda seq: mqtt_schema.alarm_payload(seq, t, station, fields))
 
 
 def warning_message(base: str, station: str, t: float, rec: AlarmRecord) -> Message:
     fields = alarm_fields(rec)
-    return _message("alarm_warning", base, lambda seq: schema.warning_payload(seq, t, station, fields))
+    return _message("alarm_warning", base, lambda seq: mqtt_schema.warning_payload(seq, t, station, fields))
 
 
 #: the events that change alarms (by command or by time)
@@ -108,7 +108,7 @@ def event_messages(base: str, ev: Event, last_state: StationState | None,
     """The messages of one event: the event itself, then the alarms (alarm events, as the alarm
     store now has them: the wear warning only once it was ever raised) or the retained result
     (end of a test)."""
-    out = [_message("event", base, lambda seq: schema.event_payload(seq, ev), type=ev.type.value)]
+    out = [_message("event", base, lambda seq: mqtt_schema.event_payload(seq, ev), type=ev.type.value)]
     changed = {tr.get("alarm") for tr in ev.data.get("transitions") or ()}
     if ev.type == EventType.END_OF_LIFE or (ev.type in ALARM_EVENTS and (
             "end_of_life" in changed or "transitions" not in ev.data)):
@@ -118,7 +118,7 @@ def event_messages(base: str, ev: Event, last_state: StationState | None,
                 "wear_warning" in changed or "transitions" not in ev.data))):
         out.append(warning_message(base, ev.station, ev.wall_time, warning))
     elif ev.type == EventType.TEST_ENDED:
-        out.append(_message("result", base, lambda seq: schema.result_payload(seq, ev, last_state)))
+        out.append(_message("result", base, lambda seq: mqtt_schema.result_payload(seq, ev, last_state)))
     return out
 
 
@@ -133,7 +133,7 @@ def state_key(st: StationState) -> tuple[Any, ...]:
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:
-    return _message("state", base, lambda seq: schema.state_payload(seq, t, st))
+    return _message("state", base, lambda seq: mqtt_schema.state_payload(seq, t, st))
 
 
 def status_message(base: str, station: str, t: float, online: bool) -> Message:
@@ -141,7 +141,7 @@ def status_message(base: str, station: str, t: float, online: bool) -> Message:
     ``payload(n)``/``encode(n)`` take its own counter, the session number, not an outbox seq."""
     status = "online" if online else "offline"
     return _message("status", base,
-                    lambda session: schema.status_payload(session, t, station, status, SOFTWARE, MAP_VERSION))
+                    lambda session: mqtt_schema.status_payload(session, t, station, status, SOFTWARE, MAP_VERSION))
 
 
 def reply_message(base: str, station: str, t: float, command: str, request_id: str | None,
@@ -151,7 +151,7 @@ def reply_message(base: str, station: str, t: float, command: str, request_id: s
     code = reply_code(r)
     rid = request_id if request_id is not None else r.request_id
     msg = _message("reply", base,
-                   lambda seq: schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))
+                   lambda seq: mqtt_schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))
     if response is None:
         return msg
     return Message(msg.kind, response[0], msg.payload, msg.qos, False, response[1])
@@ -159,4 +159,4 @@ def reply_message(base: str, station: str, t: float, command: str, request_id: s
 
 def command_filter(base: str) -> str:
     """The subscription that receives every command topic of the station."""
-    return schema.topic_for(base, "cmd_start").rsplit("/", 1)[0] + "/+"
+    return mqtt_schema.topic_for(base, "cmd_start").rsplit("/", 1)[0] + "/+"

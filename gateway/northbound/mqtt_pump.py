@@ -35,7 +35,7 @@ from paho.mqtt.properties import Properties
 from ..ratelog import RateLog, clip
 from ..threadloop import Mailbox
 from . import mqtt_messages as M
-from . import schema
+from . import mqtt_schema as schema
 from .broker_settings import BrokerSettings, SecretError
 from .outbox import Outbox, Row
 from .paho_session import PahoSession

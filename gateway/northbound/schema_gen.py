@@ -1,5 +1,5 @@
 """JSON Schemas (draft 2020-12) of every MQTT payload and command, generated from the one
-definition in :mod:`gateway.northbound.schema` (topics, fields, types) plus the enumerations that
+definition in :mod:`gateway.northbound.mqtt_schema` (topics, fields, types) plus the enumerations that
 live in code (test states, rejection codes, method statuses).
 
     python -m gateway.northbound.schema_gen docs/schemas     # writes docs/schemas/*.json
@@ -16,7 +16,7 @@ from typing import Any
 from ..commandtypes import REJECT_CODES
 from ..method.rules import REASON_NAMES
 from ..records import AlarmState, TestState
-from . import schema as S
+from . import mqtt_schema as S
 from .cmdparse import MAX_STRING_CHARS, REQUEST_ID_MAX, SAMPLE_ID_MAX
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -119,7 +119,7 @@ def topic_schema(t: S.Topic) -> dict[str, Any]:
         "$schema": DIALECT, "$id": f"{ID_BASE}{t.key}.json",
         "title": f"hookwatch MQTT `{t.path}` ({'published' if t.direction == 'publish' else 'command'})",
         "description": f"{t.doc}. QoS {t.qos}, retained: {'yes' if t.retain else 'no'}. "
-                       f"Schema version {S.SCHEMA_VERSION}; generated from gateway/northbound/schema.py.",
+                       f"Schema version {S.SCHEMA_VERSION}; generated from gateway/northbound/mqtt_schema.py.",
         "type": "object", "additionalProperties": False, "required": required, "properties": props,
     }
 

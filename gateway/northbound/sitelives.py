@@ -20,7 +20,7 @@ every gateway subscribes to ``<prefix>/<site>/+/+/+/lives``. Why:
   keeps a retained message on the node that received it (RabbitMQ 3.10), and a killed node loses
   it, so a gateway joining through another node gets nothing retained. A station that (re)connects
   publishes one small, non-retained request on the site's ``<prefix>/<site>/lives_request``
-  (:func:`gateway.northbound.schema.lives_request_topic`; payload: its station id); every station
+  (:func:`gateway.northbound.mqtt_schema.lives_request_topic`; payload: its station id); every station
   of the site that hears it publishes its snapshot again on its ``lives`` topic — retained, the same
   message as always: it reaches the asking gateway through the cluster's routing on any node, and
   it also gives the answering station's node its retained copy back. :class:`LivesAnswers` bounds
@@ -49,7 +49,7 @@ from typing import Any
 from ..method.prior import STOPPED, PastTest
 from ..ratelog import RateBound, RateLog, clip
 from .cmdparse import Refused, bounded_pairs, read_bounded_json
-from .schema import SCHEMA_VERSION
+from .mqtt_schema import SCHEMA_VERSION
 
 log = logging.getLogger("hookwatch.site")
 

@@ -7,7 +7,7 @@ import sqlite3
 
 from ..doors import DoorLimits
 from ..ports import StationLinks
-from . import schema
+from . import mqtt_schema
 from .broker_settings import broker_kwargs
 from .metrics import MetricsOutput
 from .modbus_server import ModbusOutput, ModbusSettings
@@ -33,7 +33,7 @@ def mqtt_settings(cfg):
     path = ob.path or os.path.join(cfg.recorder.dir, sid, "outbox.sqlite")
     return MqttSettings(
         station_id=sid,
-        base_topic=schema.base_topic(m.prefix, getattr(st, "site", ""), getattr(st, "area", ""),
+        base_topic=mqtt_schema.base_topic(m.prefix, getattr(st, "site", ""), getattr(st, "area", ""),
                                      getattr(st, "line", ""), sid),
         protocol=m.protocol, **broker_kwargs(m),
         telemetry_interval_s=float(m.telemetry_interval_s), outbox_path=path,

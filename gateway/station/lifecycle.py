@@ -24,7 +24,7 @@ from ..method.core import StreamingMonitor
 from ..ports import MeterPort
 from ..records import EventType
 from .health import Health
-from .hooks import append_hook, next_sample_id
+from .hook_log import append_hook, next_sample_id
 from .priors import PriorBook
 from .recorder import disk_thread, utc_iso
 from .session import RecorderOutput, TestPlan, TestSession

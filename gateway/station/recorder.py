@@ -149,7 +149,7 @@ def _fsync_dup(fd: int) -> None:
 
 def disk_thread() -> ThreadPoolExecutor:
     """The process's one thread for disk syncs off the slot loop (one: what it is given is done
-    in order): the recorder's fsyncs, the hooks.jsonl appends (gateway/station/hooks.py)."""
+    in order): the recorder's fsyncs, the hooks.jsonl appends (gateway/station/hook_log.py)."""
     global _fsync_pool
     with _fsync_lock:
         if _fsync_pool is None:

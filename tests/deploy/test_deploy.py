@@ -539,7 +539,7 @@ def test_telegraf_pipeline_covers_telemetry_events_results():
             assert len(tp["tags"].split("/")) == len(tp["topic"].split("/"))
     assert data["outputs"]["influxdb_v2"][0]["token"].startswith("${")
     # the topics exist in the gateway's MQTT topic tree
-    schema = pytest.importorskip("gateway.northbound.schema")
+    schema = pytest.importorskip("gateway.northbound.mqtt_schema")
     paths = {t.path for t in schema.TOPICS if t.direction == "publish"}
     for c in consumers:
         for t in c["topics"]:

@@ -1,7 +1,7 @@
 """A real Mosquitto on a free loopback port, mosquitto_sub as a subscriber, mosquitto_pub.
 
 Every JSON message a :class:`Sub` receives on a topic of hookwatch's tree is validated against the
-shipped JSON Schema of its topic (docs/schemas/, generated from gateway/northbound/schema.py) with
+shipped JSON Schema of its topic (docs/schemas/, generated from gateway/northbound/mqtt_schema.py) with
 ``jsonschema``: a violation fails the test (``messages()`` and ``stop()`` raise it, naming the
 topic, the payload and the schema path). Commands (``cmd/…``, which the tests publish themselves,
 some malformed on purpose), Sparkplug (protobuf, ``spBv1.0/…``) and a test's own messages on topics
@@ -68,7 +68,7 @@ SCHEMA_DIR = os.path.join(ROOT, "docs", "schemas")
 @functools.cache
 def _schemas() -> tuple[tuple[re.Pattern, str | None], ...]:
     """(topic pattern, schema key or None for a command) for every topic of the tree."""
-    from gateway.northbound import schema as S
+    from gateway.northbound import mqtt_schema as S
     out = []
     for t in S.TOPICS:
         path = re.escape(t.path).replace(re.escape("{type}"), "[^/]+")

@@ -18,7 +18,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:0] = [os.path.dirname(os.path.dirname(HERE))]
 
 from gateway import records as R  # noqa: E402
-from gateway.northbound import schema  # noqa: E402
+from gateway.northbound import mqtt_schema  # noqa: E402
 from gateway.northbound.mqtt import MqttOutput, MqttSettings  # noqa: E402
 
 
@@ -31,7 +31,7 @@ def state_of(sid: str, fields: dict) -> R.StationState:
 async def main(port: int, outdir: str, spec: dict) -> None:
     outs = []
     for s in spec["stations"]:
-        base = schema.base_topic(spec["prefix"], spec["site"], s["area"], s["line"], s["id"])
+        base = mqtt_schema.base_topic(spec["prefix"], spec["site"], s["area"], s["line"], s["id"])
         out = MqttOutput(MqttSettings(station_id=s["id"], base_topic=base, port=port,
                                       outbox_path=os.path.join(outdir, s["id"] + ".sqlite"),
                                       reconnect_min_s=0.2, reconnect_max_s=1.0))

@@ -170,7 +170,7 @@
     return st.replace(/_/g, " ");
   }
   hw.dur = dur;
-  // one sentence per event type (gateway/records.py EventType; the keys: gateway/northbound/schema.py EVENT_DATA)
+  // one sentence per event type (gateway/records.py EventType; the keys: gateway/northbound/mqtt_schema.py EVENT_DATA)
   function eventText(e) {
     const n = x => fmt(x, 2), r = e.result || {};
     switch (e.type) {

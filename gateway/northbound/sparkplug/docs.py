@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from ...config.schema import SparkplugConfig
+from ...config.sections import SparkplugConfig
 from . import metrics as M
 
 #: (statement ID of the Sparkplug 3.0 specification, what it asks, status, how / where / proof)

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import ROOT, hookwatch_cmd
 from gateway.config import ConfigError, load_fleet, load_station, validate_station
-from gateway.config import schema as S
+from gateway.config import sections as S
 from gateway.control import ControlParams, NotchParams
 from gateway.method.params import PARAMS
 

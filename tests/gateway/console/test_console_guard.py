@@ -106,7 +106,7 @@ def test_limits_doc_names_each_console_key_with_its_default():
     import os
 
     from conftest import ROOT
-    from gateway.config.schema import ConsoleConfig
+    from gateway.config.sections import ConsoleConfig
 
     with open(os.path.join(ROOT, "docs", "limits.md"), encoding="utf-8") as f:
         text = f.read()

@@ -25,7 +25,7 @@ import time
 
 from gateway import records as R
 from gateway.console.site import MAX_TEXT
-from gateway.northbound import schema
+from gateway.northbound import mqtt_schema
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import Broker, pub
 from kit.browser import wait_js as _wait_js
@@ -71,7 +71,7 @@ def test_site_view_three_gateways_in_a_browser(tmp_path, browser):  # noqa: F811
             procs.append(_box(tmp_path, broker.port, "box-c", C))
             # box A: the console (stations loom-a … loom-d of start_console's fixture are this box's)
             srv, url, outs, _dirs = start_console(tmp_path)
-            a_base = schema.base_topic(PREFIX, SITE, "hall-1", "line-1", "loom-a")
+            a_base = mqtt_schema.base_topic(PREFIX, SITE, "hall-1", "line-1", "loom-a")
             out = MqttOutput(MqttSettings(station_id="loom-a", base_topic=a_base, port=broker.port,
                                           outbox_path=str(tmp_path / "a.sqlite"),
                                           reconnect_min_s=0.2, reconnect_max_s=1.0))

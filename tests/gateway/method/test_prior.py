@@ -152,7 +152,7 @@ def test_sidecar_prior_reads_the_new_keys_leniently():
 
 
 def test_too_many_prior_entries_is_a_validation_error(tmp_path):
-    from gateway.config import schema as S
+    from gateway.config import sections as S
     entries = ", ".join(f"{{grade: I, t_set_n: {0.1 + 0.01 * i:.2f}, mean_s: 100, sd_s: 5}}"
                         for i in range(S.MAX_PRIOR_ENTRIES + 1))
     with pytest.raises(ConfigError, match=f"{S.MAX_PRIOR_ENTRIES + 1} entries; at most {S.MAX_PRIOR_ENTRIES}"):

@@ -3,8 +3,8 @@ is mosquitto_sub) and its Modbus TCP server (the PLC is mbpoll). Each transition
 by the MES, unshelved, acknowledged by the PLC, out of service and back by PLC command codes, the
 hook replaced — shows the same ISA-18.2 state in the retained alarm topic, the retained state and
 the PLC's alarm enum register (generated from the same enum)."""
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import registers as R
-from gateway.northbound import schema as S
 from gateway.records import AlarmState, EventType
 from gateway.station.alarm_store import AlarmStore
 from kit.broker import pub, station_on_broker

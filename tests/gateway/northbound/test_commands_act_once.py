@@ -21,7 +21,7 @@ import threading
 from gateway import ratelog
 from gateway.records import Command, CommandKind, EventType
 from gateway.station.commands import CODE, COMMAND_BURST
-from gateway.station.hooks import read_hooks
+from gateway.station.hook_log import read_hooks
 from kit.broker import station_on_broker
 from kit.fakes import Capture, FakeStm32
 from kit.northbound import LoopThread, RunningStation, make_station

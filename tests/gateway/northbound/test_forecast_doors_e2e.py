@@ -11,8 +11,8 @@ import os
 
 import yaml
 
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import registers as R
-from gateway.northbound import schema as S
 from gateway.northbound.sparkplug import metrics as SM
 from kit.broker import Broker, Sub
 from kit.e2e import (

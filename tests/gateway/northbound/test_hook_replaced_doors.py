@@ -14,7 +14,7 @@ import yaml
 from conftest import ROOT, hookwatch_cmd
 from gateway.northbound import registers as R
 from gateway.station.commands import CODE
-from gateway.station.hooks import read_hooks
+from gateway.station.hook_log import read_hooks
 from kit.broker import pub, station_on_broker
 from kit.northbound import mbpoll
 from kit.tools import free_port, require_tool, wait_for

@@ -7,7 +7,7 @@ import textwrap
 import pytest
 
 from gateway.config import load_station
-from gateway.config.schema import BrokerConfig, MqttConfig, SparkplugConfig
+from gateway.config.sections import BrokerConfig, MqttConfig, SparkplugConfig
 from gateway.northbound.broker_settings import BrokerSettings, SecretError
 from gateway.northbound.mqtt_pump import MqttSettings
 from gateway.northbound.sparkplug.client import SparkplugSettings

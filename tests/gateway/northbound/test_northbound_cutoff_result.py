@@ -5,7 +5,7 @@ and carry the sample, grade and setpoint of its sidecar."""
 import os
 import signal
 
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from kit.broker import Broker, Sub
 from kit.e2e import read_json, run_gateway, station_yaml, test_dirs, virtual_station
 

@@ -11,12 +11,12 @@ import subprocess
 import pytest
 
 from conftest import ROOT, hookwatch_cmd
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import registers as R
-from gateway.northbound import schema as S
 from gateway.records import Event, EventType, StationState
 from gateway.records import TestState as TState
 
-GENERATED = [("gateway.northbound.schema", "docs/mqtt.md"),
+GENERATED = [("gateway.northbound.mqtt_schema", "docs/mqtt.md"),
              ("gateway.northbound.registers", "docs/registers.md")]
 
 

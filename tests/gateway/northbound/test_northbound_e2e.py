@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from conftest import ROOT
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import registers as R
-from gateway.northbound import schema as S
 from gateway.records import EventType
 from kit.broker import Broker, Sub, pub
 from kit.e2e import (

@@ -12,7 +12,7 @@ import pytest
 
 from conftest import ROOT
 from gateway.method.rules import JUMP, MISSING
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.northbound.mqtt_messages import telemetry_summary
 from gateway.records import Event, EventType, SlotRecord, StationState

@@ -3,7 +3,7 @@ import json
 import time
 
 from gateway.northbound import mqtt_messages as M
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.records import Event, EventType, StationState
 from gateway.station.alarm_store import AlarmStore
 from gateway.station.commands import CODE, Rejection

@@ -6,7 +6,7 @@ import time
 
 import jsonschema
 
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import schema_gen
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.records import Event, EventType

@@ -6,7 +6,7 @@ sequence before slot 0) and taking the commands: the link goes down and up again
 import logging
 import subprocess
 
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import Broker, Sub, pub
 from kit.northbound import LoopThread, RunningStation, make_station

@@ -18,8 +18,8 @@ import random
 import re
 import threading
 
+from gateway.northbound.mqtt_schema import LIVES_REQUEST
 from gateway.northbound.outbox import Outbox
-from gateway.northbound.schema import LIVES_REQUEST
 from kit.e2e import (
     QUICK_END,
     QUICK_METHOD,

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from kit.broker import Broker, SchemaViolation, Sub, check_message, pub, schema_key
 
 BASE = "hookwatch/lab/hall/l1/kit"

@@ -1,4 +1,4 @@
-"""JSON Schemas (2020-12) of the MQTT payloads: generated from gateway/northbound/schema.py and
+"""JSON Schemas (2020-12) of the MQTT payloads: generated from gateway/northbound/mqtt_schema.py and
 current in docs/schemas/; every message a real station publishes through a real Mosquitto (and
 every documented example) validates against the schema of its topic, with `jsonschema`."""
 import json
@@ -9,7 +9,7 @@ import jsonschema
 import pytest
 
 from conftest import ROOT
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import schema_gen
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from gateway.records import EventType

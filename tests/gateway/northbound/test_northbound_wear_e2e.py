@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from conftest import ROOT
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import registers as R
-from gateway.northbound import schema as S
 from kit.broker import Broker, Sub
 from kit.e2e import (
     QUICK_END,

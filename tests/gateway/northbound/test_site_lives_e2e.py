@@ -17,7 +17,7 @@ import yaml
 
 from gateway.history import read_history
 from gateway.method.prior import history_prior
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound.sitelives import STORE_NAME
 from kit.broker import Broker, Sub, pub
 from kit.e2e import QUICK_END, QUICK_METHOD, quick_scenario, run_gateway, station_yaml, virtual_station, wait_log

@@ -11,7 +11,7 @@ import logging
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
-from gateway.northbound import schema as S
+from gateway.northbound import mqtt_schema as S
 from gateway.northbound import sitelives as SL
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import Broker, Sub, pub

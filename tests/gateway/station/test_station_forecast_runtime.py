@@ -22,7 +22,7 @@ from gateway.method.prior import PriorEntry
 from gateway.records import Command, CommandKind, EventType
 from gateway.records import TestState as TS
 from gateway.station.commands import CODE
-from gateway.station.hooks import MAX_LINE, append_hook, next_sample_id, read_hooks
+from gateway.station.hook_log import MAX_LINE, append_hook, next_sample_id, read_hooks
 from gateway.station.priors import PriorBook
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, FakeMeter, QuietStm32

@@ -5,7 +5,7 @@ a long Sample ID is refused and never echoed into DDATA, a Sample ID with a newl
 station's code 4 with the value escaped; a well-typed start is carried out."""
 from gateway.northbound.sparkplug.client import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
-from gateway.station.hooks import read_hooks
+from gateway.station.hook_log import read_hooks
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.sparkplug_host import PrimaryHost, metric_value

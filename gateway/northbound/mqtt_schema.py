@@ -1,7 +1,7 @@
 """The one definition of hookwatch's MQTT interface: topic tree, QoS/retain, payload fields.
 
 The runtime (``gateway/northbound/mqtt.py``) builds every payload with the functions here and
-``docs/mqtt.md`` is generated from the same tables (``python -m gateway.northbound.schema >
+``docs/mqtt.md`` is generated from the same tables (``python -m gateway.northbound.mqtt_schema >
 docs/mqtt.md``; a test checks it is current). Bump :data:`SCHEMA_VERSION` when a field changes
 meaning or disappears (adding a field is compatible).
 """
@@ -598,7 +598,7 @@ def render() -> str:
     out = [
         "# MQTT interface",
         "",
-        "Generated from `gateway/northbound/schema.py` (`python -m gateway.northbound.schema > "
+        "Generated from `gateway/northbound/mqtt_schema.py` (`python -m gateway.northbound.mqtt_schema > "
         "docs/mqtt.md`); do not edit by hand.",
         "",
         f"Schema version **{SCHEMA_VERSION}** (every payload carries it as `schema`). "
