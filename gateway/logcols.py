@@ -33,8 +33,9 @@ column, its encoding and stream length.
 
 Writing is bounded: one writer thread per process, which builds one companion at a time in a child
 interpreter at nice 10 (the station's interpreter never runs the build: no GIL taken from the slot
-loop), at most :data:`MAX_PENDING` logs waiting (more are skipped with a log line), each within
-:data:`BUILD_TIMEOUT_S`; nothing is written that would leave less than
+loop), each within :data:`BUILD_TIMEOUT_S`, fed through a :class:`~gateway.threadloop.Mailbox` of
+at most :data:`MAX_PENDING` logs (when full, the oldest waiting log is skipped with a log line: it
+keeps its text, only the companion is not made); nothing is written that would leave less than
 :data:`RESERVE_BYTES` or :data:`RESERVE_FRACTION` of the file system free; any failure (read-only
 folder, full disk, a log that does not parse) is one log line, never an exception into the
 caller. ``HOOKWATCH_LOG_COLS=0`` switches writing off (a companion already written is still used).
@@ -46,7 +47,6 @@ import hashlib
 import json
 import logging
 import os
-import queue
 import struct
 import subprocess
 import sys
@@ -56,6 +56,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+
+from .threadloop import Mailbox
 
 _inflater: Any = zlib
 try:
@@ -75,7 +77,7 @@ RESERVE_BYTES = 1 << 30
 RESERVE_FRACTION = 0.10
 #: logs with fewer rows get no companion (10 minutes at 50 Hz: they parse in tens of milliseconds)
 MIN_ROWS = 30_000
-#: logs waiting for their companion in one process; more are skipped (one log line each)
+#: logs waiting for their companion in one process; beyond, the oldest is skipped (one log line each)
 MAX_PENDING = 16
 #: a companion header larger than this is not one
 MAX_HEADER = 64 << 10
@@ -301,12 +303,6 @@ def store(log_path: str, data: bytes) -> bool:
 _CHILD = ("import sys; from gateway import logcols, logio; "
           "sys.exit(logcols.child_main(sys.argv[1:], logio.write_companion))")
 
-_queue: queue.Queue[str] = queue.Queue(maxsize=MAX_PENDING)
-_lock = threading.Lock()
-_thread: threading.Thread | None = None
-_busy = 0
-_idle = threading.Condition(_lock)
-
 
 def child_main(argv: list[str], build: Callable[[str], str]) -> int:
     """The child's main: ``LOG RESERVE_BYTES RESERVE_FRACTION MIN_ROWS``; prints what was done,
@@ -340,43 +336,78 @@ def _build_in_child(path: str) -> tuple[bool, str]:
     return False, (p.stderr.strip().splitlines() or [f"exit status {p.returncode}"])[-1][:300]
 
 
-def _worker() -> None:
-    global _busy
-    while True:
-        path = _queue.get()
-        try:
-            ok, what = _build_in_child(path)
-            if ok:
-                log.info("%s: %s", companion_path(path), what)
-            else:
-                log.warning("%s: companion not written: %s", companion_path(path), what)
-        except Exception as e:  # noqa: BLE001 - one line, never an exception into the station
-            log.warning("%s: companion not written: %s", companion_path(path),
-                        (getattr(e, "strerror", None) or str(e) or type(e).__name__)[:200])
-        finally:
-            with _lock:
-                _busy -= 1
-                _idle.notify_all()
+class CompanionWriter:
+    """The background writer of a process: one thread that builds one companion at a time, fed
+    through a :class:`~gateway.threadloop.Mailbox` of at most ``max_pending`` logs.
+
+    What waits may be dropped: a companion is derived from its log, which stays on disk whatever
+    happens here (a reader without one parses the text). So the producer (the recorder closing a
+    test, on the station's thread) never waits: when ``max_pending`` logs already wait, the
+    mailbox drops the oldest of them (one warning line naming it) and keeps the newest, the one a
+    report or ``hookwatch analyze`` will read next."""
+
+    def __init__(self, max_pending: int = MAX_PENDING) -> None:
+        self.box: Mailbox[str] = Mailbox(max_pending, on_drop=self._skipped)
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._busy = 0                        # logs waiting or being built
+        self._idle = threading.Event()
+        self._idle.set()
+
+    def _skipped(self, path: str) -> None:
+        log.warning("%s: companion not written: %d newer logs waiting", companion_path(path), self.box.maxlen)
+
+    def start(self) -> None:
+        """Start the writer thread if it does not run (raises if no thread can be started)."""
+        with self._lock:
+            if self._thread is None or not self._thread.is_alive():
+                self._thread = threading.Thread(target=self._run, name="logcols", daemon=True)
+                self._thread.start()
+
+    def submit(self, log_path: str) -> None:
+        """Queue ``log_path``; never blocks (when full, the oldest waiting log is dropped)."""
+        with self._lock:
+            if self.box.put_nowait(log_path):
+                self._busy += 1               # else one went out for this one: as many as before
+            self._idle.clear()
+
+    def _run(self) -> None:
+        while True:
+            self.box.wait()
+            for path in self.box.take():
+                try:
+                    ok, what = _build_in_child(path)
+                    if ok:
+                        log.info("%s: %s", companion_path(path), what)
+                    else:
+                        log.warning("%s: companion not written: %s", companion_path(path), what)
+                except Exception as e:  # noqa: BLE001 - one line, never an exception into the station
+                    log.warning("%s: companion not written: %s", companion_path(path),
+                                (getattr(e, "strerror", None) or str(e) or type(e).__name__)[:200])
+                finally:
+                    with self._lock:
+                        self._busy -= 1
+                        if self._busy == 0:
+                            self._idle.set()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until no companion is queued or being written."""
+        return self._idle.wait(timeout)
+
+
+_writer = CompanionWriter()
 
 
 def write_in_background(log_path: str) -> bool:
     """Queue the log for the process's one writer thread (which builds its companion in a child
     interpreter, :func:`gateway.logio.write_companion`). Never blocks, never raises; False if it
-    was not queued."""
-    global _thread, _busy
+    was not queued (writing switched off, or no thread can be started)."""
     if not writing_enabled():
         return False
     try:
-        with _lock:
-            if _thread is None or not _thread.is_alive():
-                _thread = threading.Thread(target=_worker, name="logcols", daemon=True)
-                _thread.start()
-            _queue.put_nowait(log_path)
-            _busy += 1
+        _writer.start()
+        _writer.submit(log_path)
         return True
-    except queue.Full:
-        log.warning("%s: companion not written: %d logs already waiting", companion_path(log_path),
-                    MAX_PENDING)
     except Exception as e:  # noqa: BLE001 - e.g. no thread can be started: the log stays as it is
         log.warning("%s: companion not written: %s", companion_path(log_path), e)
     return False
@@ -384,5 +415,4 @@ def write_in_background(log_path: str) -> bool:
 
 def wait_idle(timeout: float) -> bool:
     """Wait until no companion is queued or being written (tests, a clean shutdown)."""
-    with _idle:
-        return _idle.wait_for(lambda: _busy == 0, timeout)
+    return _writer.wait_idle(timeout)

@@ -9,7 +9,8 @@ Every boundary between an asyncio loop and another thread in hookwatch goes thro
 - :func:`submit_to` / :func:`call_soon_on` are the same hand-over onto any running loop (a
   station's own loop), returning ``None`` / ``False`` instead of raising when the loop is gone.
 - :class:`Mailbox` carries a stream from a slot loop to another thread: bounded, never blocking the
-  producer; when full, the oldest item is dropped and counted.
+  producer; when full, the oldest item is dropped and counted. It is the one hand-over of work
+  between threads (tests/test_architecture.py: no other ``queue.Queue`` or ``Condition``).
 """
 from __future__ import annotations
 
@@ -126,13 +127,19 @@ class Mailbox(Generic[ItemT]):
     and counted in :attr:`dropped`. The drop policy says which: the oldest item (the default), or,
     with ``droppable``, the oldest item it accepts (e.g. a measured value, never a birth or a
     command reply) and only when none waits, the oldest one, so the bound holds whatever comes.
-    The consumer takes everything with :meth:`drain` (optionally after :meth:`wait`)."""
+    ``on_drop``, if given, hears of each dropped item (in the producer's thread, outside the
+    mailbox's lock: it must be quick and must not raise), e.g. to name it in a log line.
+    The consumer takes everything with :meth:`drain`, or the oldest few with :meth:`take` (a worker
+    that handles one item at a time, so the bound holds for what waits), optionally after
+    :meth:`wait`."""
 
-    def __init__(self, maxlen: int, droppable: Callable[[ItemT], bool] | None = None) -> None:
+    def __init__(self, maxlen: int, droppable: Callable[[ItemT], bool] | None = None,
+                 on_drop: Callable[[ItemT], None] | None = None) -> None:
         if maxlen < 1:
             raise ValueError("Mailbox maxlen must be at least 1")
         self.maxlen = maxlen
         self.droppable = droppable
+        self.on_drop = on_drop
         self._q: collections.deque[ItemT] = collections.deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -140,24 +147,27 @@ class Mailbox(Generic[ItemT]):
 
     def put_nowait(self, item: ItemT) -> bool:
         """Queue ``item``; False when an older item had to be dropped to make room."""
+        gone: list[ItemT] = []
         with self._lock:
             q = self._q
             full = len(q) >= self.maxlen
             if full:
-                self._drop_one(q)
+                gone.append(self._drop_one(q))
                 self.dropped += 1
             q.append(item)
         self._wake.set()
+        if gone and self.on_drop is not None:
+            self.on_drop(gone[0])
         return not full
 
-    def _drop_one(self, q: collections.deque[ItemT]) -> None:
+    def _drop_one(self, q: collections.deque[ItemT]) -> ItemT:
         pick = self.droppable
         if pick is not None:
             for i, it in enumerate(q):
                 if pick(it):
                     del q[i]
-                    return
-        q.popleft()
+                    return it
+        return q.popleft()
 
     def drain(self) -> list[ItemT]:
         """Everything queued, oldest first (empties the mailbox)."""
@@ -165,6 +175,17 @@ class Mailbox(Generic[ItemT]):
             items = list(self._q)
             self._q.clear()
             self._wake.clear()
+        return items
+
+    def take(self, n: int = 1) -> list[ItemT]:
+        """The oldest ``n`` items (fewer if fewer wait), oldest first; the others stay. Leaving the
+        mailbox empty clears its wake-up, so a consumer looping on :meth:`wait` then :meth:`take`
+        never spins."""
+        with self._lock:
+            q = self._q
+            items = [q.popleft() for _ in range(min(n, len(q)))]
+            if not q:
+                self._wake.clear()
         return items
 
     def wait(self, timeout: float | None = None) -> bool:

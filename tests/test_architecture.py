@@ -396,6 +396,62 @@ def test_one_thread_to_loop_hand_over():
     assert stray == []
 
 
+#: besides gateway/threadloop.py (Mailbox, the one bounded hand-over of work between threads), the
+#: modules that may build a queue or a condition of their own, each with why
+WORK_HANDOVER_ALLOWED = {
+    "drivers.sim.meter": "the simulated meter's ReplyWriter: a heap of replies due at set times (a "
+                         "timer), not a first-in first-out hand-over",
+}
+#: the modules that hand work to another thread through a Mailbox (issue 30.2)
+MAILBOX_USERS = ("gateway.logcols",)
+#: what a hand-over written by hand is built from: a thread-safe queue, or a condition to wait on
+_QUEUE_MODULES = ("queue", "multiprocessing.queues")
+_HANDOVER_CALLS = ("Queue", "SimpleQueue", "LifoQueue", "PriorityQueue", "JoinableQueue", "Condition")
+
+
+def _work_handovers(tree: ast.Module) -> list[str]:
+    """Where a module builds a hand-over between threads itself: imports a thread-safe queue
+    module, or calls a queue or condition constructor (``queue.Queue(16)``, ``threading.Condition()``;
+    ``asyncio``'s queue and condition live within one loop and are no hand-over between threads)."""
+    out = []
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Import):
+            out += [f"{n.lineno} import {a.name}" for a in n.names if a.name in _QUEUE_MODULES]
+        elif isinstance(n, ast.ImportFrom) and n.module in _QUEUE_MODULES and not n.level:
+            out.append(f"{n.lineno} from {n.module} import")
+        elif isinstance(n, ast.Call):
+            f = n.func
+            name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else ""
+            if name in _HANDOVER_CALLS and not (isinstance(f, ast.Attribute) and ast.unparse(f.value) == "asyncio"):
+                out.append(f"{n.lineno} {ast.unparse(f)}()")
+    return out
+
+
+def test_one_bounded_hand_over_of_work_between_threads():
+    """Issue 30.2: a thread passes work to another through ``gateway.threadloop.Mailbox`` (bounded,
+    a drop policy, never blocking the producer); no other module builds a queue or a condition of
+    its own (the log companion's writer had a ``queue.Queue`` and a ``Condition`` beside it)."""
+    stray = {m: hs for m, t in TREES.items()
+             if m != "gateway.threadloop" and m not in WORK_HANDOVER_ALLOWED and (hs := _work_handovers(t))}
+    assert stray == {}
+    assert all(_work_handovers(TREES[m]) for m in WORK_HANDOVER_ALLOWED), "an allowed module no longer needs it"
+    for m in MAILBOX_USERS:
+        assert "gateway.threadloop" in SCANS[m].edges, m
+
+
+def test_the_hand_over_check_flags_what_it_should():
+    by_hand = ("import queue\nimport threading\n_q = queue.Queue(maxsize=16)\n"
+               "_idle = threading.Condition(threading.Lock())\n")
+    assert _work_handovers(ast.parse(by_hand)) == ["1 import queue", "3 queue.Queue()",
+                                                   "4 threading.Condition()"]
+    assert _work_handovers(ast.parse("from queue import SimpleQueue\nq = SimpleQueue()\n")) == [
+        "1 from queue import", "2 SimpleQueue()"]
+    assert _work_handovers(ast.parse("import multiprocessing as mp\nq = mp.Queue()\n")) == ["2 mp.Queue()"]
+    within_a_loop = ("import asyncio\nfrom .threadloop import Mailbox\nq = asyncio.Queue(8)\n"
+                     "c = asyncio.Condition()\nbox = Mailbox(16)\n")
+    assert _work_handovers(ast.parse(within_a_loop)) == []
+
+
 def _state_writes(tree: ast.Module) -> list[str]:
     """Assignments to a field of a ``….state`` (directly, or through a local alias of it)."""
     out = []

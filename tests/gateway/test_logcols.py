@@ -277,3 +277,34 @@ def test_a_log_that_does_not_parse_is_one_warning_line(tmp_path, caplog, monkeyp
     msgs = [r.getMessage() for r in caplog.records if r.name == "hookwatch.logcols"]
     assert len(msgs) == 1 and "companion not written" in msgs[0] and "line 3" in msgs[0], msgs
     assert sorted(os.listdir(tmp_path)) == [LOG_NAME]
+
+
+def test_a_full_writer_drops_the_oldest_waiting_log_and_keeps_the_newest(tmp_path, caplog):
+    """The writer is fed through the project's one bounded hand-over (a Mailbox): submitting never
+    blocks the recorder; with MAX_PENDING logs waiting, each further log pushes out the OLDEST
+    waiting one (one warning line naming it; its text stays, only the companion is not made), the
+    newest are built in order, and the writer goes idle with nothing left."""
+    extra = 4
+    paths = []
+    for i in range(logcols.MAX_PENDING + extra):
+        os.makedirs(tmp_path / str(i))
+        p = str(tmp_path / str(i) / "log.csv")
+        with open(p, "w") as f:
+            f.write("t,T1,T2\n0.0,0.3,0.6\n")           # a short test: skipped without a child
+        paths.append(p)
+    w = logcols.CompanionWriter()
+    with caplog.at_level(logging.INFO, logger="hookwatch.logcols"):
+        for p in paths:                                   # the thread is not started yet: all wait
+            w.submit(p)
+        assert len(w.box) == logcols.MAX_PENDING and w.box.dropped == extra
+        dropped = [r.getMessage() for r in caplog.records if r.name == "hookwatch.logcols"]
+        assert dropped == [f"{logcols.companion_path(p)}: companion not written: {logcols.MAX_PENDING} newer "
+                           "logs waiting" for p in paths[:extra]]
+        assert not w.wait_idle(0)
+        caplog.clear()
+        w.start()
+        assert w.wait_idle(60)
+    done = [r.getMessage() for r in caplog.records if r.name == "hookwatch.logcols"]
+    assert done == [f"{logcols.companion_path(p)}: skipped: {os.path.getsize(p)} bytes cannot hold "
+                    f"{logcols.MIN_ROWS} rows" for p in paths[extra:]]
+    assert len(w.box) == 0 and not any(os.path.exists(logcols.companion_path(p)) for p in paths)

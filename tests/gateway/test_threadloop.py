@@ -1,6 +1,7 @@
 """gateway/threadloop.py: the one thread → loop hand-over and the bounded loop → thread stream."""
 import asyncio
 import threading
+import time
 
 import pytest
 
@@ -81,3 +82,31 @@ def test_a_mailbox_drop_policy_drops_the_oldest_droppable_item_and_stays_bounded
         assert len(mb) <= 4
         mb.put_nowait(("reply", i))
     assert mb.drain() == [("reply", i) for i in range(2, 6)] and mb.dropped == 4
+
+
+def test_a_mailbox_names_what_it_drops_and_hands_over_one_at_a_time():
+    """``on_drop`` hears of each dropped item (a worker's log line names it); ``take`` gives the
+    oldest items and leaves the others waiting (a worker handling one at a time keeps the bound on
+    what waits), and clears the wake-up only when it empties the mailbox (no spinning consumer,
+    no lost wake-up)."""
+    gone = []
+    mb = Mailbox(3, on_drop=gone.append)
+    assert [mb.put_nowait(i) for i in range(5)] == [True, True, True, False, False]
+    assert gone == [0, 1] and mb.dropped == 2
+    assert mb.take() == [2] and len(mb) == 2 and mb.wait(0)          # more waits: still awake
+    assert mb.take(5) == [3, 4] and len(mb) == 0 and not mb.wait(0)  # emptied: asleep
+    assert mb.take() == [] and not mb.wait(0)
+    got = []
+
+    def worker():
+        while len(got) < 20:
+            if mb.wait(5):
+                got.extend(mb.take())
+    t = threading.Thread(target=worker)
+    t.start()
+    for i in range(20):
+        while len(mb) >= 3:               # a producer that waits for room: nothing may be dropped
+            time.sleep(0.001)
+        mb.put_nowait(i)
+    t.join(10)
+    assert not t.is_alive() and got == list(range(20)) and gone == [0, 1]
