@@ -4,7 +4,8 @@ from __future__ import annotations
 import json
 
 from gateway.northbound.sparkplug import metrics as M
-from gateway.northbound.sparkplug.node import Disconnect, EdgeNode, Publish, Submit
+from gateway.northbound.sparkplug.actions import Disconnect, Publish, Submit
+from gateway.northbound.sparkplug.node import EdgeNode
 from gateway.northbound.sparkplug.sparkplug_b_pb2 import Payload
 
 
@@ -178,7 +179,7 @@ def test_store_not_writable_holds_rows_in_memory_then_writes_them(tmp_path):
     import sqlite3
 
     from gateway.northbound.outbox import Outbox
-    from gateway.northbound.sparkplug.client import OutboxBuffer
+    from gateway.northbound.sparkplug.node_store import OutboxBuffer
 
     ob = Outbox(str(tmp_path / "s.sqlite"))
     buf = OutboxBuffer(ob, memory_max=5)
