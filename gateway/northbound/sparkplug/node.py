@@ -20,6 +20,8 @@ that each keep one thing:
 - :class:`~.node_commands.CommandReader`: NCMD/DCMD read into node controls and station commands;
 - :class:`~.replay.StoreAndForward`: device data held while no host listens, and its replay.
 
+The parts count in the node's one :attr:`EdgeNode.counters` (the metrics endpoint's figures).
+
 Everything received is parsed within bounds (:mod:`.inbound`); a bad payload is counted
 (``counters["bad_<kind>"]``) and noted for the caller's rate-limited log (:meth:`EdgeNode.take_bad`),
 never raised. STATE timestamps follow the rule of :meth:`.primary_host.PrimaryHost.state`;
@@ -76,12 +78,12 @@ class EdgeNode:
         self.outgoing = Outgoing(self.topics, software)
         self.commands = CommandReader(self.topics, self.limits, self.devices, self.outgoing.node_aliases,
                                       self.bad)
-        self.saf = StoreAndForward(buffer if buffer is not None else MemoryBuffer(), self.devices,
+        self.replay = StoreAndForward(buffer if buffer is not None else MemoryBuffer(), self.devices,
                                    self.outgoing, self.counters, replay_batch)
 
     @property
     def buffer(self) -> Buffer:
-        return self.saf.buffer
+        return self.replay.buffer
 
     @property
     def publishing(self) -> bool:
@@ -90,7 +92,7 @@ class EdgeNode:
 
     @property
     def replaying(self) -> bool:
-        return self.saf.replaying
+        return self.replay.replaying
 
     def take_bad(self) -> list[tuple[str, str]]:
         """The bad inputs noted since the last call (for the caller's rate-limited log)."""
@@ -124,7 +126,7 @@ class EdgeNode:
         self.connected = False
         self.node_born = False
         self.pacing.session_gone()     # the session it asked to end has ended
-        self.saf.replaying = False
+        self.replay.replaying = False
         self.devices.all_unborn()
 
     def host_state(self, payload: bytes, now_ms: int) -> list[Publish | Disconnect]:
@@ -150,9 +152,9 @@ class EdgeNode:
         self.node_born = True
         self.counters["births"] += 1
         self.pacing.born(now_ms)
-        held = self.saf.held()
+        held = self.replay.held()
         out.extend(self.outgoing.dbirth(dev, now_ms) for dev in self.devices if not dev.stopped or held)
-        out.extend(self.saf.start(now_ms))
+        out.extend(self.replay.start(now_ms))
         return out
 
     def rebirth(self, now_ms: int) -> list[Publish]:
@@ -207,7 +209,7 @@ class EdgeNode:
         dev = self.devices.get(device_id)
         if dev is None:
             return []
-        if self.publishing and not self.saf.replaying:
+        if self.publishing and not self.replay.replaying:
             out = [self.outgoing.ddeath(dev, now_ms)] if dev.born else []
             self.devices.remove(device_id)
             return out
@@ -222,19 +224,19 @@ class EdgeNode:
         changed = self.devices.update(dev, values, now_ms)
         if not changed:
             return []
-        if self.publishing and dev.born and not self.saf.replaying:
+        if self.publishing and dev.born and not self.replay.replaying:
             return [self.outgoing.ddata(dev, changed, now_ms)]
-        if self.saf.replaying and self.publishing:
-            self.saf.changed_during_replay(device_id, changed)
-        self.saf.hold(dev, changed, now_ms)
+        if self.replay.replaying and self.publishing:
+            self.replay.changed_during_replay(device_id, changed)
+        self.replay.hold(dev, changed, now_ms)
         return []
 
     def drain(self, now_ms: int) -> tuple[list[Publish], list[int]]:
         """The next batch of stored DDATA (oldest first, seq assigned now) and the buffer keys to
         remove once they are handed to the client (:meth:`.replay.StoreAndForward.drain`)."""
-        if not (self.publishing and self.saf.replaying):
+        if not (self.publishing and self.replay.replaying):
             return [], []
-        return self.saf.drain(now_ms)
+        return self.replay.drain(now_ms)
 
     # ------------------------------------------------------------------ commands
     def command(self, topic: str, payload: bytes, now_ms: int) -> list[Action]:
