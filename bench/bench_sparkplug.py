@@ -17,8 +17,8 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from gateway.northbound.outbox import Outbox  # noqa: E402
-from gateway.northbound.sparkplug.client import OutboxBuffer  # noqa: E402
 from gateway.northbound.sparkplug.node import EdgeNode  # noqa: E402
+from gateway.northbound.sparkplug.node_store import OutboxBuffer  # noqa: E402
 
 VALUES = {"Tension/T1": 0.43, "Tension/T2": 0.57, "Tension/Mean": 0.5, "Friction/mu": 0.256,
           "Quality/Valid Ratio": 0.98, "Control/Speed Command": 120.4, "Control/Speed Actual": 120.1,
@@ -30,9 +30,7 @@ def state(online: bool, ts: int) -> bytes:
 
 
 def one_run(n: int, store: str | None) -> dict[str, float]:
-    node = EdgeNode("g", "e", primary_host_id="h")
-    if store:
-        node.buffer = OutboxBuffer(Outbox(store))
+    node = EdgeNode("g", "e", primary_host_id="h", buffer=OutboxBuffer(Outbox(store)) if store else None)
     node.connecting()
     node.device_up("d", {"Test/State": "monitoring"}, 0)
     node.connected_ok(0)

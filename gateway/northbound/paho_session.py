@@ -1,7 +1,7 @@
 """The one paho session engine under both northbound MQTT clients.
 
 The JSON tree's pump (:class:`.mqtt_pump.MqttPump`) and the Sparkplug edge node
-(:class:`.sparkplug.client.NodeRuntime`) are each one thread owning one paho client. What they
+(:class:`.sparkplug.node_session.NodeSession`, on its node's thread) each own one paho client. What they
 share lives here, once:
 
 - **the server list** (``BrokerSettings.servers``: the nodes of a clustered broker, or Sparkplug's

@@ -13,10 +13,10 @@ from . import metrics as M
 #: "no"; "n/a" (does not apply to this edge node)
 CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
     ("tck-id-topic-structure, -namespace-a", "topic `spBv1.0/group/VERB/node[/device]`", "yes",
-     "node.py `EdgeNode.topic`; e2e checks every topic"),
+     "namespace.py `NodeTopics.topic`; e2e checks every topic"),
     ("tck-id-topic-structure-namespace-valid-group-id / -edge-node-id / -device-id",
      "IDs are UTF-8 without `+ / #`", "yes",
-     "`valid_id` refuses them; the config's `ident` kind is stricter still"),
+     "`namespace.valid_id` refuses them; the config's `ident` kind is stricter still"),
     ("tck-id-topic-structure-namespace-unique-device-id", "device IDs unique in the node", "yes",
      "device ID = station ID, unique in a fleet (loader)"),
     ("tck-id-topic-structure-namespace-unique-edge-node-descriptor",
@@ -24,10 +24,10 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "derived from site/area/line; two gateway processes configured with the same hierarchy would "
      "clash — set `sparkplug.edge_node_id` per process"),
     ("tck-id-principles-persistence-clean-session-311", "Clean Session true (MQTT 3.1.1)", "yes",
-     "client.py"),
+     "node_session.py"),
     ("tck-id-message-flow-edge-node-birth-publish-will-message (-topic, -payload, -qos, -will-retained)",
      "NDEATH as the Will: its topic, Sparkplug payload, QoS 1, not retained", "yes",
-     "client.py sets the Will before CONNECT; e2e: the broker's Will after kill -9 is QoS 1, "
+     "node_session.py sets the Will before CONNECT; e2e: the broker's Will after kill -9 is QoS 1, "
      "not retained"),
     ("tck-id-message-flow-edge-node-birth-publish-will-message-payload-bdSeq, "
      "tck-id-topics-nbirth-bdseq-increment", "bdSeq Int64, +1 per CONNECT, from 0, wraps at 256",
@@ -37,13 +37,13 @@ CONFORMANCE: tuple[tuple[str, str, str, str], ...] = (
      "NBIRTH's bdSeq = the Will's", "yes", "e2e: NBIRTH, the Will after kill -9, the NDEATH of a "
      "clean stop and of STATE offline all carry the session's bdSeq"),
     ("tck-id-topics-ndeath-payload, tck-id-topics-ndeath-seq", "NDEATH: bdSeq only, no seq", "yes",
-     "`EdgeNode.ndeath`"),
+     "`payloads.Outgoing.ndeath`"),
     ("tck-id-operational-behavior-edge-node-intentional-disconnect-ndeath, "
      "tck-id-payloads-ndeath-will-message-publisher-disconnect-mqtt311",
      "NDEATH published before a deliberate DISCONNECT", "yes",
-     "client.py waits for its PUBACK before DISCONNECT; e2e: clean stop gives DDEATH then NDEATH"),
+     "node_session.py waits for its PUBACK before DISCONNECT; e2e: clean stop gives DDEATH then NDEATH"),
     ("tck-id-message-flow-edge-node-ncmd-subscribe, tck-id-message-flow-device-dcmd-subscribe",
-     "subscribe to NCMD and DCMD (QoS 1)", "yes", "`EdgeNode.subscriptions`"),
+     "subscribe to NCMD and DCMD (QoS 1)", "yes", "`NodeTopics.subscriptions`"),
     ("tck-id-message-flow-edge-node-birth-publish-phid-wait (-id, -online, -timestamp), "
      "tck-id-operational-behavior-edge-node-birth-sequence-wait",
      "with a primary host: births only after its STATE online, newer-or-equal timestamp", "yes",

@@ -15,8 +15,9 @@ node's thread. Every payload is checked *before* it can cost anything:
   characters.
 
 A refused payload raises :class:`BadInput` (its kind and a short reason: never the payload itself
-beyond a few characters); the caller counts it and logs it through :class:`gateway.ratelog.RateLog`
-(one line per kind per minute, with the count).
+beyond a few characters); the node counts it and notes it in its :class:`BadInputs`, which the
+caller takes for its log through :class:`gateway.ratelog.RateLog` (one line per kind per minute,
+with the count).
 """
 from __future__ import annotations
 
@@ -35,6 +36,8 @@ MAX_KEY_CHARS = 32
 MAX_NUMBER_CHARS = 32
 #: a timestamp is a uint64 on the wire; JSON numbers beyond int64 are refused
 MAX_TIMESTAMP = (1 << 63) - 1
+#: bad inputs kept for the caller between two takes (the counters count them all)
+BAD_MAX = 64
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,31 @@ class BadInput(ValueError):
         super().__init__(f"{kind}: {reason}")
         self.kind = kind
         self.reason = reason
+
+
+class BadInputs:
+    """The bad inputs of a node: each counted (``bad_<kind>`` and ``ignored_commands`` in the
+    node's counters) and noted (kind, reason) for the caller's rate-limited log, at most
+    :data:`BAD_MAX` between two takes."""
+
+    def __init__(self, counters: dict[str, int]) -> None:
+        self.counters = counters
+        self.notes: list[tuple[str, str]] = []
+
+    def refused(self, e: BadInput) -> None:
+        """A payload (or topic) refused: counted and noted."""
+        self.counters[f"bad_{e.kind}"] = self.counters.get(f"bad_{e.kind}", 0) + 1
+        self.counters["ignored_commands"] += 1
+        self.note(e.kind, e.reason)
+
+    def note(self, kind: str, reason: str) -> None:
+        if len(self.notes) < BAD_MAX:
+            self.notes.append((kind, reason))
+
+    def take(self) -> list[tuple[str, str]]:
+        """The bad inputs noted since the last call."""
+        out, self.notes = self.notes, []
+        return out
 
 
 _Refused = Refused

@@ -20,7 +20,7 @@ from ...slotwindow import SlotWindow
 from ..broker_settings import broker_kwargs
 from . import client as _client
 from . import metrics as M
-from .client import SparkplugSettings
+from .node_settings import SparkplugSettings
 
 log = logging.getLogger("hookwatch.sparkplug")
 

@@ -10,7 +10,7 @@ import math
 import time
 
 from gateway.northbound.mqtt import MqttOutput, MqttSettings
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from gateway.records import Event, EventType, StationState
 from gateway.records import TestState as TState

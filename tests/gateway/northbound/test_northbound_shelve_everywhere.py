@@ -13,7 +13,7 @@ import time
 
 from gateway.northbound import registers as R
 from gateway.northbound.sparkplug import metrics as SM
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from gateway.records import EventType
 from gateway.station.commands import CODE

@@ -11,7 +11,7 @@ import threading
 import time
 from dataclasses import asdict
 
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.records import CommandReply, SlotRecord, StationState
 from gateway.records import TestState as TS
 from gateway.supervisor import ipc

@@ -3,7 +3,7 @@ Mosquitto and the independent primary host (tests/kit/sparkplug_host.py, its own
 a Setpoint sent as a String metric ("0.6") or a Shelve Duration as a Boolean is refused (code 9),
 a long Sample ID is refused and never echoed into DDATA, a Sample ID with a newline gets the
 station's code 4 with the value escaped; a well-typed start is carried out."""
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from gateway.station.hook_log import read_hooks
 from kit.broker import Broker

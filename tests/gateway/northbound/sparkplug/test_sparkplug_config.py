@@ -64,12 +64,12 @@ def test_server_set_and_the_new_limits(tmp_path):
     from gateway.northbound.sparkplug.client import NodeRuntime
     rt = NodeRuntime(s)
     try:
-        assert rt.node.limits.max_payload_bytes == 4096 and rt.node.rebirth_min_interval_ms == 5000
-        assert rt.node.state_future_skew_ms == 60_000 and rt.node.limits.state_max_bytes == 512
+        assert rt.node.limits.max_payload_bytes == 4096 and rt.node.pacing.interval_ms == 5000
+        assert rt.node.host.future_skew_ms == 60_000 and rt.node.limits.state_max_bytes == 512
     finally:
         rt.stop()
-        if rt.outbox is not None:
-            rt.outbox.close()
+        if rt.store.outbox is not None:
+            rt.store.outbox.close()
 
 
 @pytest.mark.parametrize("bad", ["servers: []", "servers: ['a:0']", "servers: ['a:b']", "servers: ['::1']",

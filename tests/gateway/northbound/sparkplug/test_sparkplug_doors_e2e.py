@@ -17,7 +17,8 @@ from __future__ import annotations
 import json
 import time
 
-from gateway.northbound.sparkplug.client import SparkplugSettings, node_figures
+from gateway.northbound.sparkplug.client import node_figures
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station

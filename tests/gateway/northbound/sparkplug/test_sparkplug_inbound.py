@@ -10,8 +10,9 @@ import pytest
 
 from conftest import ROOT
 from gateway.northbound.sparkplug import metrics as M
+from gateway.northbound.sparkplug.actions import Disconnect, Publish
 from gateway.northbound.sparkplug.inbound import InboundLimits, parse_state
-from gateway.northbound.sparkplug.node import Disconnect, EdgeNode, Publish
+from gateway.northbound.sparkplug.node import EdgeNode
 from gateway.northbound.sparkplug.sparkplug_b_pb2 import Payload
 
 NCMD = "spBv1.0/plant-a/NCMD/hall-2-line-3"
@@ -118,10 +119,10 @@ def test_rebirth_flood_gives_one_birth_per_interval_and_one_coalesced():
     # the first request falls inside the interval of the session's own birth (at 3 ms): pending;
     # due at 2003 ms: one birth; the requests after it: pending again, due at 4003 ms
     assert births.count("NBIRTH") == 1, births.count("NBIRTH")
-    assert n.rebirth_pending and n.counters["rebirths_coalesced"] > 2900
+    assert n.pacing.rebirth_pending and n.counters["rebirths_coalesced"] > 2900
     assert n.tick(t + 1) == []
     assert kinds(n.tick(4003)) == ["NBIRTH", "DBIRTH"]
-    assert not n.rebirth_pending and n.tick(10_000) == []
+    assert not n.pacing.rebirth_pending and n.tick(10_000) == []
 
 
 def test_reboot_and_next_server_floods_end_one_session_per_interval():
@@ -141,11 +142,11 @@ def test_reboot_and_next_server_floods_end_one_session_per_interval():
                 deaths += 1
     # inside the interval of the session's own birth: nothing yet, one pending (Next Server wins)
     assert ends == [] and deaths == 0
-    assert n.disconnect_pending == Disconnect(M.NEXT_SERVER, next_server=True)
+    assert n.pacing.disconnect_pending == Disconnect(M.NEXT_SERVER, next_server=True)
     assert n.counters["reboots_coalesced"] == 299
     out = n.tick(2003)
     assert kinds(out) == ["NDEATH"] and out[-1] == Disconnect(M.NEXT_SERVER, next_server=True)
-    assert n.disconnect_pending is None and n.counters["reboots"] == 1
+    assert n.pacing.disconnect_pending is None and n.counters["reboots"] == 1
     # a new session (born at 2100); a Reboot right after its birth waits for the interval
     n.disconnected()
     n.connecting()
@@ -161,7 +162,7 @@ def test_reboot_and_next_server_floods_end_one_session_per_interval():
     n.host_state(state(True, 30), 4300)
     assert n.command(NCMD, ncmd(M.REBOOT), 4400) == []
     n.disconnected()
-    assert n.disconnect_pending is None and n.tick(10_000) == []
+    assert n.pacing.disconnect_pending is None and n.tick(10_000) == []
 
 
 def test_a_state_from_the_future_cannot_lock_the_host_out():

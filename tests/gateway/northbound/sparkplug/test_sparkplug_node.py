@@ -1,10 +1,14 @@
 """The Sparkplug edge node state machine (pure: no broker), decoded with our generated code."""
 from __future__ import annotations
 
+import ast
 import json
+import os
 
+from conftest import ROOT
 from gateway.northbound.sparkplug import metrics as M
-from gateway.northbound.sparkplug.node import Disconnect, EdgeNode, Publish, Submit
+from gateway.northbound.sparkplug.actions import Disconnect, Publish, Submit
+from gateway.northbound.sparkplug.node import EdgeNode
 from gateway.northbound.sparkplug.sparkplug_b_pb2 import Payload
 
 
@@ -178,7 +182,7 @@ def test_store_not_writable_holds_rows_in_memory_then_writes_them(tmp_path):
     import sqlite3
 
     from gateway.northbound.outbox import Outbox
-    from gateway.northbound.sparkplug.client import OutboxBuffer
+    from gateway.northbound.sparkplug.node_store import OutboxBuffer
 
     ob = Outbox(str(tmp_path / "s.sqlite"))
     buf = OutboxBuffer(ob, memory_max=5)
@@ -200,3 +204,50 @@ def test_store_not_writable_holds_rows_in_memory_then_writes_them(tmp_path):
     buf.remove([k for k, _t, _p in got])
     assert len(buf) == 0
     ob.close()
+
+
+
+#: the edge node and its parts: pure (the node's thread, session, stations and store are the others)
+PURE_NODE = ("node", "actions", "namespace", "bdseq", "payloads", "devices", "primary_host", "pacing",
+             "node_commands", "replay", "inbound", "metrics")
+PKG = "gateway.northbound.sparkplug"
+#: what a pure module of the node must not import: I/O, clocks, threads, and the node's runtime side
+IMPURE_TOP = {"time", "datetime", "threading", "asyncio", "socket", "sqlite3", "logging", "os", "paho"}
+IMPURE = {"gateway.northbound.outbox", "gateway.threadloop"} | {
+    f"{PKG}.{m}" for m in ("client", "node_session", "node_stations", "node_store", "output")}
+
+
+def _imports(src: str, package: str = PKG) -> list[str]:
+    """The absolute names of the modules (and names) a module of ``package`` imports."""
+    out = []
+    for n in ast.walk(ast.parse(src)):
+        if isinstance(n, ast.Import):
+            out += [a.name for a in n.names]
+        elif isinstance(n, ast.ImportFrom):
+            base = ".".join(package.split(".")[:len(package.split(".")) - n.level + 1]) if n.level else ""
+            mod = ".".join(x for x in (base, n.module or "") if x)
+            out += [mod] + [f"{mod}.{a.name}" for a in n.names]
+    return out
+
+
+def _impure(src: str) -> list[str]:
+    return [m for m in _imports(src) if m.split(".")[0] in IMPURE_TOP
+            or any(m == x or m.startswith(x + ".") for x in IMPURE)]
+
+
+def test_the_edge_node_and_its_parts_are_pure():
+    """The edge node is a pure state machine (no sockets, no clock, no threads) and so is each part
+    it was split into: none imports I/O, a clock or a thread, nor the node's runtime side."""
+    assert _impure("import time\nfrom . import client\nfrom .node_store import NodeStore\n"
+                   "from ..outbox import Outbox\nfrom ...threadloop import Mailbox\nfrom .devices import Device\n"
+                   "from . import metrics as M\n") == [
+        "time", f"{PKG}.client", f"{PKG}.node_store", f"{PKG}.node_store.NodeStore",
+        "gateway.northbound.outbox", "gateway.northbound.outbox.Outbox", "gateway.threadloop",
+        "gateway.threadloop.Mailbox"]
+    bad = {}
+    for mod in PURE_NODE:
+        with open(os.path.join(ROOT, *PKG.split("."), f"{mod}.py"), encoding="utf-8") as f:
+            found = _impure(f.read())
+        if found:
+            bad[mod] = found
+    assert bad == {}

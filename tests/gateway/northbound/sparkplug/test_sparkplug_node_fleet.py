@@ -5,7 +5,7 @@ bridged by the store (historical replay), Node Control/Reboot restarts the sessi
 bdSeq, a stopping station gets its DDEATH while the node lives on, the last one ends the node."""
 import time
 
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station

@@ -2,7 +2,7 @@
 file) is a state: logged once, retried, no crash, no bdSeq used up."""
 import logging
 
-from gateway.northbound.sparkplug.client import SparkplugSettings
+from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import SparkplugOutput
 from kit.broker import Broker
 from kit.certs import make_certs as _certs
@@ -44,7 +44,7 @@ def test_edge_node_over_mutual_tls_and_a_missing_ca_file(tmp_path, caplog):
             run = RunningStation(lt, st2)
             wait_for(lambda: out.rt is not None and out.rt.counters["tls_errors"] >= 3, 20,
                      what="TLS retries")
-            assert out.rt.node.fresh, "no CONNECT was sent: bdSeq 0 is still unused"
+            assert out.rt.node.bdseq.fresh, "no CONNECT was sent: bdSeq 0 is still unused"
             assert out.rt._thread.is_alive()
             assert sum("TLS set-up failed" in r.getMessage() for r in caplog.records) == 1
         finally:
