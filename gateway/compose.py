@@ -3,12 +3,14 @@
 Nothing else in hookwatch wires parts together: the station knows its ports and outputs only by
 their contracts (``gateway/ports.py``), the drivers know nothing of the station, the northbound
 outputs know the station only as a command sink and a state source. ``hookwatch run`` and
-``hookwatch demo`` call :func:`build_station`; a new output or meter type is added here.
+``hookwatch demo`` call :func:`build_station` and run it in :func:`in_process_runtime`; a new
+output or meter type is added here.
 """
 from __future__ import annotations
 
 import importlib
 import os
+from collections.abc import Callable
 
 from drivers.stm32 import Stm32Link
 from drivers.zns import ZnsMeter
@@ -26,9 +28,11 @@ from .ports import MeterPort, Output, StationLinks, StationView, Stm32Port
 from .records import EventType
 from .retention import Policy, Pruned, RetentionOutput
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
+from .station.fleet import Fleet, StationRunner
 from .station.station import Station
 
-__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "northbound_outputs", "records_dir_ok",
+__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "in_process_runtime", "northbound_outputs",
+           "records_dir_ok",
            "served_by_supervisor", "shared_outputs", "shared_sparkplug_nodes", "station_facts"]
 
 
@@ -91,6 +95,19 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
             console.attach_site(st.id, mq.s.base_topic, mq.pump.add_site_feed)
     st.slot_phase = slot_phase
     return st
+
+
+def in_process_runtime(factories: dict[str, Callable[[], Station]], *, rt_priority: int = 0,
+                       rt_optional: bool = False,
+                       reloader: Callable[[], dict[str, Callable[[], Station]]] | None = None) -> Fleet:
+    """The stations of this process, each on its own thread (``hookwatch run STATION.yaml``, a
+    fleet with ``--in-process``, ``hookwatch demo``): the ``Runtime`` that ``drive()`` runs.
+    ``factories`` builds each station by name (again after a crash); ``rt_priority``: SCHED_FIFO of
+    the slot threads (0: normal scheduling), ``rt_optional``: only where permitted, a refusal said
+    at info level (the demo), not as a warning (``--realtime`` asked for it); ``reloader``: the
+    new factories on SIGHUP."""
+    return Fleet([StationRunner(name, f, rt_priority=rt_priority, rt_optional=rt_optional)
+                  for name, f in factories.items()], reloader=reloader)
 
 
 def process_budget(cfg) -> Budget:

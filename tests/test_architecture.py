@@ -714,6 +714,36 @@ def test_the_composition_root_wires_through_constructors_and_methods():
     assert deep == []
 
 
+#: what only the composition root builds: a station, its runtime, the console
+WIRED_IN_COMPOSE = ("Station", "StationRunner", "Fleet", "ConsoleServer", "ConsoleSettings")
+
+
+def _calls(tree: ast.AST) -> set[str]:
+    """What a module calls, as written (``asyncio.run``, ``loop.add_signal_handler``, ``drive``)."""
+    return {ast.unparse(n.func) for n in ast.walk(tree) if isinstance(n, ast.Call)}
+
+
+def test_the_demo_runs_its_station_through_drive():
+    """Issue 30.4: ``hookwatch demo`` runs its station as ``hookwatch run`` does — built by the
+    composition root, in run's one main loop (``drive``: signals, systemd, the end of the test) —
+    with no event loop, signal handler or end watcher of its own; and no command builds a
+    station, its runtime or the console itself (that is gateway/compose.py's)."""
+    demo = "gateway.commands.demo"
+    calls = _calls(TREES[demo])
+    own = sorted(c for c in calls if c.startswith("asyncio.") or c.endswith("add_signal_handler")
+                 or c in ("signal.signal", "signal.set_wakeup_fd"))
+    assert own == []
+    imported = {a.name for n in ast.walk(TREES[demo]) if isinstance(n, ast.Import) for a in n.names}
+    assert "asyncio" not in imported
+    assert {"drive", "build_station", "in_process_runtime", "build_console"} <= calls
+    built = sorted(f"{m}: {c}" for m in TREES if m.startswith("gateway.commands.")
+                   for c in _calls(TREES[m]) if c.split(".")[-1] in WIRED_IN_COMPOSE)
+    assert built == []
+    # the scan sees what it looks for
+    assert _calls(ast.parse("asyncio.run(main(st.Station(x)))\nloop.add_signal_handler(2, g)\n")) == {
+        "asyncio.run", "main", "st.Station", "loop.add_signal_handler"}
+
+
 #: module file names still shared, each with why (a new shared name fails the test below)
 SHARED_NAMES = {
     "docs.py": "each renders its own package's document (config, method, Sparkplug) from its one definition",

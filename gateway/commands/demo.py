@@ -2,16 +2,18 @@
 
 It starts the virtual station (`hookwatch sim` on the demo scenario: a compressed needle life of a
 few minutes) as its own process, runs the gateway's station runtime against its two
-pseudo-terminals exactly as it would run against a real ZN-S meter and STM32, with the whole
-product around it: the operator console (web pages, a demo login), the PLC register map on a local
-Modbus TCP port and MQTT to a Mosquitto it starts itself when one is installed. It prints the URL
+pseudo-terminals exactly as it would run against a real ZN-S meter and STM32 — the station built
+by the composition root, run by `hookwatch run`'s one main loop (`drive`: signals, systemd, the
+end of the test) — with the whole product around it: the operator console (web pages, a demo
+login), the PLC register map on a local Modbus TCP port and MQTT to a Mosquitto it starts itself
+when one is installed. It prints the URL
 and ready-to-paste `mbpoll` and `mosquitto_sub` lines, and when the test has ended says in plain
 words what happened, re-analyses the recorded log offline to show that both results are identical
 and writes the paper's Fig. 7 of the test.
 """
 from __future__ import annotations
 
-import asyncio
+import dataclasses
 import getpass
 import json
 import logging
@@ -24,20 +26,21 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Any
 
 from ..analysis import analyze_file
 from ..cli import CliError
-from ..compose import build_station
+from ..compose import build_console, build_station, in_process_runtime
 from ..config import ConfigError, load_station
 from ..console import auth
-from ..console.app import ConsoleServer
-from ..console.settings import ConsoleSettings
 from ..northbound import mqtt_schema
-from ..osprio import deployed_nice, die_with_parent, freeze_heap, realtime_thread
-from ..ports import Output
-from ..records import EventType
+from ..osprio import deployed_nice, die_with_parent
+from ..records import Event, EventType, SlotRecord, StationState
 from ..report.pipeline import build_report
+from ..station.build import method_values
+from ..station.station import Station
 from ..station.terminal import TerminalOutput
+from .run import AfterDone, DriveOptions, Hangup, drive
 
 HELP = "run hookwatch on its built-in default: a simulated loom station through a compressed needle life"
 DESCRIPTION = HELP + (". Starts `hookwatch sim` on the demo scenario, runs the station against its "
@@ -68,27 +71,32 @@ def add_arguments(ap):
     ap.add_argument("--no-northbound", action="store_true", help="without the PLC map and MQTT")
 
 
-class _EndWatcher:
-    """An output that stops the station once its test has ended (or its start failed, §3a)."""
+class _LifeWatcher:
+    """The demo's own output: what its closing words tell of the life — the slot the end of life
+    was detected in, and the test's result as the station announced it (``test_ended``)."""
 
-    def __init__(self, stop: asyncio.Event):
-        self.stop_ev = stop
+    def __init__(self) -> None:
+        self.k_detect: int | None = None
+        self.result: dict[str, Any] | None = None
 
-    async def start(self):
+    async def start(self) -> None:
         pass
 
-    async def stop(self):
+    async def stop(self) -> None:
         pass
 
-    def on_record(self, rec):
+    def on_record(self, rec: SlotRecord) -> None:
         pass
 
-    def on_state(self, st):
+    def on_state(self, st: StationState) -> None:
         pass
 
-    def on_event(self, ev):
-        if (ev.type == EventType.TEST_ENDED and ev.test_id) or ev.type == EventType.START_FAILED:
-            self.stop_ev.set()
+    def on_event(self, ev: Event) -> None:
+        if ev.type == EventType.END_OF_LIFE and ev.k is not None:
+            self.k_detect = ev.k
+        elif ev.type == EventType.TEST_ENDED and ev.k is not None:   # (not a cut-off test closed at start)
+            self.result = {"test_id": ev.test_id, "test_status": ev.data.get("test_status"),
+                           "end_reason": ev.data.get("reason"), "method": ev.data.get("result") or {}}
 
 
 def _start_sim(args, work: str) -> tuple[subprocess.Popen, dict[str, str]]:
@@ -176,24 +184,24 @@ def _stop_proc(p: subprocess.Popen | None) -> None:
 
 
 def _demo_console(cfg, work: str, port: int):
-    """The console with one demo user (a fresh random password, printed)."""
+    """The station's console (``console:`` enabled on 127.0.0.1:``port``) with one demo user (a
+    fresh random password, printed); the configuration it is in, and the console (None: it did
+    not start)."""
     users = os.path.join(work, "console-users.json")
     password = secrets.token_urlsafe(9)
     auth.add_user(users, "demo", password)
-    console = ConsoleServer(ConsoleSettings(listen=(f"127.0.0.1:{port}",), users_file=users),
-                            {cfg.station.id: os.path.join(cfg.recorder.dir, cfg.station.id)},
-                            mqtt_enabled={cfg.station.id: bool(cfg.mqtt.enabled)})
-    urls = console.start()
-    if not urls:
-        return None, None
+    cfg = dataclasses.replace(cfg, console=dataclasses.replace(
+        cfg.console, enabled=True, listen=(f"127.0.0.1:{port}",), users_file=users))
+    console = build_console([cfg])
+    urls = console.start() if console is not None else []
+    if console is None or not urls:
+        return cfg, None
     url = f"{urls[0].rstrip('/')}/#/station/{cfg.station.id}"
     print(f"console : {url}  (μ(t) live; reading is open; to acknowledge log in as demo / {password})", flush=True)
-    return console, url
+    return cfg, console
 
 
 def run(args) -> int:
-    import dataclasses
-
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     # as in `hookwatch run`: the slot loop must not wait 5 ms for the GIL behind the console,
     # the PLC server or paho
@@ -212,6 +220,8 @@ def run(args) -> int:
     sim, links = _start_sim(args, work)
     broker = None
     console = None
+    watcher = _LifeWatcher()
+    verdict: list[int] = []
     try:
         cfg = dataclasses.replace(
             cfg,
@@ -233,7 +243,7 @@ def run(args) -> int:
               f"test {cfg.test.sample_id} grade {cfg.test.grade}, T_set {cfg.test.t_set_n} N, "
               f"planned {cfg.test.t_end_s:g} s", flush=True)
         if not args.no_console:
-            console, _url = _demo_console(cfg, work, _port(args.console_port))
+            cfg, console = _demo_console(cfg, work, _port(args.console_port))
         if cfg.modbus_tcp.enabled:
             p = cfg.modbus_tcp.port
             print(f"PLC map : Modbus TCP on 127.0.0.1:{p} (docs/registers.md); test state, status, alarm:\n"
@@ -248,50 +258,29 @@ def run(args) -> int:
         elif not args.no_northbound:
             print("MES     : no MQTT (Mosquitto is not installed: apt-get install mosquitto)", flush=True)
 
-        ended: dict[str, int] = {}
-        verdict: list[int] = []
+        # the station runs as `hookwatch run` runs it: on its thread (SCHED_FIFO 20 where
+        # permitted, as deployed), in the one main loop (signals, systemd, the end of the test);
+        # the demo's own outputs: the terminal's lines and what its closing words tell
+        hold = console is not None or broker is not None
 
-        async def main():
-            # as deployed (`hookwatch run --realtime 20`): the slot loop (this thread) under
-            # SCHED_FIFO where permitted, so a busy box does not stall the demo's life; threads it
-            # starts later (MQTT, the executor) begin under normal scheduling. Elsewhere: as is
-            realtime_thread(20)
-            stop = asyncio.Event()          # Ctrl-C, SIGTERM, a closed terminal: the demo ends
-            life_over = asyncio.Event()     # the test ended (or its start failed)
-            outs: list[Output] = [TerminalOutput(every_s=args.every), _EndWatcher(life_over),
-                                  _EolWatcher(ended)]
-            st = build_station(cfg, outputs=outs, with_northbound=not args.no_northbound)
-            if console is not None:
-                st.outputs.append(console.output_for(st))
-            freeze_heap()               # as `hookwatch run`: no full GC pass walks it again
-            loop = asyncio.get_running_loop()
-            for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):     # SIGHUP: the terminal closed
-                loop.add_signal_handler(s, stop.set)
-            task = asyncio.create_task(st.run(stop))
-            either = [asyncio.create_task(stop.wait()), asyncio.create_task(life_over.wait())]
-            _done, pending = await asyncio.wait(either, timeout=args.timeout,
-                                                return_when=asyncio.FIRST_COMPLETED)
-            for t in pending:
-                t.cancel()
-            if not stop.is_set() and not life_over.is_set():
-                print("hookwatch demo: timed out", file=sys.stderr)
-            elif not stop.is_set():
-                # the result is kept right after its event: wait for it (a bound, not a goal)
-                for _ in range(200):
-                    if st.results or stop.is_set():
-                        break
-                    await asyncio.sleep(0.05)
-                # the closing words beside the idle station (the analysis and the figure run
-                # on a worker thread: the station's loop, the console and the PLC map answer on)
-                verdict.append(await asyncio.to_thread(_closing, st, cfg, links, work, ended))
-                if console is not None or broker is not None:
-                    print(AFTER_LIFE, flush=True)
-                    await stop.wait()
-            stop.set()
-            await task
-            return st
+        def station() -> Station:
+            return build_station(cfg, outputs=[TerminalOutput(every_s=args.every), watcher],
+                                 with_northbound=not args.no_northbound, console=console)
 
-        st = asyncio.run(main())
+        def when_done() -> AfterDone:
+            # the closing words beside the idle station (it, the console and the PLC map answer on)
+            verdict.append(_closing(watcher, cfg, links, work))
+            if not hold:
+                return AfterDone.END
+            print(AFTER_LIFE, flush=True)
+            return AfterDone.HOLD
+
+        runtime = in_process_runtime({cfg.station.id: station}, rt_priority=20, rt_optional=True)
+        t0 = time.monotonic()
+        drive(runtime, DriveOptions(duration_s=args.timeout, exit_when_done=True, print_report=False,
+                                    when_done=when_done, hangup=Hangup.STOP))
+        if not verdict and time.monotonic() - t0 >= args.timeout:
+            print("hookwatch demo: timed out", file=sys.stderr)
     finally:
         _stop_proc(sim)
         if console is not None:
@@ -299,7 +288,8 @@ def run(args) -> int:
         _stop_proc(broker)
     if verdict:
         return verdict[0]
-    return _closing(st, cfg, links, work, ended)
+    # ended early (Ctrl-C, SIGTERM, a closed terminal, the timeout): the words on what there was
+    return _closing(watcher, cfg, links, work)
 
 
 #: said once the life is over and the console and broker stay up (a CI script waits for this
@@ -307,14 +297,16 @@ def run(args) -> int:
 AFTER_LIFE = "hookwatch demo: the life is over; the console and the broker stay up until Ctrl-C"
 
 
-def _closing(st, cfg, links: dict[str, str], work: str, ended: dict[str, int]) -> int:
+def _closing(watcher: _LifeWatcher, cfg, links: dict[str, str], work: str) -> int:
     """The closing words (what happened, online against offline, the files) and the demo's
     verdict: 0 when the life ended in a detected end of life and online == offline."""
-    if not st.results:
+    res = watcher.result
+    if res is None:
         print(f"hookwatch demo: no test was completed (files under {work})", file=sys.stderr)
         return 1
-    res = st.results[-1]
     m = res["method"]
+    mv = method_values(cfg)
+    ended = {} if watcher.k_detect is None else {"k_detect": watcher.k_detect}
     test_dir = os.path.join(cfg.recorder.dir, cfg.station.id, res["test_id"])
     log_path = os.path.join(test_dir, "log.csv.gz")
     off = analyze_file(log_path).as_dict()
@@ -327,8 +319,9 @@ def _closing(st, cfg, links: dict[str, str], work: str, ended: dict[str, int]) -
         pass
     completed = res["test_status"] == "completed"
     print()
-    print(f"test {res['test_id']}: " + _plain_words(m, ended, onset, float(st.method_values.get("tau", 60.0)),
-                                                     st.ts, same, completed, res.get("end_reason")))
+    print(f"test {res['test_id']}: " + _plain_words(m, ended, onset, float(mv.get("tau", 60.0)),
+                                                     float(mv.get("ts", 0.02)), same, completed,
+                                                     res.get("end_reason")))
     why = _lead_words(m)
     if why:
         print(f"  warning: {why}")
@@ -366,17 +359,6 @@ def _lead_words(m: dict) -> str:
 
 def _num(v: float | None, digits: int) -> str:
     return "–" if v is None else f"{v:.{digits}f}"
-
-
-class _EolWatcher(_EndWatcher):
-    """Remembers when the end of life was detected (slot of the event)."""
-
-    def __init__(self, ended: dict[str, int]):
-        self.ended = ended
-
-    def on_event(self, ev):
-        if ev.type == EventType.END_OF_LIFE and ev.k is not None:
-            self.ended["k_detect"] = ev.k
 
 
 def _plain_words(m: dict, ended: dict, onset: float | None, tau: float, ts: float, same: bool,

@@ -8,16 +8,26 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+from types import FrameType
 from typing import Any
 
 from .. import safeout, sdnotify
 from ..cli import CliError
-from ..compose import build_console, build_station, records_dir_ok, served_by_supervisor, shared_sparkplug_nodes
+from ..compose import (
+    build_console,
+    build_station,
+    in_process_runtime,
+    records_dir_ok,
+    served_by_supervisor,
+    shared_sparkplug_nodes,
+)
 from ..config import ConfigError, load_fleet, load_station
 from ..northbound.wiring import mqtt_settings
 from ..osprio import DEPLOYED_NICE, MAX_PRIORITY, deployed_nice
 from ..ports import Runtime
-from ..station.fleet import Fleet, StationRunner
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
 from ..supervisor.remote import RemoteFleet
 from ..supervisor.supervisor import Supervisor
@@ -123,7 +133,7 @@ def run(args) -> int:
         return 1
     runtime, console = made
     try:
-        return drive(runtime, args)
+        return drive(runtime, DriveOptions.from_args(args))
     finally:
         if console is not None:
             console.stop()
@@ -152,9 +162,7 @@ def _in_process(args) -> tuple[Runtime, Any] | None:
         except CliError as e:
             raise ValueError(str(e)) from None
 
-    runners = [StationRunner(name, f, rt_priority=args.realtime or 0)
-               for name, f in factories(cfgs).items()]
-    return Fleet(runners, reloader=reloader), console
+    return in_process_runtime(factories(cfgs), rt_priority=args.realtime or 0, reloader=reloader), console
 
 
 def _factory(cfg, args, phase: float, console=None):
@@ -210,15 +218,74 @@ def _supervised(args) -> tuple[Runtime, Any] | None:
     return sup, console
 
 
-def drive(runtime: Runtime, args) -> int:
-    """The one main loop of ``hookwatch run`` (as gunicorn's arbiter): signals, systemd's
-    READY/STATUS/WATCHDOG, SIGHUP reloads, --duration and --exit-when-done, then the report."""
+class Hangup(Enum):
+    """What SIGHUP means to :func:`drive`."""
+    #: a daemon's: load the configuration again (``hookwatch run``)
+    RELOAD = "reload"
+    #: an interactive command's: its terminal closed, it ends as on SIGTERM (``hookwatch demo``)
+    STOP = "stop"
+
+
+class AfterDone(Enum):
+    """What :func:`drive` does once every started test has ended (``DriveOptions.when_done``)."""
+    #: the loop ends (with ``exit_when_done``)
+    END = "end"
+    #: the stations run on until a signal (or the duration): the demo's console after the life
+    HOLD = "hold"
+
+
+@dataclass(frozen=True)
+class DriveOptions:
+    """What ends :func:`drive`'s loop and what it writes at the end: ``hookwatch run``'s options
+    (:meth:`from_args`), or what ``hookwatch demo`` composes."""
+    #: the loop ends after this many seconds (``--duration``)
+    duration_s: float | None = None
+    #: the loop ends once every started test has ended (``--exit-when-done``)
+    exit_when_done: bool = False
+    #: the report as JSON here at the end (``--stats-json``)
+    stats_json: str | None = None
+    #: each station's failed starts and results as lines on stdout at the end
+    print_report: bool = True
+    #: called once, on the main thread, when every started test has ended (the stations run on
+    #: meanwhile, on their threads); ``AfterDone.HOLD`` keeps the loop running although
+    #: ``exit_when_done`` (the demo's closing words, then its console until Ctrl-C)
+    when_done: Callable[[], AfterDone] | None = None
+    #: what SIGHUP means
+    hangup: Hangup = Hangup.RELOAD
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> DriveOptions:
+        """``hookwatch run``'s command line."""
+        return cls(duration_s=args.duration, exit_when_done=bool(args.exit_when_done),
+                   stats_json=args.stats_json)
+
+
+def drive(runtime: Runtime, opts: DriveOptions) -> int:
+    """The one main loop of ``hookwatch run`` and ``hookwatch demo`` (as gunicorn's arbiter):
+    signals, systemd's READY/STATUS/WATCHDOG, SIGHUP, --duration and --exit-when-done, then the
+    report. The signal handlers it sets are put back when the loop has ended."""
     log = logging.getLogger("hookwatch.run")
     stop = threading.Event()
     reload_req = threading.Event()
-    signal.signal(signal.SIGTERM, lambda s, f: stop.set())
-    signal.signal(signal.SIGINT, lambda s, f: stop.set())
-    signal.signal(signal.SIGHUP, lambda s, f: reload_req.set())
+    hup = reload_req if opts.hangup is Hangup.RELOAD else stop
+    handlers = {signal.SIGTERM: stop, signal.SIGINT: stop, signal.SIGHUP: hup}
+    before = {s: signal.signal(s, _setter(ev)) for s, ev in handlers.items()}
+    try:
+        return _loop(runtime, opts, stop, reload_req, log)
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
+def _setter(ev: threading.Event) -> Callable[[int, FrameType | None], None]:
+    """A signal handler that sets ``ev``."""
+    def handler(_signum: int, _frame: FrameType | None) -> None:
+        ev.set()
+    return handler
+
+
+def _loop(runtime: Runtime, opts: DriveOptions, stop: threading.Event, reload_req: threading.Event,
+          log: logging.Logger) -> int:
     runtime.start()
     if not runtime.alive():
         log.error("no station can run: every station file was refused")
@@ -227,6 +294,7 @@ def drive(runtime: Runtime, args) -> int:
     t0 = time.monotonic()
     ready = False
     last_wd = 0.0
+    watch_done = opts.exit_when_done or opts.when_done is not None
     try:
         while not stop.is_set() and runtime.alive():
             now = time.monotonic()
@@ -242,19 +310,23 @@ def drive(runtime: Runtime, args) -> int:
             if reload_req.is_set():
                 reload_req.clear()
                 runtime.reload()
-            if args.duration is not None and now - t0 >= args.duration:
+            if opts.duration_s is not None and now - t0 >= opts.duration_s:
                 break
-            if args.exit_when_done and runtime.tests_done():
-                break
+            if watch_done and runtime.tests_done():
+                watch_done = False          # once
+                after = opts.when_done() if opts.when_done is not None else AfterDone.END
+                if opts.exit_when_done and after is AfterDone.END:
+                    break
             stop.wait(0.2)
     finally:
         sdnotify.stopping()
         runtime.stop()
     report = runtime.report()
-    if args.stats_json:
-        with open(args.stats_json, "w") as fh:
+    if opts.stats_json:
+        with open(opts.stats_json, "w") as fh:
             safeout.dump(report, fh, indent=1)
-    _print_report(report)
+    if opts.print_report:
+        _print_report(report)
     return 0
 
 

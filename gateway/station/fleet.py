@@ -30,10 +30,13 @@ class StationRunner:
     def __init__(self, name: str, factory: Callable[[], Station], restart_backoff_s: float = 1.0,
                  max_slots: int | None = None, on_started: Callable[[Station], None] | None = None,
                  restart_backoff_max_s: float = 60.0, stable_after_s: float = 60.0,
-                 rt_priority: int = 0):
+                 rt_priority: int = 0, rt_optional: bool = False):
         self.name = name
         #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/osprio.py)
         self.rt_priority = rt_priority
+        #: SCHED_FIFO only where permitted, a refusal logged at info level (``hookwatch demo``);
+        #: False: a refusal is a warning (``hookwatch run --realtime`` asked for it)
+        self.rt_optional = rt_optional
         self.factory = factory
         #: the first restart comes after ``restart_backoff_s``; each further crash in a row
         #: doubles it, up to ``restart_backoff_max_s``; an instance that ran ``stable_after_s``
@@ -77,8 +80,9 @@ class StationRunner:
             if why is None:
                 log.info("%s: slot loop runs at SCHED_FIFO priority %d", self.name, self.rt_priority)
             else:
-                log.warning("%s: slot loop at normal priority: SCHED_FIFO %d %s", self.name,
-                            self.rt_priority, why)
+                log.log(logging.INFO if self.rt_optional else logging.WARNING,
+                        "%s: slot loop at normal priority: SCHED_FIFO %d %s", self.name,
+                        self.rt_priority, why)
         if self._stopping.is_set():
             return
         reloaded = False

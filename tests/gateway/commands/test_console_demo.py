@@ -7,6 +7,7 @@ import os
 import re
 import shlex
 import signal
+import socket
 import subprocess
 import time
 import urllib.request
@@ -122,22 +123,38 @@ def test_demo_shows_console_plc_and_mqtt(tmp_path):
 
 
 def test_an_interrupted_demo_exits_non_zero(tmp_path):
-    """A demo that did not complete says so and exits non-zero (Ctrl-C in the middle of the life)."""
+    """A demo that did not complete says so and exits non-zero (Ctrl-C in the middle of the life).
+    Its station runs in `hookwatch run`'s one main loop (drive): it speaks systemd's notify
+    protocol as the gateway does (READY once the station runs, STATUS, STOPPING at the end)."""
     st = station_yaml(tmp_path, {"meter": "/dev/ttyDEMO0", "stm32": "/dev/ttyDEMO1"}, name="demo",
                       method=QUICK_METHOD, test={"sample_id": "DEMO-I", "t_end_s": QUICK_END})
     sc = quick_scenario(tmp_path, "quick.yaml")
+    sock = str(tmp_path / "notify.sock")
+    rx = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    rx.bind(sock)
+    got: list[str] = []
     demo = Proc(hookwatch_cmd() + ["demo", "--scenario", sc, "--station", st, "--dir", str(tmp_path / "w"),
                                    "--t-end", str(QUICK_END), "--every", "1", "--no-console", "--no-northbound"],
-                str(tmp_path / "demo.log"))
+                str(tmp_path / "demo.log"), env={**os.environ, "NOTIFY_SOCKET": sock})
     try:
         demo.readline_until("[demo] EVENT test_started", timeout=120)
         demo.readline_until("[demo] t=", timeout=120)
         demo.p.send_signal(signal.SIGINT)
         rc = demo.p.wait(60)
+        rx.setblocking(False)
+        while True:
+            try:
+                got.append(rx.recv(4096).decode())
+            except BlockingIOError:
+                break
     finally:
         demo.stop()
+        rx.close()
     assert rc != 0, demo.log()
     assert "did not complete" in demo.log()
+    ready = [m for m in got if m.startswith("READY=1")]
+    assert len(ready) == 1 and f"MAINPID={demo.p.pid}" in ready[0], got
+    assert "STATUS=running 1 station(s)" in got and got[-1] == "STOPPING=1", got
 
 
 def _children(pid: int) -> set[int]:

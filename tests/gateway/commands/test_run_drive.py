@@ -1,16 +1,18 @@
 """`hookwatch run`'s one main loop (gateway/commands/run.py: drive) over the Runtime contract
-(gateway/ports.py): the same loop drives the stations of one process and a fleet's supervisor.
-Here it drives a runtime that records what it is asked, so the loop's own rules are seen alone:
-start once, tick, READY once, watchdog only while healthy, SIGHUP → reload, --exit-when-done,
-stop once, the report written and printed."""
-import argparse
+(gateway/ports.py): the same loop drives the stations of one process, a fleet's supervisor and
+`hookwatch demo`. Here it drives a runtime that records what it is asked, so the loop's own rules
+are seen alone: start once, tick, READY once, watchdog only while healthy, SIGHUP → reload (or
+stop, for the demo), --exit-when-done, the demo's hold after the tests, stop once, the report
+written and printed, the signal handlers put back."""
 import json
 import os
 import signal
 import threading
 
-from gateway.commands.run import drive
+from gateway.commands.run import AfterDone, DriveOptions, Hangup, drive
 from gateway.ports import Runtime
+
+SIGNALS = (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)
 
 
 class Recorder:
@@ -59,8 +61,18 @@ class Recorder:
 
 
 def args(tmp_path, **kw):
-    base = {"duration": None, "exit_when_done": True, "stats_json": str(tmp_path / "stats.json")}
-    return argparse.Namespace(**{**base, **kw})
+    base = {"duration_s": None, "exit_when_done": True, "stats_json": str(tmp_path / "stats.json")}
+    return DriveOptions(**{**base, **kw})
+
+
+def _later(*steps):
+    """Send this process each (delay, signal) in turn, from a timer thread."""
+    def send(i=0):
+        if i < len(steps):
+            os.kill(os.getpid(), steps[i][1])
+            if i + 1 < len(steps):
+                threading.Timer(steps[i + 1][0], send, (i + 1,)).start()
+    threading.Timer(steps[0][0], send).start()
 
 
 def test_the_loop_runs_a_runtime_to_its_end_and_reports(tmp_path, capsys, monkeypatch):
@@ -79,18 +91,59 @@ def test_the_loop_runs_a_runtime_to_its_end_and_reports(tmp_path, capsys, monkey
 def test_sighup_reloads_and_sigterm_stops(tmp_path, monkeypatch):
     rt = Recorder(done_after=10**9)
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
-    old = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)}
-
-    def later():
-        os.kill(os.getpid(), signal.SIGHUP)
-        threading.Timer(0.6, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()
-    threading.Timer(0.5, later).start()
+    old = {s: signal.getsignal(s) for s in SIGNALS}
+    _later((0.5, signal.SIGHUP), (0.6, signal.SIGTERM))
     try:
         assert drive(rt, args(tmp_path, exit_when_done=False, stats_json=None)) == 0
     finally:
         for s, h in old.items():
             signal.signal(s, h)
     assert rt.calls.count("reload") == 1 and rt.calls[-1] == "stop"
+
+
+def test_the_loop_puts_the_signal_handlers_back(tmp_path, monkeypatch):
+    """After the loop a second Ctrl-C is the caller's again (the demo's closing words after an
+    interrupted life can be interrupted)."""
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    old = {s: signal.getsignal(s) for s in SIGNALS}
+    assert drive(Recorder(done_after=2), args(tmp_path, stats_json=None)) == 0
+    assert {s: signal.getsignal(s) for s in SIGNALS} == old
+
+
+def test_a_hangup_that_means_stop_stops_without_a_reload(tmp_path, monkeypatch):
+    """The demo's SIGHUP (its terminal closed) ends the loop as SIGTERM does; nothing reloads."""
+    rt = Recorder(done_after=10**9)
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    _later((0.5, signal.SIGHUP))
+    assert drive(rt, args(tmp_path, exit_when_done=False, stats_json=None, hangup=Hangup.STOP)) == 0
+    assert "reload" not in rt.calls and rt.calls[-1] == "stop" and rt.calls.count("stop") == 1
+
+
+def test_when_done_is_called_once_and_may_hold_the_runtime_until_a_signal(tmp_path, capsys, monkeypatch):
+    """The demo's end of the life: its words once the tests are done, the stations (and the
+    console) running on until Ctrl-C, then the usual stop; its report is not printed."""
+    rt = Recorder(done_after=3)
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    seen = []
+
+    def when_done():
+        seen.append((rt.ticks, list(rt.calls)))
+        threading.Timer(0.7, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+        return AfterDone.HOLD
+
+    assert drive(rt, args(tmp_path, stats_json=None, when_done=when_done, print_report=False)) == 0
+    assert len(seen) == 1 and seen[0][0] == 3 and "stop" not in seen[0][1]   # while it still ran
+    assert rt.ticks > 3 and rt.calls[-1] == "stop" and rt.calls.count("stop") == 1
+    assert capsys.readouterr().out == ""
+
+
+def test_when_done_that_ends_ends_as_exit_when_done(tmp_path, monkeypatch):
+    rt = Recorder(done_after=3)
+    monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
+    calls = []
+    assert drive(rt, args(tmp_path, stats_json=None,
+                          when_done=lambda: calls.append(1) or AfterDone.END)) == 0
+    assert calls == [1] and rt.ticks == 3 and rt.calls[-1] == "stop"
 
 
 def test_a_runtime_with_nothing_to_run_is_an_error(tmp_path):
