@@ -31,9 +31,9 @@ from .station.build import control_params, default_plan, method_values, records_
 from .station.fleet import Fleet, StationRunner
 from .station.station import Station
 
-__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "in_process_runtime", "northbound_outputs",
-           "records_dir_ok",
-           "served_by_supervisor", "shared_outputs", "shared_sparkplug_nodes", "station_facts"]
+__all__ = ["build_console", "build_meter", "build_stm32", "build_station", "in_process_runtime",
+           "northbound_outputs", "records_dir_ok", "served_by_supervisor", "shared_outputs",
+           "shared_sparkplug_nodes", "station_facts"]
 
 
 def build_meter(cfg) -> MeterPort:
