@@ -29,6 +29,9 @@ def hookwatch_cmd() -> list[str]:
 
 # ------------------------------------------------------------------------------------ fixtures
 
+#: the worker's shared RabbitMQ cluster (``rabbitmq_cluster``)
+pytest_plugins = ("kit.rabbitmq_pool",)
+
 
 @pytest.fixture(autouse=True)
 def _no_process_outlives_its_test():
@@ -213,6 +216,15 @@ CPU: dict[str, tuple[str, ...]] = {
 }
 #: module-scoped fixtures outside the CPU group: the module's own worker
 MODULE_GROUPS = ("tests/gateway/northbound/test_northbound_modbus_tcp.py",)
+#: tests of several modules that share one worker's costly fixture: group → module → test functions
+SHARED_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
+    # one 3-node RabbitMQ cluster per worker (~1 min to start: tests/kit/rabbitmq_pool.py)
+    "rabbitmq": {
+        "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py": ("*",),
+        "tests/gateway/northbound/test_site_lives_e2e.py": (
+            "test_box_b_joining_through_another_rabbitmq_node_gets_the_site_prior_of_box_a",),
+    },
+}
 #: fleets of virtual stations (several `hookwatch sim` + a gateway carrying 3–4 stations at 50 Hz):
 #: one after another on one worker — two at once are 8 stations and 8 simulators on two cores,
 #: where the stations' slots go MISSING by the second (their protection stops end the lives)
@@ -245,6 +257,8 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(CPU_GROUP))
         elif path in MODULE_GROUPS:
             item.add_marker(pytest.mark.xdist_group(path))
+        elif shared := [g for g, table in SHARED_GROUPS.items() if _listed(table, path, name)]:
+            item.add_marker(pytest.mark.xdist_group(shared[0]))
         elif path in FLEETS:
             item.add_marker(pytest.mark.xdist_group(FLEET_GROUP))
     # the modules with long tests first, so that the workers end together on short ones rather

@@ -19,8 +19,9 @@ def _tests_of(path: str) -> set[str]:
 
 def schedule_problems() -> list[str]:
     bad = []
-    for table in ("SLOW", "CPU"):
-        for path, names in getattr(C, table).items():
+    tables = {"SLOW": C.SLOW, "CPU": C.CPU, **{f"SHARED_GROUPS[{g!r}]": t for g, t in C.SHARED_GROUPS.items()}}
+    for table, entries in tables.items():
+        for path, names in entries.items():
             if not os.path.isfile(os.path.join(ROOT, path)):
                 bad.append(f"{table}: {path}: no such module")
                 continue
@@ -30,6 +31,22 @@ def schedule_problems() -> list[str]:
         if not os.path.isfile(os.path.join(ROOT, path)):
             bad.append(f"{path}: no such module")
     return bad
+
+
+def users_of(fixture: str) -> set[str]:
+    """``path::test`` of every test function that takes ``fixture`` (from the syntax trees)."""
+    found = set()
+    for d, _, files in os.walk(os.path.join(ROOT, "tests")):
+        for f in files:
+            if f.startswith("test_") and f.endswith(".py"):
+                path = os.path.join(d, f)
+                with open(path, encoding="utf-8") as fh:
+                    tree = ast.parse(fh.read())
+                rel = os.path.relpath(path, ROOT)
+                found |= {f"{rel}::{n.name}" for n in ast.walk(tree)
+                          if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) and n.name.startswith("test")
+                          and fixture in [a.arg for a in n.args.args]}
+    return found
 
 
 def slow_marks(src: str) -> list[int]:
@@ -65,3 +82,14 @@ def test_the_checks_see_a_stale_entry_and_a_mark(tmp_path, monkeypatch):
     assert "SLOW: tests/nowhere.py: no such module" in found
     assert slow_marks("import pytest\npytestmark = pytest.mark.slow\n") == [2]
     assert slow_marks('"""pytest.mark.slow in words"""\n@pytest.mark.slow\ndef test_x():\n    pass\n') == [2]
+
+
+def test_the_tests_on_the_shared_rabbitmq_cluster_are_its_group():
+    """Every test that takes the worker's RabbitMQ cluster is in its xdist group (else it starts a
+    second cluster on another worker), and every test of the group takes it."""
+    table = C.SHARED_GROUPS["rabbitmq"]
+    grouped = {f"{path}::{n}" for path, names in table.items() for n in names if n != "*"}
+    grouped |= {f"{path}::{n}" for path, names in table.items() if "*" in names for n in _tests_of(path)}
+    users = users_of("rabbitmq_cluster")
+    assert len(users) >= 3
+    assert users == grouped

@@ -7,6 +7,7 @@ upgrade in place keeps the configuration and the records; uninstalling removes t
 from __future__ import annotations
 
 import base64
+import fcntl
 import glob
 import hashlib
 import json
@@ -61,16 +62,37 @@ def _extract(tarball: str, dest: str) -> None:
             t.extractall(top, members)
 
 
-@pytest.fixture(scope="module")
+def _built_once(tmp_path_factory) -> str:
+    """The tarball, built once per run: the run's xdist workers share one build (the first to take
+    the lock builds it, the others wait for it and take it), in the run's own temporary folder — a
+    new one every run, so nothing is carried over from an earlier run. Each test once rebuilt it on
+    its own worker (45–67 s each, four times a run)."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent          # pytest-N/ of this run, above its workers' popen-gwK/
+    dist = base / "release-dist"
+    with open(base / "release-dist.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)            # released when the file is closed
+        built = dist / "BUILT"
+        if not built.is_file():
+            shutil.rmtree(dist, ignore_errors=True)      # a failed build's leftovers
+            dist.mkdir()
+            r = _sh([os.path.join(ROOT, "scripts", "build-release"), str(dist)])
+            (tarball,) = glob.glob(str(dist / "hookwatch-*.tar.gz"))
+            assert r.stdout.strip() == tarball
+            built.write_text(tarball)
+        return built.read_text()
+
+
+@pytest.fixture(scope="session")
 def release(tmp_path_factory):
+    """The release, unpacked once per worker. A test that changes it works on its own copy
+    (`_variant`, or a full copy), never on this folder."""
     if os.geteuid() != 0:
         pytest.skip("unshare -n needs root (CI runs as root)")
     require_tool("ip")
-    out = tmp_path_factory.mktemp("dist")
-    r = _sh([os.path.join(ROOT, "scripts", "build-release"), str(out)])
-    (tarball,) = glob.glob(str(out / "hookwatch-*.tar.gz"))
+    tarball = _built_once(tmp_path_factory)
     _BUILT["tarball_bytes"] = os.path.getsize(tarball)
-    assert r.stdout.strip() == tarball
     unpacked = tmp_path_factory.mktemp("unpacked")
     _extract(tarball, str(unpacked))
     (top,) = os.listdir(unpacked)

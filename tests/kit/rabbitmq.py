@@ -9,10 +9,14 @@ process group: the start script, ``beam.smp`` and its ``erl_child_setup``), neve
 
 A node takes ~130 MB and ~20 s to start; :meth:`Cluster.kill` is ``kill -9`` of a node,
 :meth:`Cluster.restart` starts it again (it rejoins the cluster it knows from its Mnesia folder).
+The tests share one cluster per worker (the ``rabbitmq_cluster`` fixture of
+tests/kit/rabbitmq_pool.py): :meth:`Cluster.whole` restarts what a test left down,
+:meth:`Cluster.fresh_vhost` gives each test an empty virtual host.
 """
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import random
 import signal
@@ -191,6 +195,7 @@ class Cluster:
         self.epmd_port = quiet_port()
         self.epmd: subprocess.Popen | None = None
         self.nodes = [Node(self.base, i + 1, self.epmd_port, str(home)) for i in range(n)]
+        self.vhost: str | None = None
 
     def start(self) -> Cluster:
         epmd = require_tool("epmd")
@@ -224,6 +229,27 @@ class Cluster:
     def restart(self, i: int) -> None:
         self.nodes[i].start()
         self.nodes[i].wait_ready()
+
+    def whole(self) -> None:
+        """Every node running again (a test that killed one and left it down): each is started
+        and rejoins the cluster it knows from its Mnesia folder."""
+        for i, n in enumerate(self.nodes):
+            if not n.running:
+                self.restart(i)
+
+    def fresh_vhost(self, name: str) -> None:
+        """Route every node's MQTT listener to a new, empty virtual host ``name``
+        (``mqtt_port_to_vhost_mapping``): its retained messages, persistent sessions and their
+        queues are its own, so nothing a test left in the cluster reaches the next one. The
+        vhost before it is deleted (with its queues)."""
+        first = self.nodes[0]
+        first.ctl("add_vhost", name)
+        first.ctl("set_permissions", "-p", name, "guest", ".*", ".*", ".*")
+        mapping = {str(n.mqtt_port): name for n in self.nodes}
+        first.ctl("set_global_parameter", "mqtt_port_to_vhost_mapping", json.dumps(mapping))
+        if self.vhost is not None:
+            first.ctl("delete_vhost", self.vhost)
+        self.vhost = name
 
     def stop(self) -> None:
         for n in self.nodes:

@@ -129,104 +129,103 @@ def _life(tmp_path, cluster: Cluster, life: int) -> dict[int, str]:
     return out
 
 
-def test_three_gateways_on_a_rabbitmq_cluster_lose_nothing_while_nodes_are_killed(tmp_path):
-    cluster = Cluster(tmp_path)
-    with cluster:
-        servers = [("127.0.0.1", n.mqtt_port) for n in cluster.nodes]
-        mes = Mes(servers, "hookwatch/#").start()
-        killer = None
-        try:
-            wait_for(lambda: mes.connects >= 1, 60, what="the MES connected")
-            killer = Killer(cluster, tmp_path).start()
-            lives = []
-            for life in range(LIVES_UNDER_KILLS):
-                lives.append(_life(tmp_path, cluster, life))
-            killer.stop()
-            assert not killer.errors, killer.errors
-            for i, n in enumerate(cluster.nodes):        # every node up for the last life
-                if not n.running:
-                    cluster.restart(i)
-            lives.append(_life(tmp_path, cluster, LIVES_UNDER_KILLS))
+def test_three_gateways_on_a_rabbitmq_cluster_lose_nothing_while_nodes_are_killed(tmp_path, rabbitmq_cluster):
+    cluster = rabbitmq_cluster
+    servers = [("127.0.0.1", n.mqtt_port) for n in cluster.nodes]
+    mes = Mes(servers, "hookwatch/#").start()
+    killer = None
+    try:
+        wait_for(lambda: mes.connects >= 1, 60, what="the MES connected")
+        killer = Killer(cluster, tmp_path).start()
+        lives = []
+        for life in range(LIVES_UNDER_KILLS):
+            lives.append(_life(tmp_path, cluster, life))
+        killer.stop()
+        assert not killer.errors, killer.errors
+        for i, n in enumerate(cluster.nodes):        # every node up for the last life
+            if not n.running:
+                cluster.restart(i)
+        lives.append(_life(tmp_path, cluster, LIVES_UNDER_KILLS))
 
-            # every outbox emptied: whatever the gateways produced was confirmed by a node
-            for g in range(N_GATEWAYS):
-                ob = Outbox(str(tmp_path / f"gw{g}" / "records" / f"st{g}" / "outbox.sqlite"))
-                try:
-                    assert ob.count() == 0, f"st{g}: messages left in the outbox"
-                finally:
-                    ob.close()
-            # what the stations recorded: every event of every life, and its result
-            recorded: collections.Counter = collections.Counter()
-            for g in range(N_GATEWAYS):
-                for td in test_dirs(tmp_path / f"gw{g}", f"st{g}"):
-                    for ev in events(td):
-                        recorded[(f"st{g}", "event", ev["type"], ev["test_id"])] += 1
-                    recorded[(f"st{g}", "result", None, read_json(os.path.join(td, "result.json"))["test_id"])] += 1
-            # most lives ran (a start refused on an overloaded box is the station's own business)
-            assert sum(len(lv) for lv in lives) >= N_GATEWAYS * (LIVES_UNDER_KILLS + 1) // 2, lives
-
-            def at_mes() -> tuple[collections.Counter, dict[str, int]]:
-                """The MES's messages counted once by (station, seq); duplicates marked."""
-                got: collections.Counter = collections.Counter()
-                seen: set[tuple[str, int]] = set()
-                dup: collections.Counter = collections.Counter()
-                for topic, payload, _retained in mes.snapshot():
-                    if topic.endswith("/" + LIVES_REQUEST):
-                        continue                          # the gateways' site-level request, no MES message
-                    doc = json.loads(payload)
-                    if "seq" not in doc:
-                        continue                          # status: no seq
-                    key = (doc["station"], doc["seq"])
-                    if key in seen:
-                        dup[doc["station"]] += 1          # a resend or a retained replay: marked
-                        continue
-                    seen.add(key)
-                    if "/event/" in topic:
-                        got[(doc["station"], "event", doc["type"], doc["test_id"])] += 1
-                    elif topic.endswith("/result"):
-                        got[(doc["station"], "result", None, doc["test_id"])] += 1
-                return got, dict(dup)
-
-            def missing() -> dict:
-                got, _ = at_mes()
-                return {k: n - got[k] for k, n in recorded.items() if got[k] < n}
-
-            try:
-                wait_for(lambda: not missing(), 120, what="every event and result at the MES")
-            except AssertionError:
-                raise AssertionError(f"missing at the MES: {missing()}") from None
-            got, dup = at_mes()
-        finally:
-            if killer is not None:
-                killer.stop()
-            mes.stop()
-        assert not mes.violations, mes.violations[:3]
-        report = {"recorded": len(recorded), "duplicates": dup}
-        # the nodes were killed while the gateways ran, and the gateways moved between them
-        assert len(killer.kills) >= 2, killer.kills
-        logs = "".join((tmp_path / f"gw{g}" / f"gw-{life}.log").read_text()
-                       for g in range(N_GATEWAYS) for life in range(LIVES_UNDER_KILLS + 1))
-        assert "refused MQTT 5" in logs                 # RabbitMQ 3.10: the 3.1.1 fallback
-        assert "MQTT connection lost" in logs or "MQTT disconnected" in logs
-        # at least one gateway moved to another node of its list
-        moved = []
+        # every outbox emptied: whatever the gateways produced was confirmed by a node
         for g in range(N_GATEWAYS):
-            text = "".join((tmp_path / f"gw{g}" / f"gw-{life}.log").read_text()
-                           for life in range(LIVES_UNDER_KILLS + 1))
-            if len(set(re.findall(r"connected to (127\.0\.0\.1:\d+)", text))) > 1:
-                moved.append(g)
-        assert moved, "no gateway changed nodes"
-        (tmp_path / "report.json").write_text(json.dumps({"kills": killer.kills, **report}))
+            ob = Outbox(str(tmp_path / f"gw{g}" / "records" / f"st{g}" / "outbox.sqlite"))
+            try:
+                assert ob.count() == 0, f"st{g}: messages left in the outbox"
+            finally:
+                ob.close()
+        # what the stations recorded: every event of every life, and its result
+        recorded: collections.Counter = collections.Counter()
+        for g in range(N_GATEWAYS):
+            for td in test_dirs(tmp_path / f"gw{g}", f"st{g}"):
+                for ev in events(td):
+                    recorded[(f"st{g}", "event", ev["type"], ev["test_id"])] += 1
+                recorded[(f"st{g}", "result", None, read_json(os.path.join(td, "result.json"))["test_id"])] += 1
+        # most lives ran (a start refused on an overloaded box is the station's own business)
+        assert sum(len(lv) for lv in lives) >= N_GATEWAYS * (LIVES_UNDER_KILLS + 1) // 2, lives
 
-        # no station lost a slot to it: every slot of every life accounted for
-        for life, dirs in enumerate(lives):
-            for g, td in dirs.items():
-                res = read_json(os.path.join(td, "result.json"))
-                stats = read_json(str(tmp_path / f"gw{g}" / f"stats-{life}.json"))[f"st{g}"]
-                assert_no_slot_lost(td, res["method"], stats)
+        def at_mes() -> tuple[collections.Counter, dict[str, int]]:
+            """The MES's messages counted once by (station, seq); duplicates marked."""
+            got: collections.Counter = collections.Counter()
+            seen: set[tuple[str, int]] = set()
+            dup: collections.Counter = collections.Counter()
+            for topic, payload, _retained in mes.snapshot():
+                if topic.endswith("/" + LIVES_REQUEST):
+                    continue                          # the gateways' site-level request, no MES message
+                doc = json.loads(payload)
+                if "seq" not in doc:
+                    continue                          # status: no seq
+                key = (doc["station"], doc["seq"])
+                if key in seen:
+                    dup[doc["station"]] += 1          # a resend or a retained replay: marked
+                    continue
+                seen.add(key)
+                if "/event/" in topic:
+                    got[(doc["station"], "event", doc["type"], doc["test_id"])] += 1
+                elif topic.endswith("/result"):
+                    got[(doc["station"], "result", None, doc["test_id"])] += 1
+            return got, dict(dup)
+
+        def missing() -> dict:
+            got, _ = at_mes()
+            return {k: n - got[k] for k, n in recorded.items() if got[k] < n}
+
+        try:
+            wait_for(lambda: not missing(), 120, what="every event and result at the MES")
+        except AssertionError:
+            raise AssertionError(f"missing at the MES: {missing()}") from None
+        got, dup = at_mes()
+    finally:
+        if killer is not None:
+            killer.stop()
+        mes.stop()
+    assert not mes.violations, mes.violations[:3]
+    report = {"recorded": len(recorded), "duplicates": dup}
+    # the nodes were killed while the gateways ran, and the gateways moved between them
+    assert len(killer.kills) >= 2, killer.kills
+    logs = "".join((tmp_path / f"gw{g}" / f"gw-{life}.log").read_text()
+                   for g in range(N_GATEWAYS) for life in range(LIVES_UNDER_KILLS + 1))
+    assert "refused MQTT 5" in logs                 # RabbitMQ 3.10: the 3.1.1 fallback
+    assert "MQTT connection lost" in logs or "MQTT disconnected" in logs
+    # at least one gateway moved to another node of its list
+    moved = []
+    for g in range(N_GATEWAYS):
+        text = "".join((tmp_path / f"gw{g}" / f"gw-{life}.log").read_text()
+                       for life in range(LIVES_UNDER_KILLS + 1))
+        if len(set(re.findall(r"connected to (127\.0\.0\.1:\d+)", text))) > 1:
+            moved.append(g)
+    assert moved, "no gateway changed nodes"
+    (tmp_path / "report.json").write_text(json.dumps({"kills": killer.kills, **report}))
+
+    # no station lost a slot to it: every slot of every life accounted for
+    for life, dirs in enumerate(lives):
+        for g, td in dirs.items():
+            res = read_json(os.path.join(td, "result.json"))
+            stats = read_json(str(tmp_path / f"gw{g}" / f"stats-{life}.json"))[f"st{g}"]
+            assert_no_slot_lost(td, res["method"], stats)
 
 
-def test_a_node_that_stays_down_does_not_lock_its_stations_out(tmp_path):
+def test_a_node_that_stays_down_does_not_lock_its_stations_out(tmp_path, rabbitmq_cluster):
     """RabbitMQ homes a subscriber's queue on the node the session was made on; while that node is
     down, a new session under the same client ID on another node is refused (the queue's home
     node is unreachable) — a station that kept one client ID would stay cut off until the node
@@ -236,38 +235,68 @@ def test_a_node_that_stays_down_does_not_lock_its_stations_out(tmp_path):
     from kit.northbound import LoopThread, RunningStation, make_station
 
     base = "hookwatch/lab/hall/l1/st1"
-    with Cluster(tmp_path) as cluster:       # three nodes: the MES's quorum queue keeps a majority
-        a, b = cluster.nodes[:2]
-        mes = Mes([("127.0.0.1", b.mqtt_port)], base + "/#").start()
-        lt = LoopThread()
-        station = make_station(tmp_path, [])
-        out = MqttOutput(MqttSettings(station_id="st1", base_topic=base, protocol="3.1.1",
-                                      servers=[("127.0.0.1", a.mqtt_port), ("127.0.0.1", b.mqtt_port)],
-                                      outbox_path=str(tmp_path / "outbox.sqlite"),
-                                      reconnect_min_s=0.2, reconnect_max_s=1.0), station)
-        station.outputs.append(out)
-        run = None
+    cluster = rabbitmq_cluster       # three nodes: the MES's quorum queue keeps a majority
+    a, b = cluster.nodes[:2]
+    mes = Mes([("127.0.0.1", b.mqtt_port)], base + "/#").start()
+    lt = LoopThread()
+    station = make_station(tmp_path, [])
+    out = MqttOutput(MqttSettings(station_id="st1", base_topic=base, protocol="3.1.1",
+                                  servers=[("127.0.0.1", a.mqtt_port), ("127.0.0.1", b.mqtt_port)],
+                                  outbox_path=str(tmp_path / "outbox.sqlite"),
+                                  reconnect_min_s=0.2, reconnect_max_s=1.0), station)
+    station.outputs.append(out)
+    run = None
+    try:
+        wait_for(lambda: mes.connects >= 1, 60, what="the MES connected")
+        run = RunningStation(lt, station)
+        wait_for(lambda: out.connected and out.pump.server[1] == a.mqtt_port, 60, what="on node 1")
+        wait_for(lambda: out.outbox.count() == 0, 60, what="confirmed by node 1")
+        cluster.kill(0)                     # and it stays down
+        wait_for(lambda: out.connected and out.pump.server[1] == b.mqtt_port, 60, what="on node 2")
+        # a command sent now on node 2 reaches the station (its subscription on node 2) and
+        # its reply comes back through the outbox, confirmed by node 2
+        def replies():
+            return [json.loads(p) for t, p, _r in mes.snapshot() if t == base + "/reply"]
+        mes.c.publish(base + "/cmd/ack", b'{"request_id": "after-the-kill"}', qos=1)
         try:
-            wait_for(lambda: mes.connects >= 1, 60, what="the MES connected")
-            run = RunningStation(lt, station)
-            wait_for(lambda: out.connected and out.pump.server[1] == a.mqtt_port, 60, what="on node 1")
-            wait_for(lambda: out.outbox.count() == 0, 60, what="confirmed by node 1")
-            cluster.kill(0)                     # and it stays down
-            wait_for(lambda: out.connected and out.pump.server[1] == b.mqtt_port, 60, what="on node 2")
-            # a command sent now on node 2 reaches the station (its subscription on node 2) and
-            # its reply comes back through the outbox, confirmed by node 2
-            def replies():
-                return [json.loads(p) for t, p, _r in mes.snapshot() if t == base + "/reply"]
-            mes.c.publish(base + "/cmd/ack", b'{"request_id": "after-the-kill"}', qos=1)
-            try:
-                wait_for(lambda: any(r.get("request_id") == "after-the-kill" for r in replies()), 60,
-                         what="the reply to a command sent on node 2")
-            except AssertionError as e:
-                raise AssertionError(f"{e}: {dict(out.counters)}, {out.pump._client_cid}, "
-                                     f"{[t for t, _p, _r in mes.snapshot()][-5:]}") from None
-            assert not a.running
+            wait_for(lambda: any(r.get("request_id") == "after-the-kill" for r in replies()), 60,
+                     what="the reply to a command sent on node 2")
+        except AssertionError as e:
+            raise AssertionError(f"{e}: {dict(out.counters)}, {out.pump._client_cid}, "
+                                 f"{[t for t, _p, _r in mes.snapshot()][-5:]}") from None
+        assert not a.running
+    finally:
+        if run is not None:
+            run.stop()
+        lt.close()
+        mes.stop()
+
+
+def test_what_a_test_leaves_on_the_shared_cluster_never_reaches_the_next(rabbitmq_cluster):
+    """The cluster is shared by the tests of its xdist group (tests/kit/rabbitmq_pool.py):
+    a message one test left retained, and its persistent session, stay on its virtual host; the
+    next test, on a fresh one, with the same client ID and subscription, finds neither."""
+    cluster = rabbitmq_cluster
+    servers = [("127.0.0.1", n.mqtt_port) for n in cluster.nodes]
+
+    def received(client_id: str, payload: bytes, retain: bool = False) -> list[bytes]:
+        """Subscribe to probe/t (a persistent session; RabbitMQ sends a retained message only to a
+        subscription to its very topic, no wildcard), publish ``payload`` there, and return the
+        payloads that came until it came back."""
+        mes = Mes(servers, "probe/t", client_id=client_id).start()
+        try:
+            wait_for(lambda: mes.connects >= 1, 60, what=f"{client_id} connected")
+            # sent after the subscription: a retained message comes before it
+            mes.c.publish("probe/t", payload, qos=1, retain=retain)
+            wait_for(lambda: any(p == payload for _t, p, _r in mes.snapshot()), 60, what=payload)
+            return [p for _t, p, _r in mes.snapshot()]
         finally:
-            if run is not None:
-                run.stop()
-            lt.close()
             mes.stop()
+
+    assert received("probe", b'{"n": 1}', retain=True) == [b'{"n": 1}']
+    # the control: on the same vhost a new subscriber gets the retained message; the second
+    # message is queued for the first client's session too
+    assert received("probe-2", b'{"n": 2}') == [b'{"n": 1}', b'{"n": 2}']
+    cluster.fresh_vhost("probe-next")
+    # the next test's vhost: neither the retained message nor the first session's queued one
+    assert received("probe", b'{"n": 3}') == [b'{"n": 3}']

@@ -21,7 +21,7 @@ from gateway.northbound import mqtt_schema as S
 from gateway.northbound.sitelives import STORE_NAME
 from kit.broker import Broker, Sub, pub
 from kit.e2e import QUICK_END, QUICK_METHOD, quick_scenario, run_gateway, station_yaml, virtual_station, wait_log
-from kit.rabbitmq import Cluster, Mes
+from kit.rabbitmq import Mes
 from kit.tools import wait_for
 
 FAILURES = (20.0, 23.0, 26.5)
@@ -108,41 +108,41 @@ def test_box_b_starts_with_the_site_prior_of_box_a(tmp_path):
     assert meta2["method"]["prior_sd"] == pytest.approx(again[1], rel=1e-12)
 
 
-def test_box_b_joining_through_another_rabbitmq_node_gets_the_site_prior_of_box_a(tmp_path):
+def test_box_b_joining_through_another_rabbitmq_node_gets_the_site_prior_of_box_a(tmp_path, rabbitmq_cluster):
     root_a, root_b = tmp_path / "A" / "records", tmp_path / "B" / "records"
     seed_box_a(root_a)
     expected = history_prior(list(FAILURES), [n * 0.02 for n in STOPPED])
-    with Cluster(tmp_path) as cluster:
-        node1, node2 = cluster.nodes[0], cluster.nodes[1]
-        mes = Mes([("127.0.0.1", node1.mqtt_port)], "hookwatch/lab/+/+/+/lives").start()
-        gw_a = gw_b = None
-        try:
-            dev = tmp_path / "absent"
-            st_a = station_yaml(tmp_path, {"meter": str(dev / "meter"), "stm32": str(dev / "stm32")},
-                                name="a", mqtt={"enabled": True, "servers": [cluster.servers[0]],
-                                                "protocol": "3.1.1"},
-                                extra={"recorder": {"dir": str(root_a)}})
-            gw_a = run_gateway(tmp_path, st_a, name="gw-a")
-            wait_for(lambda: [m for m in mes.snapshot() if m[0] == "hookwatch/lab/test/l1/a/lives"], 120,
-                     what="A's lives on node 1")
-            with virtual_station(tmp_path, quick_scenario(tmp_path, "quick.yaml")) as (_sim, links):
-                st_b = station_yaml(tmp_path, links, name="b", method=QUICK_METHOD,
-                                    test={"t_end_s": QUICK_END},
-                                    mqtt={"enabled": True, "servers": [cluster.servers[1]], "protocol": "3.1.1"},
-                                    extra={"recorder": {"dir": str(root_b)}})
-                gw_b = run_gateway(tmp_path, st_b, name="gw-b")
-                wait_log(gw_b, f"connected to 127.0.0.1:{node2.mqtt_port}", 120)
-                wait_log(gw_b, "the site's lives: 5 tests of 1 other station(s)", 120)
-                pub(node2.mqtt_port, "hookwatch/lab/test/l1/b/cmd/start",
-                    '{"sample_id": "B-1", "grade": "I", "t_set": 0.5}')
-                meta_path = wait_for(lambda: _sidecar(root_b / "b"), 120, what="B's test started")
-                with open(meta_path) as f:
-                    meta = yaml.safe_load(f)
-        finally:
-            for gw in (gw_b, gw_a):
-                if gw is not None:
-                    gw.stop()
-            mes.stop()
+    cluster = rabbitmq_cluster
+    node1, node2 = cluster.nodes[0], cluster.nodes[1]
+    mes = Mes([("127.0.0.1", node1.mqtt_port)], "hookwatch/lab/+/+/+/lives").start()
+    gw_a = gw_b = None
+    try:
+        dev = tmp_path / "absent"
+        st_a = station_yaml(tmp_path, {"meter": str(dev / "meter"), "stm32": str(dev / "stm32")},
+                            name="a", mqtt={"enabled": True, "servers": [cluster.servers[0]],
+                                            "protocol": "3.1.1"},
+                            extra={"recorder": {"dir": str(root_a)}})
+        gw_a = run_gateway(tmp_path, st_a, name="gw-a")
+        wait_for(lambda: [m for m in mes.snapshot() if m[0] == "hookwatch/lab/test/l1/a/lives"], 120,
+                 what="A's lives on node 1")
+        with virtual_station(tmp_path, quick_scenario(tmp_path, "quick.yaml")) as (_sim, links):
+            st_b = station_yaml(tmp_path, links, name="b", method=QUICK_METHOD,
+                                test={"t_end_s": QUICK_END},
+                                mqtt={"enabled": True, "servers": [cluster.servers[1]], "protocol": "3.1.1"},
+                                extra={"recorder": {"dir": str(root_b)}})
+            gw_b = run_gateway(tmp_path, st_b, name="gw-b")
+            wait_log(gw_b, f"connected to 127.0.0.1:{node2.mqtt_port}", 120)
+            wait_log(gw_b, "the site's lives: 5 tests of 1 other station(s)", 120)
+            pub(node2.mqtt_port, "hookwatch/lab/test/l1/b/cmd/start",
+                '{"sample_id": "B-1", "grade": "I", "t_set": 0.5}')
+            meta_path = wait_for(lambda: _sidecar(root_b / "b"), 120, what="B's test started")
+            with open(meta_path) as f:
+                meta = yaml.safe_load(f)
+    finally:
+        for gw in (gw_b, gw_a):
+            if gw is not None:
+                gw.stop()
+        mes.stop()
     assert mes.violations == []
     assert meta["prior_source"] == "history"
     assert (meta["prior_n"], meta["prior_n_censored"], meta["prior_stations"]) == (3, 2, 1)
