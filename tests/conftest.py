@@ -247,7 +247,12 @@ def _listed(table: dict[str, tuple[str, ...]], path: str, name: str) -> bool:
     return "*" in names or name in names
 
 
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
+    """Marks each test by the tables above. First of all plugins: pytest-xdist's worker names a
+    test's group in its node ID (``…@group``, what `--dist loadgroup` schedules by) in its own
+    pytest_collection_modifyitems, from the marks as they are then — a group marked after it is
+    no group (tests/test_suite_schedule.py)."""
     for item in items:
         path = item.nodeid.split("::", 1)[0]
         name = getattr(item, "originalname", None) or item.name.split("[", 1)[0]

@@ -4,6 +4,9 @@ stale entry named tests/gateway/test_logio_cache.py, gone), and a module that ma
 besides the table was a second place to look."""
 import ast
 import os
+import re
+import subprocess
+import sys
 
 import conftest as C
 
@@ -93,3 +96,35 @@ def test_the_tests_on_the_shared_rabbitmq_cluster_are_its_group():
     users = users_of("rabbitmq_cluster")
     assert len(users) >= 3
     assert users == grouped
+
+
+def test_loadgroup_runs_a_group_on_one_worker(tmp_path):
+    """`./run-tests` schedules by `xdist_group` (`--dist loadgroup`), marked as tests/conftest.py
+    marks them. Every table above was ignored, silently: a module of the CPU group ran on two
+    workers, its module-scoped fixture made on each. Two causes: the marks came after
+    pytest-xdist's worker had read them (its pytest_collection_modifyitems names the group in the
+    node ID and ran first: ours must be tryfirst), and pytest 9.2 keeps node IDs structured, so
+    that naming has no effect (pytest-dev/pytest-xdist#1386: pytest < 9.2 in pyproject.toml). A
+    group of two modules' tests must run on one worker, under its group's name."""
+    assert C.pytest_collection_modifyitems.pytest_impl.get("tryfirst") is True
+    (tmp_path / "pytest.ini").write_text("[pytest]\n")
+    (tmp_path / "conftest.py").write_text(
+        "import pytest\n\n\n"
+        "@pytest.hookimpl(tryfirst=True)\n"
+        "def pytest_collection_modifyitems(config, items):\n"
+        "    for item in items:\n"
+        "        if item.name.startswith('test_grouped'):\n"
+        "            item.add_marker(pytest.mark.xdist_group('g'))\n")
+    for m in ("a", "b"):
+        (tmp_path / f"test_{m}.py").write_text("".join(
+            f"def test_{kind}_{i}():\n    pass\n\n\n" for kind in ("free", "grouped") for i in range(4)))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
+    argv = [sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadgroup", "-v", "-p", "no:cacheprovider",
+            str(tmp_path)]
+    r = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    ran = re.findall(r"\[(gw\d+)\] \[\s*\d+%\] PASSED (\S+)", r.stdout)
+    assert len(ran) == 16, r.stdout
+    grouped = {(gw, nodeid) for gw, nodeid in ran if "test_grouped" in nodeid}
+    assert len(grouped) == 8 and all(nodeid.endswith("@g") for _gw, nodeid in grouped), r.stdout
+    assert len({gw for gw, _ in grouped}) == 1, r.stdout
