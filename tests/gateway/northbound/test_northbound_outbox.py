@@ -21,7 +21,7 @@ def test_order_confirm_and_restart(tmp_path):
     ob.add(rows)
     assert [r.seq for r in ob.pending(0, 100)] == [1, 2, 3, 4, 5, 6]
     assert [r.seq for r in ob.pending(2, 2)] == [3, 4]
-    assert ob.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert ob.table.db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     ob.confirm([1, 2])
     assert [r.seq for r in ob.pending(0, 100)] == [3, 4, 5, 6]
     ob.close()
@@ -68,10 +68,10 @@ def test_over_budget_the_oldest_telemetry_goes_first_and_events_never(tmp_path):
     all_tel = [i + 1 for i, k in enumerate(kinds) if k == "telemetry"]
     assert tel == all_tel[-len(tel):]
     # the running byte count matches the table
-    real = ob.db.execute(TELEMETRY_BYTES).fetchone()[0]
+    real = ob.table.db.execute(TELEMETRY_BYTES).fetchone()[0]
     assert real == ob.telemetry_bytes
     ob.confirm(tel[:5])
-    real = ob.db.execute(TELEMETRY_BYTES).fetchone()[0]
+    real = ob.table.db.execute(TELEMETRY_BYTES).fetchone()[0]
     assert real == ob.telemetry_bytes
     ob.close()
 
