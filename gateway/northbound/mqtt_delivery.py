@@ -98,7 +98,7 @@ class Delivery:
         self._mid2seq: dict[int, int] = {}                  # in flight: paho's mid → seq
         self._sent_upto = 0
         self.retained = RetainedTopics(counters)
-        #: the ``status``'s own counter (see schema.STATUS_FIELDS), persisted in the outbox
+        #: the ``status``'s own counter (see mqtt_schema.STATUS_FIELDS), persisted in the outbox
         self.session = 0
 
     # ================================================================ any thread
