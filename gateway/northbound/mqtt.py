@@ -43,9 +43,11 @@ from ..station.alarm_store import AlarmStore
 from ..threadloop import call_soon_on, submit_to
 from . import mqtt_messages as M
 from . import mqtt_schema
+from .broker_settings import SecretError
 from .cmdparse import MAX_NAME_CHARS, intake, rejected_event_data, safe
 from .mqtt_messages import SOFTWARE, alarm_fields, telemetry_summary
-from .mqtt_pump import MqttPump, MqttSettings, SecretError
+from .mqtt_pump import MqttPump
+from .mqtt_settings import MqttSettings
 from .outbox import Outbox
 from .sitelives import STORE_NAME, LivesAnswers, SiteLives, lives_topic, snapshot
 

@@ -109,7 +109,7 @@ class NodeStore:
         self.last_bdseq: int | None = None
         try:
             self.outbox = Outbox(s.store_path, s.history_budget_bytes)
-            self.last_bdseq = self.outbox.meta_get("bdseq")
+            self.last_bdseq = self.outbox.meta_int("bdseq")
         except (OSError, sqlite3.Error) as e:
             log.error("sparkplug %s/%s: store %s unusable (%s): data is held in memory only and bdSeq "
                       "restarts at 0", s.group_id, s.edge_node_id, s.store_path, e)

@@ -113,7 +113,8 @@ def test_the_pump_routes_site_messages_lives_and_commands_apart(tmp_path):
     view: each message goes to its own consumer."""
     from types import SimpleNamespace
 
-    from gateway.northbound.mqtt_pump import MqttPump, MqttSettings
+    from gateway.northbound.mqtt_pump import MqttPump
+    from gateway.northbound.mqtt_settings import MqttSettings
 
     got: dict[str, list] = {"cmd": [], "lives": [], "site": []}
     base = "hookwatch/plant/hall-1/l1/a-1"
@@ -122,7 +123,7 @@ def test_the_pump_routes_site_messages_lives_and_commands_apart(tmp_path):
                     on_lives=lambda t, p: got["lives"].append(t))
     pump.add_site_feed(S.filters(base), lambda t, p: got["site"].append(t))
     for topic in (f"{base}/cmd/ack", f"{BASE}/b-1/lives", f"{BASE}/b-1/state", f"{BASE}/b-1/status"):
-        pump._on_message(None, None, SimpleNamespace(topic=topic, payload=b"{}", properties=None))
+        pump.inbound.on_message(None, None, SimpleNamespace(topic=topic, payload=b"{}", properties=None))
     assert got == {"cmd": ["ack"], "lives": [f"{BASE}/b-1/lives"],
                    "site": [f"{BASE}/b-1/state", f"{BASE}/b-1/status"]}
     pump.outbox.close()

@@ -9,7 +9,7 @@ import pytest
 from gateway.config import load_station
 from gateway.config.sections import BrokerConfig, MqttConfig, SparkplugConfig
 from gateway.northbound.broker_settings import BrokerSettings, SecretError
-from gateway.northbound.mqtt_pump import MqttSettings
+from gateway.northbound.mqtt_settings import MqttSettings
 from gateway.northbound.sparkplug.node_settings import SparkplugSettings
 from gateway.northbound.sparkplug.output import settings_from_config
 from gateway.northbound.wiring import mqtt_settings

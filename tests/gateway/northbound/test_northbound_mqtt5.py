@@ -94,7 +94,7 @@ def gateway_and_mes(tmp_path, protocol):
 
 def test_commands_are_answered_on_the_response_topic_with_the_correlation_data(tmp_path):
     with gateway_and_mes(tmp_path, "auto") as (station, out, sub, mes):
-        assert out.pump.v5
+        assert out.pump.version.v5
         mes.request(f"{BASE}/cmd/start", '{"sample_id": "S-5", "t_set": 0.5, "request_id": "r1"}',
                     "mes/replies/st1", b"\x00\x01corr-1")
         topic, p, corr = mes.next()
@@ -124,7 +124,7 @@ def test_commands_are_answered_on_the_response_topic_with_the_correlation_data(t
 
 def test_protocol_3_1_1_answers_on_reply(tmp_path):
     with gateway_and_mes(tmp_path, "3.1.1") as (_station, out, sub, mes):
-        assert not out.pump.v5
+        assert not out.pump.version.v5
         mes.request(f"{BASE}/cmd/ack", '{"request_id": "a1"}', "mes/replies/st1", b"c1")
         sub.wait(lambda s: s.messages("reply"), 20)
         r = sub.messages("reply")[0][2]
@@ -174,7 +174,7 @@ def test_auto_falls_back_to_3_1_1_when_the_broker_refuses_mqtt_5(tmp_path, refus
     try:
         lt.call(out.start())
         wait_for(lambda: out.connected, 20, what="connected with 3.1.1")
-        assert levels == ([5, 4] if refusal == "connack" else [5, 5, 4]) and not out.pump.v5
+        assert levels == ([5, 4] if refusal == "connack" else [5, 5, 4]) and not out.pump.version.v5
         # one log line says so, and what 3.1.1 costs (docs/mqtt.md)
         lines = [r.getMessage() for r in caplog.records if "refused MQTT 5" in r.getMessage()]
         assert len(lines) == 1, lines

@@ -71,8 +71,9 @@ def test_a_failing_pump_restarts_and_loses_nothing(tmp_path, caplog):
             assert pump.faults == 0
 
             # 1. the command callback raises (a fault that used to kill the pump thread)
-            pump.on_command = _once(pump.on_command, lambda name, raw, *_: raw == b'{"boom": 1}',
-                                    RuntimeError("injected callback fault"))
+            inbound = pump.inbound
+            inbound.on_command = _once(inbound.on_command, lambda name, raw, *_: raw == b'{"boom": 1}',
+                                       RuntimeError("injected callback fault"))
             pub(b.port, f"{BASE}/cmd/ack", '{"boom": 1}')
             wait_for(lambda: pump.faults == 1 and links[-2:] == [False, True], 20, what="restart 1")
             wait_for(lambda: station.state.mqtt_ok, 20, what="the station sees the link up")
@@ -83,14 +84,14 @@ def test_a_failing_pump_restarts_and_loses_nothing(tmp_path, caplog):
             #    just before it sends the test_ended event
             pump.outbox.add = _once(pump.outbox.add, lambda rows, *a: any(r.kind == "result" for r in rows),
                                     OSError("injected outbox fault"))
-            pending = pump.outbox.pending
-            pump._send_more = _once(pump._send_more, lambda: any(
-                r.topic.endswith("event/test_ended") for r in pending(pump._sent_upto, 100)),
+            pending, delivery = pump.outbox.pending, pump.delivery
+            delivery.send_more = _once(delivery.send_more, lambda *_: any(
+                r.topic.endswith("event/test_ended") for r in pending(delivery.sent_upto, 100)),
                 RuntimeError("injected loop fault"))
             r = ask("stop", '{"request_id": "halt"}')
             assert r["ok"] and r["request_id"] == "halt"
             sub.wait(lambda s: s.messages("result"), 20)
-            assert pump.outbox.add.fired and pump._send_more.fired
+            assert pump.outbox.add.fired and delivery.send_more.fired
             wait_for(lambda: pump.faults == 3 and links[-1] is True, 20, what="restart 2, 3")
             wait_for(lambda: station.state.mqtt_ok, 20, what="the station sees the link up")
             wait_for(lambda: pump.outbox.count() == 0, 20, what="the outbox emptied")

@@ -37,7 +37,7 @@ def test_response_topics_outside_the_reply_prefix_are_not_obeyed(tmp_path):
         try:
             lt.call(out.start())
             wait_for(lambda: out.connected, 20, what="connected")
-            assert out.pump.response_prefix == f"{BASE}/reply/"
+            assert out.pump.inbound.response_prefix == f"{BASE}/reply/"
             for i, topic in enumerate(FORGED):
                 _pub_v5(b.port, f"{BASE}/cmd/ack", json.dumps({"request_id": f"f{i}"}), topic, f"c{i}")
             # below the prefix: obeyed, with its correlation data

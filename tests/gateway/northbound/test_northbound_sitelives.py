@@ -167,9 +167,9 @@ def test_on_by_default_for_mqtt_stations_and_one_key_turns_it_off(tmp_path):
     out_on, out_off = MqttOutput(s_on), MqttOutput(s_off)
     try:
         # on: the pump subscribes to the site's lives and hands them to the store; off: neither
-        assert out_on.site is not None and out_on.pump.on_lives is not None
+        assert out_on.site is not None and out_on.pump.inbound.on_lives is not None
         assert out_on.site.path == str(tmp_path / "rec" / "s1" / SL.STORE_NAME)
-        assert out_off.site is None and out_off.pump.on_lives is None
+        assert out_off.site is None and out_off.pump.inbound.on_lives is None
     finally:
         out_on.pump.join(0)
         out_off.pump.join(0)
