@@ -59,8 +59,8 @@ def add_arguments(ap):
     ap.add_argument("--seed", type=int, default=1, help="simulator seed")
     ap.add_argument("--every", type=float, default=5.0, metavar="S", help="progress line interval, s")
     ap.add_argument("--timeout", type=float, default=1800.0, metavar="S", help="give up after this long")
-    ap.add_argument("--t-end", type=float, default=240.0, metavar="S",
-                    help="planned test duration (default 240 s: the alarm comes at ≈ 221 s)")
+    ap.add_argument("--t-end", type=float, default=120.0, metavar="S",
+                    help="planned test duration (default 120 s: the alarm comes at ≈ 107 s)")
     ap.add_argument("--console-port", type=int, default=8080, metavar="PORT",
                     help="console port on 127.0.0.1 (default 8080; a free one if taken)")
     ap.add_argument("--plc-port", type=int, default=5020, metavar="PORT",

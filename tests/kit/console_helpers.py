@@ -20,7 +20,7 @@ from gateway.console.app import ConsoleServer
 from gateway.console.feed import ConsoleOutput
 from gateway.console.settings import ConsoleSettings
 from gateway.records import StationState
-from kit.e2e import fleet_dir, run_gateway, virtual_station
+from kit.e2e import QUICK_END, QUICK_METHOD, fleet_dir, quick_scenario, run_gateway, virtual_station
 
 QUICK = "config/scenarios/quick.yaml"
 
@@ -34,13 +34,18 @@ def add_user(users_file, name, password):
 
 
 @contextlib.contextmanager
-def console_fleet(tmp_path, names=("loom-a",), *, users=None, console=None, test=None, seed=1):
-    """Yields (base_url, gateway Proc, {name: (sim Proc, links)})."""
+def console_fleet(tmp_path, names=("loom-a",), *, users=None, console=None, test=None, seed=1,
+                  quick=False):
+    """Yields (base_url, gateway Proc, {name: (sim Proc, links)}). Each station runs the one-minute
+    life (quick.yaml: the end of life ≈ 53 s after slot 0, the planned end at 70 s); ``quick``: the
+    kit's twice-compressed one (QUICK_*: the end of life ≈ 23 s after slot 0, the planned end at
+    QUICK_END)."""
     users_file = tmp_path / "users.json"
     for u, pw in (users or {}).items():
         add_user(users_file, u, pw)
-    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01},
-                      test={"t_end_s": 70, "autostart": True, **(test or {})},
+    life = {"method": QUICK_METHOD} if quick else {}
+    fleet = fleet_dir(tmp_path, control={"dead_band_n": 0.01}, **life,
+                      test={"t_end_s": QUICK_END if quick else 70, "autostart": True, **(test or {})},
                       console={"enabled": True, "listen": ["127.0.0.1:0"],
                                "users_file": str(users_file), "lockout_attempts": 3,
                                "lockout_s": 60, **(console or {})})
@@ -49,7 +54,8 @@ def console_fleet(tmp_path, names=("loom-a",), *, users=None, console=None, test
         for i, name in enumerate(names):
             sub = tmp_path / name
             sub.mkdir()
-            sims[name] = stack.enter_context(virtual_station(sub, QUICK, seed=seed + i))
+            sc = quick_scenario(sub, "quick.yaml") if quick else QUICK
+            sims[name] = stack.enter_context(virtual_station(sub, sc, seed=seed + i))
             _p, links = sims[name]
             (fleet / "stations" / f"{name}.yaml").write_text(yaml.safe_dump({
                 "station": {"id": name}, "meter": {"port": links["meter"]},

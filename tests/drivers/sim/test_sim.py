@@ -48,7 +48,7 @@ def test_every_shipped_scenario_loads():
     assert kinds >= set(FAULT_KINDS) - {"stm32_port_vanish"}
     demo = load_scenario(None)
     assert demo.path.endswith("demo.yaml")
-    assert demo.method == {"w_ss": 10, "w_hold": 60, "tau": 10, "t_end": 300}
+    assert demo.method == {"w_ss": 5, "w_hold": 30, "tau": 5, "t_end": 150}
 
 
 def test_scenario_validation_messages(tmp_path):
@@ -413,8 +413,8 @@ def test_sim_default_scenario_duration_trace_and_sigint(tmp_path):
     ts = [float(x.split(",")[0]) for x in lines[1:]]
     assert len(ts) >= 10 and all(abs(b - a - 0.1) < 1e-6 for a, b in zip(ts, ts[1:]))
     truth = json.loads(sim.truth_path.read_text())
-    assert truth["grade"] == "I" and truth["time_scale"] == 150.0
-    assert 150 < truth["onset_run_s"] < 250 and truth["cross_run_s"] > truth["onset_run_s"]
+    assert truth["grade"] == "I" and truth["time_scale"] == 300.0
+    assert 75 < truth["onset_run_s"] < 125 and truth["cross_run_s"] > truth["onset_run_s"]
     # --duration ends the run by itself (exit 0; one that did not would meet the timeout)
     p = subprocess.run(hookwatch_cmd() + ["sim", "--link-dir", str(tmp_path / "l2"), "--duration", "1.5"],
                        capture_output=True, text=True, timeout=60, cwd=ROOT)

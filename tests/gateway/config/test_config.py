@@ -258,8 +258,8 @@ def test_shipped_configs_load():
         assert c.mqtt.password_env and not hasattr(c.mqtt, "password")
     demo = load_station(os.path.join(ROOT, "config", "demo", "station.yaml"))
     assert demo.meter.port == "/tmp/hookwatch-sim/meter" and demo.stm32.port == "/tmp/hookwatch-sim/stm32"
-    assert (demo.method["w_ss"], demo.method["w_hold"], demo.method["tau"]) == (10.0, 60.0, 10.0)
-    assert demo.test.t_end_s == 300.0 and demo.fleet_file is None
+    assert (demo.method["w_ss"], demo.method["w_hold"], demo.method["tau"]) == (5.0, 30.0, 5.0)
+    assert demo.test.t_end_s == 150.0 and demo.fleet_file is None
 
 
 def test_validate_station_keeps_going(tmp_path):

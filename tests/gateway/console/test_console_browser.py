@@ -1,6 +1,7 @@
 """The console in a real browser (Playwright from PyPI driving Debian's chromium) against
 `hookwatch sim` + `hookwatch run` as processes: the fleet page lists the stations, the station page's
-μ curve grows through a one-minute virtual life until the end-of-life alarm, a page opened mid-test
+μ curve grows through a virtual life (the kit's twice-compressed one: the end of life ≈ 23 s
+after slot 0) until the end-of-life alarm, a page opened mid-test
 shows the curve from slot 0, and acknowledge needs a login and the CSRF token.
 
 Screenshots are written to the test's tmp folder (fleet.png, station-mid.png, station-alarm.png,
@@ -17,7 +18,8 @@ PW = "correct horse battery"
 
 
 def test_console_in_a_browser(tmp_path, browser):
-    with console_fleet(tmp_path, ("loom-a", "loom-b"), users={"alice": PW}) as (url, gw, _sims):
+    with console_fleet(tmp_path, ("loom-a", "loom-b"), users={"alice": PW}, quick=True) as (url, gw,
+                                                                                          _sims):
         t0 = time.monotonic()
         # the page's CSP forbids eval; Playwright's wait_for_function needs it (the header is tested over HTTP)
         ctx = browser.new_context(viewport={"width": 1300, "height": 1100}, bypass_csp=True)
@@ -42,18 +44,18 @@ def test_console_in_a_browser(tmp_path, browser):
         assert page.evaluate("window.hw.points") > n1
 
         # --- a page opened mid-test shows the curve from slot 0
-        while time.monotonic() - t0 < 30:
+        while time.monotonic() - t0 < 15:      # the station's §3a start, then ~10 s of its test
             time.sleep(0.5)
         late = ctx.new_page()
         late.goto(url + "/#/station/loom-a")
         wait_js(late, "window.hw.points > 0", 20)
         assert late.evaluate("window.hw.firstT") == 0
-        # … up to where the first page had been (how far the test got in 30 s is the machine's)
+        # … up to where the first page had been (how far the test got in 15 s is the machine's)
         assert late.evaluate("window.hw.lastT") > t1 + 1
         late.screenshot(path=str(tmp_path / "station-mid.png"), full_page=True)
         late.close()
 
-        # --- the end-of-life alarm appears (t_life ≈ 53 s, known ≈ 58 s into the life)
+        # --- the end-of-life alarm appears (t_life ≈ 23 s, known ≈ 25 s into the life)
         page.wait_for_selector("#alarm .alarm-active", timeout=90000)
         assert page.locator("#t-life").inner_text().endswith(" s")
         page.screenshot(path=str(tmp_path / "station-alarm.png"), full_page=True)
@@ -86,7 +88,7 @@ def test_console_in_a_browser(tmp_path, browser):
         page.wait_for_selector('.card[data-station="loom-a"] .alarm-acknowledged', timeout=10000)
 
         # --- history: the ended test with its status and the Fig. 7 from the report code
-        wait_log(gw, "loom-a: test_ended", timeout=60)      # the planned end (70 s)
+        wait_log(gw, "loom-a: test_ended", timeout=60)      # the planned end (QUICK_END)
         page.goto(url + "/#/history/loom-a")
         page.wait_for_selector("button.fig7", timeout=20000)
         row = page.locator("#tests tr").nth(1).inner_text()

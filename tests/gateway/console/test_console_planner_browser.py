@@ -175,7 +175,8 @@ def _wait(cond, timeout_s=40.0):
 
 
 def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browser):
-    with console_fleet(tmp_path, ("loom-a",), users={"alice": PW}) as (url, gw, _sims):
+    # the kit's twice-compressed life (QUICK_*): the end of life ≈ 23 s after slot 0
+    with console_fleet(tmp_path, ("loom-a",), users={"alice": PW}, quick=True) as (url, gw, _sims):
         ctx = browser.new_context(viewport={"width": 1300, "height": 1200}, bypass_csp=True)
         page = ctx.new_page()
         errors: list[str] = []
@@ -203,7 +204,7 @@ def test_journal_actions_and_hook_replaced_reach_a_real_station(tmp_path, browse
         _wait(lambda: _station_events(tmp_path, "alarm_in_service", source="console:alice"))
         page.wait_for_selector("#alarm:not(:has(.alarm-out_of_service))", timeout=30000)
 
-        # --- the end of life (≈ 58 s into the virtual life), then shelve and unshelve it
+        # --- the end of life (≈ 25 s into the virtual life), then shelve and unshelve it
         page.wait_for_selector("#alarm .alarm-active", timeout=120000)
         page.select_option("#j-alarm", "end_of_life")
         page.fill("#j-minutes", "30")
