@@ -242,6 +242,35 @@ FLEETS = (
 )
 
 
+#: the longest units of work (an xdist group, or a module of no group) with their seconds on a
+#: quiet 2-core box (`./run-tests --durations=0`, 2026-11-27): ORDER ONLY, never asserted. The
+#: workers take whole units from the front of the queue (`--dist loadgroup` with
+#: `--no-loadscope-reorder`, run-tests), so the longest go first and the short ones fill the
+#: gaps at the end (longest processing time first); without it xdist ordered the units by their
+#: number of tests, and the 3-minute broker outage life began 6 minutes in, on the critical path
+LONGEST_FIRST: dict[str, int] = {
+    FLEET_GROUP: 390,
+    "rabbitmq": 230,
+    "tests/gateway/northbound/test_northbound_e2e.py": 215,
+    "tests/gateway/station/test_station_e2e.py": 185,
+    "tests/deploy/test_release.py": 165,
+    CPU_GROUP: 150,
+    "tests/gateway/station/test_station_start_e2e.py": 95,
+    "tests/gateway/console/test_console_http.py": 65,
+    "tests/gateway/station/test_retention_e2e.py": 60,
+    "tests/gateway/station/test_stall_e2e.py": 57,
+    "tests/gateway/test_doors_station_e2e.py": 47,
+    "tests/gateway/console/test_console_browser.py": 45,
+    "tests/gateway/northbound/test_northbound_wear_e2e.py": 42,
+    "tests/gateway/station/test_lost_slots_e2e.py": 42,
+    "tests/gateway/station/test_recorder_disk.py": 41,
+    "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py": 40,
+    "tests/gateway/console/test_console_planner_browser.py": 36,
+    "tests/deploy/test_setup.py": 32,
+    "tests/gateway/northbound/test_northbound_refusal_flood.py": 30,
+}
+
+
 def _listed(table: dict[str, tuple[str, ...]], path: str, name: str) -> bool:
     names = table.get(path, ())
     return "*" in names or name in names
@@ -266,8 +295,15 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.xdist_group(shared[0]))
         elif path in FLEETS:
             item.add_marker(pytest.mark.xdist_group(FLEET_GROUP))
-    # the modules with long tests first, so that the workers end together on short ones rather
-    # than one worker on a long life at the end; each module stays whole and in its own order
-    # (module-scoped fixtures, tests that build on the one before)
+    # the longest units first (LONGEST_FIRST), then the other modules with long tests, so that
+    # the workers end together on short ones rather than one worker on a long life at the end;
+    # each unit stays whole and in its own order (module-scoped fixtures, tests that build on
+    # the one before): the sort is stable
     has_slow = {it.nodeid.split("::", 1)[0] for it in items if it.get_closest_marker("slow")}
-    items.sort(key=lambda it: it.nodeid.split("::", 1)[0] not in has_slow)
+
+    def order(it: pytest.Item) -> tuple[int, bool]:
+        path = it.nodeid.split("::", 1)[0]
+        g = it.get_closest_marker("xdist_group")
+        unit = str(g.args[0]) if g is not None and g.args else path
+        return -LONGEST_FIRST.get(unit, 0), path not in has_slow
+    items.sort(key=order)

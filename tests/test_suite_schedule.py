@@ -33,6 +33,18 @@ def schedule_problems() -> list[str]:
     for path in (*C.MODULE_GROUPS, *C.FLEETS):
         if not os.path.isfile(os.path.join(ROOT, path)):
             bad.append(f"{path}: no such module")
+    # the order of the units: each a group, or a module of no group (a grouped module's tests
+    # are ordered by their group's entry: an entry of its own would do nothing)
+    groups = {C.CPU_GROUP, C.FLEET_GROUP, *C.SHARED_GROUPS, *C.MODULE_GROUPS}
+    grouped = {*C.CPU, *C.FLEETS, *(p for t in C.SHARED_GROUPS.values() for p in t)}
+    for unit in C.LONGEST_FIRST:
+        if unit in groups:
+            continue
+        if not os.path.isfile(os.path.join(ROOT, unit)):
+            bad.append(f"LONGEST_FIRST: {unit}: no such group or module")
+        elif unit in grouped and all(n == "*" for t in (C.CPU, *C.SHARED_GROUPS.values())
+                                     for n in t.get(unit, ("*",))):
+            bad.append(f"LONGEST_FIRST: {unit}: in a group, ordered by the group's entry")
     return bad
 
 
