@@ -257,6 +257,7 @@ class Station:
         await step("stm32 port", self.stm32.close())
         await step("outputs", self.fanout.stop())
         self.late_starts.due(time.monotonic(), force=True)
+        self.health.check_meter_reads()     # the failed reads since the last check are said too
         log.info("%s: slot stats %s", self.id, self.stats.summary())
 
     async def _open(self) -> None:

@@ -172,8 +172,11 @@ def test_the_gateway_on_an_echoing_adapter_starts_a_test_only_with_local_echo(tm
         gw = run_gateway(tmp_path, station_yaml(tmp_path, links, name="echo1", meter={"local_echo": True}),
                          "--start", name="gw1")
         try:
-            wait_for(lambda: any(e["type"] == "test_started" for d in test_dirs(tmp_path, "echo1")
-                                 for e in events(d)), 60, what=f"the test to start; log:\n{gw.log()}")
+            try:
+                wait_for(lambda: any(e["type"] == "test_started" for d in test_dirs(tmp_path, "echo1")
+                                     for e in events(d)), 60, what="the test to start")
+            except AssertionError as e:     # the gateway's log as it is then (not as it was at the call)
+                raise AssertionError(f"{e}; log:\n{gw.log()}") from None
             assert "start_failed" not in gw.log()
         finally:
             gw.stop()
