@@ -18,7 +18,7 @@ import asyncio
 import collections
 import concurrent.futures
 import threading
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Hashable
 from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
@@ -127,6 +127,9 @@ class Mailbox(Generic[ItemT]):
     and counted in :attr:`dropped`. The drop policy says which: the oldest item (the default), or,
     with ``droppable``, the oldest item it accepts (e.g. a measured value, never a birth or a
     command reply) and only when none waits, the oldest one, so the bound holds whatever comes.
+    With ``key``, an item whose key equals that of an item still waiting *replaces* it (the newest
+    of a key wins: e.g. a station's newest lives snapshot; the one replaced is dropped and counted
+    in :attr:`dropped` and :attr:`replaced`), so at most one item per key waits.
     ``on_drop``, if given, hears of each dropped item (in the producer's thread, outside the
     mailbox's lock: it must be quick and must not raise), e.g. to name it in a log line.
     The consumer takes everything with :meth:`drain`, or the oldest few with :meth:`take` (a worker
@@ -134,31 +137,52 @@ class Mailbox(Generic[ItemT]):
     :meth:`wait`."""
 
     def __init__(self, maxlen: int, droppable: Callable[[ItemT], bool] | None = None,
-                 on_drop: Callable[[ItemT], None] | None = None) -> None:
+                 on_drop: Callable[[ItemT], None] | None = None,
+                 key: Callable[[ItemT], Hashable] | None = None) -> None:
         if maxlen < 1:
             raise ValueError("Mailbox maxlen must be at least 1")
         self.maxlen = maxlen
         self.droppable = droppable
         self.on_drop = on_drop
+        self.key = key
+        #: items replaced by a newer one of the same key (also counted in :attr:`dropped`)
+        self.replaced = 0
         self._q: collections.deque[ItemT] = collections.deque()
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self.dropped = 0
 
     def put_nowait(self, item: ItemT) -> bool:
-        """Queue ``item``; False when an older item had to be dropped to make room."""
+        """Queue ``item``; False when an older item had to be dropped to make room (or, with
+        ``key``, was replaced)."""
         gone: list[ItemT] = []
         with self._lock:
             q = self._q
-            full = len(q) >= self.maxlen
-            if full:
-                gone.append(self._drop_one(q))
+            full = False
+            if self.key is not None and self._replace(q, item, gone):
                 self.dropped += 1
-            q.append(item)
+                self.replaced += 1
+            else:
+                full = len(q) >= self.maxlen
+                if full:
+                    gone.append(self._drop_one(q))
+                    self.dropped += 1
+                q.append(item)
         self._wake.set()
         if gone and self.on_drop is not None:
             self.on_drop(gone[0])
-        return not full
+        return not (full or gone)
+
+    def _replace(self, q: collections.deque[ItemT], item: ItemT, gone: list[ItemT]) -> bool:
+        """With ``key``: put ``item`` in the place of the waiting item of its key, if any."""
+        assert self.key is not None
+        k = self.key(item)
+        for i, it in enumerate(q):
+            if self.key(it) == k:
+                gone.append(it)
+                q[i] = item
+                return True
+        return False
 
     def _drop_one(self, q: collections.deque[ItemT]) -> ItemT:
         pick = self.droppable
