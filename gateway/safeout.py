@@ -25,6 +25,13 @@ a cell safe to open in any spreadsheet, whatever list separator its locale uses 
 - a cell that holds a ``,`` ``;`` TAB, quote, CR or LF, or starts or ends with a blank, is quoted
   (RFC 4180, quotes doubled).
 
+Files (:func:`write_atomic`): a file the box rewrites whole (the site's lives, …) is written
+beside itself under ``<name>.tmp``, opened exclusively and without following a link
+(``O_CREAT | O_EXCL | O_NOFOLLOW``: a planted link or file there is removed first, never written
+through), synced, then renamed over the file (``rename`` replaces a link at the file's own name,
+it never writes through it) and the folder synced: a reader sees the old file or the new one,
+never a part, and nothing outside the folder is ever written. The folder is made when missing.
+
 This module imports nothing of the project.
 """
 from __future__ import annotations
@@ -33,6 +40,7 @@ import dataclasses
 import enum
 import json
 import math
+import os
 import re
 import urllib.parse
 from collections.abc import Iterable, Sequence
@@ -75,6 +83,50 @@ def dumps(v: Any, *, indent: int | None = None, compact: bool = True, sort_keys:
 def dump(v: Any, f: IO[str], *, indent: int | None = None, sort_keys: bool = False) -> None:
     """:func:`dumps` into an open text file."""
     f.write(dumps(v, indent=indent, sort_keys=sort_keys))
+
+
+#: the suffix of the temporary file :func:`write_atomic` writes beside the file
+TMP_SUFFIX = ".tmp"
+
+
+def write_atomic(path: str, data: bytes, *, mode: int = 0o644, make_dir: bool = True) -> None:
+    """Replace ``path`` with ``data`` atomically (module docstring); raises :class:`OSError` (the
+    file is then unchanged; the temporary file is removed)."""
+    folder = os.path.dirname(path) or "."
+    if make_dir:
+        os.makedirs(folder, exist_ok=True)
+    tmp = path + TMP_SUFFIX
+    try:
+        os.unlink(tmp)                     # a leftover or a planted link: the link goes, not its target
+    except FileNotFoundError:
+        pass
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(tmp, flags, mode)
+    try:
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    try:
+        dfd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(dfd)
+    except OSError:
+        pass
+    finally:
+        os.close(dfd)
 
 
 def loads_strict(text: str | bytes) -> Any:
