@@ -18,8 +18,10 @@ Threads:
 - the site's life history (``mqtt.share_lives``, gateway/northbound/sitelives.py): the station's
   own lives (its records folder, read on a worker thread at the start and after each test) go out
   as the retained ``<base>/lives``, again after every reconnect; the other stations' lives of the
-  site arrive on the pump thread, are checked, kept and saved by :class:`SiteLives` there, and
-  reach the station through the hand-over (``station.site_lives``). A (re)connected station asks
+  site arrive on the pump thread and are handed, unread, to the intake's worker
+  (:class:`gateway.northbound.site_intake.LivesIntake`: newest snapshot per station wins, paced,
+  saved at most once per few seconds), which checks and keeps them (:class:`SiteLives`) and gives
+  them to the station through the hand-over (``station.site_lives``, coalesced). A (re)connected station asks
   the site for its lives (``<prefix>/<site>/lives_request``, non-retained: a clustered broker's
   retained store is per node); the station answers others' requests with its lives, at most once
   per ``sitelives.ANSWER_INTERVAL_S`` (:class:`LivesAnswers`, off the station's loop).
@@ -49,6 +51,7 @@ from .mqtt_messages import SOFTWARE, alarm_fields, telemetry_summary
 from .mqtt_pump import MqttPump
 from .mqtt_settings import MqttSettings
 from .outbox import Outbox
+from .site_intake import LivesIntake
 from .sitelives import STORE_NAME, LivesAnswers, SiteLives, lives_topic, snapshot
 
 __all__ = ["MqttOutput", "MqttSettings", "SecretError", "SOFTWARE", "STATE_REFRESH_S",
@@ -89,8 +92,11 @@ class MqttOutput:
                              on_lives=self._lives if self.site is not None else None)
         #: the answers to the site's lives requests (None: not shared)
         self.answers: LivesAnswers | None = None
+        #: the site's lives taken off the pump thread and the station's loop (None: not shared)
+        self.intake: LivesIntake | None = None
         if self.site is not None:
             self.answers = LivesAnswers(settings.station_id, self._put_lives, self.pump.counters)
+            self.intake = LivesIntake(self.site, self._give_station, self.pump.counters)
         self._base = settings.base_topic
         self._lives_request = mqtt_schema.lives_request_topic(self._base)
         # station-loop state
@@ -131,9 +137,11 @@ class MqttOutput:
             self.outbox.on_disk_state = on_disk_state
             if not self.outbox.disk_ok:
                 set_disk("outbox", False, {"reason": "the outbox cannot be written"})
+        if self.intake is not None:
+            self.intake.start()     # reads the local copy of the site's lives first
         self.pump.start()
         if self.site is not None:
-            self._share(first=True)
+            self._share()
 
     async def stop(self) -> None:
         if self._site_jobs:         # the lives of a test that ended at the stop go out with the rest
@@ -145,6 +153,8 @@ class MqttOutput:
                 None, self.pump.join, self.s.drain_on_stop_s + 5.0)
         else:
             self.pump.join(0)
+        if self.intake is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.intake.close)
         if self.site is not None:
             self.site.close()
         if self.answers is not None:
@@ -203,13 +213,13 @@ class MqttOutput:
             self._put_lives()
 
     # ================================================================ the site's lives
-    def _share(self, first: bool = False, ended: str | None = None) -> None:
-        """Read the station's own lives (and, the first time, the local copy of the site's) on a
+    def _share(self, ended: str | None = None) -> None:
+        """Read the station's own lives on a
         worker thread, and publish them; never on the station's loop."""
         loop = self.loop
         if loop is None:
             return
-        fut = loop.run_in_executor(None, self._share_now, first, ended)
+        fut = loop.run_in_executor(None, self._share_now, ended)
         self._site_jobs.add(fut)
 
         def done(f: asyncio.Future[None]) -> None:
@@ -219,17 +229,11 @@ class MqttOutput:
                             f.exception())
         fut.add_done_callback(done)
 
-    def _share_now(self, first: bool, ended: str | None) -> None:
+    def _share_now(self, ended: str | None) -> None:
         site, folder = self.site, self.s.records_dir
         if site is None or folder is None:
             return
         with self._site_lock:
-            if first:
-                n = site.load()
-                if n:
-                    log.info("%s: the site's lives: %d tests of %d stations from %s", self.s.station_id,
-                             n, site.stations(), site.path)
-                    self._give_station()
             own = read_history(folder)
             for _ in range(40):             # the ended test's result.json follows its event
                 if ended is None or any(t.test_id == ended for t in own):
@@ -259,15 +263,13 @@ class MqttOutput:
             if self.answers is not None:
                 self.answers.request(payload)
             return
-        site = self.site
-        if site is not None and site.receive(topic, payload):
-            log.info("%s: the site's lives: %d tests of %d other station(s)", self.s.station_id,
-                     len(site.tests()), site.stations())
-            self._give_station()
+        if self.intake is not None:
+            self.intake.put(topic, payload)     # O(1): checked and merged on the intake's worker
 
-    def _give_station(self) -> None:
-        if self.station is not None and self.site is not None:
-            call_soon_on(self.loop, self.station.site_lives, self.site.tests())
+    def _give_station(self, tests: tuple[Any, ...]) -> None:
+        """The site's lives changed (the intake's worker, at most once per GIVE_INTERVAL_S)."""
+        if self.station is not None:
+            call_soon_on(self.loop, self.station.site_lives, tests)
 
     def _command(self, name: str, raw: bytes, response: tuple[str, bytes | None] | None = None) -> None:
         """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop; the

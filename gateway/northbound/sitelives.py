@@ -48,6 +48,7 @@ from typing import Any
 
 from ..method.prior import STOPPED, PastTest
 from ..ratelog import RateBound, RateLog, clip
+from ..safeout import write_atomic
 from .cmdparse import Refused, bounded_pairs, read_bounded_json
 from .mqtt_schema import SCHEMA_VERSION
 
@@ -222,7 +223,8 @@ def parse_snapshot(payload: bytes, station: str) -> tuple[list[PastTest], list[s
 # ----------------------------------------------------------------------------- the store
 class SiteLives:
     """The other stations' lives as this gateway last received them, persisted in ``path``
-    (thread-safe: the MQTT pump thread writes, the station reads :meth:`tests`)."""
+    (thread-safe: the intake's worker writes — gateway/northbound/site_intake.py —, any thread
+    reads :meth:`tests`)."""
 
     def __init__(self, path: str | None, own_station: str) -> None:
         self.path = path
@@ -268,17 +270,15 @@ class SiteLives:
         return n
 
     def receive(self, topic: str, payload: bytes) -> bool:
-        """A retained message of a station of the site (pump thread): True when the store changed
-        (and was saved); the same snapshot again (a reconnect) changes nothing."""
+        """A retained message of a station of the site (the intake's worker, never the pump
+        thread: gateway/northbound/site_intake.py): True when the store changed (the worker saves
+        it, coalesced); the same snapshot again (a reconnect) changes nothing."""
         station = station_of(topic)
         if station is None or station == self.own:
             return False
         if not payload:                            # a retired station's topic cleared
             with self._lock:
-                gone = self._by_station.pop(station, None) is not None
-            if gone:
-                self._save()
-            return gone
+                return self._by_station.pop(station, None) is not None
         try:
             good, bad = parse_snapshot(payload, station)
         except Refused as e:
@@ -291,10 +291,7 @@ class SiteLives:
             self.refused.warning(("record", station), "%s: %d record(s) of station %s refused, e.g. %s",
                                  self.own, len(bad), clip(station, 40), bad[0])
         self.counters["snapshots"] += 1
-        if not self._accept(station, good):     # refused by a bound, or nothing new
-            return False
-        self._save()
-        return True
+        return self._accept(station, good)     # False: refused by a bound, or nothing new
 
     def _accept(self, station: str, tests: list[PastTest]) -> bool:
         with self._lock:
@@ -312,20 +309,22 @@ class SiteLives:
                              self.own, clip(station, 40), why)
         return False
 
-    def _save(self) -> None:
+    def save(self) -> bool:
+        """Write the store (atomically: :func:`gateway.safeout.write_atomic`; the records folder
+        made when missing); False when it cannot be written (kept in memory, one rate-limited
+        line)."""
         if self.path is None:
-            return
+            return True
         with self._lock:
             doc = {"stations": {s: [r for r in (record_of(t) for t in ts) if r is not None]
                                 for s, ts in self._by_station.items()}}
-        tmp = self.path + ".tmp"
         try:
-            with open(tmp, "w", encoding="utf-8") as f:
-                json.dump(doc, f, separators=(",", ":"), allow_nan=False)
-            os.replace(tmp, self.path)
+            write_atomic(self.path, json.dumps(doc, separators=(",", ":"), allow_nan=False).encode())
         except OSError as e:
             self.refused.warning("save", "%s: the site's lives cannot be saved in %s (%s); kept in "
                                  "memory", self.own, self.path, e.strerror or e)
+            return False
+        return True
 
     def close(self) -> None:
         self.refused.close()

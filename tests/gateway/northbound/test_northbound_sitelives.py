@@ -135,13 +135,15 @@ def test_the_store_counts_refusals_in_one_line_keeps_bounds_and_persists(tmp_pat
     monkeypatch.setattr(SL, "MAX_SITE_LIVES", 7)
     assert not st.receive("hookwatch/plant/h/l/f/lives", payload("f", [life(i, station="f") for i in range(3)]))
     monkeypatch.setattr(SL, "MAX_SITE_LIVES", 20000)
-    # the local copy: a gateway that restarts while the broker is down has the site's lives
+    # the local copy (saved by the intake's worker, coalesced): a gateway that restarts while the
+    # broker is down has the site's lives
+    assert st.save()
     again = SL.SiteLives(path, "b")
     assert again.load() == 6 and set(again.tests()) == set(st.tests())
     assert resolve_prior([], again.tests(), "I", 0.5) == p
     # a retired station's retained topic cleared
     assert st.receive(TOPIC_A, b"") and len(st.tests()) == 1
-    assert SL.SiteLives(path, "b").load() == 1
+    assert st.save() and SL.SiteLives(path, "b").load() == 1
     # a damaged copy is not fatal: empty, one line
     (tmp_path / SL.STORE_NAME).write_text('{"stations": {"a": [{"t_life": ')
     with caplog.at_level(logging.WARNING, logger="hookwatch.site"):

@@ -1,0 +1,182 @@
+"""The site's lives off the station's threads (issue 34 item 1): lives cost what they are worth.
+
+A station of the site may publish a new lives snapshot as often as it likes (a careless or hostile
+peer: 400 changing snapshots in 0.3 s). What arrives costs the station's own threads nothing but
+an append: the MQTT pump thread (paho's) hands each snapshot, unread, to a bounded
+:class:`gateway.threadloop.Mailbox` keyed by its topic — the newest snapshot of a station replaces
+the one still waiting (the older is dropped and counted: ``lives_dropped`` in the MQTT counters),
+at most :data:`INTAKE_MAX` stations' snapshots wait (beyond: the oldest dropped, counted too).
+
+One worker thread per station (``site-lives``) is the store's one writer (:class:`SiteLives`):
+
+- it reads the local copy first (``site_lives.json``), then takes one snapshot at a time, checks
+  and merges it; it is *paced*: after a snapshot that took *d* seconds it rests
+  ``d · (1/BUSY_SHARE − 1)``, so the lives use at most :data:`BUSY_SHARE` of one core however
+  fast they come (the waiting ones are meanwhile replaced by their stations' newer ones);
+- it saves the store at most once per :data:`SAVE_INTERVAL_S` (the first change after a quiet
+  interval at once, the changes within an interval together at its end, and at the close),
+  atomically (:func:`gateway.safeout.write_atomic`: exclusive, link-refusing temporary file,
+  fsync, rename; the records folder made when missing, so a station that never ran a test keeps
+  the site's lives on disk from the first minute);
+- it gives the station the site's lives (the hand-over onto the station's loop, which re-fits the
+  §7a priors off the loop) at most once per :data:`GIVE_INTERVAL_S`, in the same way;
+- it logs what changed in one rate-limited line (:class:`gateway.ratelog.RateLog`), never a line
+  per snapshot.
+
+So commands, slots and state never wait behind lives: nothing of a snapshot is read, merged, saved
+or logged on the pump thread or the slot loop.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, MutableMapping
+
+from ..method.prior import PastTest
+from ..ratelog import RateLog
+from ..threadloop import Mailbox
+from .sitelives import SiteLives, station_of
+
+log = logging.getLogger("hookwatch.site")
+
+#: stations whose newest snapshot may wait to be read (one each)
+INTAKE_MAX = 64
+#: the store is saved at most once per this many seconds
+SAVE_INTERVAL_S = 5.0
+#: the station is given the site's lives at most once per this many seconds
+GIVE_INTERVAL_S = 2.0
+#: the share of one core the lives' checking may take (the worker rests in between)
+BUSY_SHARE = 0.25
+#: a rest is at most this long (s)
+MAX_REST_S = 2.0
+
+Give = Callable[[tuple[PastTest, ...]], None]
+
+
+class _Edge:
+    """At most one action per ``interval_s``: a change after a quiet interval acts at once, the
+    changes within an interval together at its end (the worker's clock, never the loop's)."""
+
+    def __init__(self, interval_s: float) -> None:
+        self.interval_s = interval_s
+        self.pending = False
+        self._last = float("-inf")
+
+    def due_in(self, now: float) -> float | None:
+        """None: nothing pending; else seconds until it is due (≤ 0: now)."""
+        return None if not self.pending else self._last + self.interval_s - now
+
+    def done(self, now: float) -> None:
+        self.pending = False
+        self._last = now
+
+
+class LivesIntake:
+    """The site's lives of one station, taken off its threads (module docstring). ``give`` hands
+    the site's lives to the station (any thread; it must not block); ``counters`` are the MQTT
+    pump's (``lives_dropped``, ``lives_checked``, ``lives_saves``, ``lives_save_errors``)."""
+
+    def __init__(self, site: SiteLives, give: Give, counters: MutableMapping[str, int],
+                 save_interval_s: float = SAVE_INTERVAL_S, give_interval_s: float = GIVE_INTERVAL_S,
+                 busy_share: float = BUSY_SHARE) -> None:
+        self.site = site
+        self.give = give
+        self.counters = counters
+        self.busy_share = min(1.0, max(0.01, busy_share))
+        self.box: Mailbox[tuple[str, bytes]] = Mailbox(INTAKE_MAX, key=lambda it: it[0])
+        self._save = _Edge(save_interval_s)
+        self._give = _Edge(give_interval_s)
+        self._closed = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.changes = RateLog(log)
+        self.loaded = threading.Event()
+
+    # -- the pump thread
+    def put(self, topic: str, payload: bytes) -> None:
+        """A station's retained lives (the pump thread): queued unread, O(1)."""
+        station = station_of(topic)
+        if station is None or station == self.site.own or self._closed.is_set():
+            return
+        before = self.box.dropped
+        self.box.put_nowait((topic, payload))
+        if self.box.dropped != before:
+            self.counters["lives_dropped"] += self.box.dropped - before
+
+    # -- the owner
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._run, name=f"site-lives-{self.site.own}"[:60],
+                                        daemon=True)
+        self._thread.start()
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop the worker; a change not yet saved is saved now."""
+        self._closed.set()
+        self.box.wake()
+        th = self._thread
+        if th is not None and th is not threading.current_thread():
+            th.join(timeout)
+        if th is None or not th.is_alive():
+            self._flush_save(time.monotonic(), force=True)
+        self.changes.close()
+
+    # -- the worker
+    def _run(self) -> None:
+        try:
+            n = self.site.load()
+            if n:
+                log.info("%s: the site's lives: %d tests of %d stations from %s", self.site.own, n,
+                         self.site.stations(), self.site.path)
+                self._give.pending = True
+        except Exception:   # noqa: BLE001 - the store's load never ends the worker
+            log.exception("%s: the site's lives could not be read", self.site.own)
+        self.loaded.set()
+        while not self._closed.is_set():
+            now = time.monotonic()
+            self._due(now)
+            waits = [w for w in (self._save.due_in(now), self._give.due_in(now)) if w is not None]
+            self.box.wait(max(0.0, min(waits)) + 0.01 if waits else None)
+            if self._closed.is_set():
+                break
+            for topic, payload in self.box.take(1):
+                self._check(topic, payload)
+
+    def _check(self, topic: str, payload: bytes) -> None:
+        t0 = time.monotonic()
+        try:
+            changed = self.site.receive(topic, payload)
+        except Exception:   # noqa: BLE001 - a snapshot never ends the worker
+            self.changes.log("error", logging.ERROR, "%s: a lives snapshot could not be checked",
+                             self.site.own, exc_info=True)
+            changed = False
+        self.counters["lives_checked"] += 1
+        if changed:
+            self._save.pending = self._give.pending = True
+            self.changes.info("changed", "%s: the site's lives: %d tests of %d other station(s)",
+                              self.site.own, len(self.site.tests()), self.site.stations())
+        d = time.monotonic() - t0
+        rest = min(MAX_REST_S, d * (1.0 / self.busy_share - 1.0))
+        if rest > 0:
+            self._closed.wait(rest)
+
+    def _due(self, now: float) -> None:
+        w = self._give.due_in(now)
+        if w is not None and w <= 0:
+            self._give.done(now)
+            try:
+                self.give(self.site.tests())
+            except Exception:   # noqa: BLE001 - the station gone: the lives wait for the next
+                log.debug("%s: the site's lives not given to the station", self.site.own, exc_info=True)
+        self._flush_save(now)
+
+    def _flush_save(self, now: float, force: bool = False) -> None:
+        w = self._save.due_in(now)
+        if w is None or (w > 0 and not force):
+            return
+        self._save.done(now)
+        if self.site.save():
+            self.counters["lives_saves"] += 1
+        else:
+            self.counters["lives_save_errors"] += 1
