@@ -104,9 +104,11 @@ def _labelled(pr: Prior, station_id: str, group: list[tuple[PastTest, str, float
     return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k, origin=words)
 
 
-def _read_and_fit(root: str, site: tuple[PastTest, ...] = (), station_id: str = "") -> tuple[list[PastTest], Fitted]:
-    """The records root's history, and the fits of its groups with the site's lives."""
-    hist = read_history(root)
+def _read_and_fit(root: str, site: tuple[PastTest, ...] = (), station_id: str = "",
+                  history: list[PastTest] | None = None) -> tuple[list[PastTest], Fitted]:
+    """The records root's history (``history``: the last read, not read again), and the fits of
+    its groups with the site's lives."""
+    hist = read_history(root) if history is None else history
     return hist, fit_groups(hist + list(site), station_id)
 
 
@@ -140,20 +142,25 @@ class PriorBook:
         #: the other stations' lives that the site shared (gateway/northbound/sitelives.py)
         self.site: tuple[PastTest, ...] = ()
         self._again = False
+        self._again_read = False
 
-    def refresh(self) -> None:
-        """Read the history again, off the loop (nothing when a read is running or no loop runs)."""
+    def refresh(self, read: bool = True) -> None:
+        """Read the history again and fit its groups, off the loop (nothing when a read is running
+        or no loop runs). ``read=False``: only fit again, with the last read's history and the
+        site's lives as they are now (the site's lives changed; the records folder did not)."""
         if self._reading is not None and not self._reading.done():
-            self._again = True              # read again when this one is done
+            self._again = True              # read (or fit) again when this one is done
+            self._again_read = self._again_read or read
             return
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:
             return
-        recent = list(self._recent)
-        self._again = False
+        last = None if read else self.history
+        recent = list(self._recent) if last is None else []
+        self._again = self._again_read = False
         site = self.site
-        fut = loop.run_in_executor(None, _read_and_fit, self.records_root, site, self.station_id)
+        fut = loop.run_in_executor(None, _read_and_fit, self.records_root, site, self.station_id, last)
         self._reading = fut
 
         def done(f: asyncio.Future[tuple[list[PastTest], Fitted]]) -> None:
@@ -167,7 +174,7 @@ class PriorBook:
             self.history, self.fitted = f.result()
             self._fitted_site = site
             if self._again:
-                self.refresh()
+                self.refresh(self._again_read)
             self._recent = [t for t in self._recent if t not in recent]
         fut.add_done_callback(done)
 
@@ -178,9 +185,10 @@ class PriorBook:
             self._recent.append(t)
 
     def set_site(self, tests: tuple[PastTest, ...]) -> None:
-        """The site's lives changed (received from the broker): kept, and fitted off the loop."""
+        """The site's lives changed (received from the broker): kept, and fitted off the loop with
+        the last history read (the records folder is not read again for them)."""
         self.site = tuple(tests)
-        self.refresh()
+        self.refresh(read=False)
 
     def known(self) -> list[PastTest]:
         return list(self.history or []) + self._recent + list(self.site)
