@@ -105,7 +105,7 @@ def render() -> str:
             "The history is the site's: every completed test this gateway recorded and every one "
             "the gateways of its `station.site` shared over MQTT (docs/mqtt.md, the site's life "
             "history), each test once (by test id); the sidecar says where the prior came from "
-            "(`prior_stations`, `prior_from`).",
+            "(`prior_stations`, `prior_station_ids`, `prior_from`).",
             "- *Forecast times*: the end t_j = (j + 1)·`w_ss` of every complete window j = 0, 1, … "
             "(also before the baseline) up to a protection stop, `end_slot` or the end of the log; "
             "once t_life is found only the windows that end before the detection slot "

@@ -133,6 +133,9 @@ class Prior:
     #: (``this station: …``, ``the site: N tests from K stations``)
     n_stations: int | None = field(default=None, compare=False)
     origin: str | None = field(default=None, compare=False)
+    #: a history prior: the stations its tests came from by name (bounded; the sidecar's
+    #: ``prior_station_ids``)
+    station_ids: tuple[str, ...] | None = field(default=None, compare=False)
 
     def sidecar(self) -> dict[str, Any]:
         """What the gateway writes into a new test's sidecar: ``method.prior_mean``/``prior_sd``
@@ -142,6 +145,8 @@ class Prior:
                "prior_n": self.n, "prior_n_censored": self.n_censored}
         if self.origin is not None:
             out["prior_stations"], out["prior_from"] = self.n_stations, self.origin
+            if self.station_ids is not None:
+                out["prior_station_ids"] = list(self.station_ids)
         return out
 
 

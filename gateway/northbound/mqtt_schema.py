@@ -95,7 +95,8 @@ FORECAST_STATE_FIELDS = FORECAST_FIELDS + (
     Field("prior_sd", "float|null", "the test's life prior, SD, s"),
     Field("prior_source", "str|null", "where the prior came from: `method` (fixed in the station's "
           "method section), `config` (forecast.priors), `history:N` (N recorded failures; from other "
-          "stations too: `history:N (the site: T tests from K stations (M of this station))`, "
+          "stations too: `history:N (the site: T tests from K stations (M of this station; a 30, "
+          "b 12))`, the other stations named with their tests, at most 3 and `and J more`), "
           "METHOD.md §7a), null: none"),
     Field("lead_s", "float|null", "the planner's lead (§5b `lead`), s"),
     Field("p_due", "float|null", "the bound P is held against (§5b `p_due`)"),
@@ -740,9 +741,22 @@ def render() -> str:
         "publication of its lives); a flood of requests is counted (`lives_requests`, "
         "`lives_requests_deferred`, `lives_answers` in the MQTT counters) and logged in one "
         "rate-limited line, and costs nothing else. A receiver keeps each station's newest "
-        "snapshot, each test once by test id: a duplicate changes nothing. "
+        "snapshot, each test once by test id: a duplicate changes nothing; a test id that two "
+        "stations claim with *different* lives is refused from both (it reaches no prior while "
+        "they disagree; logged once per id in a rate-limited line, counted as `contested_ids`). "
+        "*Lives cost what they are worth*: a snapshot costs the station's MQTT thread one append "
+        "to a bounded hand-over (the newest snapshot of a station replaces the one still waiting, "
+        "which is dropped and counted: `lives_dropped`); one worker thread per station checks "
+        "them one at a time, paced to at most a quarter of a core (`lives_checked`), gives the "
+        "station's priors the site's lives at most once per 2 s and logs what changed in one "
+        "rate-limited line, never a line per snapshot; commands, slots and state never wait "
+        "behind lives (a flood of 400 changing snapshots: bench/README.md, issue 34). "
         "*Kept locally* (`site_lives.json` in the station's records "
-        "folder), so a gateway that restarts while the broker is down still has the site's lives. "
+        "folder, made when missing: a station that never ran a test keeps them too), so a "
+        "gateway that restarts while the broker is down still has the site's lives; written by "
+        "that worker at most once per 5 s (`lives_saves`, `lives_save_errors`), atomically: an "
+        "exclusive temporary file beside it that is never a link followed (a link planted there "
+        "is removed, its target never written), synced, renamed over the file. "
         "A retired station's lives are removed by clearing its retained topic (an empty retained "
         "message). What a gateway receives goes through the one bounded JSON reader (bytes, depth, "
         "numbers, keys, strings), then every record is checked (a test id, a grade, a plausible "
@@ -751,9 +765,12 @@ def render() -> str:
         "a malformed message or an implausible record is refused with one counted, rate-limited "
         "log line and never reaches a prior. At most 500 lives per station, 256 stations and "
         "20,000 lives in all are kept. The sidecar of a test says where its prior came from "
-        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_stations`, "
+        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_stations` (how many), "
+        "`prior_station_ids` (which: this station first, then by tests, at most 16), "
         "`prior_from`: `this station: N tests` or `the site: N tests from K stations (M of this "
-        "station)`); the state's `prior_source` adds the same words to `history:N`.",
+        "station; a 30, b 12)`, the other stations named with their tests, at most 3 and "
+        "`and J more`); the state's `prior_source` adds the same words to `history:N`, and the "
+        "console's station page shows them.",
         "",
         "Only gateways may publish there. A site's broker should say so in its ACL, e.g. "
         "Mosquitto's `acl_file` with one MQTT user per gateway box:",

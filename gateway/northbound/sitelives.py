@@ -38,6 +38,7 @@ one counted, rate-limited log line (:class:`gateway.ratelog.RateLog`) and never 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -230,14 +231,27 @@ class SiteLives:
         self.path = path
         self.own = own_station
         self._by_station: dict[str, tuple[PastTest, ...]] = {}
+        #: what the priors get: every station's lives but the contested ones, each test once
+        self._view: tuple[PastTest, ...] = ()
+        #: test ids that two or more stations claim with different lives → those stations (the
+        #: test is refused from all of them; the same life claimed twice is one test)
+        self.contested: dict[str, tuple[str, ...]] = {}
+        self._told: set[str] = set()
         self._lock = threading.Lock()
         self.refused = RateLog(log)
-        self.counters: dict[str, int] = {"snapshots": 0, "refused_messages": 0, "refused_records": 0}
+        self.counters: dict[str, int] = {"snapshots": 0, "refused_messages": 0, "refused_records": 0,
+                                         "contested_ids": 0}
 
     # -- any thread
     def tests(self) -> tuple[PastTest, ...]:
+        """The site's lives as the priors take them (the contested ones left out)."""
         with self._lock:
-            return tuple(t for ts in self._by_station.values() for t in ts)
+            return self._view
+
+    def names(self) -> tuple[str, ...]:
+        """The stations whose lives are kept."""
+        with self._lock:
+            return tuple(self._by_station)
 
     def stations(self) -> int:
         with self._lock:
@@ -265,8 +279,10 @@ class SiteLives:
                 continue
             good = [t for t in (parse_record(r, station) for r in recs[:MAX_LIVES_PER_STATION])
                     if isinstance(t, PastTest)]
-            if self._accept(station, good):
+            if self._accept(station, good, view=False):
                 n += len(good)
+        with self._lock:
+            self._update_view()
         return n
 
     def receive(self, topic: str, payload: bytes) -> bool:
@@ -278,7 +294,10 @@ class SiteLives:
             return False
         if not payload:                            # a retired station's topic cleared
             with self._lock:
-                return self._by_station.pop(station, None) is not None
+                gone = self._by_station.pop(station, None) is not None
+                if gone:
+                    self._update_view()
+            return gone
         try:
             good, bad = parse_snapshot(payload, station)
         except Refused as e:
@@ -293,7 +312,7 @@ class SiteLives:
         self.counters["snapshots"] += 1
         return self._accept(station, good)     # False: refused by a bound, or nothing new
 
-    def _accept(self, station: str, tests: list[PastTest]) -> bool:
+    def _accept(self, station: str, tests: list[PastTest], view: bool = True) -> bool:
         with self._lock:
             others = sum(len(v) for k, v in self._by_station.items() if k != station)
             if station not in self._by_station and len(self._by_station) >= MAX_SITE_STATIONS:
@@ -303,11 +322,50 @@ class SiteLives:
             else:
                 changed = self._by_station.get(station) != tuple(tests)
                 self._by_station[station] = tuple(tests)
+                if changed and view:
+                    self._update_view()
                 return changed
         self.counters["refused_messages"] += 1
         self.refused.warning(("bound", station), "%s: the lives of station %s not kept: %s",
                              self.own, clip(station, 40), why)
         return False
+
+    def _update_view(self) -> None:
+        """The priors' view after a change (under the lock): a test id claimed by two stations
+        with different lives is refused from both (once logged per id); the same life claimed
+        by several stations is kept once."""
+        first: dict[str, PastTest] = {}
+        claims: dict[str, list[str]] = {}
+        differ: set[str] = set()
+        for station, ts in self._by_station.items():
+            for t in ts:
+                tid = t.test_id
+                if tid is None:
+                    continue
+                seen = first.get(tid)
+                if seen is None:
+                    first[tid] = t
+                    claims[tid] = [station]
+                    continue
+                if station not in claims[tid]:
+                    claims[tid].append(station)
+                if dataclasses.replace(seen, station=None) != dataclasses.replace(t, station=None):
+                    differ.add(tid)
+        self.contested = {tid: tuple(claims[tid]) for tid in differ}
+        self._view = tuple(t for ts in self._by_station.values() for t in ts
+                           if t.test_id not in differ)
+        new = [tid for tid in differ if tid not in self._told]
+        if not new:
+            return
+        if len(self._told) + len(new) > MAX_SITE_LIVES:
+            self._told.clear()
+        self._told.update(new)
+        self.counters["contested_ids"] += len(new)
+        eg = new[0]
+        self.refused.warning("contested", "%s: %d test id(s) claimed by two or more stations with "
+                             "different lives, refused from all of them (not in any prior), e.g. %s "
+                             "claimed by %s", self.own, len(new), clip(eg, 60),
+                             ", ".join(clip(x, 40) for x in self.contested[eg][:4]))
 
     def save(self) -> bool:
         """Write the store (atomically: :func:`gateway.safeout.write_atomic`; the records folder

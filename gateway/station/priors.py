@@ -58,6 +58,10 @@ SYNC_FIT_MAX = 400
 SCAN_MAX = 5000
 #: (grade, T_set) groups the reading worker fits, at most
 MAX_GROUPS = 256
+#: other stations a history prior names in its words (the console, the state), at most
+NAMED_IN_WORDS = 3
+#: stations a history prior names in the sidecar (``prior_station_ids``), at most
+NAMED_IN_SIDECAR = 16
 #: a group's lives, as the key of its fit
 FitKey = tuple[tuple[float, ...], tuple[float, ...]]
 
@@ -99,9 +103,10 @@ def _labelled(pr: Prior, station_id: str, group: list[tuple[PastTest, str, float
     """A history prior with where it came from (NO_PRIOR for none)."""
     if pr.source != SOURCE_HISTORY:
         return NO_PRIOR
-    k, words = origin(station_id, [t for t, _, _ in group])
+    k, words, names = origin(station_id, [t for t, _, _ in group])
     label = f"history:{pr.n}" if k == 1 else f"history:{pr.n} ({words})"
-    return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k, origin=words)
+    return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k, origin=words,
+                 station_ids=names)
 
 
 def _read_and_fit(root: str, site: tuple[PastTest, ...] = (), station_id: str = "",
@@ -112,15 +117,28 @@ def _read_and_fit(root: str, site: tuple[PastTest, ...] = (), station_id: str = 
     return hist, fit_groups(hist + list(site), station_id)
 
 
-def origin(station_id: str, tests: list[PastTest]) -> tuple[int, str]:
-    """How many stations a history prior's tests came from, and in words: ``this station: N
-    tests`` or ``the site: N tests from K stations (M of this station)``."""
-    names = {t.station or station_id for t in tests}
-    here = sum(1 for t in tests if (t.station or station_id) == station_id)
-    if names == {station_id}:
-        return 1, f"this station: {len(tests)} tests"
-    k = len(names)
-    return k, f"the site: {len(tests)} tests from {k} station{'' if k == 1 else 's'} ({here} of this station)"
+def origin(station_id: str, tests: list[PastTest]) -> tuple[int, str, tuple[str, ...]]:
+    """How many stations a history prior's tests came from, in words — ``this station: N tests``
+    or ``the site: N tests from K stations (M of this station; a 30, b 12)``, the other stations
+    named with their tests, most first, at most :data:`NAMED_IN_WORDS` (``and J more``) — and
+    the stations by name (this station first, then by tests, at most :data:`NAMED_IN_SIDECAR`:
+    the sidecar's ``prior_station_ids``)."""
+    count: dict[str, int] = {}
+    for t in tests:
+        name = t.station or station_id
+        count[name] = count.get(name, 0) + 1
+    here = count.pop(station_id, 0)
+    others = sorted(count.items(), key=lambda kv: (-kv[1], kv[0]))
+    names = ((station_id,) if here else ()) + tuple(n for n, _ in others)
+    if not others:
+        return 1, f"this station: {len(tests)} tests", names[:NAMED_IN_SIDECAR]
+    k = len(others) + (1 if here else 0)
+    named = ", ".join(f"{n} {c}" for n, c in others[:NAMED_IN_WORDS])
+    more = len(others) - NAMED_IN_WORDS
+    if more > 0:
+        named += f" and {more} more"
+    return k, (f"the site: {len(tests)} tests from {k} station{'' if k == 1 else 's'} "
+               f"({here} of this station; {named})"), names[:NAMED_IN_SIDECAR]
 
 
 class PriorBook:

@@ -91,7 +91,8 @@ class TestSession:
             meta["start"] = dict(start_info)
         if prior is not None:
             side = prior.sidecar()
-            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_stations", "prior_from"):
+            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_stations", "prior_from",
+                      "prior_station_ids"):
                 if k in side:
                     meta[k] = side[k]
         try:

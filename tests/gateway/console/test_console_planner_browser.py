@@ -116,7 +116,7 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         assert "P_end 0.12" in page.locator("#projection").inner_text()
         # where the life prior came from (issue 29): the site's lives of other stations
         assert page.locator("#prior").inner_text() == (
-            "5400 ± 600 s from history:3 (the site: 5 tests from 2 stations (0 of this station))")
+            "5400 ± 600 s from history:3 (the site: 5 tests from 2 stations (0 of this station; b 3, c 2))")
         page.goto(url + "/#/station/loom-c")
         wait_js(page, "document.querySelector('#state') && "
                        "document.querySelector('#state').dataset.state === 'end_of_life'")

@@ -90,7 +90,8 @@ def test_box_b_starts_with_the_site_prior_of_box_a(tmp_path):
     # B's sidecar: the §7a prior of A's lives, from the site
     assert meta["prior_source"] == "history"
     assert (meta["prior_n"], meta["prior_n_censored"], meta["prior_stations"]) == (3, 2, 1)
-    assert meta["prior_from"] == "the site: 5 tests from 1 station (0 of this station)"
+    assert meta["prior_from"] == "the site: 5 tests from 1 station (0 of this station; a 5)"
+    assert meta["prior_station_ids"] == ["a"]
     assert meta["method"]["prior_mean"] == pytest.approx(expected[0], rel=1e-12)
     assert meta["method"]["prior_sd"] == pytest.approx(expected[1], rel=1e-12)
     # B keeps the site's lives: a restart while the broker is down still has them

@@ -284,8 +284,9 @@ def test_site_lives_that_change_are_refitted_off_the_loop_and_a_start_meanwhile_
     before, during, after = asyncio.run(go())
     assert before.n == 3 and before.origin == "this station: 3 tests"
     assert during == after and after.n == 5
-    assert after.origin == "the site: 5 tests from 2 stations (3 of this station)"
-    assert after.label == "history:5 (the site: 5 tests from 2 stations (3 of this station))"
+    assert after.origin == "the site: 5 tests from 2 stations (3 of this station; s2 2)"
+    assert after.label == "history:5 (the site: 5 tests from 2 stations (3 of this station; s2 2))"
+    assert after.station_ids == ("a", "s2") and after.sidecar()["prior_station_ids"] == ["a", "s2"]
     # a large history: a start before the refit uses the last fit (one log line), never a scan
     monkeypatch.setattr(P, "SCAN_MAX", 2)
     book.site = site + (PastTest("I", 0.5, "failure", 80.0, test_id="S9", station="s3", t_end=600.0),)
