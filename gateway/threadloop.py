@@ -201,13 +201,22 @@ class Mailbox(Generic[ItemT]):
             self._wake.clear()
         return items
 
-    def take(self, n: int = 1) -> list[ItemT]:
-        """The oldest ``n`` items (fewer if fewer wait), oldest first; the others stay. Leaving the
-        mailbox empty clears its wake-up, so a consumer looping on :meth:`wait` then :meth:`take`
-        never spins."""
+    def take(self, n: int = 1, ready: Callable[[ItemT], bool] | None = None) -> list[ItemT]:
+        """The oldest ``n`` items (fewer if fewer wait), oldest first; the others stay. With
+        ``ready``, the oldest ``n`` of those it accepts (e.g. a station's snapshot only once its
+        last one is long enough ago); the others keep their place (and, with ``key``, are still
+        replaced by newer ones). Leaving the mailbox empty clears its wake-up, so a consumer
+        looping on :meth:`wait` then :meth:`take` never spins (items that wait but are not ready
+        keep it set: such a consumer waits on its own clock)."""
         with self._lock:
             q = self._q
-            items = [q.popleft() for _ in range(min(n, len(q)))]
+            if ready is None:
+                items = [q.popleft() for _ in range(min(n, len(q)))]
+            else:
+                at = [i for i, x in enumerate(q) if ready(x)][:n]
+                items = [q[i] for i in at]
+                for i in reversed(at):
+                    del q[i]
             if not q:
                 self._wake.clear()
         return items

@@ -10,9 +10,12 @@ at most :data:`INTAKE_MAX` stations' snapshots wait (beyond: the oldest dropped,
 One worker thread per station (``site-lives``) is the store's one writer (:class:`SiteLives`):
 
 - it reads the local copy first (``site_lives.json``), then takes one snapshot at a time, checks
-  and merges it; it is *paced*: after a snapshot that took *d* seconds it rests
-  ``d · (1/BUSY_SHARE − 1)``, so the lives use at most :data:`BUSY_SHARE` of one core however
-  fast they come (the waiting ones are meanwhile replaced by their stations' newer ones);
+  and merges it; it is *paced*: a station's snapshots are checked at most once per
+  :data:`STATION_PERIOD_S` (its newest then), and after a snapshot that took *d* seconds the
+  worker rests ``d · (1/BUSY_SHARE − 1)``, so the lives use at most :data:`BUSY_SHARE` of one
+  core however fast they come (the waiting ones are meanwhile replaced by their stations' newer
+  ones) — a station's lives change once per test, a snapshot a second is already more than
+  they are worth;
 - it saves the store at most once per :data:`SAVE_INTERVAL_S` (the first change after a quiet
   interval at once, the changes within an interval together at its end, and at the close),
   atomically (:func:`gateway.safeout.write_atomic`: exclusive, link-refusing temporary file,
@@ -47,7 +50,9 @@ SAVE_INTERVAL_S = 5.0
 #: the station is given the site's lives at most once per this many seconds
 GIVE_INTERVAL_S = 2.0
 #: the share of one core the lives' checking may take (the worker rests in between)
-BUSY_SHARE = 0.25
+BUSY_SHARE = 0.1
+#: one station's snapshots are checked at most once per this many seconds (its newest then)
+STATION_PERIOD_S = 1.0
 #: a rest is at most this long (s)
 MAX_REST_S = 2.0
 
@@ -79,11 +84,14 @@ class LivesIntake:
 
     def __init__(self, site: SiteLives, give: Give, counters: MutableMapping[str, int],
                  save_interval_s: float = SAVE_INTERVAL_S, give_interval_s: float = GIVE_INTERVAL_S,
-                 busy_share: float = BUSY_SHARE) -> None:
+                 busy_share: float = BUSY_SHARE, station_period_s: float = STATION_PERIOD_S) -> None:
         self.site = site
         self.give = give
         self.counters = counters
         self.busy_share = min(1.0, max(0.01, busy_share))
+        self.station_period_s = station_period_s
+        #: when each station's snapshot was last checked (by topic; bounded by the site's stations)
+        self._checked_at: dict[str, float] = {}
         self.box: Mailbox[tuple[str, bytes]] = Mailbox(INTAKE_MAX, key=lambda it: it[0])
         self._save = _Edge(save_interval_s)
         self._give = _Edge(give_interval_s)
@@ -140,8 +148,18 @@ class LivesIntake:
             self.box.wait(max(0.0, min(waits)) + 0.01 if waits else None)
             if self._closed.is_set():
                 break
-            for topic, payload in self.box.take(1):
-                self._check(topic, payload)
+            now = time.monotonic()
+            got = self.box.take(1, ready=lambda it: now - self._checked_at.get(it[0], -1e18)
+                                >= self.station_period_s)
+            if not got:             # snapshots wait for their station's period: rest a little
+                if len(self.box):
+                    self._closed.wait(min(0.1, self.station_period_s))
+                continue
+            topic, payload = got[0]
+            if topic not in self._checked_at and len(self._checked_at) >= 4 * INTAKE_MAX:
+                self._checked_at.clear()            # bounded: the periods start again
+            self._checked_at[topic] = now
+            self._check(topic, payload)
 
     def _check(self, topic: str, payload: bytes) -> None:
         t0 = time.monotonic()

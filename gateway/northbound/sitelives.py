@@ -374,10 +374,14 @@ class SiteLives:
         if self.path is None:
             return True
         with self._lock:
-            doc = {"stations": {s: [r for r in (record_of(t) for t in ts) if r is not None]
-                                for s, ts in self._by_station.items()}}
+            stations = list(self._by_station.items())
+        # encoded station by station: a 4 MB store in one json.dumps would hold the GIL (and so
+        # every thread of the process, the slot loop's too) for tens of ms
+        parts = [json.dumps(s) + ":" + json.dumps([r for r in (record_of(t) for t in ts) if r is not None],
+                                                  separators=(",", ":"), allow_nan=False)
+                 for s, ts in stations]
         try:
-            write_atomic(self.path, json.dumps(doc, separators=(",", ":"), allow_nan=False).encode())
+            write_atomic(self.path, ('{"stations":{' + ",".join(parts) + "}}").encode())
         except OSError as e:
             self.refused.warning("save", "%s: the site's lives cannot be saved in %s (%s); kept in "
                                  "memory", self.own, self.path, e.strerror or e)

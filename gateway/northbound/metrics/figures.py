@@ -33,7 +33,7 @@ RTT_BUCKETS_S = (0.0025, 0.005, 0.0075, 0.010, 0.0125, 0.015, 0.0175, 0.020, 0.0
 OPERATION_KINDS = {
     "meter": frozenset({"reads", "reads_ok", "reopened"}),
     "stm32": frozenset({"sent", "acked", "keepalives", "reopened"}),
-    "mqtt": frozenset({"sent", "confirmed", "commands", "connects"}),
+    "mqtt": frozenset({"sent", "confirmed", "commands", "connects", "lives_checked", "lives_saves"}),
 }
 LINKS = ("meter", "stm32", "mqtt")
 _RUNNING = (TestState.BASELINE_SEARCH, TestState.MONITORING, TestState.END_OF_LIFE)
