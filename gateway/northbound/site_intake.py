@@ -149,8 +149,7 @@ class LivesIntake:
             if self._closed.is_set():
                 break
             now = time.monotonic()
-            got = self.box.take(1, ready=lambda it: now - self._checked_at.get(it[0], -1e18)
-                                >= self.station_period_s)
+            got = self.box.take(1, ready=self._ready_at(now))
             if not got:             # snapshots wait for their station's period: rest a little
                 if len(self.box):
                     self._closed.wait(min(0.1, self.station_period_s))
@@ -160,6 +159,12 @@ class LivesIntake:
                 self._checked_at.clear()            # bounded: the periods start again
             self._checked_at[topic] = now
             self._check(topic, payload)
+
+    def _ready_at(self, now: float) -> Callable[[tuple[str, bytes]], bool]:
+        """Whether a waiting snapshot's station was last checked long enough ago."""
+        def ready(item: tuple[str, bytes]) -> bool:
+            return now - self._checked_at.get(item[0], -1e18) >= self.station_period_s
+        return ready
 
     def _check(self, topic: str, payload: bytes) -> None:
         t0 = time.monotonic()
