@@ -141,7 +141,7 @@ class Prior:
         """What the gateway writes into a new test's sidecar: ``method.prior_mean``/``prior_sd``
         go in its ``method:`` section, ``prior_source``/``prior_n``/``prior_n_censored`` beside
         it."""
-        out = {"prior_mean": self.mean, "prior_sd": self.sd, "prior_source": self.source,
+        out: dict[str, Any] = {"prior_mean": self.mean, "prior_sd": self.sd, "prior_source": self.source,
                "prior_n": self.n, "prior_n_censored": self.n_censored}
         if self.origin is not None:
             out["prior_stations"], out["prior_from"] = self.n_stations, self.origin
