@@ -18,9 +18,9 @@ from gateway.northbound.sitelives import record_of
 SITE_BASE = "hookwatch/lab/test/l1"
 
 
-def failure(station: str, tid: str, t_life: float) -> PastTest:
-    """A plausible failure of grade I at 0.5 N (ts 0.02 s, planned 600 s)."""
-    return PastTest("I", 0.5, "failure", t_life, k_b=400, n_slots=round(t_life / 0.02) + 50, ts=0.02,
+def failure(station: str, tid: str, t_life: float, grade: str = "I") -> PastTest:
+    """A plausible failure of ``grade`` at 0.5 N (ts 0.02 s, planned 600 s)."""
+    return PastTest(grade, 0.5, "failure", t_life, k_b=400, n_slots=round(t_life / 0.02) + 50, ts=0.02,
                     test_id=tid, station=station, t_end=600.0, end_reason="failure")
 
 
