@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -74,27 +75,29 @@ class Refused(ValueError):
 _Refused = Refused
 
 
-def nesting_depth(data: bytes, limit: int) -> int:
-    """Deepest ``[``/``{`` nesting outside JSON strings; stops counting past ``limit``."""
+#: a JSON string (an unterminated one runs to the end), for :func:`nesting_depth`
+_JSON_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"?', re.S)
+#: every byte but the brackets (``bytes.translate`` deletes them)
+_NOT_BRACKETS = bytes(b for b in range(256) if b not in b"[]{}")
+
+
+def nesting_depth(data: bytes | bytearray | memoryview, limit: int) -> int:
+    """Deepest ``[``/``{`` nesting outside JSON strings; stops counting past ``limit``. The strings
+    and every other byte go first at C speed (a 256 KiB message costs about a millisecond, not a
+    Python loop over every byte); only the brackets are walked."""
+    raw = bytes(data)
+    # without a backslash, every other quote ends a string: the pieces between them are outside
+    outside = b"".join(raw.split(b'"')[::2]) if b"\\" not in raw else _JSON_STRING.sub(b"", raw)
+    brackets = outside.translate(None, _NOT_BRACKETS)
     depth = deepest = 0
-    in_str = esc = False
-    for b in data:
-        if in_str:
-            if esc:
-                esc = False
-            elif b == 0x5C:        # backslash
-                esc = True
-            elif b == 0x22:        # quote
-                in_str = False
-        elif b == 0x22:
-            in_str = True
-        elif b in (0x5B, 0x7B):    # [ {
+    for b in brackets:
+        if b in (0x5B, 0x7B):      # [ {
             depth += 1
             if depth > deepest:
                 deepest = depth
                 if deepest > limit:
                     return deepest
-        elif b in (0x5D, 0x7D):
+        else:
             depth -= 1
     return deepest
 

@@ -14,7 +14,7 @@ One worker thread per station (``site-lives``) is the store's one writer (:class
   :data:`STATION_PERIOD_S` (its newest then), and after a snapshot that took *d* seconds the
   worker rests ``d · (1/BUSY_SHARE − 1)``, so the lives use at most :data:`BUSY_SHARE` of one
   core however fast they come (the waiting ones are meanwhile replaced by their stations' newer
-  ones) — a station's lives change once per test, a snapshot a second is already more than
+  ones) — a station's lives change once per test, a snapshot every 5 s is already more than
   they are worth;
 - it saves the store at most once per :data:`SAVE_INTERVAL_S` (the first change after a quiet
   interval at once, the changes within an interval together at its end, and at the close),
@@ -52,7 +52,7 @@ GIVE_INTERVAL_S = 2.0
 #: the share of one core the lives' checking may take (the worker rests in between)
 BUSY_SHARE = 0.1
 #: one station's snapshots are checked at most once per this many seconds (its newest then)
-STATION_PERIOD_S = 1.0
+STATION_PERIOD_S = 5.0
 #: a rest is at most this long (s)
 MAX_REST_S = 2.0
 

@@ -79,6 +79,41 @@ def test_nesting_scan_ignores_brackets_in_strings():
     assert nesting_depth(b'{"a": "\\"[[[[["}', 10) == 1
 
 
+def _depth_byte_by_byte(data: bytes, limit: int) -> int:
+    """The scan as it was written first (a Python loop over every byte): the reference."""
+    depth = deepest = 0
+    in_str = esc = False
+    for b in data:
+        if in_str:
+            if esc:
+                esc = False
+            elif b == 0x5C:
+                esc = True
+            elif b == 0x22:
+                in_str = False
+        elif b == 0x22:
+            in_str = True
+        elif b in (0x5B, 0x7B):
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > limit:
+                    return deepest
+        elif b in (0x5D, 0x7D):
+            depth -= 1
+    return deepest
+
+
+@settings(max_examples=2000, deadline=None)
+@given(st.lists(st.sampled_from([b"[", b"]", b"{", b"}", b'"', b"\\", b"a", b",", b":", b" "]), max_size=60),
+       st.integers(0, 12))
+def test_the_fast_nesting_scan_is_the_byte_by_byte_one(parts, limit):
+    """Issue 34: the scan at C speed (strings removed, brackets walked) gives what the byte-by-byte
+    scan gives, for any bytes (unterminated strings, stray escapes, unbalanced brackets)."""
+    data = b"".join(parts)
+    assert nesting_depth(data, limit) == _depth_byte_by_byte(data, limit)
+
+
 def test_refusal_window_reports_the_first_and_counts_the_rest():
     w = RefusalWindow(window_s=60.0)
     assert [w.add("k", 0.0, "a"), w.add("k", 1.0, "b"), w.add("k", 2.0, "c"), w.add("j", 2.0)] == [1, 0, 0, 1]

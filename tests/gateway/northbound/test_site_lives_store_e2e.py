@@ -18,7 +18,16 @@ import yaml
 from gateway.method.prior import history_prior
 from gateway.northbound.sitelives import STORE_NAME
 from kit.broker import Broker, Sub, pub
-from kit.e2e import QUICK_END, QUICK_METHOD, fleet_dir, quick_scenario, run_gateway, station_yaml, virtual_station, wait_log
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    fleet_dir,
+    quick_scenario,
+    run_gateway,
+    station_yaml,
+    virtual_station,
+    wait_log,
+)
 from kit.site_peer import SITE_BASE, SitePeer, failure
 from kit.tools import wait_for
 
