@@ -43,6 +43,7 @@ sys.path.insert(0, HERE)
 
 import paho.mqtt.client as paho  # noqa: E402
 import yaml  # noqa: E402
+from bench_stall import GC_PROBE  # noqa: E402
 from bench_station import EXE, export_rev  # noqa: E402
 from paho.mqtt.enums import CallbackAPIVersion  # noqa: E402
 
@@ -170,8 +171,10 @@ def one_run(args, k: int, gw_env: dict) -> dict:
         "mqtt": {"enabled": True, "port": broker.port, "share_lives": not args.no_share},
         "logging": {"level": "info"}}))
     log = open(work / "gw.log", "w")
-    gw = subprocess.Popen([EXE, "run", str(st), "--realtime", "20"], stdout=log, stderr=subprocess.STDOUT,
-                          env=gw_env)
+    env = {**gw_env, "BENCH_GC_OUT": str(work / "gc.json")}
+    # the gateway under the garbage collector's probe (bench/bench_stall.py): its pauses by generation
+    gw = subprocess.Popen([sys.executable, "-c", GC_PROBE, "run", str(st), "--realtime", "20"], stdout=log,
+                          stderr=subprocess.STDOUT, env=env)
     mes = peer = None
     try:
         t_end = time.monotonic() + 120
@@ -211,6 +214,12 @@ def one_run(args, k: int, gw_env: dict) -> dict:
         broker.stop()
         log.close()
     text = (work / "gw.log").read_text(errors="replace")
+    try:
+        pauses = json.loads((work / "gc.json").read_text())
+    except (OSError, ValueError):
+        pauses = []
+    churned["gc_gen2"] = sum(1 for g, _ms, built in pauses if g == 2 and built)
+    churned["gc_max_ms"] = max((ms for _g, ms, built in pauses if built), default=0.0)
     churned["site_log_lines"] = text.count("the site's lives")
     return {"run": k + 1, "control": control, "churn": churned, "load": os.getloadavg()[0]}
 
@@ -249,7 +258,8 @@ def main() -> None:
               f"{x['commands']} commands, lost {x['lost']}, RTT median {x['rtt_median_ms'] or 0:.1f} ms "
               f"max {x['rtt_max_ms'] or 0:.1f} ms, stop {x['stop_rtt_ms'] or 0:.1f} ms, MISSING "
               f"{x['missing']} of {x['slots']} ({x['filled_pct'] or 0:.3f} % filled), "
-              f"{x['site_log_lines']} log lines | ratios churn/control: RTT median "
+              f"{x['site_log_lines']} log lines, GC gen-2 {x['gc_gen2']} (max pause {x['gc_max_ms']:.1f} ms) "
+              f"| ratios churn/control: RTT median "
               f"{ratio(x['rtt_median_ms'], c['rtt_median_ms']) or 0:.2f}, max "
               f"{ratio(x['rtt_max_ms'], c['rtt_max_ms']) or 0:.2f}, filled "
               f"{ratio(x['filled_pct'], c['filled_pct']) or 0:.4f}", flush=True)

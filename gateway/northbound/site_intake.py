@@ -16,13 +16,17 @@ One worker thread per station (``site-lives``) is the store's one writer (:class
   core however fast they come (the waiting ones are meanwhile replaced by their stations' newer
   ones) — a station's lives change once per test, a snapshot every 5 s is already more than
   they are worth;
+- a snapshot is checked :data:`SETTLE_S` after it came (a burst comes together, and the check
+  does not run while the burst is still being read);
 - it saves the store at most once per :data:`SAVE_INTERVAL_S` (the first change after a quiet
-  interval at once, the changes within an interval together at its end, and at the close),
+  interval :data:`SAVE_LEAD_S` later, the changes within an interval together at its end, and at
+  the close),
   atomically (:func:`gateway.safeout.write_atomic`: exclusive, link-refusing temporary file,
   fsync, rename; the records folder made when missing, so a station that never ran a test keeps
   the site's lives on disk from the first minute);
 - it gives the station the site's lives (the hand-over onto the station's loop, which re-fits the
-  §7a priors off the loop) at most once per :data:`GIVE_INTERVAL_S`, in the same way;
+  §7a priors off the loop) at most once per :data:`GIVE_INTERVAL_S`, in the same way
+  (:data:`GIVE_LEAD_S`), so that the check, the re-fit and the save never run at one moment;
 - it logs what changed in one rate-limited line (:class:`gateway.ratelog.RateLog`), never a line
   per snapshot.
 
@@ -53,6 +57,13 @@ GIVE_INTERVAL_S = 2.0
 BUSY_SHARE = 0.1
 #: one station's snapshots are checked at most once per this many seconds (its newest then)
 STATION_PERIOD_S = 5.0
+#: a snapshot is checked this long after it (or an older one of its station still waiting) came:
+#: a burst comes together first, and the check does not run while the burst is still being read
+SETTLE_S = 1.0
+#: the station is given changed lives, and the store saved, this long after the change at the
+#: earliest (the three never at the same moment as the check)
+GIVE_LEAD_S = 0.5
+SAVE_LEAD_S = 1.5
 #: a rest is at most this long (s)
 MAX_REST_S = 2.0
 
@@ -60,17 +71,28 @@ Give = Callable[[tuple[PastTest, ...]], None]
 
 
 class _Edge:
-    """At most one action per ``interval_s``: a change after a quiet interval acts at once, the
-    changes within an interval together at its end (the worker's clock, never the loop's)."""
+    """At most one action per ``interval_s``: a change after a quiet interval acts ``lead_s``
+    later (so that what a burst brings comes together, and the actions of one change do not all
+    run at the same moment), the changes within an interval together at its end (the worker's
+    clock, never the loop's)."""
 
-    def __init__(self, interval_s: float) -> None:
+    def __init__(self, interval_s: float, lead_s: float = 0.0) -> None:
         self.interval_s = interval_s
+        self.lead_s = lead_s
         self.pending = False
+        self._since = 0.0
         self._last = float("-inf")
+
+    def set(self, now: float, lead: bool = True) -> None:
+        if not self.pending:
+            self.pending = True
+            self._since = now if lead else now - self.lead_s
 
     def due_in(self, now: float) -> float | None:
         """None: nothing pending; else seconds until it is due (≤ 0: now)."""
-        return None if not self.pending else self._last + self.interval_s - now
+        if not self.pending:
+            return None
+        return max(self._last + self.interval_s, self._since + self.lead_s) - now
 
     def done(self, now: float) -> None:
         self.pending = False
@@ -93,8 +115,12 @@ class LivesIntake:
         #: when each station's snapshot was last checked (by topic; bounded by the site's stations)
         self._checked_at: dict[str, float] = {}
         self.box: Mailbox[tuple[str, bytes]] = Mailbox(INTAKE_MAX, key=lambda it: it[0])
-        self._save = _Edge(save_interval_s)
-        self._give = _Edge(give_interval_s)
+        self._save = _Edge(save_interval_s, SAVE_LEAD_S)
+        self._give = _Edge(give_interval_s, GIVE_LEAD_S)
+        #: when the oldest waiting snapshot of each station came (by topic; the pump thread
+        #: sets it, the worker clears it once it checked the station)
+        self._arrived: dict[str, float] = {}
+        self.settle_s = SETTLE_S
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
         self.changes = RateLog(log)
@@ -107,6 +133,10 @@ class LivesIntake:
         if station is None or station == self.site.own or self._closed.is_set():
             return
         before = self.box.dropped
+        if topic not in self._arrived:
+            if len(self._arrived) >= 4 * INTAKE_MAX:
+                self._arrived.clear()           # bounded (dropped ones' times): they settle again
+            self._arrived[topic] = time.monotonic()
         self.box.put_nowait((topic, payload))
         if self.box.dropped != before:
             self.counters["lives_dropped"] += self.box.dropped - before
@@ -137,7 +167,7 @@ class LivesIntake:
             if n:
                 log.info("%s: the site's lives: %d tests of %d stations from %s", self.site.own, n,
                          self.site.stations(), self.site.path)
-                self._give.pending = True
+                self._give.set(time.monotonic(), lead=False)   # at once: the start
         except Exception:   # noqa: BLE001 - the store's load never ends the worker
             log.exception("%s: the site's lives could not be read", self.site.own)
         self.loaded.set()
@@ -150,11 +180,12 @@ class LivesIntake:
                 break
             now = time.monotonic()
             got = self.box.take(1, ready=self._ready_at(now))
-            if not got:             # snapshots wait for their station's period: rest a little
+            if not got:             # snapshots wait to settle or for their station's period
                 if len(self.box):
-                    self._closed.wait(min(0.1, self.station_period_s))
+                    self._closed.wait(0.1)
                 continue
             topic, payload = got[0]
+            self._arrived.pop(topic, None)
             if topic not in self._checked_at and len(self._checked_at) >= 4 * INTAKE_MAX:
                 self._checked_at.clear()            # bounded: the periods start again
             self._checked_at[topic] = now
@@ -163,7 +194,8 @@ class LivesIntake:
     def _ready_at(self, now: float) -> Callable[[tuple[str, bytes]], bool]:
         """Whether a waiting snapshot's station was last checked long enough ago."""
         def ready(item: tuple[str, bytes]) -> bool:
-            return now - self._checked_at.get(item[0], -1e18) >= self.station_period_s
+            return (now - self._checked_at.get(item[0], -1e18) >= self.station_period_s
+                    and now - self._arrived.get(item[0], -1e18) >= self.settle_s)
         return ready
 
     def _check(self, topic: str, payload: bytes) -> None:
@@ -176,7 +208,9 @@ class LivesIntake:
             changed = False
         self.counters["lives_checked"] += 1
         if changed:
-            self._save.pending = self._give.pending = True
+            now = time.monotonic()
+            self._save.set(now)
+            self._give.set(now)
             self.changes.info("changed", "%s: the site's lives: %d tests of %d other station(s)",
                               self.site.own, len(self.site.tests()), self.site.stations())
         d = time.monotonic() - t0
