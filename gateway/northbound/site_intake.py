@@ -102,7 +102,8 @@ class _Edge:
 class LivesIntake:
     """The site's lives of one station, taken off its threads (module docstring). ``give`` hands
     the site's lives to the station (any thread; it must not block); ``counters`` are the MQTT
-    pump's (``lives_dropped``, ``lives_checked``, ``lives_saves``, ``lives_save_errors``)."""
+    pump's (``lives_dropped``, ``lives_checked``, ``lives_saves``, ``lives_save_errors``,
+    ``contested_ids``)."""
 
     def __init__(self, site: SiteLives, give: Give, counters: MutableMapping[str, int],
                  save_interval_s: float = SAVE_INTERVAL_S, give_interval_s: float = GIVE_INTERVAL_S,
@@ -207,6 +208,7 @@ class LivesIntake:
                              self.site.own, exc_info=True)
             changed = False
         self.counters["lives_checked"] += 1
+        self.counters["contested_ids"] = self.site.counters["contested_ids"]
         if changed:
             now = time.monotonic()
             self._save.set(now)
