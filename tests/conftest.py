@@ -128,6 +128,8 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py",
         "tests/gateway/northbound/test_northbound_wear_e2e.py",
         "tests/gateway/northbound/test_site_lives_e2e.py",
+        "tests/gateway/northbound/test_site_lives_churn_e2e.py",
+        "tests/gateway/northbound/test_site_lives_store_e2e.py",
         "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py",
         "tests/gateway/station/test_stall_e2e.py",
         "tests/gateway/station/test_station_start_e2e.py",
@@ -239,6 +241,9 @@ FLEETS = (
     # as heavy as a fleet; beside one, its compressed life ended in protection stops (ci runs 4, 5)
     "tests/gateway/northbound/test_forecast_doors_e2e.py",
     "tests/gateway/commands/test_console_demo.py",
+    # two stations at 50 Hz under a flood of 600 lives snapshots of 115 KB through the broker,
+    # compared with each other: beside another fleet both would only measure that fleet
+    "tests/gateway/northbound/test_site_lives_churn_e2e.py",
 )
 
 
@@ -249,7 +254,7 @@ FLEETS = (
 #: gaps at the end (longest processing time first); without it xdist ordered the units by their
 #: number of tests, and the 3-minute broker outage life began 6 minutes in, on the critical path
 LONGEST_FIRST: dict[str, int] = {
-    FLEET_GROUP: 390,
+    FLEET_GROUP: 430,
     "rabbitmq": 230,
     "tests/gateway/northbound/test_northbound_e2e.py": 215,
     "tests/gateway/station/test_station_e2e.py": 185,
@@ -258,6 +263,7 @@ LONGEST_FIRST: dict[str, int] = {
     "tests/gateway/station/test_station_start_e2e.py": 95,
     "tests/gateway/console/test_console_http.py": 65,
     "tests/gateway/station/test_retention_e2e.py": 60,
+    "tests/gateway/northbound/test_site_lives_store_e2e.py": 100,
     "tests/gateway/station/test_stall_e2e.py": 57,
     "tests/gateway/test_doors_station_e2e.py": 47,
     "tests/gateway/console/test_console_browser.py": 45,
