@@ -107,7 +107,8 @@ class LivesIntake:
 
     def __init__(self, site: SiteLives, give: Give, counters: MutableMapping[str, int],
                  save_interval_s: float = SAVE_INTERVAL_S, give_interval_s: float = GIVE_INTERVAL_S,
-                 busy_share: float = BUSY_SHARE, station_period_s: float = STATION_PERIOD_S) -> None:
+                 busy_share: float = BUSY_SHARE, station_period_s: float = STATION_PERIOD_S,
+                 settle_s: float = SETTLE_S) -> None:
         self.site = site
         self.give = give
         self.counters = counters
@@ -121,7 +122,7 @@ class LivesIntake:
         #: when the oldest waiting snapshot of each station came (by topic; the pump thread
         #: sets it, the worker clears it once it checked the station)
         self._arrived: dict[str, float] = {}
-        self.settle_s = SETTLE_S
+        self.settle_s = settle_s
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
         self.changes = RateLog(log)

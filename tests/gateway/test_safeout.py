@@ -88,3 +88,24 @@ def test_markdown_text_is_one_line_without_live_specials():
                 while j > 0 and m[j - 1] == "\\":
                     j -= 1
                 assert (i - j) % 2 == 1, (s, m)
+
+
+def test_write_atomic_never_writes_through_a_link_and_makes_the_folder(tmp_path):
+    """Issue 34: a planted link at the temporary name (or the name) is replaced, its target kept."""
+    import os
+
+    from gateway.safeout import TMP_SUFFIX, write_atomic
+
+    outside = tmp_path / "outside.txt"
+    outside.write_text("precious")
+    target = tmp_path / "new" / "folder" / "f.json"
+    write_atomic(str(target), b"{}")                      # the folder is made
+    assert target.read_bytes() == b"{}"
+    os.symlink(outside, str(target) + TMP_SUFFIX)
+    write_atomic(str(target), b'{"a":1}')
+    assert outside.read_text() == "precious" and target.read_bytes() == b'{"a":1}'
+    assert not os.path.lexists(str(target) + TMP_SUFFIX)
+    target.unlink()
+    os.symlink(outside, target)                           # the file itself a link: the link goes
+    write_atomic(str(target), b"[]")
+    assert outside.read_text() == "precious" and not target.is_symlink() and target.read_bytes() == b"[]"

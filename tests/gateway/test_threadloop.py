@@ -110,3 +110,27 @@ def test_a_mailbox_names_what_it_drops_and_hands_over_one_at_a_time():
         mb.put_nowait(i)
     t.join(10)
     assert not t.is_alive() and got == list(range(20)) and gone == [0, 1]
+
+
+def test_a_keyed_mailbox_keeps_the_newest_item_of_a_key_in_its_place_and_counts_the_replaced():
+    """Issue 34: a station's newest lives snapshot replaces the one still waiting."""
+    dropped: list[tuple[str, int]] = []
+    box: Mailbox[tuple[str, int]] = Mailbox(3, key=lambda it: it[0], on_drop=dropped.append)
+    assert box.put_nowait(("a", 1)) and box.put_nowait(("b", 1))
+    for i in range(2, 400):
+        assert not box.put_nowait(("a", i))          # replaced, never a second "a"
+    assert box.drain() == [("a", 399), ("b", 1)]   # in the first one's place
+    assert box.dropped == box.replaced == 398 and dropped[0] == ("a", 1) and len(dropped) == 398
+    for k in "cdef":                               # more keys than room: the oldest goes
+        box.put_nowait((k, 0))
+    assert [k for k, _ in box.drain()] == ["d", "e", "f"] and box.replaced == 398 and box.dropped == 399
+
+
+def test_take_with_ready_leaves_the_items_not_ready_in_their_place():
+    box: Mailbox[tuple[str, int]] = Mailbox(8, key=lambda it: it[0])
+    for k in "abc":
+        box.put_nowait((k, 0))
+    assert box.take(1, ready=lambda it: it[0] != "a") == [("b", 0)]
+    assert box.take(5, ready=lambda it: False) == [] and box.wait(0)   # still waiting: awake
+    box.put_nowait(("a", 1))                       # a newer "a" takes the waiting one's place
+    assert box.take(5) == [("a", 1), ("c", 0)] and not box.wait(0)

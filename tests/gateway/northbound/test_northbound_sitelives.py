@@ -176,3 +176,44 @@ def test_on_by_default_for_mqtt_stations_and_one_key_turns_it_off(tmp_path):
         out_on.pump.join(0)
         out_off.pump.join(0)
         out_on.site.close()
+
+
+def test_the_intake_keeps_a_stations_newest_snapshot_counts_the_rest_and_saves_seldom(tmp_path, caplog):
+    """Issue 34 item 1: 300 changing snapshots of one station, put as fast as a pump thread can:
+    each is checked or dropped unread for a newer one (counted), the store ends with the newest,
+    the file is written far fewer times, the log has one rate-limited line, and the station is
+    given the lives (coalesced)."""
+    import collections
+    import threading
+
+    from gateway.northbound.site_intake import LivesIntake
+    from kit.tools import wait_for
+
+    path = tmp_path / "no" / "folder" / "yet" / SL.STORE_NAME     # made when needed
+    site = SL.SiteLives(str(path), "b")
+    counters: collections.Counter[str] = collections.Counter()
+    given: list[int] = []
+    lock = threading.Lock()
+
+    def give(tests):
+        with lock:
+            given.append(len(tests))
+    intake = LivesIntake(site, give, counters, save_interval_s=0.5, give_interval_s=0.2,
+                         station_period_s=0.05, settle_s=0.0)
+    intake.start()
+    with caplog.at_level(logging.INFO, logger="hookwatch.site"):
+        for i in range(300):
+            intake.put(TOPIC_A, payload("a", A_LIVES[:4] + [life(100 + i, station="a")]))
+        intake.put(SL.lives_topic("hookwatch/plant/hall/l1/b"), payload("b", A_LIVES))   # its own: ignored
+        wait_for(lambda: counters["lives_checked"] + counters["lives_dropped"] == 300, 60,
+                 what="every snapshot checked or dropped")
+        wait_for(lambda: "T-a-399" in {t.test_id for t in site.tests()}, 60, what="the newest kept")
+        wait_for(lambda: given and given[-1] == 5, 60, what="the station given the lives")
+        intake.close()
+    assert counters["lives_dropped"] > 0 and intake.box.replaced == counters["lives_dropped"]
+    assert counters["lives_saves"] >= 1 and counters["lives_saves"] * 10 < 300
+    again = SL.SiteLives(str(path), "b")
+    assert again.load() == 5 and "T-a-399" in {t.test_id for t in again.tests()}
+    assert len(given) < 300
+    lines = [r.getMessage() for r in caplog.records if "the site's lives:" in r.getMessage()]
+    assert 1 <= len(lines) <= 2, lines
