@@ -174,7 +174,7 @@ def one_run(args, k: int, gw_env: dict) -> dict:
     env = {**gw_env, "BENCH_GC_OUT": str(work / "gc.json")}
     # the gateway under the garbage collector's probe (bench/bench_stall.py): its pauses by generation
     gw = subprocess.Popen([sys.executable, "-c", GC_PROBE, "run", str(st), "--realtime", "20"], stdout=log,
-                          stderr=subprocess.STDOUT, env=env)
+                          stderr=subprocess.STDOUT, env=env, cwd=str(work))   # `-c` imports from the cwd
     mes = peer = None
     try:
         t_end = time.monotonic() + 120
