@@ -292,6 +292,11 @@ class SiteLives:
         station = station_of(topic)
         if station is None or station == self.own:
             return False
+        if not _printable(station, MAX_ID_CHARS):  # it is named in priors, the state, the sidecar
+            self.counters["refused_messages"] += 1
+            self.refused.warning("station", "%s: the lives of station %s refused: not a station id "
+                                 "(1 to %d printable characters)", self.own, clip(station, 40), MAX_ID_CHARS)
+            return False
         if not payload:                            # a retired station's topic cleared
             with self._lock:
                 gone = self._by_station.pop(station, None) is not None

@@ -43,6 +43,7 @@ from ..method.prior import (
     resolve_prior,
     same_t_set,
 )
+from ..ratelog import safe
 
 __all__ = ["PriorBook", "SOURCE_METHOD"]
 
@@ -133,7 +134,7 @@ def origin(station_id: str, tests: list[PastTest]) -> tuple[int, str, tuple[str,
     if not others:
         return 1, f"this station: {len(tests)} tests", names[:NAMED_IN_SIDECAR]
     k = len(others) + (1 if here else 0)
-    named = ", ".join(f"{n} {c}" for n, c in others[:NAMED_IN_WORDS])
+    named = ", ".join(f"{safe(n)} {c}" for n, c in others[:NAMED_IN_WORDS])
     more = len(others) - NAMED_IN_WORDS
     if more > 0:
         named += f" and {more} more"

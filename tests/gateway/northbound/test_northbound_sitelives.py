@@ -217,3 +217,13 @@ def test_the_intake_keeps_a_stations_newest_snapshot_counts_the_rest_and_saves_s
     assert len(given) < 300
     lines = [r.getMessage() for r in caplog.records if "the site's lives:" in r.getMessage()]
     assert 1 <= len(lines) <= 2, lines
+
+
+def test_a_station_id_that_is_not_one_is_refused():
+    """A topic level of 10,000 characters (or a control character) never reaches a prior's words,
+    the state or a sidecar."""
+    st = SL.SiteLives(None, "b")
+    for bad in ("x" * 10_000, "a\tb"):
+        assert not st.receive(f"hookwatch/plant/h/l/{bad}/lives", payload(bad, A_LIVES))
+    assert st.counters["refused_messages"] == 2 and st.tests() == ()
+    st.close()
