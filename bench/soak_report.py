@@ -6,9 +6,11 @@ the gateway's processes (supervisor + workers) — RSS in all and of the largest
 open descriptors —, the disk (records folder, the site's lives files, the outboxes) and Mosquitto's
 RSS; then each figure's growth per hour (least squares over the samples after ``--settle`` s) and
 its extrapolation to a month (30 days) of the same load; the CPU of the gateway; the stations'
-slots from the ``end`` line.
+slots from the ``end`` line. The growth is fitted after ``--settle`` (by default 70 minutes in a
+soak of 2 hours: a station's slot statistics — ``SlotStats.lateness`` and ``rtt``, bounded deques
+of 200,000 slots — fill in its first 67 minutes at 50 Hz, ≈ 12.8 MB per station, and stay full).
 
-    bench/soak_report.py /work/coord/soak/lives-soak.jsonl [--settle 600]
+    bench/soak_report.py /work/coord/soak/lives-soak.jsonl [--settle 4200]
 """
 from __future__ import annotations
 
@@ -35,7 +37,10 @@ def slope(xs: list[float], ys: list[float]) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("samples")
-    ap.add_argument("--settle", type=float, default=600.0, help="seconds before the growth is fitted")
+    ap.add_argument("--settle", type=float, default=None,
+                    help="seconds before the growth is fitted (default: 70 min when the soak is "
+                    "longer than 100 min, else 10 min — a station's slot statistics fill their "
+                    "bounded deques of 200,000 slots (12.8 MB) in its first 67 minutes at 50 Hz)")
     args = ap.parse_args()
     start, end, samples = None, None, []
     with open(args.samples) as f:
@@ -54,6 +59,8 @@ def main() -> None:
     if not samples:
         sys.exit("no samples")
     hours = samples[-1]["t_s"] / 3600
+    if args.settle is None:
+        args.settle = 4200.0 if samples[-1]["t_s"] > 6000 else 600.0
     print(f"Soak: {start.get('stations') if start else '?'} stations, "
           f"{start.get('peers') if start else '?'} site peers × {start.get('peer_lives') if start else '?'} "
           f"lives at {start.get('peer_rate') if start else '?'} snapshots/s each, a burst of "
@@ -77,7 +84,8 @@ def main() -> None:
         cells = [name] + [f"{v:g}" for v in vals] + [f"{k:+.3g}", f"{month:.4g}"]
         print("| " + " | ".join(cells) + " |")
     cpu = (samples[-1]["cpu_s_sum"] - fit[0]["cpu_s_sum"]) / max(1e-9, samples[-1]["t_s"] - fit[0]["t_s"])
-    print(f"\nGateway CPU (supervisor + workers, after the settling): {100 * cpu:.1f} % of one core; "
+    print(f"\n(growth fitted over {len(fit)} samples from {fit[0]['t_s'] / 60:.0f} min on)")
+    print(f"Gateway CPU (supervisor + workers, after the settling): {100 * cpu:.1f} % of one core; "
           f"processes {samples[0]['n_procs']} → {samples[-1]['n_procs']}; "
           f"load (1 min) {min(s['loadavg_1min'] for s in samples):.1f}–{max(s['loadavg_1min'] for s in samples):.1f}")
     if end is not None:
