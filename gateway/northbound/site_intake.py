@@ -16,8 +16,9 @@ One worker thread per station (``site-lives``) is the store's one writer (:class
   core however fast they come (the waiting ones are meanwhile replaced by their stations' newer
   ones) — a station's lives change once per test, a snapshot every 5 s is already more than
   they are worth;
-- a snapshot is checked :data:`SETTLE_S` after it came (a burst comes together, and the check
-  does not run while the burst is still being read);
+- a station's snapshot is checked once its station has been quiet for :data:`SETTLE_S` (no newer
+  one came), or :data:`MAX_SETTLE_S` after the first of them came if it keeps publishing: a burst
+  comes together, and the check does not run while the burst is still being read;
 - it saves the store at most once per :data:`SAVE_INTERVAL_S` (the first change after a quiet
   interval :data:`SAVE_LEAD_S` later, the changes within an interval together at its end, and at
   the close),
@@ -60,6 +61,8 @@ STATION_PERIOD_S = 5.0
 #: a snapshot is checked this long after it (or an older one of its station still waiting) came:
 #: a burst comes together first, and the check does not run while the burst is still being read
 SETTLE_S = 1.0
+#: a station that keeps publishing has its newest checked this long after the first came
+MAX_SETTLE_S = 5.0
 #: the station is given changed lives, and the store saved, this long after the change at the
 #: earliest (the three never at the same moment as the check)
 GIVE_LEAD_S = 0.5
@@ -122,6 +125,8 @@ class LivesIntake:
         #: when the oldest waiting snapshot of each station came (by topic; the pump thread
         #: sets it, the worker clears it once it checked the station)
         self._arrived: dict[str, float] = {}
+        #: when each station's newest waiting snapshot came (the same bounds)
+        self._latest: dict[str, float] = {}
         self.settle_s = settle_s
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
@@ -135,10 +140,13 @@ class LivesIntake:
         if station is None or station == self.site.own or self._closed.is_set():
             return
         before = self.box.dropped
+        now = time.monotonic()
         if topic not in self._arrived:
             if len(self._arrived) >= 4 * INTAKE_MAX:
                 self._arrived.clear()           # bounded (dropped ones' times): they settle again
-            self._arrived[topic] = time.monotonic()
+                self._latest.clear()
+            self._arrived[topic] = now
+        self._latest[topic] = now
         self.box.put_nowait((topic, payload))
         if self.box.dropped != before:
             self.counters["lives_dropped"] += self.box.dropped - before
@@ -188,6 +196,7 @@ class LivesIntake:
                 continue
             topic, payload = got[0]
             self._arrived.pop(topic, None)
+            self._latest.pop(topic, None)
             if topic not in self._checked_at and len(self._checked_at) >= 4 * INTAKE_MAX:
                 self._checked_at.clear()            # bounded: the periods start again
             self._checked_at[topic] = now
@@ -197,7 +206,8 @@ class LivesIntake:
         """Whether a waiting snapshot's station was last checked long enough ago."""
         def ready(item: tuple[str, bytes]) -> bool:
             return (now - self._checked_at.get(item[0], -1e18) >= self.station_period_s
-                    and now - self._arrived.get(item[0], -1e18) >= self.settle_s)
+                    and (now - self._latest.get(item[0], -1e18) >= self.settle_s
+                         or now - self._arrived.get(item[0], -1e18) >= max(self.settle_s, MAX_SETTLE_S)))
         return ready
 
     def _check(self, topic: str, payload: bytes) -> None:
