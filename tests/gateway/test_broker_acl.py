@@ -2,7 +2,8 @@
 identity may write and read, checked against the topics the gateway really publishes (its own
 message builders), and every site that would let one box write another's topics refused.
 
-The brokers themselves enforce them in tests/deploy/test_deploy_acl.py (Mosquitto, RabbitMQ) and
+Mosquitto enforces the Sparkplug part below; the brokers enforce the shipped permissions in
+tests/deploy/test_deploy_acl.py (Mosquitto, RabbitMQ) and
 tests/gateway/northbound/test_acl_prior_e2e.py (a forging box cannot poison a prior)."""
 import re
 
@@ -16,6 +17,7 @@ from gateway.northbound import mqtt_schema as S
 from gateway.northbound.sitelives import lives_topic
 from gateway.northbound.sparkplug.namespace import NodeTopics
 from gateway.records import Event, EventType, StationState
+from kit.broker import ACCEPTED, NOT_AUTHORIZED, Broker, Publisher
 
 A1 = "hookwatch/plant-a/hall-2/line-1/loom-01"
 A2 = "hookwatch/plant-a/hall-2/line-1/loom-02"
@@ -126,6 +128,25 @@ def test_sparkplug_a_box_is_its_edge_node_and_the_mes_its_host():
         assert not may_write(a, topic) and not may_write(_grant(gs, "op"), topic)
     # RabbitMQ's sparkplug_b option routes spBv1.0 as spBv1_0: the same permissions hold
     assert re.fullmatch(A.write_regex(a.writes), A.routing_key(n.topic("NBIRTH")).replace("spBv1.0", "spBv1_0"))
+
+
+def test_sparkplug_permissions_on_a_real_mosquitto(tmp_path):
+    """The same on the broker: the node's births pass for its box only, its commands for the MES."""
+    users = {"box-a": "a", "box-b": "b", "mes": "m"}
+    n = NodeTopics(NODE.group, NODE.node, NODE.host)
+    with Broker(tmp_path, users=users, acl=A.mosquitto(A.grants(_site()), [])) as b:
+        clients = {u: Publisher(b.port, u, pw) for u, pw in users.items()}
+        try:
+            for topic in (n.topic("NBIRTH"), n.topic("DDATA", "loom-01")):
+                assert clients["box-a"].publish(topic, b"x") in ACCEPTED
+                assert clients["box-b"].publish(topic, b"x") == NOT_AUTHORIZED
+                assert clients["mes"].publish(topic, b"x") == NOT_AUTHORIZED
+            for topic in (n.topic("NCMD"), n.topic("DCMD", "loom-01"), n.state_topic()):
+                assert clients["mes"].publish(topic, b"x") in ACCEPTED
+                assert clients["box-a"].publish(topic, b"x") == NOT_AUTHORIZED
+        finally:
+            for c in clients.values():
+                c.close()
 
 
 def test_a_bridge_announces_itself():
