@@ -216,3 +216,13 @@ def test_rabbitmq_refuses_a_level_it_would_read_as_two():
 def test_overlap():
     assert A.overlap("a/+/c", "a/b/#") and A.overlap("a/#", "a") and A.overlap("+/+", "x/y")
     assert not A.overlap("a/b", "a/c") and not A.overlap("a/b", "a/b/c") and not A.overlap("a/+", "a")
+
+
+def test_a_sparkplug_only_station_gets_its_node_and_no_json_tree():
+    site = A.SiteAcl((A.Box("box-a", (A.StationTopics("loom-01", None, sparkplug=NODE),)),), (A.Commander("mes"),))
+    a, mes = A.grants(site)
+    n = NodeTopics(NODE.group, NODE.node, NODE.host)
+    assert set(a.writes) == set(n.publications(("loom-01",)))
+    assert set(a.reads) == {t for t, _ in n.subscriptions()}
+    assert set(mes.writes) == {n.topic("NCMD"), n.topic("DCMD", "loom-01"), n.state_topic()}
+    assert "hookwatch" not in A.rabbitmq([a, mes], [])
