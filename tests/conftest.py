@@ -203,6 +203,7 @@ CPU: dict[str, tuple[str, ...]] = {
     "tests/gateway/method/test_method_property.py": ("*",),
     "tests/gateway/method/test_method_vectors.py": ("*",),
     "tests/gateway/method/test_prior_mle.py": ("*",),
+    "tests/gateway/method/test_prior_early.py": ("*",),
     "tests/gateway/report/test_report_priors_campaign.py": ("*",),
     "tests/gateway/report/test_report_campaign.py": ("*",),
     "tests/gateway/report/test_report_bad_input.py": ("*",),
