@@ -3,11 +3,12 @@
 Without ``--replaced``: the station's life log of replaced hooks (``<recorder.dir>/<station>/
 hooks.jsonl``, the newest 10,000 lines; a damaged line is skipped with one log line), one line
 per replacement with the old hook's life and what it was in the METHOD.md §7a history when it was
-replaced (a wear-out failure, an early failure — §7a v3 —, or censored). With ``--replaced``: tells the running station that its hook was replaced — the
-command ``hook_replaced`` over the station's MQTT broker (``cmd/hook_replaced`` with a request id;
-the station's answer on ``reply`` is printed), through the same intake and validation as every
-other door. The running test ends, the replacement is logged, and with
-``test.restart_on_replace`` the next test starts with the new hook.
+replaced (a wear-out failure, an early failure — §7a v3 —, or censored). With ``--replaced``:
+tells the running station that its hook was replaced — the command ``hook_replaced`` over the
+station's MQTT broker (``cmd/hook_replaced`` with a request id; the station's answer on ``reply``
+is printed), through the same intake and validation as every other door. The running test ends,
+the replacement is logged, and with ``test.restart_on_replace`` the next test starts with the new
+hook.
 """
 from __future__ import annotations
 
@@ -68,7 +69,8 @@ def run(args) -> int:
         print(f"{cfg.station.id}: no hook replaced yet ({os.path.join(d, HOOKS_NAME)})")
         return 0
     for h in hooks:
-        kind = LIFE_KINDS.get(h.get("life_kind")) if isinstance(h.get("life_kind"), str) else None
+        lk = h.get("life_kind")
+        kind = LIFE_KINDS.get(lk) if isinstance(lk, str) else None
         print(f"{h.get('utc', '?')}  {h.get('old_sample_id')} → {h.get('new_sample_id')}  "
               f"grade {_fmt(h.get('grade'))}  life {_fmt(h.get('life_s'))}"
               f"{'' if kind is None else f' ({kind})'}  "
