@@ -510,8 +510,12 @@
       $("#due-note").textContent = `${rows.length} stations, ${rows.filter(x => x.due).length} due` +
         (siteCb.checked ? `, ${rows.filter(x => x.remote).length} of other boxes` : "");
     }
+    // a refresh that answers after the planner left the page draws nothing (its table is gone)
+    let gone = false;
+    cleanup.push(() => { gone = true; });
     async function load() {
       const r = await api("/api/due" + query());
+      if (gone) return;
       if (r.status !== 200) { say(r.reason); return; }
       fill(fl, r.lines, fl.value || want.line); fill(fa, r.areas, fa.value || want.area);
       $("#csv").href = "/api/due.csv" + query();
