@@ -129,7 +129,7 @@ def state_key(st: StationState) -> tuple[Any, ...]:
             st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
             st.warning_alarm, st.disk_ok, st.end_p10, st.end_p50, st.end_p90,
             st.p_end, st.due, tuple(st.warn_reasons), st.prior_mean, st.prior_sd, st.prior_source,
-            st.lead_s, st.p_due, st.test_started_utc)
+            st.prior_n, st.prior_n_censored, st.prior_n_early, st.lead_s, st.p_due, st.test_started_utc)
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:

@@ -94,9 +94,15 @@ FORECAST_STATE_FIELDS = FORECAST_FIELDS + (
     Field("prior_mean", "float|null", "the test's life prior, mean, s (§7a)"),
     Field("prior_sd", "float|null", "the test's life prior, SD, s"),
     Field("prior_source", "str|null", "where the prior came from: `method` (fixed in the station's "
-          "method section), `config` (forecast.priors), `history:N` (N recorded failures; from other "
+          "method section), `config` (forecast.priors), `history:N` (N recorded wear-out failures; from other "
           "stations too: `history:N (the site: T tests from K stations (M of this station))`, "
           "METHOD.md §7a), null: none"),
+    Field("prior_n", "int|null", "the count of wear-out failures the prior came from (§7a; a "
+          "configured prior: the count its entry gives, or null)"),
+    Field("prior_n_censored", "int|null", "… of right-censored lives (hooks replaced or tests "
+          "ended before their end of life)"),
+    Field("prior_n_early", "int|null", "… of early failures (§7a v3: a failure below 0.75 × the "
+          "median of all lives, counted as a censored life, not as wear)"),
     Field("lead_s", "float|null", "the planner's lead (§5b `lead`), s"),
     Field("p_due", "float|null", "the bound P is held against (§5b `p_due`)"),
     Field("test_started_utc", "str|null", "UTC time of the test's slot 0, ISO 8601"),
@@ -362,7 +368,9 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                              ("zero_offsets_n", "zero offsets {T1, T2}, N (information only)"),
                              ("prior_mean", "the life prior's mean, s (§7a; null: none)"),
                              ("prior_sd", "its SD, s"), ("prior_source", "method, config, history:N"),
-                             ("prior_n", "the count of tests it came from (or null)")),
+                             ("prior_n", "the count of wear-out failures it came from (or null)"),
+                             ("prior_n_censored", "… of right-censored lives"),
+                             ("prior_n_early", "… of early failures (§7a v3)")),
     EventType.BASELINE: (("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
                          ("k_b", "slot of the baseline"), ("stable_first", "first slot of the stable segment")),
     EventType.END_OF_LIFE: (("k_life", "slot of the end of life"), ("t_life", "wear life, s"),
@@ -384,6 +392,9 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                               ("utc", "when, ISO 8601"),
                               ("test_id", "the old hook's last test (or null)"),
                               ("life_s", "its t_life if it failed, else how long that test ran, s"),
+                              ("life_kind", "that life in the §7a history when it was replaced: "
+                               "wear_out (a wear-out failure), early (an early failure, §7a v3), "
+                               "censored (replaced before its end of life), or null (no life)"),
                               ("logged", "the line reached hooks.jsonl (false: the disk refused it)")),
     EventType.PROTECTION_STOP: (("stop_reasons", "unsafe reasons of the run that stopped the test"),),
     EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
@@ -785,6 +796,9 @@ def render() -> str:
         "`lives_requests_deferred`, `lives_answers` in the MQTT counters) and logged in one "
         "rate-limited line, and costs nothing else. A receiver keeps each station's newest "
         "snapshot, each test once by test id: a duplicate changes nothing. "
+        "The lives go on the wire as they are (a failure's t_life, a censored life's n_slots · ts, "
+        "never a class): each gateway classes the early failures of its pooled history itself "
+        "(METHOD.md §7a v3), so the same lives give every box the same prior. "
         "*Kept locally* (`site_lives.json` in the station's records "
         "folder), so a gateway that restarts while the broker is down still has the site's lives. "
         "A retired station's lives are removed by clearing its retained topic (an empty retained "
@@ -795,7 +809,7 @@ def render() -> str:
         "a malformed message or an implausible record is refused with one counted, rate-limited "
         "log line and never reaches a prior. At most 500 lives per station, 256 stations and "
         "20,000 lives in all are kept. The sidecar of a test says where its prior came from "
-        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_stations`, "
+        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_n_early`, `prior_stations`, "
         "`prior_from`: `this station: N tests` or `the site: N tests from K stations (M of this "
         "station)`); the state's `prior_source` adds the same words to `history:N`.",
         "",
