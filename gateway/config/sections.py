@@ -26,6 +26,7 @@ from typing import Any
 
 from drivers.stm32_protocol import watchdog_for
 
+from ..commandtypes import COMMAND_DOORS_MAX, door_problem
 from ..control import ControlParams, NotchParams
 from ..method.params import MAX_TENSION, TEN_YEARS
 from ..method.params import PARAMS as METHOD_PARAMS
@@ -415,6 +416,14 @@ class MqttConfig(BrokerConfig):
                             "`station.site` on the broker, and pool theirs into the life prior's "
                             "history (METHOD.md §7a; a retained `<base>/lives` per station, "
                             "docs/mqtt.md); false: neither share nor receive", kind="bool")
+    command_doors: tuple[str, ...] = key((), "named command doors besides the default "
+                                         "`<base>/cmd/<command>` (the MES's): each "
+                                         "`<base>/cmd/<door>/<command>` for another writer (an "
+                                         "operator's panel, a second MES), with its own command "
+                                         "budget (source `mqtt:<door>`, docs/limits.md); the "
+                                         "broker's ACL confines each writer to its door "
+                                         "(`hookwatch config acl`)", kind="str_list",
+                                         example=["operator"])
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
 
 
@@ -955,6 +964,18 @@ def _control(cfg, r):
                         f"{nyq:g} Hz of ts = {ts:g} s; allowed: < {nyq:g}")
 
 
+def _doors(cfg, r):
+    doors = cfg.mqtt.command_doors
+    if len(doors) > COMMAND_DOORS_MAX:
+        r.error(("mqtt", "command_doors"), f"{len(doors)} doors; allowed: at most {COMMAND_DOORS_MAX}")
+    for i, d in enumerate(doors):
+        why = door_problem(d)
+        if why is not None:
+            r.error(("mqtt", "command_doors"), f"item {i + 1} ({d!r}): {why}")
+        elif d in doors[:i]:
+            r.error(("mqtt", "command_doors"), f"item {i + 1} ({d!r}) is listed twice")
+
+
 RULES: tuple[Rule, ...] = (
     Rule("`modbus_tcp.writes.enabled: true` needs a non-empty `allowed_clients`.", _writes),
     Rule("`mqtt.password` is never accepted inline: use `password_env` or `password_file` (one of them).",
@@ -969,6 +990,8 @@ RULES: tuple[Rule, ...] = (
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
          "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
          _control),
+    Rule(f"`mqtt.command_doors`: at most {COMMAND_DOORS_MAX}, each 1–32 letters, digits, '-' and '_' "
+         "(no command's name), none twice.", _doors),
 )
 
 

@@ -262,7 +262,8 @@ REPLY_FIELDS = ENVELOPE + (
     Field("command", "str", "the command answered (" + ", ".join(k.value for k in CommandKind)
           + ", or the unknown name)"),
     Field("request_id", "str|null", "the request_id of the command, if it had one"),
-    Field("source", "str", "`mqtt`"),
+    Field("source", "str", "the door the command came in by: `mqtt` (`cmd/<command>`), or "
+          "`mqtt:<door>` for a named door (`cmd/<door>/<command>`, `mqtt.command_doors`)"),
     Field("ok", "bool", "true: carried out; false: refused, nothing was done"),
     Field("code", "int", "0 when ok, else the rejection code (table below; the same codes a PLC reads)"),
     Field("reason", "str", "why it was refused (field, value, what is allowed); empty when ok"),
@@ -453,6 +454,45 @@ def topic_for(base: str, key: str, **kw: Any) -> str:
     return f"{base}/{TOPIC[key].path.format(**kw)}"
 
 
+#: the command doors: the default door is ``<base>/cmd/<command>`` (the MES; a command's source
+#: ``mqtt``); a station may listen on named doors too (``mqtt.command_doors``, at most
+#: ``commandtypes.COMMAND_DOORS_MAX``, named as ``commandtypes.door_problem`` allows), each
+#: ``<base>/cmd/<door>/<command>`` with its own source ``mqtt:<door>`` — and so its own command
+#: budget (docs/limits.md) — for another writer (an operator's panel, a second MES) whom the
+#: broker's ACL confines to that door (``hookwatch config acl``, docs/deploy.md)
+COMMAND_SOURCE = "mqtt"
+
+
+def command_source(door: str | None) -> str:
+    """The source of a command received on ``door`` (None: the default door)."""
+    return COMMAND_SOURCE if door is None else f"{COMMAND_SOURCE}:{door}"
+
+
+def command_door_filter(base: str, door: str | None = None) -> str:
+    """The subscription that receives every command of ``door`` (None: the default door)."""
+    cmd = TOPIC["cmd_start"].path.rsplit("/", 1)[0]
+    return f"{base}/{cmd}/+" if door is None else f"{base}/{cmd}/{door}/+"
+
+
+def command_topic(base: str, name: str, door: str | None = None) -> str:
+    """The topic of command ``name`` on ``door`` (None: the default door)."""
+    return command_door_filter(base, door)[:-1] + name
+
+
+def parse_command_topic(base: str, topic: str, doors: tuple[str, ...]) -> tuple[str, str | None] | None:
+    """``(command name, door)`` of a topic below ``base``'s command doors (the default door: None),
+    None when it is on none of them (another level, an unknown door)."""
+    prefix = command_door_filter(base)[:-1]
+    if not topic.startswith(prefix):
+        return None
+    rest = topic[len(prefix):].split("/")
+    if len(rest) == 1:
+        return rest[0], None
+    if len(rest) == 2 and rest[0] in doors:
+        return rest[1], rest[0]
+    return None
+
+
 #: the one topic of the site level (``<prefix>/<site>/lives_request``, not below a station): a
 #: gateway's station that (re)connects asks there, not retained, for the lives of every station
 #: of its site (payload: the asking station's id as text); every station of the site that hears
@@ -630,6 +670,10 @@ def render() -> str:
                    f"{'yes' if t.durable else 'no'} | {t.doc} |")
     out += [
         "",
+        "Commands come in by *doors*: the default door `cmd/<command>` (the MES's) and, for each "
+        "name in the station's `mqtt.command_doors`, `cmd/<door>/<command>` (an operator's panel, a "
+        "second MES: each writer its own door, its own command budget; Commands, below).",
+        "",
         "All payloads are UTF-8 JSON objects. Numbers that are not finite (NaN) are sent as `null`. "
         "Times are UTC, ISO 8601 with milliseconds.",
         "",
@@ -769,23 +813,26 @@ def render() -> str:
         "`prior_from`: `this station: N tests` or `the site: N tests from K stations (M of this "
         "station)`); the state's `prior_source` adds the same words to `history:N`.",
         "",
-        "Only gateways may publish there. A site's broker should say so in its ACL, e.g. "
-        "Mosquitto's `acl_file` with one MQTT user per gateway box:",
+        "Only the box that runs a station may publish its lives; every box of the site reads them. "
+        "The broker says so in its permissions, which `hookwatch config acl` writes from the "
+        "station files (a Mosquitto `acl_file` or RabbitMQ topic permissions; docs/deploy.md, "
+        "\"Broker permissions\"; the shipped deploy/mosquitto/ ACLs are made by it): one identity "
+        "per box, which may write only its own stations' topics (`lives` among them) and the "
+        "site's `lives_request`, and read the site's lives, state and status and its own "
+        "stations' commands.",
         "",
-        "```",
-        "# every client of the site may read the lives; only the box that runs a station writes",
-        "# its topics (hookwatch/<site>/<area>/<line>/<station>/…) and asks for the site's lives",
-        "pattern read hookwatch/plant-a/+/+/+/lives",
-        "user gw-box-07",
-        "topic readwrite hookwatch/plant-a/+/+/loom-13/#",
-        "topic readwrite hookwatch/plant-a/+/+/loom-14/#",
-        "topic read hookwatch/plant-a/+/+/+/lives",
-        "topic readwrite hookwatch/plant-a/lives_request",
-        "```",
-        "",
-        "A record that passes the checks is still taken as true: a compromised gateway account "
-        "can skew a prior within the plausible range (its lives are 1 of K stations' in "
-        "`prior_from`), which is why the ACL matters.",
+        "What a box can and cannot forge under those permissions. It **cannot** publish lives, "
+        "state, status, events, alarms or results for a station of another box, nor pose as a "
+        "station that is not in its own station files, nor send a command to any station (only "
+        "the commanders may, each on its own door): the broker refuses it (Mosquitto: PUBACK "
+        "reason code 0x87 over MQTT 5, the message silently dropped over 3.1.1; RabbitMQ 3.10 "
+        "closes the connection), and the message never reaches a subscriber. It **can** still lie "
+        "about its *own* stations: a record that passes the checks is taken as true, so a "
+        "compromised box can skew a prior within the plausible range with the lives of the "
+        "stations it runs — and only those: `prior_from` counts the stations the lives came from, "
+        "and each is one station of one box. A broker without these permissions (one shared user "
+        "that may write `hookwatch/#`) lets one account pose as every station of the site (up to "
+        "the 256 kept): then `prior_from`'s count of stations says nothing.",
         "",
         "## The console's site view",
         "",
@@ -803,13 +850,8 @@ def render() -> str:
         "depth 3), then every field the console keeps is type-checked and every string clipped "
         "to 64 printable ASCII characters; a malformed message is refused with one counted, "
         "rate-limited log line; at most 256 stations of other boxes are kept. The box's MQTT user "
-        "needs read permission there, e.g. in the ACL above:",
-        "",
-        "```",
-        "user gw-box-07",
-        "topic read hookwatch/plant-a/+/+/+/state",
-        "topic read hookwatch/plant-a/+/+/+/status",
-        "```",
+        "needs read permission on `<prefix>/<site>/+/+/+/state` and `…/status` (the permissions "
+        "`hookwatch config acl` writes give it to every box; above).",
         "",
         "## Payloads",
         "",
@@ -862,9 +904,19 @@ def render() -> str:
         "answer (its `ok` and `code`; the reason says `duplicate of request_id …`) and not carried "
         "out again; the same `request_id` naming another command or other arguments is refused "
         "(code 9). Give every command its own `request_id` and resend it unchanged when no reply "
-        "came. Commands that would act are limited per source (`mqtt`, `sparkplug`, "
-        "`console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
+        "came. Commands that would act are limited per source (`mqtt` and each `mqtt:<door>`, "
+        "`sparkplug`, `console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
         "refused with code 14 and counted (refused or repeated commands cost nothing of it).",
+        "",
+        "MQTT does not tell a subscriber who published a message, so the MQTT budget is per "
+        "*door*: the default door `cmd/<command>` (source `mqtt`, the MES's) and each named door "
+        "`cmd/<door>/<command>` a station listens on (`mqtt.command_doors`, source `mqtt:<door>`: "
+        "an operator's panel, a second MES) has its own, and the broker's permissions keep each "
+        "writer to its own door (`hookwatch config acl`: commanders by door; docs/deploy.md). A "
+        "writer flooding its door spends that door's budget only; the MES's commands on the "
+        "default door are all carried out (tests/gateway/northbound/test_command_doors.py). The "
+        "answer names the door in `source`. Without such permissions every client that may write "
+        "a command topic shares its door's budget with the MES.",
         "",
         "| code | name | meaning |",
         "|---|---|---|",

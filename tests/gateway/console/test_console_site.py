@@ -126,12 +126,12 @@ def test_the_pump_routes_site_messages_lives_and_commands_apart(tmp_path):
     got: dict[str, list] = {"cmd": [], "lives": [], "site": []}
     base = "hookwatch/plant/hall-1/l1/a-1"
     pump = MqttPump(MqttSettings(station_id="a-1", base_topic=base, outbox_path=str(tmp_path / "o.sqlite")),
-                    on_command=lambda n, p, r: got["cmd"].append(n),
+                    on_command=lambda n, p, r, s: got["cmd"].append((n, s)),
                     on_lives=lambda t, p: got["lives"].append(t))
     pump.add_site_feed(S.filters(base), lambda t, p: got["site"].append(t))
     for topic in (f"{base}/cmd/ack", f"{BASE}/b-1/lives", f"{BASE}/b-1/state", f"{BASE}/b-1/status"):
         pump.inbound.on_message(None, None, SimpleNamespace(topic=topic, payload=b"{}", properties=None))
-    assert got == {"cmd": ["ack"], "lives": [f"{BASE}/b-1/lives"],
+    assert got == {"cmd": [("ack", "mqtt")], "lives": [f"{BASE}/b-1/lives"],
                    "site": [f"{BASE}/b-1/state", f"{BASE}/b-1/status"]}
     pump.outbox.close()
 
