@@ -21,6 +21,7 @@ The limits are a :class:`gateway.ports.StationLimits`, built once from the stati
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 from .alarms import ALARMS, ANNUNCIATED, SHELVE_MAX_S
@@ -41,7 +42,7 @@ from .records import (
 __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "RUNNING",
            "ALARM_COMMAND_EVENTS", "NUMERIC_FIELDS", "TEXT_FIELDS", "Rejection", "reject", "check_t_set",
            "check_sample_id", "check_grade", "check_t_end", "validate", "StationLimits", "ArgValue",
-           "CommandArgs", "text_arg", "reply_code"]
+           "CommandArgs", "text_arg", "reply_code", "COMMAND_DOORS_MAX", "door_problem"]
 
 #: test states in which a test is running (or starting: a stop cancels the start, §3a)
 RUNNING = frozenset({TestState.STARTING, TestState.BASELINE_SEARCH, TestState.MONITORING,
@@ -66,6 +67,22 @@ REJECT_CODES: tuple[tuple[int, str, str], ...] = (
     (14, "RATE_LIMITED", "too many commands from this source (door); try again in a few seconds"),
 )
 CODE = {name: code for code, name, _ in REJECT_CODES}
+
+#: named command doors (MQTT ``<base>/cmd/<door>/<command>``, ``mqtt.command_doors``) a station
+#: listens on at most besides the default door; each door is a source with its own command budget
+COMMAND_DOORS_MAX = 8
+_DOOR_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$")
+
+
+def door_problem(door: object) -> str | None:
+    """Why ``door`` cannot name a command door (None: it can): 1–32 letters, digits, '-' and '_'
+    (one topic level; no '.', which RabbitMQ's MQTT plugin reads as a level separator), starting
+    with a letter or digit, and not a command's name."""
+    if not isinstance(door, str) or not _DOOR_RE.match(door):
+        return "a door is named by 1–32 letters, digits, '-' and '_', starting with a letter or digit"
+    if door in {k.value for k in CommandKind}:
+        return f"{door!r} is a command's name; name the door otherwise"
+    return None
 
 #: keys each command accepts (MQTT JSON payloads; the PLC fills them from holding registers)
 COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {

@@ -163,7 +163,7 @@ def read_meta(path: str) -> dict[str, Any]:
 def sidecar_prior(meta: dict[str, Any]) -> Prior:
     """The life prior a sidecar records (METHOD.md §5b, §7a): ``method.prior_mean`` and
     ``method.prior_sd``, and beside them ``prior_source`` (``config``, ``history`` or nothing),
-    ``prior_n`` and ``prior_n_censored``. Lenient, as the method reads a log: a prior with an
+    ``prior_n``, ``prior_n_censored`` and ``prior_n_early``. Lenient, as the method reads a log: a prior with an
     SD ≤ 0, only half of one, or values that are not numbers is no prior (source and counts are
     then dropped too)."""
     raw = meta.get("method")
@@ -178,10 +178,13 @@ def sidecar_prior(meta: dict[str, Any]) -> Prior:
     if m is None or sd is None or not sd > 0:
         return NO_PRIOR
     src = meta.get("prior_source")
-    n, nc = meta.get("prior_n"), meta.get("prior_n_censored")
+    n, nc, ne = meta.get("prior_n"), meta.get("prior_n_censored"), meta.get("prior_n_early")
+
+    def count(v: Any, least: int) -> int | None:
+        return v if isinstance(v, int) and not isinstance(v, bool) and v >= least else None
+
     return Prior(m, sd, src if src in (SOURCE_CONFIG, SOURCE_HISTORY) else None,
-                 n if isinstance(n, int) and not isinstance(n, bool) and n > 0 else None,
-                 nc if isinstance(nc, int) and not isinstance(nc, bool) and nc >= 0 else None)
+                 count(n, 1), count(nc, 0), count(ne, 0))
 
 
 def _locate_bad_row(path: str, text: str, cols: list[int], ncols: int) -> str:

@@ -186,6 +186,9 @@ class StationState:
     prior_mean: float | None = None    # the test's life prior, s (§7a)
     prior_sd: float | None = None
     prior_source: str | None = None    # "method", "config", "history:N" or None (no prior)
+    prior_n: int | None = None         # its lives (§7a v3): wear-out failures, censored lives and
+    prior_n_censored: int | None = None  # early failures (None: a prior without counts, or none)
+    prior_n_early: int | None = None
     lead_s: float | None = None        # the planner's lead (§5b `lead`), s
     p_due: float | None = None         # the bound P is held against (§5b `p_due`)
     end_p10: float | None = None       # end quantiles of the last forecast time, s from slot 0

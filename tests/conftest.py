@@ -130,6 +130,8 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/northbound/test_site_lives_e2e.py",
         "tests/gateway/northbound/test_site_lives_churn_e2e.py",
         "tests/gateway/northbound/test_site_lives_store_e2e.py",
+        "tests/gateway/northbound/test_acl_prior_e2e.py",
+        "tests/gateway/northbound/test_prior_early_e2e.py",
         "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py",
         "tests/gateway/station/test_stall_e2e.py",
         "tests/gateway/station/test_station_start_e2e.py",
@@ -179,6 +181,8 @@ SLOW: dict[str, tuple[str, ...]] = {
     "tests/gateway/commands/test_console_demo.py": ("*",),
     "tests/gateway/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
     "tests/deploy/test_deploy.py": ("test_gateway_speaks_the_units_notify_protocol",),
+    # the shipped permissions applied by rabbitmqctl (~6 s a call on the 2-core box) on the cluster
+    "tests/deploy/test_deploy_acl.py": ("test_rabbitmq_topic_permissions_refuse_a_forging_box_and_hold_a_gateway",),
     "tests/drivers/sim/test_plant.py": ("test_closed_loop_holds_setpoint_open_loop_wanders",),
     "tests/drivers/sim/test_sim.py": ("test_sim_process_prints_paths_and_each_fault_fires_on_the_wire",),
     # the door floods, the planner's browser walk and three gateways started for one check:
@@ -205,6 +209,7 @@ CPU: dict[str, tuple[str, ...]] = {
     "tests/gateway/method/test_method_property.py": ("*",),
     "tests/gateway/method/test_method_vectors.py": ("*",),
     "tests/gateway/method/test_prior_mle.py": ("*",),
+    "tests/gateway/method/test_prior_early.py": ("*",),
     "tests/gateway/report/test_report_priors_campaign.py": ("*",),
     "tests/gateway/report/test_report_campaign.py": ("*",),
     "tests/gateway/report/test_report_bad_input.py": ("*",),
@@ -225,6 +230,8 @@ SHARED_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
         "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py": ("*",),
         "tests/gateway/northbound/test_site_lives_e2e.py": (
             "test_box_b_joining_through_another_rabbitmq_node_gets_the_site_prior_of_box_a",),
+        "tests/deploy/test_deploy_acl.py": (
+            "test_rabbitmq_topic_permissions_refuse_a_forging_box_and_hold_a_gateway",),
     },
 }
 #: fleets of virtual stations (several `hookwatch sim` + a gateway carrying 3–4 stations at 50 Hz):
@@ -271,6 +278,7 @@ LONGEST_FIRST: dict[str, int] = {
     "tests/gateway/station/test_lost_slots_e2e.py": 42,
     "tests/gateway/station/test_recorder_disk.py": 41,
     "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py": 40,
+    "tests/gateway/northbound/test_prior_early_e2e.py": 50,
     "tests/gateway/console/test_console_planner_browser.py": 36,
     "tests/deploy/test_setup.py": 32,
     "tests/gateway/northbound/test_northbound_refusal_flood.py": 30,

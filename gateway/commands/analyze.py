@@ -108,7 +108,8 @@ def _forecast_line(r) -> str:
         out.append("no forecast from a prior (no prior_mean/prior_sd, or no complete window)")
     else:
         pr = r["prior"]
-        src = "" if pr.source is None else f", from {pr.source}" + ("" if pr.n is None else f", n {pr.n}")
+        lives = pr.lives_words()
+        src = "" if pr.source is None else f", from {pr.source}" + ("" if lives is None else f" ({lives})")
         out.append(f"prior {pr.mean:.0f} ± {pr.sd:.0f} s{src}")
         out.append(f"forecast at the last window: end {r['end_p10']:.0f} / {r['end_p50']:.0f} / "
                    f"{r['end_p90']:.0f} s (10/50/90 %), P(end within {r['lead']:g} s) "

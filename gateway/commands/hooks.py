@@ -2,11 +2,13 @@
 
 Without ``--replaced``: the station's life log of replaced hooks (``<recorder.dir>/<station>/
 hooks.jsonl``, the newest 10,000 lines; a damaged line is skipped with one log line), one line
-per replacement. With ``--replaced``: tells the running station that its hook was replaced — the
-command ``hook_replaced`` over the station's MQTT broker (``cmd/hook_replaced`` with a request id;
-the station's answer on ``reply`` is printed), through the same intake and validation as every
-other door. The running test ends, the replacement is logged, and with
-``test.restart_on_replace`` the next test starts with the new hook.
+per replacement with the old hook's life and what it was in the METHOD.md §7a history when it was
+replaced (a wear-out failure, an early failure — §7a v3 —, or censored). With ``--replaced``:
+tells the running station that its hook was replaced — the command ``hook_replaced`` over the
+station's MQTT broker (``cmd/hook_replaced`` with a request id; the station's answer on ``reply``
+is printed), through the same intake and validation as every other door. The running test ends,
+the replacement is logged, and with ``test.restart_on_replace`` the next test starts with the new
+hook.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from ..cli import CliError
 from ..config import ConfigError, load_station
 from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
 from ..northbound.mqtt_schema import base_topic
-from ..station.hook_log import HOOKS_NAME, MAX_LINES, read_hooks
+from ..station.hook_log import HOOKS_NAME, LIFE_KINDS, MAX_LINES, read_hooks
 
 HELP = "list a station's replaced hooks (hooks.jsonl), or tell the running station its hook was replaced"
 DESCRIPTION = HELP + (". --replaced sends `hook_replaced` over the station's MQTT broker "
@@ -67,8 +69,11 @@ def run(args) -> int:
         print(f"{cfg.station.id}: no hook replaced yet ({os.path.join(d, HOOKS_NAME)})")
         return 0
     for h in hooks:
+        lk = h.get("life_kind")
+        kind = LIFE_KINDS.get(lk) if isinstance(lk, str) else None
         print(f"{h.get('utc', '?')}  {h.get('old_sample_id')} → {h.get('new_sample_id')}  "
-              f"grade {_fmt(h.get('grade'))}  life {_fmt(h.get('life_s'))}  "
+              f"grade {_fmt(h.get('grade'))}  life {_fmt(h.get('life_s'))}"
+              f"{'' if kind is None else f' ({kind})'}  "
               f"test {_fmt(h.get('test_id'))}  by {_fmt(h.get('by'))}")
     return 0
 

@@ -38,9 +38,9 @@ def add_arguments(ap):
                     "role: closed_loop)")
     ap.add_argument("--no-figures", action="store_true", help="tables and report only")
     ap.add_argument("--priors", metavar="FILE", help="also write the life prior (mean, SD, n "
-                    "failures, n_censored right-censored lives) of every grade and T_set with at "
-                    "least 3 failures, as a station configuration's forecast: section "
-                    "(METHOD.md §7a), to FILE")
+                    "wear-out failures, n_censored right-censored lives, n_early early failures) "
+                    "of every grade and T_set with at least 3 wear-out failures, as a station "
+                    "configuration's forecast: section (METHOD.md §7a), to FILE")
     ap.add_argument("--quiet", "-q", action="store_true", help="no progress bar, no warnings on stderr")
 
 
@@ -91,9 +91,10 @@ def _write_priors(path: str, samples, campaign: str) -> None:
     # the folder's name is written as a JSON string (every control and non-ASCII character
     # escaped): a newline in it cannot end the comment and inject YAML (issue 27)
     head = (f"# life priors from the campaign {json.dumps(os.path.abspath(campaign))} (hookwatch "
-            "report --priors; METHOD.md §7a: per grade and T_set with n ≥ 3 failures, the "
-            "maximum-likelihood normal of the failures (n) and the right-censored lives "
-            "(n_censored), SD ≥ 2 % of the mean)\n"
+            "report --priors; METHOD.md §7a: per grade and T_set with n ≥ 3 wear-out failures, "
+            "the maximum-likelihood normal of the wear-out failures (n), the right-censored "
+            "lives (n_censored) and the early failures (n_early: below 0.75 × the median of at "
+            "least 5 lives, censored at their life), SD ≥ 2 % of the mean)\n"
             "# paste into a station file (or fleet.yaml) as its forecast: section\n")
     try:
         d = os.path.dirname(os.path.abspath(path))
@@ -104,4 +105,4 @@ def _write_priors(path: str, samples, campaign: str) -> None:
         os.replace(tmp, path)
     except OSError as e:
         raise CliError(f"--priors {path}: cannot write: {e.strerror or e}") from None
-    print(f"priors: {path} ({len(entries)} grade/T_set group(s) with at least 3 failures)")
+    print(f"priors: {path} ({len(entries)} grade/T_set group(s) with at least 3 wear-out failures)")

@@ -26,6 +26,7 @@ from typing import Any
 
 from drivers.stm32_protocol import watchdog_for
 
+from ..commandtypes import COMMAND_DOORS_MAX, door_problem
 from ..control import ControlParams, NotchParams
 from ..method.params import MAX_TENSION, TEN_YEARS
 from ..method.params import PARAMS as METHOD_PARAMS
@@ -101,10 +102,10 @@ class Key:
         elif k == "ip_list":
             s = "a list of IP addresses or networks, e.g. [10.10.4.20, 10.10.5.0/24]"
         elif k == "prior_list":
-            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n, n_censored]}, e.g. [{grade: I, "
-                 "t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (0 < t_set_n ≤ "
+            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n, n_censored, n_early]}, e.g. "
+                 "[{grade: I, t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (0 < t_set_n ≤ "
                  f"{MAX_TENSION:g} N; 0 < mean_s, sd_s ≤ {TEN_YEARS:.0f} s, 10 years; "
-                 f"1 ≤ n ≤ {MAX_PRIOR_N}; 0 ≤ n_censored ≤ {MAX_PRIOR_N})")
+                 f"1 ≤ n ≤ {MAX_PRIOR_N}; 0 ≤ n_censored, n_early ≤ {MAX_PRIOR_N})")
         else:
             s = "a string"
         if self.nullable:
@@ -243,7 +244,7 @@ class TestConfig:
 
 #: the keys of one `forecast.priors` entry (METHOD.md §7a): required, then optional
 PRIOR_ENTRY_KEYS = ("grade", "t_set_n", "mean_s", "sd_s")
-PRIOR_ENTRY_OPTIONAL = ("n", "n_censored")
+PRIOR_ENTRY_OPTIONAL = ("n", "n_censored", "n_early")
 #: entries a `forecast.priors` list may hold (grades × setpoints of one station)
 MAX_PRIOR_ENTRIES = 256
 #: the largest test count `n` of a prior entry
@@ -290,11 +291,15 @@ def parse_prior_entries(v: Any) -> tuple[bool, Any]:
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_PRIOR_N):
             return False, (f"entry {i}: n {show_yaml(n)} is not a count of tests (an integer from 1 "
                            f"to {MAX_PRIOR_N})")
-        nc = item.get("n_censored")
-        if nc is not None and (isinstance(nc, bool) or not isinstance(nc, int) or not 0 <= nc <= MAX_PRIOR_N):
-            return False, (f"entry {i}: n_censored {show_yaml(nc)} is not a count of tests (an "
-                           f"integer from 0 to {MAX_PRIOR_N})")
-        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n, nc))
+        counts: dict[str, int | None] = {}
+        for k in ("n_censored", "n_early"):
+            c = item.get(k)
+            if c is not None and (isinstance(c, bool) or not isinstance(c, int) or not 0 <= c <= MAX_PRIOR_N):
+                return False, (f"entry {i}: {k} {show_yaml(c)} is not a count of tests (an "
+                               f"integer from 0 to {MAX_PRIOR_N})")
+            counts[k] = c
+        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n,
+                              counts["n_censored"], counts["n_early"]))
     return True, tuple(out)
 
 
@@ -303,8 +308,9 @@ class ForecastConfig:
     priors: tuple = key((), "the life of earlier hooks per grade and T_set: the prior of a new "
                         "test's forecast (METHOD.md §5b, §7a); without an entry for its grade and "
                         "T_set (±0.001 N) the prior comes from the completed tests of that grade "
-                        "and T_set (at least 3 `failure`s; right-censored lives count too: "
-                        "METHOD.md §7a), else there is none. "
+                        "and T_set (at least 3 wear-out `failure`s; right-censored lives count "
+                        "too, and early failures as censored ones: METHOD.md §7a), else there "
+                        "is none. "
                         "`method.prior_mean`/`prior_sd` fix one prior that wins over both. "
                         "`hookwatch report … --priors FILE` writes this list", kind="prior_list")
 
@@ -410,6 +416,14 @@ class MqttConfig(BrokerConfig):
                             "`station.site` on the broker, and pool theirs into the life prior's "
                             "history (METHOD.md §7a; a retained `<base>/lives` per station, "
                             "docs/mqtt.md); false: neither share nor receive", kind="bool")
+    command_doors: tuple[str, ...] = key((), "named command doors besides the default "
+                                         "`<base>/cmd/<command>` (the MES's): each "
+                                         "`<base>/cmd/<door>/<command>` for another writer (an "
+                                         "operator's panel, a second MES), with its own command "
+                                         "budget (source `mqtt:<door>`, docs/limits.md); the "
+                                         "broker's ACL confines each writer to its door "
+                                         "(`hookwatch config acl`)", kind="str_list",
+                                         example=["operator"])
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
 
 
@@ -950,6 +964,18 @@ def _control(cfg, r):
                         f"{nyq:g} Hz of ts = {ts:g} s; allowed: < {nyq:g}")
 
 
+def _doors(cfg, r):
+    doors = cfg.mqtt.command_doors
+    if len(doors) > COMMAND_DOORS_MAX:
+        r.error(("mqtt", "command_doors"), f"{len(doors)} doors; allowed: at most {COMMAND_DOORS_MAX}")
+    for i, d in enumerate(doors):
+        why = door_problem(d)
+        if why is not None:
+            r.error(("mqtt", "command_doors"), f"item {i + 1} ({d!r}): {why}")
+        elif d in doors[:i]:
+            r.error(("mqtt", "command_doors"), f"item {i + 1} ({d!r}) is listed twice")
+
+
 RULES: tuple[Rule, ...] = (
     Rule("`modbus_tcp.writes.enabled: true` needs a non-empty `allowed_clients`.", _writes),
     Rule("`mqtt.password` is never accepted inline: use `password_env` or `password_file` (one of them).",
@@ -964,6 +990,8 @@ RULES: tuple[Rule, ...] = (
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
          "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
          _control),
+    Rule(f"`mqtt.command_doors`: at most {COMMAND_DOORS_MAX}, each 1–32 letters, digits, '-' and '_' "
+         "(no command's name), none twice.", _doors),
 )
 
 

@@ -28,7 +28,7 @@ from typing import Any
 from ..logio import tail_jsonl
 from ..ports import StationView
 from ..records import Event, EventType, SlotRecord, StationState
-from ..station.hook_log import read_hooks
+from ..station.hook_log import LIFE_KINDS, read_hooks
 from ..station.recorder import LOG_COLUMNS
 from ..threadloop import Mailbox
 
@@ -384,7 +384,8 @@ def _wall(start: Any, offset_s: Any) -> str | None:
 DUE_COLUMNS = ("station", "line", "area", "sample_id", "grade", "state", "due", "end_utc_p10",
                "end_utc_p50", "end_utc_p90", "p_end", "reasons", "t_life_utc", "headroom",
                "alarm", "test_id", "test_started_utc", "end_p10", "end_p50", "end_p90", "t_life",
-               "remote", "online", "silent_since")
+               "prior_mean", "prior_sd", "prior_source", "prior_n", "prior_n_censored",
+               "prior_n_early", "remote", "online", "silent_since")
 
 
 def due_row(s: dict[str, Any]) -> dict[str, Any]:
@@ -484,13 +485,15 @@ def journal_from_disk(station_dir: str, n_tests: int = JOURNAL_TESTS) -> list[di
 
 
 #: the fields of one hooks.jsonl line (the station's life log; docs/console.md)
-HOOK_FIELDS = ("station", "old_sample_id", "new_sample_id", "grade", "by", "utc", "test_id", "life_s")
+HOOK_FIELDS = ("station", "old_sample_id", "new_sample_id", "grade", "by", "utc", "test_id", "life_s",
+               "life_kind")
 
 
 def hook_history(station_dir: str) -> list[dict[str, Any]]:
     """The successive hooks of a station (``<station dir>/hooks.jsonl``, read by
     :func:`gateway.station.hook_log.read_hooks`: bounded, a damaged line skipped), newest first, each
-    with the :data:`HOOK_FIELDS` only, texts clipped, ``life_s`` a finite number or None."""
+    with the :data:`HOOK_FIELDS` only, texts clipped, ``life_s`` a finite number or None,
+    ``life_kind`` one of §7a's kinds (:data:`~gateway.station.hook_log.LIFE_KINDS`) or None."""
     rows = read_hooks(station_dir)
     out = []
     for r in reversed(rows):
@@ -501,6 +504,8 @@ def hook_history(station_dir: str) -> list[dict[str, Any]]:
         life = h["life_s"]
         h["life_s"] = float(life) if isinstance(life, (int, float)) and not isinstance(life, bool) \
             and math.isfinite(life) else None
+        if h["life_kind"] not in LIFE_KINDS:      # §7a v3's kinds only (older lines: none)
+            h["life_kind"] = None
         out.append(h)
     return out
 

@@ -49,6 +49,10 @@ _TEXT = ("test_state", "test_id", "sample_id", "grade", "alarm", "warning_alarm"
 _NUM = ("t_set", "t_end", "mu_ss", "mu_th", "t_life", "elapsed_s", "headroom", "t_cross",
         "end_p10", "end_p50", "end_p90", "p_end", "prior_mean", "prior_sd")
 _BOOL = ("due", "wear_warning", "meter_ok", "stm32_ok", "disk_ok")
+#: the counts of lives a history prior came from (§7a v3)
+_COUNT = ("prior_n", "prior_n_censored", "prior_n_early")
+#: the largest count shown (more than any site holds: 20,000 lives)
+_MAX_COUNT = 10_000_000
 _RUNNING = ("baseline_search", "monitoring", "end_of_life")
 _REASONS = ("headroom", "prior", "trend")
 
@@ -105,6 +109,11 @@ def parse_state(obj: Any, station: str) -> dict[str, Any]:
         v = obj.get(k)
         if v is not None and not isinstance(v, bool):
             raise Refused(f"{k}: {clip(v, 20)} is not true/false")
+        out[k] = v
+    for k in _COUNT:
+        v = obj.get(k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= _MAX_COUNT):
+            raise Refused(f"{k}: {clip(v, 20)} is not a count")
         out[k] = v
     r = obj.get("warn_reasons") or []
     if not isinstance(r, list) or len(r) > len(_REASONS) or any(x not in _REASONS for x in r):

@@ -1,16 +1,22 @@
-"""METHOD.md §7a: where a new test's life prior (§5b) comes from. Pure: entries in, a prior out.
+"""METHOD.md §7a (v3): where a new test's life prior (§5b) comes from. Pure: entries in, a prior out.
 
 In this order: (1) the station's configuration (a fixed ``prior_mean``/``prior_sd`` in its
 ``method:`` section wins; else its ``forecast:`` entry for the test's grade and T_set); (2) its
 history: the completed tests of the same grade at the same T_set (±0.001 N), when at least 3 of
-them ended in ``failure``; (3) none.
+them are wear-out failures (below); (3) none.
 
 A history holds observed lives (``failure``: x = t_life) and right-censored lives (a test that found
 its baseline and then ended on purpose — ``aborted`` with ``stop_reasons`` = [``STOPPED``] — or at
-t_end — ``no_failure`` —: it lived at least c = n_slots · Ts); other tests do not enter it. The
-prior is the maximum-likelihood normal of both kinds (:func:`censored_normal_mle`), the SD scaled
-by √(n_f / (n_f − 1)) and at least 0.02 · mean; without censored lives exactly the failures' mean
-and sample SD; all failures equal: their value and 0.02 · it.
+t_end — ``no_failure`` —: it lived at least c = n_slots · Ts); other tests do not enter it.
+**Early failures** (v3, :func:`split_early`): with at least :data:`MIN_LIVES_EARLY` lives (observed
+and censored together), an observed life x < 0.75 · M, M the median of all of them (an even count:
+the mean of the two middle ones), is an early failure (a defect, not wear): a competing risk, so
+for the wear-out prior it is a right-censored life at x. The other observed lives are the wear-out
+failures. The prior is the maximum-likelihood normal of the wear-out failures and the censored
+lives with the early failures (:func:`censored_normal_mle`), the SD scaled by √(n_w / (n_w − 1))
+(n_w wear-out failures) and at least 0.02 · mean; without censored lives and early failures exactly
+the failures' mean and sample SD; all wear-out failures equal: their value and 0.02 · it. Without
+an early failure v3 is v2 (:func:`wear_out_prior` of all the failures) exactly.
 
 The maximisation is pure Python (the standard library's ``math.erfc``; no scipy on the product's
 path): Newton's method with a backtracking line search on ℓ in Olsen's parameters α = m/s,
@@ -19,8 +25,8 @@ ln Φ of a linear form of them, and ln Φ is concave), so the one maximum is fou
 log-survival ln Φ̄(a) of a censored life far beyond the mean is taken from Laplace's continued
 fraction of Mills' ratio (never log(0)). Bounded: at most :data:`MAX_NEWTON` steps of at most
 :data:`MAX_HALVINGS` halvings each. A fit that does not converge (not seen; a safety net) gives no
-prior from the history, as fewer than 3 failures do: the test's forecast then has no prior part
-(§5b), never a wrong one.
+prior from the history, as fewer than 3 wear-out failures do: the test's forecast then has no prior
+part (§5b), never a wrong one.
 """
 from __future__ import annotations
 
@@ -33,8 +39,12 @@ from .params import TEN_YEARS
 
 #: two setpoints are the same within this much (N)
 T_SET_TOL = 0.001
-#: the history needs at least this many failures of the grade at the T_set
+#: the history needs at least this many wear-out failures of the grade at the T_set
 MIN_HISTORY = 3
+#: early failures (v3) are classed in a history of at least this many lives (observed and censored)
+MIN_LIVES_EARLY = 5
+#: an observed life below this fraction of the median of all lives is an early failure (v3)
+EARLY_FRACTION = 0.75
 #: the SD from the history is at least this fraction of the mean
 MIN_REL_SD = 0.02
 #: Newton steps of the maximum-likelihood fit, at most (it converges in ≈ 5–15)
@@ -50,20 +60,24 @@ SOURCE_HISTORY = "history"
 #: the §7a kinds of a life
 OBSERVED = "failure"
 CENSORED = "censored"
+#: … and of an observed life in its history (v3): a wear-out failure or an early one
+WEAR_OUT = "wear_out"
+EARLY = "early"
 STOPPED = "STOPPED"
 
 
 @dataclass(frozen=True)
 class PriorEntry:
     """A configured prior: the life (mean and SD, s) of hooks of ``grade`` at ``t_set`` (N); ``n``
-    (informative) is the count of failures it was computed from, ``n_censored`` the count of
-    right-censored lives, when known."""
+    (informative) is the count of wear-out failures it was computed from, ``n_censored`` the count
+    of right-censored lives and ``n_early`` of early failures (§7a v3), when known."""
     grade: str
     t_set: float
     mean: float
     sd: float
     n: int | None = None
     n_censored: int | None = None
+    n_early: int | None = None
 
     def as_config(self) -> dict[str, Any]:
         """The entry in the configuration's ``forecast.priors`` form."""
@@ -73,6 +87,8 @@ class PriorEntry:
             out["n"] = self.n
         if self.n_censored is not None:
             out["n_censored"] = self.n_censored
+        if self.n_early is not None:
+            out["n_early"] = self.n_early
         return out
 
 
@@ -118,14 +134,15 @@ def _positive(v: float | None) -> bool:
 
 @dataclass(frozen=True)
 class Prior:
-    """The prior of a new test: mean and SD (s), where it came from and from how many failures
-    (``n``) and right-censored lives (``n_censored``) — None for a configured prior without
-    counts."""
+    """The prior of a new test: mean and SD (s), where it came from and from how many wear-out
+    failures (``n``), right-censored lives (``n_censored``) and early failures (``n_early``, §7a
+    v3) — None for a configured prior without counts."""
     mean: float | None
     sd: float | None
     source: str | None
     n: int | None = None
     n_censored: int | None = None
+    n_early: int | None = None
     #: the source as the station's state publishes it (``method``, ``config``, ``history:N``;
     #: None: ``source``)
     label: str | None = field(default=None, compare=False)
@@ -139,15 +156,28 @@ class Prior:
 
     def sidecar(self) -> dict[str, Any]:
         """What the gateway writes into a new test's sidecar: ``method.prior_mean``/``prior_sd``
-        go in its ``method:`` section, ``prior_source``/``prior_n``/``prior_n_censored`` beside
-        it."""
+        go in its ``method:`` section, ``prior_source``/``prior_n``/``prior_n_censored``/
+        ``prior_n_early`` beside it."""
         out: dict[str, Any] = {"prior_mean": self.mean, "prior_sd": self.sd, "prior_source": self.source,
-               "prior_n": self.n, "prior_n_censored": self.n_censored}
+                               "prior_n": self.n, "prior_n_censored": self.n_censored,
+                               "prior_n_early": self.n_early}
         if self.origin is not None:
             out["prior_stations"], out["prior_from"] = self.n_stations, self.origin
             if self.station_ids is not None:
                 out["prior_station_ids"] = list(self.station_ids)
         return out
+
+    def lives_words(self) -> str | None:
+        """How many lives the prior came from, in words (None without counts): ``4 wear-out
+        failures, 3 censored, 1 early failure``."""
+        if self.n is None:
+            return None
+        out = [f"{self.n} wear-out failure{'' if self.n == 1 else 's'}"]
+        if self.n_censored is not None:
+            out.append(f"{self.n_censored} censored")
+        if self.n_early is not None:
+            out.append(f"{self.n_early} early failure{'' if self.n_early == 1 else 's'}")
+        return ", ".join(out)
 
 
 NO_PRIOR = Prior(None, None, None, None)
@@ -252,11 +282,12 @@ def censored_normal_mle(xs: Sequence[float], cs: Sequence[float]) -> tuple[float
     return None
 
 
-def history_prior(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[float, float] | None:
-    """§7a's prior (mean, SD) from the observed lives ``xs`` and the right-censored ``cs``: None
+def wear_out_prior(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[float, float] | None:
+    """The §7a prior (mean, SD) of the wear-out failures ``xs`` and the right-censored lives ``cs``
+    as they are given (no early failure classed: §7a v2 when ``xs`` are all the failures): None
     with fewer than MIN_HISTORY failures (or a fit that does not converge); without censored lives
     the mean and sample SD (n − 1); all failures equal: that value and 0.02 · it; else the
-    maximum-likelihood (m̂, ŝ), SD ŝ · √(n_f / (n_f − 1)), at least 0.02 · m̂."""
+    maximum-likelihood (m̂, ŝ), SD ŝ · √(n_w / (n_w − 1)), at least 0.02 · m̂."""
     n = len(xs)
     if n < MIN_HISTORY:
         return None
@@ -271,6 +302,41 @@ def history_prior(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[float,
         return None
     m, s = fit
     return m, max(s * math.sqrt(n / (n - 1)), MIN_REL_SD * m)
+
+
+def median_life(xs: Sequence[float], cs: Sequence[float]) -> float:
+    """M of §7a v3: the median of all lives, each x and each c (an even count: the mean of the two
+    middle values). ``xs`` and ``cs`` must not both be empty."""
+    v = sorted([*xs, *cs])
+    k = len(v) // 2
+    return v[k] if len(v) % 2 else (v[k - 1] + v[k]) / 2
+
+
+def early_fence(xs: Sequence[float], cs: Sequence[float]) -> float | None:
+    """The life below which an observed life of this history is an early failure (§7a v3):
+    0.75 · M with at least MIN_LIVES_EARLY lives (observed and censored together), else None (no
+    early failures)."""
+    if len(xs) + len(cs) < MIN_LIVES_EARLY:
+        return None
+    return EARLY_FRACTION * median_life(xs, cs)
+
+
+def split_early(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[list[float], list[float]]:
+    """The observed lives ``xs`` of a history with the right-censored ``cs`` as (wear-out failures,
+    early failures), each in the order given (§7a v3: x < 0.75 · M is early, with at least 5 lives)."""
+    fence = early_fence(xs, cs)
+    if fence is None:
+        return list(xs), []
+    return [x for x in xs if not x < fence], [x for x in xs if x < fence]
+
+
+def history_prior(xs: Sequence[float], cs: Sequence[float] = ()) -> tuple[float, float] | None:
+    """§7a's prior (mean, SD) from the observed lives ``xs`` and the right-censored ``cs``: the early
+    failures (:func:`split_early`) count as right-censored lives at their x, and
+    :func:`wear_out_prior` of the wear-out failures and them; None with fewer than MIN_HISTORY
+    wear-out failures (or a fit that does not converge)."""
+    pr = prior_of_lives(xs, cs)
+    return None if pr.mean is None or pr.sd is None else (pr.mean, pr.sd)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -302,11 +368,28 @@ def group_lives(history: Iterable[PastTest], grade: str, t_set: float) -> tuple[
 
 
 def prior_of_lives(xs: Sequence[float], cs: Sequence[float]) -> Prior:
-    """The §7a history prior of these lives (NO_PRIOR when there is none)."""
-    h = history_prior(xs, cs)
+    """The §7a history prior of these observed and right-censored lives (NO_PRIOR when there is
+    none), with its counts: ``n`` wear-out failures, ``n_censored`` censored lives, ``n_early``
+    early failures."""
+    wear, early = split_early(xs, cs)
+    h = wear_out_prior(wear, [*cs, *early])
     if h is None:
         return NO_PRIOR
-    return Prior(h[0], h[1], SOURCE_HISTORY, len(xs), len(cs))
+    return Prior(h[0], h[1], SOURCE_HISTORY, len(wear), len(cs), len(early))
+
+
+def kind_in_history(test: PastTest, history: Iterable[PastTest]) -> str | None:
+    """What ``test`` is in the §7a history of its grade and T_set (v3), ``history`` with it:
+    ``early`` or ``wear_out`` (an observed life below the early fence or not), ``censored``, or
+    None (it gives the history no life)."""
+    lf = test.life()
+    if lf is None or test.grade is None or test.t_set is None:
+        return None
+    if lf[0] == CENSORED:
+        return CENSORED
+    xs, cs = group_lives([test, *history], test.grade, test.t_set)   # the test itself counts once
+    fence = early_fence(xs, cs)
+    return EARLY if fence is not None and lf[1] < fence else WEAR_OUT
 
 
 def resolve_prior(config_entries: Iterable[PriorEntry], history: Iterable[PastTest],
@@ -322,14 +405,15 @@ def resolve_prior(config_entries: Iterable[PriorEntry], history: Iterable[PastTe
         return NO_PRIOR
     for e in config_entries:
         if e.grade == grade and same_t_set(e.t_set, t_set) and e.sd > 0:
-            return Prior(e.mean, e.sd, SOURCE_CONFIG, e.n, e.n_censored)
+            return Prior(e.mean, e.sd, SOURCE_CONFIG, e.n, e.n_censored, e.n_early)
     return prior_of_lives(*group_lives(history, grade, t_set))
 
 
 def priors_by_group(history: Iterable[PastTest]) -> list[PriorEntry]:
-    """Every (grade, T_set) group with at least MIN_HISTORY failures, as configuration entries
-    (the §7a history rule per group; T_set within ±0.001 N of the group's first test), sorted by
-    grade then T_set; ``n`` failures and ``n_censored`` right-censored lives."""
+    """Every (grade, T_set) group with at least MIN_HISTORY wear-out failures, as configuration
+    entries (the §7a history rule per group; T_set within ±0.001 N of the group's first test),
+    sorted by grade then T_set; ``n`` wear-out failures, ``n_censored`` right-censored lives and
+    ``n_early`` early failures."""
     groups: list[tuple[str, float, list[PastTest]]] = []
     for t in history:
         if t.grade is None or t.t_set is None or t.life() is None:
@@ -344,5 +428,5 @@ def priors_by_group(history: Iterable[PastTest]) -> list[PriorEntry]:
     for g, ts, members in sorted(groups, key=lambda x: (x[0], x[1])):
         pr = prior_of_lives(*group_lives(members, g, ts))
         if pr.mean is not None and pr.sd is not None:
-            out.append(PriorEntry(g, ts, pr.mean, pr.sd, pr.n, pr.n_censored))
+            out.append(PriorEntry(g, ts, pr.mean, pr.sd, pr.n, pr.n_censored, pr.n_early))
     return out

@@ -271,19 +271,22 @@ class MqttOutput:
         if self.station is not None:
             call_soon_on(self.loop, self.station.site_lives, tests)
 
-    def _command(self, name: str, raw: bytes, response: tuple[str, bytes | None] | None = None) -> None:
-        """A message on ``cmd/<name>`` (pump thread): parse, check, hand to the station's loop; the
-        answer goes to ``response`` (MQTT 5 Response Topic, Correlation Data) or to ``reply``."""
-        cmd = intake(name, raw, "mqtt")   # the one bounded intake: size, depth, types, strings
+    def _command(self, name: str, raw: bytes, response: tuple[str, bytes | None] | None = None,
+                 source: str = mqtt_schema.COMMAND_SOURCE) -> None:
+        """A message on ``cmd/<name>`` or ``cmd/<door>/<name>`` (pump thread): parse, check, hand to
+        the station's loop; ``source`` names the door (``mqtt``, ``mqtt:<door>``: its own command
+        budget at the station); the answer goes to ``response`` (MQTT 5 Response Topic,
+        Correlation Data) or to ``reply``."""
+        cmd = intake(name, raw, source)   # the one bounded intake: size, depth, types, strings
         if isinstance(cmd, Rejection):
-            self._reply(safe(name, MAX_NAME_CHARS), cmd.request_id, cmd, response)
-            self._intake_rejected(name, cmd)
+            self._reply(safe(name, MAX_NAME_CHARS), cmd.request_id, cmd, response, source)
+            self._intake_rejected(name, cmd, source)
             return
         sink = self.sink
         fut = submit_to(self.loop, sink.submit(cmd)) if sink is not None else None
         if fut is None:
             self._reply(name, cmd.request_id, Rejection(False, "the station is not running", cmd.request_id,
-                                                        CODE["NO_STATION"]), response)
+                                                        CODE["NO_STATION"]), response, source)
             return
 
         acc: Command = cmd
@@ -294,19 +297,20 @@ class MqttOutput:
             except Exception as e:  # the station failed to carry it out
                 r = Rejection(False, f"the station failed: {type(e).__name__}: {e}", acc.request_id,
                               CODE["NO_STATION"])
-            self._reply(acc.kind.value, acc.request_id, r, response)
+            self._reply(acc.kind.value, acc.request_id, r, response, acc.source)
 
         fut.add_done_callback(done)
 
-    def _intake_rejected(self, name: str, rej: Rejection) -> None:
+    def _intake_rejected(self, name: str, rej: Rejection, source: str) -> None:
         """A request refused before it became a command (code 9) is a refusal of the station like
         every other: bounded ``command_rejected`` events, once per kind per window with a count
         (gateway/station/commands.py, RefusalGate)."""
         if self.station is None:
             return
-        call_soon_on(self.loop, self.station.refused, rejected_event_data(name, rej, "mqtt"))
+        call_soon_on(self.loop, self.station.refused, rejected_event_data(name, rej, source))
 
     def _reply(self, command: str, request_id: str | None, r: CommandReply,
-               response: tuple[str, bytes | None] | None = None) -> None:
+               response: tuple[str, bytes | None] | None = None,
+               source: str = mqtt_schema.COMMAND_SOURCE) -> None:
         self.pump.put(M.reply_message(self._base, self.s.station_id, time.time(), command, request_id, r,
-                                      response))
+                                      response, source))

@@ -1,10 +1,12 @@
 """What the MQTT pump's session receives, and where each message goes.
 
-One session carries a station's commands (``<base>/cmd/<name>``), the site's lives and lives
-requests (with ``mqtt.share_lives``: gateway/northbound/sitelives.py) and the console's site view
-(other stations' state and status). :class:`InboundRouter` makes those subscriptions on every
-connect and hands each message to its consumer (called on the pump thread): ``on_command(name,
-payload, response)``, ``on_lives(topic, payload)``, ``on_site(topic, payload)``.
+One session carries a station's commands (``<base>/cmd/<name>``, and ``<base>/cmd/<door>/<name>``
+for each of its named doors, ``mqtt.command_doors``), the site's lives and lives requests (with
+``mqtt.share_lives``: gateway/northbound/sitelives.py) and the console's site view (other
+stations' state and status). :class:`InboundRouter` makes those subscriptions on every connect and
+hands each message to its consumer (called on the pump thread): ``on_command(name, payload,
+response, source)`` — the source names the door (``mqtt``, ``mqtt:<door>``), so that each door
+has its own command budget —, ``on_lives(topic, payload)``, ``on_site(topic, payload)``.
 
 An MQTT 5 command may name where its answer goes (Response Topic, Correlation Data): obeyed only
 within the bounds and below the reply prefix (``mqtt.reply_prefix``, default ``<base>/reply``);
@@ -32,8 +34,8 @@ CORRELATION_MAX = 256
 
 #: where an MQTT 5 request wants its answer: (Response Topic, Correlation Data)
 Response = tuple[str, bytes | None]
-#: ``on_command(name, payload, response)``
-CommandCallback = Callable[[str, bytes, Response | None], None]
+#: ``on_command(name, payload, response, source)``: source ``mqtt`` (the default door) or ``mqtt:<door>``
+CommandCallback = Callable[[str, bytes, Response | None, str], None]
 #: ``on_lives(topic, payload)`` / ``on_site(topic, payload)``
 TopicCallback = Callable[[str, bytes], object]
 
@@ -68,6 +70,7 @@ class InboundRouter:
         self._site_filters: tuple[str, ...] = ()
         self.on_site: TopicCallback | None = None
         self._cmd_prefix = M.command_filter(settings.base_topic)[:-1]
+        self._doors = tuple(settings.command_doors)
         #: a Response Topic must start with this (the configured reply prefix and a slash)
         self.response_prefix = (settings.reply_prefix or schema.topic_for(settings.base_topic, "reply")) + "/"
         self._refusals = RateLog(log)
@@ -81,6 +84,8 @@ class InboundRouter:
     def subscribe(self, client: paho.Client) -> None:
         """The subscriptions of a session the broker just accepted: the commands, then the site's."""
         client.subscribe(M.command_filter(self.s.base_topic), qos=1)
+        for door in self._doors:
+            client.subscribe(schema.command_door_filter(self.s.base_topic, door), qos=1)
         join_site(client, self.s, self.on_lives is not None, self._site_filters)
 
     def on_message(self, client: paho.Client | None, userdata: object, msg: paho.MQTTMessage) -> None:
@@ -93,8 +98,12 @@ class InboundRouter:
                 self.counters["site_view"] += 1
                 self.on_site(msg.topic, bytes(msg.payload))
             return
+        on = schema.parse_command_topic(self.s.base_topic, msg.topic, self._doors)
+        if on is None:                  # below cmd/ but on no door of this station
+            self.counters["commands_off_door"] += 1
+            return
         self.counters["commands"] += 1
-        self.on_command(msg.topic.rsplit("/", 1)[-1], msg.payload, self.response_of(msg))
+        self.on_command(on[0], msg.payload, self.response_of(msg), schema.command_source(on[1]))
 
     def response_of(self, msg: paho.MQTTMessage) -> Response | None:
         """MQTT 5: where the request wants its answer, ``(Response Topic, Correlation Data)``, if

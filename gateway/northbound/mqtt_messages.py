@@ -129,7 +129,7 @@ def state_key(st: StationState) -> tuple[Any, ...]:
             st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
             st.warning_alarm, st.disk_ok, st.end_p10, st.end_p50, st.end_p90,
             st.p_end, st.due, tuple(st.warn_reasons), st.prior_mean, st.prior_sd, st.prior_source,
-            st.lead_s, st.p_due, st.test_started_utc)
+            st.prior_n, st.prior_n_censored, st.prior_n_early, st.lead_s, st.p_due, st.test_started_utc)
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:
@@ -145,18 +145,20 @@ def status_message(base: str, station: str, t: float, online: bool) -> Message:
 
 
 def reply_message(base: str, station: str, t: float, command: str, request_id: str | None,
-                  r: CommandReply, response: tuple[str, bytes | None] | None = None) -> Message:
-    """The answer to a command: on ``reply``, or (MQTT 5) on the request's Response Topic with its
-    Correlation Data, ``response = (topic, correlation)``."""
+                  r: CommandReply, response: tuple[str, bytes | None] | None = None,
+                  source: str = mqtt_schema.COMMAND_SOURCE) -> Message:
+    """The answer to a command of ``source`` (its door: ``mqtt``, ``mqtt:<door>``): on ``reply``,
+    or (MQTT 5) on the request's Response Topic with its Correlation Data, ``response = (topic,
+    correlation)``."""
     code = reply_code(r)
     rid = request_id if request_id is not None else r.request_id
-    msg = _message("reply", base,
-                   lambda seq: mqtt_schema.reply_payload(seq, t, station, command, rid, r.ok, code, r.reason))
+    msg = _message("reply", base, lambda seq: mqtt_schema.reply_payload(seq, t, station, command, rid, r.ok,
+                                                                        code, r.reason, source))
     if response is None:
         return msg
     return Message(msg.kind, response[0], msg.payload, msg.qos, False, response[1])
 
 
 def command_filter(base: str) -> str:
-    """The subscription that receives every command topic of the station."""
-    return mqtt_schema.topic_for(base, "cmd_start").rsplit("/", 1)[0] + "/+"
+    """The subscription that receives every command topic of the station's default door."""
+    return mqtt_schema.command_door_filter(base)

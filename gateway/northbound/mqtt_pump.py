@@ -63,7 +63,7 @@ class MqttPump(PahoSession):
     """Store-and-forward of one station's messages (see the module docstring)."""
 
     def __init__(self, settings: MqttSettings, on_link: Callable[[bool], None] = lambda ok: None,
-                 on_command: CommandCallback = lambda name, payload, response: None,
+                 on_command: CommandCallback = lambda name, payload, response, source: None,
                  on_lives: TopicCallback | None = None) -> None:
         super().__init__(settings, settings.station_id, log)
         self.s = settings

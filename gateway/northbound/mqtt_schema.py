@@ -94,10 +94,16 @@ FORECAST_STATE_FIELDS = FORECAST_FIELDS + (
     Field("prior_mean", "float|null", "the test's life prior, mean, s (§7a)"),
     Field("prior_sd", "float|null", "the test's life prior, SD, s"),
     Field("prior_source", "str|null", "where the prior came from: `method` (fixed in the station's "
-          "method section), `config` (forecast.priors), `history:N` (N recorded failures; from other "
+          "method section), `config` (forecast.priors), `history:N` (N recorded wear-out failures; from other "
           "stations too: `history:N (the site: T tests from K stations (M of this station; a 30, "
           "b 12))`, the other stations named with their tests, at most 3 and `and J more`), "
           "METHOD.md §7a), null: none"),
+    Field("prior_n", "int|null", "the count of wear-out failures the prior came from (§7a; a "
+          "configured prior: the count its entry gives, or null)"),
+    Field("prior_n_censored", "int|null", "… of right-censored lives (hooks replaced or tests "
+          "ended before their end of life)"),
+    Field("prior_n_early", "int|null", "… of early failures (§7a v3: a failure below 0.75 × the "
+          "median of all lives, counted as a censored life, not as wear)"),
     Field("lead_s", "float|null", "the planner's lead (§5b `lead`), s"),
     Field("p_due", "float|null", "the bound P is held against (§5b `p_due`)"),
     Field("test_started_utc", "str|null", "UTC time of the test's slot 0, ISO 8601"),
@@ -257,7 +263,8 @@ REPLY_FIELDS = ENVELOPE + (
     Field("command", "str", "the command answered (" + ", ".join(k.value for k in CommandKind)
           + ", or the unknown name)"),
     Field("request_id", "str|null", "the request_id of the command, if it had one"),
-    Field("source", "str", "`mqtt`"),
+    Field("source", "str", "the door the command came in by: `mqtt` (`cmd/<command>`), or "
+          "`mqtt:<door>` for a named door (`cmd/<door>/<command>`, `mqtt.command_doors`)"),
     Field("ok", "bool", "true: carried out; false: refused, nothing was done"),
     Field("code", "int", "0 when ok, else the rejection code (table below; the same codes a PLC reads)"),
     Field("reason", "str", "why it was refused (field, value, what is allowed); empty when ok"),
@@ -362,7 +369,9 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                              ("zero_offsets_n", "zero offsets {T1, T2}, N (information only)"),
                              ("prior_mean", "the life prior's mean, s (§7a; null: none)"),
                              ("prior_sd", "its SD, s"), ("prior_source", "method, config, history:N"),
-                             ("prior_n", "the count of tests it came from (or null)")),
+                             ("prior_n", "the count of wear-out failures it came from (or null)"),
+                             ("prior_n_censored", "… of right-censored lives"),
+                             ("prior_n_early", "… of early failures (§7a v3)")),
     EventType.BASELINE: (("mu_ss", "baseline μ_ss"), ("mu_th", "threshold μ_th"),
                          ("k_b", "slot of the baseline"), ("stable_first", "first slot of the stable segment")),
     EventType.END_OF_LIFE: (("k_life", "slot of the end of life"), ("t_life", "wear life, s"),
@@ -384,6 +393,9 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                               ("utc", "when, ISO 8601"),
                               ("test_id", "the old hook's last test (or null)"),
                               ("life_s", "its t_life if it failed, else how long that test ran, s"),
+                              ("life_kind", "that life in the §7a history when it was replaced: "
+                               "wear_out (a wear-out failure), early (an early failure, §7a v3), "
+                               "censored (replaced before its end of life), or null (no life)"),
                               ("logged", "the line reached hooks.jsonl (false: the disk refused it)")),
     EventType.PROTECTION_STOP: (("stop_reasons", "unsafe reasons of the run that stopped the test"),),
     EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
@@ -441,6 +453,45 @@ def base_topic(prefix: str, site: Any, area: Any, line: Any, station: str) -> st
 
 def topic_for(base: str, key: str, **kw: Any) -> str:
     return f"{base}/{TOPIC[key].path.format(**kw)}"
+
+
+#: the command doors: the default door is ``<base>/cmd/<command>`` (the MES; a command's source
+#: ``mqtt``); a station may listen on named doors too (``mqtt.command_doors``, at most
+#: ``commandtypes.COMMAND_DOORS_MAX``, named as ``commandtypes.door_problem`` allows), each
+#: ``<base>/cmd/<door>/<command>`` with its own source ``mqtt:<door>`` — and so its own command
+#: budget (docs/limits.md) — for another writer (an operator's panel, a second MES) whom the
+#: broker's ACL confines to that door (``hookwatch config acl``, docs/deploy.md)
+COMMAND_SOURCE = "mqtt"
+
+
+def command_source(door: str | None) -> str:
+    """The source of a command received on ``door`` (None: the default door)."""
+    return COMMAND_SOURCE if door is None else f"{COMMAND_SOURCE}:{door}"
+
+
+def command_door_filter(base: str, door: str | None = None) -> str:
+    """The subscription that receives every command of ``door`` (None: the default door)."""
+    cmd = TOPIC["cmd_start"].path.rsplit("/", 1)[0]
+    return f"{base}/{cmd}/+" if door is None else f"{base}/{cmd}/{door}/+"
+
+
+def command_topic(base: str, name: str, door: str | None = None) -> str:
+    """The topic of command ``name`` on ``door`` (None: the default door)."""
+    return command_door_filter(base, door)[:-1] + name
+
+
+def parse_command_topic(base: str, topic: str, doors: tuple[str, ...]) -> tuple[str, str | None] | None:
+    """``(command name, door)`` of a topic below ``base``'s command doors (the default door: None),
+    None when it is on none of them (another level, an unknown door)."""
+    prefix = command_door_filter(base)[:-1]
+    if not topic.startswith(prefix):
+        return None
+    rest = topic[len(prefix):].split("/")
+    if len(rest) == 1:
+        return rest[0], None
+    if len(rest) == 2 and rest[0] in doors:
+        return rest[1], rest[0]
+    return None
 
 
 #: the one topic of the site level (``<prefix>/<site>/lives_request``, not below a station): a
@@ -620,6 +671,10 @@ def render() -> str:
                    f"{'yes' if t.durable else 'no'} | {t.doc} |")
     out += [
         "",
+        "Commands come in by *doors*: the default door `cmd/<command>` (the MES's) and, for each "
+        "name in the station's `mqtt.command_doors`, `cmd/<door>/<command>` (an operator's panel, a "
+        "second MES: each writer its own door, its own command budget; Commands, below).",
+        "",
         "All payloads are UTF-8 JSON objects. Numbers that are not finite (NaN) are sent as `null`. "
         "Times are UTC, ISO 8601 with milliseconds.",
         "",
@@ -744,6 +799,9 @@ def render() -> str:
         "snapshot, each test once by test id: a duplicate changes nothing; a test id that two "
         "stations claim with *different* lives is refused from both (it reaches no prior while "
         "they disagree; logged once per id in a rate-limited line, counted as `contested_ids`). "
+        "The lives go on the wire as they are (a failure's t_life, a censored life's n_slots · ts, "
+        "never a class): each gateway classes the early failures of its pooled history itself "
+        "(METHOD.md §7a v3), so the same lives give every box the same prior. "
         "*Lives cost what they are worth*: a snapshot costs the station's MQTT thread one append "
         "to a bounded hand-over (the newest snapshot of a station replaces the one still waiting, "
         "which is dropped and counted: `lives_dropped`); one worker thread per station checks "
@@ -767,30 +825,33 @@ def render() -> str:
         "a malformed message or an implausible record is refused with one counted, rate-limited "
         "log line and never reaches a prior. At most 500 lives per station, 256 stations and "
         "20,000 lives in all are kept. The sidecar of a test says where its prior came from "
-        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_stations` (how many), "
+        "(`prior_source: history`, `prior_n`, `prior_n_censored`, `prior_n_early`, `prior_stations` (how many), "
         "`prior_station_ids` (which: this station first, then by tests, at most 16), "
         "`prior_from`: `this station: N tests` or `the site: N tests from K stations (M of this "
         "station; a 30, b 12)`, the other stations named with their tests, at most 3 and "
         "`and J more`); the state's `prior_source` adds the same words to `history:N`, and the "
         "console's station page shows them.",
         "",
-        "Only gateways may publish there. A site's broker should say so in its ACL, e.g. "
-        "Mosquitto's `acl_file` with one MQTT user per gateway box:",
+        "Only the box that runs a station may publish its lives; every box of the site reads them. "
+        "The broker says so in its permissions, which `hookwatch config acl` writes from the "
+        "station files (a Mosquitto `acl_file` or RabbitMQ topic permissions; docs/deploy.md, "
+        "\"Broker permissions\"; the shipped deploy/mosquitto/ ACLs are made by it): one identity "
+        "per box, which may write only its own stations' topics (`lives` among them) and the "
+        "site's `lives_request`, and read the site's lives, state and status and its own "
+        "stations' commands.",
         "",
-        "```",
-        "# every client of the site may read the lives; only the box that runs a station writes",
-        "# its topics (hookwatch/<site>/<area>/<line>/<station>/…) and asks for the site's lives",
-        "pattern read hookwatch/plant-a/+/+/+/lives",
-        "user gw-box-07",
-        "topic readwrite hookwatch/plant-a/+/+/loom-13/#",
-        "topic readwrite hookwatch/plant-a/+/+/loom-14/#",
-        "topic read hookwatch/plant-a/+/+/+/lives",
-        "topic readwrite hookwatch/plant-a/lives_request",
-        "```",
-        "",
-        "A record that passes the checks is still taken as true: a compromised gateway account "
-        "can skew a prior within the plausible range (its lives are 1 of K stations' in "
-        "`prior_from`), which is why the ACL matters.",
+        "What a box can and cannot forge under those permissions. It **cannot** publish lives, "
+        "state, status, events, alarms or results for a station of another box, nor pose as a "
+        "station that is not in its own station files, nor send a command to any station (only "
+        "the commanders may, each on its own door): the broker refuses it (Mosquitto: PUBACK "
+        "reason code 0x87 over MQTT 5, the message silently dropped over 3.1.1; RabbitMQ 3.10 "
+        "closes the connection), and the message never reaches a subscriber. It **can** still lie "
+        "about its *own* stations: a record that passes the checks is taken as true, so a "
+        "compromised box can skew a prior within the plausible range with the lives of the "
+        "stations it runs — and only those: `prior_from` counts the stations the lives came from, "
+        "and each is one station of one box. A broker without these permissions (one shared user "
+        "that may write `hookwatch/#`) lets one account pose as every station of the site (up to "
+        "the 256 kept): then `prior_from`'s count of stations says nothing.",
         "",
         "## The console's site view",
         "",
@@ -808,13 +869,8 @@ def render() -> str:
         "depth 3), then every field the console keeps is type-checked and every string clipped "
         "to 64 printable ASCII characters; a malformed message is refused with one counted, "
         "rate-limited log line; at most 256 stations of other boxes are kept. The box's MQTT user "
-        "needs read permission there, e.g. in the ACL above:",
-        "",
-        "```",
-        "user gw-box-07",
-        "topic read hookwatch/plant-a/+/+/+/state",
-        "topic read hookwatch/plant-a/+/+/+/status",
-        "```",
+        "needs read permission on `<prefix>/<site>/+/+/+/state` and `…/status` (the permissions "
+        "`hookwatch config acl` writes give it to every box; above).",
         "",
         "## Payloads",
         "",
@@ -867,9 +923,19 @@ def render() -> str:
         "answer (its `ok` and `code`; the reason says `duplicate of request_id …`) and not carried "
         "out again; the same `request_id` naming another command or other arguments is refused "
         "(code 9). Give every command its own `request_id` and resend it unchanged when no reply "
-        "came. Commands that would act are limited per source (`mqtt`, `sparkplug`, "
-        "`console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
+        "came. Commands that would act are limited per source (`mqtt` and each `mqtt:<door>`, "
+        "`sparkplug`, `console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
         "refused with code 14 and counted (refused or repeated commands cost nothing of it).",
+        "",
+        "MQTT does not tell a subscriber who published a message, so the MQTT budget is per "
+        "*door*: the default door `cmd/<command>` (source `mqtt`, the MES's) and each named door "
+        "`cmd/<door>/<command>` a station listens on (`mqtt.command_doors`, source `mqtt:<door>`: "
+        "an operator's panel, a second MES) has its own, and the broker's permissions keep each "
+        "writer to its own door (`hookwatch config acl`: commanders by door; docs/deploy.md). A "
+        "writer flooding its door spends that door's budget only; the MES's commands on the "
+        "default door are all carried out (tests/gateway/northbound/test_command_doors.py). The "
+        "answer names the door in `source`. Without such permissions every client that may write "
+        "a command topic shares its door's budget with the MES.",
         "",
         "| code | name | meaning |",
         "|---|---|---|",

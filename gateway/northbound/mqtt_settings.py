@@ -34,3 +34,6 @@ class MqttSettings(BrokerSettings):
     #: gateway/northbound/sitelives.py), and the station's records folder (its own lives)
     share_lives: bool = False
     records_dir: str | None = None
+    #: the named command doors the station listens on besides the default (``mqtt.command_doors``):
+    #: ``<base>/cmd/<door>/<command>``, each with its own source ``mqtt:<door>`` and command budget
+    command_doors: tuple[str, ...] = ()

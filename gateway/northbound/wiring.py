@@ -40,6 +40,7 @@ def mqtt_settings(cfg):
         telemetry_budget_bytes=int(float(ob.telemetry_budget_mb) * 1024 * 1024),
         reply_prefix=getattr(m, "reply_prefix", None),
         share_lives=bool(getattr(m, "share_lives", True)), records_dir=os.path.join(cfg.recorder.dir, sid),
+        command_doors=tuple(getattr(m, "command_doors", ())),
     )
 
 

@@ -486,10 +486,11 @@ PRIOR_DECIMALS = 6
 
 
 def campaign_priors(samples: Sequence[Sample]) -> list[PriorEntry]:
-    """The life prior of every (grade, T_set) group with at least 3 failures: the §7a history rule
-    (failures and right-censored lives: a test that found its baseline and ended on purpose or at
-    t_end; the maximum-likelihood normal, SD at least 2 % of the mean), with ``n`` failures and
-    ``n_censored``. A test counts once: a duplicate sample ID and a test without analysis do not."""
+    """The life prior of every (grade, T_set) group with at least 3 wear-out failures: the §7a
+    history rule (failures and right-censored lives: a test that found its baseline and ended on
+    purpose or at t_end; v3: an early failure is a censored life at its x; the maximum-likelihood
+    normal, SD at least 2 % of the mean), with ``n`` wear-out failures, ``n_censored`` and
+    ``n_early``. A test counts once: a duplicate sample ID and a test without analysis do not."""
     past = []
     for s in sort_samples(samples):
         if s.results is None or s.duplicate:

@@ -71,7 +71,7 @@ class TestSession:
         the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar, ``prior``
         the test's life prior (§7a): its mean and SD go into the method (and so into the sidecar's
         ``method:`` section, for `hookwatch analyze` to give the same forecast), its source and
-        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``)."""
+        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``, ``prior_n_early``)."""
         values = dict(method_values)
         if prior is not None and prior.mean is not None and prior.sd is not None:
             values["prior_mean"], values["prior_sd"] = prior.mean, prior.sd
@@ -91,8 +91,8 @@ class TestSession:
             meta["start"] = dict(start_info)
         if prior is not None:
             side = prior.sidecar()
-            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_stations", "prior_from",
-                      "prior_station_ids"):
+            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_n_early", "prior_stations",
+                      "prior_from", "prior_station_ids"):
                 if k in side:
                     meta[k] = side[k]
         try:

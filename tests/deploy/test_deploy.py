@@ -457,7 +457,7 @@ def test_edge_broker_bridges_to_central_and_queues_through_an_outage(tmp_path):
         tg = LineReader([sub, "-h", "127.0.0.1", "-p", str(central_plain), "-u", "telegraf", "-P", "tg-pw",
                          "-i", "telegraf-test", "-c", "-q", "1", "-v", "-t", "hookwatch/#"])
         readers.append(tg)
-        state = "hookwatch/_bridge/box01/state"
+        state = "hookwatch/_bridge/edge-box01/state"
         tg.until(lambda ls: f"{state} 1" in ls, 30)
 
         def publish(topic, msg):

@@ -69,11 +69,28 @@
     const st = s.test_started_utc;
     return `projected end ${wall(wallAt(st, s.end_p10))} – ${wall(wallAt(st, s.end_p90))} (median ${wall(wallAt(st, s.end_p50))}), P_end ${fmt(s.p_end, 2)}`;
   }
+  // how many lives a prior came from (METHOD.md §7a v3): "4 wear-out failures, 3 censored,
+  // 1 early failure" ("" without counts)
+  function priorLives(s) {
+    if (s.prior_n == null) return "";
+    const w = (n, one, many) => `${n} ${n === 1 ? one : many}`;
+    return [w(s.prior_n, "wear-out failure", "wear-out failures"),
+            s.prior_n_censored != null ? `${s.prior_n_censored} censored` : null,
+            s.prior_n_early != null ? w(s.prior_n_early, "early failure", "early failures") : null].filter(Boolean).join(", ");
+  }
   // where the test's life prior came from (METHOD.md §7a): method / config / history:N, with
-  // "the site: T tests from K stations" when other stations' lives are in it
+  // "the site: T tests from K stations" when other stations' lives are in it, and its lives
   function priorText(s) {
     if (s.prior_mean == null || !s.prior_source) return "none";
-    return `${fmt(s.prior_mean, 0)} ± ${fmt(s.prior_sd, 0)} s from ${esc(s.prior_source)}`;
+    const lives = priorLives(s);
+    return `${fmt(s.prior_mean, 0)} ± ${fmt(s.prior_sd, 0)} s from ${esc(s.prior_source)}` +
+      (lives ? ` <span class="prior-lives">(${esc(lives)})</span>` : "");
+  }
+  // the due list's life prior: "3156 ± 182 s · history: 4 wear-out failures, 3 censored, 1 early failure"
+  function priorCell(s) {
+    if (s.prior_mean == null || !s.prior_source) return "–";
+    const lives = priorLives(s);
+    return `${fmt(s.prior_mean, 0)} ± ${fmt(s.prior_sd, 0)} s · ${String(s.prior_source).split(/[: ]/)[0]}` + (lives ? ": " + lives : "");
   }
   function wearWarning(s) {
     if (!s.wear_warning && (!s.warning_alarm || s.warning_alarm === "normal")) return "none";
@@ -151,6 +168,9 @@
   function by(who) { return who ? " by " + who : ""; }
   const REASON_WORDS = { headroom: "the headroom is below its bound", prior: "the life prior puts the end near",
                          trend: "the μ trend reaches the threshold soon" };
+  // a hook's life in the §7a history (gateway/station/hook_log.py LIFE_KINDS)
+  const LIFE_KIND_WORDS = { wear_out: "wear-out failure", early: "early failure", censored: "censored: replaced before its end of life" };
+  function lifeKind(k) { return LIFE_KIND_WORDS[k] || ""; }
   const END_WORDS = { stop: "stopped", "protection stop": "stopped by a protection stop", hook_replaced: "ended: the hook was replaced",
                       shutdown: "ended: the gateway shut down", completed: "completed" };
   // a test's end in words; `t_life` known: "end of life found at …, then stopped"
@@ -178,7 +198,8 @@
       case "start_failed": return `The start of sample ${e.sample_id} failed: ${e.reason}.`;
       case "test_started": return `Test started${by(e.source)}: sample ${e.sample_id}${e.grade ? " (" + e.grade + ")" : ""} at ${n(e.t_set)} N` +
         (e.t_end != null ? `, planned for ${dur(e.t_end)}` : "") +
-        (e.prior_mean != null ? `; life prior ${dur(e.prior_mean)} ± ${dur(e.prior_sd)} (${e.prior_source})` : "") + ".";
+        (e.prior_mean != null ? `; life prior ${dur(e.prior_mean)} ± ${dur(e.prior_sd)} (${e.prior_source}` +
+          (priorLives(e) ? `; ${priorLives(e)})` : ")") : "") + ".";
       case "baseline_established": return `Baseline found: μ_ss ${fmt(e.mu_ss, 3)}, so the threshold μ_th is ${fmt(e.mu_th, 3)}.`;
       case "end_of_life": return `End of life detected at ${dur(e.t_life)} (μ above the threshold ${fmt(e.mu_th, 3)}; baseline μ_ss ${fmt(e.mu_ss, 3)}).`;
       case "wear_warning": {
@@ -201,7 +222,7 @@
       case "alarm_out_of_service": return `Alarms taken out of service${by(e.source)}.`;
       case "alarm_in_service": return `Alarms returned to service${by(e.source)}.`;
       case "hook_replaced": return `Hook ${e.old_sample_id || "?"} replaced by ${e.new_sample_id}${e.grade ? " (" + e.grade + ")" : ""}${by(e.by)}` +
-        (e.life_s != null ? `; its life ${dur(e.life_s)}` : "") + (e.logged === false ? "; NOT written to hooks.jsonl (disk)" : "") + ".";
+        (e.life_s != null ? `; its life ${dur(e.life_s)}` + (lifeKind(e.life_kind) ? ` (${lifeKind(e.life_kind)})` : "") : "") + (e.logged === false ? "; NOT written to hooks.jsonl (disk)" : "") + ".";
       case "command_rejected": return `${e.count > 1 ? e.count + " " + e.command + " commands" : "A " + e.command + " command"} from ${e.source} refused: ${e.reason}${e.code != null ? " (code " + e.code + ")" : ""}.`;
       case "config_reloaded": return "Configuration reloaded.";
       case "disk_full": return `The ${e.store} cannot be written: ${e.reason}.`;
@@ -448,7 +469,7 @@
       <label>area <select id="f-area"><option value="">all</option></select></label>
       <label>filter <input id="f-text" maxlength="64" placeholder="station, sample, grade …"></label>
       <a id="csv" href="/api/due.csv" download>CSV</a> <small id="due-note"></small></div>
-      <table id="due"><thead><tr><th data-sort="station">station</th><th data-sort="box">box</th><th data-sort="when">projected end p10 – p90 (median)</th><th data-sort="p_end">P_end</th><th>reasons</th><th data-sort="state">state</th><th data-sort="grade">grade</th><th data-sort="sample">sample</th><th data-sort="line">line</th><th data-sort="area">area</th></tr></thead><tbody></tbody></table>`;
+      <table id="due"><thead><tr><th data-sort="station">station</th><th data-sort="box">box</th><th data-sort="when">projected end p10 – p90 (median)</th><th data-sort="p_end">P_end</th><th>reasons</th><th>life prior</th><th data-sort="state">state</th><th data-sort="grade">grade</th><th data-sort="sample">sample</th><th data-sort="line">line</th><th data-sort="area">area</th></tr></thead><tbody></tbody></table>`;
     const fl = $("#f-line"), fa = $("#f-area"), siteCb = siteToggle("#f-site"), ft = $("#f-text");
     const want = { line: q.get("line") || "", area: q.get("area") || "" };
     const sort = { key: "when", dir: 1 };
@@ -472,7 +493,8 @@
         : el("a", { href: "#/station/" + encodeURIComponent(x.station) }, x.station);
       return el("tr", { "data-station": x.station, "data-remote": x.remote ? "1" : null, class: (x.due ? "due" : "") + (x.remote && !x.online ? " silent" : "") },
         el("td", null, name), el("td", { class: "box" }, liveness(x)), el("td", { class: "when" }, when),
-        el("td", null, fmt(x.p_end, 2)), el("td", null, (x.reasons || []).join(", ")), el("td", null, x.state || ""),
+        el("td", null, fmt(x.p_end, 2)), el("td", null, (x.reasons || []).join(", ")),
+        el("td", { class: "prior" }, priorCell(x)), el("td", null, x.state || ""),
         el("td", null, x.grade || ""), el("td", null, x.sample_id || ""), el("td", null, x.line || ""), el("td", null, x.area || ""));
     }
     let last = null;
@@ -488,8 +510,12 @@
       $("#due-note").textContent = `${rows.length} stations, ${rows.filter(x => x.due).length} due` +
         (siteCb.checked ? `, ${rows.filter(x => x.remote).length} of other boxes` : "");
     }
+    // a refresh that answers after the planner left the page draws nothing (its table is gone)
+    let gone = false;
+    cleanup.push(() => { gone = true; });
     async function load() {
       const r = await api("/api/due" + query());
+      if (gone) return;
       if (r.status !== 200) { say(r.reason); return; }
       fill(fl, r.lines, fl.value || want.line); fill(fa, r.areas, fa.value || want.area);
       $("#csv").href = "/api/due.csv" + query();
@@ -515,7 +541,7 @@
     api("/api/station/" + encodeURIComponent(sid) + "/hooks").then(h => {
       if (h.status !== 200) { $("#hooks").textContent = h.reason; return; }
       $("#hooks").innerHTML = h.hooks.length ? `<table id="hooks-table"><tr><th>replaced (UTC)</th><th>old hook</th><th>its life (s)</th><th>its last test</th><th>new hook</th><th>grade</th><th>by</th></tr>` +
-        h.hooks.map(x => `<tr><td>${esc((x.utc || "").replace("T", " ").slice(0, 19))}</td><td>${esc(x.old_sample_id)}</td><td>${fmt(x.life_s, 1)}</td><td>${esc(x.test_id)}</td><td>${esc(x.new_sample_id)}</td><td>${esc(x.grade)}</td><td>${esc(x.by)}</td></tr>`).join("") + "</table>"
+        h.hooks.map(x => `<tr><td>${esc((x.utc || "").replace("T", " ").slice(0, 19))}</td><td>${esc(x.old_sample_id)}</td><td>${fmt(x.life_s, 1)}${lifeKind(x.life_kind) ? ` <span class="life-kind" data-kind="${esc(x.life_kind)}">${esc(lifeKind(x.life_kind))}</span>` : ""}</td><td>${esc(x.test_id)}</td><td>${esc(x.new_sample_id)}</td><td>${esc(x.grade)}</td><td>${esc(x.by)}</td></tr>`).join("") + "</table>"
         : "no hook replaced yet";
     });
     const r = await api("/api/station/" + encodeURIComponent(sid) + "/tests");

@@ -9,6 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 NAMESPACE = "spBv1.0"
+#: the verbs an edge node publishes: of the node itself, and of each of its devices (payloads.py;
+#: the broker's ACL gives the node these and nothing else of the namespace, ``hookwatch config acl``)
+NODE_OUT = ("NBIRTH", "NDEATH")
+DEVICE_OUT = ("DBIRTH", "DDEATH", "DDATA")
 
 
 def valid_id(s: str) -> bool:
@@ -38,6 +42,11 @@ class NodeTopics:
 
     def state_topic(self) -> str | None:
         return f"{NAMESPACE}/STATE/{self.host_id}" if self.host_id else None
+
+    def publications(self, devices: tuple[str, ...]) -> list[str]:
+        """Every topic the node publishes with ``devices`` attached (its births, deaths, data)."""
+        return ([self.topic(v) for v in NODE_OUT]
+                + [self.topic(v, d) for d in devices for v in DEVICE_OUT])
 
     def subscriptions(self) -> list[tuple[str, int]]:
         subs = [(self.topic("NCMD"), 1), (self.topic("DCMD", "+"), 1)]

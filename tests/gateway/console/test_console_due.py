@@ -39,7 +39,11 @@ def test_due_list_order_wall_times_filters_and_no_stale_projection(tmp_path, cap
             "2026-11-26T07:00:00Z", "2026-11-26T07:30:00Z", "2026-11-26T08:00:00Z")
         assert a["line"] == "line-1" and a["area"] == "hall-1" and a["sample_id"] == INJECT
         assert a["due"] is False and a["p_end"] == 0.12
+        # the life prior and how many lives it came from (§7a v3: wear-out, censored, early)
+        assert (a["prior_mean"], a["prior_sd"], a["prior_source"].split(" ")[0]) == (5400.0, 600.0, "history:3")
+        assert (a["prior_n"], a["prior_n_censored"], a["prior_n_early"]) == (3, 2, 1)
         b = rows[1]
+        assert b["prior_source"] is None and b["prior_n_early"] is None
         assert b["due"] is True and b["reasons"] == ["headroom", "trend"]
         cc = rows[0]
         # no projection after the end of life: the stale end_p*, p_end are not published

@@ -80,6 +80,10 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         when_a = page.locator('#due tr[data-station="loom-a"] .when').inner_text()
         assert "–" in when_a and when_a.count(":") >= 3                 # p10 – p90 (p50) as clock times
         assert "headroom, trend" in page.locator('#due tr[data-station="loom-b"]').inner_text()
+        # the life prior of each test: from how many lives of each kind (METHOD.md §7a v3)
+        assert page.locator('#due tr[data-station="loom-a"] td.prior').inner_text() == (
+            "5400 ± 600 s · history: 3 wear-out failures, 2 censored, 1 early failure")
+        assert page.locator('#due tr[data-station="loom-b"] td.prior').inner_text() == "–"
         page.screenshot(path=str(tmp_path / "due.png"), full_page=True)
         # --- filters by line, then area
         page.select_option("#f-line", "line-1")
@@ -93,6 +97,7 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         head = rows[0]
         a = dict(zip(head, rows[2], strict=True))
         assert a["sample_id"] == "'" + INJECT and a["grade"] == "'+G1"
+        assert (a["prior_n"], a["prior_n_censored"], a["prior_n_early"]) == ("3", "2", "1")
         page.select_option("#f-area", "hall-2")
         wait_js(page, "JSON.stringify(window.hw.due) === '[\"loom-b\"]'")
         assert page.get_attribute("#csv", "href") == "/api/due.csv?line=line-1&area=hall-2"
@@ -114,9 +119,11 @@ def test_due_list_cards_and_replace_dialog_in_a_browser(tmp_path, browser):
         wait_js(page, "document.querySelector('#projection') && "
                        "document.querySelector('#projection').textContent.includes('projected end')")
         assert "P_end 0.12" in page.locator("#projection").inner_text()
-        # where the life prior came from (issue 29): the site's lives of other stations
+        # where the life prior came from (issue 29): the site's lives of other stations, and how
+        # many lives of each kind (§7a v3)
         assert page.locator("#prior").inner_text() == (
-            "5400 ± 600 s from history:3 (the site: 5 tests from 2 stations (0 of this station; b 3, c 2))")
+            "5400 ± 600 s from history:3 (the site: 6 tests from 2 stations (0 of this station; b 4, c 2)) "
+            "(3 wear-out failures, 2 censored, 1 early failure)")
         page.goto(url + "/#/station/loom-c")
         wait_js(page, "document.querySelector('#state') && "
                        "document.querySelector('#state').dataset.state === 'end_of_life'")

@@ -45,6 +45,12 @@ def test_a_remote_station_is_shown_read_only_with_its_place_and_liveness():
     assert c["end_p50"] == 200.0 and c["due"] is True
     row = due_list([c])[0]
     assert row["remote"] is True and row["end_utc_p50"] == "2026-11-27T09:03:20Z"
+    # its life prior and the lives it came from (§7a v3), for the planner's due list
+    v.receive(f"{BASE}/b-1/state", state("b-1", prior_mean=3156.1, prior_sd=182.3, prior_source="history:4",
+                                         prior_n=4, prior_n_censored=3, prior_n_early=1), now=1000.0)
+    row = due_list(v.cards(now=1010.0))[0]
+    assert (row["prior_source"], row["prior_n"], row["prior_n_censored"], row["prior_n_early"]) == (
+        "history:4", 4, 3, 1)
     # the Will: silent since the last thing it said (its last state's time)
     assert v.receive(f"{BASE}/b-1/status", status("b-1", "offline"), now=1020.0)
     (c,) = v.cards(now=1021.0)
@@ -74,6 +80,7 @@ def test_malformed_remote_state_refused_with_one_counted_line(caplog):
         state("b-1", headroom="0.4"), state("b-1", due="yes"), state("b-1", p_end=1e999),
         state("b-1", sample_id=["x"]), state("b-1", warn_reasons=["<script>"]),
         state("b-1", grade="x" * 300),                                       # a string over the bound
+        state("b-1", prior_n_early=-1), state("b-1", prior_n=2.5), state("b-1", prior_n_censored=True),
         b'{"a":' * 10 + b"1" + b"}" * 10,                                    # too deep
         b" " * (S.MAX_MESSAGE_BYTES + 1),                                    # too many bytes
         json.dumps({"station": "b-1"}).encode(),                             # no test_state
@@ -119,12 +126,12 @@ def test_the_pump_routes_site_messages_lives_and_commands_apart(tmp_path):
     got: dict[str, list] = {"cmd": [], "lives": [], "site": []}
     base = "hookwatch/plant/hall-1/l1/a-1"
     pump = MqttPump(MqttSettings(station_id="a-1", base_topic=base, outbox_path=str(tmp_path / "o.sqlite")),
-                    on_command=lambda n, p, r: got["cmd"].append(n),
+                    on_command=lambda n, p, r, s: got["cmd"].append((n, s)),
                     on_lives=lambda t, p: got["lives"].append(t))
     pump.add_site_feed(S.filters(base), lambda t, p: got["site"].append(t))
     for topic in (f"{base}/cmd/ack", f"{BASE}/b-1/lives", f"{BASE}/b-1/state", f"{BASE}/b-1/status"):
         pump.inbound.on_message(None, None, SimpleNamespace(topic=topic, payload=b"{}", properties=None))
-    assert got == {"cmd": ["ack"], "lives": [f"{BASE}/b-1/lives"],
+    assert got == {"cmd": [("ack", "mqtt")], "lives": [f"{BASE}/b-1/lives"],
                    "site": [f"{BASE}/b-1/state", f"{BASE}/b-1/status"]}
     pump.outbox.close()
 

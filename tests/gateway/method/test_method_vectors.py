@@ -2,9 +2,11 @@
 import glob
 import json
 import os
+import shutil
 import subprocess
 
 import pytest
+import yaml
 
 from conftest import VECTORS, hookwatch_cmd
 from gateway.analysis import params_for
@@ -154,6 +156,21 @@ def test_cli_table_shows_the_forecast_from_a_prior():
     assert row[-6:] == ["-0.506", "2520.00", "prior", "-", "3421", "1.000"]
     assert "early warning at 2520.00 s (slot 125999; due by prior); prior 3300 ± 150 s;" in p.stdout
     assert "end 3346 / 3421 / 3559 s (10/50/90 %), P(end within 600 s) 1.000" in p.stdout
+
+
+def test_cli_says_how_many_lives_a_history_prior_came_from(tmp_path):
+    """A sidecar written by the gateway at a test's start carries the §7a counts (v3: wear-out
+    failures, censored lives, early failures); `hookwatch analyze` says them beside the prior."""
+    shutil.copy(os.path.join(VECTORS, "v6_prior.csv.gz"), tmp_path / "t.csv.gz")
+    with open(os.path.join(VECTORS, "v6_prior.meta.yaml"), encoding="utf-8") as f:
+        meta = yaml.safe_load(f)
+    meta.update(prior_source="history", prior_n=4, prior_n_censored=3, prior_n_early=1)
+    (tmp_path / "t.meta.yaml").write_text(yaml.safe_dump(meta), encoding="utf-8")
+    p = subprocess.run(hookwatch_cmd() + ["analyze", str(tmp_path / "t.csv.gz")],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0, p.stderr
+    assert ("prior 3300 ± 150 s, from history (4 wear-out failures, 3 censored, 1 early failure);"
+            in p.stdout), p.stdout
 
 
 @pytest.mark.parametrize("name", ["v1_failure", "v6_prior"])

@@ -50,7 +50,7 @@ def test_a_fixed_method_prior_wins_and_a_test_without_grade_gets_only_that():
     assert resolve_prior(cfg, [], None, 0.5, fixed=(5000.0, 50.0)).mean == 5000.0
     assert resolve_prior(cfg, [], "I", 0.5).sidecar() == {
         "prior_mean": 32306.9, "prior_sd": 951.7, "prior_source": "config", "prior_n": None,
-        "prior_n_censored": None}
+        "prior_n_censored": None, "prior_n_early": None}
 
 
 def test_priors_by_group_in_the_configuration_form():
@@ -60,7 +60,7 @@ def test_priors_by_group_in_the_configuration_form():
     assert [(e.grade, e.t_set, e.n) for e in got] == [("I", 0.5, 4), ("II", 0.5, 3)]
     assert got[0].mean == pytest.approx(statistics.mean([31000, 32000, 33000, 33500]))
     assert got[0].as_config() == {"grade": "I", "t_set_n": 0.5, "mean_s": got[0].mean,
-                                  "sd_s": got[0].sd, "n": 4, "n_censored": 0}
+                                  "sd_s": got[0].sd, "n": 4, "n_censored": 0, "n_early": 0}
 
 
 def _result(d, grade, t_set, status, t_life):

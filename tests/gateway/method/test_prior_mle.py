@@ -27,6 +27,8 @@ from gateway.method.prior import (
     log_sf,
     priors_by_group,
     resolve_prior,
+    split_early,
+    wear_out_prior,
 )
 
 #: the public campaign's grade I (tests/vectors/campaigns/c1_campaign.expected_priors.json)
@@ -177,15 +179,22 @@ def test_property_agrees_with_scipy_for_random_histories(xs, frac):
         return
     cs = [lo + f * (hi - lo) for f in frac]
     h = history_prior(xs, cs)
-    assert h is not None and all(math.isfinite(v) for v in h)
+    # v3: a prior when at least 3 failures are wear-out ones (not below 0.75 × the median)
+    assert (h is None) == (len(split_early(xs, cs)[0]) < MIN_HISTORY)
+    assert h is None or all(math.isfinite(v) for v in h)
     fit = censored_normal_mle(xs, cs)
     om, os_ = oracle_mle(xs, cs)
     # both maximise ℓ: the product's fit is at least as likely as scipy's (to rounding) and agrees
     assert (log_likelihood(xs, cs, *fit) >= log_likelihood(xs, cs, om, os_)
             - 1e-9 * abs(log_likelihood(xs, cs, om, os_)))
     assert rel(fit[0], om) <= 1e-6 and rel(fit[1], os_) <= 1e-6
+    # the rule on these lives as they are (§7a v2: every failure a wear-out one) …
     n = len(xs)
-    assert h == pytest.approx((fit[0], max(fit[1] * math.sqrt(n / (n - 1)), 0.02 * fit[0])), rel=1e-12)
+    v2 = wear_out_prior(xs, cs)
+    assert v2 == pytest.approx((fit[0], max(fit[1] * math.sqrt(n / (n - 1)), 0.02 * fit[0])), rel=1e-12)
+    # … and v3: the early failures censored at their life (the same rule on the split lives)
+    wear, early = split_early(xs, cs)
+    assert h == wear_out_prior(wear, cs + early)
 
 
 def t(status, t_life=None, k_b=100, stop=None, n_slots=None, grade="I", t_set=0.5, test_id=None):

@@ -1,7 +1,8 @@
 """METHOD.md §7a through the CLI: `hookwatch report CAMPAIGN --priors FILE` on the public campaign
 (tests/vectors/campaigns/, copied from ../shared/vectors/campaigns), compared as
 ../shared/tools/check_priors.py compares it: every (grade, T_set) group with grade, T_set within
-0.001 N, `n` and `n_censored` exact, mean and SD to 1e-6 relative; a group without a prior absent.
+0.001 N, `n` (wear-out failures), `n_censored` and `n_early` (METHOD.md §7a v3) exact, mean and SD
+to 1e-6 relative; a group without a prior absent.
 And the file's comment names the campaign folder escaped: a newline in the folder's name cannot
 inject YAML (issue 27 item 4)."""
 import glob
@@ -15,6 +16,7 @@ import yaml
 
 from conftest import VECTORS, hookwatch_cmd
 from gateway.config import load_station
+from gateway.method.prior import wear_out_prior
 
 CAMPAIGNS = os.path.join(VECTORS, "campaigns")
 NAMES = sorted(os.path.basename(p)[: -len(".expected_priors.json")]
@@ -48,7 +50,7 @@ def compare(got, expected):
         for k in ("mean_s", "sd_s"):
             if not abs(e[k] - p[k]) <= 1e-6 * abs(p[k]):
                 errs.append(f"{g['grade']}: {k} {e[k]} != {p[k]}")
-        for k in ("n", "n_censored"):
+        for k in ("n", "n_censored", "n_early"):
             if e.get(k) != p[k]:
                 errs.append(f"{g['grade']}: {k} {e.get(k)} != {p[k]}")
     errs += [f"extra {got[i]}" for i in range(len(got)) if i not in used]
@@ -62,14 +64,22 @@ def test_public_campaign_priors_through_the_cli(name, tmp_path):
     text = run_priors(os.path.join(CAMPAIGNS, name), tmp_path)
     got = yaml.safe_load(text)["forecast"]["priors"]
     assert compare(got, expected) == []
-    # the campaign has censored lives in grade I: a failures-only prior would differ
+    # the campaign has censored lives in grade I: a failures-only prior would differ; and an early
+    # failure (I-09): counted as a wear-out failure (§7a v2) it would widen the prior
     assert any(g["prior"] and g["prior"]["n_censored"] for g in expected)
-    # and a station file takes the section as it is (n and n_censored included)
+    assert any(g["prior"] and g["prior"]["n_early"] for g in expected)
+    for g in expected:
+        if g["prior"] and g["prior"]["n_early"]:
+            xs = [lf[1] for *_, lf in g["tests"] if lf and lf[0] == "failure"]
+            cs = [lf[1] for *_, lf in g["tests"] if lf and lf[0] == "censored"]
+            v2 = wear_out_prior(xs, cs)
+            assert v2[1] > 2 * g["prior"]["sd_s"] and v2[0] < g["prior"]["mean_s"]
+    # and a station file takes the section as it is (n, n_censored and n_early included)
     st = tmp_path / "s.yaml"
     st.write_text(MINIMAL + text, encoding="utf-8")
     cfg = load_station(str(st))
-    assert [(e.grade, e.n, e.n_censored) for e in cfg.forecast.priors] == [
-        (e["grade"], e["n"], e["n_censored"]) for e in got]
+    assert [(e.grade, e.n, e.n_censored, e.n_early) for e in cfg.forecast.priors] == [
+        (e["grade"], e["n"], e["n_censored"], e["n_early"]) for e in got]
 
 
 def test_the_campaign_folder_in_the_comment_cannot_inject_yaml(tmp_path):
@@ -83,4 +93,4 @@ def test_the_campaign_folder_in_the_comment_cannot_inject_yaml(tmp_path):
     assert len(head) == 2 and "\\nforecast: {priors: []}\\n# x" in head[0]
     doc = yaml.safe_load(text)
     (e,) = doc["forecast"]["priors"]             # the injected `forecast: {priors: []}` is not there
-    assert (e["grade"], e["n"], e["n_censored"]) == ("II", 3, 0)
+    assert (e["grade"], e["n"], e["n_censored"], e["n_early"]) == ("II", 3, 0, 0)

@@ -33,7 +33,7 @@ def report(tmp_path_factory):
                                           "--no-figures", "--priors", str(priors)],
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
-    assert f"priors: {priors} (1 grade/T_set group(s) with at least 3 failures)" in p.stdout
+    assert f"priors: {priors} (1 grade/T_set group(s) with at least 3 wear-out failures)" in p.stdout
     return out, priors
 
 
@@ -72,7 +72,7 @@ def test_priors_file_is_the_configurations_forecast_section(report, tmp_path):
     doc = yaml.safe_load(text)
     (e,) = doc["forecast"]["priors"]
     lives = list(LIVES.values())
-    assert (e["grade"], e["t_set_n"], e["n"], e["n_censored"]) == ("I", 0.5, 3, 0)
+    assert (e["grade"], e["t_set_n"], e["n"], e["n_censored"], e["n_early"]) == ("I", 0.5, 3, 0, 0)
     # no censored lives: the failures' mean and sample SD (to the file's 1e-6 s)
     assert e["mean_s"] == round(statistics.mean(lives), 6)
     assert e["sd_s"] == round(max(statistics.stdev(lives), 0.02 * statistics.mean(lives)), 6)
@@ -80,4 +80,4 @@ def test_priors_file_is_the_configurations_forecast_section(report, tmp_path):
     st = tmp_path / "s.yaml"
     st.write_text(MINIMAL + text, encoding="utf-8")
     cfg = load_station(str(st))
-    assert cfg.forecast.priors == (PriorEntry("I", 0.5, e["mean_s"], e["sd_s"], 3, 0),)
+    assert cfg.forecast.priors == (PriorEntry("I", 0.5, e["mean_s"], e["sd_s"], 3, 0, 0),)

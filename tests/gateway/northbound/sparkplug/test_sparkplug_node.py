@@ -8,6 +8,7 @@ import os
 from conftest import ROOT
 from gateway.northbound.sparkplug import metrics as M
 from gateway.northbound.sparkplug.actions import Disconnect, Publish, Submit
+from gateway.northbound.sparkplug.namespace import DEVICE_OUT, NODE_OUT
 from gateway.northbound.sparkplug.node import EdgeNode
 from gateway.northbound.sparkplug.sparkplug_b_pb2 import Payload
 
@@ -251,3 +252,18 @@ def test_the_edge_node_and_its_parts_are_pure():
         if found:
             bad[mod] = found
     assert bad == {}
+
+
+def test_the_node_publishes_only_the_verbs_its_permissions_name():
+    """The broker's permissions (gateway/broker_acl.py) give a node NODE_OUT and DEVICE_OUT of its
+    namespace and nothing else: every topic the node's code builds uses one of them."""
+    folder = os.path.join(ROOT, "gateway", "northbound", "sparkplug")
+    verbs = set()
+    for name in ("payloads.py", "replay.py", "node.py", "node_session.py", "client.py"):
+        with open(os.path.join(folder, name), encoding="utf-8") as f:
+            tree = ast.parse(f.read())
+        for n in ast.walk(tree):
+            if (isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute) and n.func.attr == "topic"
+                    and n.args and isinstance(n.args[0], ast.Constant)):
+                verbs.add(n.args[0].value)
+    assert verbs and verbs <= set(NODE_OUT) | set(DEVICE_OUT), verbs
