@@ -42,6 +42,7 @@ from ..compose import shared_outputs, station_facts
 from ..console.app import ConsoleServer
 from ..northbound.sparkplug import client as sparkplug_client
 from ..northbound.sparkplug.output import SparkplugOutput, state_values
+from ..northbound.wiring import reload_key
 from ..ports import Output, PlanView, StationLimits, StationView
 from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from ..station.alarm_store import KIND_OF, MODEL_NAME
@@ -297,7 +298,7 @@ class RemoteFleet:
                 if name in self.stations and (hub.worker is None or hub.worker.path not in sup.workers):
                     self.remove(name)
                 continue
-            key = repr((cfg.modbus_tcp, cfg.sparkplug, cfg.metrics, with_nb))
+            key = repr((reload_key(cfg), with_nb))     # the registry's rows (gateway/northbound/wiring.py)
             if self.keys.get(name) == key:
                 continue
             if console is not None and name not in console.feeds:

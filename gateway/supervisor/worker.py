@@ -31,6 +31,7 @@ from ..console.site import filters as site_filters
 from ..northbound.cmdparse import intake
 from ..northbound.metrics import MetricsOutput
 from ..northbound.mqtt import MqttOutput
+from ..northbound.wiring import BOX_SERVED, ROW_SERVED
 from ..ratelog import safe
 from ..records import CommandReply, Event, SlotRecord, StationState
 from ..slotwindow import SlotWindow
@@ -47,10 +48,9 @@ SUMMARY_EVERY = 10
 HEARTBEAT_S = 0.5
 #: one METRICS frame per this many heartbeats (1 s)
 METRICS_EVERY = 2
-#: what a supervisor may serve for its workers' stations (``--served-by-supervisor``)
-SERVED = ("modbus", "console", "metrics", "sparkplug", "site")
-#: served things that need every slot record (the others live on the summaries and snapshots)
-ROW_SERVED = frozenset({"modbus", "console", "sparkplug"})
+#: what a supervisor may serve for its workers' stations (``--served-by-supervisor``): the outputs
+#: of the registry it serves (gateway/northbound/wiring.py OUTPUTS), and the site view
+SERVED = (*BOX_SERVED, "site")
 
 
 class IpcOutput:
