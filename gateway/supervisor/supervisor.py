@@ -50,6 +50,7 @@ from ..doors import RateLog, budget
 from ..records import CommandReply
 from ..station.build import records_dir_ok
 from ..threadloop import Mailbox
+from .boxagent import BoxAgent, HubInfo
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
 from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
 
@@ -251,6 +252,8 @@ class WorkerHandle:
                                        name=f"ipc-{self.hub.name}")
         self.reader.start()
         log.info("%s: worker started (pid %d)", self.hub.name, self.proc.pid)
+        if sup.agent is not None:
+            sup.agent.spawned(self.hub.name)
 
     def _read(self, sock: socket.socket) -> None:
         dec = FrameDecoder()
@@ -265,11 +268,15 @@ class WorkerHandle:
                     if ftype == FrameType.HEARTBEAT:
                         hub.heartbeat = body
                         hub.heartbeat_t = time.monotonic()
+                        if self.sup.agent is not None:
+                            self.sup.agent.heartbeat(hub.name, body)
                     elif ftype == FrameType.SLOTS:
                         hub.last_slots = body
                         hub.publish("slots", body)
                     elif ftype == FrameType.EVENT:
                         hub.publish("event", body)
+                        if body.get("type") == "config_reloaded" and self.sup.agent is not None:
+                            self.sup.agent.config_reloaded(hub.name)
                     elif ftype == FrameType.STATE:
                         hub.state = body
                     elif ftype == FrameType.REPLY:
@@ -468,6 +475,10 @@ class Supervisor:
                  shared: SharedOutputs | None = None,
                  on_site: Callable[[str, bytes], object] | None = None) -> None:
         self.folder = folder
+        #: a site-managed box (``hookwatch run STATE/config/current``): versions, deferral, report
+        self.agent = BoxAgent.for_folder(folder)
+        #: removed stations whose test still runs: stopped when it ends
+        self._retire_after_test: list[WorkerHandle] = []
         #: the console's site view (SITE frames of the worker that carries it), or None
         self.on_site = on_site
         #: the shared outputs (Modbus TCP units, Sparkplug devices, console, metrics), or None
@@ -509,6 +520,8 @@ class Supervisor:
         with ``spawn`` False the first :meth:`tick` starts them (the caller attaches its shared
         outputs to the hubs in between, so they see every frame from the first HELLO on)."""
         self.t_start = time.monotonic()
+        if self.agent is not None:
+            self.agent.at_start()
         self.plan = plan = plan_fleet(self.folder)
         # the descriptor budget first: the soft limit raised, the reserve for the socketpairs of
         # worker (re)starts kept from the console, metrics and Modbus ports (gateway/doors.py)
@@ -595,6 +608,14 @@ class Supervisor:
                 if w.running and w.hello and not w.go_t:
                     w.go()
         self.watch.tick(list(self.workers.values()), now)
+        for w in [w for w in self._retire_after_test if not w.hub.in_test]:
+            self._retire_after_test.remove(w)
+            log.info("%s: its test ended: the removed station stops", w.hub.name)
+            self._retire(w)
+        if self.agent is not None and self.agent.tick(
+                [HubInfo(h.name, h.in_test, bool(h.worker and h.worker.running), h.refused)
+                 for h in self.hubs.values()], now):
+            self.reload()
 
     @property
     def spawn_failures(self) -> int:
@@ -622,12 +643,15 @@ class Supervisor:
 
     # ------------------------------------------------------------ reload
     def reload(self) -> None:
+        if self.agent is not None:
+            self.agent.folder_read()
         try:
             plan = plan_fleet(self.folder)
         except OSError as e:
             log.error("reload refused, configuration kept: %s: %s", self.folder, e)
             return
         seen = set()
+        changed: list[StationHub] = []
         for r in plan.refused:
             seen.add(r.path)
             if r.path in self.workers:
@@ -649,12 +673,29 @@ class Supervisor:
             elif fp != w.fingerprint:
                 w.fingerprint = fp
                 log.info("%s: %s changed: reload sent to its worker", w.hub.name, os.path.basename(path))
+                changed.append(w.hub)
+                if self.agent is not None:
+                    self.agent.reload_sent(w.hub.name, w.hub.in_test)
                 if not w.send(FrameType.RELOAD, {}):
                     log.warning("%s: worker not running; it starts with the new file", w.hub.name)
+            elif self.agent is not None:
+                self.agent.unchanged(w.hub.name)
         for path, w in list(self.workers.items()):
             if path not in seen:
+                if w.hub.in_test and self.agent is not None:
+                    log.info("%s: station file removed: its worker stops when its test ends", w.hub.name)
+                    self.workers.pop(path, None)
+                    self._retire_after_test.append(w)
+                    continue
                 log.info("%s: station file removed: its worker stops", w.hub.name)
                 self._retire(w)
+        by = self.agent.interrupt_by() if self.agent is not None else None
+        if by is not None:
+            stopping = [h for h in changed if h.in_test]
+            self.agent.interrupted(by, [h.name for h in stopping])      # type: ignore[union-attr]
+            for h in stopping:      # the test ends as aborted; its deferred configuration applies
+                threading.Thread(target=h.command, args=("stop",), kwargs={"source": f"config:{by}"},
+                                 daemon=True, name=f"interrupt-{h.name}").start()
         self.plan = plan
         if self.shared is not None:
             self.shared.attach(self)
@@ -666,7 +707,7 @@ class Supervisor:
 
     # ------------------------------------------------------------ stop
     def stop(self, timeout: float = 40.0) -> None:
-        ws = list(self.workers.values()) + list(self._retired)
+        ws = list(self.workers.values()) + list(self._retired) + list(self._retire_after_test)
         for w in ws:
             w.terminate()
         t_end = time.monotonic() + timeout
@@ -682,4 +723,6 @@ class Supervisor:
             w.reap()
         if self.shared is not None:
             self.shared.stop()
+        if self.agent is not None:
+            self.agent.stop()
         self.rlog.close()               # the counts of the last window, and no timer after
