@@ -1,0 +1,148 @@
+"""Issue 37 with real processes: a site repository (Git, commits signed with an OpenSSH key made by
+ssh-keygen), a box (box file, state folder, `hookwatch run STATE/config/current`: a supervisor and
+a worker per station) with `hookwatch sim` virtual stations, real Mosquitto for the config report,
+and `hookwatch config apply/rollback/status` as a user (or Ansible) runs them."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+
+import yaml
+
+from conftest import ROOT
+from kit.broker import Broker, Sub
+from kit.e2e import METER_MAP, QUICK_END, QUICK_SCALE, analyze_cli, read_json, test_dirs, virtual_station, wait_log
+from kit.site_repo import Box, SiteRepo, ssh_key
+from kit.tools import wait_for
+
+
+def _scenario(path, seed):
+    with open(os.path.join(ROOT, "config", "scenarios", "quick.yaml")) as f:
+        sc = yaml.safe_load(f)
+    sc.update(seed=seed, meter={"map": METER_MAP})
+    sc["plant"]["time_scale"] = QUICK_SCALE
+    sc["plant"]["grade"] = "I"
+    path.write_text(yaml.safe_dump(sc))
+    return str(path)
+
+
+def _sims(stack, tmp_path, names):
+    out = {}
+    for i, n in enumerate(names):
+        sub = tmp_path / f"sim-{n}"
+        sub.mkdir()
+        out[n] = stack.enter_context(virtual_station(sub, _scenario(sub / "sc.yaml", 40 + i)))[1]
+    return out
+
+
+def _apply(box, repo, sha, *extra):
+    p = box.config("apply", str(repo.path), "--version", sha, "--json", *extra)
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+    assert lines, p.stdout + p.stderr
+    return p.returncode, json.loads(lines[-1]), p
+
+
+def _station_on(box, name, sha, timeout=60):
+    """Wait until the box's supervisor says ``name`` runs ``sha`` and has read its meter."""
+    def ok():
+        s = box.status().get("stations", {}).get(name) or {}
+        return s.get("version") == sha and s.get("meter_ok") and not s.get("pending")
+    wait_for(ok, timeout, 0.2, what=f"{name} on {sha[:8]}: {box.status()}")
+
+
+def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
+    """(a) a fleet-default change: the idle station applies at once, the one in a test keeps its
+    parameters and applies when the test ends (its parameters and result unchanged, online ==
+    offline); the same ID again changes nothing; (b) a check failure and (d) an unsigned or
+    unknown-signer commit are refused, nothing changed; the retained report says it all, and its
+    Will says offline."""
+    key, signer = ssh_key(tmp_path, "ops")
+    other, _ = ssh_key(tmp_path, "stranger")
+    with contextlib.ExitStack() as stack:
+        broker = stack.enter_context(Broker(tmp_path))
+        repo = SiteRepo(tmp_path / "site", broker.port)
+        box = Box(tmp_path, "b1", signer)
+        repo.box("b1", box.records)
+        links = _sims(stack, tmp_path, ("idle", "busy"))
+        repo.station("b1", "idle", links["idle"])
+        repo.station("b1", "busy", links["busy"], test={"sample_id": "S-busy", "autostart": True,
+                                                         "t_end_s": QUICK_END})
+        v1 = repo.commit("two stations", key)
+        rc, out, p = _apply(box, repo, v1)
+        assert rc == 3 and out["version"] == v1 and not out["rolled_back"], p.stderr
+        assert box.current() == v1 == box.verified()          # no supervisor yet: it starts on it
+        sub = Sub(broker.port, "hookwatch/lab/box/+/config")
+        stack.callback(sub.stop)
+        gw = box.start()
+        try:
+            _station_on(box, "idle", v1)
+            _station_on(box, "busy", v1)
+            wait_log(gw, "busy: test_started")
+            # (a) a fleet default changes
+            repo.edit("defaults/fleet.yaml", lambda d: d["defaults"]["method"].update(delta=0.3))
+            v2 = repo.commit("delta 0.3 for every station", key)
+            pl = box.config("plan", str(repo.path), "--version", v2, "--json")
+            assert pl.returncode == 3, pl.stdout + pl.stderr
+            plan = {s["station"]: s for s in json.loads(pl.stdout)["stations"]}
+            assert plan["idle"]["status"] == "apply-now" and plan["busy"]["status"] == "deferred"
+            assert plan["idle"]["keys"] == ["method.delta"]
+            rc, out, p = _apply(box, repo, v2)
+            assert rc == 3, p.stdout + p.stderr
+            assert out["deferred"] == ["busy"] and not out["rolled_back"]
+            assert box.verified() == v2
+            _station_on(box, "idle", v2)
+            st = box.status()["stations"]["busy"]
+            assert st["pending"] == v2 and st["in_test"]
+            # the report says busy is deferred
+            sub.wait(lambda s: any(m[2].get("version") == v2 and m[2].get("deferred") == ["busy"]
+                                   for m in s.messages("config")), 30, "a report with busy deferred")
+            # (b) a commit that fails check: refused, nothing changed
+            repo.edit("boxes/b1/stations/idle.yaml", lambda d: d["meter"].update(baud=12345))
+            bad = repo.commit("a bad baud", key)
+            rc, out, p = _apply(box, repo, bad)
+            assert rc == 4 and "config check failed" in out["why"], p.stdout + p.stderr
+            assert any("boxes/b1/stations/idle.yaml:" in e and "baud" in e for e in out["errors"])
+            assert box.current() == v2
+            # (d) unsigned, and signed by a key the box does not trust: refused
+            repo.edit("boxes/b1/stations/idle.yaml", lambda d: d["meter"].pop("baud"))
+            unsigned = repo.commit("fixed, but unsigned")
+            rc, out, p = _apply(box, repo, unsigned)
+            assert rc == 4 and "not signed" in out["why"] and box.current() == v2, out
+            repo.edit("boxes/b1/stations/idle.yaml", lambda d: d.update(test={"sample_id": "S-x"}))
+            stranger = repo.commit("signed by a stranger", other)
+            rc, out, p = _apply(box, repo, stranger)
+            assert rc == 4 and "not by an allowed signer" in out["why"] and box.current() == v2, out
+            # the running test ends; then, and only then, busy applies v2
+            wait_log(gw, "busy: test_ended", timeout=120)
+            _station_on(box, "busy", v2, timeout=60)
+            # the same ID again: nothing to do
+            rc, out, p = _apply(box, repo, v2)
+            assert rc == 0 and out["why"] == "already applied", out
+            sub.wait(lambda s: any(m[2].get("version") == v2 and m[2].get("deferred") == []
+                                   and m[2].get("online") for m in s.messages("config")), 30,
+                     "a report with nothing deferred")
+            status = json.loads(box.config("status", "--json").stdout)
+            assert status["version"] == v2 and status["verified"] == v2 and not status["drift"]
+            gw.p.send_signal(signal.SIGKILL)            # the Will
+            gw.p.wait(30)
+            sub.wait(lambda s: s.messages("config")[-1][2].get("online") is False, 30, "the Will")
+        finally:
+            box.stop()
+    log = gw.log_all()
+    assert "idle: configuration reloaded" in log
+    # busy's first test ran on the parameters it started with: delta 0.25 (the default), and its
+    # result is what the offline analysis of its log gives
+    d = test_dirs(box.dir, "busy")[0]
+    with open(os.path.join(d, "log.meta.yaml")) as f:
+        assert yaml.safe_load(f)["method"]["delta"] == 0.25
+    res = read_json(os.path.join(d, "result.json"))
+    assert res["test_status"] == "completed", res
+    assert analyze_cli(os.path.join(d, "log.csv.gz")) == res["method"]
+    kinds = [e["event"] for e in box.journal()]
+    assert "deferred" in kinds and "refused" in kinds and kinds.count("applied") >= 2
+    # busy restarted only after its test had ended
+    i_end = log.index("busy: test_ended")
+    assert "busy: configuration reloaded" in log[i_end:] and "busy: configuration reloaded" not in log[:i_end]
+    assert "Traceback" not in log
