@@ -146,3 +146,109 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
     i_end = log.index("busy: test_ended")
     assert "busy: configuration reloaded" in log[i_end:] and "busy: configuration reloaded" not in log[:i_end]
     assert "Traceback" not in log
+
+
+def test_health_gate_rollback_kill_mid_apply_drift_and_interrupted_tests(tmp_path):
+    """(c) a version that passes check but whose station cannot read its meter (a port that does
+    not exist) is rolled back by the box itself, which says why; (f) an apply killed with SIGKILL
+    after its switch is repaired by the running supervisor, and by the next start of a supervisor
+    killed with it; (e) a hand edit of the effective tree is reported as drift; an operator's
+    `--interrupt-tests --by NAME` ends a running test (journaled, published) and applies at once."""
+    key, signer = ssh_key(tmp_path, "ops")
+    with contextlib.ExitStack() as stack:
+        broker = stack.enter_context(Broker(tmp_path))
+        repo = SiteRepo(tmp_path / "site", broker.port)
+        box = Box(tmp_path, "b2", signer)
+        repo.box("b2", box.records)
+        links = _sims(stack, tmp_path, ("s1", "long"))
+        repo.station("b2", "s1", links["s1"])
+        repo.station("b2", "long", links["long"], test={"sample_id": "S-long", "autostart": True,
+                                                         "t_end_s": 600})
+        v1 = repo.commit("two stations", key)
+        assert _apply(box, repo, v1)[0] == 3
+        sub = Sub(broker.port, "hookwatch/lab/box/b2/config")
+        stack.callback(sub.stop)
+        gw = box.start()
+        try:
+            _station_on(box, "s1", v1)
+            _station_on(box, "long", v1)
+            # (c) the health gate: s1's meter on a port that does not exist
+            repo.edit("boxes/b2/stations/s1.yaml", lambda d: d["meter"].update(port="/dev/hookwatch-no-such-port"))
+            bad = repo.commit("s1 on a port that does not exist", key)
+            assert box.config("check", str(repo.path), "--version", bad, "--box", "b2").returncode == 0
+            rc, out, p = _apply(box, repo, bad, "--health-timeout", "15")
+            assert rc == 5 and out["rolled_back"], p.stdout + p.stderr
+            assert "s1" in out["why"] and "meter" in out["why"], out
+            assert box.current() == v1 == box.verified()
+            _station_on(box, "s1", v1)                 # back on the verified version, reading
+            rb = json.loads(box.config("status", "--json").stdout)["last_rollback"]
+            assert rb["from"] == bad and rb["to"] == v1 and "s1" in rb["why"]
+            sub.wait(lambda s: any((m[2].get("last_rollback") or {}).get("from") == bad
+                                   for m in s.messages("config")), 30, "the rollback reported")
+            # (f) killed mid-apply (in its health gate, after the switch): the running supervisor
+            # repairs the box by itself
+            ap = box.config_popen("apply", str(repo.path), "--version", bad, "--health-timeout", "600")
+            wait_for(lambda: box.current() == bad and (box.config_dir / "applying.json").exists(), 60, 0.05,
+                     what="the apply switched")
+            ap.kill()
+            ap.wait(10)
+            ap.stdout.close()
+            ap.stderr.close()
+            wait_for(lambda: box.current() == v1 and not (box.config_dir / "applying.json").exists(), 60, 0.2,
+                     what="repaired by the running supervisor")
+            rep = [e for e in box.journal() if e["event"] == "repaired"]
+            assert rep and "interrupted before its health gate passed" in rep[-1]["why"], box.journal()
+            _station_on(box, "s1", v1)
+            # … and with the supervisor killed too: the next start repairs it first
+            gw.p.send_signal(signal.SIGSTOP)
+            ap = box.config_popen("apply", str(repo.path), "--version", bad, "--health-timeout", "600")
+            wait_for(lambda: box.current() == bad and (box.config_dir / "applying.json").exists(), 60, 0.05,
+                     what="the apply switched")
+            ap.kill()
+            ap.wait(10)
+            ap.stdout.close()
+            ap.stderr.close()
+            gw.p.send_signal(signal.SIGKILL)
+            gw.p.send_signal(signal.SIGCONT)
+            gw.p.wait(30)
+            gw.stop()
+            assert box.current() == bad                # what a power cut leaves
+            for w in _workers_of(gw):                   # the killed supervisor's workers go too
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(w, signal.SIGKILL)
+            gw = box.start()
+            wait_log(gw, "configuration repaired at start")
+            assert box.current() == v1 == box.verified()
+            _station_on(box, "s1", v1)
+            _station_on(box, "long", v1)
+            wait_log(gw, "long: test_started")
+            # (e) drift: a hand edit of the effective tree
+            with open(box.current_dir / "stations" / "s1.yaml", "a") as f:
+                f.write("# edited by hand\n")
+            sub.wait(lambda s: any(m[2].get("drift") and m[2].get("drift_files") == ["stations/s1.yaml"]
+                                   for m in s.messages("config")), 30, "drift reported")
+            # an operator interrupts the running test for a change of that station
+            repo.edit("boxes/b2/stations/s1.yaml", lambda d: d["meter"].update(port=links["s1"]["meter"]))
+            repo.edit("boxes/b2/stations/long.yaml", lambda d: d["test"].update(t_end_s=500))
+            v3 = repo.commit("long: t_end 500", key)
+            rc, out, p = _apply(box, repo, v3, "--interrupt-tests", "--by", "alice")
+            assert rc == 3 and out["deferred"] in ([], ["long"]), p.stdout + p.stderr
+            _station_on(box, "long", v3)
+            sub.wait(lambda s: any((m[2].get("last_interrupt") or {}).get("by") == "alice"
+                                   and not m[2].get("drift") for m in s.messages("config")), 30,
+                     "the interruption reported, the drift repaired by the apply")
+        finally:
+            box.stop()
+    log = "".join(p.read_text() for p in sorted(box.dir.glob("supervisor-*.log")))
+    (d,) = [x for x in test_dirs(box.dir, "long") if read_json(os.path.join(x, "result.json"))
+            ["end_reason"] != "gateway restart"][:1]
+    res = read_json(os.path.join(d, "result.json"))
+    assert res["test_status"] == "aborted" and res["t_end"] == 600, res
+    ev = [e for e in box.journal() if e["event"] == "interrupted"]
+    assert ev and ev[-1]["by"] == "alice" and ev[-1]["stations"] == ["long"]
+    assert "configuration drift: stations/s1.yaml edited by hand" in log
+
+
+def _workers_of(gw) -> list[int]:
+    import re
+    return [int(p) for p in re.findall(r"worker started \(pid (\d+)\)", gw.log_all())]
