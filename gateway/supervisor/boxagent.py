@@ -32,6 +32,7 @@ from .. import safeout
 from ..config.site.boxreport import build_report
 from ..config.site.versions import StateDir, write_atomic
 from ..northbound.broker_settings import BrokerSettings
+from ..northbound.metrics.figures import set_config_source
 from ..safeyaml import YamlError, load
 from .boxpublish import ReportPublisher
 
@@ -97,6 +98,7 @@ class BoxAgent:
         """Before the folder is read: the pid file, and the repair of a half-applied version."""
         self.state.ensure()
         write_atomic(self.state.path("supervisor.pid"), f"{os.getpid()}\n".encode("ascii"))
+        set_config_source(self.figures)
         with self.state.try_lock() as held:
             if held:
                 why = self.state.repair()
@@ -112,6 +114,7 @@ class BoxAgent:
         self._reporter_for_version()
 
     def stop(self) -> None:
+        set_config_source(None)
         if self._reporter is not None:
             self._reporter.stop()
             self._reporter = None

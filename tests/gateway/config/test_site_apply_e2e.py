@@ -8,6 +8,7 @@ import contextlib
 import json
 import os
 import signal
+import urllib.request
 
 import yaml
 
@@ -15,7 +16,7 @@ from conftest import ROOT
 from kit.broker import Broker, Sub
 from kit.e2e import METER_MAP, QUICK_END, QUICK_SCALE, analyze_cli, read_json, test_dirs, virtual_station, wait_log
 from kit.site_repo import Box, SiteRepo, ssh_key
-from kit.tools import wait_for
+from kit.tools import free_port, wait_for
 
 
 def _scenario(path, seed):
@@ -157,7 +158,9 @@ def test_health_gate_rollback_kill_mid_apply_drift_and_interrupted_tests(tmp_pat
     key, signer = ssh_key(tmp_path, "ops")
     with contextlib.ExitStack() as stack:
         broker = stack.enter_context(Broker(tmp_path))
-        repo = SiteRepo(tmp_path / "site", broker.port)
+        mport = free_port()
+        repo = SiteRepo(tmp_path / "site", broker.port,
+                        defaults={"metrics": {"enabled": True, "host": "127.0.0.1", "port": mport}})
         box = Box(tmp_path, "b2", signer)
         repo.box("b2", box.records)
         links = _sims(stack, tmp_path, ("s1", "long"))
@@ -227,6 +230,10 @@ def test_health_gate_rollback_kill_mid_apply_drift_and_interrupted_tests(tmp_pat
                 f.write("# edited by hand\n")
             sub.wait(lambda s: any(m[2].get("drift") and m[2].get("drift_files") == ["stations/s1.yaml"]
                                    for m in s.messages("config")), 30, "drift reported")
+            # … and to Prometheus (the supervisor's endpoint)
+            text = wait_for(lambda: _scrape(mport) if 'hookwatch_config_drift{box="b2"} 1.0' in _scrape(mport)
+                            else None, 30, 0.5, what="the drift gauge")
+            assert f'version="{v1}"' in text and 'hookwatch_config_info{box="b2"' in text
             # an operator interrupts the running test for a change of that station
             repo.edit("boxes/b2/stations/s1.yaml", lambda d: d["meter"].update(port=links["s1"]["meter"]))
             repo.edit("boxes/b2/stations/long.yaml", lambda d: d["test"].update(t_end_s=500))
@@ -247,6 +254,14 @@ def test_health_gate_rollback_kill_mid_apply_drift_and_interrupted_tests(tmp_pat
     ev = [e for e in box.journal() if e["event"] == "interrupted"]
     assert ev and ev[-1]["by"] == "alice" and ev[-1]["stations"] == ["long"]
     assert "configuration drift: stations/s1.yaml edited by hand" in log
+
+
+def _scrape(port) -> str:
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as r:
+            return r.read().decode()
+    except OSError:
+        return ""
 
 
 def _workers_of(gw) -> list[int]:
