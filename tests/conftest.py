@@ -175,6 +175,8 @@ SLOW: dict[str, tuple[str, ...]] = {
     "tests/gateway/console/test_console_browser.py": ("*",),
     # the site view: chromium and three gateways on one Mosquitto; hookwatch run (a station, a fleet)
     "tests/gateway/console/test_console_site_browser.py": ("*",),
+    # issue 37: the Boxes page, chromium and three boxes' report publishers on one Mosquitto
+    "tests/gateway/console/test_console_boxes_browser.py": ("*",),
     "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
     "tests/gateway/commands/test_console_demo.py": ("*",),
     "tests/gateway/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
