@@ -84,12 +84,12 @@ def _check(args: argparse.Namespace) -> int:
                 checks, across = {box: check_box(tree, box)}, []
     except GitError as e:
         raise CliError(str(e), 1) from None
-    errors = [e for c in checks.values() for e in c.errors] + across
+    errors = [x for c in checks.values() for x in c.errors] + across
     for c in checks.values():
         for w in c.warnings:
             print(f"warning: {w}", file=sys.stderr)
-    for e in errors:
-        print(e)
+    for line in errors:
+        print(line)
     n = sum(len(c.stations) for c in checks.values())
     print(f"{len(checks)} box(es), {n} station(s): " + (f"{len(errors)} error(s)" if errors else "ok"),
           file=sys.stderr)
@@ -114,8 +114,8 @@ def _plan(args: argparse.Namespace) -> int:
     except GitError as e:
         raise CliError(str(e), 1) from None
     if plan.errors:
-        for e in plan.errors:
-            print(e, file=sys.stderr)
+        for line in plan.errors:
+            print(line, file=sys.stderr)
         return EXIT["error"]
     if args.json:
         _print_json(plan.as_dict())
@@ -155,8 +155,8 @@ def _apply(args: argparse.Namespace) -> int:
                         interrupt_by=args.by if args.interrupt_tests else None,
                         health_timeout=args.health_timeout,
                         say=(lambda t: None) if quiet else (lambda t: print(t, file=sys.stderr)))
-    for e in out.errors:
-        print(e, file=sys.stderr)
+    for line in out.errors:
+        print(line, file=sys.stderr)
     if args.json:
         _print_json(out.as_dict())
     else:

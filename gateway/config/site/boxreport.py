@@ -47,7 +47,8 @@ def build_report(state: StateDir, status: dict[str, Any] | None = None,
     cur, ver = state.current(), state.verified()
     man = state.manifest(cur) if cur else None
     st = status if status is not None else (read_json(state.path("supervisor.json")) or {})
-    stations = st.get("stations") if isinstance(st.get("stations"), dict) else {}
+    raw = st.get("stations")
+    stations: dict[str, Any] = raw if isinstance(raw, dict) else {}
     applied_at = None
     if cur and cur == ver:
         try:

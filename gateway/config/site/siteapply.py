@@ -79,7 +79,8 @@ def _gate(state: StateDir, sha: str, plan: Plan, timeout: float) -> tuple[bool, 
     why = "the supervisor did not read the new version"
     while True:
         st = read_json(state.path("supervisor.json")) or {}
-        stations = st.get("stations") if isinstance(st.get("stations"), dict) else {}
+        raw = st.get("stations")
+        stations: dict[str, Any] = raw if isinstance(raw, dict) else {}
         if supervisor_alive(state) is None:
             return False, "the supervisor is not running", []
         if st.get("version") == sha:

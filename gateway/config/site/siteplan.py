@@ -121,7 +121,8 @@ def _in_test(state: StateDir) -> dict[str, bool]:
     if supervisor_alive(state) is None:
         return {}
     st = read_json(state.path("supervisor.json")) or {}
-    stations = st.get("stations") if isinstance(st.get("stations"), dict) else {}
+    raw = st.get("stations")
+    stations: dict[str, Any] = raw if isinstance(raw, dict) else {}
     return {str(n): bool(s.get("in_test")) for n, s in stations.items() if isinstance(s, dict)}
 
 
