@@ -50,7 +50,7 @@ STATUS_REFRESH_S = 10.0
 class HubInfo:
     """What the agent needs of one station of the supervisor."""
     name: str
-    in_test: bool
+    in_test: bool          # a test is starting or running (its worker's heartbeat: ``busy``)
     running: bool
     refused: str | None
 

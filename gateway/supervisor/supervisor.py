@@ -178,6 +178,12 @@ class StationHub:
         hb = self.heartbeat
         return bool(hb and hb.get("in_test"))
 
+    @property
+    def busy(self) -> bool:
+        """A test is starting or running (a new configuration waits for its end)."""
+        hb = self.heartbeat
+        return bool(hb and (hb.get("busy") or hb.get("in_test")))
+
 
 class WorkerHandle:
     """One worker process and its end of the socketpair."""
@@ -608,12 +614,12 @@ class Supervisor:
                 if w.running and w.hello and not w.go_t:
                     w.go()
         self.watch.tick(list(self.workers.values()), now)
-        for w in [w for w in self._retire_after_test if not w.hub.in_test]:
+        for w in [w for w in self._retire_after_test if not w.hub.busy]:
             self._retire_after_test.remove(w)
             log.info("%s: its test ended: the removed station stops", w.hub.name)
             self._retire(w)
         if self.agent is not None and self.agent.tick(
-                [HubInfo(h.name, h.in_test, bool(h.worker and h.worker.running), h.refused)
+                [HubInfo(h.name, h.busy, bool(h.worker and h.worker.running), h.refused)
                  for h in self.hubs.values()], now):
             self.reload()
 
@@ -675,14 +681,14 @@ class Supervisor:
                 log.info("%s: %s changed: reload sent to its worker", w.hub.name, os.path.basename(path))
                 changed.append(w.hub)
                 if self.agent is not None:
-                    self.agent.reload_sent(w.hub.name, w.hub.in_test)
+                    self.agent.reload_sent(w.hub.name, w.hub.busy)
                 if not w.send(FrameType.RELOAD, {}):
                     log.warning("%s: worker not running; it starts with the new file", w.hub.name)
             elif self.agent is not None:
                 self.agent.unchanged(w.hub.name)
         for path, w in list(self.workers.items()):
             if path not in seen:
-                if w.hub.in_test and self.agent is not None:
+                if w.hub.busy and self.agent is not None:
                     log.info("%s: station file removed: its worker stops when its test ends", w.hub.name)
                     self.workers.pop(path, None)
                     self._retire_after_test.append(w)
@@ -691,7 +697,7 @@ class Supervisor:
                 self._retire(w)
         by = self.agent.interrupt_by() if self.agent is not None else None
         if by is not None:
-            stopping = [h for h in changed if h.in_test]
+            stopping = [h for h in changed if h.busy]
             self.agent.interrupted(by, [h.name for h in stopping])      # type: ignore[union-attr]
             for h in stopping:      # the test ends as aborted; its deferred configuration applies
                 threading.Thread(target=h.command, args=("stop",), kwargs={"source": f"config:{by}"},

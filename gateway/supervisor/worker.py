@@ -225,6 +225,8 @@ class Worker:
         self.chan.send(FrameType.HEARTBEAT, {
             "slots": st.stats.slots if st else 0, "filled": st.stats.filled if st else 0,
             "in_test": bool(st is not None and st.session is not None),
+            # a test starting or running: a new configuration waits for its end (issue 37)
+            "busy": bool(st is not None and st.busy),
             "results": len(self.results()),
             "dropped": self.chan.dropped, "crashes": r.crashes if r else 0})
 
