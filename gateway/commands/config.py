@@ -5,11 +5,13 @@ many boxes"). Each subcommand is one row of :data:`SUBCOMMANDS`: name → (help,
 - ``plan ROOT [--box NAME] [--version ID] [--json]`` — per station what an apply would do;
 - ``apply ROOT --version ID [--interrupt-tests --by NAME] [--health-timeout S] [--json]``;
 - ``rollback [--to ID]`` — back to the last verified version;
+- ``restart [--wait S] [--all]`` — new software installed: each station's worker restarts once
+  idle (a test running: when it ends, never before);
 - ``status [--json]`` — the box's config report.
 
 Exit codes (what Ansible's ``changed_when``/``failed_when`` read): 0 nothing to change / ok,
 1 error, 2 usage, 3 changes (plan: would be made; apply: made), 4 refused (check failed, unsigned),
-5 rolled back (the health gate failed).
+5 rolled back (the health gate failed), 6 still waiting (restart: a test runs).
 """
 from __future__ import annotations
 
@@ -19,12 +21,12 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from .. import safeout
+from .. import __version__, safeout
 from ..cli import CliError
 from ..config.site.boxreport import build_report
 from ..config.site.boxsettings import BoxSettings, BoxSettingsError, load_box
 from ..config.site.repository import GitError, checkout, commit_of
-from ..config.site.siteapply import EXIT, apply_version, rollback
+from ..config.site.siteapply import EXIT, apply_version, restart, rollback
 from ..config.site.sitecheck import check_box, check_site
 from ..config.site.siteplan import make_plan, plan_text
 from ..config.site.versions import StateDir
@@ -186,6 +188,27 @@ def _rollback(args: argparse.Namespace) -> int:
     return 0 if out.code in (0, 3) else out.code
 
 
+def _restart_args(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--wait", type=float, default=0.0, metavar="S",
+                    help="wait up to S s for every station to run this software (default 0: ask and report)")
+    ap.add_argument("--all", action="store_true",
+                    help="restart every station's worker, also those already on this version")
+    ap.add_argument("--json", action="store_true", help="the outcome as one JSON line")
+    _common(ap)
+
+
+def _restart(args: argparse.Namespace) -> int:
+    if not 0 <= args.wait <= 86400:
+        raise CliError("--wait: 0 … 86400 s", 2)
+    s = _settings(args)
+    out = restart(_state(args, s), __version__, every=args.all, wait=args.wait)
+    if args.json:
+        _print_json(out.as_dict())
+    else:
+        print(f"{__version__}: " + ("every station runs it" if out.code == 0 else str(out.why)))
+    return out.code
+
+
 def _status_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--json", action="store_true", help="the report as one JSON object")
     _common(ap)
@@ -210,6 +233,8 @@ SUBCOMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None],
     "apply": ("stage, switch, reload, health gate, rollback (exit 0 nothing, 3 applied, 4 refused, "
               "5 rolled back)", _apply_args, _apply),
     "rollback": ("back to the last verified version", _rollback_args, _rollback),
+    "restart": ("new software installed: each station's worker restarts once idle (a test "
+                "running: when it ends); exit 0 done, 6 still waiting", _restart_args, _restart),
     "status": ("the box's config report", _status_args, _status),
 }
 

@@ -147,16 +147,32 @@ class StationRunner:
         a test start cannot slip in between the check and the restart: an idle station restarts
         with ``factory`` (and emits ``config_reloaded``); one in a test keeps its parameters and
         restarts with ``factory`` when the test ends (:meth:`_after_test`) — never before."""
+        def apply() -> None:
+            self.factory = factory
+            self.restart_requested = True
+            log.info("%s: configuration reloaded; station restarts", self.name)
+        self._when_idle(apply, factory)
+
+    def request_stop_when_idle(self, on_idle: Callable[[], None]) -> None:
+        """Stop the station once it is idle — now, or when its running test ends, never before —
+        and call ``on_idle`` (on its loop) just before (a worker restarted for new software)."""
+        def apply() -> None:
+            log.info("%s: idle: the station stops for its restart", self.name)
+            on_idle()
+            self._stopping.set()
+        self._when_idle(apply, None)
+
+    def _when_idle(self, apply: Callable[[], None], factory: Callable[[], Station] | None) -> None:
         def on_loop() -> None:
             st = self.station
-
-            def apply() -> None:
-                self.factory = factory
-                self.restart_requested = True
-                log.info("%s: configuration reloaded; station restarts", self.name)
             self.deferred = None
             if st is None:
-                self.factory = factory
+                if factory is not None:
+                    self.factory = factory
+                else:
+                    apply()
+                    if self._stop is not None:
+                        self._stop.set()
             elif not st.reload_requested(apply):
                 self.deferred = apply
                 if self._deferred_task is None or self._deferred_task.done():

@@ -28,9 +28,9 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from .. import safeout
+from .. import __version__, safeout
 from ..config.site.boxreport import build_report
-from ..config.site.versions import StateDir, write_atomic
+from ..config.site.versions import StateDir, read_json, write_atomic
 from ..northbound.broker_settings import BrokerSettings
 from ..northbound.metrics.figures import set_config_source
 from ..safeyaml import YamlError, load
@@ -53,6 +53,8 @@ class HubInfo:
     in_test: bool          # a test is starting or running (its worker's heartbeat: ``busy``)
     running: bool
     refused: str | None
+    software: str | None = None       # the hookwatch version its worker runs
+    pid: int | None = None            # its worker process
 
 
 class _Track:
@@ -79,6 +81,7 @@ class BoxAgent:
         self._drift: list[str] = []
         self._interrupt: dict[str, Any] | None = None
         self._interrupted_for: str | None = None
+        self._restart_done: str | None = None
         self._reporter: ReportPublisher | None = None
         self._reporter_key: tuple[Any, ...] = ()
         self.report: dict[str, Any] = {}
@@ -175,6 +178,22 @@ class BoxAgent:
                 return str(ap["interrupt_by"])
         return None
 
+    def restart_requested(self) -> tuple[str | None, bool] | None:
+        """``hookwatch config restart`` asked for new worker processes (``restart.json`` with an
+        id not yet carried out): (the software version asked for, every worker or only those on
+        another version), or None. Each worker concerned restarts once its station is idle."""
+        req = read_json(self.state.path("restart.json"))
+        rid = req.get("id") if req else None
+        if not req or not isinstance(rid, str) or rid == self._restart_done:
+            return None
+        self._restart_done = rid
+        sw = req.get("software") if isinstance(req.get("software"), str) else None
+        every = bool(req.get("all"))
+        self.state.journal("restart", id=rid, software=sw, all=every,
+                           why="new software: each station's worker restarts once idle")
+        log.info("restart asked for (software %s): each worker restarts once its station is idle", sw)
+        return sw, every
+
     def interrupted(self, by: str, stations: list[str]) -> None:
         self._interrupt = {"by": by, "version": self.version, "stations": stations, "time": time.time()}
         self.state.journal("interrupted", by=by, version=self.version, stations=stations)
@@ -215,10 +234,12 @@ class BoxAgent:
             stations = {h.name: {"version": self._tracks[h.name].version if h.name in self._tracks else None,
                                  "pending": self._tracks[h.name].pending if h.name in self._tracks else None,
                                  "meter_ok": bool(h.name in self._tracks and self._tracks[h.name].meter_ok),
-                                 "in_test": h.in_test, "running": h.running, "refused": h.refused}
+                                 "in_test": h.in_test, "running": h.running, "refused": h.refused,
+                                 "software": h.software, "pid": h.pid}
                         for h in hubs}
         man = self.state.manifest(self.version) if self.version else None
-        status = {"pid": os.getpid(), "box": (man or {}).get("box"), "site": (man or {}).get("site"),
+        status = {"pid": os.getpid(), "software": __version__, "box": (man or {}).get("box"),
+                  "site": (man or {}).get("site"),
                   "version": self.version, "stations": stations, "drift_files": self._drift[:50],
                   "last_interrupt": self._interrupt}
         key = safeout.dumps(status)

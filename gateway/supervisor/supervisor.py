@@ -52,7 +52,7 @@ from ..station.build import records_dir_ok
 from ..threadloop import Mailbox
 from .boxagent import BoxAgent, HubInfo
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
-from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
+from .ipc import RESTART_EXIT, FrameDecoder, FrameType, ProtocolError, encode, read_frames
 
 __all__ = ["StationHub", "Supervisor", "WorkerHandle", "WorkerWatch"]
 
@@ -109,6 +109,8 @@ class StationHub:
         self.last_slots: dict[str, Any] | None = None
         self.heartbeat: dict[str, Any] | None = None
         self.heartbeat_t = 0.0
+        #: the hookwatch version its worker runs (its HELLO)
+        self.software: str | None = None
         self.refused: str | None = None
         self.stream: collections.deque[tuple[str, dict[str, Any]]] = collections.deque(maxlen=STREAM_LEN)
         self.results: list[dict[str, Any]] = []
@@ -292,6 +294,8 @@ class WorkerHandle:
                             p[0].set()
                     elif ftype == FrameType.HELLO:
                         self.hello = True
+                        sw = body.get("software")
+                        hub.software = sw if isinstance(sw, str) else None
                         hub._worker(True)
                         if not self.sup.barrier:
                             self.go()
@@ -456,6 +460,10 @@ class WorkerWatch:
         name = w.hub.name
         if w.stopping:
             return
+        if rc == RESTART_EXIT:          # asked for (new software), once idle: not a crash
+            log.info("%s: worker ended for its restart (new software); starting it again", name)
+            w.next_start = now
+            return
         why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
         delay = w.restart.failed(now - w.started_at)
         n = w.restart.in_row
@@ -619,7 +627,8 @@ class Supervisor:
             log.info("%s: its test ended: the removed station stops", w.hub.name)
             self._retire(w)
         if self.agent is not None and self.agent.tick(
-                [HubInfo(h.name, h.busy, bool(h.worker and h.worker.running), h.refused)
+                [HubInfo(h.name, h.busy, bool(h.worker and h.worker.running), h.refused, h.software,
+                         h.worker.proc.pid if h.worker and h.worker.proc else None)
                  for h in self.hubs.values()], now):
             self.reload()
 
@@ -695,6 +704,11 @@ class Supervisor:
                     continue
                 log.info("%s: station file removed: its worker stops", w.hub.name)
                 self._retire(w)
+        req = self.agent.restart_requested() if self.agent is not None else None
+        if req is not None:                      # new software: each worker restarts once idle
+            for w in self.workers.values():
+                if req[1] or w.hub.software != req[0]:
+                    w.send(FrameType.RELOAD, {"restart": True})
         by = self.agent.interrupt_by() if self.agent is not None else None
         if by is not None:
             stopping = [h for h in changed if h.busy]

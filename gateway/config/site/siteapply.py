@@ -27,16 +27,17 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from ... import safeout
 from .boxreport import supervisor_alive
 from .boxsettings import BoxSettings
 from .repository import GitError, checkout, commit_of
 from .signing import verify_commit
 from .siteplan import Plan, make_plan
-from .versions import StateDir, read_json
+from .versions import StateDir, read_json, write_atomic
 
-__all__ = ["EXIT", "Outcome", "apply_version", "rollback"]
+__all__ = ["EXIT", "Outcome", "apply_version", "restart", "rollback"]
 
-EXIT = {"nothing": 0, "error": 1, "changed": 3, "refused": 4, "rolled_back": 5}
+EXIT = {"nothing": 0, "error": 1, "changed": 3, "refused": 4, "rolled_back": 5, "waiting": 6}
 #: how often the health gate reads the supervisor's status (s)
 GATE_POLL_S = 0.25
 
@@ -188,3 +189,44 @@ def rollback(state: StateDir, to: str | None = None) -> Outcome:
         state.record_rollback(cur, target, "by hand (hookwatch config rollback)")
         reload_supervisor(state)
         return Outcome(EXIT["nothing"], target, True, rolled_back=True, why="by hand")
+
+
+def restart(state: StateDir, software: str, *, every: bool = False, wait: float = 0.0) -> Outcome:
+    """New software installed: ask the box's supervisor for a new worker process per station
+    (every one, or those not on ``software``), each once its station is idle — at once, or when
+    its test ends, never before. Waits up to ``wait`` s for every station to run ``software`` in a
+    new worker: exit 0 done, 6 still waiting (``deferred``: the stations in a test), 1 no
+    supervisor."""
+    if supervisor_alive(state) is None:
+        return Outcome(EXIT["error"], why="the supervisor is not running")
+    before = read_json(state.path("supervisor.json")) or {}
+    raw = before.get("stations")
+    old_pids = {n: s.get("pid") for n, s in (raw if isinstance(raw, dict) else {}).items()
+                if isinstance(s, dict)}
+    rid = f"{time.time():.6f}-{os.getpid()}"
+    t0 = time.time()
+    write_atomic(state.path("restart.json"), safeout.dumps(
+        {"id": rid, "software": software, "all": every, "time": t0}).encode("utf-8"))
+    state.journal("restart_requested", id=rid, software=software, all=every)
+    reload_supervisor(state)
+    t_end = time.monotonic() + max(0.0, wait)
+    while True:
+        st = read_json(state.path("supervisor.json")) or {}
+        raw = st.get("stations")
+        stations: dict[str, Any] = raw if isinstance(raw, dict) else {}
+        behind = {}
+        for n, s in stations.items():
+            if not isinstance(s, dict):
+                continue
+            if (s.get("software") != software or not s.get("running")
+                    or (every and s.get("pid") == old_pids.get(n))):
+                behind[n] = s
+        fresh = isinstance(st.get("time"), (int, float)) and st["time"] > t0
+        if fresh and not behind:
+            return Outcome(EXIT["nothing"], software, True, {n: "restarted" for n in stations})
+        if time.monotonic() >= t_end:
+            deferred = sorted(n for n, s in behind.items() if s.get("in_test"))
+            return Outcome(EXIT["waiting"], software, True, {n: "waiting" for n in behind}, deferred,
+                           why=f"{len(behind)} station(s) not yet on {software}"
+                               + (f" ({', '.join(deferred)} in a test: when it ends)" if deferred else ""))
+        time.sleep(GATE_POLL_S)

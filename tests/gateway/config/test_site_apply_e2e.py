@@ -126,6 +126,21 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
                      "a report with nothing deferred")
             status = json.loads(box.config("status", "--json").stdout)
             assert status["version"] == v2 and status["verified"] == v2 and not status["drift"]
+            # (g) new software: each station's worker restarts once idle — busy, in its next
+            # test (autostart), only when that test ends
+            wait_for(lambda: gw.log_all().count("busy: test_started") >= 2, 60, 0.2, what="busy's 2nd test")
+            pids = {n: s["pid"] for n, s in box.status()["stations"].items()}
+            r = box.config("restart", "--all", "--wait", "2", "--json")
+            rs = json.loads(r.stdout)
+            assert r.returncode == 6 and rs["deferred"] == ["busy"], r.stdout + r.stderr
+            wait_for(lambda: (box.status()["stations"]["idle"].get("pid") not in (None, pids["idle"])
+                              and box.status()["stations"]["idle"].get("running")), 60, 0.2,
+                     what="idle restarted")
+            assert box.status()["stations"]["busy"]["pid"] == pids["busy"]
+            wait_log(gw, "busy: worker ended for its restart", timeout=120)
+            wait_for(lambda: (box.status()["stations"]["busy"].get("pid") not in (None, pids["busy"])
+                              and box.status()["stations"]["busy"].get("running")), 60, 0.2,
+                     what="busy restarted after its test")
             gw.p.send_signal(signal.SIGKILL)            # the Will
             gw.p.wait(30)
             sub.wait(lambda s: s.messages("config")[-1][2].get("online") is False, 30, "the Will")
@@ -140,6 +155,12 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
         assert yaml.safe_load(f)["method"]["delta"] == 0.25
     res = read_json(os.path.join(d, "result.json"))
     assert res["test_status"] == "completed", res
+    # the test that ran while the software restart waited was not interrupted either
+    second = read_json(os.path.join(test_dirs(box.dir, "busy")[1], "result.json"))
+    assert second["test_status"] == "completed" and second["end_reason"] == "completed", second
+    i_restart = log.index("busy: worker ended for its restart")
+    second_end = log.index("busy: test_ended", log.index("busy: test_ended") + 1)
+    assert second_end < i_restart                  # its worker restarted after the test had ended
     assert analyze_cli(os.path.join(d, "log.csv.gz")) == res["method"]
     kinds = [e["event"] for e in box.journal()]
     assert "deferred" in kinds and "refused" in kinds and kinds.count("applied") >= 2
