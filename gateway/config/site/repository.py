@@ -164,11 +164,14 @@ def _copy(root: str, eff: Effective, src_dir: str, dest_dir: str) -> None:
         p = os.path.join(d, n)
         if not (n.endswith((".yaml", ".yml")) and os.path.isfile(p)):
             continue
+        if os.path.islink(p):          # a link could reach outside the repository
+            eff.problems.append(f"{src_dir}/{n}:1: a symbolic link; the site repository holds files")
+            continue
         if len(eff.files) >= MAX_FILES:
             eff.problems.append(f"{src_dir}/{n}:1: more than {MAX_FILES} files in one box's tree")
             return
         with open(p, "rb") as f:
-            eff.files[f"{dest_dir}/{n}"] = f.read()
+            eff.files[f"{dest_dir}/{n}"] = f.read(MAX_BYTES + 1)
         eff.origin[f"{dest_dir}/{n}"] = f"{src_dir}/{n}"
 
 
@@ -274,6 +277,9 @@ def checkout(root: str, version: str | None) -> Iterator[str]:
     sha = commit_of(root, version)
     data = _git(root, "archive", "--format=tar", sha, binary=True)
     with tempfile.TemporaryDirectory(prefix="hookwatch-site-") as tmp:
-        with tarfile.open(fileobj=io.BytesIO(data)) as tf:
-            tf.extractall(tmp, filter="data")
+        try:
+            with tarfile.open(fileobj=io.BytesIO(data)) as tf:
+                tf.extractall(tmp, filter="data")
+        except (tarfile.TarError, OSError) as e:      # a link out of the tree, a device …
+            raise GitError(f"{sha[:12]}: its tree cannot be read safely: {e}") from None
         yield tmp

@@ -136,3 +136,16 @@ def test_signed_by_an_allowed_key_only(tmp_path):
     assert not v.ok and not v.signed and "not signed" in v.why
     assert not verify_commit(str(repo.path), good, str(tmp_path / "none")).ok
     assert git(repo.path, "cat-file", "-t", good).stdout.strip() == "commit"
+
+
+def test_a_link_out_of_the_repository_is_refused(tmp_path):
+    repo = _site(tmp_path)
+    secret = tmp_path / "secret.yaml"
+    secret.write_text("password: hunter2\n")
+    os.symlink(str(secret), repo.path / "maps" / "stolen.yaml")
+    box = Box(tmp_path, "b1", None)
+    p = box.config("check", str(repo.path))
+    assert p.returncode == 1 and "maps/stolen.yaml:1: a symbolic link" in p.stdout, p.stdout + p.stderr
+    sha = repo.commit("a link")
+    p = box.config("plan", str(repo.path), "--version", sha)
+    assert p.returncode == 1 and "hunter2" not in p.stdout + p.stderr, p.stdout + p.stderr
