@@ -629,8 +629,14 @@ class Supervisor:
         if self.agent is not None and self.agent.tick(
                 [HubInfo(h.name, h.busy, bool(h.worker and h.worker.running), h.refused, h.software,
                          h.worker.proc.pid if h.worker and h.worker.proc else None)
-                 for h in self.hubs.values()], now):
+                 for h in self._current_hubs()], now):
             self.reload()
+
+    def _current_hubs(self) -> list[StationHub]:
+        """The stations of the folder as read last (refused ones too) and the removed ones whose
+        test still runs — not the stations retired earlier."""
+        live = {id(w) for w in self.workers.values()} | {id(w) for w in self._retire_after_test}
+        return [h for h in self.hubs.values() if h.refused or (h.worker is not None and id(h.worker) in live)]
 
     @property
     def spawn_failures(self) -> int:

@@ -216,7 +216,7 @@ def restart(state: StateDir, software: str, *, every: bool = False, wait: float 
         stations: dict[str, Any] = raw if isinstance(raw, dict) else {}
         behind = {}
         for n, s in stations.items():
-            if not isinstance(s, dict):
+            if not isinstance(s, dict) or s.get("refused"):
                 continue
             if (s.get("software") != software or not s.get("running")
                     or (every and s.get("pid") == old_pids.get(n))):

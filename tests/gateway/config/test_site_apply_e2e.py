@@ -265,6 +265,15 @@ def test_health_gate_rollback_kill_mid_apply_drift_and_interrupted_tests(tmp_pat
             sub.wait(lambda s: any((m[2].get("last_interrupt") or {}).get("by") == "alice"
                                    and not m[2].get("drift") for m in s.messages("config")), 30,
                      "the interruption reported, the drift repaired by the apply")
+            # a station removed while it runs a test stops only when the test ends
+            wait_for(lambda: gw.log_all().count("long: test_started") >= 2, 60, 0.2, what="long's next test")
+            (repo.path / "boxes" / "b2" / "stations" / "long.yaml").unlink()
+            v4 = repo.commit("long retired", key)
+            rc, out, p = _apply(box, repo, v4)
+            assert rc == 3 and out["stations"]["long"] == "removed", p.stdout + p.stderr
+            wait_log(gw, "long: station file removed: its worker stops when its test ends")
+            st_long = box.status()["stations"]["long"]
+            assert st_long["running"] and st_long["in_test"], st_long
         finally:
             box.stop()
     log = "".join(p.read_text() for p in sorted(box.dir.glob("supervisor-*.log")))
