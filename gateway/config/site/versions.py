@@ -256,6 +256,11 @@ class StateDir:
         when nothing needed repair."""
         self.ensure()
         for n in os.listdir(self.versions):
+            if n.startswith(".old-"):       # a version set aside for its restaging: back if it is gone
+                sha = n[len(".old-"):].rsplit("-", 1)[0]
+                if not os.path.lexists(self.version_dir(sha)):
+                    os.replace(os.path.join(self.versions, n), self.version_dir(sha))
+                    continue
             if n.startswith((".tmp-", ".old-")):
                 shutil.rmtree(os.path.join(self.versions, n), ignore_errors=True)
         for n in os.listdir(self.root):

@@ -114,6 +114,12 @@ def test_staging_switch_and_repair_of_a_half_applied_version(tmp_path):
     with open(os.path.join(st.current_link, "stations", "st-1.yaml"), "a") as f:
         f.write("# edited by hand\n")
     assert st.drift() == ["stations/st-1.yaml"]
+    # killed while the drifted current version was set aside for its restaging: put back
+    os.replace(st.version_dir("a" * 40), os.path.join(st.versions, ".old-" + "a" * 40 + "-77"))
+    st.repair()
+    assert st.current() == "a" * 40 and st.complete("a" * 40)
+    st.stage("a" * 40, e1, "b1")                   # the restaging itself repairs the drift
+    assert st.drift() == [] and not [n for n in os.listdir(st.versions) if n.startswith(".")]
     shutil.rmtree(str(tmp_path / "state"))
 
 
