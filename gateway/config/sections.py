@@ -6,10 +6,10 @@ kind, default, unit, allowed values and one line of documentation. The loader
 ``docs/configuration.md`` is generated from them (:mod:`gateway.config.docs`). Two sections come
 from definitions that live elsewhere and are not repeated here:
 
-- ``method:`` — the method's parameters, :data:`gateway.method.params.PARAMS` (names, defaults,
+- ``method:`` — the method's parameters, :data:`gateway.core.method.params.PARAMS` (names, defaults,
   units, ranges, checked by ``build_params``), except ``t_set``/``t_end`` which come from ``test:``;
-- ``control:`` — the fields of :class:`gateway.control.ControlParams` (except ``ts``, which is the
-  method's) and ``control.notch:`` those of :class:`gateway.control.NotchParams`; their types
+- ``control:`` — the fields of :class:`gateway.core.control.ControlParams` (except ``ts``, which is the
+  method's) and ``control.notch:`` those of :class:`gateway.core.control.NotchParams`; their types
   come from the dataclass defaults, their units, ranges and docs from :data:`CONTROL_KEYS`.
 
 Rules that relate several keys are :data:`RULES` (each with the sentence the docs print).
@@ -24,14 +24,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from drivers.stm32_protocol import watchdog_for
+from drivers.stm32.protocol import watchdog_for
 
-from ..commandtypes import COMMAND_DOORS_MAX, door_problem
-from ..control import ControlParams, NotchParams
-from ..method.params import MAX_TENSION, TEN_YEARS
-from ..method.params import PARAMS as METHOD_PARAMS
-from ..method.prior import PriorEntry, same_t_set
-from ..validation import show_yaml
+from ..core.command_rules import COMMAND_DOORS_MAX, door_problem
+from ..core.control import ControlParams, NotchParams
+from ..core.method.params import MAX_TENSION, TEN_YEARS
+from ..core.method.params import PARAMS as METHOD_PARAMS
+from ..core.method.prior import PriorEntry, same_t_set
+from ..core.validation import show_yaml
 
 # ---------------------------------------------------------------------------------------------
 # key kinds
@@ -46,7 +46,7 @@ REQUIRED: Any = _Required()
 
 #: serial line rates a USB–RS-485 adapter and the ZN-S / STM32 accept
 BAUDS: tuple[int, ...] = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
-#: the ZN-S meter's rates (drivers/zns_map.py accepts these)
+#: the ZN-S meter's rates (drivers/meter/meter_map.py accepts these)
 METER_BAUDS: tuple[int, ...] = BAUDS[:9]
 
 IDENT_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -129,7 +129,7 @@ def _num(x: float) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-#: a value as written in YAML, and a bad value in a message: one definition (gateway.validation)
+#: a value as written in YAML, and a bad value in a message: one definition (gateway.core.validation)
 _show = show_yaml
 
 
@@ -368,7 +368,7 @@ class MqttOutboxConfig:
 @dataclass(frozen=True, kw_only=True)
 class BrokerConfig:
     """The broker connection keys both MQTT sections share (`mqtt:` and `sparkplug:`); one
-    definition, read by gateway.northbound.broker_settings.broker_kwargs. A section redeclares a
+    definition, read by gateway.outputs.broker.settings.broker_kwargs. A section redeclares a
     key only to say something of its own about it (the key keeps its place)."""
     enabled: bool = key(False, "connect to the broker", kind="bool")
     host: str = key("127.0.0.1", "broker host", kind="str")
@@ -489,7 +489,7 @@ class SparkplugConfig(BrokerConfig):
 
 def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0,
                per_address: int = 16) -> dict[str, Any]:
-    """The keys of a listening door (gateway/doors.py: one mechanism for every TCP port)."""
+    """The keys of a listening door (gateway/plumbing/doors.py: one mechanism for every TCP port)."""
     return {
         "max_connections": key(cap, f"connections open at once on {what}; one more is closed at "
                                "once (counted). Granted within the process's descriptor budget "
@@ -659,7 +659,7 @@ class LoggingConfig:
 
 
 # ---------------------------------------------------------------------------------------------
-# control: names and types from gateway.control; units, ranges and docs here
+# control: names and types from gateway.core.control; units, ranges and docs here
 
 #: per ControlParams / NotchParams field: the Key arguments other than name, kind and default
 CONTROL_KEYS: dict[str, dict[str, Any]] = {
@@ -728,7 +728,7 @@ def _control_field(f: dataclasses.Field) -> tuple[str, Any, Any]:
 NotchConfig = dataclasses.make_dataclass(
     "NotchConfig", [_control_field(f) for f in fields(NotchParams)],
     frozen=True, kw_only=True)
-NotchConfig.__doc__ = "control.notch: the fields of gateway.control.NotchParams"
+NotchConfig.__doc__ = "control.notch: the fields of gateway.core.control.NotchParams"
 NotchConfig.__module__ = __name__
 
 ControlConfig = dataclasses.make_dataclass(
@@ -736,7 +736,7 @@ ControlConfig = dataclasses.make_dataclass(
     [_control_field(f) for f in fields(ControlParams) if f.name not in CONTROL_EXCLUDED + ("notch",)]
     + [("notch", NotchConfig, section(NotchConfig, "speed-adaptive notch filter (METHOD.md §8.1)"))],
     frozen=True, kw_only=True)
-ControlConfig.__doc__ = "control: the fields of gateway.control.ControlParams except ts"
+ControlConfig.__doc__ = "control: the fields of gateway.core.control.ControlParams except ts"
 ControlConfig.__module__ = __name__
 
 #: method parameters a station file may set in `method:` (t_set/t_end come from `test:`)

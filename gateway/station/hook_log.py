@@ -20,8 +20,8 @@ import os
 import re
 from typing import Any
 
-from ..logio import tail_jsonl
-from ..method.prior import CENSORED, EARLY, WEAR_OUT
+from ..core.method.prior import CENSORED, EARLY, WEAR_OUT
+from ..offline.logio import tail_jsonl
 
 __all__ = ["HOOKS_NAME", "LIFE_KINDS", "MAX_LINE", "MAX_LINES", "append_hook", "next_sample_id",
            "read_hooks"]
@@ -35,7 +35,7 @@ MAX_LINE = 4096
 MAX_LINES = 10_000
 #: characters kept of a text value of a line
 _CLIP = 256
-#: a life's kind in the §7a history (gateway.method.prior) and its words
+#: a life's kind in the §7a history (gateway.core.method.prior) and its words
 LIFE_KINDS = {WEAR_OUT: "wear-out failure", EARLY: "early failure",
               CENSORED: "censored: replaced before its end of life"}
 
@@ -81,7 +81,7 @@ def append_hook(station_dir: str, record: dict[str, Any]) -> str | None:
 def read_hooks(station_dir: str, max_lines: int = MAX_LINES) -> list[dict[str, Any]]:
     """The last ``max_lines`` records of the station's hooks.jsonl, oldest first (none when it is
     absent or cannot be read: one log line); read from the end within a bounded number of bytes
-    (:func:`gateway.logio.tail_jsonl`); a damaged line is skipped (one log line with the count)."""
+    (:func:`gateway.offline.logio.tail_jsonl`); a damaged line is skipped (one log line with the count)."""
     path = os.path.join(station_dir, HOOKS_NAME)
     try:
         out, bad = tail_jsonl(path, max_lines, MAX_LINE)

@@ -19,10 +19,10 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from ..control import ControlParams
-from ..method.core import StreamingMonitor
-from ..ports import MeterPort
-from ..records import EventType
+from ..core.control import ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.ports import MeterPort
+from ..core.records import EventType
 from .health import Health
 from .hook_log import append_hook, next_sample_id
 from .priors import PriorBook, life_kind
@@ -140,7 +140,7 @@ class TestLifecycle:
                 if refused is not None:
                     await self.start_failed(refused)
             elif step is StartStep.FAILED:
-                # a silent meter is named with its port and settings (drivers/zns.py diagnosis)
+                # a silent meter is named with its port and settings (drivers/meter/driver.py diagnosis)
                 note = getattr(self.meter, "diagnosis", lambda: None)()
                 await self.start_failed((reason or "start failed") + (f": {note}" if note else ""))
             return

@@ -4,7 +4,7 @@ In this order: a fixed ``prior_mean``/``prior_sd`` in the station's ``method:`` 
 source ``method``); else its ``forecast.priors`` entry for the test's grade and T_set (``config``);
 else the recorded history — every completed test under the records root (``recorder.dir``: in a
 fleet, every station of the box) and every one the site's other stations shared (MQTT,
-gateway/northbound/sitelives.py), each test once by test id, with the same grade and T_set: its
+gateway/outputs/mqtt/sitelives.py), each test once by test id, with the same grade and T_set: its
 wear-out failures (at least 3), its right-censored lives (a test that found its baseline and ended
 on purpose or at t_end) and its early failures (§7a v3: censored at their life), the
 maximum-likelihood normal of them (``history:N``, N wear-out failures); else none. The sidecar
@@ -19,7 +19,7 @@ slot loop's time) with the results of this station's tests ended since: a group'
 by its lives; a group the worker has not fitted (a test just ended) is fitted at the start when it
 holds at most :data:`SYNC_FIT_MAX` lives (≈ 2 ms), else the last read's fit of the group is used
 (one log line); a start while the site's lives are being fitted again scans a history of at most
-:data:`SCAN_MAX` tests, else uses the last fit. Bounded by :mod:`gateway.history` (the newest
+:data:`SCAN_MAX` tests, else uses the last fit. Bounded by :mod:`gateway.offline.history` (the newest
 20,000 result files, 1 MiB each); a damaged result is skipped there with one log line.
 """
 from __future__ import annotations
@@ -30,8 +30,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from ..history import past_test, read_history
-from ..method.prior import (
+from ..core.method.prior import (
     NO_PRIOR,
     OBSERVED,
     SOURCE_CONFIG,
@@ -45,6 +44,7 @@ from ..method.prior import (
     resolve_prior,
     same_t_set,
 )
+from ..offline.history import past_test, read_history
 
 __all__ = ["PriorBook", "SOURCE_METHOD", "life_kind"]
 
@@ -148,7 +148,7 @@ class PriorBook:
         #: results of this station's tests ended since the last read began (kept until a read
         #: that began after them has finished)
         self._recent: list[PastTest] = []
-        #: the other stations' lives that the site shared (gateway/northbound/sitelives.py)
+        #: the other stations' lives that the site shared (gateway/outputs/mqtt/sitelives.py)
         self.site: tuple[PastTest, ...] = ()
         self._again = False
 

@@ -17,11 +17,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .. import __version__
-from ..control import Controller, ControlParams
-from ..method.core import StreamingMonitor
-from ..method.params import MethodParams, build_params
-from ..method.prior import Prior
-from ..records import Event, SlotRecord, StationState
+from ..core.control import Controller, ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.method.params import MethodParams, build_params
+from ..core.method.prior import Prior
+from ..core.records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
 

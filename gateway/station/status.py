@@ -1,4 +1,4 @@
-"""The one place a station's state changes: its :class:`~gateway.records.StationState`, its events
+"""The one place a station's state changes: its :class:`~gateway.core.records.StationState`, its events
 and their hand-over to the outputs.
 
 A :class:`StatusBoard` owns the state. Every change goes through :meth:`StatusBoard.update` (the
@@ -16,9 +16,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import fields, replace
 from typing import Any
 
-from ..method.core import SlotOut
-from ..method.prior import Prior
-from ..records import Event, EventType, StationState, TestState
+from ..core.method.core import SlotOut
+from ..core.method.prior import Prior
+from ..core.records import Event, EventType, StationState, TestState
 from .alarm_store import AlarmStore
 from .fanout import Fanout
 from .session import TestPlan, TestSession

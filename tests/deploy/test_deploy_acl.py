@@ -25,10 +25,10 @@ import pytest
 
 from conftest import ROOT
 from gateway import cli
-from gateway.console.site import filters as site_view_filters
-from gateway.northbound import mqtt_schema as S
-from gateway.northbound.mqtt import MqttOutput, MqttSettings
-from gateway.northbound.sitelives import lives_topic
+from gateway.outputs.console.site import filters as site_view_filters
+from gateway.outputs.mqtt import schema as S
+from gateway.outputs.mqtt.output import MqttOutput, MqttSettings
+from gateway.outputs.mqtt.sitelives import lives_topic
 from kit.broker import ACCEPTED, NOT_AUTHORIZED, Broker, Publisher, Sub
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.rabbitmq import RABBIT_BIN, Mes

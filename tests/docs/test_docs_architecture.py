@@ -1,5 +1,5 @@
 """docs/architecture.md quotes the contracts from their source: every quoted block is still the
-source's text, and every contract of gateway/ports.py is quoted."""
+source's text, and every contract of gateway/core/ports.py is quoted."""
 import ast
 import os
 import re
@@ -26,10 +26,10 @@ def test_quoted_blocks_match_their_source():
 
 
 def test_every_contract_is_quoted():
-    with open(os.path.join(ROOT, "gateway", "ports.py"), encoding="utf-8") as f:
+    with open(os.path.join(ROOT, "gateway", "core", "ports.py"), encoding="utf-8") as f:
         tree = ast.parse(f.read())
     contracts = {n.name for n in tree.body if isinstance(n, ast.ClassDef)}
-    quoted = "\n".join(t for p, t in _quotes() if p == "gateway/ports.py")
+    quoted = "\n".join(t for p, t in _quotes() if p == "gateway/core/ports.py")
     assert contracts and all(f"class {c}(" in quoted or f"class {c}:" in quoted for c in contracts), (
         sorted(c for c in contracts if f"class {c}" not in quoted))
 

@@ -1,7 +1,7 @@
 """A real Mosquitto on a free loopback port, mosquitto_sub as a subscriber, mosquitto_pub.
 
 Every JSON message a :class:`Sub` receives on a topic of hookwatch's tree is validated against the
-shipped JSON Schema of its topic (docs/schemas/, generated from gateway/northbound/mqtt_schema.py) with
+shipped JSON Schema of its topic (docs/schemas/, generated from gateway/outputs/mqtt/schema.py) with
 ``jsonschema``: a violation fails the test (``messages()`` and ``stop()`` raise it, naming the
 topic, the payload and the schema path). Commands (``cmd/…``, which the tests publish themselves,
 some malformed on purpose), Sparkplug (protobuf, ``spBv1.0/…``) and a test's own messages on topics
@@ -84,7 +84,7 @@ SCHEMA_DIR = os.path.join(ROOT, "docs", "schemas")
 @functools.cache
 def _schemas() -> tuple[tuple[re.Pattern, str | None], ...]:
     """(topic pattern, schema key or None for a command) for every topic of the tree."""
-    from gateway.northbound import mqtt_schema as S
+    from gateway.outputs.mqtt import schema as S
     out = []
     for t in S.TOPICS:
         path = re.escape(t.path).replace(re.escape("{type}"), "[^/]+")
@@ -281,8 +281,8 @@ def station_on_broker(tmp_path, base: str, station_id: str, *, modbus_port: int 
     """A station running on its own loop with its MQTT output on a fresh Mosquitto (the MES is a
     :class:`Sub` on ``base/#``) and, with ``modbus_port``, its Modbus TCP server (unit 1, writes
     from loopback: the PLC is mbpoll). Yields (broker, sub, station, loop thread) once both answer."""
-    from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
-    from gateway.northbound.mqtt import MqttOutput, MqttSettings
+    from gateway.outputs.mqtt.output import MqttOutput, MqttSettings
+    from gateway.outputs.plc.server import ModbusOutput, ModbusSettings, shutdown_all
     from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
 
     lt = LoopThread()

@@ -14,12 +14,12 @@ import urllib.request
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from gateway import records as R
-from gateway.console import auth
-from gateway.console.app import ConsoleServer
-from gateway.console.feed import ConsoleOutput
-from gateway.console.settings import ConsoleSettings
-from gateway.records import StationState
+from gateway.core import records as R
+from gateway.core.records import StationState
+from gateway.outputs.console import auth
+from gateway.outputs.console.app import ConsoleServer
+from gateway.outputs.console.feed import ConsoleOutput
+from gateway.outputs.console.settings import ConsoleSettings
 from kit.e2e import QUICK_END, QUICK_METHOD, fleet_dir, quick_scenario, run_gateway, virtual_station
 
 QUICK = "config/scenarios/quick.yaml"

@@ -17,11 +17,11 @@ import os
 
 import yaml
 
-from gateway.control import ControlParams
-from gateway.method.prior import PriorEntry
-from gateway.records import Command, CommandKind, EventType
-from gateway.records import TestState as TS
-from gateway.station.commands import CODE
+from gateway.core.control import ControlParams
+from gateway.core.method.prior import PriorEntry
+from gateway.core.records import Command, CommandKind, EventType
+from gateway.core.records import TestState as TS
+from gateway.station.command_desk import CODE
 from gateway.station.hook_log import MAX_LINE, append_hook, next_sample_id, read_hooks
 from gateway.station.priors import PriorBook
 from gateway.station.station import Station, TestPlan
@@ -273,7 +273,7 @@ def test_censored_lives_enter_the_prior_fitted_off_the_loop(tmp_path, caplog, mo
 def test_site_lives_that_change_are_refitted_off_the_loop_and_a_start_meanwhile_never_scans_a_large_history(
         tmp_path, caplog, monkeypatch):
     import gateway.station.priors as P
-    from gateway.method.prior import PastTest
+    from gateway.core.method.prior import PastTest
     root = tmp_path / "records"
     for i, life in enumerate((100.0, 120.0, 110.0)):
         _result(root / "a", f"T{i}", "I", 0.5, "failure", life)
@@ -308,7 +308,7 @@ def test_an_early_failure_is_classed_in_the_pooled_history_of_the_box_and_the_si
     and one at 40 s (4 lives: no early failure, the short one widens the prior); the site shares
     2 censored lives — 6 lives, M = 100, and 40 s is an early failure, censored for the wear-out
     prior. The hook log's kind of a test is the same rule on the same history."""
-    from gateway.method.prior import PastTest, history_prior, wear_out_prior
+    from gateway.core.method.prior import PastTest, history_prior, wear_out_prior
     from gateway.station.priors import life_kind
     root = tmp_path / "records"
     for i, life in enumerate((96.0, 100.0, 104.0, 40.0)):
