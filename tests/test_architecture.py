@@ -1,14 +1,18 @@
-"""The import graph of gateway/ and drivers/, read from the source (AST): no package cycles, no
-hidden imports.
+"""The import graph of gateway/ and drivers/, read from the source (AST): layers by folder, no
+package cycles, no hidden imports.
 
+- The folders are the layers (docs/architecture.md, "The tree at a glance"): ``gateway/core/`` the
+  pure core (no I/O, no clock), ``gateway/plumbing/`` process plumbing, ``drivers/`` the devices,
+  ``gateway/station/``, ``gateway/outputs/`` (a subpackage per door), ``gateway/offline/``,
+  ``gateway/config/``, ``gateway/supervisor/``, ``gateway/commission/``, ``gateway/cli/``; the
+  composition root ``gateway/compose.py``. What each layer may import of the others is the table
+  ``LAYERS``; a module that sits in no layer folder fails (``LOOSE_ALLOWED``).
 - Every import of the project's own modules is at module level (the one exception: gateway/cli/__init__.py
   loads the subcommand asked for with ``importlib``, which is not an ``import`` statement).
 - No ``try: import … except ImportError`` around the project's own modules.
-- The packages form no cycle. A node is a subpackage (``gateway.station``, ``drivers.sim``) or a
-  module directly in ``gateway/`` or ``drivers/`` (``gateway.core.records``, ``drivers.meter.driver``).
-- Layers: ``drivers`` sit on gateway's pure core only (``gateway.core.ports``, ``gateway.core.records``,
-  ``gateway.core.method``, ``gateway.core.control``), and that core imports nothing else of the project, so
-  gateway's runtime → drivers → pure core never closes a cycle.
+- The packages form no cycle. A node is a layer folder (``gateway.station``, ``drivers.sim``), an
+  output's subpackage (``gateway.outputs.mqtt``) or a module directly in ``gateway/`` or
+  ``gateway/outputs/`` (``gateway.compose``, ``gateway.outputs.wiring``).
 """
 from __future__ import annotations
 
@@ -21,10 +25,49 @@ from collections import defaultdict
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGES = ("gateway", "drivers")
-#: what drivers may import of gateway: the contracts, records, the pure method and control, and the
-#: two leaves every file reader shares (one bounded YAML reader, one validation style)
-PURE_CORE = ("gateway.core.ports", "gateway.core.records", "gateway.core.method", "gateway.core.control", "gateway.core.validation",
-             "gateway.plumbing.safeyaml", "gateway.core.slotwindow")
+#: the pure core: a folder (its modules import nothing of the project outside it, no I/O, no clock)
+PURE_CORE = ("gateway.core",)
+#: process plumbing: the bottom of the house (it imports nothing of the project)
+PLUMBING = ("gateway.plumbing",)
+#: what each layer folder may import of the project besides itself and the package face
+#: (``gateway``: ``__version__``); a layer not named here may not be imported by the ones that are
+LAYERS: dict[str, tuple[str, ...]] = {
+    "gateway.plumbing": (),
+    "gateway.core": (),
+    "drivers": ("gateway.core", "gateway.plumbing"),
+    "gateway.config": ("gateway.core", "gateway.plumbing", "drivers"),
+    "gateway.offline": ("gateway.core", "gateway.plumbing"),
+    "gateway.station": ("gateway.core", "gateway.plumbing", "gateway.offline"),
+    "gateway.outputs": ("gateway.core", "gateway.plumbing", "gateway.offline", "gateway.station", "gateway.config"),
+    "gateway.commission": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.outputs"),
+    "gateway.supervisor": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.offline",
+                           "gateway.station", "gateway.outputs", "gateway.compose"),
+    "gateway.compose": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.offline",
+                        "gateway.station", "gateway.outputs"),
+    "gateway.cli": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.offline",
+                    "gateway.station", "gateway.outputs", "gateway.compose", "gateway.supervisor",
+                    "gateway.commission"),
+}
+#: the imports across layers that the table does not allow, each with why (a new one fails)
+LAYER_EXCEPTIONS: dict[tuple[str, str], str] = {
+    ("gateway.core.command_rules", "gateway.plumbing.ratelog"):
+        "``clip``: the one bound on client text echoed back (pure text, beside the rate-limited log)",
+    ("gateway.core.command_intake", "gateway.plumbing.ratelog"):
+        "``clip``, ``safe``, ``ECHO_CHARS``: the one bound on client text echoed back (pure text)",
+}
+#: the modules that may sit outside a layer folder: the package faces, the composition root,
+#: and the one module left loose in gateway/outputs/ (with why)
+LOOSE_ALLOWED = {
+    "gateway": "the package face (``__version__``)",
+    "gateway.compose": "the composition root",
+    "gateway.outputs": "the outputs' package face",
+    "gateway.outputs.wiring": "settings of the outputs from configuration: folds into the output registry "
+                              "(issue 35 item 1)",
+}
+#: the standard library modules of I/O, time, threads and processes: none in the pure core
+IMPURE = ("os", "io", "sys", "time", "socket", "select", "selectors", "threading", "multiprocessing",
+          "asyncio", "subprocess", "sqlite3", "logging", "shutil", "pathlib", "tempfile", "signal",
+          "random", "serial", "paho", "aiohttp", "yaml")
 
 
 def _modules() -> dict[str, str]:
@@ -66,8 +109,11 @@ def _resolve(mod: str, node: ast.ImportFrom | ast.Import) -> list[str]:
 
 
 def _node(mod: str) -> str:
-    """The graph node of a module: its subpackage, or itself when it sits in a top package."""
+    """The graph node of a module: its layer folder (an output's subpackage in gateway/outputs/),
+    or itself when it sits directly in gateway/ or gateway/outputs/."""
     parts = mod.split(".")
+    if parts[:2] == ["gateway", "outputs"] and len(parts) >= 3 and _is_pkg(".".join(parts[:3])):
+        return ".".join(parts[:3])
     if len(parts) >= 2 and _is_pkg(".".join(parts[:2])):
         return ".".join(parts[:2])
     return mod
@@ -181,8 +227,8 @@ def _in(mod: str, prefixes: tuple[str, ...]) -> bool:
 
 def test_the_scan_sees_the_project():
     g = _graph()
-    assert "gateway.station" in g and "gateway.outputs" in g and len(MODULES) > 50
-    assert "gateway.core.records" in g["gateway.station"]
+    assert "gateway.station" in g and "gateway.outputs.mqtt" in g and len(MODULES) > 50
+    assert "gateway.core" in g["gateway.station"] and "gateway.outputs.broker" in g["gateway.outputs.mqtt"]
 
 
 def test_no_package_cycles():
@@ -198,16 +244,85 @@ def test_no_import_error_guards_around_project_modules():
     assert [g for s in SCANS.values() for g in s.guarded] == []
 
 
-def test_drivers_sit_on_the_pure_core_only():
-    bad = [f"{m} → {t}" for m, s in SCANS.items() if m.startswith("drivers")
-           for t in s.edges if t.startswith("gateway") and not _in(t, PURE_CORE)]
-    assert bad == []
+def _layer(mod: str) -> str | None:
+    """The layer folder of a module (the longest of ``LAYERS`` it sits in), None for a loose one."""
+    return max((la for la in LAYERS if _in(mod, (la,))), key=len, default=None)
+
+
+def _layer_breaches(scans: dict[str, _Scan]) -> list[str]:
+    bad = []
+    for m, s in scans.items():
+        own = _layer(m)
+        if own is None:
+            continue
+        for t in s.edges:
+            while t not in MODULES and "." in t:
+                t = t.rsplit(".", 1)[0]
+            other = _layer(t)
+            if t == "gateway" or other in (None, own) or other in LAYERS[own] or (m, t) in LAYER_EXCEPTIONS:
+                continue
+            bad.append(f"{m} ({own}) → {t} ({other})")
+    return sorted(bad)
+
+
+def test_each_layer_imports_only_the_layers_below_it():
+    """The folders are the layers: a module imports of the project only its own layer folder and
+    those ``LAYERS`` names for it (drivers sit on the pure core and the plumbing; the station on
+    those and the offline readers; the outputs on the station; …)."""
+    assert _layer_breaches(SCANS) == []
+    used = {(m, t) for m, s in SCANS.items() for t in s.edges}
+    assert set(LAYER_EXCEPTIONS) <= used, "an exception no longer needed: drop it from LAYER_EXCEPTIONS"
+
+
+def test_no_module_sits_outside_a_layer_folder():
+    """Issue 35: nothing loose at gateway/ beyond the composition root, the CLI (a package) and the
+    package faces; nothing at gateway/outputs/ outside a subpackage but ``LOOSE_ALLOWED``; the old
+    gateway/northbound/ is gone."""
+    loose = sorted(m for m in MODULES if _layer(m) is None and m not in LOOSE_ALLOWED)
+    assert loose == []
+    assert set(LOOSE_ALLOWED) <= set(MODULES), "a listed loose module is gone: drop it from LOOSE_ALLOWED"
+    assert not os.path.exists(os.path.join(ROOT, "gateway", "northbound"))
+    assert [m for m in MODULES if m.startswith("gateway.outputs.") and m.count(".") == 2
+            and not _is_pkg(m)] == ["gateway.outputs.wiring"]
 
 
 def test_the_pure_core_imports_nothing_else_of_the_project():
     bad = [f"{m} → {t}" for m, s in SCANS.items() if _in(m, PURE_CORE)
-           for t in s.edges if not _in(t, PURE_CORE) and t != "gateway"]
+           for t in s.edges if not _in(t, PURE_CORE) and t != "gateway" and (m, t) not in LAYER_EXCEPTIONS]
     assert bad == []
+
+
+def _std_imports(tree: ast.Module) -> set[str]:
+    """The top-level names of the absolute imports of a module (``os``, ``numpy``, ``threading``)."""
+    out = set()
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Import):
+            out |= {a.name.split(".")[0] for a in n.names}
+        elif isinstance(n, ast.ImportFrom) and not n.level and n.module:
+            out.add(n.module.split(".")[0])
+    return out
+
+
+def test_the_pure_core_has_no_io_and_no_clock():
+    """The pure core is a folder: none of its modules imports the standard library's I/O, time,
+    threads or processes (nor a serial port, a broker client, a web stack, a YAML reader)."""
+    bad = {m: sorted(_std_imports(t) & set(IMPURE)) for m, t in TREES.items() if _in(m, PURE_CORE)}
+    assert {m: i for m, i in bad.items() if i} == {}
+    assert len(bad) >= 15
+    assert _std_imports(ast.parse("import os.path\nfrom time import monotonic\nfrom . import x\n")) == {"os", "time"}
+
+
+def test_the_layer_check_flags_what_it_should():
+    fake = {m: _Scan(m) for m in ("gateway.core.records", "drivers.meter.driver", "gateway.station.station")}
+    fake["gateway.core.records"].edges = {"gateway.station.station", "gateway.core.ports"}
+    fake["drivers.meter.driver"].edges = {"gateway.plumbing.ratelog", "gateway.outputs.mqtt.schema"}
+    fake["gateway.station.station"].edges = {"drivers.meter.driver", "gateway", "gateway.offline.history"}
+    assert _layer_breaches(fake) == [
+        "drivers.meter.driver (drivers) → gateway.outputs.mqtt.schema (gateway.outputs)",
+        "gateway.core.records (gateway.core) → gateway.station.station (gateway.station)",
+        "gateway.station.station (gateway.station) → drivers.meter.driver (drivers)"]
+    assert _layer("gateway.outputs.plc.modbus_tcp.framer") == "gateway.outputs" and _layer("gateway.compose") \
+        == "gateway.compose" and _layer("gateway.outputs.wiring") == "gateway.outputs"
 
 
 def test_the_scanner_flags_what_it_should(tmp_path):
@@ -307,11 +422,11 @@ def test_no_class_in_the_console_is_over_300_lines():
 
 def test_the_console_route_modules_never_import_the_app():
     """The route modules (and the context they share) see the console only through
-    ``ConsoleContext``: none imports the app (``app.py``, or its old path ``server.py``), so the
-    rooms of the console form no cycle among themselves (the package graph cannot see this)."""
+    ``ConsoleContext``: none imports the app (``app.py``), so the rooms of the console form no
+    cycle among themselves (the package graph cannot see this)."""
     rooms = [m for m in MODULES if m.startswith("gateway.outputs.console.routes_")]
     assert len(rooms) >= 3
-    app = {"gateway.outputs.console.app", "gateway.outputs.console.server"}
+    app = {"gateway.outputs.console.app"}
     back = [f"{m} → {t}" for m in (*rooms, "gateway.outputs.console.context") for t in SCANS[m].edges if t in app]
     assert back == []
     assert all("gateway.outputs.console.context" in SCANS[m].edges for m in rooms)
@@ -675,7 +790,8 @@ def test_one_slot_window_accumulator():
                 for n in ast.walk(t) if isinstance(n, ast.Call) and ast.unparse(n) == "enumerate(REASONS)"]
     assert counting == []
     # the accumulator itself sits on the pure core
-    assert set(SCANS["gateway.core.slotwindow"].edges) <= {"gateway.core.records", "gateway.core.method", "gateway.core.method.rules"}
+    assert set(SCANS["gateway.core.slotwindow"].edges) <= {"gateway.core.records", "gateway.core.method",
+                                                           "gateway.core.method.rules"}
 
 
 #: the restarts and retries of stations and workers (their waits come from gateway/plumbing/backoff.py)
@@ -744,6 +860,9 @@ def test_the_demo_runs_its_station_through_drive():
 #: module file names still shared, each with why (a new shared name fails the test below)
 SHARED_NAMES = {
     "docs.py": "each renders its own package's document (config, method, Sparkplug) from its one definition",
+    "output.py": "each door's station output in its own package (outputs/mqtt/, outputs/sparkplug/)",
+    "settings.py": "each output's settings in its own package (outputs/broker/, outputs/mqtt/, outputs/console/)",
+    "driver.py": "each device's driver, the port the station uses, in its own package (drivers/meter/, drivers/stm32/)",
 }
 
 
