@@ -28,12 +28,13 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from .. import __version__, safeout
+from .. import __version__
 from ..config.site.boxreport import build_report
 from ..config.site.versions import StateDir, read_json, write_atomic
-from ..northbound.broker_settings import BrokerSettings
-from ..northbound.metrics.figures import set_config_source
-from ..safeyaml import YamlError, load
+from ..outputs.broker.settings import BrokerSettings
+from ..outputs.prometheus.figures import set_config_source
+from ..plumbing import safeout
+from ..plumbing.safeyaml import YamlError, load
 from .boxpublish import ReportPublisher
 
 __all__ = ["BoxAgent", "HubInfo"]

@@ -1,7 +1,7 @@
 """The box's configuration report on MQTT: retained, QoS 1, on
-``<prefix>/<site>/box/<box>/config`` (:func:`gateway.northbound.mqtt_schema.box_config_topic`),
+``<prefix>/<site>/box/<box>/config`` (:func:`gateway.outputs.mqtt.schema.box_config_topic`),
 with a Will that says ``online: false``; on its own session of the one paho session engine
-(:class:`gateway.northbound.paho_session.PahoSession`), on its own thread. Its content is
+(:class:`gateway.outputs.broker.paho_session.PahoSession`), on its own thread. Its content is
 :func:`gateway.config.site.boxreport.build_report`; the box's :class:`.boxagent.BoxAgent` hands
 each new report over (a mailbox of one: the latest wins).
 """
@@ -15,10 +15,10 @@ from typing import Any
 import paho.mqtt.client as paho
 
 from ..config.site.boxreport import REPORT_SCHEMA
-from ..northbound.broker_settings import BrokerSettings, SecretError
-from ..northbound.mqtt_schema import box_config_topic, encode, iso_ms
-from ..northbound.paho_session import PahoSession
-from ..threadloop import Mailbox
+from ..outputs.broker.paho_session import PahoSession
+from ..outputs.broker.settings import BrokerSettings, SecretError
+from ..outputs.mqtt.schema import box_config_topic, encode, iso_ms
+from ..plumbing.threadloop import Mailbox
 
 __all__ = ["ReportPublisher"]
 

@@ -15,7 +15,7 @@ sys.path[:0] = [os.path.dirname(os.path.dirname(HERE))]
 
 from gateway.config.site.boxreport import build_report  # noqa: E402
 from gateway.config.site.versions import StateDir  # noqa: E402
-from gateway.northbound.broker_settings import BrokerSettings  # noqa: E402
+from gateway.outputs.broker.settings import BrokerSettings  # noqa: E402
 from gateway.supervisor.boxpublish import ReportPublisher  # noqa: E402
 
 

@@ -1,7 +1,7 @@
 """The box's configuration report: one definition of its content (:func:`build_report`), what
 ``hookwatch config status`` prints and what the box's supervisor publishes, retained with a Will,
 on ``<prefix>/<site>/box/<box>/config`` (gateway/supervisor/boxpublish.py; its fields:
-``BOX_CONFIG_FIELDS`` of gateway/northbound/mqtt_schema.py, docs/mqtt.md).
+``BOX_CONFIG_FIELDS`` of gateway/outputs/mqtt/schema.py, docs/mqtt.md).
 """
 from __future__ import annotations
 

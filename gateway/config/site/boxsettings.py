@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from ...safeyaml import YamlError, load
+from ...plumbing.safeyaml import YamlError, load
 from .repository import BOX_NAME_RE
 
 __all__ = ["DEFAULT_FILE", "BoxSettings", "BoxSettingsError", "load_box"]

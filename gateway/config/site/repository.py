@@ -29,7 +29,7 @@ from typing import Any
 
 import yaml
 
-from ...safeyaml import YamlError, load
+from ...plumbing.safeyaml import YamlError, load
 from ..loader import FLEET_KEYS, _merge
 
 __all__ = ["BOX_NAME_RE", "MANIFEST", "Effective", "GitError", "boxes", "build", "checkout", "commit_of",

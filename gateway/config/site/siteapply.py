@@ -27,7 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from ... import safeout
+from ...plumbing import safeout
 from .boxreport import supervisor_alive
 from .boxsettings import BoxSettings
 from .repository import GitError, checkout, commit_of

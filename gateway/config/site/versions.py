@@ -26,7 +26,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-from ... import safeout
+from ...plumbing import safeout
 from .repository import MANIFEST, Effective, read_tree, write_tree
 
 __all__ = ["StateDir"]

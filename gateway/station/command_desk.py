@@ -1,0 +1,236 @@
+"""A station's command desk: every door's commands, carried out once, one at a time.
+
+The commands, their arguments, refusal codes and the one validation are pure and live in
+:mod:`gateway.core.command_rules` (re-exported here). Every door makes a Command with the one bounded
+intake (gateway/core/command_intake.py ``intake``) and hands it to its
+:class:`gateway.core.ports.CommandSink` — ``submit(cmd)``, or ``refused(data)`` for a request the
+intake refused. A station's sink is its :class:`CommandDesk` (a member of the Station): one
+command at a time, a repeated ``request_id`` answered once (:class:`RequestLedger`), validation
+once, a rate per source, every refusal through the bounded :class:`RefusalGate` — once per kind
+(door, command, code) per minute with the ``count``, so a flood of refused commands is a few
+events and log lines, not one each. A fleet's supervisor holds a worker's proxy as sink, which
+hands the command to the worker's desk.
+"""
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+from ..core.command_rules import (
+    ALARM_COMMAND_EVENTS,
+    CODE,
+    COMMAND_KEYS,
+    REJECT_CODES,
+    RUNNING,
+    SAMPLE_ID_MAX,
+    T_END_MAX_S,
+    Rejection,
+    check_grade,
+    check_sample_id,
+    check_t_end,
+    check_t_set,
+    reject,
+    validate,
+)
+from ..core.ports import StationLimits
+from ..core.records import ArgValue, Command, CommandArgs, CommandKind, CommandReply, RefusalData
+from ..plumbing.ratelog import RateBound, RefusalWindow, clip
+
+__all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "RUNNING", "Rejection",
+           "reject", "check_t_set", "check_sample_id", "check_grade", "check_t_end",
+           "validate", "StationLimits", "ALARM_COMMAND_EVENTS", "RefusalGate", "RequestLedger",
+           "CommandDesk", "REQUEST_ID_TTL_S", "REQUEST_ID_MAX_KEPT", "COMMANDS_PER_MIN",
+           "COMMAND_BURST", "MAX_SOURCES"]
+
+#: a command's request_id is remembered (per station and source) this long and this many at most:
+#: a repeat within both bounds gets the first answer and is not carried out again (docs/limits.md)
+REQUEST_ID_TTL_S = 600.0
+REQUEST_ID_MAX_KEPT = 1024
+#: commands one source (``mqtt``, ``sparkplug``, ``console:<user>``, ``plc:<address>``, ``cli``)
+#: may have a station carry out: bursts of COMMAND_BURST, COMMANDS_PER_MIN a minute on average
+COMMANDS_PER_MIN = 60
+COMMAND_BURST = 20
+#: sources whose rate is tracked at once (the one not seen the longest is forgotten)
+MAX_SOURCES = 256
+
+# ----------------------------------------------------------------------------- bounded refusals
+class RefusalGate:
+    """The refusals of one station as bounded ``command_rejected`` events: per kind (door,
+    command, code) the first refusal of a window (:data:`gateway.plumbing.ratelog.WINDOW_S`, 60 s) is an
+    event at once with ``count: 1``, the others of the window are counted and become one event
+    with their ``count`` when the window ends (the last one's reason and source). 3,000 refused
+    PLC commands in a minute are two events (and two log lines), not 3,000; the sum of the counts
+    is the number of refusals. Every request still gets its own answer.
+
+    A member of the station's :class:`CommandDesk`, on the station's loop; ``emit`` makes one
+    ``command_rejected`` event of its data."""
+
+    def __init__(self, emit: Callable[[RefusalData], object], window_s: float | None = None):
+        self._emit_event = emit
+        self._w = RefusalWindow(window_s)
+        self._timer: asyncio.TimerHandle | None = None
+        self.refusals = 0           # every refusal counted here
+        self.events = 0             # command_rejected events emitted for them
+
+    @property
+    def window_s(self) -> float:
+        return self._w.window_s
+
+    def refused(self, data: RefusalData) -> None:
+        """One refusal (``data``: command, source, reason, code), on the station's loop."""
+        self.refusals += 1
+        now = time.monotonic()
+        door = str(data.get("source", "")).split(":", 1)[0]
+        key = (door, str(data.get("command", "")), int(data.get("code", 0) or 0))
+        self._flush(now)
+        if self._w.add(key, now, data):
+            self._emit(data, 1)
+        else:
+            self._arm(now)
+
+    def _emit(self, data: RefusalData, n: int) -> None:
+        self.events += 1
+        self._emit_event({**data, "count": n, "window_s": self._w.window_s})
+
+    def _flush(self, now: float) -> None:
+        for _key, n, (data,) in self._w.due(now):
+            self._emit(data, n)
+
+    def _arm(self, now: float) -> None:
+        at = self._w.next_due()
+        if self._timer is not None or at is None:
+            return
+        self._timer = asyncio.get_running_loop().call_later(max(0.0, at - now) + 0.01, self._fire)
+
+    def _fire(self) -> None:
+        self._timer = None
+        now = time.monotonic()
+        self._flush(now)
+        self._arm(now)
+
+
+# ----------------------------------------------------------------------------- once, and not too often
+@dataclass(frozen=True)
+class _Answered:
+    kind: CommandKind
+    args: tuple[tuple[str, ArgValue], ...]
+    reply: CommandReply
+    at: float
+
+
+def _args_key(args: CommandArgs) -> tuple[tuple[str, ArgValue], ...]:
+    return tuple(sorted(args.items()))
+
+
+class RequestLedger:
+    """The answers of a station's recent commands by ``(source, request_id)`` (pure: every call
+    takes the time). A command whose request_id this source already used within
+    :data:`REQUEST_ID_TTL_S` (and among the last :data:`REQUEST_ID_MAX_KEPT`) is answered with the
+    first one's reply and not carried out again; the same request_id naming another command (or
+    other arguments) is refused (code 9). A command without a request_id is never remembered."""
+
+    def __init__(self, ttl_s: float = REQUEST_ID_TTL_S, max_kept: int = REQUEST_ID_MAX_KEPT):
+        self.ttl_s, self.max_kept = float(ttl_s), int(max_kept)
+        self._d: OrderedDict[tuple[str, str], _Answered] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def _expire(self, now: float) -> None:
+        while self._d:
+            key, first = next(iter(self._d.items()))
+            if now - first.at < self.ttl_s and len(self._d) <= self.max_kept:
+                return
+            del self._d[key]
+
+    def answer(self, cmd: Command, now: float) -> CommandReply | None:
+        """The reply to a repeat of an earlier command (None: not a repeat)."""
+        if cmd.request_id is None:
+            return None
+        self._expire(now)
+        first = self._d.get((cmd.source, cmd.request_id))
+        if first is None:
+            return None
+        rid = clip(cmd.request_id)
+        if first.kind != cmd.kind or first.args != _args_key(cmd.args):
+            return reject(cmd, "BAD_REQUEST", f"request_id {rid} already named a {first.kind.value} "
+                          f"command {now - first.at:.0f} s ago: a request_id names one command")
+        r = first.reply
+        said = "carried out" if r.ok else f"refused ({r.reason})"
+        reason = f"duplicate of request_id {rid}: {said} once, {now - first.at:.0f} s ago, not again"
+        if isinstance(r, Rejection):
+            return Rejection(False, reason, cmd.request_id, r.code)
+        return CommandReply(r.ok, reason, cmd.request_id)
+
+    def note(self, cmd: Command, reply: CommandReply, now: float) -> None:
+        """Remember the answer to ``cmd`` (when it has a request_id)."""
+        if cmd.request_id is None:
+            return
+        key = (cmd.source, cmd.request_id)
+        self._d[key] = _Answered(cmd.kind, _args_key(cmd.args), reply, now)
+        self._d.move_to_end(key)
+        self._expire(now)
+
+
+class CommandDesk:
+    """A station's one place for commands, whichever door they came in by (every door's
+    ``CommandSink.submit`` and ``refused`` end here, on the station's loop):
+
+    - one command at a time (a lock): each is validated against the state the one before left
+      (two stops at once: the second finds no test running);
+    - a repeated request_id (:class:`RequestLedger`) is answered with the first answer, once;
+    - validation once (``validate``), then a rate per source (:data:`COMMANDS_PER_MIN` a minute,
+      bursts of :data:`COMMAND_BURST`; :class:`gateway.plumbing.ratelog.RateBound`) for the commands that
+      would be carried out: over it, refused with code 14 RATE_LIMITED (a refused or repeated
+      command costs none of it, so a flood of bad requests cannot lock a door's good ones out);
+    - every refusal through the bounded :class:`RefusalGate` (counted ``command_rejected`` events);
+    - then ``act`` carries it out (``gateway.station.dispatch.HANDLERS``)."""
+
+    def __init__(self, validate: Callable[[Command], Rejection | None],
+                 act: Callable[[Command], Awaitable[None]],
+                 emit: Callable[[RefusalData], object], *, window_s: float | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._validate, self._act, self.clock = validate, act, clock
+        self.gate = RefusalGate(emit, window_s)
+        self.ledger = RequestLedger()
+        self.rate = RateBound(COMMANDS_PER_MIN, clock, max_keys=MAX_SOURCES, burst=COMMAND_BURST)
+        self._lock: asyncio.Lock | None = None
+        #: what the desk did: carried out, refused (any reason), of those over the rate, repeats
+        self.counters = {"accepted": 0, "refused": 0, "rate_limited": 0, "duplicates": 0}
+
+    def refused(self, data: RefusalData) -> None:
+        """A door refused a request before it became a command (the intake, code 9 or 4)."""
+        self.counters["refused"] += 1
+        self.gate.refused(data)
+
+    async def submit(self, cmd: Command) -> CommandReply:
+        if self._lock is None:
+            self._lock = asyncio.Lock()
+        async with self._lock:
+            now = self.clock()
+            again = self.ledger.answer(cmd, now)
+            if again is not None:
+                self.counters["duplicates"] += 1
+                return again
+            rej = self._validate(cmd)
+            if rej is None:
+                wait = self.rate.take(cmd.source)
+                if wait > 0:
+                    self.counters["rate_limited"] += 1
+                    rej = reject(cmd, "RATE_LIMITED", f"{cmd.kind.value}: more than {COMMAND_BURST} "
+                                 f"commands at once or {COMMANDS_PER_MIN} a minute from "
+                                 f"{clip(cmd.source)}; try again in {wait:.1f} s")
+            if rej is not None:
+                self.refused({"command": cmd.kind.value, "source": cmd.source,
+                              "reason": rej.reason, "code": int(rej.code)})
+                if rej.code != CODE["RATE_LIMITED"]:        # a retry later may be carried out
+                    self.ledger.note(cmd, rej, now)
+                return rej
+            await self._act(cmd)
+            self.counters["accepted"] += 1
+            reply = CommandReply(True, "", cmd.request_id)
+            self.ledger.note(cmd, reply, self.clock())
+            return reply
