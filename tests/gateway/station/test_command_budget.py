@@ -23,8 +23,8 @@ from gateway.station.commands import (
     REQUEST_ID_TTL_S,
     CommandDesk,
     RequestLedger,
-    budget_in,
     StationLimits,
+    budget_in,
     validate,
 )
 
