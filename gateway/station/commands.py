@@ -15,6 +15,7 @@ hands the command to the worker's desk.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import math
 import time
 from collections import OrderedDict
@@ -39,22 +40,24 @@ from ..commandtypes import (
 )
 from ..ports import StationLimits
 from ..ratelog import RateBound, RefusalWindow, clip
-from ..records import ArgValue, Command, CommandArgs, CommandKind, CommandReply, RefusalData
+from ..records import Command, CommandArgs, CommandKind, CommandReply, RefusalData
 
 __all__ = ["SAMPLE_ID_MAX", "T_END_MAX_S", "REJECT_CODES", "CODE", "COMMAND_KEYS", "RUNNING", "Rejection",
            "reject", "check_t_set", "check_sample_id", "check_grade", "check_t_end",
            "validate", "StationLimits", "ALARM_COMMAND_EVENTS", "RefusalGate", "RequestLedger",
            "CommandDesk", "REQUEST_ID_TTL_S", "REQUEST_ID_MAX_KEPT", "COMMANDS_PER_MIN",
-           "COMMAND_BURST", "MAX_SOURCES", "budget_in"]
+           "COMMAND_BURST", "MAX_SOURCES", "REQUEST_ID_SOURCES", "budget_in"]
 
 #: commands one source (``mqtt``, ``sparkplug``, ``console:<user>``, ``plc:<address>``, ``cli``)
 #: may have a station take — carried out or refused by the validation alike: bursts of
 #: COMMAND_BURST, COMMANDS_PER_MIN a minute on average (a token bucket)
 COMMANDS_PER_MIN = 60
 COMMAND_BURST = 20
-#: sources whose rate is tracked at once (the one not seen the longest is forgotten), and sources
-#: whose request_ids are remembered at once
+#: sources whose rate is tracked at once (the one not seen the longest is forgotten)
 MAX_SOURCES = 256
+#: sources whose request_ids are remembered at once (the doors that send ids: ``mqtt``,
+#: ``sparkplug``, ``cli``, each console user): one more is refused (14) until one's ids expire
+REQUEST_ID_SOURCES = 64
 #: a command's request_id is remembered (per station and source) this long: a repeat within it
 #: gets the first answer and is not carried out again (docs/limits.md)
 REQUEST_ID_TTL_S = 600.0
@@ -131,14 +134,21 @@ class RefusalGate:
 # ----------------------------------------------------------------------------- once, and not too often
 @dataclass(frozen=True, slots=True)
 class _Answered:
+    """One remembered answer, lean (a full memory is 64 sources × 620 answers): the command's
+    arguments as a digest."""
     kind: CommandKind
-    args: tuple[tuple[str, ArgValue], ...]
-    reply: CommandReply
+    args: bytes
+    ok: bool
+    code: int
+    reason: str
     at: float
 
 
-def _args_key(args: CommandArgs) -> tuple[tuple[str, ArgValue], ...]:
-    return tuple(sorted(args.items()))
+def _args_key(args: CommandArgs) -> bytes:
+    """The arguments of a command as 16 bytes (the same arguments, the same key; 1 and 1.0 are
+    the same number)."""
+    items = sorted((k, float(v) if isinstance(v, int) else v) for k, v in args.items())
+    return hashlib.blake2b(repr(items).encode(), digest_size=16).digest()
 
 
 class RequestLedger:
@@ -155,7 +165,7 @@ class RequestLedger:
     an id out of the memory and replay it later."""
 
     def __init__(self, ttl_s: float = REQUEST_ID_TTL_S, per_source: int = REQUEST_ID_MAX_KEPT,
-                 max_sources: int = MAX_SOURCES):
+                 max_sources: int = REQUEST_ID_SOURCES):
         self.ttl_s, self.per_source, self.max_sources = float(ttl_s), int(per_source), int(max_sources)
         self._src: dict[str, OrderedDict[str, _Answered]] = {}
 
@@ -208,12 +218,11 @@ class RequestLedger:
         if first.kind != cmd.kind or first.args != _args_key(cmd.args):
             return reject(cmd, "BAD_REQUEST", f"request_id {rid} already named a {first.kind.value} "
                           f"command {now - first.at:.0f} s ago: a request_id names one command")
-        r = first.reply
-        said = "carried out" if r.ok else f"refused ({r.reason})"
+        said = "carried out" if first.ok else f"refused ({first.reason})"
         reason = f"duplicate of request_id {rid}: {said} once, {now - first.at:.0f} s ago, not again"
-        if isinstance(r, Rejection):
-            return Rejection(False, reason, cmd.request_id, r.code)
-        return CommandReply(r.ok, reason, cmd.request_id)
+        if not first.ok:
+            return Rejection(False, reason, cmd.request_id, first.code)
+        return CommandReply(True, reason, cmd.request_id)
 
     def note(self, cmd: Command, reply: CommandReply, now: float) -> None:
         """Remember the answer to ``cmd`` (when it has a request_id), taken at ``now``. The caller
@@ -223,7 +232,8 @@ class RequestLedger:
         d = self._expire(cmd.source, now)
         if d is None:
             d = self._src[cmd.source] = OrderedDict()
-        d[cmd.request_id] = _Answered(cmd.kind, _args_key(cmd.args), reply, now)
+        d[cmd.request_id] = _Answered(cmd.kind, _args_key(cmd.args), reply.ok, int(reply.code),
+                                      reply.reason, now)
         d.move_to_end(cmd.request_id)
 
 

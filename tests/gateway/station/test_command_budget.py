@@ -18,8 +18,8 @@ from gateway.station.commands import (
     CODE,
     COMMAND_BURST,
     COMMANDS_PER_MIN,
-    MAX_SOURCES,
     REQUEST_ID_MAX_KEPT,
+    REQUEST_ID_SOURCES,
     REQUEST_ID_TTL_S,
     CommandDesk,
     RequestLedger,
@@ -83,7 +83,7 @@ def test_the_memory_per_source_is_what_the_budget_lets_through_in_the_ttl():
     assert REQUEST_ID_MAX_KEPT == budget_in(REQUEST_ID_TTL_S)
     assert budget_in(0) == COMMAND_BURST and budget_in(60, 60, 20) == 80 and budget_in(1.5, 60, 20) == 21
     led = RequestLedger()
-    assert (led.ttl_s, led.per_source, led.max_sources) == (REQUEST_ID_TTL_S, 620, MAX_SOURCES)
+    assert (led.ttl_s, led.per_source, led.max_sources) == (REQUEST_ID_TTL_S, 620, REQUEST_ID_SOURCES)
 
 
 def test_refused_commands_cost_the_budget_and_repeats_do_not():
@@ -140,7 +140,7 @@ def test_a_replayed_stop_never_ends_a_new_test_within_its_600_s():
 def test_a_flood_from_other_sources_never_touches_a_sources_memory():
     d = Desk()
     assert d.submit(stop("X", source="mqtt")).ok
-    for n in range(MAX_SOURCES - 1):
+    for n in range(REQUEST_ID_SOURCES - 1):
         out = d.many([stop(f"p{n}-{j}", source=f"console:u{n}") for j in range(30)])
         assert sum(r.code == CODE["NOT_RUNNING"] for r in out) == COMMAND_BURST
     assert "duplicate" in d.submit(stop("X", source="mqtt")).reason
@@ -187,3 +187,15 @@ def test_a_stop_naming_a_test_ends_that_test_only():
     r = validate(stop(None, test_id="T1"), lim, idle)
     assert r.code == CODE["NOT_RUNNING"] and "test 'T1' ended" in r.reason
     assert validate(stop(None), lim, running) is None                       # naming none: the running one
+
+
+def test_an_answer_is_remembered_by_its_arguments_digest():
+    led = RequestLedger()
+    first = Command(CommandKind.SETPOINT, "mqtt", {"t_set": 1}, "s1")
+    led.note(first, CommandReply(True, "", "s1"), 0.0)
+    same = Command(CommandKind.SETPOINT, "mqtt", {"t_set": 1.0}, "s1")         # 1 and 1.0: one number
+    assert led.answer(same, 1.0).ok and "duplicate" in led.answer(same, 1.0).reason
+    other = Command(CommandKind.SETPOINT, "mqtt", {"t_set": 0.6}, "s1")
+    r = led.answer(other, 1.0)
+    assert not r.ok and r.code == CODE["BAD_REQUEST"] and "names one command" in r.reason
+    assert led.answer(Command(CommandKind.SETPOINT, "console:a", {"t_set": 0.6}, "s1"), 1.0) is None
