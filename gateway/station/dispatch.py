@@ -1,8 +1,8 @@
 """What a station does with a command it accepted: a table from command kind to handler.
 
-``Station.submit`` validates a command once (``gateway.station.commands.validate``, the same for
+``Station.submit`` validates a command once (``gateway.station.command_desk.validate``, the same for
 CLI, MQTT, PLC, console and Sparkplug), then calls ``HANDLERS[cmd.kind]``. A new command is a
-new row here (and its rules in ``commands.py``); nothing else branches on the kind.
+new row here (and its rules in ``command_desk.py``); nothing else branches on the kind.
 """
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from typing import Protocol
 
-from ..commandtypes import ALARM_COMMAND_EVENTS, text_arg
-from ..ports import StationLimits
-from ..records import Command, CommandArgs, CommandKind, EventType
+from ..core.command_rules import ALARM_COMMAND_EVENTS, text_arg
+from ..core.ports import StationLimits
+from ..core.records import Command, CommandArgs, CommandKind, EventType
 from .lifecycle import TestLifecycle
 from .session import TestPlan
 from .status import StatusBoard

@@ -14,9 +14,9 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
-from ..backoff import Backoff
-from ..osprio import freeze_heap, realtime_thread
-from ..threadloop import ThreadLoop
+from ..plumbing.backoff import Backoff
+from ..plumbing.osprio import freeze_heap, realtime_thread
+from ..plumbing.threadloop import ThreadLoop
 from .station import Station
 
 T = TypeVar("T")
@@ -32,7 +32,7 @@ class StationRunner:
                  restart_backoff_max_s: float = 60.0, stable_after_s: float = 60.0,
                  rt_priority: int = 0, rt_optional: bool = False):
         self.name = name
-        #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/osprio.py)
+        #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/plumbing/osprio.py)
         self.rt_priority = rt_priority
         #: SCHED_FIFO only where permitted, a refusal logged at info level (``hookwatch demo``);
         #: False: a refusal is a warning (``hookwatch run --realtime`` asked for it)
@@ -40,7 +40,7 @@ class StationRunner:
         self.factory = factory
         #: the first restart comes after ``restart_backoff_s``; each further crash in a row
         #: doubles it, up to ``restart_backoff_max_s``; an instance that ran ``stable_after_s``
-        #: starts a new row (gateway/backoff.py)
+        #: starts a new row (gateway/plumbing/backoff.py)
         self.restart = Backoff(restart_backoff_s, restart_backoff_max_s, stable_after_s)
         self.max_slots = max_slots
         self.on_started = on_started
@@ -174,7 +174,7 @@ class StationRunner:
 
 
 class Fleet:
-    """The stations of one process, each on its own thread: a :class:`gateway.ports.Runtime`
+    """The stations of one process, each on its own thread: a :class:`gateway.core.ports.Runtime`
     (``hookwatch run STATION.yaml``, or a fleet folder with ``--in-process``). ``reloader`` gives,
     on SIGHUP, the new factory of each station by name (raising ValueError: configuration kept)."""
 

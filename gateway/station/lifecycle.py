@@ -19,13 +19,13 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from ..control import ControlParams
-from ..method.core import StreamingMonitor
-from ..ports import MeterPort
-from ..records import EventType
+from ..core.control import ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.ports import MeterPort
+from ..core.records import EventType
 from .health import Health
 from .hook_log import append_hook, next_sample_id
-from .priors import PriorBook
+from .priors import PriorBook, life_kind
 from .recorder import disk_thread, utc_iso
 from .session import RecorderOutput, TestPlan, TestSession
 from .starting import StartAttempt, StartStep
@@ -152,7 +152,7 @@ class TestLifecycle:
                 if refused is not None:
                     await self.start_failed(refused)
             elif step is StartStep.FAILED:
-                # a silent meter is named with its port and settings (drivers/zns.py diagnosis)
+                # a silent meter is named with its port and settings (drivers/meter/driver.py diagnosis)
                 note = getattr(self.meter, "diagnosis", lambda: None)()
                 await self.start_failed((reason or "start failed") + (f": {note}" if note else ""))
             return
@@ -308,13 +308,16 @@ class TestLifecycle:
         rec: dict[str, Any] = {
             "station": self.setup.station_id, "old_sample_id": old_sid, "new_sample_id": new_sid,
             "grade": new_grade, "by": source, "utc": utc_iso(),
-            "test_id": last.get("test_id") if last is not None else None, "life_s": life}
+            "test_id": last.get("test_id") if last is not None else None, "life_s": life,
+            "life_kind": None}
+        loop = asyncio.get_running_loop()
+        if last is not None:     # §7a v3: an early failure is named as such (a scan: off the loop)
+            rec["life_kind"] = await loop.run_in_executor(None, life_kind, last, self.priors.known())
         if self.board.alarms.highest() is not None:
             self.board.emit(EventType.ALARM_CLEARED, source=source, reason="hook_replaced")
         # written and synced by the disk thread (never on the slot loop: a flood of replacements
         # once cost 42 slots of 100), in order; the command's answer waits for it
-        err = await asyncio.get_running_loop().run_in_executor(
-            disk_thread(), append_hook, self.setup.station_dir, rec)
+        err = await loop.run_in_executor(disk_thread(), append_hook, self.setup.station_dir, rec)
         if err is not None:
             log.error("%s: hooks.jsonl cannot be written (%s); the replacement is in the event only",
                       self.setup.station_id, err)

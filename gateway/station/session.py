@@ -17,12 +17,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .. import __version__
-from ..control import Controller, ControlParams
-from ..method.core import StreamingMonitor
-from ..method.params import MethodParams, build_params
-from ..method.prior import Prior
-from ..ports import DriveStop
-from ..records import Event, SlotRecord, StationState
+from ..core.control import Controller, ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.method.params import MethodParams, build_params
+from ..core.method.prior import Prior
+from ..core.ports import DriveStop
+from ..core.records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
 
@@ -74,7 +74,7 @@ class TestSession:
         the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar, ``prior``
         the test's life prior (§7a): its mean and SD go into the method (and so into the sidecar's
         ``method:`` section, for `hookwatch analyze` to give the same forecast), its source and
-        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``)."""
+        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``, ``prior_n_early``)."""
         values = dict(method_values)
         if prior is not None and prior.mean is not None and prior.sd is not None:
             values["prior_mean"], values["prior_sd"] = prior.mean, prior.sd
@@ -94,7 +94,8 @@ class TestSession:
             meta["start"] = dict(start_info)
         if prior is not None:
             side = prior.sidecar()
-            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_stations", "prior_from"):
+            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_n_early", "prior_stations",
+                      "prior_from"):
                 if k in side:
                     meta[k] = side[k]
         try:

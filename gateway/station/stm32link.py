@@ -1,8 +1,8 @@
 """The station's side of its STM32 port: how the per-slot speed command reaches the take-up.
 
-An STM32 port that can post the command (:class:`~gateway.ports.Stm32PostingPort`, the real
+An STM32 port that can post the command (:class:`~gateway.core.ports.Stm32PostingPort`, the real
 driver) gets it written at once, and its reply is collected after the next slot's poll, when the
-process is awake anyway (no wake-up of its own). Any other :class:`~gateway.ports.Stm32Port`
+process is awake anyway (no wake-up of its own). Any other :class:`~gateway.core.ports.Stm32Port`
 gets it through one sender task and a one-slot "latest value" box (:class:`LatestValue`). Either
 way the slot loop never waits for the STM32, and a command that cannot go out (the link busy with
 another exchange, or replaced in the box by a newer one: never queued) is reported to the caller,
@@ -19,7 +19,7 @@ import time
 from collections.abc import Coroutine
 from typing import Any
 
-from ..ports import DriveStop, Stm32DriveStops, Stm32Port, Stm32PostingPort, Stm32Status
+from ..core.ports import DriveStop, Stm32DriveStops, Stm32Port, Stm32PostingPort, Stm32Status
 
 __all__ = ["LatestValue", "Stm32Drive"]
 

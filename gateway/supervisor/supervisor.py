@@ -41,15 +41,15 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from .. import safeout
-from ..backoff import Backoff
-from ..commandtypes import CODE, Rejection
 from ..compose import process_budget
 from ..config import Issue
-from ..doors import RateLog, budget
-from ..records import CommandReply
+from ..core.command_rules import CODE, Rejection
+from ..core.records import CommandReply
+from ..plumbing import safeout
+from ..plumbing.backoff import Backoff
+from ..plumbing.doors import RateLog, budget
+from ..plumbing.threadloop import Mailbox
 from ..station.build import records_dir_ok
-from ..threadloop import Mailbox
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
 from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
 
@@ -90,11 +90,11 @@ class SharedOutputs(Protocol):
 class StationHub:
     """Everything the supervisor process knows of one station: the hook point for shared outputs.
 
-    - :attr:`state` — the latest STATE frame (a :class:`~gateway.records.StationState` mapping);
+    - :attr:`state` — the latest STATE frame (a :class:`~gateway.core.records.StationState` mapping);
     - :attr:`last_slots` — the latest SLOTS frame (with ``last``: the latest slot record);
     - :attr:`stream` — the last :data:`STREAM_LEN` items ``(kind, body)``, kind ``"slots"``,
       ``"event"`` (station events) or ``"supervisor"`` (refused, exited, restarted, held back);
-    - :meth:`subscribe` — a :class:`~gateway.threadloop.Mailbox` fed with every new item, bounded
+    - :meth:`subscribe` — a :class:`~gateway.plumbing.threadloop.Mailbox` fed with every new item, bounded
       (a slow consumer loses its oldest items, counted; it never delays the station or the hub);
     - :meth:`command` — a command to the station (``station.submit`` in its worker) with a timeout.
 
@@ -374,7 +374,7 @@ class WorkerWatch:
         self._grace_until = 0.0
 
     def restart_backoff(self) -> Backoff:
-        """A worker's restart back-off (gateway/backoff.py): ``backoff_s`` doubling to
+        """A worker's restart back-off (gateway/plumbing/backoff.py): ``backoff_s`` doubling to
         ``backoff_max_s``, a run of ``stable_s`` starting a new row."""
         return Backoff(self.backoff_s, self.backoff_max_s, self.stable_s)
 
@@ -511,7 +511,7 @@ class Supervisor:
         self.t_start = time.monotonic()
         self.plan = plan = plan_fleet(self.folder)
         # the descriptor budget first: the soft limit raised, the reserve for the socketpairs of
-        # worker (re)starts kept from the console, metrics and Modbus ports (gateway/doors.py)
+        # worker (re)starts kept from the console, metrics and Modbus ports (gateway/plumbing/doors.py)
         if plan.accepted:
             process_budget(plan.accepted[0][1])
         else:
@@ -549,7 +549,7 @@ class Supervisor:
         """Every worker runs its station (READY for systemd)."""
         return all(w.stopping or (w.running and w.go_t > 0) for w in self.workers.values())
 
-    # ------------------------------------------------------------ the runtime (gateway.ports.Runtime)
+    # ------------------------------------------------------------ the runtime (gateway.core.ports.Runtime)
     def alive(self) -> bool:
         """A station can run (not every station file was refused); workers are restarted."""
         return bool(self.workers)

@@ -23,20 +23,20 @@ from concurrent.futures import Future
 from dataclasses import asdict
 from typing import Any
 
-from ..commandtypes import Rejection, reply_code
 from ..compose import build_station
 from ..config import ConfigError, load_station
-from ..console.site import MAX_MESSAGE_BYTES
-from ..console.site import filters as site_filters
-from ..northbound.cmdparse import intake
-from ..northbound.metrics import MetricsOutput
-from ..northbound.mqtt import MqttOutput
-from ..ratelog import safe
-from ..records import CommandReply, Event, SlotRecord, StationState
-from ..slotwindow import SlotWindow
+from ..core.command_intake import intake
+from ..core.command_rules import Rejection, reply_code
+from ..core.records import CommandReply, Event, SlotRecord, StationState
+from ..core.slotwindow import SlotWindow
+from ..outputs.console.site import MAX_MESSAGE_BYTES
+from ..outputs.console.site import filters as site_filters
+from ..outputs.mqtt.output import MqttOutput
+from ..outputs.prometheus import MetricsOutput
+from ..plumbing.ratelog import safe
+from ..plumbing.threadloop import submit_to
 from ..station.fleet import StationRunner
 from ..station.station import Station
-from ..threadloop import submit_to
 from .fleetcfg import RunOptions, apply_overrides
 from .ipc import PROTO, FrameChannel, FrameDecoder, FrameType, ProtocolError, read_frames, slot_row
 
@@ -54,7 +54,7 @@ ROW_SERVED = frozenset({"modbus", "console", "sparkplug"})
 
 
 class IpcOutput:
-    """An :class:`~gateway.ports.Output` that sends a station's stream to the supervisor.
+    """An :class:`~gateway.core.ports.Output` that sends a station's stream to the supervisor.
     O(1) per slot, never blocks: frames go to a bounded :class:`FrameChannel`. With ``rows``
     (the supervisor serves the station's Modbus TCP unit, the console or its Sparkplug device)
     every SLOTS frame also carries the slot records it summarises, as lists of values
@@ -188,7 +188,7 @@ class Worker:
         args = body.get("args") or {}
         if isinstance(args, dict) and body.get("request_id") is not None:
             args = {**args, "request_id": body.get("request_id")}
-        # the one bounded intake of every door (gateway/northbound/cmdparse.py)
+        # the one bounded intake of every door (gateway/core/command_intake.py)
         cmd = intake(body.get("kind"), args, safe(str(body.get("source") or "supervisor"), 80))
         if isinstance(cmd, Rejection):
             self._reply(fid, False, cmd.reason, None, int(cmd.code))

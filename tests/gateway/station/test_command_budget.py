@@ -12,9 +12,9 @@ clock the test turns (pure: no loop thread, no broker):
 """
 import asyncio
 
-from gateway.records import Command, CommandKind, CommandReply, StationState
-from gateway.records import TestState as TState
-from gateway.station.commands import (
+from gateway.core.records import Command, CommandKind, CommandReply, StationState
+from gateway.core.records import TestState as TState
+from gateway.station.command_desk import (
     CODE,
     COMMAND_BURST,
     COMMANDS_PER_MIN,
