@@ -560,9 +560,11 @@ def render(station: dict[str, Any] | None = None) -> str:
         "past the value read before the write, the write arrived. A repeated command cannot do "
         "harm twice: a second stop finds no test (2 NOT_RUNNING), a second start a running one "
         "(1 BUSY), a second hook replaced with the `sample_id` still staged (now the station's own) no "
-        "alarm and no test (3 NO_ALARM). More "
-        "than 20 commands at once or 60 a minute from one PLC address are refused (14 "
-        "RATE_LIMITED, exception 06).",
+        "alarm and no test (3 NO_ALARM). A stop written here names no test: it ends the test "
+        "running when it arrives (`run_test_id`); MQTT, Sparkplug and the console can name the "
+        "test a stop means (`test_id`: a stop for a test that already ended is refused, 15 "
+        "WRONG_TEST). More than 20 commands at once or 60 a minute from one PLC address, carried "
+        "out or refused alike, are refused (14 RATE_LIMITED, exception 06).",
         "",
         "To start a test: write `sample_id`, `grade`, `t_end` (optional) and `t_set`, then 1 to "
         "`command`. Read `last_command`, `last_result` and `command_count` to see the outcome.",
