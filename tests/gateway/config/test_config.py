@@ -12,8 +12,8 @@ import pytest
 from conftest import ROOT, hookwatch_cmd
 from gateway.config import ConfigError, load_fleet, load_station, validate_station
 from gateway.config import sections as S
-from gateway.control import ControlParams, NotchParams
-from gateway.method.params import PARAMS, MethodParams, build_params
+from gateway.core.control import ControlParams, NotchParams
+from gateway.core.method.params import PARAMS, MethodParams, build_params
 
 MINIMAL = "station: {id: s1}\nmeter: {port: /dev/a-meter}\nstm32: {port: /dev/a-stm32}\n"
 
@@ -306,7 +306,7 @@ def _receiver(addr):
 
 @pytest.mark.parametrize("abstract", [False, True])
 def test_sdnotify_real_socket(tmp_path, monkeypatch, abstract):
-    from gateway import sdnotify
+    from gateway.plumbing import sdnotify
 
     name = f"hookwatch-test-{os.getpid()}-{id(tmp_path)}"
     if abstract:
@@ -328,7 +328,7 @@ def test_sdnotify_real_socket(tmp_path, monkeypatch, abstract):
 
 
 def test_sdnotify_without_socket_is_a_no_op(monkeypatch, tmp_path):
-    from gateway import sdnotify
+    from gateway.plumbing import sdnotify
 
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     assert not sdnotify.enabled()
@@ -339,7 +339,7 @@ def test_sdnotify_without_socket_is_a_no_op(monkeypatch, tmp_path):
 
 
 def test_sdnotify_watchdog_interval(monkeypatch):
-    from gateway import sdnotify
+    from gateway.plumbing import sdnotify
 
     monkeypatch.setenv("WATCHDOG_USEC", "10000000")
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))
