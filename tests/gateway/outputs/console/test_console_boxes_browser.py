@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 
+from conftest import TESTS
 from gateway.config.site.repository import build
 from gateway.config.site.versions import StateDir
 from gateway.outputs.mqtt import schema as mqtt_schema
@@ -41,7 +42,7 @@ def _state(tmp_path, repo, box, versions, status, rollback=None):
 
 
 def _reporter(tmp_path, port, st, name):
-    p = Proc([sys.executable, os.path.join(os.path.dirname(__file__), "..", "..", "kit", "box_reporter.py"),
+    p = Proc([sys.executable, os.path.join(TESTS, "kit", "box_reporter.py"),
               str(port), os.path.dirname(st.root)], str(tmp_path / f"{name}.log"))
     p.readline_until("published", timeout=60)
     return p
