@@ -132,6 +132,7 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/outputs/test_site_lives_store_e2e.py",
         "tests/gateway/outputs/test_acl_prior_e2e.py",
         "tests/gateway/outputs/test_prior_early_e2e.py",
+        "tests/gateway/outputs/test_command_replay_e2e.py",
         "tests/gateway/outputs/mqtt/test_mqtt_rabbitmq_cluster_e2e.py",
         "tests/gateway/station/test_stall_e2e.py",
         "tests/gateway/station/test_station_start_e2e.py",
@@ -141,6 +142,8 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/station/test_fleet_crash_restart.py",
         "tests/gateway/cli/test_reload_hostile_yaml.py",
         "tests/gateway/cli/test_reload_e2e.py",
+        # issue 37: a box from a site repository (a supervisor, 2 virtual stations, Mosquitto)
+        "tests/gateway/config/test_site_apply_e2e.py",
         "tests/deploy/test_release.py",
         "tests/deploy/test_setup.py")},
     "tests/gateway/station/test_retention_e2e.py": ("test_retention_over_many_short_tests_on_a_small_disk",),
@@ -177,6 +180,8 @@ SLOW: dict[str, tuple[str, ...]] = {
     "tests/gateway/outputs/console/test_console_browser.py": ("*",),
     # the site view: chromium and three gateways on one Mosquitto; hookwatch run (a station, a fleet)
     "tests/gateway/outputs/console/test_console_site_browser.py": ("*",),
+    # issue 37: the Boxes page, chromium and three boxes' report publishers on one Mosquitto
+    "tests/gateway/outputs/console/test_console_boxes_browser.py": ("*",),
     "tests/gateway/outputs/console/test_console_feed.py": (
         "test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
     "tests/gateway/cli/test_console_demo.py": ("*",),
@@ -254,6 +259,8 @@ FLEETS = (
     # two stations at 50 Hz under a flood of 600 lives snapshots of 115 KB through the broker,
     # compared with each other: beside another fleet both would only measure that fleet
     "tests/gateway/outputs/test_site_lives_churn_e2e.py",
+    # a site-managed box: a supervisor with two workers and their twins (issue 37)
+    "tests/gateway/config/test_site_apply_e2e.py",
 )
 
 
@@ -264,17 +271,18 @@ FLEETS = (
 #: gaps at the end (longest processing time first); without it xdist ordered the units by their
 #: number of tests, and the 3-minute broker outage life began 6 minutes in, on the critical path
 LONGEST_FIRST: dict[str, int] = {
-    FLEET_GROUP: 430,
+    FLEET_GROUP: 580,
     "rabbitmq": 230,
     "tests/gateway/outputs/test_outputs_e2e.py": 215,
     "tests/gateway/station/test_station_e2e.py": 185,
     "tests/deploy/test_release.py": 165,
     CPU_GROUP: 150,
     "tests/gateway/station/test_station_start_e2e.py": 95,
-    "tests/gateway/outputs/console/test_console_http.py": 65,
-    "tests/gateway/station/test_retention_e2e.py": 60,
     "tests/gateway/outputs/test_site_lives_store_e2e.py": 100,
-    "tests/gateway/station/test_stall_e2e.py": 57,
+    "tests/gateway/station/test_stall_e2e.py": 85,
+    "tests/gateway/outputs/console/test_console_http.py": 65,
+    "tests/gateway/outputs/test_command_replay_e2e.py": 65,
+    "tests/gateway/station/test_retention_e2e.py": 60,
     "tests/gateway/plumbing/test_doors_station_e2e.py": 47,
     "tests/gateway/outputs/console/test_console_browser.py": 45,
     "tests/gateway/outputs/test_wear_e2e.py": 42,

@@ -29,6 +29,8 @@ import asyncio
 import logging
 import statistics
 
+from gateway.core.ports import DriveStop
+
 from .exchange import Exchanges
 from .keepalive import KeepAlive
 from .protocol import DEFAULT_BAUD, Cmd, Reply, Status, StopReason, speed_payload, watchdog_for, watchdog_payload
@@ -56,7 +58,7 @@ def stop_reason_code(reason: str | int | StopReason = "") -> StopReason:
 
 class Stm32Link:
     """The STM32 take-up controller over its serial link: the wire, the exchanges and the
-    keep-alive composed; a ``Stm32Port`` and a ``Stm32PostingPort``."""
+    keep-alive composed; a ``Stm32Port``, a ``Stm32PostingPort`` and a ``Stm32DriveStops``."""
 
     def __init__(self, port: str, baud: int = DEFAULT_BAUD, timeout_s: float = 0.01,
                  retries: int = 1, watchdog_s: float = 0.2, *, budget_s: float = 0.018,
@@ -226,6 +228,12 @@ class Stm32Link:
 
     async def read_status(self) -> Status | None:
         return await self._status(Cmd.READ_STATUS)
+
+    def take_drive_stop(self) -> DriveStop | None:
+        """The newest stop of the drive on its own not taken yet (once), with the gateway's
+        longest silence on the line before it (:class:`gateway.core.ports.Stm32DriveStops`)."""
+        ds, self.keep.drive_stop = self.keep.drive_stop, None
+        return ds
 
     async def ping(self) -> Status | None:
         return await self._status(Cmd.PING)

@@ -9,7 +9,11 @@ and the firmware-reported one). The station's own traffic (SET_SPEED every slot)
 from ever firing, and, since every frame sent pushes the task's wake-up out (:meth:`sent`), from
 even waking up; :meth:`KeepAlive.keepalive` does the same check on demand. A drive that stops on
 its own while the gateway wants it enabled (the firmware watchdog, a fault) is counted
-(``drive_stops``) and said.
+(``drive_stops``) and said — and so is one the gateway's own STOP only found (a stall of the
+gateway longer than the watchdog: the firmware stopped the drive first and its status still says
+WATCHDOG when the STOP's answer comes). The time between two frames the gateway sent is measured
+on the link's clock; the longest since the drive was enabled goes with the stop
+(:class:`gateway.core.ports.DriveStop`, its sentence), for the station to say why its test ended.
 """
 from __future__ import annotations
 
@@ -17,13 +21,17 @@ import asyncio
 import logging
 from typing import Protocol
 
-from .protocol import Status
+from gateway.core.ports import DriveStop
+
+from .protocol import Status, StopReason
 from .wire import flag_names
 
 log = logging.getLogger("hookwatch.stm32")
 
 #: the keep-alive's wake-up is pushed out by a frame sent when it would come within this time
 _KEEPALIVE_PUSH_S = 0.05
+#: the firmware's own stops: never the answer to a command of the gateway
+OWN_STOPS = frozenset({StopReason.WATCHDOG, StopReason.STALL, StopReason.OVERSPEED})
 
 
 def _set_none(fut: asyncio.Future[None]) -> None:
@@ -56,6 +64,10 @@ class KeepAlive:
         self.link = link
         self.want_enabled = False            # enable() called, no stop()/disable() since
         self.last_tx = 0.0                   # loop time of the latest frame written
+        #: the longest time between two frames written since the drive was last seen enabled
+        self.longest_gap_s = 0.0
+        #: the newest stop of the drive on its own, until the station takes it
+        self.drive_stop: DriveStop | None = None
         self._was_enabled = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
@@ -82,19 +94,32 @@ class KeepAlive:
 
     def accept(self, st: Status) -> None:
         """A status the firmware reported: the keep-alive starts or stops with the drive; a stop
-        the gateway did not ask for is counted and said (the tension falls next)."""
+        the gateway did not ask for — or one the firmware made before the gateway's own STOP
+        came (its reason is its own: WATCHDOG, STALL, OVERSPEED) — is counted and said (the
+        tension falls next), and kept for the station (:attr:`drive_stop`)."""
         if st.enabled != self._was_enabled:
             self.poke()
-            if self._was_enabled and self.want_enabled:
-                link = self.link
-                link.counters["drive_stops"] += 1
-                why = getattr(st.stop_reason, "name", st.stop_reason)
-                log.warning("stm32 %s: the drive stopped on its own: %s (flags %s; %d such stops)",
-                            link.port, why, flag_names(st.flags), link.counters["drive_stops"])
+            if st.enabled:
+                self.longest_gap_s = 0.0         # a new run of the drive: its own silences
+            elif self.want_enabled or st.stop_reason in OWN_STOPS:
+                self._stopped_on_its_own(st)
         self._was_enabled = st.enabled
 
+    def _stopped_on_its_own(self, st: Status) -> None:
+        link = self.link
+        link.counters["drive_stops"] += 1
+        why = str(getattr(st.stop_reason, "name", st.stop_reason))
+        wd = st.watchdog_ms / 1000.0 if st.watchdog_ms > 0 else link.watchdog_s
+        self.drive_stop = ds = DriveStop(why, flag_names(st.flags), wd,
+                                         self.longest_gap_s if self.longest_gap_s > 0 else None)
+        log.warning("stm32 %s: %s (stop reason %s, flags %s; %d such stops)", link.port,
+                    ds.words(), why, ds.flags, link.counters["drive_stops"])
+
     def sent(self, now: float) -> None:
-        """A frame went out at loop time ``now``: it feeds the watchdog, so the wake-up moves."""
+        """A frame went out at loop time ``now``: it feeds the watchdog, so the wake-up moves;
+        while the drive runs, the time since the frame before is measured (its longest)."""
+        if self._was_enabled and self.last_tx > 0 and now - self.last_tx > self.longest_gap_s:
+            self.longest_gap_s = now - self.last_tx
         self.last_tx = now
         if self._nap_h is not None and self._nap_at - now < _KEEPALIVE_PUSH_S:
             self._push_nap(now + self.interval_s)

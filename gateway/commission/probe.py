@@ -54,6 +54,7 @@ from drivers.stm32.protocol import Cmd, exchange_time_s
 from ..config import validate_fleet, validate_station
 from ..config.sections import parse_server
 from ..outputs.broker.settings import BrokerSettings, SecretError, broker_kwargs
+from ..outputs.wiring import broker_sections, listen_doors
 from ..plumbing.ratelog import safe
 
 log = logging.getLogger("hookwatch.probe")
@@ -534,18 +535,8 @@ def probe_listen(key: str, host: str, port: int) -> Finding:
 
 
 def listen_ports(cfg: Any) -> list[tuple[str, str, int]]:
-    """(key, host, port) the station's services listen on."""
-    out = []
-    if cfg.modbus_tcp.enabled:
-        out.append(("modbus_tcp", cfg.modbus_tcp.host, int(cfg.modbus_tcp.port)))
-    if cfg.console.enabled:
-        for addr in cfg.console.listen:
-            host, _, p = str(addr).rpartition(":")
-            if p.isdigit():
-                out.append(("console.listen", host.strip("[]") or "0.0.0.0", int(p)))
-    if cfg.metrics.enabled:
-        out.append(("metrics", cfg.metrics.host, int(cfg.metrics.port)))
-    return out
+    """(key, host, port) the station's services listen on (the doors of the output registry)."""
+    return listen_doors(cfg)
 
 
 # ----------------------------------------------------------------------------------- stations
@@ -559,10 +550,8 @@ def probe_station(cfg: Any, *, scan: bool = False, sysfs: str = "/sys",
     lat = stm32_latency_finding(cfg.stm32, sysfs)
     if lat is not None:
         out.append(lat)
-    for name in ("mqtt", "sparkplug"):
+    for name in broker_sections(cfg):
         sec = getattr(cfg, name)
-        if not sec.enabled:
-            continue
         for host, port in broker_addresses(name, sec):
             kb = (name, host, port, sec.username)
             if kb not in seen:

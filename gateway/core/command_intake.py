@@ -22,7 +22,7 @@ Every input is bounded *before* it can cost anything:
   keys of at most :data:`MAX_KEY_CHARS` characters; duplicate keys are refused;
 - types are strict, whatever the door: numeric fields (``t_set``, ``t_end``, ``duration_s``) must
   be numbers — not the string ``"0.6"``, not a boolean — and finite; text fields (``sample_id``,
-  ``grade``, ``alarm``, ``request_id``) must be strings of printable ASCII (0x20–0x7E);
+  ``grade``, ``alarm``, ``request_id``, ``test_id``) must be strings of printable ASCII (0x20–0x7E);
   ``sample_id`` at most :data:`SAMPLE_ID_MAX` characters (code 4, as the station says it),
   ``request_id`` at most :data:`REQUEST_ID_MAX`;
 - a value that is a list or an object is refused; unknown keys are refused.

@@ -64,7 +64,9 @@ REJECT_CODES: tuple[tuple[int, str, str], ...] = (
     (11, "ALARM", f"alarm not one of {', '.join(ALARMS)}"),
     (12, "DURATION", f"duration_s not a number in (0, {SHELVE_MAX_S:.0f}] s"),
     (13, "ALARM_STATE", "the alarm's ISA-18.2 state does not allow this command"),
-    (14, "RATE_LIMITED", "too many commands from this source (door); try again in a few seconds"),
+    (14, "RATE_LIMITED", "too many commands from this source (door), refused ones included; try "
+     "again in a few seconds"),
+    (15, "WRONG_TEST", "the stop names a test that is not the one running (it ended): nothing stopped"),
 )
 CODE = {name: code for code, name, _ in REJECT_CODES}
 
@@ -87,7 +89,7 @@ def door_problem(door: object) -> str | None:
 #: keys each command accepts (MQTT JSON payloads; the PLC fills them from holding registers)
 COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
     CommandKind.START: ("sample_id", "grade", "t_set", "t_end"),
-    CommandKind.STOP: (),
+    CommandKind.STOP: ("test_id",),
     CommandKind.ACK: (),
     CommandKind.SETPOINT: ("t_set",),
     CommandKind.HOOK_REPLACED: ("sample_id", "grade"),
@@ -100,7 +102,7 @@ COMMAND_KEYS: dict[CommandKind, tuple[str, ...]] = {
 #: the payload's types: the arguments that are numbers (finite, not booleans) and those that are
 #: text (printable ASCII); the one intake holds every door to them (gateway/core/command_intake.py)
 NUMERIC_FIELDS = frozenset({"t_set", "t_end", "duration_s"})
-TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id"})
+TEXT_FIELDS = frozenset({"sample_id", "grade", "alarm", "request_id", "test_id"})
 
 #: the ISA-18.2 alarm commands and the station event each becomes (the alarm store applies it)
 ALARM_COMMAND_EVENTS: dict[CommandKind, EventType] = {
@@ -233,8 +235,15 @@ def validate(cmd: Command, limits: StationLimits, state: StationState) -> Reject
         if err:
             return reject(cmd, "T_END", err)
     elif cmd.kind == CommandKind.STOP:
+        named = a.get("test_id")
         if not running:
-            return reject(cmd, "NOT_RUNNING", "no test is running")
+            return reject(cmd, "NOT_RUNNING", "no test is running" + (
+                f" (test {clip(named)} ended)" if named is not None else ""))
+        if named is not None and named != state.test_id:
+            now = (f"test {clip(state.test_id)} is running" if state.test_id
+                   else "a new test is starting")
+            return reject(cmd, "WRONG_TEST", f"stop names test {clip(named)}, but {now}: not "
+                          "stopped (a stop naming a test ends only that test)")
     elif cmd.kind == CommandKind.ACK:
         if state.alarm not in _ACKABLE and state.warning_alarm not in _ACKABLE:
             return reject(cmd, "NO_ALARM", "no unacknowledged alarm (end of life or wear warning)")

@@ -3,7 +3,8 @@
 - :class:`MeterPort` — a tension meter (``drivers/meter/driver.py`` is one); ``read()`` gives one
   :class:`MeterReading` per slot, or ``None`` (the slot is MISSING).
 - :class:`Stm32Port` — a take-up motor controller (``drivers/stm32/driver.py``); replies are a
-  :class:`Stm32Status`.
+  :class:`Stm32Status`; one that can also say when the drive stopped on its own is a
+  :class:`Stm32DriveStops` (a :class:`DriveStop`, with the sentence every door says it in).
 - :class:`Output` — anything fed by the slot loop (recorder, MQTT, Modbus TCP, console). Called on
   the station's loop; each call must be O(1) and never block (an output that runs on another
   thread hands over through :class:`gateway.plumbing.threadloop.Mailbox`).
@@ -102,6 +103,61 @@ class Stm32PostingPort(Protocol):
 
     def post_speed(self, rpm: float) -> bool: ...
     def collect(self) -> Stm32Status | None: ...
+
+
+#: the STM32's own stop reasons (docs/protocols/stm32.md) and how the sentence names each
+DRIVE_STOP_WORDS = {"WATCHDOG": "STM32 watchdog", "STALL": "STM32 stall trip: the take-up was blocked",
+                    "OVERSPEED": "STM32 overspeed trip"}
+
+
+@dataclass(frozen=True, slots=True)
+class DriveStop:
+    """The STM32 stopped the drive on its own while it ran (its watchdog, a stall or overspeed
+    trip; docs/protocols/stm32.md), as its link saw it: the firmware's stop ``reason`` (the
+    ``StopReason`` name), its ``flags``, its watchdog period and ``silence_s``, the longest time
+    between two frames the gateway sent since the drive was enabled — measured by the link on
+    its own clock, not guessed (None: not measured). The keep-alive promises a frame every half
+    watchdog period at the latest, so a longer silence is the gateway's stall."""
+    reason: str
+    flags: str
+    watchdog_s: float
+    silence_s: float | None
+
+    @property
+    def gateway_stalled(self) -> bool:
+        """The gateway itself fell silent for longer than its keep-alive allows (half the
+        watchdog period): its process stalled (a frozen process, a starved CPU, a blocked loop)."""
+        return self.silence_s is not None and self.silence_s > self.watchdog_s / 2.0
+
+    def words(self) -> str:
+        """The one sentence every door says it with (the event, the log, the console,
+        result.json): ``the drive stopped on its own (STM32 watchdog, 1.5 s without the gateway):
+        the gateway stalled 2512 ms``."""
+        what = DRIVE_STOP_WORDS.get(self.reason, f"STM32 stop reason {self.reason}")
+        if self.reason != "WATCHDOG":
+            return f"the drive stopped on its own ({what})"
+        head = f"the drive stopped on its own ({what}, {self.watchdog_s:g} s without the gateway)"
+        if self.silence_s is None:
+            return head
+        ms = round(self.silence_s * 1000.0)
+        if self.gateway_stalled:
+            return f"{head}: the gateway stalled {ms} ms"
+        return (f"{head}: the gateway's frames were at most {ms} ms apart, so they did not reach "
+                "the STM32 (the serial line or its adapter)")
+
+    def as_data(self) -> dict[str, Any]:
+        """What the ``drive_stopped`` event and result.json carry."""
+        return {"reason": self.reason, "flags": self.flags, "watchdog_s": self.watchdog_s,
+                "silence_ms": None if self.silence_s is None else round(self.silence_s * 1000.0),
+                "gateway_stalled": self.gateway_stalled, "why": self.words()}
+
+
+@runtime_checkable
+class Stm32DriveStops(Protocol):
+    """An STM32 port that says when the drive stopped on its own (``drivers/stm32/driver.py``):
+    ``take_drive_stop`` gives the newest such stop not taken yet, once (None: none)."""
+
+    def take_drive_stop(self) -> DriveStop | None: ...
 
 
 # ----------------------------------------------------------------------------- outputs

@@ -128,6 +128,7 @@ class EventType(str, enum.Enum):
     END_OF_LIFE = "end_of_life"
     WEAR_WARNING = "wear_warning"        # the §5a early warning (once per test, informative)
     PROTECTION_STOP = "protection_stop"
+    DRIVE_STOPPED = "drive_stopped"      # the STM32 stopped the drive on its own (watchdog, trip)
     TEST_ENDED = "test_ended"
     PORT_LOST = "port_lost"
     PORT_BACK = "port_back"

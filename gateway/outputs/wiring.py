@@ -1,9 +1,20 @@
-"""Build a station's northbound outputs from its configuration (``cfg.mqtt``, ``cfg.modbus_tcp``)."""
+"""The outputs of a station: one row per output (:data:`OUTPUTS`), and their settings from the
+configuration (``cfg.mqtt``, ``cfg.modbus_tcp``, ``cfg.sparkplug``, ``cfg.metrics``).
+
+The rows say, once per output, what the rest of hookwatch asks of it: the worker of a fleet
+(``--served-by-supervisor``: which outputs a supervisor may serve, which of them need every slot
+record), the supervisor's reload key (a change of which sections rebuilds a station's shared
+outputs on SIGHUP), the commissioning probe (the broker an output connects to, the doors it
+listens on). Every field of a row is required: a row that leaves one out fails at import.
+"""
 from __future__ import annotations
 
 import logging
 import os
 import sqlite3
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 from ..core.ports import StationLinks
 from ..plumbing.doors import DoorLimits
@@ -92,3 +103,83 @@ def metrics_outputs(cfg, station: StationLinks, outputs: list, *, serve: bool = 
     modbus = next((o for o in outputs if isinstance(o, ModbusOutput)), None)
     return [MetricsOutput(station, m.host, int(m.port), mqtt=mqtt, modbus=modbus, serve=serve,
                           limits=DoorLimits.from_config(m.connections))]
+
+
+# ------------------------------------------------------------------------------------------------
+# the output registry
+
+Door = tuple[str, str, int]     # (configuration key, host, port) an output listens on
+
+
+@dataclass(frozen=True)
+class OutputRow:
+    """One output (no defaults: every row says every fact, or fails at import)."""
+    name: str                   # the word of ``--served-by-supervisor`` and ``served_by_supervisor``
+    section: str                # its configuration section (``enabled`` switches it)
+    box: bool                   # a fleet's supervisor serves it for the station (else the worker runs it)
+    slot_rows: bool             # needs every slot record: served by a supervisor, the worker streams them
+    reload: bool                # served by a supervisor: a change of ``section`` rebuilds it on SIGHUP
+    broker: bool                # connects to a broker (the probe connects to each of its servers)
+    doors: Callable[[Any], list[Door]]   # the ports it listens on (the probe checks each is free)
+    metrics: str                # what the metrics output shows of it
+
+
+def _no_doors(cfg: Any) -> list[Door]:
+    return []
+
+
+def _modbus_doors(cfg: Any) -> list[Door]:
+    return [("modbus_tcp", cfg.modbus_tcp.host, int(cfg.modbus_tcp.port))]
+
+
+def _console_doors(cfg: Any) -> list[Door]:
+    out = []
+    for addr in cfg.console.listen:
+        host, _, p = str(addr).rpartition(":")
+        if p.isdigit():
+            out.append(("console.listen", host.strip("[]") or "0.0.0.0", int(p)))
+    return out
+
+
+def _metrics_doors(cfg: Any) -> list[Door]:
+    return [("metrics", cfg.metrics.host, int(cfg.metrics.port))]
+
+
+OUTPUTS: tuple[OutputRow, ...] = (
+    OutputRow("mqtt", "mqtt", box=False, slot_rows=False, reload=False, broker=True, doors=_no_doors,
+              metrics="the MQTT link, the outbox and what waits in it"),
+    OutputRow("modbus", "modbus_tcp", box=True, slot_rows=True, reload=True, broker=False,
+              doors=_modbus_doors, metrics="the PLC server's requests, refusals and connections"),
+    OutputRow("sparkplug", "sparkplug", box=True, slot_rows=True, reload=True, broker=True,
+              doors=_no_doors, metrics="none of its own (its edge node logs its link)"),
+    OutputRow("console", "console", box=True, slot_rows=True, reload=False, broker=False,
+              doors=_console_doors, metrics="none of its own"),
+    OutputRow("metrics", "metrics", box=True, slot_rows=False, reload=True, broker=False,
+              doors=_metrics_doors, metrics="itself: the station's figures on its endpoint"),
+)
+OUTPUT = {r.name: r for r in OUTPUTS}
+#: what a fleet's supervisor may serve for its workers' stations
+BOX_SERVED: tuple[str, ...] = tuple(r.name for r in OUTPUTS if r.box)
+#: served things that need every slot record (the others live on the summaries and snapshots)
+ROW_SERVED: frozenset[str] = frozenset(r.name for r in OUTPUTS if r.box and r.slot_rows)
+
+
+def enabled(cfg: Any, row: OutputRow) -> bool:
+    """The output of ``row`` is switched on in ``cfg``."""
+    sec = getattr(cfg, row.section, None)
+    return sec is not None and bool(sec.enabled)
+
+
+def reload_key(cfg: Any) -> tuple[Any, ...]:
+    """The sections whose change rebuilds a station's outputs in a fleet's supervisor (SIGHUP)."""
+    return tuple(getattr(cfg, r.section, None) for r in OUTPUTS if r.box and r.reload)
+
+
+def listen_doors(cfg: Any) -> list[Door]:
+    """(key, host, port) the station's enabled outputs listen on."""
+    return [d for r in OUTPUTS if enabled(cfg, r) for d in r.doors(cfg)]
+
+
+def broker_sections(cfg: Any) -> list[str]:
+    """The enabled sections that connect to a broker."""
+    return [r.section for r in OUTPUTS if r.broker and enabled(cfg, r)]

@@ -30,7 +30,7 @@ class CommandTarget(Protocol):
     tests: TestLifecycle
 
     def start_test(self, plan: TestPlan, source: str = "station") -> None: ...
-    async def stop_test(self, source: str) -> None: ...
+    async def stop_test(self, source: str, test_id: str | None = None) -> None: ...
 
 
 Handler = Callable[[CommandTarget, Command], Awaitable[None]]
@@ -49,7 +49,7 @@ async def _start(st: CommandTarget, cmd: Command) -> None:
 
 
 async def _stop(st: CommandTarget, cmd: Command) -> None:
-    await st.stop_test(cmd.source)
+    await st.stop_test(cmd.source, text_arg(cmd.args, "test_id"))
 
 
 async def _ack(st: CommandTarget, cmd: Command) -> None:

@@ -128,8 +128,20 @@ class TestLifecycle:
         return SlotResult(kt=kt, q=out.q, mask=out.mask, ratio=out.ratio, mu=out.mu, y=c.y,
                           saturated=c.saturated)
 
+    def note_drive_stop(self) -> None:
+        """A stop of the drive on its own the STM32 reported (its watchdog, a trip): the event
+        at once, and the running test keeps it (the first) as why it ends."""
+        ds = self.link.take_drive_stop()
+        if ds is None:
+            return
+        self.board.drive_stopped(ds)
+        sess = self.session
+        if sess is not None and sess.drive_stop is None:
+            sess.drive_stop = ds
+
     async def after_slot(self) -> None:
         """Lifecycle decisions after a slot: the start sequence's, protection stop, planned end."""
+        self.note_drive_stop()
         att = self.starting
         if att is not None:
             step, reason = att.next_step()
@@ -169,8 +181,14 @@ class TestLifecycle:
         if att.next_step()[0] is StartStep.ENABLE_MOTOR:     # no zero check: spin up at once
             self._enable_motor(att)
 
-    async def stop_test(self, source: str) -> None:
-        """A stop command: cancels a start in progress, else ends the running test (aborted)."""
+    async def stop_test(self, source: str, test_id: str | None = None) -> None:
+        """A stop command: cancels a start in progress, else ends the running test (aborted). A
+        stop naming ``test_id`` ends that test only (the desk refused it already otherwise)."""
+        if test_id is not None:
+            sess = self.session
+            if sess is not None and sess.test_id == test_id:
+                await self.end_test("stopped by command", source=source)
+            return
         if self.starting is not None:
             await self.start_failed(f"start cancelled by command ({source})")
         else:
@@ -235,6 +253,9 @@ class TestLifecycle:
         self.motor_off_k = self.k
         self.speed_cmd = 0.0
         await self.link.stop(reason)         # a speed command not yet sent is withdrawn
+        # the STOP's answer may be the first to tell that the drive had stopped on its own (a
+        # stall of the gateway longer than the STM32's watchdog): the end says why
+        self.note_drive_stop()
         if reason in ("completed", "protection stop"):
             res = mon.close()          # slots up to the planned end that never came: MISSING
         else:                          # ended on purpose (§3): end_slot into the sidecar
@@ -244,7 +265,10 @@ class TestLifecycle:
                "end_reason": reason, "closed_utc": utc_iso(), "method": res.as_dict(),
                "sample_id": sess.plan.sample_id, "grade": sess.plan.grade, "t_set": sess.plan.t_set,
                "ts": sess.params.ts, "t_end": sess.params.t_end}
-        self.board.test_ended(mon.k - 1, reason, source, test_status, res)
+        ds = sess.drive_stop
+        if ds is not None:
+            out["why"], out["drive_stop"] = ds.words(), ds.as_data()
+        self.board.test_ended(mon.k - 1, reason, source, test_status, res, ds)
         sess.recorder.close(out)
         self.results.append(out)
         self.priors.add_result(out)          # what §7a learns from (this station's and the box's)

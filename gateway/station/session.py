@@ -21,6 +21,7 @@ from ..core.control import Controller, ControlParams
 from ..core.method.core import StreamingMonitor
 from ..core.method.params import MethodParams, build_params
 from ..core.method.prior import Prior
+from ..core.ports import DriveStop
 from ..core.records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
@@ -59,6 +60,8 @@ class TestSession:
     ending: bool = False
     #: set once the test's result is written (what a second ender waits for)
     ended: asyncio.Event = field(default_factory=asyncio.Event)
+    #: the STM32 stopped the drive on its own during the test (the first time): why it ended
+    drive_stop: DriveStop | None = None
 
     @classmethod
     def begin(cls, *, station_id: str, station_dir: str, plan: TestPlan,

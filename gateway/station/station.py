@@ -218,8 +218,8 @@ class Station:
     def start_test(self, plan: TestPlan, source: str = "station") -> None:
         self.tests.start_test(plan, source)
 
-    async def stop_test(self, source: str) -> None:
-        await self.tests.stop_test(source)
+    async def stop_test(self, source: str, test_id: str | None = None) -> None:
+        await self.tests.stop_test(source, test_id)
 
     async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
         return await self.tests.end_test(reason, source)

@@ -18,6 +18,7 @@ from typing import Any
 
 from ..core.method.core import SlotOut
 from ..core.method.prior import Prior
+from ..core.ports import DriveStop
 from ..core.records import Event, EventType, StationState, TestState
 from .alarm_store import AlarmStore
 from .fanout import Fanout
@@ -135,13 +136,21 @@ class StatusBoard:
         self.emit(EventType.START_FAILED, reason=reason, **data)
         self.push()
 
-    def test_ended(self, k: int, reason: str, source: str, test_status: str, result: Any) -> None:
-        """The test is closed (completed or aborted) with the method's ``result``."""
+    def test_ended(self, k: int, reason: str, source: str, test_status: str, result: Any,
+                   drive_stop: DriveStop | None = None) -> None:
+        """The test is closed (completed or aborted) with the method's ``result``; ``drive_stop``:
+        the drive stopped on its own during it (its sentence is the end's ``why``)."""
         self.update(state=TestState.COMPLETED if test_status == "completed" else TestState.ABORTED,
                     status=result.status, end_reason=reason,
                     stopped=result.stop_reasons == ["STOPPED"], **NO_PROJECTION, **NO_FORECAST)
         self.emit(EventType.TEST_ENDED, k=k, reason=reason, source=source, test_status=test_status,
-                  result=result.as_dict())
+                  result=result.as_dict(), why=drive_stop.words() if drive_stop is not None else None,
+                  drive_stop=drive_stop.as_data() if drive_stop is not None else None)
+
+    def drive_stopped(self, ds: DriveStop) -> None:
+        """The STM32 stopped the drive on its own (its watchdog, a trip): ``drive_stopped``, the
+        sentence in ``why`` (and in the station's log with the event)."""
+        self.emit_data(EventType.DRIVE_STOPPED, ds.as_data())
 
     def method_events(self, sess: TestSession, out: SlotOut, kt: int, ts: float) -> None:
         """The method's events of test slot ``kt`` (baseline, end of life, a §5a window, the wear

@@ -44,6 +44,7 @@ from ..core.records import Command, CommandReply, Event, EventType, SlotRecord, 
 from ..outputs.console.app import ConsoleServer
 from ..outputs.sparkplug import runtime as sparkplug_client
 from ..outputs.sparkplug.output import SparkplugOutput, state_values
+from ..outputs.wiring import reload_key
 from ..plumbing.threadloop import ThreadLoop
 from ..station.alarm_store import KIND_OF, MODEL_NAME
 from ..station.fanout import Fanout
@@ -297,7 +298,7 @@ class RemoteFleet:
                 if name in self.stations and (hub.worker is None or hub.worker.path not in sup.workers):
                     self.remove(name)
                 continue
-            key = repr((cfg.modbus_tcp, cfg.sparkplug, cfg.metrics, with_nb))
+            key = repr((reload_key(cfg), with_nb))     # the registry's rows (gateway/outputs/wiring.py)
             if self.keys.get(name) == key:
                 continue
             if console is not None and name not in console.feeds:

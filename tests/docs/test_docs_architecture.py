@@ -64,3 +64,22 @@ def test_the_tree_names_every_package_and_module():
                 continue
             missing += [f"{rel}/{m}" for m in mods if f"`{m}`" not in row]
     assert missing == [], f"docs/architecture.md's tree leaves out {missing}"
+
+
+def test_the_tree_names_nothing_that_is_not_there():
+    """The other way round (issue 35): every folder and module a row of the tree names exists —
+    a row's first cell is a package (``gateway/outputs/mqtt/``) or a module directly in gateway/,
+    and every bare module name in a package's row (`` `pump.py` ``) is a module of that package."""
+    extra = []
+    for cell, row in _tree_rows():
+        where = cell.strip().strip("`")
+        if where.endswith("/"):
+            if not os.path.isfile(os.path.join(ROOT, where, "__init__.py")):
+                extra.append(where)
+                continue
+            have = set(os.listdir(os.path.join(ROOT, where)))
+            named = set(re.findall(r"`(\w+\.py)`", row.split("|", 2)[2]))
+            extra += [f"{where}{m}" for m in sorted(named - have)]
+        elif not os.path.isfile(os.path.join(ROOT, where)):
+            extra.append(where)
+    assert extra == [], f"docs/architecture.md's tree names what is not in the code: {extra}"

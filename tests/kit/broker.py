@@ -214,6 +214,14 @@ class Sub:
         self.check()
 
 
+def pub_lines(port: int, topic: str, payloads: list[str]) -> None:
+    """One mosquitto_pub sending each payload as a message, back to back (``-l``): a flood."""
+    exe = require_tool("mosquitto_pub")
+    p = subprocess.run([exe, "-h", "127.0.0.1", "-p", str(port), "-t", topic, "-q", "1", "-l"],
+                       input="\n".join(payloads) + "\n", text=True, capture_output=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+
+
 def pub(port: int, topic: str, payload: str, *, retain: bool = False, qos: int = 1,
         auth: tuple[str, str] | None = None) -> None:
     exe = require_tool("mosquitto_pub")

@@ -2,11 +2,17 @@
 
 These names (METHOD.md §10) are the keys of a station's ``method:`` section, of a log's metadata
 sidecar and of ``hookwatch analyze --set``. Docs and CLI help are generated from ``PARAMS``.
+
+Each default is written once, in the :class:`MethodParams` dataclass (the method's typed
+parameters); a :class:`ParamSpec` row adds the unit, the doc, the parsing kind and the range, and
+reads its default from the dataclass (as the ``control:`` keys read theirs from ControlParams).
+A row without a field, or a field without a row, fails at import.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import MISSING as MISSING_FIELD
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -16,13 +22,21 @@ from ..validation import MISSING, Problem, ValidationError, did_you_mean
 @dataclass(frozen=True)
 class ParamSpec:
     name: str
-    default: float | int | bool | None
     unit: str
     doc: str
-    required: bool = False
     optional: bool = False  # may be None (e.g. t_end)
     kind: str = "float"     # "float", "int" (a whole number) or "bool"
     hi: float | None = None  # the largest plausible value (inclusive); every value is finite too
+
+    @property
+    def default(self) -> float | int | bool | None:
+        """The default of the MethodParams field (None for a required parameter)."""
+        return _DEFAULTS[self.name]
+
+    @property
+    def required(self) -> bool:
+        """The MethodParams field has no default (t_set)."""
+        return self.name not in _HAS_DEFAULT
 
     def bound(self) -> str:
         """The upper bound as the docs and the error messages say it."""
@@ -40,45 +54,45 @@ TEN_YEARS = 10 * 365.25 * 86400.0
 MAX_TENSION = 1000.0
 
 PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("ts", 0.02, "s", "sampling period", hi=1.0),
-    ParamSpec("theta_deg", 105.0, "deg", "wrap angle θ of the yarn around the hook"),
-    ParamSpec("t_set", None, "N", "regulated mean tension T_set", required=True, hi=MAX_TENSION),
-    ParamSpec("full_scale", 5.0, "N", "sensor full scale", hi=MAX_TENSION),
-    ParamSpec("sat_ratio", 0.98, "1", "T_sat = sat_ratio · full_scale"),
-    ParamSpec("t_min_ratio", 0.05, "1", "T_min = t_min_ratio · t_set"),
-    ParamSpec("jump_ratio", 0.5, "1", "J_max = jump_ratio · t_set", hi=100.0),
-    ParamSpec("r_min", 1.01, "1", "lower bound of R = T2/T1", hi=1e6),
-    ParamSpec("r_max", 4.2, "1", "upper bound of R = T2/T1", hi=1e6),
-    ParamSpec("stop_after", 1.0, "s", "protection stop after this long unsafe", hi=3600.0),
-    ParamSpec("w_ss", 60.0, "s", "baseline window length", hi=3600.0),
-    ParamSpec("valid_ratio_min", 0.9, "1", "N_eff / N_ss needed in a steady window"),
-    ParamSpec("sigma_max", 0.01, "1", "robust σ bound in a steady window", hi=10.0),
-    ParamSpec("g_max", 0.02, "1", "range bound (max − min of μ) in a steady window", hi=10.0),
-    ParamSpec("w_hold", 3600.0, "s", "steady duration needed for the baseline", hi=TEN_YEARS),
-    ParamSpec("delta", 0.25, "1", "relative threshold increment δ", hi=100.0),
-    ParamSpec("tau", 60.0, "s", "persistence time τ", hi=86400.0),
-    ParamSpec("tau_g", 1.0, "s", "tolerated interruption τ_g", hi=3600.0),
-    ParamSpec("t_end", None, "s", "planned test duration (none: open-ended)", optional=True, hi=TEN_YEARS),
-    ParamSpec("end_slot", None, "slot", "first slot after a test ended on purpose (§3); written by "
+    ParamSpec("ts", "s", "sampling period", hi=1.0),
+    ParamSpec("theta_deg", "deg", "wrap angle θ of the yarn around the hook"),
+    ParamSpec("t_set", "N", "regulated mean tension T_set", hi=MAX_TENSION),
+    ParamSpec("full_scale", "N", "sensor full scale", hi=MAX_TENSION),
+    ParamSpec("sat_ratio", "1", "T_sat = sat_ratio · full_scale"),
+    ParamSpec("t_min_ratio", "1", "T_min = t_min_ratio · t_set"),
+    ParamSpec("jump_ratio", "1", "J_max = jump_ratio · t_set", hi=100.0),
+    ParamSpec("r_min", "1", "lower bound of R = T2/T1", hi=1e6),
+    ParamSpec("r_max", "1", "upper bound of R = T2/T1", hi=1e6),
+    ParamSpec("stop_after", "s", "protection stop after this long unsafe", hi=3600.0),
+    ParamSpec("w_ss", "s", "baseline window length", hi=3600.0),
+    ParamSpec("valid_ratio_min", "1", "N_eff / N_ss needed in a steady window"),
+    ParamSpec("sigma_max", "1", "robust σ bound in a steady window", hi=10.0),
+    ParamSpec("g_max", "1", "range bound (max − min of μ) in a steady window", hi=10.0),
+    ParamSpec("w_hold", "s", "steady duration needed for the baseline", hi=TEN_YEARS),
+    ParamSpec("delta", "1", "relative threshold increment δ", hi=100.0),
+    ParamSpec("tau", "s", "persistence time τ", hi=86400.0),
+    ParamSpec("tau_g", "s", "tolerated interruption τ_g", hi=3600.0),
+    ParamSpec("t_end", "s", "planned test duration (none: open-ended)", optional=True, hi=TEN_YEARS),
+    ParamSpec("end_slot", "slot", "first slot after a test ended on purpose (§3); written by "
               "the gateway into the sidecar, not set in a station file", optional=True, kind="int", hi=1e12),
-    ParamSpec("h_warn", 0.5, "1", "headroom below which windows count toward a headroom run "
+    ParamSpec("h_warn", "1", "headroom below which windows count toward a headroom run "
               "(§5a, a reason of the early warning §5b)", hi=1.0),
-    ParamSpec("n_warn", 5, "1", "consecutive windows that make a headroom run (§5a)", kind="int", hi=10000),
-    ParamSpec("trend_windows", 60, "1", "windows used by the projection's Theil–Sen slope (§5a)",
+    ParamSpec("n_warn", "1", "consecutive windows that make a headroom run (§5a)", kind="int", hi=10000),
+    ParamSpec("trend_windows", "1", "windows used by the projection's Theil–Sen slope (§5a)",
               kind="int", hi=100000),
-    ParamSpec("prior_mean", None, "s", "mean life of hooks of this grade at this T_set (§5b, §7a); "
+    ParamSpec("prior_mean", "s", "mean life of hooks of this grade at this T_set (§5b, §7a); "
               "written by the gateway into the sidecar at the start of a test", optional=True, hi=TEN_YEARS),
-    ParamSpec("prior_sd", None, "s", "standard deviation of that life (§5b); without it, or ≤ 0 "
+    ParamSpec("prior_sd", "s", "standard deviation of that life (§5b); without it, or ≤ 0 "
               "in a log's sidecar, the forecast from the prior is null", optional=True, hi=TEN_YEARS),
-    ParamSpec("lead", 3600.0, "s", "the planner's lead time: a hook is due when its end may come "
+    ParamSpec("lead", "s", "the planner's lead time: a hook is due when its end may come "
               "within it (§5b)", hi=TEN_YEARS),
-    ParamSpec("p_due", 0.1, "1", "chance of the end within the lead that makes a hook due (§5b)"),
-    ParamSpec("zero_check", True, "bool", "zero check before the motor starts (§3a)", kind="bool"),
-    ParamSpec("zero_tol", 0.02, "N", "allowed offset of each channel at zero (§3a)", hi=MAX_TENSION),
-    ParamSpec("settle_band", 0.1, "1", "slot 0 needs the mean tension within settle_band · t_set "
+    ParamSpec("p_due", "1", "chance of the end within the lead that makes a hook due (§5b)"),
+    ParamSpec("zero_check", "bool", "zero check before the motor starts (§3a)", kind="bool"),
+    ParamSpec("zero_tol", "N", "allowed offset of each channel at zero (§3a)", hi=MAX_TENSION),
+    ParamSpec("settle_band", "1", "slot 0 needs the mean tension within settle_band · t_set "
               "of t_set … (§3a)"),
-    ParamSpec("settle_time", 2.0, "s", "… for this long (§3a)", hi=3600.0),
-    ParamSpec("start_timeout", 30.0, "s", "no settled tension after this long: the start fails (§3a)", hi=3600.0),
+    ParamSpec("settle_time", "s", "… for this long (§3a)", hi=3600.0),
+    ParamSpec("start_timeout", "s", "no settled tension after this long: the start fails (§3a)", hi=3600.0),
 )
 PARAM_NAMES: tuple[str, ...] = tuple(p.name for p in PARAMS)
 SPEC = {p.name: p for p in PARAMS}
@@ -113,6 +127,8 @@ def _err(prefix: str, name: str, message: str, value: Any = MISSING, allowed: st
 
 @dataclass(frozen=True)
 class MethodParams:
+    """The method's parameters (METHOD.md §10), typed; each field's default is the parameter's one
+    default (PARAMS reads it from here); a field without a default is required."""
     t_set: float
     ts: float = 0.02
     theta_deg: float = 105.0
@@ -206,6 +222,15 @@ class MethodParams:
 
     def as_dict(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+#: each parameter's default, from the one place it is written (the fields of MethodParams)
+_DEFAULTS: dict[str, float | int | bool | None] = {
+    f.name: None if f.default is MISSING_FIELD else f.default for f in fields(MethodParams)}
+_HAS_DEFAULT = frozenset(f.name for f in fields(MethodParams) if f.default is not MISSING_FIELD)
+if set(_DEFAULTS) != set(PARAM_NAMES):
+    raise TypeError("method parameters: the MethodParams fields and the PARAMS rows differ: "
+                      f"{sorted(set(_DEFAULTS) ^ set(PARAM_NAMES))}")
 
 
 _TRUE = ("true", "yes", "on", "1")

@@ -305,6 +305,9 @@ def problems(site: SiteAcl) -> list[str]:
 def _box_grant(site: SiteAcl, b: Box) -> Grant:
     writes = [w for st in b.stations for w in station_writes(st)]
     writes += sorted(_shared(b))
+    # its own configuration report (issue 37: `hookwatch config`), the box named by its identity
+    writes += sorted({f"{site_root(st.base)}/{mqtt_schema.BOX_LEVEL}/{mqtt_schema.topic_level(b.identity)}/"
+                      f"{mqtt_schema.BOX_CONFIG}" for st in b.stations if st.base is not None})
     if site.bridges:
         writes += [bridge_topic(_prefix(st.base), b.identity) for st in b.stations if st.base is not None]
     reads = [r for st in b.stations for r in station_reads(st)]

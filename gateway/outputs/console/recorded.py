@@ -60,6 +60,7 @@ def list_tests(station_dir: str, limit: int = 500) -> list[dict[str, Any]]:
             item.update(status=m.get("status"), t_life=m.get("t_life"), mu_ss=m.get("mu_ss"),
                         mu_th=m.get("mu_th"), headroom=m.get("headroom"),
                         test_status=r.get("test_status"), end_reason=r.get("end_reason"),
+                        why=r.get("why"),
                         sample_id=r.get("sample_id"), grade=r.get("grade"))
         except (OSError, ValueError, AttributeError):
             item.update(status=None, test_status="running" if "result.json" not in item["files"] else "unreadable")

@@ -325,7 +325,7 @@ class MqttPump(PahoSession):
         self.counters["connects"] += 1
         self.inbound.subscribe(client)
         client.publish(self._status_topic, self._status(True), qos=1, retain=True)
-        # the latest confirmed message of every retained topic again (mqtt_delivery.RetainedTopics),
+        # the latest confirmed message of every retained topic again (delivery.RetainedTopics),
         # before paho resends what was in flight: older first
         self.delivery.retained.publish_again(client)
 

@@ -253,6 +253,9 @@ RESULT_FIELDS = ENVELOPE + (
     Field("t_set", "float|null", "its setpoint, N"),
     Field("test_status", "str", "completed or aborted"),
     Field("end_reason", "str", "completed, protection stop, stopped by command, gateway restart, …"),
+    Field("why", "str|null", "the cause in words when the drive stopped on its own during the test "
+          "(`the drive stopped on its own (STM32 watchdog, 1.5 s without the gateway): the gateway "
+          "stalled 2512 ms`: a protection stop follows); else null"),
     Field("result", "object|null", "the method's result (status, t_life, mu_ss, mu_th, k_b, "
           "stop_reasons — `[\"STOPPED\"]` for a test ended on purpose —, headroom, warn_slot, "
           "t_cross, … — the keys of `hookwatch analyze --json`); `result.status` is one of "
@@ -278,6 +281,9 @@ CMD_START_FIELDS = (
     Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),
 )
 CMD_SIMPLE_FIELDS = (Field("request_id", "str", "optional: 1–64 printable ASCII characters, echoed in the reply"),)
+CMD_STOP_FIELDS = (Field("test_id", "str", "optional: the test to stop (its `test_id`); a stop naming "
+                         "a test that is not the running one is refused (15 WRONG_TEST, 2 "
+                         "NOT_RUNNING) and stops nothing"), *CMD_SIMPLE_FIELDS)
 CMD_HOOK_FIELDS = (Field("sample_id", "str", "optional: the NEW hook's sample id (1–64 printable "
                          "ASCII characters); without it `<old>-R<n>`"),
                    Field("grade", "str", "optional: the new hook's grade, one of the station's "
@@ -331,7 +337,7 @@ TOPICS: tuple[Topic, ...] = (
     Topic("cmd_start", "cmd/start", "subscribe", 1, False, False,
           "start a test", CMD_START_FIELDS),
     Topic("cmd_stop", "cmd/stop", "subscribe", 1, False, False,
-          "stop the running test (it ends as aborted)", CMD_SIMPLE_FIELDS),
+          "stop the running test (it ends as aborted)", CMD_STOP_FIELDS),
     Topic("cmd_ack", "cmd/ack", "subscribe", 1, False, False,
           "acknowledge the active alarms (end of life and wear warning)", CMD_SIMPLE_FIELDS),
     Topic("cmd_setpoint", "cmd/setpoint", "subscribe", 1, False, False,
@@ -354,6 +360,20 @@ TOPICS: tuple[Topic, ...] = (
 TOPIC = {t.key: t for t in TOPICS}
 
 #: data keys of each event type (the `data` object of event/… messages)
+#: the data of a stop of the drive on its own (gateway/core/ports.py DriveStop.as_data)
+_DRIVE_STOP: tuple[tuple[str, str], ...] = (
+    ("reason", "the STM32's stop reason: WATCHDOG (no frame for its watchdog period), STALL, "
+               "OVERSPEED (its trips)"),
+    ("flags", "the STM32's status flags then (docs/protocols/stm32.md)"),
+    ("watchdog_s", "the STM32's watchdog period, s"),
+    ("silence_ms", "the longest time between two frames the gateway sent since the drive was "
+                   "enabled, measured by the gateway's link (null: not measured)"),
+    ("gateway_stalled", "that silence is longer than the keep-alive allows (half the watchdog): "
+                        "the gateway's process stalled"),
+    ("why", "in words: `the drive stopped on its own (STM32 watchdog, 1.5 s without the "
+            "gateway): the gateway stalled 2512 ms`"),
+)
+
 EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
     EventType.TEST_STARTING: (("sample_id", "sample"), ("grade", "grade"), ("t_set", "setpoint, N"),
                               ("t_end", "planned duration, s"), ("zero_check", "a zero check runs first"),
@@ -398,8 +418,15 @@ EVENT_DATA: dict[EventType, tuple[tuple[str, str], ...]] = {
                                "censored (replaced before its end of life), or null (no life)"),
                               ("logged", "the line reached hooks.jsonl (false: the disk refused it)")),
     EventType.PROTECTION_STOP: (("stop_reasons", "unsafe reasons of the run that stopped the test"),),
+    EventType.DRIVE_STOPPED: _DRIVE_STOP,
     EventType.TEST_ENDED: (("reason", "why it ended"), ("test_status", "completed or aborted"),
-                           ("source", "who ended it"), ("result", "the method's result")),
+                           ("source", "who ended it"), ("result", "the method's result"),
+                           ("why", "the cause in words when the drive stopped on its own during "
+                                   "the test (`the drive stopped on its own (STM32 watchdog, 1.5 s "
+                                   "without the gateway): the gateway stalled 2512 ms`); else null"),
+                           ("drive_stop", "that stop as the `drive_stopped` event gives it "
+                                          "(reason, flags, watchdog_s, silence_ms, "
+                                          "gateway_stalled, why); else null")),
     EventType.PORT_LOST: (("port", "meter or stm32"),),
     EventType.DISK_FULL: (("store", "records (the test's folder) or outbox (MQTT)"),
                           ("reason", "the operating system's error")),
@@ -506,6 +533,41 @@ def lives_request_topic(base: str) -> str:
     return "/".join(base.split("/")[:-3] + [LIVES_REQUEST])
 
 
+#: the box level (issue 37): every box of a site publishes its configuration report, retained,
+#: with a Will, on ``<prefix>/<site>/box/<box>/config`` (gateway/config/site/boxreport.py). Five
+#: levels: never one of a station's topics (six and more), nor ``+/+/+/lives``
+BOX_LEVEL = "box"
+BOX_CONFIG = "config"
+BOX_CONFIG_FIELDS = (
+    Field("schema", "int", "payload schema version of the report (1)"),
+    Field("box", "str", "the box's name (`boxes/<box>/` in the site repository)"),
+    Field("site", "str", "the site (`site.yaml`)"),
+    Field("online", "bool", "false: the Will (the box's supervisor vanished) or a clean stop"),
+    Field("time", "str", "UTC time of the report, ISO 8601 with milliseconds"),
+    Field("version", "str", "the Git commit the box's `current` tree comes from (null: none)"),
+    Field("sha256", "str", "sha256 of the effective tree as staged (its files' paths and sha256)"),
+    Field("verified", "str", "the last version that passed its health gate"),
+    Field("applied_at", "str", "when the current version passed its health gate (null: not yet)"),
+    Field("applying", "str", "a version being applied (switched to, its health gate running), or null"),
+    Field("deferred", "list", "stations still on an older version because a test runs: each "
+          "applies when its test ends"),
+    Field("pending", "list", "stations not yet on `version` (deferred ones included)"),
+    Field("stations", "dict", "per station: `version` it runs, `pending` version, `in_test`, "
+          "`running`, `refused` (why, or null)"),
+    Field("last_rollback", "dict", "`{from, to, why, time}` of the last rollback (null: none)"),
+    Field("last_interrupt", "dict", "`{by, version, stations, time}`: the last apply that "
+                                    "interrupted running tests (`--interrupt-tests --by NAME`)"),
+    Field("drift", "bool", "a file of the effective tree differs from what was staged (a hand edit)"),
+    Field("drift_files", "list", "those files (at most 50)"),
+)
+
+
+def box_config_topic(prefix: str, site: Any, box: Any) -> str:
+    """``<prefix>/<site>/box/<box>/config``: a box's retained configuration report."""
+    pre = "/".join(topic_level(p) for p in str(prefix or "hookwatch").strip("/").split("/"))
+    return "/".join([pre, topic_level(site), BOX_LEVEL, topic_level(box), BOX_CONFIG])
+
+
 # ----------------------------------------------------------------------------- payloads
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
@@ -573,7 +635,7 @@ def result_payload(seq: int, ev: Event, st: StationState | None) -> dict[str, An
             "sample_id": own.sample_id if own else d.get("sample_id"),
             "grade": own.grade if own else d.get("grade"),
             "t_set": own.t_set if own else d.get("t_set"), "test_status": d.get("test_status", "aborted"),
-            "end_reason": d.get("reason", ""), "result": d.get("result")}
+            "end_reason": d.get("reason", ""), "why": d.get("why"), "result": d.get("result")}
 
 
 def reply_payload(seq: int, t: float, station: str, command: str, request_id: str | None, ok: bool,
@@ -621,7 +683,7 @@ def _examples() -> dict[str, dict[str, Any]]:
             "end_p90": 9080.7, "p_end": 0.12, "lead_s": 3600.0, "mu_ss": 0.2213, "mu_th": 0.2545,
             "raised_at": iso_ms(t - 1380.0)}),
         "result": {**_env(1046, t, "st1"), "test_id": st.test_id, "sample_id": "S-0042", "grade": "I",
-                   "t_set": 0.5, "test_status": "completed", "end_reason": "completed",
+                   "t_set": 0.5, "test_status": "completed", "end_reason": "completed", "why": None,
                    "result": {"status": "failure", "t_life": 6930.5, "mu_ss": 0.2213, "mu_th": 0.2545}},
         "lives": {**_env(1041, t, "st1"), "lives": [
             {"test_id": "20260228T080000Z-S-0040", "grade": "I", "t_set": 0.5, "status": "failure",
@@ -633,7 +695,7 @@ def _examples() -> dict[str, dict[str, Any]]:
         "reply": reply_payload(1047, t, "st1", "start", "r-17", False, 1,
                                "a test is already running; stop it first"),
         "cmd_start": {"sample_id": "S-0043", "grade": "I", "t_set": 0.5, "request_id": "r-17"},
-        "cmd_stop": {"request_id": "r-18"},
+        "cmd_stop": {"test_id": "20260301T080000.000Z-S-0043", "request_id": "r-18"},
         "cmd_ack": {"request_id": "r-19"},
         "cmd_setpoint": {"t_set": 0.6},
         "cmd_hook_replaced": {"sample_id": "S-0043", "request_id": "r-20"},
@@ -919,13 +981,19 @@ def render() -> str:
         "Every command acts once. A station carries out one command at a time, each checked "
         "against the state the one before left (two stops at once: one ends the test, the other "
         "is answered 2 NOT_RUNNING). A command sent again with the same `request_id` from the same "
-        "source within 600 s (the station remembers the last 1,024) is answered with the first "
-        "answer (its `ok` and `code`; the reason says `duplicate of request_id …`) and not carried "
-        "out again; the same `request_id` naming another command or other arguments is refused "
-        "(code 9). Give every command its own `request_id` and resend it unchanged when no reply "
-        "came. Commands that would act are limited per source (`mqtt` and each `mqtt:<door>`, "
-        "`sparkplug`, `console:<user>`, `plc:<address>`): bursts of 20, 60 a minute; beyond it they are "
-        "refused with code 14 and counted (refused or repeated commands cost nothing of it).",
+        "source within 600 s is answered with the first answer (its `ok` and `code`; the reason "
+        "says `duplicate of request_id …`) and not carried out again, whatever came in between: "
+        "no id is forgotten before its 600 s. The same `request_id` naming another command or "
+        "other arguments is refused (code 9). Give every command its own `request_id` and resend "
+        "it unchanged when no reply came. Every command a station takes costs its source "
+        "(`mqtt` and each `mqtt:<door>`, `sparkplug`, `console:<user>`, `plc:<address>`) one of "
+        "its budget, carried out or refused alike: bursts of 20, 60 a minute; beyond it commands "
+        "are refused with code 14 (not remembered: resend later) and counted. A repeat answered "
+        "from memory costs nothing, and the memory per source holds what the budget lets through "
+        "in 600 s (620 ids), so a flood of refused commands runs into its budget instead of "
+        "pushing an id out. A `stop` may name the test it means (`test_id`, from `test_started` "
+        "or `state`): it then ends that test only — a stop naming a test that already ended is "
+        "refused (15 WRONG_TEST, or 2 NOT_RUNNING when no test runs) and never ends a newer test.",
         "",
         "MQTT does not tell a subscriber who published a message, so the MQTT budget is per "
         "*door*: the default door `cmd/<command>` (source `mqtt`, the MES's) and each named door "
@@ -999,6 +1067,20 @@ def render() -> str:
         "- no reason codes on PUBACK: a broker that denies a publish (an ACL) either acknowledges "
         "and drops it or closes the connection (RabbitMQ), instead of saying why; set the ACL "
         "before the gateways connect (docs/deploy.md).",
+        "",
+        "## The box's configuration report",
+        "",
+        "A box run from a site repository (docs/deploy.md, \"A site of many boxes\") publishes, "
+        "retained, QoS 1, `<prefix>/<site>/box/<box>/config`: which version of the site's "
+        "configuration it runs, what is deferred, its last rollback and whether its tree was edited "
+        "by hand (drift, seen within 10 s). Its Last Will is the same topic with `online: false`. "
+        "It is published by the box's supervisor (`hookwatch run STATE/config/current`) on every "
+        "change and every (re)connect; `hookwatch config status` prints the same report. The "
+        "broker and prefix come from the site repository's `site.yaml` (`broker:`).",
+        "",
+        "| field | type | meaning |",
+        "|---|---|---|",
+        *[f"| `{f.name}` | {f.type} | {f.doc} |" for f in BOX_CONFIG_FIELDS],
         "",
     ]
     return "\n".join(out)

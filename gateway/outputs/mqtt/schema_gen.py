@@ -98,7 +98,7 @@ def field_schema(topic: S.Topic, f: S.Field) -> dict[str, Any]:
         out["minimum"] = 0
     if t_is_command(topic) and f.type == "str":
         # the intake's bounds (gateway/core/command_intake.py): printable ASCII, bounded length
-        out["minLength"] = 1 if f.name in ("sample_id", "request_id") else 0
+        out["minLength"] = 1 if f.name in ("sample_id", "request_id", "test_id") else 0
         out["maxLength"] = {"sample_id": SAMPLE_ID_MAX, "request_id": REQUEST_ID_MAX}.get(f.name, MAX_STRING_CHARS)
         out["pattern"] = "^[ -~]*$"
     out["description"] = f.doc

@@ -3,14 +3,25 @@
 The Modbus TCP server (``gateway/outputs/plc/server.py``) encodes and decodes registers
 with the functions here, ``docs/registers.md`` is generated from the same tables (``python -m
 gateway.outputs.plc.registers > docs/registers.md``; a test checks it is current) and
-``hookwatch regmap STATION.yaml`` prints them for one station. Bump :data:`MAP_VERSION` when an
-address, a type or a meaning changes (the version is served in input register 1).
+``hookwatch regmap STATION.yaml`` prints them for one station.
+
+**Addresses never move.** Each table is cut into :class:`Block` s, each at a fixed base address
+with a fixed size (used + reserved registers, at most one read). A register's address is its
+block's base plus the registers before it *in its block*: a new value is appended at the end of a
+block with reserved space (or in a new block), never inserted before an existing one. The shipped
+map is frozen in ``tests/golden/plc_register_map.txt``; a test refuses any register that moved,
+changed type or unit, vanished, or reuses a frozen address, and any addition not frozen yet
+(``python -m gateway.outputs.plc.registers --freeze tests/golden/plc_register_map.txt`` appends it,
+after :data:`MAP_MINOR` was bumped). :data:`MAP_VERSION` (input register 1) is the *major* version:
+it changes only when an address moves or a meaning changes, which never happens within a major;
+:data:`MAP_MINOR` (input register 123) counts the additions in reserved space within the major.
 """
 from __future__ import annotations
 
 import math
 import re
 import struct
+import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,12 +31,18 @@ from ...core.method.rules import REASONS
 from ...core.ports import StationLimits
 from ...core.records import AlarmState, CommandKind, TestState
 from ...plumbing import safeout
+from .modbus_tcp.pdu import MAX_READ
 
-#: version of the register map (input register 1)
+#: major version of the register map (input register 1): changes only when an existing address,
+#: type or meaning changes (a PLC program must then be changed): never within a major
 MAP_VERSION = 4    # 4: the §5b forecast (end_p10/50/90_left, p_end, warn_reasons), status bit 14
 #                    hook_due; `hook_replaced` takes sample_id/grade (registers added only)
 #                  3: alarm enums in ISA-18.2 states (0–5), command codes 5–7, status bit 13 disk_ok
 #                    2: headroom, t_cross, warning_alarm, status bits 10–12, test state 6 starting
+#: minor version within the major (input register `map_minor`): counts additions in reserved space
+MAP_MINOR = 1      # 1: `map_minor` itself; blocks with reserved space (reason counters of new
+#                    method reasons in block `reasons_more`)
+#                  0: the map 4 as shipped (tests/golden/plc_register_map.txt)
 
 INPUT = "input"
 HOLDING = "holding"
@@ -46,6 +63,7 @@ class Reg:
     unit: str
     doc: str
     allowed: str = ""   # holding registers: values a write may carry
+    block: str = ""       # the Block it sits in
 
     @property
     def count(self) -> int:
@@ -57,13 +75,57 @@ class Reg:
         return (30001 if self.table == INPUT else 40001) + self.address
 
 
-def _layout(table: str, specs: list[tuple[Any, ...]]) -> tuple[Reg, ...]:
-    regs, addr = [], 0
-    for spec in specs:
-        name, typ, unit, doc, *rest = spec
-        regs.append(Reg(name, table, addr, typ, unit, doc, *(rest or [])))
-        addr += SIZES[typ]
+@dataclass(frozen=True)
+class Block:
+    """A fixed range of one table: ``size`` registers from ``base``, the used ones first, the rest
+    reserved for values added later in the same major map version."""
+    name: str
+    table: str
+    base: int
+    size: int
+    doc: str
+
+    @property
+    def end(self) -> int:
+        return self.base + self.size
+
+
+def _layout(blocks: tuple[Block, ...], specs: dict[str, list[tuple[Any, ...]]]) -> tuple[Reg, ...]:
+    """The registers of ``blocks``, each block's laid out from its base in the order given. A map
+    that breaks the rules fails here, at import: a block over its size or over one read, blocks
+    that overlap, registers of a block that does not exist."""
+    regs: list[Reg] = []
+    unknown = set(specs) - {b.name for b in blocks}
+    if unknown:
+        raise ValueError(f"register map: registers in unknown blocks {sorted(unknown)}")
+    for b, after in zip(blocks, blocks[1:]):
+        if after.base < b.end:
+            raise ValueError(f"register map: block {after.name} at {after.base} overlaps block "
+                             f"{b.name} ({b.base}–{b.end - 1})")
+    for b in blocks:
+        if b.size > MAX_READ:
+            raise ValueError(f"register map: block {b.name} has {b.size} registers, more than one "
+                             f"read ({MAX_READ})")
+        addr = b.base
+        for name, typ, unit, doc, *rest in specs.get(b.name, []):
+            regs.append(Reg(name, b.table, addr, typ, unit, doc, rest[0] if rest else "", b.name))
+            addr += SIZES[typ]
+        if addr > b.end:
+            raise ValueError(
+                f"register map: block {b.name} needs {addr - b.base} registers, it has {b.size}. "
+                "Never grow a block into the next one or shift an address: put the new value in "
+                "another block's reserved space or in a new block (docs/registers.md, Versioning)")
     return tuple(regs)
+
+
+def reserved(blocks: tuple[Block, ...], regs: tuple[Reg, ...]) -> list[tuple[Block, int, int]]:
+    """The reserved range (block, first, last address) at the end of each block that has one."""
+    out = []
+    for b in blocks:
+        used = max((r.address + r.count for r in regs if r.block == b.name), default=b.base)
+        if used < b.end:
+            out.append((b, used, b.end - 1))
+    return out
 
 
 #: status bits (input register `status`)
@@ -120,85 +182,143 @@ COMMAND_CODE = {name: code for code, name, _ in COMMAND_CODES}
 #: values of the holding register `alarm_select`: 0 none, then the alarms of gateway.core.alarms.ALARMS
 ALARM_SELECT: tuple[str, ...] = tuple(ALARMS)
 
-_reason_regs = [(f"count_{name.lower()}", "uint32", "slots",
-                 f"slots of the current / last test with reason {name}") for _, name in REASONS]
+#: the method reasons counted in block `reasons` (map 4.0), in their address order; a reason the
+#: method adds later is counted in block `reasons_more`, appended in the method's order (REASONS)
+REASONS_MAP4 = ("MISSING", "SATURATED", "LOW_TENSION", "JUMP", "RATIO_LOW", "RATIO_HIGH")
 
-INPUT_REGS = _layout(INPUT, [
-    ("heartbeat", "uint16", "s", "seconds since the station started, wrapping at 65535; updated "
-     "by the station's own loop: a value that stops changing means the station is stuck"),
-    ("map_version", "uint16", "", f"version of this register map ({MAP_VERSION})"),
-    ("sw_major", "uint16", "", "gateway software version, major"),
-    ("sw_minor", "uint16", "", "gateway software version, minor"),
-    ("sw_patch", "uint16", "", "gateway software version, patch"),
-    ("test_state", "enum", "", "test state: " + ", ".join(f"{s.value} {s.name.lower()}" for s in TestState)),
-    ("status", "bits", "", "status bits, see the table below"),
-    ("alarm", "enum", "", "end-of-life alarm: " + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
-    ("t1", "float32", "N", "inlet tension T1 of the latest slot (NaN without a reading)"),
-    ("t2", "float32", "N", "outlet tension T2 of the latest slot"),
-    ("tension", "float32", "N", "mean tension (T1+T2)/2 of the latest slot"),
-    ("mu", "float32", "", "μ of the latest valid slot within the last second (NaN if none)"),
-    ("mu_ss", "float32", "", "baseline μ_ss of the current / last test (NaN before the baseline)"),
-    ("mu_th", "float32", "", "end-of-life threshold μ_th (NaN before the baseline)"),
-    ("t_set", "float32", "N", "setpoint of the current / last test (NaN before the first test)"),
-    ("valid_ratio", "float32", "", "valid slots / slots of the current / last test (NaN outside)"),
-    ("speed_cmd", "float32", "rpm", "speed command of the latest slot"),
-    ("speed_act", "float32", "rpm", "actual speed reported by the STM32 (NaN if unknown)"),
-    ("t_life", "uint32", "s", "wear life found, s from test start, rounded (0 until end of life)"),
-    ("elapsed", "uint32", "s", "time since the start of the current / last test"),
-    ("slots", "uint32", "slots", "slots of the current / last test"),
-    ("valid_slots", "uint32", "slots", "valid slots of the current / last test"),
-    *_reason_regs,
-    ("headroom", "float32", "", "wear headroom h of the last complete window with a value "
-     "(METHOD.md §5a): 1 at the baseline, 0 at the threshold μ_th, negative above; NaN before the "
-     "first window after the baseline. Informative: never changes the result"),
-    ("t_cross", "uint32", "s", "projected time from test start at which the recent trend of μ "
-     "reaches μ_th (§5a), rounded; 0 = no projection. It assumes the trend goes on; the "
-     "accelerated stage usually comes sooner"),
-    ("warning_alarm", "enum", "", "wear-warning alarm (priority 2, below the end of life): "
-     + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
-    ("last_command", "enum", "", "last command carried out or refused: "
-     + ", ".join(f"{c} {n}" for c, n, _ in COMMAND_CODES)),
-    ("last_result", "uint16", "", "result of the last command: 0 ok, else the rejection code (table below)"),
-    ("command_count", "uint16", "", "commands processed (accepted or refused), wrapping at 65535"),
-    ("run_sample_id", "string", "", f"sample ID of the current / last test, up to {SAMPLE_ID_MAX} ASCII "
-     "characters, two per register (first character in the high byte), padded with 0; empty "
-     "before the first test"),
-    ("run_test_id", "string80", "", f"test ID of the current / last test (its records folder, the "
-     f"`test_id` of its MQTT messages), up to {TEST_ID_REG_CHARS} ASCII characters as `run_sample_id`"),
-    *[(f"end_p{q}_left", "float32", "s", f"remaining time to the {q} % end quantile of the forecast "
-       "at the last forecast time (METHOD.md §5b): e_p − elapsed, at least 0; NaN without a prior, "
-       "outside a test and once the end of life was detected") for q in (10, 50, 90)],
-    ("p_end", "float32", "", "chance that the end comes within the lead (§5b P) at the last "
-     "forecast time; NaN without a prior, outside a test, after the end-of-life detection"),
-    ("warn_reasons", "bits", "", "the early warning's reasons once it fired in the running test "
-     "(status bit 10), see the table below; 0 before and outside a test"),
-    ("lead", "uint32", "s", "the lead the hook is judged against (§5b `lead`), s; 0 outside a test"),
-])
+
+def _reason_reg(name: str) -> tuple[str, str, str, str]:
+    return (f"count_{name.lower()}", "uint32", "slots", f"slots of the current / last test with reason {name}")
+
+
+INPUT_BLOCKS = (
+    Block("status", INPUT, 0, 8, "liveness, map and software versions, test state, status bits, alarm"),
+    Block("live", INPUT, 8, 28, "the latest slot and the figures of the current / last test"),
+    Block("reasons", INPUT, 36, 12, "slots per method reason (the reasons of map 4.0)"),
+    Block("wear", INPUT, 48, 5, "wear headroom, projected crossing, wear-warning alarm (§5a)"),
+    Block("command", INPUT, 53, 3, "the outcome of the last command"),
+    Block("run", INPUT, 56, 56, "sample ID and test ID of the current / last test"),
+    Block("forecast", INPUT, 112, 11, "the end forecast of the running test (§5b)"),
+    Block("map", INPUT, 123, 2, "the map's minor version; reserved space in the first 125 registers"),
+    Block("reasons_more", INPUT, 128, 64, "slots per method reason added after map 4.0, in the "
+          "method's order (32 counters)"),
+    Block("more", INPUT, 200, 100, "input values added in a later 4.x map, in the order added"),
+)
+
+#: the registers of each input block, in address order: append, never insert
+INPUT_SPECS: dict[str, list[tuple[Any, ...]]] = {
+    "status": [
+        ("heartbeat", "uint16", "s", "seconds since the station started, wrapping at 65535; updated "
+         "by the station's own loop: a value that stops changing means the station is stuck"),
+        ("map_version", "uint16", "", f"major version of this register map ({MAP_VERSION}): "
+         "addresses never move within a major (see Versioning)"),
+        ("sw_major", "uint16", "", "gateway software version, major"),
+        ("sw_minor", "uint16", "", "gateway software version, minor"),
+        ("sw_patch", "uint16", "", "gateway software version, patch"),
+        ("test_state", "enum", "", "test state: " + ", ".join(f"{s.value} {s.name.lower()}" for s in TestState)),
+        ("status", "bits", "", "status bits, see the table below"),
+        ("alarm", "enum", "", "end-of-life alarm: " + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
+    ],
+    "live": [
+        ("t1", "float32", "N", "inlet tension T1 of the latest slot (NaN without a reading)"),
+        ("t2", "float32", "N", "outlet tension T2 of the latest slot"),
+        ("tension", "float32", "N", "mean tension (T1+T2)/2 of the latest slot"),
+        ("mu", "float32", "", "μ of the latest valid slot within the last second (NaN if none)"),
+        ("mu_ss", "float32", "", "baseline μ_ss of the current / last test (NaN before the baseline)"),
+        ("mu_th", "float32", "", "end-of-life threshold μ_th (NaN before the baseline)"),
+        ("t_set", "float32", "N", "setpoint of the current / last test (NaN before the first test)"),
+        ("valid_ratio", "float32", "", "valid slots / slots of the current / last test (NaN outside)"),
+        ("speed_cmd", "float32", "rpm", "speed command of the latest slot"),
+        ("speed_act", "float32", "rpm", "actual speed reported by the STM32 (NaN if unknown)"),
+        ("t_life", "uint32", "s", "wear life found, s from test start, rounded (0 until end of life)"),
+        ("elapsed", "uint32", "s", "time since the start of the current / last test"),
+        ("slots", "uint32", "slots", "slots of the current / last test"),
+        ("valid_slots", "uint32", "slots", "valid slots of the current / last test"),
+    ],
+    "reasons": [_reason_reg(n) for n in REASONS_MAP4],
+    "wear": [
+        ("headroom", "float32", "", "wear headroom h of the last complete window with a value "
+         "(METHOD.md §5a): 1 at the baseline, 0 at the threshold μ_th, negative above; NaN before the "
+         "first window after the baseline. Informative: never changes the result"),
+        ("t_cross", "uint32", "s", "projected time from test start at which the recent trend of μ "
+         "reaches μ_th (§5a), rounded; 0 = no projection. It assumes the trend goes on; the "
+         "accelerated stage usually comes sooner"),
+        ("warning_alarm", "enum", "", "wear-warning alarm (priority 2, below the end of life): "
+         + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
+    ],
+    "command": [
+        ("last_command", "enum", "", "last command carried out or refused: "
+         + ", ".join(f"{c} {n}" for c, n, _ in COMMAND_CODES)),
+        ("last_result", "uint16", "", "result of the last command: 0 ok, else the rejection code (table below)"),
+        ("command_count", "uint16", "", "commands processed (accepted or refused), wrapping at 65535"),
+    ],
+    "run": [
+        ("run_sample_id", "string", "", f"sample ID of the current / last test, up to {SAMPLE_ID_MAX} ASCII "
+         "characters, two per register (first character in the high byte), padded with 0; empty "
+         "before the first test"),
+        ("run_test_id", "string80", "", f"test ID of the current / last test (its records folder, the "
+         f"`test_id` of its MQTT messages), up to {TEST_ID_REG_CHARS} ASCII characters as `run_sample_id`"),
+    ],
+    "forecast": [
+        *[(f"end_p{q}_left", "float32", "s", f"remaining time to the {q} % end quantile of the forecast "
+           "at the last forecast time (METHOD.md §5b): e_p − elapsed, at least 0; NaN without a prior, "
+           "outside a test and once the end of life was detected") for q in (10, 50, 90)],
+        ("p_end", "float32", "", "chance that the end comes within the lead (§5b P) at the last "
+         "forecast time; NaN without a prior, outside a test, after the end-of-life detection"),
+        ("warn_reasons", "bits", "", "the early warning's reasons once it fired in the running test "
+         "(status bit 10), see the table below; 0 before and outside a test"),
+        ("lead", "uint32", "s", "the lead the hook is judged against (§5b `lead`), s; 0 outside a test"),
+    ],
+    "map": [
+        ("map_minor", "uint16", "", f"minor version of this register map within the major `map_version` "
+         f"({MAP_MINOR}): counts the registers added in reserved space; addresses never move within a major"),
+    ],
+    "reasons_more": [_reason_reg(n) for _, n in REASONS if n not in REASONS_MAP4],
+}
+INPUT_REGS = _layout(INPUT_BLOCKS, INPUT_SPECS)
 
 #: command codes a PLC may write (all but 0 none and 4 setpoint, which is a write of `t_set`)
 _WRITABLE_CODES = [(c, n) for c, n, _ in COMMAND_CODES if n not in ("none", "setpoint")]
 
-HOLDING_REGS = _layout(HOLDING, [
-    ("command", "uint16", "", "write a command code to execute it ("
-     + ", ".join(f"{c} {n}" for c, n in _WRITABLE_CODES) + ", see Command codes); reads 0",
-     ", ".join(str(c) for c, _ in _WRITABLE_CODES)),
-    ("t_set", "float32", "N", "tension setpoint of the next test; writing it is the `setpoint` command "
-     "(refused while a test runs); `start` uses it", "(0, 0.98 · meter full scale) N"),
-    ("grade", "uint16", "", "needle grade of the next test: 0 none, i = the station's i-th grade "
-     "(see `hookwatch regmap STATION.yaml`)", "0 … number of grades"),
-    ("t_end", "uint32", "s", "planned duration of the next test; 0 = the station's default",
-     "0 … 2592000"),
-    ("sample_id", "string", "", f"sample ID of the next test, up to {SAMPLE_ID_MAX} ASCII characters, "
-     "two per register (first character in the high byte), padded with 0", "printable ASCII, 0-padded"),
-    ("alarm_select", "enum", "", "the alarm the next `shelve` / `unshelve` command acts on: 0 none, "
-     + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_SELECT, 1)),
-     "0 … " + str(len(ALARM_SELECT))),
-    ("shelve_duration", "uint32", "s", "how long the next `shelve` command shelves the alarm, s "
-     f"(at most {SHELVE_MAX_S:.0f}: one 12 h shift)", f"0 … {SHELVE_MAX_S:.0f}"),
-])
+HOLDING_BLOCKS = (
+    Block("command", HOLDING, 0, 1, "the command to carry out"),
+    Block("next_test", HOLDING, 1, 21, "the setpoint and the plan of the next test"),
+    Block("shelve", HOLDING, 22, 3, "the alarm and duration of the next shelve command"),
+    Block("more", HOLDING, 25, 100, "holding values added in a later 4.x map, in the order added"),
+)
 
-INPUT_SIZE = INPUT_REGS[-1].address + INPUT_REGS[-1].count
-HOLDING_SIZE = HOLDING_REGS[-1].address + HOLDING_REGS[-1].count
+#: the registers of each holding block, in address order: append, never insert
+HOLDING_SPECS: dict[str, list[tuple[Any, ...]]] = {
+    "command": [
+        ("command", "uint16", "", "write a command code to execute it ("
+         + ", ".join(f"{c} {n}" for c, n in _WRITABLE_CODES) + ", see Command codes); reads 0",
+         ", ".join(str(c) for c, _ in _WRITABLE_CODES)),
+    ],
+    "next_test": [
+        ("t_set", "float32", "N", "tension setpoint of the next test; writing it is the `setpoint` command "
+         "(refused while a test runs); `start` uses it", "(0, 0.98 · meter full scale) N"),
+        ("grade", "uint16", "", "needle grade of the next test: 0 none, i = the station's i-th grade "
+         "(see `hookwatch regmap STATION.yaml`)", "0 … number of grades"),
+        ("t_end", "uint32", "s", "planned duration of the next test; 0 = the station's default",
+         "0 … 2592000"),
+        ("sample_id", "string", "", f"sample ID of the next test, up to {SAMPLE_ID_MAX} ASCII characters, "
+         "two per register (first character in the high byte), padded with 0", "printable ASCII, 0-padded"),
+    ],
+    "shelve": [
+        ("alarm_select", "enum", "", "the alarm the next `shelve` / `unshelve` command acts on: 0 none, "
+         + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_SELECT, 1)),
+         "0 … " + str(len(ALARM_SELECT))),
+        ("shelve_duration", "uint32", "s", "how long the next `shelve` command shelves the alarm, s "
+         f"(at most {SHELVE_MAX_S:.0f}: one 12 h shift)", f"0 … {SHELVE_MAX_S:.0f}"),
+    ],
+}
+HOLDING_REGS = _layout(HOLDING_BLOCKS, HOLDING_SPECS)
+
+#: registers served per table: up to the last register used (reserved registers before it read 0,
+#: addresses after it answer exception 02)
+INPUT_SIZE = max(r.address + r.count for r in INPUT_REGS)
+HOLDING_SIZE = max(r.address + r.count for r in HOLDING_REGS)
+BLOCKS = INPUT_BLOCKS + HOLDING_BLOCKS
 REG = {(r.table, r.name): r for r in INPUT_REGS + HOLDING_REGS}
 IR = {r.name: r for r in INPUT_REGS}
 HR = {r.name: r for r in HOLDING_REGS}
@@ -470,14 +590,79 @@ def _type_doc(r: Reg) -> str:
             "bits": "uint16 (bits)"}.get(r.type, r.type)
 
 
+def _span(first: int, last: int) -> str:
+    return f"{first}" if first == last else f"{first}–{last}"
+
+
+def _n_regs(n: int) -> str:
+    return f"{n} register" + ("s" if n != 1 else "")
+
+
+def _ref(table: str, address: int) -> int:
+    return (30001 if table == INPUT else 40001) + address
+
+
+def _with_reserved(blocks: tuple[Block, ...], regs: tuple[Reg, ...]) -> list[Reg | tuple[Block, int, int]]:
+    """The registers in address order with each block's reserved range (block, first, last) after them."""
+    out: list[Reg | tuple[Block, int, int]] = []
+    free = {b.name: (b, first, last) for b, first, last in reserved(blocks, regs)}
+    for b in blocks:
+        out += [r for r in regs if r.block == b.name]
+        if b.name in free:
+            out.append(free[b.name])
+    return out
+
+
+def _versioning() -> list[str]:
+    return [
+        "## Versioning: addresses never move",
+        "",
+        "For PLC engineers: a PLC program written for map version "
+        f"{MAP_VERSION}.x keeps reading the right values from every later {MAP_VERSION}.y.",
+        "",
+        f"- **Major** (`map_version`, input register {IR['map_version'].address}): changes only when "
+        "an existing register moves, changes its type, unit or meaning, or is removed. That never "
+        "happens within a major version. A PLC program may check `map_version` once at start-up "
+        "and refuse to run on another major.",
+        f"- **Minor** (`map_minor`, input register {IR['map_minor'].address}): counts additions within "
+        "the major: a new value goes into the reserved space at the end of a block (or into a new "
+        "block at addresses no block uses), never before an existing register. A register a PLC "
+        "program does not know is simply not read; a register of a later minor reads 0 on an "
+        "earlier gateway, or answers exception 02 beyond the table's last register. Status bits, "
+        "warning-reason bits and command codes follow the same rule: a new one takes a free "
+        "number, an existing one keeps its number.",
+        "- A register that loses its value keeps its address (it then reads 0, or NaN as a float).",
+        "- Each block fits one read (at most 125 registers), so a PLC program can read a whole "
+        "block with one request. The first 125 input registers (0–124) hold the map as shipped "
+        "with map 4.0 and can still be read in one request.",
+        "- The gateway's tests compare the map with the frozen map of every released version "
+        "(`tests/golden/plc_register_map.txt`) and fail on any moved, re-typed or reused address.",
+        "",
+    ]
+
+
+def _blocks_doc() -> list[str]:
+    out = ["## Blocks", "", "| table | block | addresses | used | reserved | holds |", "|---|---|---|---|---|---|"]
+    for blocks, regs in ((INPUT_BLOCKS, INPUT_REGS), (HOLDING_BLOCKS, HOLDING_REGS)):
+        free = {b.name: last - first + 1 for b, first, last in reserved(blocks, regs)}
+        for b in blocks:
+            used = b.size - free.get(b.name, 0)
+            out.append(f"| {b.table} | `{b.name}` | {_span(b.base, b.end - 1)} | {used} | "
+                       f"{free.get(b.name, 0)} | {b.doc} |")
+    out += ["", "Addresses outside every block are not assigned; a later minor version may place a "
+            "new block there.", ""]
+    return out
+
+
 def rows(station: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """The map as rows (csv / md), for one station if given."""
     out = []
     pre = ({"station": station["id"], "unit_id": station["unit_id"], "word_order": station["word_order"]}
            if station else {})
     for r in INPUT_REGS + HOLDING_REGS:
-        out.append({**pre, "table": r.table, "address": r.address, "reference": r.reference, "count": r.count,
-                    "name": r.name, "type": r.type, "unit": r.unit, "allowed": r.allowed, "meaning": r.doc})
+        out.append({**pre, "table": r.table, "block": r.block, "address": r.address, "reference": r.reference,
+                    "count": r.count, "name": r.name, "type": r.type, "unit": r.unit, "allowed": r.allowed,
+                    "meaning": r.doc})
     return out
 
 
@@ -489,7 +674,10 @@ def render(station: dict[str, Any] | None = None) -> str:
         out += ["Generated from `gateway/outputs/plc/registers.py` (`python -m "
                 "gateway.outputs.plc.registers > docs/registers.md`); do not edit by hand. "
                 "`hookwatch regmap STATION.yaml [--format md|csv]` prints it for one station.", ""]
-    out += [f"Register map version **{MAP_VERSION}** (input register 1).", ""]
+    out += [f"Register map version **{MAP_VERSION}.{MAP_MINOR}**: major {MAP_VERSION} in input register "
+            f"{IR['map_version'].address} (`map_version`), minor {MAP_MINOR} in input register "
+            f"{IR['map_minor'].address} (`map_minor`). Addresses never move within a major version "
+            "(see Versioning).", ""]
     if station is not None:
         md = safeout.md_text           # the configuration's strings, shown as text
         out += [f"Station **{md(station['id'])}**: Modbus TCP server {md(station['host'])}:{station['port']}, "
@@ -511,6 +699,8 @@ def render(station: dict[str, Any] | None = None) -> str:
         "(mbpoll `-B`), `little` the low word first. Bytes within a register are always "
         "big-endian.",
         "- A value that is not known is NaN (float32) or 0 (integers).",
+        "- Each table is cut into blocks (see Blocks): a register's block and address never change "
+        "within a major map version.",
         "- Several stations on one box share a server (one host:port) and each answers on its own "
         "unit ID (`modbus_tcp.unit_id`).",
         "- Live values are refreshed by the station's loop about 10 times a second and on every "
@@ -519,14 +709,21 @@ def render(station: dict[str, Any] | None = None) -> str:
         "together); requests beyond that wait a few milliseconds. It runs in its own thread at a "
         "lower OS priority than the stations: PLC polling never delays a slot.",
         "",
+        *_versioning(),
+        *_blocks_doc(),
         "## Input registers (function 04, read only)",
         "",
-        "| address | reference | name | type | unit | meaning |",
-        "|---|---|---|---|---|---|",
+        "| block | address | reference | name | type | unit | meaning |",
+        "|---|---|---|---|---|---|---|",
     ]
-    for r in INPUT_REGS:
-        addr = f"{r.address}" if r.count == 1 else f"{r.address}–{r.address + r.count - 1}"
-        out.append(f"| {addr} | {r.reference} | `{r.name}` | {_type_doc(r)} | {r.unit} | {r.doc} |")
+    for r in _with_reserved(INPUT_BLOCKS, INPUT_REGS):
+        if not isinstance(r, Reg):
+            b, first, last = r
+            out.append(f"| {b.name} | {_span(first, last)} | {_ref(INPUT, first)} | *reserved* | | | "
+                       f"{_n_regs(last - first + 1)} for values added within major {MAP_VERSION} |")
+        else:
+            out.append(f"| {r.block} | {_span(r.address, r.address + r.count - 1)} | {r.reference} | "
+                       f"`{r.name}` | {_type_doc(r)} | {r.unit} | {r.doc} |")
     out += ["", "### Status bits (`status`)", "", "| bit | name | meaning |", "|---|---|---|"]
     for bit, name, doc in STATUS_BITS:
         out.append(f"| {bit} | `{name}` | {doc} |")
@@ -538,12 +735,17 @@ def render(station: dict[str, Any] | None = None) -> str:
         "",
         "## Holding registers (functions 03 read, 06 / 16 / 23 write)",
         "",
-        "| address | reference | name | type | unit | allowed on write | meaning |",
-        "|---|---|---|---|---|---|---|",
+        "| block | address | reference | name | type | unit | allowed on write | meaning |",
+        "|---|---|---|---|---|---|---|---|",
     ]
-    for r in HOLDING_REGS:
-        addr = f"{r.address}" if r.count == 1 else f"{r.address}–{r.address + r.count - 1}"
-        out.append(f"| {addr} | {r.reference} | `{r.name}` | {_type_doc(r)} | {r.unit} | {r.allowed} | {r.doc} |")
+    for r in _with_reserved(HOLDING_BLOCKS, HOLDING_REGS):
+        if not isinstance(r, Reg):
+            b, first, last = r
+            out.append(f"| {b.name} | {_span(first, last)} | {_ref(HOLDING, first)} | *reserved* | | | | "
+                       f"{_n_regs(last - first + 1)} for values added within major {MAP_VERSION} |")
+        else:
+            out.append(f"| {r.block} | {_span(r.address, r.address + r.count - 1)} | {r.reference} | "
+                       f"`{r.name}` | {_type_doc(r)} | {r.unit} | {r.allowed} | {r.doc} |")
     out += [
         "",
         "Writes are off unless the station's YAML allows them (`modbus_tcp.writes.enabled: true`) "
@@ -560,9 +762,11 @@ def render(station: dict[str, Any] | None = None) -> str:
         "past the value read before the write, the write arrived. A repeated command cannot do "
         "harm twice: a second stop finds no test (2 NOT_RUNNING), a second start a running one "
         "(1 BUSY), a second hook replaced with the `sample_id` still staged (now the station's own) no "
-        "alarm and no test (3 NO_ALARM). More "
-        "than 20 commands at once or 60 a minute from one PLC address are refused (14 "
-        "RATE_LIMITED, exception 06).",
+        "alarm and no test (3 NO_ALARM). A stop written here names no test: it ends the test "
+        "running when it arrives (`run_test_id`); MQTT, Sparkplug and the console can name the "
+        "test a stop means (`test_id`: a stop for a test that already ended is refused, 15 "
+        "WRONG_TEST). More than 20 commands at once or 60 a minute from one PLC address, carried "
+        "out or refused alike, are refused (14 RATE_LIMITED, exception 06).",
         "",
         "To start a test: write `sample_id`, `grade`, `t_end` (optional) and `t_set`, then 1 to "
         "`command`. Read `last_command`, `last_result` and `command_count` to see the outcome.",
@@ -617,13 +821,146 @@ def render_csv(station: dict[str, Any] | None = None) -> str:
     keys = list(rs[0].keys())
     ident = ({"station": station["id"], "unit_id": station["unit_id"],
               "word_order": station["word_order"]} if station else {})
-    bits = [{**ident, "table": f"input.{reg}", "address": IR[reg].address, "reference": IR[reg].reference,
-             "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "", "allowed": "",
-             "meaning": doc}
+    bits = [{**ident, "table": f"input.{reg}", "block": IR[reg].block, "address": IR[reg].address,
+             "reference": IR[reg].reference, "count": 1, "name": f"bit{bit}:{name}", "type": "bit", "unit": "",
+             "allowed": "", "meaning": doc}
             for reg, table in (("status", STATUS_BITS), ("warn_reasons", WARN_REASON_BITS))
             for bit, name, doc in table]
     return safeout.csv_text([keys, *([r.get(k) for k in keys] for r in [*rs, *bits])], line_end="\n")
 
 
-if __name__ == "__main__":
+# ----------------------------------------------------------------------------- the frozen map
+#: where the shipped map is frozen (tests/golden/plc_register_map.txt, relative to the tree)
+GOLDEN = "tests/golden/plc_register_map.txt"
+_RULE = ("addresses never move within a major map version: add a value at the end of a block with "
+         "reserved space or in a new block, never before an existing register (docs/registers.md, "
+         "Versioning). Changing a frozen register is a new major version, agreed with the PLC "
+         "engineers, with a new golden file")
+
+
+def golden_lines() -> list[str]:
+    """The current map as the lines of the golden file: one per register (table, block, address,
+    count, type, unit, name), per bit (``bit``, register, bit, name), per command code."""
+    out = ["\t".join((r.table, r.block, str(r.address), str(r.count), r.type, r.unit or "-", r.name))
+           for r in INPUT_REGS + HOLDING_REGS]
+    out += [f"bit\t{reg}\t{b}\t{n}" for reg, table in (("status", STATUS_BITS), ("warn_reasons", WARN_REASON_BITS))
+            for b, n, _ in table]
+    out += [f"code\tcommand\t{c}\t{n}" for c, n, _ in COMMAND_CODES]
+    return out
+
+
+def _parse(lines: list[str]) -> tuple[dict[tuple[str, str], list[str]], dict[tuple[str, str, str], str]]:
+    regs, marks = {}, {}
+    for line in lines:
+        f = line.rstrip("\n").split("\t")
+        if line.startswith("#") or not line.strip():
+            continue
+        if f[0] in (INPUT, HOLDING) and len(f) == 7:
+            regs[(f[0], f[6])] = f
+        elif len(f) == 4:
+            marks[(f[0], f[1], f[3])] = f[2]
+    return regs, marks
+
+
+def _compare(golden: str) -> tuple[list[str], list[str], list[tuple[int, int]]]:
+    """(problems with the frozen entries, current lines not frozen yet, the frozen versions)."""
+    versions = [(int(v.partition(".")[0]), int(v.partition(".")[2] or 0))
+                for v in (ln.split()[2] for ln in golden.splitlines() if ln.startswith("# map_version "))]
+    regs, marks = _parse(golden.splitlines())
+    lines = golden_lines()
+    cur, cur_marks = _parse(lines)
+    problems = []
+    for key, g in regs.items():
+        c = cur.get(key)
+        label = f"{g[0]} register `{g[6]}` (block {g[1]}, address {g[2]})"
+        if c is None:
+            problems.append(f"{label} is gone: a frozen register keeps its place (0 / NaN when it has no value)")
+        elif c != g:
+            what = ", ".join(f"{n} {g[i]} → {c[i]}" for i, n in enumerate(("", "block", "address", "count",
+                                                                            "type", "unit"))
+                             if i and g[i] != c[i])
+            problems.append(f"{label} changed: {what}")
+    taken = {(g[0], a): g[6] for g in regs.values() for a in range(int(g[2]), int(g[2]) + int(g[3]))}
+    new = []
+    for key, c in cur.items():
+        if key in regs:
+            continue
+        hits = sorted({taken[(c[0], a)] for a in range(int(c[2]), int(c[2]) + int(c[3])) if (c[0], a) in taken})
+        if hits:
+            problems.append(f"{c[0]} register `{c[6]}` at {c[2]} reuses the frozen address of "
+                            + ", ".join(f"`{h}`" for h in hits))
+        else:
+            new.append("\t".join(c))
+    numbers = {(k[0], k[1], n): k[2] for k, n in marks.items()}
+    for (kind, reg, name), n in marks.items():
+        now = cur_marks.get((kind, reg, name))
+        label = f"{reg} {kind} `{name}` ({n})"
+        if now is None:
+            problems.append(f"{label} is gone: a frozen {kind} keeps its number")
+        elif now != n:
+            problems.append(f"{label} moved to {now}")
+    for (kind, reg, name), n in cur_marks.items():
+        if (kind, reg, name) in marks:
+            continue
+        if (kind, reg, n) in numbers:
+            problems.append(f"{reg} {kind} {n} `{name}` reuses the frozen {kind} of `{numbers[(kind, reg, n)]}`")
+        else:
+            new.append(f"{kind}\t{reg}\t{n}\t{name}")
+    if {m for m, _ in versions} != {MAP_VERSION}:
+        problems.append(f"map_version is {MAP_VERSION}, the golden file freezes map "
+                        f"{sorted({m for m, _ in versions})}")
+    return problems, new, versions
+
+
+def frozen_problems(golden: str) -> list[str]:
+    """What keeps the current map from the frozen one (the golden file's text): moved, re-typed,
+    vanished or reused registers, bits and codes; additions not frozen yet; a minor version that
+    does not match. Empty when the map keeps every frozen address."""
+    problems, new, versions = _compare(golden)
+    out = [f"PLC register map: {p}. {_RULE}" for p in problems]
+    last = max((n for _, n in versions), default=0)
+    if new:
+        added = "; ".join(n.replace("\t", " ") for n in new)
+        out.append(f"PLC register map: not frozen yet: {added}. Once final, bump MAP_MINOR past {last} and "
+                   f"append them: python -m gateway.outputs.plc.registers --freeze {GOLDEN}")
+    elif MAP_MINOR != last:
+        out.append(f"PLC register map: MAP_MINOR is {MAP_MINOR}, the golden file's last frozen minor is {last}")
+    return out
+
+
+def freeze(golden: str) -> str:
+    """The lines to append to the golden file: the additions, under their minor version. Refuses
+    (ValueError) when a frozen entry changed or MAP_MINOR was not bumped past the last frozen."""
+    problems, new, versions = _compare(golden)
+    if problems:
+        raise ValueError("; ".join(problems) + ". " + _RULE)
+    last = max((n for _, n in versions), default=0)
+    if not new:
+        return ""
+    if MAP_MINOR <= last:
+        raise ValueError(f"bump MAP_MINOR past {last} first (the additions are map {MAP_VERSION}.{last + 1})")
+    return f"# map_version {MAP_VERSION}.{MAP_MINOR} added\n" + "".join(ln + "\n" for ln in new)
+
+
+def _main(argv: list[str]) -> int:
+    if argv[:1] == ["--freeze"] and len(argv) == 2:
+        with open(argv[1], encoding="utf-8") as f:
+            text = f.read()
+        try:
+            add = freeze(text)
+        except ValueError as e:
+            print(f"not frozen: {e}", file=sys.stderr)
+            return 1
+        with open(argv[1], "a", encoding="utf-8") as f:
+            f.write(add)
+        print(add or "nothing to freeze", end="" if add else "\n")
+        return 0
+    if argv:
+        print("usage: python -m gateway.outputs.plc.registers [--freeze GOLDEN]", file=sys.stderr)
+        return 2
     print(render(), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

@@ -379,7 +379,7 @@ class ModbusOutput:
             "hook_due": bool(st.due),
         }
         v = {
-            "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION,
+            "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION, "map_minor": R.MAP_MINOR,
             "sw_major": self._sw[0], "sw_minor": self._sw[1], "sw_patch": self._sw[2],
             "test_state": int(st.state), "status": R.status_word(flags),
             "alarm": R.ALARM_STATES.index(st.alarm) if st.alarm in R.ALARM_STATES else 0,

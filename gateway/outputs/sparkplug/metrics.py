@@ -74,6 +74,7 @@ ARG_T_END = "Device Control/Planned End"
 ARG_ALARM = "Device Control/Alarm"
 ARG_DURATION = "Device Control/Shelve Duration"
 ARG_REQUEST_ID = "Device Control/Request ID"
+ARG_TEST_ID = "Device Control/Test ID"
 
 #: the forecast's metrics (METHOD.md §5a, §5b, §7a)
 FC_STARTED = "Test/Started"
@@ -100,7 +101,8 @@ COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_repla
             UNSHELVE: "unshelve"}
 #: DCMD argument metric → key of the command's arguments (gateway.station.command_desk.COMMAND_KEYS)
 COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end",
-                ARG_ALARM: "alarm", ARG_DURATION: "duration_s", ARG_REQUEST_ID: "request_id"}
+                ARG_ALARM: "alarm", ARG_DURATION: "duration_s", ARG_REQUEST_ID: "request_id",
+                ARG_TEST_ID: "test_id"}
 
 
 def _alarm_metrics(name: str, what: str) -> tuple[MetricDef, ...]:
@@ -155,7 +157,8 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
               description="0 accepted, else the rejection code (docs/mqtt.md)"),
     MetricDef(START, DataType.Boolean, description="write true (with the argument metrics) to start a test",
               writable=True),
-    MetricDef(STOP, DataType.Boolean, description="write true to stop the running test", writable=True),
+    MetricDef(STOP, DataType.Boolean, description="write true to stop the running test (with `Device "
+              "Control/Test ID`: that test only)", writable=True),
     MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the unacknowledged alarms (end "
               "of life and wear warning)", writable=True),
     MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced "
@@ -207,6 +210,9 @@ DEVICE_METRICS: tuple[MetricDef, ...] = (
     MetricDef(ARG_REQUEST_ID, DataType.String, description="any command's argument: the host's id "
               "of the request (1–64 printable ASCII); a DCMD repeated with the same id within 600 s "
               "is answered again and not carried out again (docs/limits.md)", writable=True),
+    MetricDef(ARG_TEST_ID, DataType.String, description="stop argument: the test to stop (its "
+              "`Test/ID`); a stop naming a test that is not the running one is refused (15 "
+              "WRONG_TEST) and stops nothing", writable=True),
 )
 
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}

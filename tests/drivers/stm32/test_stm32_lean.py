@@ -190,6 +190,65 @@ def test_a_drive_stopped_by_the_firmware_is_counted_and_said_once(caplog):
     assert len(lines) == 1 and "WATCHDOG" in lines[0], lines
 
 
+def test_a_watchdog_stop_only_the_gateways_own_stop_finds_is_said_with_the_measured_stall(caplog):
+    """Issue 34 item 5: the gateway stalls longer than the watchdog (here: its thread blocked
+    0.5 s, watchdog 0.3 s); its first frame after the stall is its own STOP (the protection stop
+    the missing slots call for). The STOP's answer says the firmware had stopped the drive by
+    itself (reason WATCHDOG, latched): that is a stop on its own all the same — counted, said
+    once with the silence the link measured between its two frames (≥ the 0.5 s stall), and
+    kept once for the station. A STOP of the gateway's own without a stall is no such stop."""
+    import logging
+    import time
+
+    from gateway.core.ports import DriveStop
+
+    async def body(link):
+        await link.stop("gateway start")
+        await link.enable()
+        assert await link.set_speed(100.0) is not None
+        assert await link.stop("completed") is not None          # the gateway's own stop: none
+        calm = link.take_drive_stop()
+        await link.enable()
+        assert await link.set_speed(100.0) is not None
+        t0 = time.monotonic()
+        time.sleep(0.5)                     # the whole thread stalls: no keep-alive either
+        st = await link.stop("protection stop")
+        stall = time.monotonic() - t0
+        return calm, st, link.take_drive_stop(), link.take_drive_stop(), stall, dict(link.counters)
+
+    with caplog.at_level(logging.WARNING, logger="hookwatch.stm32"):
+        calm, st, ds, again, stall, c = run(_with_virtual_stm32(body))
+    assert calm is None
+    assert not st.enabled and st.watchdog_tripped and st.stop_reason == p.StopReason.WATCHDOG
+    assert isinstance(ds, DriveStop) and again is None and c["drive_stops"] == 1
+    assert (ds.reason, ds.watchdog_s) == ("WATCHDOG", 0.3) and "WATCHDOG" in ds.flags
+    # the silence is the stall, measured on the link's clock: at least the 0.5 s the thread slept
+    assert ds.silence_s >= 0.5 and ds.gateway_stalled, ds
+    ms = round(ds.silence_s * 1000)
+    assert ds.words() == ("the drive stopped on its own (STM32 watchdog, 0.3 s without the gateway): "
+                          f"the gateway stalled {ms} ms")
+    assert ds.as_data() == {"reason": "WATCHDOG", "flags": ds.flags, "watchdog_s": 0.3, "silence_ms": ms,
+                            "gateway_stalled": True, "why": ds.words()}
+    lines = [r.getMessage() for r in caplog.records if "stopped on its own" in r.getMessage()]
+    assert len(lines) == 1 and ds.words() in lines[0] and "stop reason WATCHDOG" in lines[0], lines
+
+
+def test_a_drive_stop_says_its_cause_in_one_sentence():
+    from gateway.core.ports import DriveStop
+
+    line = DriveStop("WATCHDOG", "WATCHDOG", 1.5, 0.04)     # frames every 40 ms, yet the watchdog
+    assert not line.gateway_stalled
+    assert line.words() == ("the drive stopped on its own (STM32 watchdog, 1.5 s without the gateway): "
+                            "the gateway's frames were at most 40 ms apart, so they did not reach the "
+                            "STM32 (the serial line or its adapter)")
+    assert DriveStop("STALL", "FAULT|STALL", 1.5, 0.02).words() == (
+        "the drive stopped on its own (STM32 stall trip: the take-up was blocked)")
+    assert DriveStop("OVERSPEED", "FAULT|OVERSPEED", 1.5, None).words() == (
+        "the drive stopped on its own (STM32 overspeed trip)")
+    assert DriveStop("WATCHDOG", "WATCHDOG", 1.5, None).words() == (
+        "the drive stopped on its own (STM32 watchdog, 1.5 s without the gateway)")
+
+
 def test_the_twins_own_stall_is_not_the_gateways_silence():
     """The virtual firmware's watchdog judges the gateway's silence on the wire. When the twin's
     own process stalls (a loaded machine; here: it is not ticked and its loop does not run for

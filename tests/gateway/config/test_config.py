@@ -13,7 +13,7 @@ from conftest import ROOT, hookwatch_cmd
 from gateway.config import ConfigError, load_fleet, load_station, validate_station
 from gateway.config import sections as S
 from gateway.core.control import ControlParams, NotchParams
-from gateway.core.method.params import PARAMS
+from gateway.core.method.params import PARAMS, MethodParams, build_params
 
 MINIMAL = "station: {id: s1}\nmeter: {port: /dev/a-meter}\nstm32: {port: /dev/a-stm32}\n"
 
@@ -58,6 +58,25 @@ def test_control_keys_come_from_the_control_dataclasses():
 
 def test_method_keys_come_from_the_method_params():
     assert set(S.METHOD_KEYS) == {p.name for p in PARAMS} - {"t_set", "t_end", "end_slot"}
+
+
+def test_method_params_come_from_the_method_dataclass():
+    """As the control keys above (issue 35 item 5): a row of PARAMS per MethodParams field and no
+    other, each default the field's (written once, in the dataclass), the required parameter the
+    one without a default, the parse kind and "may be none" those of the field's type."""
+    fld = {f.name: f for f in dataclasses.fields(MethodParams)}
+    assert set(fld) == {p.name for p in PARAMS} and len(PARAMS) == len(fld)
+    for p in PARAMS:
+        f = fld[p.name]
+        has_default = f.default is not dataclasses.MISSING
+        assert p.required == (not has_default) and p.default == (f.default if has_default else None), p.name
+        kind, *rest = str(f.type).split(" | ")
+        assert (p.kind, p.optional) == (kind, rest == ["None"]), f"{p.name}: {f.type}"
+        assert p.default is None or type(p.default).__name__ == p.kind, p.name
+        assert p.doc and p.unit, p.name
+    assert [p.name for p in PARAMS if p.required] == ["t_set"]
+    assert build_params({"t_set": 0.5}) == MethodParams(t_set=0.5)
+    assert MethodParams(t_set=0.5).as_dict() == {**{p.name: p.default for p in PARAMS}, "t_set": 0.5}
 
 
 def test_every_key_is_documented():

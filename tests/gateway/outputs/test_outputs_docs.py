@@ -114,15 +114,6 @@ def test_refusals_answer_the_modbus_exception_the_specification_means():
     assert R.IR["run_test_id"].address == R.IR["run_sample_id"].address + R.IR["run_sample_id"].count
 
 
-def test_register_map_is_dense_and_fits_one_read():
-    for regs, size in ((R.INPUT_REGS, R.INPUT_SIZE), (R.HOLDING_REGS, R.HOLDING_SIZE)):
-        addr = 0
-        for r in regs:
-            assert r.address == addr
-            addr += r.count
-        assert addr == size <= 125
-
-
 def _station_yaml(tmp_path, **mb):
     import yaml
 
@@ -142,6 +133,9 @@ def test_regmap_cli_for_a_station(tmp_path):
     assert "Station **loom-9**" in r.stdout and "unit ID **7**" in r.stdout
     assert "little-endian word order" in r.stdout and "10.0.0.5" in r.stdout
     assert "| `heartbeat` |" in r.stdout
+    # the blocks, their reserved space and the versioning rule (issue 35 item 3)
+    assert "## Blocks" in r.stdout and "| input | `reasons_more` | 128–191 | 0 | 64 |" in r.stdout
+    assert "## Versioning: addresses never move" in r.stdout
     r = subprocess.run(hookwatch_cmd() + ["regmap", path, "--format", "csv"], capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 0, r.stderr
@@ -150,7 +144,8 @@ def test_regmap_cli_for_a_station(tmp_path):
     assert names == [x.name for x in R.INPUT_REGS + R.HOLDING_REGS]
     assert {x["unit_id"] for x in rows} == {"7"}
     t1 = next(x for x in rows if x["name"] == "t1")
-    assert (t1["address"], t1["reference"], t1["type"]) == (str(R.IR["t1"].address), "30009", "float32")
+    assert (t1["address"], t1["reference"], t1["type"], t1["block"]) == (str(R.IR["t1"].address), "30009",
+                                                                         "float32", "live")
 
 
 def test_regmap_cli_errors(tmp_path):

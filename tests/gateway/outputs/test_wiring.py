@@ -62,3 +62,59 @@ def test_an_outbox_that_cannot_be_opened_is_reported_and_the_station_runs_on(tmp
         outs = outputs_for(cfg, make_station(tmp_path, []))
     assert outs == []
     assert "mqtt.outbox.path" in caplog.text and "loom-7" in caplog.text
+
+
+# ----------------------------------------------------------------------------- the output registry
+def test_the_registry_rows_drive_the_worker_the_reload_key_and_the_probe(tmp_path):
+    """Issue 35 item 1 (first step): what a fleet worker may leave to its supervisor, which of those
+    need every slot record, the supervisor's reload key and the probe's doors and brokers all come
+    from the rows of gateway/outputs/wiring.py OUTPUTS."""
+    from gateway.commission import probe
+    from gateway.outputs import wiring as W
+    from gateway.supervisor import worker
+
+    assert worker.SERVED == (*W.BOX_SERVED, "site") and worker.ROW_SERVED is W.ROW_SERVED
+    assert set(W.BOX_SERVED) == {"modbus", "sparkplug", "console", "metrics"}
+    assert W.ROW_SERVED == {"modbus", "sparkplug", "console"}
+    cfg = _cfg(tmp_path, mqtt={"enabled": True}, modbus_tcp={"enabled": True, "port": 1502},
+               metrics={"enabled": True, "port": 9108})
+    assert W.reload_key(cfg) == (cfg.modbus_tcp, cfg.sparkplug, cfg.metrics)
+    assert probe.listen_ports(cfg) == [("modbus_tcp", cfg.modbus_tcp.host, 1502),
+                                       ("metrics", cfg.metrics.host, 9108)]
+    assert W.broker_sections(cfg) == ["mqtt"]
+
+
+def test_a_toy_output_in_one_row_is_probed_and_keyed(monkeypatch):
+    """A new output is one row: its listening door is checked by the commissioning probe (a port
+    held by another socket is reported in use), its section joins the supervisor's reload key."""
+    import socket
+    import types
+
+    from gateway.commission import probe
+    from gateway.outputs import wiring as W
+
+    held = socket.socket()
+    held.bind(("127.0.0.1", 0))
+    held.listen(1)
+    port = held.getsockname()[1]
+    try:
+        toy = W.OutputRow("toy", "toy", box=True, slot_rows=True, reload=True, broker=False,
+                          doors=lambda cfg: [("toy.port", "127.0.0.1", int(cfg.toy.port))], metrics="none")
+        monkeypatch.setattr(W, "OUTPUTS", (*W.OUTPUTS, toy))
+        cfg = types.SimpleNamespace(toy=types.SimpleNamespace(enabled=True, port=port))
+        assert probe.listen_ports(cfg) == [("toy.port", "127.0.0.1", port)]
+        f = probe.probe_listen(*probe.listen_ports(cfg)[0])
+        assert not f.ok and "toy.port" in f.text and "already in use" in f.text
+        assert W.reload_key(cfg) == (None, None, None, cfg.toy)
+    finally:
+        held.close()
+
+
+def test_a_row_without_a_field_fails_at_import():
+    import pytest
+
+    from gateway.outputs import wiring as W
+
+    with pytest.raises(TypeError, match="metrics"):
+        W.OutputRow("toy", "toy", box=True, slot_rows=True, reload=True, broker=False,    # type: ignore[call-arg]
+                    doors=W._no_doors)

@@ -166,6 +166,7 @@
   }
   function alarmName(a) { return a === "end_of_life" ? "end of life" : a === "wear_warning" ? "wear warning" : String(a || "the alarms"); }
   function by(who) { return who ? " by " + who : ""; }
+  function cap(s) { s = String(s); return s.charAt(0).toUpperCase() + s.slice(1); }
   const REASON_WORDS = { headroom: "the headroom is below its bound", prior: "the life prior puts the end near",
                          trend: "the μ trend reaches the threshold soon" };
   // a hook's life in the §7a history (gateway/station/hook_log.py LIFE_KINDS)
@@ -209,9 +210,11 @@
           (e.end_p50 != null ? `; end expected between ${dur(e.end_p10)} and ${dur(e.end_p90)} (median ${dur(e.end_p50)})` : "") + ".";
       }
       case "protection_stop": return `Protection stop: ${(e.stop_reasons || []).join(", ") || "unsafe run"}; the drive was stopped.`;
+      // the STM32 stopped the drive by itself (its watchdog, a trip): the station's own sentence
+      case "drive_stopped": return cap(e.why || "the drive stopped on its own (" + e.reason + ")") + ".";
       case "test_ended": {
         const w = endWords(e.test_status, e.reason, r.t_life, r.status);
-        return `Test ${w}${by(e.source)}.`.replace(/^Test end of life/, "Test: end of life");
+        return `Test ${w}${by(e.source)}${e.why ? ": " + e.why : ""}.`.replace(/^Test end of life/, "Test: end of life");
       }
       case "port_lost": return `The ${e.port === "stm32" ? "STM32" : e.port} port was lost${e.times > 1 ? " (" + e.times + " times)" : ""}.`;
       case "port_back": return `The ${e.port === "stm32" ? "STM32" : e.port} port is back.`;
@@ -419,7 +422,13 @@
       if ($("#c-tend").value) b.t_end = Number($("#c-tend").value);
       command(sid, b);
     });
-    $("#b-stop").addEventListener("click", () => command(sid, { command: "stop" }));
+    // the stop names the test this page shows (its test_id): if that test ended meanwhile, the
+    // station refuses the stop (15 WRONG_TEST) instead of ending a newer one
+    $("#b-stop").addEventListener("click", () => {
+      const b = { command: "stop" };
+      if (["baseline_search", "monitoring", "end_of_life"].includes(summary.state) && summary.test_id) b.test_id = summary.test_id;
+      command(sid, b);
+    });
     $("#b-ack").addEventListener("click", () => command(sid, { command: "ack" }));
     // hook replaced: the same command as MQTT, the PLC and Sparkplug, with the NEW hook's sample id
     const dlg = $("#hook-dlg");
@@ -533,6 +542,42 @@
     cleanup.push(() => clearInterval(t));
   }
 
+  // ------------------------------------------------------------------ the site's boxes (issue 37)
+  // Each box's retained config report (gateway/outputs/console/boxes.py): which version of the site's
+  // configuration it runs, what waits for a test to end, drift, its last rollback. Text as text.
+  function shortV(v) { return v ? String(v).slice(0, 12) : "–"; }
+  function boxesPage() {
+    main.innerHTML = `<h2 style="margin:0 0 .5em">Boxes of the site</h2>
+      <table id="boxes"><thead><tr><th>box</th><th>online</th><th>version</th><th>verified</th><th>applied (UTC)</th><th>deferred (test running)</th><th>pending</th><th>drift</th><th>last rollback</th><th>last interrupt</th></tr></thead><tbody></tbody></table>
+      <p><small id="boxes-note"></small></p>`;
+    function row(b) {
+      const rb = b.last_rollback, it = b.last_interrupt;
+      const drift = b.drift ? el("span", { class: "bad" }, "yes: " + (b.drift_files || []).join(", ")) : el("span", { class: "ok" }, "no");
+      return el("tr", { "data-box": b.box, class: (b.online === false ? "silent" : "") + (b.drift ? " drift" : "") },
+        el("td", { class: "box" }, b.box),
+        el("td", { class: "online" }, b.online === false ? el("span", { class: "bad" }, "offline") : el("span", { class: "ok" }, "online")),
+        el("td", { class: "version", title: b.version || "" }, shortV(b.version) + (b.applying ? " (applying " + shortV(b.applying) + ")" : "")),
+        el("td", { class: "verified", title: b.verified || "" }, shortV(b.verified)),
+        el("td", null, b.applied_at ? String(b.applied_at).replace("T", " ").slice(0, 19) : "–"),
+        el("td", { class: "deferred" }, (b.deferred || []).join(", ") || "none"),
+        el("td", { class: "pending" }, (b.pending || []).join(", ") || "none"),
+        el("td", { class: "drift" }, drift),
+        el("td", { class: "rollback" }, rb ? `${shortV(rb.from)} → ${shortV(rb.to)}: ${rb.why || ""}` + (rb.time ? " (" + String(rb.time).replace("T", " ").slice(0, 19) + ")" : "") : "none"),
+        el("td", { class: "interrupt" }, it ? `by ${it.by}: ${(it.stations || []).join(", ")}` : "none"));
+    }
+    async function load() {
+      const r = await api("/api/boxes");
+      if (r.status && r.status !== 200) { $("#boxes-note").textContent = r.reason || "no answer"; return; }
+      const boxes = r.boxes || [];
+      $("#boxes tbody").replaceChildren(...boxes.map(row));
+      hw.boxes = boxes.map(b => b.box);
+      $("#boxes-note").textContent = `${boxes.length} boxes` + (r.site && !r.site.fed ? " (the site view is not fed: no station of this box has MQTT)" : "");
+    }
+    load();
+    const t = setInterval(load, 2000);
+    cleanup.push(() => clearInterval(t));
+  }
+
   // ------------------------------------------------------------------ history
   async function historyPage(sid) {
     main.innerHTML = `<h2 style="margin:0 0 .5em">History of ${esc(sid)} <small><a href="#/station/${encodeURIComponent(sid)}">live</a></small></h2>
@@ -548,7 +593,7 @@
     if (r.status !== 200) { $("#tests").textContent = r.reason; return; }
     const base = "/api/station/" + encodeURIComponent(sid) + "/tests/";
     $("#tests").innerHTML = r.tests.length ? `<table><tr><th>test</th><th>sample</th><th>grade</th><th>status</th><th>t_life (s)</th><th>μ_ss</th><th>headroom at end</th><th>files</th><th></th></tr>` +
-      r.tests.map(t => `<tr><td>${esc(t.test_id)}</td><td>${esc(t.sample_id)}</td><td>${esc(t.grade)}</td><td class="status" title="${esc(t.test_status)} / ${esc(t.status)}${t.end_reason ? " (" + esc(t.end_reason) + ")" : ""}">${esc(t.test_status === "running" || t.test_status === "unreadable" ? t.test_status : endWords(t.test_status, t.end_reason, t.t_life, t.status))}</td><td>${fmt(t.t_life, 2)}</td><td>${fmt(t.mu_ss)}</td><td>${fmt(t.headroom, 2)}</td>
+      r.tests.map(t => `<tr><td>${esc(t.test_id)}</td><td>${esc(t.sample_id)}</td><td>${esc(t.grade)}</td><td class="status" title="${esc(t.test_status)} / ${esc(t.status)}${t.end_reason ? " (" + esc(t.end_reason) + ")" : ""}${t.why ? ": " + esc(t.why) : ""}">${esc(t.test_status === "running" || t.test_status === "unreadable" ? t.test_status : endWords(t.test_status, t.end_reason, t.t_life, t.status))}</td><td>${fmt(t.t_life, 2)}</td><td>${fmt(t.mu_ss)}</td><td>${fmt(t.headroom, 2)}</td>
         <td>${t.files.map(f => `<a href="${base}${encodeURIComponent(t.test_id)}/files/${f}">${f}</a>`).join(" ")}</td>
         <td>${t.files.includes("result.json") ? `<button class="fig7" data-tid="${esc(t.test_id)}">Fig. 7</button>` : ""}</td></tr>`).join("") + "</table>" : "no recorded tests";
     main.querySelectorAll("button.fig7").forEach(b => b.addEventListener("click", () => {
@@ -582,6 +627,7 @@
     if ((m = h.match(/^\/station\/(.+)$/))) stationPage(decodeURIComponent(m[1]));
     else if ((m = h.match(/^\/history\/(.+)$/))) historyPage(decodeURIComponent(m[1]));
     else if (h === "/campaign") campaignPage();
+    else if (h === "/boxes") boxesPage();
     else if (h === "/due" || h.startsWith("/due?")) duePage();
     else fleetPage();
   }

@@ -24,7 +24,8 @@ recorder: {dir: REC}
 MQTT_KEYS = {"enabled", "host", "port", "prefix", "client_id", "keepalive_s", "protocol", "username",
              "password_env", "password_file", "tls", "telemetry_interval_s", "outbox",
              "reply_prefix",                                  # issue 21: MQTT 5 response topics
-             "share_lives", "servers"}                        # issue 29: site lives, clustered brokers
+             "share_lives", "servers",                        # issue 29: site lives, clustered brokers
+             "command_doors"}                                 # issue 34: a command budget per door
 SPARKPLUG_KEYS = {"enabled", "host", "port", "group_id", "edge_node_id", "device_id", "primary_host_id",
                   "client_id", "username", "password_env", "keepalive_s", "tls", "data_interval_s",
                   "store_path", "history_budget_mb",

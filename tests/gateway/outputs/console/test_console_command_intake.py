@@ -51,6 +51,10 @@ def test_console_commands_are_bounded_like_every_other_door(tmp_path):
         # a flood of refusals of one kind is not a flood of log lines
         for _ in range(60):
             assert c.post(CMD, {"command": "setpoint", "t_set": "0.6"})[0] == 400
+        # a stop naming a test that is not the running one (one that ended) stops nothing (issue
+        # 34): the station refuses it, 15 WRONG_TEST
+        st, r, _ = c.post(CMD, {"command": "stop", "test_id": "20260101T000000.000Z-OLD"})
+        assert st == 409 and r["code"] == 15 and "OLD" in r["reason"], r
         # a good command still works
         st, r, _ = c.post(CMD, {"command": "stop", "request_id": "r-1"})
         assert st == 200 and r["ok"], r

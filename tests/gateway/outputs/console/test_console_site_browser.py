@@ -23,6 +23,7 @@ import sys
 import threading
 import time
 
+from conftest import TESTS
 from gateway.core import records as R
 from gateway.outputs.console.site import MAX_TEXT
 from gateway.outputs.mqtt import schema as mqtt_schema
@@ -43,7 +44,7 @@ def _box(tmp_path, port, name, stations, site=SITE):
     d = tmp_path / name
     d.mkdir()
     spec = {"prefix": PREFIX, "site": site, "stations": stations}
-    p = Proc([sys.executable, os.path.join(os.path.dirname(__file__), "..", "..", "kit", "site_box.py"),
+    p = Proc([sys.executable, os.path.join(TESTS, "kit", "site_box.py"),
               str(port), str(d), json.dumps(spec)], str(tmp_path / f"{name}.log"))
     p.readline_until("connected", timeout=60)
     return p

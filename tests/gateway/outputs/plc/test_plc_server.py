@@ -4,6 +4,7 @@ command the running test refuses, 03 for one the station's state refuses), the r
 sample and test ID in input registers, several stations on one port, and fuzzed frames never
 stop it."""
 import math
+import os
 import socket
 import struct
 
@@ -11,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import ROOT
 from gateway.core.records import TestState as TState
 from gateway.outputs.plc import registers as R
 from gateway.outputs.plc.server import ModbusOutput, ModbusSettings, shutdown_all
@@ -84,6 +86,40 @@ def test_mbpoll_reads_the_documented_registers_with_live_values(plant):
     assert rc == 0 and not v4[IR["status"].address] & (1 << R.STATUS_BIT["writes_enabled"])
     # little-endian words on unit 5: mbpoll without -B
     assert _live_floats(port, 5, IR["t1"].address, 1, big=False) == {IR["t1"].address: 0.4}
+
+
+def _frozen():
+    """The addresses of the map as shipped, from the golden file (not from the map in the code)."""
+    out = {}
+    with open(os.path.join(ROOT, R.GOLDEN), encoding="utf-8") as f:
+        for line in f:
+            c = line.rstrip("\n").split("\t")
+            if c[0] in ("input", "holding"):
+                out[c[0], c[6]] = int(c[2])
+            elif c[0] == "bit":
+                out[c[1], c[3]] = int(c[2])
+    return out
+
+
+def test_mbpoll_reads_the_same_values_at_the_frozen_addresses(plant):
+    """Issue 35 items 3 and 6: a PLC program written against the frozen map (the golden file's
+    addresses) reads the live values from a running station: the whole first read, the floats,
+    the staged plan in the holding registers of unit 5 (which no client may write)."""
+    port, _ = plant
+    fz = _frozen()
+    rc, v, err = mbpoll(port, "-t", "3", "-r", "0", "-c", str(fz["input", "map_minor"] + 1), unit=3)
+    assert rc == 0, err
+    assert (v[fz["input", "map_version"]], v[fz["input", "map_minor"]]) == (R.MAP_VERSION, R.MAP_MINOR)
+    assert v[fz["input", "test_state"]] == int(TState.IDLE)
+    assert v[fz["input", "status"]] & (1 << fz["status", "meter_ok"]) and v[fz["input", "command_count"]] >= 0
+    t1, t2, ten = fz["input", "t1"], fz["input", "t2"], fz["input", "tension"]
+    assert _live_floats(port, 3, t1, 3) == {t1: 0.4, t2: 0.6, ten: 0.5}
+    rc, h, err = mbpoll(port, "-t", "4:float", "-r", str(fz["holding", "t_set"]), unit=5)
+    assert rc == 0 and h == {fz["holding", "t_set"]: 0.5}, err
+    sid = fz["holding", "sample_id"]
+    rc, h, err = mbpoll(port, "-t", "4", "-r", str(sid), "-c", "16", unit=5)
+    assert rc == 0, err
+    assert R.decode_sample_id(struct.pack(">16H", *(h[sid + i] for i in range(16)))) == "S-0"
 
 
 def _write(port, unit, reg, values, typ="4"):

@@ -2,13 +2,15 @@
 Mosquitto and the independent primary host (tests/kit/sparkplug_host.py, its own protoc build):
 a Setpoint sent as a String metric ("0.6") or a Shelve Duration as a Boolean is refused (code 9),
 a long Sample ID is refused and never echoed into DDATA, a Sample ID with a newline gets the
-station's code 4 with the value escaped; a well-typed start is carried out."""
+station's code 4 with the value escaped; a well-typed start is carried out; a Stop Test naming
+another test (Test ID) is refused (15) and stops nothing, naming the running one ends it."""
 from gateway.outputs.sparkplug.node_settings import SparkplugSettings
 from gateway.outputs.sparkplug.output import SparkplugOutput
 from gateway.station.hook_log import read_hooks
 from kit.broker import Broker
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.sparkplug_host import PrimaryHost, metric_value
+from kit.tools import wait_for
 
 GROUP, NODE, DEV = "lab", "hall-l1", "loom-09"
 TOPIC = f"spBv1.0/{GROUP}/DCMD/{NODE}/{DEV}"
@@ -96,6 +98,19 @@ def test_dcmd_metrics_are_typed_and_bounded_like_every_other_door(tmp_path):
         text, code = send(again)
         assert code == 0 and "duplicate" in text and "host-r1" in text, text
         assert [h["new_sample_id"] for h in read_hooks(str(tmp_path / "records" / DEV))] == ["SPB-3", "SPB-4"]
+        # issue 34: a Stop Test naming a test (Test ID) ends that test only
+        text, code = send([start, {"name": "Device Control/Sample ID", "string_value": "SPB-5"},
+                           {"name": "Device Control/Setpoint", "float_value": 0.5}])
+        assert code == 0, text
+        wait_for(lambda: st.session is not None, 30, what="slot 0 of SPB-5")
+        stop = {"name": "Device Control/Stop Test", "boolean_value": True}
+        text, code = send([stop, {"name": "Device Control/Test ID", "string_value": "20260101T000000.000Z-OLD"}])
+        assert code == 15 and "OLD" in text, text
+        assert st.session is not None and not st.results
+        text, code = send([stop, {"name": "Device Control/Test ID", "string_value": st.test_id}])
+        assert code == 0, text
+        wait_for(lambda: st.results, 20, what="SPB-5 ended")
+        assert st.results[-1]["end_reason"] == "stopped by command" and st.session is None
     finally:
         if run is not None:
             run.stop()

@@ -215,7 +215,7 @@ PKG = "gateway.outputs.sparkplug"
 #: what a pure module of the node must not import: I/O, clocks, threads, and the node's runtime side
 IMPURE_TOP = {"time", "datetime", "threading", "asyncio", "socket", "sqlite3", "logging", "os", "paho"}
 IMPURE = {"gateway.outputs.broker.outbox", "gateway.plumbing.threadloop"} | {
-    f"{PKG}.{m}" for m in ("client", "node_session", "node_stations", "node_store", "output")}
+    f"{PKG}.{m}" for m in ("runtime", "node_session", "node_stations", "node_store", "output")}
 
 
 def _imports(src: str, package: str = PKG) -> list[str]:
@@ -239,10 +239,11 @@ def _impure(src: str) -> list[str]:
 def test_the_edge_node_and_its_parts_are_pure():
     """The edge node is a pure state machine (no sockets, no clock, no threads) and so is each part
     it was split into: none imports I/O, a clock or a thread, nor the node's runtime side."""
-    assert _impure("import time\nfrom . import client\nfrom .node_store import NodeStore\n"
-                   "from ..outbox import Outbox\nfrom ...threadloop import Mailbox\nfrom .devices import Device\n"
+    assert _impure("import time\nfrom . import runtime\nfrom .node_store import NodeStore\n"
+                   "from ..broker.outbox import Outbox\nfrom ...plumbing.threadloop import Mailbox\n"
+                   "from .devices import Device\n"
                    "from . import metrics as M\n") == [
-        "time", f"{PKG}.client", f"{PKG}.node_store", f"{PKG}.node_store.NodeStore",
+        "time", f"{PKG}.runtime", f"{PKG}.node_store", f"{PKG}.node_store.NodeStore",
         "gateway.outputs.broker.outbox", "gateway.outputs.broker.outbox.Outbox", "gateway.plumbing.threadloop",
         "gateway.plumbing.threadloop.Mailbox"]
     bad = {}
@@ -259,7 +260,7 @@ def test_the_node_publishes_only_the_verbs_its_permissions_name():
     namespace and nothing else: every topic the node's code builds uses one of them."""
     folder = os.path.join(ROOT, "gateway", "outputs", "sparkplug")
     verbs = set()
-    for name in ("payloads.py", "replay.py", "node.py", "node_session.py", "client.py"):
+    for name in ("payloads.py", "replay.py", "node.py", "node_session.py", "runtime.py"):
         with open(os.path.join(folder, name), encoding="utf-8") as f:
             tree = ast.parse(f.read())
         for n in ast.walk(tree):
