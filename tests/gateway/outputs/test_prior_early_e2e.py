@@ -120,7 +120,8 @@ def test_an_early_failure_is_named_and_the_next_test_starts_with_the_v3_prior(tm
     assert nxt["prior_source"] == "history"
     assert (nxt["prior_n"], nxt["prior_n_censored"], nxt["prior_n_early"]) == (3, 2, 1)
     assert nxt["prior_stations"] == 2
-    assert nxt["prior_from"] == "the site: 6 tests from 2 stations (1 of this station)"
+    assert nxt["prior_from"] == "the site: 6 tests from 2 stations (1 of this station; a 5)"
+    assert nxt["prior_station_ids"] == ["b", "a"]    # this station first, then by tests (issue 34)
     v3 = history_prior([*WEAR_OUT, t_life], censored)
     assert nxt["method"]["prior_mean"] == pytest.approx(v3[0], rel=1e-12)
     assert nxt["method"]["prior_sd"] == pytest.approx(v3[1], rel=1e-12)
