@@ -138,7 +138,9 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/commands/test_reload_hostile_yaml.py",
         "tests/gateway/commands/test_reload_e2e.py",
         "tests/deploy/test_release.py",
-        "tests/deploy/test_setup.py")},
+        "tests/deploy/test_setup.py",
+        # the site rolled out by ansible-playbook to three boxes, each a supervisor and a station
+        "tests/deploy/test_ansible_site.py")},
     "tests/gateway/station/test_retention_e2e.py": ("test_retention_over_many_short_tests_on_a_small_disk",),
     "tests/gateway/station/test_recorder_disk.py": (
         "test_station_on_a_disk_filled_then_freed_mid_test",
@@ -239,6 +241,8 @@ FLEETS = (
     # as heavy as a fleet; beside one, its compressed life ended in protection stops (ci runs 4, 5)
     "tests/gateway/northbound/test_forecast_doors_e2e.py",
     "tests/gateway/commands/test_console_demo.py",
+    # three boxes (a supervisor and a virtual station each) and ansible-playbook runs
+    "tests/deploy/test_ansible_site.py",
 )
 
 

@@ -1,0 +1,249 @@
+"""Issue 37 items 8–9: the site rolled out by the real ``ansible-playbook`` (deploy/ansible/) to
+three boxes on this machine (tests/kit/site_lab.py: each its own settings, state folder,
+configuration, ports and supervisor process; one virtual station each; one Mosquitto; the
+``local`` connection with per-host variables in an inventory the test writes), from a Git site
+repository whose commits are signed with an OpenSSH key.
+
+(a) a fleet-default change reaches every box; box 2's station, in a test, defers it and applies it
+    when the test ends (the test's parameters and result unchanged, online == offline); check
+    mode prints each box's plan and changes nothing; a Vault-encrypted secret reaches every box;
+(b) a change that fails ``config check`` stops the play before any box: no box changed;
+(c) a change that passes the check but fails the canary's health gate (a serial port that does not
+    exist) rolls back on the canary and stops the play;
+(d) an unsigned commit is refused by the canary; the play stops;
+(f) ``kill -9`` of an apply: the box starts on one consistent version, and the next run applies.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import time
+
+import pytest
+import yaml
+
+from conftest import ROOT, hookwatch_cmd
+from kit.e2e import analyze_cli, read_json, test_dirs, wait_log
+from kit.site_lab import ANSIBLE_DIR, SiteLab, ansible_playbook, recap
+from kit.tools import wait_for
+
+#: box 2's station runs a test from its start; long enough to outlast the rollout up to box 2
+BOX2_TEST = {"autostart": True, "t_end_s": 120}
+
+
+@pytest.fixture
+def lab(tmp_path, broker):
+    lab = SiteLab(tmp_path, broker.port, autostart={"box-2": BOX2_TEST}, health_timeout_s=30)
+    try:
+        yield lab.make()
+    finally:
+        lab.stop()
+
+
+def _bootstrap(lab: SiteLab) -> str:
+    """The first version applied to every box by the playbook (no supervisor runs yet: the switch
+    alone), then each box's supervisor started on it; its sha."""
+    v1 = _head(lab)
+    r = lab.playbook()
+    assert r.returncode == 0, r.stdout + r.stderr
+    for b in lab.boxes:
+        assert b.current() == v1, b.name
+        lab.start_box(b)
+    for b in lab.boxes:
+        wait_for(lambda b=b: _runs(b, v1), timeout=90, interval=0.5, what=f"{b.name} running {v1[:12]}")
+    return v1
+
+
+def _head(lab: SiteLab) -> str:
+    return subprocess.run(["git", "rev-parse", "HEAD"], cwd=lab.work, capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def _station(b, status: dict | None = None) -> dict:
+    st = (status or b.status()).get("stations") or {}
+    return st.get(b.station) or {}
+
+
+def _runs(b, version: str) -> bool:
+    s = _station(b)
+    return s.get("version") == version and bool(s.get("running"))
+
+
+def _plan_lines(run: subprocess.CompletedProcess, box: str) -> str:
+    """The plan task's output for one box (``ok: [box-N] => {hookwatch_plan.stdout_lines: …}``)."""
+    out = run.stdout.split("TASK [hookwatch_site : The plan of this box]")
+    return "\n".join(chunk.split("TASK [", 1)[0] for chunk in out[1:] if f"[{box}]" in chunk)
+
+
+def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_ends(lab, tmp_path):
+    # a secret for every box, encrypted with Ansible Vault on the controller (never in the site
+    # repository, which only names its path on the box)
+    vault_pw = tmp_path / "vault-pass"
+    vault_pw.write_text("lab-vault-password\n")
+    secret = tmp_path / "mqtt.pass"
+    secret.write_text("s3cret-of-the-site\n")
+    vault = os.path.join(os.path.dirname(ansible_playbook()), "ansible-vault")
+    subprocess.run([vault, "encrypt", "--vault-password-file", str(vault_pw), str(secret)],
+                   check=True, capture_output=True, env=dict(os.environ, ANSIBLE_HOME=str(tmp_path / "ansible-home")))
+    assert "s3cret" not in secret.read_text() and secret.read_text().startswith("$ANSIBLE_VAULT")
+    lab.extra_args = ["--vault-password-file", str(vault_pw)]
+    secrets = {"hookwatch_secret_files": [{"src": str(secret), "dest": "{{ hookwatch_state_dir }}/../mqtt.pass",
+                                           "mode": "0600"}]}
+
+    v1 = _head(lab)
+    r = lab.playbook("site.yml", *lab.extra_args, **secrets)
+    assert r.returncode == 0, r.stdout + r.stderr
+    for b in lab.boxes:
+        assert b.current() == v1
+        assert (b.dir / "mqtt.pass").read_text() == "s3cret-of-the-site\n"
+        assert oct((b.dir / "mqtt.pass").stat().st_mode & 0o777) == "0o600"
+        lab.start_box(b)
+    box1, box2, box3 = lab.boxes
+    wait_log(box2.proc, f"{box2.station}: test_started", timeout=90)
+    for b in lab.boxes:
+        wait_for(lambda b=b: _runs(b, v1), timeout=90, interval=0.5, what=f"{b.name} on {v1[:12]}")
+
+    # a fleet-wide default changes (one file, every box)
+    fleet = lab.read("defaults/fleet.yaml")
+    fleet["defaults"]["method"]["delta"] = 0.3
+    lab.write("defaults/fleet.yaml", fleet)
+    v2 = lab.commit("defaults: delta 0.3 for every loom", push=True)
+
+    # check mode: each box's plan printed, nothing changed anywhere
+    chk = lab.playbook("site.yml", "--check", *lab.extra_args, **secrets)
+    (tmp_path / "check-mode.txt").write_text(chk.stdout)
+    assert chk.returncode == 0, chk.stdout + chk.stderr
+    for b in lab.boxes:
+        plan = _plan_lines(chk, b.name)
+        assert b.station in plan and "delta" in plan, (b.name, plan)
+        assert ("deferred" in plan) == (b is box2), (b.name, plan)
+        assert b.current() == v1 and _station(b)["version"] == v1
+    assert recap(chk)["box-1"]["failed"] == 0
+
+    # the rollout: every box takes v2; box 2's station keeps v1 for its running test
+    r = lab.playbook("site.yml", *lab.extra_args, **secrets)
+    assert r.returncode == 0, r.stdout + r.stderr
+    rc = recap(r)
+    for b in lab.boxes:
+        assert rc[b.name]["failed"] == 0 and rc[b.name]["changed"] >= 1, (b.name, rc)
+        assert b.current() == v2, b.name
+    for b in (box1, box3):
+        wait_for(lambda b=b: _runs(b, v2), timeout=90, interval=0.5, what=f"{b.name} on {v2[:12]}")
+    s2 = _station(box2)
+    assert s2["in_test"] and s2["version"] == v1 and s2["pending"] == v2, s2
+    assert box2.station in box2.status()["deferred"]
+
+    # box 2's test ends on its own; then its station applies v2 (and, autostart, begins another)
+    wait_log(box2.proc, f"{box2.station}: test_ended", timeout=BOX2_TEST["t_end_s"] + 120)
+    wait_for(lambda: _runs(box2, v2), timeout=90, interval=0.5, what="box-2's station on v2")
+    first = test_dirs(box2.dir, box2.station)[0]
+    with open(os.path.join(first, "log.meta.yaml")) as f:
+        meta = yaml.safe_load(f)
+    assert meta["method"]["delta"] == 0.25          # the parameters the test started with
+    res = read_json(os.path.join(first, "result.json"))
+    assert res["test_status"] == "completed", res
+    assert analyze_cli(os.path.join(first, "log.csv.gz")) == res["method"]       # online == offline
+
+    # the same version again changes nothing on any box
+    again = lab.playbook("site.yml", *lab.extra_args, **secrets)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert all(recap(again)[b.name]["changed"] == 0 for b in lab.boxes), again.stdout
+
+
+def test_b_c_d_a_bad_change_stops_at_the_canary_and_no_other_box_changes(lab):
+    v1 = _bootstrap(lab)
+    box1, box2, box3 = lab.boxes
+
+    def unchanged(run):
+        for b in lab.boxes:
+            assert b.current() == v1, (b.name, run.stdout[-3000:])
+            assert _station(b)["version"] == v1, b.name
+        # the boxes after the canary were never reached by the waves
+        assert "[box-2]" not in run.stdout.split("PLAY [The boxes, in waves]", 1)[-1].split("PLAY RECAP")[0]
+
+    # (b) a change that fails `config check`: the whole site is checked once, before any box
+    good = lab.read(f"boxes/box-3/stations/{box3.station}.yaml")
+    lab.write(f"boxes/box-3/stations/{box3.station}.yaml", {**good, "station": {"id": box1.station}})
+    lab.commit("box-3: a station id another box has", push=True)
+    r = lab.playbook()
+    assert r.returncode != 0
+    assert "Check the whole site repository once" in r.stdout and box1.station in r.stdout, r.stdout
+    unchanged(r)
+    lab.write(f"boxes/box-3/stations/{box3.station}.yaml", good)
+
+    # (c) passes the check, fails the canary's health gate: a meter port that does not exist
+    st1 = lab.read(f"boxes/box-1/stations/{box1.station}.yaml")
+    lab.write(f"boxes/box-1/stations/{box1.station}.yaml",
+              {**st1, "meter": {"port": "/dev/hookwatch-lab-no-such-port"}})
+    lab.commit("box-1: a meter port that is not there", push=True)
+    r = lab.playbook()
+    assert r.returncode != 0
+    apply = r.stdout.split("TASK [hookwatch_site : Apply", 1)[1].split("TASK [", 1)[0]
+    assert "[box-1]" in apply and '"rc": 5' in apply.replace("rc: 5", '"rc": 5'), apply
+    unchanged(r)
+    rb = box1.status()["last_rollback"]
+    assert rb and rb.get("why"), box1.status()
+    lab.write(f"boxes/box-1/stations/{box1.station}.yaml", st1)
+
+    # (d) an unsigned commit: refused by the canary's own check of the signature
+    unsigned = lab.commit("everything fixed, but not signed", signed=False, push=True)
+    r = lab.playbook()
+    assert r.returncode != 0
+    apply = r.stdout.split("TASK [hookwatch_site : Apply", 1)[1].split("TASK [", 1)[0]
+    assert "[box-1]" in apply and ("rc: 4" in apply or '"rc": 4' in apply), apply
+    unchanged(r)
+
+    # the same tree signed: every box takes it
+    lab.write("README.md", "signed again\n")
+    v2 = lab.commit("signed", push=True)
+    assert v2 != unsigned
+    r = lab.playbook()
+    assert r.returncode == 0, r.stdout + r.stderr
+    for b in lab.boxes:
+        assert b.current() == v2
+    assert not [ln for ln in box1.proc.log_all().splitlines() if "Traceback" in ln]
+
+
+def test_f_an_apply_killed_mid_way_leaves_one_consistent_version_and_the_next_run_applies(lab):
+    v1 = _bootstrap(lab)
+    box1 = lab.boxes[0]
+    fleet = lab.read("defaults/fleet.yaml")
+    fleet["defaults"]["method"]["delta"] = 0.35
+    lab.write("defaults/fleet.yaml", fleet)
+    v2 = lab.commit("defaults: delta 0.35", push=True)
+    subprocess.run(["git", "-C", str(box1.dir / "site"), "fetch", "-q", "origin"], check=True)
+    # the apply, as the role runs it, killed once it has begun to switch (its journal says so)
+    ap = subprocess.Popen(hookwatch_cmd() + [
+        "config", "apply", str(box1.dir / "site"), "--version", v2, "--box-file", str(box1.box_file),
+        "--state-dir", str(box1.state), "--json"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    journal = box1.state / "config" / "journal.jsonl"
+
+    def begun():
+        with contextlib.suppress(OSError):
+            return v2 in journal.read_text()
+        return False
+    wait_for(begun, timeout=60, interval=0.01, what="the apply's journal entry")
+    ap.send_signal(signal.SIGKILL)
+    ap.wait(10)
+    # the box started again (the supervisor too is gone: a power cut)
+    box1.proc.p.send_signal(signal.SIGKILL)
+    box1.proc.stop()
+    lab.start_box(box1)
+    wait_for(lambda: box1.current() in (v1, v2) and _station(box1).get("running")
+             and _station(box1).get("version") == box1.current(), timeout=90, interval=0.5,
+             what="box-1 on one consistent version")
+    st = box1.status()
+    assert st["applying"] is None, st
+    assert st["version"] in (v1, v2) and st["stations"][box1.station]["version"] == st["version"]
+    # the next run applies v2 everywhere
+    r = lab.playbook()
+    assert r.returncode == 0, r.stdout + r.stderr
+    for b in lab.boxes:
+        assert b.current() == v2
+        wait_for(lambda b=b: _runs(b, v2), timeout=90, interval=0.5, what=f"{b.name} on v2")
+    _ = json  # noqa: F841
+    _ = time  # noqa: F841
+    _ = ANSIBLE_DIR  # noqa: F841
