@@ -18,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,7 +84,7 @@ class SiteLab:
     """The site repository, the boxes, their virtual stations and the playbook runs."""
 
     def __init__(self, tmp_path: Path, broker_port: int, n_boxes: int = 3, *,
-                 autostart: dict[str, dict[str, Any]] | None = None, health_timeout_s: float = 60):
+                 stations: dict[str, dict[str, Any]] | None = None, health_timeout_s: float = 60):
         for tool in ("git", "ssh-keygen"):
             require_tool(tool)
         self.tmp = tmp_path
@@ -91,8 +92,8 @@ class SiteLab:
         self.health_timeout_s = health_timeout_s
         self.boxes = [Box(f"box-{i}", tmp_path / "boxes" / f"box-{i}", f"loom-{i}1", f"sim{i:02d}")
                       for i in range(1, n_boxes + 1)]
-        #: per box name, the `test:` section of its station (e.g. autostart for the box in a test)
-        self.tests = autostart or {}
+        #: per box name, sections merged into its station's file (e.g. `test: {autostart: true}`)
+        self.station_extra = stations or {}
         self.origin = tmp_path / "site.git"
         self.work = tmp_path / "work"
         self.keys = tmp_path / "keys"
@@ -139,11 +140,13 @@ class SiteLab:
         for b in self.boxes:
             self.write(f"boxes/{b.name}/box.yaml", {"defaults": {"recorder": {"dir": str(b.records)}}})
             link = os.path.join(self.links, b.sim)
+            extra = self.station_extra.get(b.name, {})
             self.write(f"boxes/{b.name}/stations/{b.station}.yaml", {
                 "station": {"id": b.station},
                 "meter": {"port": os.path.join(link, "meter")},
                 "stm32": {"port": os.path.join(link, "stm32")},
-                "test": {"sample_id": f"S-{b.name}", **self.tests.get(b.name, {})}})
+                **extra,
+                "test": {"sample_id": f"S-{b.name}", **extra.get("test", {})}})
 
     def write(self, rel: str, data: Any) -> None:
         p = self.work / rel
@@ -204,10 +207,12 @@ class SiteLab:
         env = dict(os.environ, ANSIBLE_HOME=str(home), ANSIBLE_LOCAL_TEMP=str(home / "tmp"),
                    ANSIBLE_NOCOLOR="1", ANSIBLE_FORCE_COLOR="0", ANSIBLE_CONFIG=os.path.join(ANSIBLE_DIR, "ansible.cfg"),
                    PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
+        t0 = time.monotonic()
         r = subprocess.run([ansible_playbook(), "-i", str(inv), playbook, *args], cwd=ANSIBLE_DIR,
                            capture_output=True, text=True, timeout=timeout, env=env)
         self.runs.append(r)
-        (self.tmp / f"ansible-{len(self.runs)}.log").write_text(r.stdout + "\n--- stderr\n" + r.stderr)
+        (self.tmp / f"ansible-{len(self.runs)}.log").write_text(
+            f"# {' '.join(args)}: {time.monotonic() - t0:.1f} s\n" + r.stdout + "\n--- stderr\n" + r.stderr)
         return r
 
     # ------------------------------------------------------------------ the boxes' processes
