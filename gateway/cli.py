@@ -9,7 +9,7 @@ import sys
 from . import __version__
 
 #: subcommands in the order `hookwatch --help` lists them
-COMMANDS = ("run", "sim", "analyze", "report", "check", "regmap", "demo", "user", "hooks")
+COMMANDS = ("run", "sim", "analyze", "report", "check", "regmap", "demo", "user", "hooks", "config")
 
 EXIT_OK = 0
 EXIT_USAGE = 2

@@ -137,6 +137,8 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/station/test_fleet_crash_restart.py",
         "tests/gateway/commands/test_reload_hostile_yaml.py",
         "tests/gateway/commands/test_reload_e2e.py",
+        # issue 37: a box from a site repository (a supervisor, 2 virtual stations, Mosquitto)
+        "tests/gateway/config/test_site_apply_e2e.py",
         "tests/deploy/test_release.py",
         "tests/deploy/test_setup.py",
         # the site rolled out by ansible-playbook to three boxes, each a supervisor and a station
@@ -175,6 +177,8 @@ SLOW: dict[str, tuple[str, ...]] = {
     "tests/gateway/console/test_console_browser.py": ("*",),
     # the site view: chromium and three gateways on one Mosquitto; hookwatch run (a station, a fleet)
     "tests/gateway/console/test_console_site_browser.py": ("*",),
+    # issue 37: the Boxes page, chromium and three boxes' report publishers on one Mosquitto
+    "tests/gateway/console/test_console_boxes_browser.py": ("*",),
     "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
     "tests/gateway/commands/test_console_demo.py": ("*",),
     "tests/gateway/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
@@ -243,6 +247,8 @@ FLEETS = (
     "tests/gateway/commands/test_console_demo.py",
     # three boxes (a supervisor and a virtual station each) and ansible-playbook runs
     "tests/deploy/test_ansible_site.py",
+    # a site-managed box: a supervisor with two workers and their twins (issue 37)
+    "tests/gateway/config/test_site_apply_e2e.py",
 )
 
 
@@ -253,7 +259,7 @@ FLEETS = (
 #: gaps at the end (longest processing time first); without it xdist ordered the units by their
 #: number of tests, and the 3-minute broker outage life began 6 minutes in, on the critical path
 LONGEST_FIRST: dict[str, int] = {
-    FLEET_GROUP: 390,
+    FLEET_GROUP: 580,
     "rabbitmq": 230,
     "tests/gateway/northbound/test_northbound_e2e.py": 215,
     "tests/gateway/station/test_station_e2e.py": 185,

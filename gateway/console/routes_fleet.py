@@ -6,6 +6,7 @@ other boxes on ``?site=1``).
     GET  /api/due[?line=&area=&site=1]      the planner's due list (every station, soonest first;
                                             site=1: the stations of the site's other boxes too)
     GET  /api/due.csv[?line=&area=&site=1]  the same as CSV (cells defused against formulas)
+    GET  /api/boxes                         the site's boxes by their config reports (the Boxes page)
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ class FleetRoutes:
         r.add_get("/api/fleet", self.h_fleet)
         r.add_get("/api/due", self.h_due)
         r.add_get("/api/due.csv", self.h_due_csv)
+        r.add_get("/api/boxes", self.h_boxes)
 
     async def h_index(self, request):
         return web.FileResponse(os.path.join(STATIC, "index.html"))
@@ -51,6 +53,12 @@ class FleetRoutes:
         return {"enabled": site is not None, "fed": site is not None and site.filters is not None,
                 "stations": site.stations() if site is not None else 0,
                 "refused": site.counters["refused"] if site is not None else 0}
+
+    async def h_boxes(self, request):
+        """Every box of the site as its retained config report says (docs/console.md, Boxes)."""
+        site = self.ctx.site
+        return json_reply({"time": time.time(), "boxes": site.boxes.rows() if site is not None else [],
+                           "site": self._site_info()})
 
     async def h_fleet(self, request):
         ctx = self.ctx

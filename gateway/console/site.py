@@ -29,6 +29,7 @@ from typing import Any
 
 from ..northbound.cmdparse import Refused, bounded_pairs, read_bounded_json
 from ..ratelog import RateLog, clip, safe
+from .boxes import BoxReports, box_filter
 
 log = logging.getLogger("hookwatch.console")
 
@@ -54,9 +55,10 @@ _REASONS = ("headroom", "prior", "trend")
 
 
 def filters(base: str) -> tuple[str, ...]:
-    """The subscriptions that receive the state and status of every station of the base's site."""
+    """The subscriptions that receive the state and status of every station of the base's site,
+    and every box's config report (the Boxes page: gateway/console/boxes.py)."""
     parts = base.split("/")
-    return tuple("/".join(parts[:-3] + ["+", "+", "+", t]) for t in TOPICS)
+    return tuple("/".join(parts[:-3] + ["+", "+", "+", t]) for t in TOPICS) + (box_filter(base),)
 
 
 def text(v: Any, n: int = MAX_TEXT) -> str | None:
@@ -126,10 +128,15 @@ class SiteView:
         self.counters: dict[str, int] = {"messages": 0, "refused": 0, "over_bound": 0}
         #: the subscriptions (set when a pump carries them; None: the site view is not fed)
         self.filters: tuple[str, ...] | None = None
+        #: the boxes of the site, by their config reports (the Boxes page)
+        self.boxes = BoxReports(self.refused)
 
     # -- the pump thread
     def receive(self, topic: str, payload: bytes, now: float | None = None) -> bool:
-        """A retained state/status of a station of the site: True when it was kept."""
+        """A retained state/status of a station of the site (or a box's config report): True when
+        it was kept."""
+        if self.boxes.box_of(topic) is not None:
+            return self.boxes.receive(topic, payload, now)
         place = _place(topic)
         if place is None:
             return False

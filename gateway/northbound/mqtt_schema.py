@@ -454,6 +454,41 @@ def lives_request_topic(base: str) -> str:
     return "/".join(base.split("/")[:-3] + [LIVES_REQUEST])
 
 
+#: the box level (issue 37): every box of a site publishes its configuration report, retained,
+#: with a Will, on ``<prefix>/<site>/box/<box>/config`` (gateway/config/site/boxreport.py). Five
+#: levels: never one of a station's topics (six and more), nor ``+/+/+/lives``
+BOX_LEVEL = "box"
+BOX_CONFIG = "config"
+BOX_CONFIG_FIELDS = (
+    Field("schema", "int", "payload schema version of the report (1)"),
+    Field("box", "str", "the box's name (`boxes/<box>/` in the site repository)"),
+    Field("site", "str", "the site (`site.yaml`)"),
+    Field("online", "bool", "false: the Will (the box's supervisor vanished) or a clean stop"),
+    Field("time", "str", "UTC time of the report, ISO 8601 with milliseconds"),
+    Field("version", "str", "the Git commit the box's `current` tree comes from (null: none)"),
+    Field("sha256", "str", "sha256 of the effective tree as staged (its files' paths and sha256)"),
+    Field("verified", "str", "the last version that passed its health gate"),
+    Field("applied_at", "str", "when the current version passed its health gate (null: not yet)"),
+    Field("applying", "str", "a version being applied (switched to, its health gate running), or null"),
+    Field("deferred", "list", "stations still on an older version because a test runs: each "
+          "applies when its test ends"),
+    Field("pending", "list", "stations not yet on `version` (deferred ones included)"),
+    Field("stations", "dict", "per station: `version` it runs, `pending` version, `in_test`, "
+          "`running`, `refused` (why, or null)"),
+    Field("last_rollback", "dict", "`{from, to, why, time}` of the last rollback (null: none)"),
+    Field("last_interrupt", "dict", "`{by, version, stations, time}`: the last apply that "
+                                    "interrupted running tests (`--interrupt-tests --by NAME`)"),
+    Field("drift", "bool", "a file of the effective tree differs from what was staged (a hand edit)"),
+    Field("drift_files", "list", "those files (at most 50)"),
+)
+
+
+def box_config_topic(prefix: str, site: Any, box: Any) -> str:
+    """``<prefix>/<site>/box/<box>/config``: a box's retained configuration report."""
+    pre = "/".join(topic_level(p) for p in str(prefix or "hookwatch").strip("/").split("/"))
+    return "/".join([pre, topic_level(site), BOX_LEVEL, topic_level(box), BOX_CONFIG])
+
+
 # ----------------------------------------------------------------------------- payloads
 def iso_ms(t: float) -> str:
     """UTC ISO 8601 with milliseconds and Z."""
@@ -914,6 +949,20 @@ def render() -> str:
         "- no reason codes on PUBACK: a broker that denies a publish (an ACL) either acknowledges "
         "and drops it or closes the connection (RabbitMQ), instead of saying why; set the ACL "
         "before the gateways connect (docs/deploy.md).",
+        "",
+        "## The box's configuration report",
+        "",
+        "A box run from a site repository (docs/deploy.md, \"A site of many boxes\") publishes, "
+        "retained, QoS 1, `<prefix>/<site>/box/<box>/config`: which version of the site's "
+        "configuration it runs, what is deferred, its last rollback and whether its tree was edited "
+        "by hand (drift, seen within 10 s). Its Last Will is the same topic with `online: false`. "
+        "It is published by the box's supervisor (`hookwatch run STATE/config/current`) on every "
+        "change and every (re)connect; `hookwatch config status` prints the same report. The "
+        "broker and prefix come from the site repository's `site.yaml` (`broker:`).",
+        "",
+        "| field | type | meaning |",
+        "|---|---|---|",
+        *[f"| `{f.name}` | {f.type} | {f.doc} |" for f in BOX_CONFIG_FIELDS],
         "",
     ]
     return "\n".join(out)

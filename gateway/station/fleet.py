@@ -23,6 +23,9 @@ T = TypeVar("T")
 
 log = logging.getLogger("hookwatch.fleet")
 
+#: how often a configuration deferred by a running test looks whether the test has ended (s)
+DEFERRED_POLL_S = 0.2
+
 
 class StationRunner:
     """A station on its own :class:`ThreadLoop`, restarted when it crashes."""
@@ -52,6 +55,9 @@ class StationRunner:
         self.restart_requested = False
         self.last_error: str | None = None
         self.finished = threading.Event()
+        #: a new configuration that came during a test: applied when the test ends, never sooner
+        self.deferred: Callable[[], None] | None = None
+        self._deferred_task: asyncio.Task[None] | None = None
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop | None:
@@ -139,20 +145,51 @@ class StationRunner:
     def request_reload(self, factory: Callable[[], Station]) -> None:
         """A new configuration (any thread). The decision is taken on the station's own loop, so
         a test start cannot slip in between the check and the restart: an idle station restarts
-        with ``factory`` (and emits ``config_reloaded``), one in a test keeps its parameters."""
+        with ``factory`` (and emits ``config_reloaded``); one in a test keeps its parameters and
+        restarts with ``factory`` when the test ends (:meth:`_after_test`) — never before."""
+        def apply() -> None:
+            self.factory = factory
+            self.restart_requested = True
+            log.info("%s: configuration reloaded; station restarts", self.name)
+        self._when_idle(apply, factory)
+
+    def request_stop_when_idle(self, on_idle: Callable[[], None]) -> None:
+        """Stop the station once it is idle — now, or when its running test ends, never before —
+        and call ``on_idle`` (on its loop) just before (a worker restarted for new software)."""
+        def apply() -> None:
+            log.info("%s: idle: the station stops for its restart", self.name)
+            on_idle()
+            self._stopping.set()
+        self._when_idle(apply, None)
+
+    def _when_idle(self, apply: Callable[[], None], factory: Callable[[], Station] | None) -> None:
         def on_loop() -> None:
             st = self.station
-
-            def apply() -> None:
-                self.factory = factory
-                self.restart_requested = True
-                log.info("%s: configuration reloaded; station restarts", self.name)
+            self.deferred = None
             if st is None:
-                self.factory = factory
-            else:
-                st.reload_requested(apply)
+                if factory is not None:
+                    self.factory = factory
+                else:
+                    apply()
+                    if self._stop is not None:
+                        self._stop.set()
+            elif not st.reload_requested(apply):
+                self.deferred = apply
+                if self._deferred_task is None or self._deferred_task.done():
+                    self._deferred_task = asyncio.ensure_future(self._after_test())
         if self.tl.running:
             self.tl.call_soon(on_loop)
+
+    async def _after_test(self) -> None:
+        """The configuration deferred by a test applies once the station is idle (checked and
+        applied in one step on its loop: no test start can come between)."""
+        while self.deferred is not None and not self._stopping.is_set():
+            await asyncio.sleep(DEFERRED_POLL_S)
+            st, apply = self.station, self.deferred
+            if st is not None and apply is not None and not st.busy:
+                log.info("%s: the test ended: the deferred configuration applies", self.name)
+                self.deferred = None
+                st.reload_requested(apply)
 
     def request_stop(self) -> None:
         self._stopping.set()

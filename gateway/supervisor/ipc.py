@@ -16,7 +16,8 @@ Worker → supervisor (the stream; see :class:`FrameChannel` for how it is bound
 ====  ===========  ============================================================================
 type  name         body
 ====  ===========  ============================================================================
-1     HELLO        ``{station, pid, proto}`` once the worker has loaded (imports, configuration);
+1     HELLO        ``{station, pid, proto, software}`` once the worker has loaded (imports,
+                   configuration; ``software``: the hookwatch version it runs);
                    it then waits for GO
 2     HEARTBEAT    ``{slots, filled, in_test, results, dropped, crashes}`` every 0.5 s, produced
                    *on the station's loop* (a stuck loop sends none: the supervisor's watchdog)
@@ -46,7 +47,9 @@ Supervisor → worker (commands flow back):
 
 ====  ===========  ============================================================================
 16    COMMAND      ``{id, kind, source, args, request_id}`` → ``station.submit`` → REPLY ``id``
-17    RELOAD       ``{}``: re-read the station file; the station decides on its own loop
+17    RELOAD       ``{}``: re-read the station file; the station decides on its own loop;
+                   ``{restart: true}``: stop once idle (now, or when its test ends) and exit with
+                   75 for a new worker process (new software installed: ``hookwatch config restart``)
 18    GO           ``{}``: run the station (at start, once every worker of the fleet has loaded,
                    so no station's slots compete with another worker's start-up)
 ====  ===========  ============================================================================
@@ -73,6 +76,10 @@ SLOT_COLUMNS = tuple(f.name for f in fields(SlotRecord))
 HEADER = struct.Struct(">IB")
 MAX_BODY = 1 << 20
 
+
+#: the exit code of a worker that ended for the restart the supervisor asked for (new software,
+#: RELOAD ``{restart: true}``): started again at once, not counted as a crash (EX_TEMPFAIL)
+RESTART_EXIT = 75
 
 class FrameType(enum.IntEnum):
     HELLO = 1

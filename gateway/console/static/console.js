@@ -507,6 +507,42 @@
     cleanup.push(() => clearInterval(t));
   }
 
+  // ------------------------------------------------------------------ the site's boxes (issue 37)
+  // Each box's retained config report (gateway/console/boxes.py): which version of the site's
+  // configuration it runs, what waits for a test to end, drift, its last rollback. Text as text.
+  function shortV(v) { return v ? String(v).slice(0, 12) : "–"; }
+  function boxesPage() {
+    main.innerHTML = `<h2 style="margin:0 0 .5em">Boxes of the site</h2>
+      <table id="boxes"><thead><tr><th>box</th><th>online</th><th>version</th><th>verified</th><th>applied (UTC)</th><th>deferred (test running)</th><th>pending</th><th>drift</th><th>last rollback</th><th>last interrupt</th></tr></thead><tbody></tbody></table>
+      <p><small id="boxes-note"></small></p>`;
+    function row(b) {
+      const rb = b.last_rollback, it = b.last_interrupt;
+      const drift = b.drift ? el("span", { class: "bad" }, "yes: " + (b.drift_files || []).join(", ")) : el("span", { class: "ok" }, "no");
+      return el("tr", { "data-box": b.box, class: (b.online === false ? "silent" : "") + (b.drift ? " drift" : "") },
+        el("td", { class: "box" }, b.box),
+        el("td", { class: "online" }, b.online === false ? el("span", { class: "bad" }, "offline") : el("span", { class: "ok" }, "online")),
+        el("td", { class: "version", title: b.version || "" }, shortV(b.version) + (b.applying ? " (applying " + shortV(b.applying) + ")" : "")),
+        el("td", { class: "verified", title: b.verified || "" }, shortV(b.verified)),
+        el("td", null, b.applied_at ? String(b.applied_at).replace("T", " ").slice(0, 19) : "–"),
+        el("td", { class: "deferred" }, (b.deferred || []).join(", ") || "none"),
+        el("td", { class: "pending" }, (b.pending || []).join(", ") || "none"),
+        el("td", { class: "drift" }, drift),
+        el("td", { class: "rollback" }, rb ? `${shortV(rb.from)} → ${shortV(rb.to)}: ${rb.why || ""}` + (rb.time ? " (" + String(rb.time).replace("T", " ").slice(0, 19) + ")" : "") : "none"),
+        el("td", { class: "interrupt" }, it ? `by ${it.by}: ${(it.stations || []).join(", ")}` : "none"));
+    }
+    async function load() {
+      const r = await api("/api/boxes");
+      if (r.status && r.status !== 200) { $("#boxes-note").textContent = r.reason || "no answer"; return; }
+      const boxes = r.boxes || [];
+      $("#boxes tbody").replaceChildren(...boxes.map(row));
+      hw.boxes = boxes.map(b => b.box);
+      $("#boxes-note").textContent = `${boxes.length} boxes` + (r.site && !r.site.fed ? " (the site view is not fed: no station of this box has MQTT)" : "");
+    }
+    load();
+    const t = setInterval(load, 2000);
+    cleanup.push(() => clearInterval(t));
+  }
+
   // ------------------------------------------------------------------ history
   async function historyPage(sid) {
     main.innerHTML = `<h2 style="margin:0 0 .5em">History of ${esc(sid)} <small><a href="#/station/${encodeURIComponent(sid)}">live</a></small></h2>
@@ -556,6 +592,7 @@
     if ((m = h.match(/^\/station\/(.+)$/))) stationPage(decodeURIComponent(m[1]));
     else if ((m = h.match(/^\/history\/(.+)$/))) historyPage(decodeURIComponent(m[1]));
     else if (h === "/campaign") campaignPage();
+    else if (h === "/boxes") boxesPage();
     else if (h === "/due" || h.startsWith("/due?")) duePage();
     else fleetPage();
   }

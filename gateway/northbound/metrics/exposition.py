@@ -36,7 +36,8 @@ def _hist(name: str, doc: str, snaps: list[dict], key: str) -> HistogramMetricFa
 
 
 def families(snapshots: list[dict], *, console_clients: int | None = None,
-             sparkplug: list[dict[str, Any]] | None = None) -> list[Metric]:
+             sparkplug: list[dict[str, Any]] | None = None,
+             config: dict[str, Any] | None = None) -> list[Metric]:
     """Prometheus metric families of station snapshots (pure: no I/O, no clock)."""
     p = PREFIX
     out: list[Metric] = []
@@ -168,7 +169,27 @@ def families(snapshots: list[dict], *, console_clients: int | None = None,
         out.append(GaugeMetricFamily(f"{p}_console_clients", "clients connected to the web console",
                                      value=float(console_clients)))
     out += sparkplug_families(p, sparkplug or [])
+    if config is not None:
+        out += config_families(p, config)
     return out
+
+
+def config_families(p: str, c: dict[str, Any]) -> list[Any]:
+    """A site-managed box (issue 37): which version of the site's configuration it runs, whether
+    its tree was edited by hand, how many stations wait for their test to end."""
+    box = str(c.get("box") or "")
+    info = GaugeMetricFamily(f"{p}_config_info", "always 1: the site configuration version this box "
+                             "runs (a Git commit), the sha256 of its effective tree and the last "
+                             "verified version", labels=["box", "site", "version", "sha256", "verified"])
+    info.add_metric([box, str(c.get("site") or ""), str(c.get("version") or ""),
+                     str(c.get("sha256") or ""), str(c.get("verified") or "")], 1.0)
+    drift = GaugeMetricFamily(f"{p}_config_drift", "1 while a file of the box's effective tree "
+                              "differs from what was staged (a hand edit)", labels=["box"])
+    drift.add_metric([box], 1.0 if c.get("drift") else 0.0)
+    deferred = GaugeMetricFamily(f"{p}_config_deferred_stations", "stations whose new configuration "
+                                 "waits for their running test to end", labels=["box"])
+    deferred.add_metric([box], float(c.get("deferred") or 0))
+    return [info, drift, deferred]
 
 
 class SnapshotCollector:
@@ -185,7 +206,14 @@ class SnapshotCollector:
             except Exception:  # one broken source must not hide the others
                 log.exception("metrics: a station snapshot failed")
         snaps.sort(key=lambda s: s["station"])
-        yield from families(snaps, console_clients=_PROCESS.console_clients, sparkplug=node_figures())
+        config = None
+        if _PROCESS.config is not None:
+            try:
+                config = _PROCESS.config()
+            except Exception:  # the configuration figures must not hide the stations'
+                log.exception("metrics: the configuration figures failed")
+        yield from families(snaps, console_clients=_PROCESS.console_clients, sparkplug=node_figures(),
+                            config=config)
 
 
 

@@ -14,6 +14,7 @@ import threading
 import time
 import urllib.parse
 from bisect import bisect_left
+from collections.abc import Callable
 from typing import Any
 
 from ...records import StationState, TestState
@@ -174,6 +175,8 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
 
 class _Process:
     console_clients: int | None = None
+    #: the site configuration of this box (its supervisor's BoxAgent.figures), or None
+    config: Callable[[], dict[str, Any]] | None = None
 
 
 _PROCESS = _Process()
@@ -182,6 +185,12 @@ _PROCESS = _Process()
 def set_console_clients(n: int | None) -> None:
     """The web console reports how many clients it serves (None: no console in this process)."""
     _PROCESS.console_clients = None if n is None else max(0, int(n))
+
+
+def set_config_source(fn: Callable[[], dict[str, Any]] | None) -> None:
+    """A site-managed box's supervisor names where its configuration figures come from
+    (``hookwatch_config_info``, ``hookwatch_config_drift``; None: none in this process)."""
+    _PROCESS.config = fn
 
 
 def forecast_figures(st: StationState) -> dict[str, Any]:

@@ -30,7 +30,34 @@ def status(sid: str, st: str) -> bytes:
 
 def test_filters_are_the_sites_state_and_status():
     assert S.filters("hookwatch/plant/hall-1/l1/a-1") == ("hookwatch/plant/+/+/+/state",
-                                                          "hookwatch/plant/+/+/+/status")
+                                                          "hookwatch/plant/+/+/+/status",
+                                                          "hookwatch/plant/box/+/config")
+
+
+def test_box_reports_are_bounded_checked_and_a_will_keeps_the_last_report():
+    """The Boxes page's reports (gateway/console/boxes.py): a malformed or oversized report is
+    refused and counted, a report on another box's topic too; the Will updates `online` only."""
+    from gateway.console.boxes import MAX_BOXES
+    view = SiteView()
+    t = "hookwatch/plant/box/b1/config"
+    rep = {"schema": 1, "box": "b1", "site": "plant", "online": True, "version": "a" * 40,
+           "deferred": ["st-1"], "pending": ["st-1"], "drift": False, "drift_files": [],
+           "last_rollback": {"from": "b" * 40, "to": "a" * 40, "why": "x" * 390, "time": "2026"},
+           "stations": {"st-1": {"version": "c" * 40, "pending": "a" * 40, "in_test": True}}}
+    assert view.receive(t, json.dumps(rep).encode())
+    assert not view.receive(t, json.dumps({**rep, "box": "b2"}).encode())           # not its topic
+    assert not view.receive(t, json.dumps({**rep, "online": "yes"}).encode())
+    assert not view.receive(t, json.dumps({**rep, "deferred": list(range(5))}).encode())
+    assert not view.receive(t, b"{" + b" " * 70_000 + b"}")
+    assert view.boxes.counters["refused"] == 4
+    assert view.receive(t, json.dumps({"schema": 1, "box": "b1", "site": "plant", "online": False}).encode())
+    (row,) = view.boxes.rows()
+    assert row["online"] is False and row["version"] == "a" * 40 and row["deferred"] == ["st-1"]
+    assert len(row["last_rollback"]["why"]) == 300 and row["stations"]["st-1"]["in_test"] is True
+    for i in range(MAX_BOXES + 5):
+        view.receive(f"hookwatch/plant/box/x{i}/config", json.dumps({"box": f"x{i}"}).encode())
+    assert len(view.boxes.rows()) == MAX_BOXES and view.boxes.counters["over_bound"] >= 5
+    assert view.receive(t, b"") and "b1" not in [r["box"] for r in view.boxes.rows()]
 
 
 def test_a_remote_station_is_shown_read_only_with_its_place_and_liveness():

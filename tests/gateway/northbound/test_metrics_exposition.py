@@ -314,7 +314,9 @@ def _exposed_names() -> set[str]:
     return {f.name + ("_total" if f.type == "counter" else "")
             for f in M.families([snap], console_clients=1, sparkplug=[
                 {"group": "g", "node": "n", "connected": True,
-                 "counters": {"bad_state": 1, "births": 1}}])}
+                 "counters": {"bad_state": 1, "births": 1}}],
+                config={"box": "b1", "site": "s", "version": "abc", "sha256": "d", "drift": True,
+                        "deferred": 1})}
 
 
 def test_docs_and_shipped_rules_name_exactly_the_exposed_metrics():
