@@ -11,16 +11,15 @@ repository whose commits are signed with an OpenSSH key.
 (c) a change that passes the check but fails the canary's health gate (a serial port that does not
     exist) rolls back on the canary and stops the play;
 (d) an unsigned commit is refused by the canary; the play stops;
+(e) a hand edit on box 3 is reported as drift (the time it takes: the core's bench_site_config.py);
 (f) ``kill -9`` of an apply: the box starts on one consistent version, and the next run applies.
 """
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import subprocess
-import time
 
 import pytest
 import yaml
@@ -28,7 +27,7 @@ import yaml
 from conftest import ROOT, hookwatch_cmd
 from kit.broker import pub
 from kit.e2e import analyze_cli, read_json, test_dirs, wait_log
-from kit.site_lab import ANSIBLE_DIR, SiteLab, ansible_playbook, recap
+from kit.site_lab import SiteLab, ansible_playbook, recap
 from kit.tools import wait_for
 
 #: a bound against a hang: a run of ansible-playbook over three boxes took 100–260 s at load 15–20
@@ -204,7 +203,16 @@ def test_b_c_d_a_bad_change_stops_at_the_canary_and_no_other_box_changes(lab):
     assert "box-1: hookwatch config apply exit 4 (refused)" in r.stdout, r.stdout
     unchanged(r)
 
-    # the same tree signed: every box takes it
+    # (e) a hand edit on box 3: its report says drift, naming the file
+    edited = box3.state / "config" / "current" / "stations" / f"{box3.station}.yaml"
+    with open(edited, "a") as f:
+        f.write("# edited by hand on the box\n")
+    assert not box3.status()["drift"]
+    st3 = wait_for(lambda: (s := box3.status())["drift"] and s, timeout=60, interval=0.5,
+                   what="box-3's drift")
+    assert any(box3.station in f for f in st3["drift_files"]), st3
+
+    # the same tree signed: every box takes it (box 3's hand edit replaced by the version)
     lab.write("README.md", "signed again\n")
     v2 = lab.commit("signed", push=True)
     assert v2 != unsigned
@@ -212,6 +220,7 @@ def test_b_c_d_a_bad_change_stops_at_the_canary_and_no_other_box_changes(lab):
     assert r.returncode == 0, r.stdout + r.stderr
     for b in lab.boxes:
         assert b.current() == v2
+    wait_for(lambda: not box3.status()["drift"], timeout=60, interval=0.5, what="box-3 without drift")
     assert not [ln for ln in box1.proc.log_all().splitlines() if "Traceback" in ln]
 
 
@@ -252,6 +261,3 @@ def test_f_an_apply_killed_mid_way_leaves_one_consistent_version_and_the_next_ru
     for b in lab.boxes:
         assert b.current() == v2
         wait_for(lambda b=b: _runs(b, v2), timeout=90, interval=0.5, what=f"{b.name} on v2")
-    _ = json  # noqa: F841
-    _ = time  # noqa: F841
-    _ = ANSIBLE_DIR  # noqa: F841

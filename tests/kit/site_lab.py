@@ -166,6 +166,10 @@ class SiteLab:
             self.push()
         return sha
 
+    def head(self) -> str:
+        """The full sha of the author's last commit."""
+        return _run(["git", "rev-parse", "HEAD"], cwd=self.work).stdout.strip()
+
     def push(self) -> None:
         _run(["git", "push", "-q", "origin", "HEAD:main"], cwd=self.work)
 
@@ -205,7 +209,8 @@ class SiteLab:
         inv = self.inventory(**extra)
         home = self.tmp / "ansible-home"
         env = dict(os.environ, ANSIBLE_HOME=str(home), ANSIBLE_LOCAL_TEMP=str(home / "tmp"),
-                   ANSIBLE_NOCOLOR="1", ANSIBLE_FORCE_COLOR="0", ANSIBLE_CONFIG=os.path.join(ANSIBLE_DIR, "ansible.cfg"),
+                   ANSIBLE_NOCOLOR="1", ANSIBLE_FORCE_COLOR="0",
+                   ANSIBLE_CONFIG=os.path.join(ANSIBLE_DIR, "ansible.cfg"),
                    PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ.get("PATH", ""))
         t0 = time.monotonic()
         r = subprocess.run([ansible_playbook(), "-i", str(inv), playbook, *args], cwd=ANSIBLE_DIR,
