@@ -52,7 +52,7 @@ def lab(tmp_path, broker):
 def _bootstrap(lab: SiteLab) -> str:
     """The first version applied to every box by the playbook (no supervisor runs yet: the switch
     alone), then each box's supervisor started on it; its sha."""
-    v1 = _head(lab)
+    v1 = lab.head()
     r = lab.playbook()
     assert r.returncode == 0, r.stdout + r.stderr
     for b in lab.boxes:
@@ -61,11 +61,6 @@ def _bootstrap(lab: SiteLab) -> str:
     for b in lab.boxes:
         wait_for(lambda b=b: _runs(b, v1), timeout=90, interval=0.5, what=f"{b.name} running {v1[:12]}")
     return v1
-
-
-def _head(lab: SiteLab) -> str:
-    return subprocess.run(["git", "rev-parse", "HEAD"], cwd=lab.work, capture_output=True, text=True,
-                          check=True).stdout.strip()
 
 
 def _station(b, status: dict | None = None) -> dict:
@@ -99,7 +94,7 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     secrets = {"hookwatch_secret_files": [{"src": str(secret), "dest": "{{ hookwatch_state_dir }}/../mqtt.pass",
                                            "mode": "0600"}]}
 
-    v1 = _head(lab)
+    v1 = lab.head()
     r = lab.playbook("site.yml", *lab.extra_args, **secrets)
     assert r.returncode == 0, r.stdout + r.stderr
     for b in lab.boxes:
@@ -205,9 +200,9 @@ def test_b_c_d_a_bad_change_stops_at_the_canary_and_no_other_box_changes(lab):
 
     # (e) a hand edit on box 3: its report says drift, naming the file
     edited = box3.state / "config" / "current" / "stations" / f"{box3.station}.yaml"
+    assert not box3.status()["drift"]
     with open(edited, "a") as f:
         f.write("# edited by hand on the box\n")
-    assert not box3.status()["drift"]
     st3 = wait_for(lambda: (s := box3.status())["drift"] and s, timeout=60, interval=0.5,
                    what="box-3's drift")
     assert any(box3.station in f for f in st3["drift_files"]), st3
@@ -235,7 +230,8 @@ def test_f_an_apply_killed_mid_way_leaves_one_consistent_version_and_the_next_ru
     # the apply, as the role runs it, killed once it has begun to switch (its journal says so)
     ap = subprocess.Popen(hookwatch_cmd() + [
         "config", "apply", str(box1.dir / "site"), "--version", v2, "--box-file", str(box1.box_file),
-        "--state-dir", str(box1.state), "--json"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        "--state-dir", str(box1.state), "--json"], cwd=ROOT, stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL)
     journal = box1.state / "config" / "journal.jsonl"
 
     def begun():
@@ -260,4 +256,7 @@ def test_f_an_apply_killed_mid_way_leaves_one_consistent_version_and_the_next_ru
     assert r.returncode == 0, r.stdout + r.stderr
     for b in lab.boxes:
         assert b.current() == v2
+    for b in (lab.boxes[0], lab.boxes[2]):
         wait_for(lambda b=b: _runs(b, v2), timeout=90, interval=0.5, what=f"{b.name} on v2")
+    s2 = _station(lab.boxes[1])          # box 2's station: in its test, v2 waits for its end
+    assert s2["in_test"] and s2["pending"] == v2, s2
