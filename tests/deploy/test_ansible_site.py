@@ -90,12 +90,12 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     subprocess.run([vault, "encrypt", "--vault-password-file", str(vault_pw), str(secret)],
                    check=True, capture_output=True, env=dict(os.environ, ANSIBLE_HOME=str(tmp_path / "ansible-home")))
     assert "s3cret" not in secret.read_text() and secret.read_text().startswith("$ANSIBLE_VAULT")
-    lab.extra_args = ["--vault-password-file", str(vault_pw)]
+    vault_args = ["--vault-password-file", str(vault_pw)]
     secrets = {"hookwatch_secret_files": [{"src": str(secret), "dest": "{{ hookwatch_state_dir }}/../mqtt.pass",
                                            "mode": "0600"}]}
 
     v1 = lab.head()
-    r = lab.playbook("site.yml", *lab.extra_args, **secrets)
+    r = lab.playbook("site.yml", *vault_args, **secrets)
     assert r.returncode == 0, r.stdout + r.stderr
     for b in lab.boxes:
         assert b.current() == v1
@@ -114,7 +114,7 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     v2 = lab.commit("defaults: delta 0.3 for every loom", push=True)
 
     # check mode: each box's plan printed, nothing changed anywhere
-    chk = lab.playbook("site.yml", "--check", *lab.extra_args, **secrets)
+    chk = lab.playbook("site.yml", "--check", *vault_args, **secrets)
     (tmp_path / "check-mode.txt").write_text(chk.stdout)
     assert chk.returncode == 0, chk.stdout + chk.stderr
     for b in lab.boxes:
@@ -125,7 +125,7 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     assert recap(chk)["box-1"]["failed"] == 0
 
     # the rollout: every box takes v2; box 2's station keeps v1 for its running test
-    r = lab.playbook("site.yml", *lab.extra_args, **secrets)
+    r = lab.playbook("site.yml", *vault_args, **secrets)
     assert r.returncode == 0, r.stdout + r.stderr
     rc = recap(r)
     for b in lab.boxes:
@@ -151,7 +151,7 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     assert analyze_cli(os.path.join(first, "log.csv.gz")) == res["method"]       # online == offline
 
     # the same version again changes nothing on any box
-    again = lab.playbook("site.yml", *lab.extra_args, **secrets)
+    again = lab.playbook("site.yml", *vault_args, **secrets)
     assert again.returncode == 0, again.stdout + again.stderr
     assert all(recap(again)[b.name]["changed"] == 0 for b in lab.boxes), again.stdout
 
