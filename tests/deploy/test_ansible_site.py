@@ -12,6 +12,8 @@ repository whose commits are signed with an OpenSSH key.
     exist) rolls back on the canary and stops the play;
 (d) an unsigned commit is refused by the canary; the play stops;
 (e) a hand edit on box 3 is reported as drift (the time it takes: the core's bench_site_config.py);
+(h) the console's Boxes page in chromium shows every box's version and box 2's deferred station
+    (from the boxes' own retained config reports on the site's broker);
 (f) ``kill -9`` of an apply: the box starts on one consistent version, and the next run applies.
 """
 from __future__ import annotations
@@ -20,13 +22,19 @@ import contextlib
 import os
 import signal
 import subprocess
+import threading
 
 import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
+from gateway.northbound import mqtt_schema
+from gateway.northbound.mqtt import MqttOutput, MqttSettings
 from kit.broker import pub
+from kit.browser import wait_js
+from kit.console_helpers import start_console
 from kit.e2e import analyze_cli, read_json, test_dirs, wait_log
+from kit.northbound import LoopThread
 from kit.site_lab import SiteLab, ansible_playbook, recap
 from kit.tools import wait_for
 
@@ -79,7 +87,7 @@ def _plan_lines(run: subprocess.CompletedProcess, box: str) -> str:
     return "\n".join(c for c in out if f"ok: [{box}]" in c)
 
 
-def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_ends(lab, tmp_path, broker):
+def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_ends(lab, tmp_path, broker, browser):
     # a secret for every box, encrypted with Ansible Vault on the controller (never in the site
     # repository, which only names its path on the box)
     vault_pw = tmp_path / "vault-pass"
@@ -136,6 +144,8 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     s2 = _station(box2)
     assert s2["in_test"] and s2["version"] == v1 and s2["pending"] == v2, s2
     assert box2.station in box2.status()["deferred"]
+    # (h) the console's Boxes page, on the site's broker, shows every box on v2, box 2's deferral
+    _boxes_page(browser, tmp_path, broker.port, v2, {"box-2": box2.station})
 
     # box 2's test ends (the operator's stop); then its station applies v2 (and, autostart,
     # begins another test on it)
@@ -260,3 +270,43 @@ def test_f_an_apply_killed_mid_way_leaves_one_consistent_version_and_the_next_ru
         wait_for(lambda b=b: _runs(b, v2), timeout=90, interval=0.5, what=f"{b.name} on v2")
     s2 = _station(lab.boxes[1])          # box 2's station: in its test, v2 waits for its end
     assert s2["in_test"] and s2["pending"] == v2, s2
+
+
+def _boxes_page(browser, tmp_path, port: int, version: str, deferred: dict[str, str]) -> None:
+    """A console whose site view rides on a real MQTT output of site `lab` on the lab's broker:
+    its Boxes page in chromium lists the lab's boxes (their retained config reports)."""
+    lt = LoopThread()
+    srv = out = None
+    try:
+        srv, url, _outs, _dirs = start_console(tmp_path)
+        base = mqtt_schema.base_topic("hookwatch", "lab", "hall", "l1", "console-lab")
+        out = MqttOutput(MqttSettings(station_id="console-lab", base_topic=base, port=port,
+                                      outbox_path=str(tmp_path / "console-lab.sqlite"),
+                                      reconnect_min_s=0.2, reconnect_max_s=1.0))
+        assert srv.attach_site("console-lab", base, out.pump.add_site_feed)
+        lt.call(out.start())
+        ctx = browser.new_context(viewport={"width": 1500, "height": 900}, bypass_csp=True)
+        page = ctx.new_page()
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url + "/#/boxes")
+        wait_js(page, "window.hw.boxes && window.hw.boxes.length === 3")
+        assert page.evaluate("window.hw.boxes") == ["box-1", "box-2", "box-3"]
+
+        def cell(box, cls):
+            return page.locator(f'#boxes tr[data-box="{box}"] td.{cls}').inner_text()
+        for box in ("box-1", "box-2", "box-3"):
+            assert cell(box, "version") == version[:12], box
+            assert cell(box, "online") == "online" and cell(box, "drift") == "no", box
+            assert cell(box, "deferred") == deferred.get(box, "none"), box
+        page.screenshot(path=str(tmp_path / "boxes.png"), full_page=True)
+        assert not errors, errors
+        ctx.close()
+    finally:
+        if out is not None:
+            lt.call(out.stop())
+        closer = threading.Thread(target=lt.close)
+        closer.start()
+        closer.join(30)
+        if srv is not None:
+            srv.stop()
