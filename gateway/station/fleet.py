@@ -57,6 +57,8 @@ class StationRunner:
         self.finished = threading.Event()
         #: a new configuration that came during a test: applied when the test ends, never sooner
         self.deferred: Callable[[], None] | None = None
+        #: a new configuration came before the loop ran: the first station is built from it
+        self.reloaded_before_start = False
         self._deferred_task: asyncio.Task[None] | None = None
 
     @property
@@ -91,7 +93,7 @@ class StationRunner:
                         self.rt_priority, why)
         if self._stopping.is_set():
             return
-        reloaded = False
+        reloaded = self.reloaded_before_start
         while not self._stopping.is_set():
             t_start = time.monotonic()
             try:
@@ -179,6 +181,11 @@ class StationRunner:
                     self._deferred_task = asyncio.ensure_future(self._after_test())
         if self.tl.running:
             self.tl.call_soon(on_loop)
+        elif factory is not None:       # not started yet (a fleet's start barrier): it starts with it
+            self.factory = factory
+            self.reloaded_before_start = True   # and says so (``config_reloaded``)
+        else:
+            apply()
 
     async def _after_test(self) -> None:
         """The configuration deferred by a test applies once the station is idle (checked and
