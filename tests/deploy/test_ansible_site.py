@@ -14,15 +14,20 @@ repository whose commits are signed with an OpenSSH key.
 (e) a hand edit on box 3 is reported as drift (the time it takes: the core's bench_site_config.py);
 (h) the console's Boxes page in chromium shows every box's version and box 2's deferred station
     (from the boxes' own retained config reports on the site's broker);
+(g) an offline release (scripts/build-release) installed in waves by release.yml: every station's
+    worker restarted on it, box 2's only once its test has ended (the test's result unchanged);
 (f) ``kill -9`` of an apply: the box starts on one consistent version, and the next run applies.
 """
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import signal
 import subprocess
+import tarfile
 import threading
+import time
 
 import pytest
 import yaml
@@ -311,3 +316,60 @@ def _boxes_page(browser, tmp_path, port: int, version: str, deferred: dict[str, 
         closer.join(30)
         if srv is not None:
             srv.stop()
+
+
+def test_g_a_release_in_waves_restarts_each_station_only_when_its_test_has_ended(lab, broker, tmp_path,
+                                                                                  tmp_path_factory):
+    if os.geteuid() != 0:
+        pytest.skip("install.sh --root applies sysusers/tmpfiles to the box's root as root")
+    from deploy.test_release import _built_once  # the run's one release build
+    tarball = _built_once(tmp_path_factory)
+    with tarfile.open(tarball) as t:
+        sums = next(m for m in t.getmembers() if m.name.endswith("/SHA256SUMS"))
+        fingerprint = hashlib.sha256(t.extractfile(sums).read()).hexdigest()
+    v1 = _bootstrap(lab)
+    box1, box2, box3 = lab.boxes
+    wait_log(box2.proc, f"{box2.station}: test_started", timeout=90)
+    pids = {b.name: _station(b)["pid"] for b in lab.boxes}
+    release = {"hookwatch_release_tarball": tarball, "hookwatch_release_fingerprint": fingerprint,
+               # the new release's own hookwatch asks for the restarts (the software it runs)
+               "hookwatch_cmd": "{{ hookwatch_root }}/usr/local/bin/hookwatch",
+               # the lab's supervisors are this checkout's; a rebuilt release of the same version:
+               # every worker restarts on it
+               "hookwatch_restart_all": True, "hookwatch_restart_service": False}
+    done: list[subprocess.CompletedProcess] = []
+    runner = threading.Thread(target=lambda: done.append(lab.playbook("release.yml", **release)))
+    runner.start()
+    try:
+        # box 1 (the canary) restarted at once; box 2's restart waits for its running test
+        wait_for(lambda: _station(box1).get("pid") not in (None, pids["box-1"]), timeout=600, interval=1,
+                 what="box-1's worker on the release")
+        wait_for(lambda: (box2.state / "config" / "restart.json").exists(), timeout=600, interval=1,
+                 what="box-2's restart asked for")
+        # a few of the role's asks (`config restart --wait 2`, exit 6: still in a test) go by
+        time.sleep(8)
+        s2 = _station(box2)
+        assert s2["in_test"] and s2["pid"] == pids["box-2"], s2          # its test goes on
+        assert runner.is_alive()                                        # the wave waits for it
+        pub(broker.port, BOX2_CMD, '{"request_id": "end-of-test"}')
+    finally:
+        runner.join(900)
+    (r,) = done
+    assert r.returncode == 0, r.stdout + r.stderr
+    waited = r.stdout.split("TASK [hookwatch_site : Each station's worker on the new software")[2]
+    assert "FAILED - RETRYING: [box-2]" in waited.split("TASK [", 1)[0], waited
+    for b in lab.boxes:
+        assert _station(b)["pid"] != pids[b.name], b.name
+        assert (b.dir / "release" / "installed").read_text().strip() == fingerprint
+        hw = b.dir / "root" / "usr" / "local" / "bin" / "hookwatch"
+        assert subprocess.run([str(hw), "--version"], capture_output=True, text=True).stdout.startswith("hookwatch ")
+        assert b.current() == v1
+    # box 2's test ended by its operator, not by the release; nothing of it lost
+    first = test_dirs(box2.dir, box2.station)[0]
+    res = read_json(os.path.join(first, "result.json"))
+    assert res["end_reason"] == "stopped by command", res
+    assert analyze_cli(os.path.join(first, "log.csv.gz")) == res["method"]
+    # the same release again installs nothing
+    again = lab.playbook("release.yml", **release)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert all(recap(again)[b.name]["changed"] == 0 for b in lab.boxes), again.stdout

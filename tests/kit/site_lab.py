@@ -185,6 +185,7 @@ class SiteLab:
                 "hookwatch_site_checkout": str(b.dir / "site"),
                 "hookwatch_allowed_signers": str(b.dir / "allowed_signers"),
                 "hookwatch_release_dir": str(b.dir / "release"),
+                "hookwatch_root": str(b.dir / "root"),          # install.sh --root (release.yml)
             }
         inv = {"hookwatch_boxes": {"hosts": hosts, "vars": {
             "ansible_connection": "local",
