@@ -145,7 +145,9 @@ SLOW: dict[str, tuple[str, ...]] = {
         # issue 37: a box from a site repository (a supervisor, 2 virtual stations, Mosquitto)
         "tests/gateway/config/test_site_apply_e2e.py",
         "tests/deploy/test_release.py",
-        "tests/deploy/test_setup.py")},
+        "tests/deploy/test_setup.py",
+        # the site rolled out by ansible-playbook to three boxes, each a supervisor and a station
+        "tests/deploy/test_ansible_site.py")},
     "tests/gateway/station/test_retention_e2e.py": ("test_retention_over_many_short_tests_on_a_small_disk",),
     "tests/gateway/station/test_recorder_disk.py": (
         "test_station_on_a_disk_filled_then_freed_mid_test",
@@ -259,6 +261,8 @@ FLEETS = (
     # two stations at 50 Hz under a flood of 600 lives snapshots of 115 KB through the broker,
     # compared with each other: beside another fleet both would only measure that fleet
     "tests/gateway/outputs/test_site_lives_churn_e2e.py",
+    # three boxes (a supervisor and a virtual station each) and ansible-playbook runs
+    "tests/deploy/test_ansible_site.py",
     # a site-managed box: a supervisor with two workers and their twins (issue 37)
     "tests/gateway/config/test_site_apply_e2e.py",
 )
