@@ -4,7 +4,7 @@ read from .csv.gz; nothing is cached, nothing written beside the log), where its
 parse candidates side by side in one run (ISA-L + Arrow, the product's path, vs. zlib + numpy,
 the reference it replaced, vs. reading a binary companion), the same on a log in the recorder's
 own 10-column format, the same log with and without its columnar companion (``log.cols``, written
-once by the recorder at close: gateway/logcols.py), and the streaming form's cost per slot.
+once by the recorder at close: gateway/offline/logcols.py), and the streaming form's cost per slot.
 Medians over several runs; the load average is printed with each figure because the machine is
 shared. ``--companion`` runs only the companion comparison."""
 import os
@@ -34,7 +34,8 @@ def med(xs: list[float]) -> str:
 #: cache): the same CLI in a fresh interpreter, the fast path switched off
 REFERENCE_CLI = r"""
 import sys, zlib
-from gateway import logio, cli
+from gateway.offline import logio
+from gateway import cli
 logio._parse_arrow = lambda *a: None
 _orig = logio._inflate_members
 logio._inflate_members = lambda raw, mod: _orig(raw, zlib)
@@ -76,7 +77,7 @@ def parse_candidates(log: str, runs: int) -> None:
     import numpy as np
     from isal import isal_zlib
 
-    from gateway import logio
+    from gateway.offline import logio
 
     with open(log, "rb") as f:
         raw = f.read()
@@ -160,9 +161,9 @@ import numpy
 T1 = time.perf_counter()
 import pyarrow.csv, isal.isal_zlib
 T2 = time.perf_counter()
-from gateway import logio
-from gateway.analysis import params_for
-from gateway.method import analyze_slots, to_slots
+from gateway.offline import logio
+from gateway.offline.analysis import params_for
+from gateway.core.method import analyze_slots, to_slots
 T3 = time.perf_counter()
 lg = logio.read_log(LOG)
 T4 = time.perf_counter()
@@ -187,9 +188,9 @@ STAGES_CODE = r"""
 import time; T0 = time.perf_counter()
 import numpy
 T1 = time.perf_counter()
-from gateway import logio
-from gateway.analysis import params_for
-from gateway.method import analyze_slots, to_slots
+from gateway.offline import logio
+from gateway.offline.analysis import params_for
+from gateway.core.method import analyze_slots, to_slots
 T2 = time.perf_counter()
 lg = logio.read_log(LOG)
 T3 = time.perf_counter()
@@ -207,7 +208,7 @@ def companion(runs: int = 7) -> None:
     without it (the companion moved aside), interleaved run by run in one loop (same load for
     both); the companion made by the function the recorder calls at close; then where each
     path's time goes, in fresh interpreters."""
-    from gateway import logcols, logio
+    from gateway.offline import logcols, logio
 
     rlog = os.path.join(HERE, "data", "rec10h", "log.csv.gz")
     if not os.path.exists(rlog):
@@ -349,9 +350,9 @@ def main(runs: int = 7) -> None:
           f"reference {statistics.median(CPU['ref']):.3f} s")
     parse_candidates(rlog, 3)
 
-    from gateway.analysis import params_for
-    from gateway.logio import read_log
-    from gateway.method import StreamingMonitor, analyze_slots, to_slots
+    from gateway.core.method import StreamingMonitor, analyze_slots, to_slots
+    from gateway.offline.analysis import params_for
+    from gateway.offline.logio import read_log
 
     lg = read_log(log)
     prm = params_for(lg.meta, {}, log)

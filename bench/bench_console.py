@@ -137,10 +137,10 @@ def run_fleet(n: int, duration: float, clients: int) -> dict:
 
 def long_test(hours: float = 10.0) -> dict:
     """A 10-hour test through the hand-over, then time to a drawn curve."""
-    from gateway.console.app import ConsoleServer
-    from gateway.console.feed import ConsoleOutput
-    from gateway.console.settings import ConsoleSettings
-    from gateway.records import Event, EventType, SlotRecord
+    from gateway.core.records import Event, EventType, SlotRecord
+    from gateway.outputs.console.app import ConsoleServer
+    from gateway.outputs.console.feed import ConsoleOutput
+    from gateway.outputs.console.settings import ConsoleSettings
 
     work = tempfile.mkdtemp(prefix="hw-bench-console-long-")
     srv = ConsoleServer(ConsoleSettings(listen=("127.0.0.1:0",), users_file=os.path.join(work, "u.json")),

@@ -166,7 +166,7 @@ HOOK_ANSWERS: dict[str, int] = {}
 
 def _hook_flood(port: int, n: int, stop: threading.Event) -> None:
     """The PLC's hook_replaced n times: the new hook's sample id, then command 5 (FC 16 each)."""
-    from gateway.northbound import registers as R
+    from gateway.outputs.plc import registers as R
 
     sid, cmd = R.HR["sample_id"], R.HR["command"]
     s = socket.create_connection(("127.0.0.1", port), timeout=5)

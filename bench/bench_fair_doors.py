@@ -32,9 +32,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, ROOT)
 
-from gateway.console import auth  # noqa: E402
-from gateway.console.app import ConsoleServer  # noqa: E402
-from gateway.console.settings import ConsoleSettings  # noqa: E402
+from gateway.outputs.console import auth  # noqa: E402
+from gateway.outputs.console.app import ConsoleServer  # noqa: E402
+from gateway.outputs.console.settings import ConsoleSettings  # noqa: E402
 
 
 def console(tmp: str) -> tuple[ConsoleServer, int]:

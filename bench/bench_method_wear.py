@@ -16,9 +16,9 @@ def long_log_slots():
     sys.path[:0] = [os.path.dirname(HERE), HERE]
     from gen_long_log import generate
 
-    from gateway.analysis import params_for
-    from gateway.logio import read_log
-    from gateway.method import to_slots
+    from gateway.core.method import to_slots
+    from gateway.offline.analysis import params_for
+    from gateway.offline.logio import read_log
 
     path = os.path.join(HERE, "data", "long10h.csv.gz")
     if not os.path.exists(path):
@@ -32,8 +32,8 @@ def main(runs: int = 3) -> None:
     prm, s = long_log_slots()
     import numpy as np
 
-    from gateway.method import StreamingMonitor, analyze_slots
-    from gateway.method.wear import WearTracker
+    from gateway.core.method import StreamingMonitor, analyze_slots
+    from gateway.core.method.wear import WearTracker
 
     pr, a, b = s.present.tolist(), s.t1.tolist(), s.t2.tolist()
     n = len(pr)
@@ -86,7 +86,7 @@ def main(runs: int = 3) -> None:
               f"median {statistics.median(ts) * 1e6:.0f} µs per window "
               f"(= {statistics.median(ts) / prm.n_ss * 1e6:.3f} µs per slot at N_ss = {prm.n_ss})")
     win = np.asarray(0.25 + 1e-3 * rng.standard_normal(prm.n_ss))
-    from gateway.method.rules import window_value
+    from gateway.core.method.rules import window_value
     ts = []
     for _ in range(5):
         t0 = time.perf_counter()

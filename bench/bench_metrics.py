@@ -30,8 +30,8 @@ sys.path.insert(0, HERE)
 from prometheus_client import CollectorRegistry  # noqa: E402
 from prometheus_client.exposition import generate_latest  # noqa: E402
 
-from gateway.northbound import metrics as M  # noqa: E402
-from gateway.records import SlotRecord  # noqa: E402
+from gateway.core.records import SlotRecord  # noqa: E402
+from gateway.outputs import prometheus as M  # noqa: E402
 
 
 def records() -> list[SlotRecord]:

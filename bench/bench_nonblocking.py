@@ -29,8 +29,8 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from gateway.northbound.mqtt import MqttOutput, MqttSettings  # noqa: E402
-from gateway.records import Event, EventType, SlotRecord  # noqa: E402
+from gateway.core.records import Event, EventType, SlotRecord  # noqa: E402
+from gateway.outputs.mqtt.output import MqttOutput, MqttSettings  # noqa: E402
 from gateway.supervisor.ipc import FrameChannel  # noqa: E402
 from gateway.supervisor.supervisor import StationHub  # noqa: E402
 from gateway.supervisor.worker import IpcOutput  # noqa: E402

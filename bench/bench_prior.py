@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Issue 29 benchmark: the §7a prior from failures and right-censored lives.
 
-- the maximum-likelihood fit (gateway/method/prior.py, pure Python) for histories of 10 to 40,000
+- the maximum-likelihood fit (gateway/core/method/prior.py, pure Python) for histories of 10 to 40,000
   lives (60 % failures, 40 % hooks replaced early), and its Newton steps;
 - what the reading worker does off the slot loop (every group fitted) and what a test start does
   on it (the prior looked up; a test of the group just ended: a small group refitted).
@@ -15,8 +15,8 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from gateway.method import prior as P  # noqa: E402
-from gateway.method.prior import PastTest, history_prior  # noqa: E402
+from gateway.core.method import prior as P  # noqa: E402
+from gateway.core.method.prior import PastTest, history_prior  # noqa: E402
 from gateway.station.priors import PriorBook, fit_groups  # noqa: E402
 
 

@@ -29,8 +29,8 @@ sys.path.insert(0, ROOT)
 
 import serial  # noqa: E402
 
-from drivers import stm32_protocol as sp  # noqa: E402
-from drivers.zns_map import DEFAULT_MAP_PATH, load_map, with_crc  # noqa: E402
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, load_map, with_crc  # noqa: E402
+from drivers.stm32 import protocol as sp  # noqa: E402
 
 REQ = with_crc(bytes([1, 3, 0, 0, 0, 4]))
 REPLY_LEN = 13

@@ -10,7 +10,7 @@ off until it is back), on the cluster one node in turn (the gateways on it move 
 Per setup: the slots held (filled / slots of every life, from ``--stats-json``), and the reconnect
 time of every link loss a gateway saw (from its log: the `connection lost` / `disconnected` line
 to the next `connected to` line), p50/p99/max; then the site-history sync of a joining gateway
-(``mqtt.share_lives``, gateway/northbound/sitelives.py): while the N gateways run again (what
+(``mqtt.share_lives``, gateway/outputs/mqtt/sitelives.py): while the N gateways run again (what
 they recorded, without their instruments: no test), a new gateway of the same site (its own
 virtual station, no test, the first server of gateway 0's list) runs 30 s; how many of the N
 stations' lives it received (retained on its node, or answering its lives request) and how long

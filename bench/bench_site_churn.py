@@ -47,7 +47,7 @@ from bench_stall import GC_PROBE  # noqa: E402
 from bench_station import EXE, export_rev  # noqa: E402
 from paho.mqtt.enums import CallbackAPIVersion  # noqa: E402
 
-import gateway.method.prior  # noqa: E402,F401  (before kit: tests/gateway must not shadow it)
+import gateway.core.method.prior  # noqa: E402,F401  (before kit: tests/gateway must not shadow it)
 from kit.broker import Broker  # noqa: E402
 from kit.site_peer import SitePeer  # noqa: E402
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Issue 16: where the CPU of one 50 Hz slot goes.
 
-drivers — the gateway's meter driver (drivers/zns.py) and STM32 link (drivers/stm32.py) against
+drivers — the gateway's meter driver (drivers/meter/driver.py) and STM32 link (drivers/stm32/driver.py) against
           `hookwatch sim` over pseudo-terminals (115200 baud), one exchange per 20 ms slot, as in
           the station: CPU of this process per exchange = (process CPU while exchanging − process
           CPU of the same loop idling the same slots) / exchanges. With ``--old-rev REV`` the meter
@@ -71,8 +71,8 @@ async def _slots(n: int, fn) -> float:
 
 
 def drivers(args) -> None:
-    from drivers.stm32 import Stm32Link
-    from drivers.zns import ZnsMeter
+    from drivers.meter.driver import ZnsMeter
+    from drivers.stm32.driver import Stm32Link
 
     work = tempfile.mkdtemp(prefix="hw-bench-slot-")
     links = os.path.join(work, "links")
@@ -181,8 +181,8 @@ def pure(args) -> None:
 
     from drivers.sim.plant import Plant
     from drivers.sim.scenario import load_scenario
-    from gateway.control import Controller, ControlParams
-    from gateway.method.core import StreamingMonitor
+    from gateway.core.control import Controller, ControlParams
+    from gateway.core.method.core import StreamingMonitor
     from gateway.station import recorder as recmod
     from gateway.station import station as stmod
 
@@ -256,7 +256,7 @@ def main() -> None:
     d = sub.add_parser("drivers")
     d.add_argument("--slots", type=int, default=1500)
     d.add_argument("--runs", type=int, default=3)
-    d.add_argument("--old-rev", default=None, help="also measure drivers/zns.py of this git revision")
+    d.add_argument("--old-rev", default=None, help="also measure drivers/meter/driver.py of this git revision")
     p = sub.add_parser("pure")
     p.add_argument("--slots", type=int, default=100_000)
     a = ap.parse_args()

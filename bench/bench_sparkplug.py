@@ -16,9 +16,9 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from gateway.northbound.outbox import Outbox  # noqa: E402
-from gateway.northbound.sparkplug.node import EdgeNode  # noqa: E402
-from gateway.northbound.sparkplug.node_store import OutboxBuffer  # noqa: E402
+from gateway.outputs.broker.outbox import Outbox  # noqa: E402
+from gateway.outputs.sparkplug.node import EdgeNode  # noqa: E402
+from gateway.outputs.sparkplug.node_store import OutboxBuffer  # noqa: E402
 
 VALUES = {"Tension/T1": 0.43, "Tension/T2": 0.57, "Tension/Mean": 0.5, "Friction/mu": 0.256,
           "Quality/Valid Ratio": 0.98, "Control/Speed Command": 120.4, "Control/Speed Actual": 120.1,

@@ -188,7 +188,7 @@ class PlantStm32:
         return _Status(self.plant.speed_rpm)
 
     def post_speed(self, rpm):
-        """As the real driver (drivers/stm32.py): the command now, its reply with the next slot."""
+        """As the real driver (drivers/stm32/driver.py): the command now, its reply with the next slot."""
         self.plant.set_command(rpm)
         self._posted = True
         return True
@@ -232,7 +232,7 @@ class VirtualClock:
 def memory(args) -> dict:
     from drivers.sim.plant import Plant
     from drivers.sim.scenario import load_scenario
-    from gateway.control import ControlParams
+    from gateway.core.control import ControlParams
     from gateway.station import station as stmod
 
     sc = load_scenario(os.path.join(ROOT, "config", "scenarios", "life-I-0.5.yaml"))

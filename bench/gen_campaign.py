@@ -261,7 +261,7 @@ def make_campaign(root: str, *, compress: float = 100.0, hours: float = 10.0, la
 
 
 # ---------------------------------------------------------------------------------------------
-# From the virtual bench: drivers/sim/plant.py under gateway.control.Controller, offline
+# From the virtual bench: drivers/sim/plant.py under gateway.core.control.Controller, offline
 # ---------------------------------------------------------------------------------------------
 
 PLANT_STATION = "virtual-bench"
@@ -273,7 +273,7 @@ def plant_run(grade: str, t_set: float, seed: int, duration: float, time_scale: 
     loop (or holding the open-loop speed): a pure loop, no I/O. A share ``drop`` of the slots,
     and a few short bursts, lose their reading (meter timeouts). Returns (t, T1, T2, truth)."""
     from drivers.sim.plant import Plant, PlantParams
-    from gateway.control import Controller, ControlParams
+    from gateway.core.control import Controller, ControlParams
 
     plant = Plant(PlantParams(grade=grade, t_set=t_set, time_scale=time_scale), seed)
     tp = plant.p.tension
@@ -309,8 +309,8 @@ def make_plant_campaign(root: str, *, time_scale: float = 100.0, t_end: float = 
     import yaml
 
     from drivers.sim.plant import TABLE4_LIFE
-    from gateway.method.core import analyze_readings
-    from gateway.method.params import build_params
+    from gateway.core.method.core import analyze_readings
+    from gateway.core.method.params import build_params
 
     logs, tests = [], []
     i = 0
@@ -408,10 +408,10 @@ def forecast_campaign(*, compress: float = 40.0, reps: int = 6, grades=("I", "II
     """Run the campaign in rounds (every group's r-th test before any (r+1)-th), each test with
     the §7a prior from the earlier ones; returns one row per test."""
     from drivers.sim.plant import table_life
-    from gateway.method.core import analyze_readings
-    from gateway.method.forecast import band_at_half_life
-    from gateway.method.params import build_params
-    from gateway.method.prior import PastTest, resolve_prior
+    from gateway.core.method.core import analyze_readings
+    from gateway.core.method.forecast import band_at_half_life
+    from gateway.core.method.params import build_params
+    from gateway.core.method.prior import PastTest, resolve_prior
 
     times = {k: v / compress for k, v in FULL_SCALE_TIMES.items()}
     history: list[PastTest] = []

@@ -45,9 +45,9 @@ import paho.mqtt.client as paho  # noqa: E402
 import yaml  # noqa: E402
 from bench_station import EXE  # noqa: E402
 
-from gateway.method.prior import PastTest  # noqa: E402
-from gateway.northbound.mqtt_schema import SCHEMA_VERSION  # noqa: E402
-from gateway.northbound.sitelives import record_of  # noqa: E402
+from gateway.core.method.prior import PastTest  # noqa: E402
+from gateway.outputs.mqtt.schema import SCHEMA_VERSION  # noqa: E402
+from gateway.outputs.mqtt.sitelives import record_of  # noqa: E402
 from kit.broker import Broker  # noqa: E402
 
 SITE, AREA, LINE = "lab", "bench", "l1"

@@ -1,7 +1,7 @@
 """The composition root: drivers, stations and outputs built from configuration, in one place.
 
 Nothing else in hookwatch wires parts together: the station knows its ports and outputs only by
-their contracts (``gateway/ports.py``), the drivers know nothing of the station, the northbound
+their contracts (``gateway/core/ports.py``), the drivers know nothing of the station, the northbound
 outputs know the station only as a command sink and a state source. ``hookwatch run`` and
 ``hookwatch demo`` call :func:`build_station` and run it in :func:`in_process_runtime`; a new
 output or meter type is added here.
@@ -12,23 +12,23 @@ import importlib
 import os
 from collections.abc import Callable
 
-from drivers.stm32 import Stm32Link
-from drivers.zns import ZnsMeter
+from drivers.meter.driver import ZnsMeter
+from drivers.stm32.driver import Stm32Link
 
-from .console.app import ConsoleServer
-from .console.settings import ConsoleSettings
-from .doors import Budget, DoorLimits, budget
-from .northbound.metrics import MetricsRelay
-from .northbound.modbus_server import ModbusOutput
-from .northbound.mqtt import MqttOutput
-from .northbound.sparkplug.output import SparkplugOutput
-from .northbound.sparkplug.output import settings_from_config as sparkplug_settings
-from .northbound.wiring import metrics_outputs, modbus_settings, outbox_path, outputs_for
-from .ports import MeterPort, Output, StationLinks, StationView, Stm32Port
-from .records import EventType
-from .retention import Policy, Pruned, RetentionOutput
+from .core.ports import MeterPort, Output, StationLinks, StationView, Stm32Port
+from .core.records import EventType
+from .outputs.console.app import ConsoleServer
+from .outputs.console.settings import ConsoleSettings
+from .outputs.mqtt.output import MqttOutput
+from .outputs.plc.server import ModbusOutput
+from .outputs.prometheus import MetricsRelay
+from .outputs.sparkplug.output import SparkplugOutput
+from .outputs.sparkplug.output import settings_from_config as sparkplug_settings
+from .outputs.wiring import metrics_outputs, modbus_settings, outbox_path, outputs_for
+from .plumbing.doors import Budget, DoorLimits, budget
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.fleet import Fleet, StationRunner
+from .station.retention import Policy, Pruned, RetentionOutput
 from .station.station import Station
 
 __all__ = ["build_console", "build_meter", "build_stm32", "build_station", "in_process_runtime",
@@ -111,7 +111,7 @@ def in_process_runtime(factories: dict[str, Callable[[], Station]], *, rt_priori
 
 
 def process_budget(cfg) -> Budget:
-    """The process's descriptor budget (gateway/doors.py): the soft RLIMIT_NOFILE raised to the
+    """The process's descriptor budget (gateway/plumbing/doors.py): the soft RLIMIT_NOFILE raised to the
     hard limit, ``process.fd_reserve`` kept from the listening ports (the first call sets it)."""
     p = getattr(cfg, "process", None)
     return budget(int(p.fd_reserve) if p is not None else None)
@@ -131,7 +131,7 @@ def retention_output(cfg, st: Station) -> RetentionOutput:
 
 
 #: extra outputs of a site (a historian, a test fixture): ``module:callable[,module:callable]``;
-#: each callable gets (cfg, station) and returns the outputs to add (``gateway.ports.Output``)
+#: each callable gets (cfg, station) and returns the outputs to add (``gateway.core.ports.Output``)
 PLUGINS_ENV = "HOOKWATCH_OUTPUTS"
 
 

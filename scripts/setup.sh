@@ -47,6 +47,9 @@ case "$mode" in
 esac
 if [ "$mode" = "--tools" ]; then
   want socat socat
+  # the site rollout tests (tests/deploy/test_ansible_site.py) sign the site repository's commits
+  want ssh-keygen openssh-client
+  want git git
   want systemd-analyze systemd
   want logrotate logrotate /usr/sbin/logrotate
   want openssl openssl

@@ -120,81 +120,94 @@ SLOW: dict[str, tuple[str, ...]] = {
         "tests/gateway/supervisor/test_supervisor_shared_e2e.py",
         "tests/gateway/supervisor/test_supervisor_realtime.py",
         "tests/gateway/supervisor/test_supervisor_sparkplug_e2e.py",
-        "tests/gateway/northbound/test_forecast_doors_e2e.py",
-        "tests/gateway/northbound/test_northbound_disk_state.py",
-        "tests/gateway/northbound/test_northbound_cutoff_result.py",
-        "tests/gateway/northbound/test_northbound_e2e.py",
-        "tests/gateway/northbound/sparkplug/test_sparkplug_doors_e2e.py",
-        "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py",
-        "tests/gateway/northbound/test_northbound_wear_e2e.py",
-        "tests/gateway/northbound/test_site_lives_e2e.py",
-        "tests/gateway/northbound/test_site_lives_churn_e2e.py",
-        "tests/gateway/northbound/test_site_lives_store_e2e.py",
-        "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py",
+        "tests/gateway/outputs/test_forecast_doors_e2e.py",
+        "tests/gateway/outputs/test_outputs_disk_state.py",
+        "tests/gateway/outputs/mqtt/test_mqtt_cutoff_result.py",
+        "tests/gateway/outputs/test_outputs_e2e.py",
+        "tests/gateway/outputs/sparkplug/test_sparkplug_doors_e2e.py",
+        "tests/gateway/outputs/sparkplug/test_sparkplug_e2e.py",
+        "tests/gateway/outputs/test_wear_e2e.py",
+        "tests/gateway/outputs/mqtt/test_site_lives_e2e.py",
+        "tests/gateway/outputs/test_site_lives_churn_e2e.py",
+        "tests/gateway/outputs/test_site_lives_store_e2e.py",
+        "tests/gateway/outputs/test_acl_prior_e2e.py",
+        "tests/gateway/outputs/test_prior_early_e2e.py",
+        "tests/gateway/outputs/test_command_replay_e2e.py",
+        "tests/gateway/outputs/mqtt/test_mqtt_rabbitmq_cluster_e2e.py",
         "tests/gateway/station/test_stall_e2e.py",
         "tests/gateway/station/test_station_start_e2e.py",
         "tests/gateway/station/test_station_e2e.py",
         "tests/gateway/station/test_station_independent_slave.py",
         "tests/gateway/station/test_fleet_e2e.py",
         "tests/gateway/station/test_fleet_crash_restart.py",
-        "tests/gateway/commands/test_reload_hostile_yaml.py",
-        "tests/gateway/commands/test_reload_e2e.py",
+        "tests/gateway/cli/test_reload_hostile_yaml.py",
+        "tests/gateway/cli/test_reload_e2e.py",
+        # issue 37: a box from a site repository (a supervisor, 2 virtual stations, Mosquitto)
+        "tests/gateway/config/test_site_apply_e2e.py",
         "tests/deploy/test_release.py",
-        "tests/deploy/test_setup.py")},
+        "tests/deploy/test_setup.py",
+        # the site rolled out by ansible-playbook to three boxes, each a supervisor and a station
+        "tests/deploy/test_ansible_site.py")},
     "tests/gateway/station/test_retention_e2e.py": ("test_retention_over_many_short_tests_on_a_small_disk",),
     "tests/gateway/station/test_recorder_disk.py": (
         "test_station_on_a_disk_filled_then_freed_mid_test",
         "test_station_folder_unwritable_mid_test_completes_and_keeps_its_result"),
     "tests/gateway/station/test_lost_slots_e2e.py": ("test_disk_full_longer_than_the_reserve_offline_equals_online",),
-    "tests/gateway/commands/test_check_probe.py": (
+    "tests/gateway/cli/test_check_probe.py": (
         "test_the_probe_beside_a_running_station_costs_it_no_slot_and_names_it",),
-    "tests/gateway/method/test_method_property.py": (
+    "tests/gateway/core/method/test_method_property.py": (
         "test_streaming_equals_batch", "test_streaming_equals_batch_past_the_baseline",
         "test_streaming_equals_batch_with_lost_slots"),
-    "tests/gateway/report/test_report_campaign.py": (
+    "tests/gateway/offline/report/test_report_campaign.py": (
         "test_report_has_every_table_and_figure", "test_report_tables_match_the_campaign",
         "test_one_and_two_processes_give_the_same_tables", "test_gateway_layout_and_gateway_aborted_tests",
         "test_shipped_example_campaign_gives_a_full_report"),
-    "tests/gateway/report/test_report_bad_input.py": ("*",),
-    "tests/gateway/report/test_report_wear.py": ("*",),
-    "tests/gateway/northbound/test_northbound_modbus.py": (
+    "tests/gateway/offline/report/test_report_bad_input.py": ("*",),
+    "tests/gateway/offline/report/test_report_wear.py": ("*",),
+    "tests/gateway/outputs/plc/test_plc_server.py": (
         "test_malformed_frames_never_stop_the_server", "test_server_alive_after_fuzzing_and_no_write_got_through"),
-    "tests/gateway/northbound/test_northbound_cmdparse.py": (
+    "tests/gateway/outputs/test_command_intake_doors.py": (
         "test_fuzzed_mqtt_commands_each_get_one_small_reply_and_the_link_stays_up",
         "test_after_fuzzing_the_station_still_answers_and_events_are_bounded"),
-    "tests/gateway/northbound/test_northbound_modbus_tcp.py": (
+    "tests/gateway/outputs/plc/test_modbus_tcp.py": (
         "test_1100_idle_sockets_under_a_low_fd_limit_do_not_lock_out_the_plc",),
-    "tests/gateway/northbound/test_metrics_prometheus.py": ("*",),
-    "tests/gateway/northbound/test_metrics_fleet.py": ("*",),
-    "tests/gateway/northbound/test_metrics_northbound.py": ("*",),
-    "tests/gateway/northbound/test_northbound_mqtt.py": (
+    "tests/gateway/outputs/prometheus/test_metrics_prometheus.py": ("*",),
+    "tests/gateway/outputs/prometheus/test_metrics_fleet.py": ("*",),
+    "tests/gateway/outputs/prometheus/test_metrics_outputs.py": ("*",),
+    "tests/gateway/outputs/mqtt/test_mqtt.py": (
         "test_broker_outage_and_gateway_restart_deliver_every_event_in_order_once",),
-    "tests/gateway/console/test_console_http.py": (
+    "tests/gateway/outputs/console/test_console_http.py": (
         "test_console_history_fig7_downloads_and_campaign", "test_console_slow_client_dropped_fast_client_served",
         "test_console_http_auth_csrf_commands_lockout"),
-    "tests/gateway/console/test_console_browser.py": ("*",),
+    "tests/gateway/outputs/console/test_console_browser.py": ("*",),
     # the site view: chromium and three gateways on one Mosquitto; hookwatch run (a station, a fleet)
-    "tests/gateway/console/test_console_site_browser.py": ("*",),
-    "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
-    "tests/gateway/commands/test_console_demo.py": ("*",),
-    "tests/gateway/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
+    "tests/gateway/outputs/console/test_console_site_browser.py": ("*",),
+    # issue 37: the Boxes page, chromium and three boxes' report publishers on one Mosquitto
+    "tests/gateway/outputs/console/test_console_boxes_browser.py": ("*",),
+    "tests/gateway/outputs/console/test_console_feed.py": (
+        "test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
+    "tests/gateway/cli/test_console_demo.py": ("*",),
+    "tests/gateway/core/test_alarms_isa182.py": ("test_every_transition_is_one_event_and_the_record_reads_back",),
     "tests/deploy/test_deploy.py": ("test_gateway_speaks_the_units_notify_protocol",),
+    # the shipped permissions applied by rabbitmqctl (~6 s a call on the 2-core box) on the cluster
+    "tests/deploy/test_deploy_acl.py": ("test_rabbitmq_topic_permissions_refuse_a_forging_box_and_hold_a_gateway",),
     "tests/drivers/sim/test_plant.py": ("test_closed_loop_holds_setpoint_open_loop_wanders",),
     "tests/drivers/sim/test_sim.py": ("test_sim_process_prints_paths_and_each_fault_fires_on_the_wire",),
     # the door floods, the planner's browser walk and three gateways started for one check:
     # 10–67 s each (the quick loop took 3 min 13 s with them, 2026-11-26)
-    "tests/gateway/console/test_console_planner_browser.py": (
+    "tests/gateway/outputs/console/test_console_planner_browser.py": (
         "test_journal_actions_and_hook_replaced_reach_a_real_station",),
     "tests/gateway/supervisor/test_doors_flood_e2e.py": ("*",),
-    "tests/gateway/test_doors_station_e2e.py": ("*",),
+    "tests/gateway/plumbing/test_doors_station_e2e.py": ("*",),
     # 300 re-opened idle sockets against the console and the metrics door (5–8 s each)
-    "tests/gateway/test_doors_fair.py": (
+    "tests/gateway/plumbing/test_doors_fair.py": (
         "test_300_reopened_idle_sockets_from_one_address_do_not_starve_the_operators_console",
         "test_300_reopened_idle_sockets_from_one_address_do_not_starve_prometheus"),
-    "tests/gateway/northbound/test_northbound_refusal_flood.py": ("*",),
-    "tests/gateway/console/test_console_command_intake.py": ("*",),
+    "tests/gateway/outputs/test_refusal_flood.py": ("*",),
+    "tests/gateway/outputs/console/test_console_command_intake.py": ("*",),
     "tests/gateway/supervisor/test_supervisor_emfile.py": ("*",),
-    "tests/drivers/test_adapters.py": ("test_the_gateway_on_an_echoing_adapter_starts_a_test_only_with_local_echo",),
+    "tests/drivers/serial/test_adapters.py": (
+        "test_the_gateway_on_an_echoing_adapter_starts_a_test_only_with_local_echo",),
 }
 
 #: CPU-bound (no real-time wait): one after another on one worker, so that they never take both
@@ -202,29 +215,33 @@ SLOW: dict[str, tuple[str, ...]] = {
 #: fixture (a campaign, a running plant) or build on each other in order stay on one worker
 CPU_GROUP = "cpu"
 CPU: dict[str, tuple[str, ...]] = {
-    "tests/gateway/method/test_method_property.py": ("*",),
-    "tests/gateway/method/test_method_vectors.py": ("*",),
-    "tests/gateway/method/test_prior_mle.py": ("*",),
-    "tests/gateway/report/test_report_priors_campaign.py": ("*",),
-    "tests/gateway/report/test_report_campaign.py": ("*",),
-    "tests/gateway/report/test_report_bad_input.py": ("*",),
-    "tests/gateway/report/test_report_wear.py": ("*",),
-    "tests/gateway/report/test_report_figures.py": ("*",),
-    "tests/gateway/northbound/test_northbound_modbus.py": ("*",),
-    "tests/gateway/northbound/test_northbound_cmdparse.py": ("*",),
-    "tests/gateway/console/test_console_feed.py": ("test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
+    "tests/gateway/core/method/test_method_property.py": ("*",),
+    "tests/gateway/core/method/test_method_vectors.py": ("*",),
+    "tests/gateway/core/method/test_prior_mle.py": ("*",),
+    "tests/gateway/core/method/test_prior_early.py": ("*",),
+    "tests/gateway/offline/report/test_report_priors_campaign.py": ("*",),
+    "tests/gateway/offline/report/test_report_campaign.py": ("*",),
+    "tests/gateway/offline/report/test_report_bad_input.py": ("*",),
+    "tests/gateway/offline/report/test_report_wear.py": ("*",),
+    "tests/gateway/offline/report/test_report_figures.py": ("*",),
+    "tests/gateway/outputs/plc/test_plc_server.py": ("*",),
+    "tests/gateway/outputs/test_command_intake_doors.py": ("*",),
+    "tests/gateway/outputs/console/test_console_feed.py": (
+        "test_ten_hour_series_is_bounded_and_keeps_a_one_slot_spike",),
     "tests/gateway/supervisor/test_supervisor_ipc.py": (
         "test_stalled_consumer_never_blocks_the_station_and_is_bounded",),
 }
 #: module-scoped fixtures outside the CPU group: the module's own worker
-MODULE_GROUPS = ("tests/gateway/northbound/test_northbound_modbus_tcp.py",)
+MODULE_GROUPS = ("tests/gateway/outputs/plc/test_modbus_tcp.py",)
 #: tests of several modules that share one worker's costly fixture: group → module → test functions
 SHARED_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
     # one 3-node RabbitMQ cluster per worker (~1 min to start: tests/kit/rabbitmq_pool.py)
     "rabbitmq": {
-        "tests/gateway/northbound/test_northbound_rabbitmq_cluster_e2e.py": ("*",),
-        "tests/gateway/northbound/test_site_lives_e2e.py": (
+        "tests/gateway/outputs/mqtt/test_mqtt_rabbitmq_cluster_e2e.py": ("*",),
+        "tests/gateway/outputs/mqtt/test_site_lives_e2e.py": (
             "test_box_b_joining_through_another_rabbitmq_node_gets_the_site_prior_of_box_a",),
+        "tests/deploy/test_deploy_acl.py": (
+            "test_rabbitmq_topic_permissions_refuse_a_forging_box_and_hold_a_gateway",),
     },
 }
 #: fleets of virtual stations (several `hookwatch sim` + a gateway carrying 3–4 stations at 50 Hz):
@@ -239,11 +256,15 @@ FLEETS = (
     "tests/gateway/supervisor/test_supervisor_sparkplug_e2e.py",
     # one station with every door at once (MQTT, Sparkplug, PLC, metrics + Prometheus, console):
     # as heavy as a fleet; beside one, its compressed life ended in protection stops (ci runs 4, 5)
-    "tests/gateway/northbound/test_forecast_doors_e2e.py",
-    "tests/gateway/commands/test_console_demo.py",
+    "tests/gateway/outputs/test_forecast_doors_e2e.py",
+    "tests/gateway/cli/test_console_demo.py",
     # two stations at 50 Hz under a flood of 600 lives snapshots of 115 KB through the broker,
     # compared with each other: beside another fleet both would only measure that fleet
-    "tests/gateway/northbound/test_site_lives_churn_e2e.py",
+    "tests/gateway/outputs/test_site_lives_churn_e2e.py",
+    # three boxes (a supervisor and a virtual station each) and ansible-playbook runs
+    "tests/deploy/test_ansible_site.py",
+    # a site-managed box: a supervisor with two workers and their twins (issue 37)
+    "tests/gateway/config/test_site_apply_e2e.py",
 )
 
 
@@ -254,26 +275,28 @@ FLEETS = (
 #: gaps at the end (longest processing time first); without it xdist ordered the units by their
 #: number of tests, and the 3-minute broker outage life began 6 minutes in, on the critical path
 LONGEST_FIRST: dict[str, int] = {
-    FLEET_GROUP: 430,
+    FLEET_GROUP: 580,
     "rabbitmq": 230,
-    "tests/gateway/northbound/test_northbound_e2e.py": 215,
+    "tests/gateway/outputs/test_outputs_e2e.py": 215,
     "tests/gateway/station/test_station_e2e.py": 185,
     "tests/deploy/test_release.py": 165,
     CPU_GROUP: 150,
     "tests/gateway/station/test_station_start_e2e.py": 95,
-    "tests/gateway/console/test_console_http.py": 65,
+    "tests/gateway/outputs/test_site_lives_store_e2e.py": 100,
+    "tests/gateway/station/test_stall_e2e.py": 85,
+    "tests/gateway/outputs/console/test_console_http.py": 65,
+    "tests/gateway/outputs/test_command_replay_e2e.py": 65,
     "tests/gateway/station/test_retention_e2e.py": 60,
-    "tests/gateway/northbound/test_site_lives_store_e2e.py": 100,
-    "tests/gateway/station/test_stall_e2e.py": 57,
-    "tests/gateway/test_doors_station_e2e.py": 47,
-    "tests/gateway/console/test_console_browser.py": 45,
-    "tests/gateway/northbound/test_northbound_wear_e2e.py": 42,
+    "tests/gateway/plumbing/test_doors_station_e2e.py": 47,
+    "tests/gateway/outputs/console/test_console_browser.py": 45,
+    "tests/gateway/outputs/test_wear_e2e.py": 42,
     "tests/gateway/station/test_lost_slots_e2e.py": 42,
     "tests/gateway/station/test_recorder_disk.py": 41,
-    "tests/gateway/northbound/sparkplug/test_sparkplug_e2e.py": 40,
-    "tests/gateway/console/test_console_planner_browser.py": 36,
+    "tests/gateway/outputs/sparkplug/test_sparkplug_e2e.py": 40,
+    "tests/gateway/outputs/test_prior_early_e2e.py": 50,
+    "tests/gateway/outputs/console/test_console_planner_browser.py": 36,
     "tests/deploy/test_setup.py": 32,
-    "tests/gateway/northbound/test_northbound_refusal_flood.py": 30,
+    "tests/gateway/outputs/test_refusal_flood.py": 30,
 }
 
 

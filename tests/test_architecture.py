@@ -1,14 +1,18 @@
-"""The import graph of gateway/ and drivers/, read from the source (AST): no package cycles, no
-hidden imports.
+"""The import graph of gateway/ and drivers/, read from the source (AST): layers by folder, no
+package cycles, no hidden imports.
 
-- Every import of the project's own modules is at module level (the one exception: gateway/cli.py
+- The folders are the layers (docs/architecture.md, "The tree at a glance"): ``gateway/core/`` the
+  pure core (no I/O, no clock), ``gateway/plumbing/`` process plumbing, ``drivers/`` the devices,
+  ``gateway/station/``, ``gateway/outputs/`` (a subpackage per door), ``gateway/offline/``,
+  ``gateway/config/``, ``gateway/supervisor/``, ``gateway/commission/``, ``gateway/cli/``; the
+  composition root ``gateway/compose.py``. What each layer may import of the others is the table
+  ``LAYERS``; a module that sits in no layer folder fails (``LOOSE_ALLOWED``).
+- Every import of the project's own modules is at module level (the one exception: gateway/cli/__init__.py
   loads the subcommand asked for with ``importlib``, which is not an ``import`` statement).
 - No ``try: import … except ImportError`` around the project's own modules.
-- The packages form no cycle. A node is a subpackage (``gateway.station``, ``drivers.sim``) or a
-  module directly in ``gateway/`` or ``drivers/`` (``gateway.records``, ``drivers.zns``).
-- Layers: ``drivers`` sit on gateway's pure core only (``gateway.ports``, ``gateway.records``,
-  ``gateway.method``, ``gateway.control``), and that core imports nothing else of the project, so
-  gateway's runtime → drivers → pure core never closes a cycle.
+- The packages form no cycle. A node is a layer folder (``gateway.station``, ``drivers.sim``), an
+  output's subpackage (``gateway.outputs.mqtt``) or a module directly in ``gateway/`` or
+  ``gateway/outputs/`` (``gateway.compose``, ``gateway.outputs.wiring``).
 """
 from __future__ import annotations
 
@@ -21,10 +25,49 @@ from collections import defaultdict
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PACKAGES = ("gateway", "drivers")
-#: what drivers may import of gateway: the contracts, records, the pure method and control, and the
-#: two leaves every file reader shares (one bounded YAML reader, one validation style)
-PURE_CORE = ("gateway.ports", "gateway.records", "gateway.method", "gateway.control", "gateway.validation",
-             "gateway.safeyaml", "gateway.slotwindow")
+#: the pure core: a folder (its modules import nothing of the project outside it, no I/O, no clock)
+PURE_CORE = ("gateway.core",)
+#: process plumbing: the bottom of the house (it imports nothing of the project)
+PLUMBING = ("gateway.plumbing",)
+#: what each layer folder may import of the project besides itself and the package face
+#: (``gateway``: ``__version__``); a layer not named here may not be imported by the ones that are
+LAYERS: dict[str, tuple[str, ...]] = {
+    "gateway.plumbing": (),
+    "gateway.core": (),
+    "drivers": ("gateway.core", "gateway.plumbing"),
+    "gateway.config": ("gateway.core", "gateway.plumbing", "drivers"),
+    "gateway.offline": ("gateway.core", "gateway.plumbing"),
+    "gateway.station": ("gateway.core", "gateway.plumbing", "gateway.offline"),
+    "gateway.outputs": ("gateway.core", "gateway.plumbing", "gateway.offline", "gateway.station", "gateway.config"),
+    "gateway.commission": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.outputs"),
+    "gateway.supervisor": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.offline",
+                           "gateway.station", "gateway.outputs", "gateway.compose"),
+    "gateway.compose": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.offline",
+                        "gateway.station", "gateway.outputs"),
+    "gateway.cli": ("gateway.core", "gateway.plumbing", "drivers", "gateway.config", "gateway.offline",
+                    "gateway.station", "gateway.outputs", "gateway.compose", "gateway.supervisor",
+                    "gateway.commission"),
+}
+#: the imports across layers that the table does not allow, each with why (a new one fails)
+LAYER_EXCEPTIONS: dict[tuple[str, str], str] = {
+    ("gateway.core.command_rules", "gateway.plumbing.ratelog"):
+        "``clip``: the one bound on client text echoed back (pure text, beside the rate-limited log)",
+    ("gateway.core.command_intake", "gateway.plumbing.ratelog"):
+        "``clip``, ``safe``, ``ECHO_CHARS``: the one bound on client text echoed back (pure text)",
+}
+#: the modules that may sit outside a layer folder: the package faces, the composition root,
+#: and the one module left loose in gateway/outputs/ (with why)
+LOOSE_ALLOWED = {
+    "gateway": "the package face (``__version__``)",
+    "gateway.compose": "the composition root",
+    "gateway.outputs": "the outputs' package face",
+    "gateway.outputs.wiring": "settings of the outputs from configuration: folds into the output registry "
+                              "(issue 35 item 1)",
+}
+#: the standard library modules of I/O, time, threads and processes: none in the pure core
+IMPURE = ("os", "io", "sys", "time", "socket", "select", "selectors", "threading", "multiprocessing",
+          "asyncio", "subprocess", "sqlite3", "logging", "shutil", "pathlib", "tempfile", "signal",
+          "random", "serial", "paho", "aiohttp", "yaml")
 
 
 def _modules() -> dict[str, str]:
@@ -66,8 +109,11 @@ def _resolve(mod: str, node: ast.ImportFrom | ast.Import) -> list[str]:
 
 
 def _node(mod: str) -> str:
-    """The graph node of a module: its subpackage, or itself when it sits in a top package."""
+    """The graph node of a module: its layer folder (an output's subpackage in gateway/outputs/),
+    or itself when it sits directly in gateway/ or gateway/outputs/."""
     parts = mod.split(".")
+    if parts[:2] == ["gateway", "outputs"] and len(parts) >= 3 and _is_pkg(".".join(parts[:3])):
+        return ".".join(parts[:3])
     if len(parts) >= 2 and _is_pkg(".".join(parts[:2])):
         return ".".join(parts[:2])
     return mod
@@ -181,8 +227,8 @@ def _in(mod: str, prefixes: tuple[str, ...]) -> bool:
 
 def test_the_scan_sees_the_project():
     g = _graph()
-    assert "gateway.station" in g and "gateway.northbound" in g and len(MODULES) > 50
-    assert "gateway.records" in g["gateway.station"]
+    assert "gateway.station" in g and "gateway.outputs.mqtt" in g and len(MODULES) > 50
+    assert "gateway.core" in g["gateway.station"] and "gateway.outputs.broker" in g["gateway.outputs.mqtt"]
 
 
 def test_no_package_cycles():
@@ -198,26 +244,95 @@ def test_no_import_error_guards_around_project_modules():
     assert [g for s in SCANS.values() for g in s.guarded] == []
 
 
-def test_drivers_sit_on_the_pure_core_only():
-    bad = [f"{m} → {t}" for m, s in SCANS.items() if m.startswith("drivers")
-           for t in s.edges if t.startswith("gateway") and not _in(t, PURE_CORE)]
-    assert bad == []
+def _layer(mod: str) -> str | None:
+    """The layer folder of a module (the longest of ``LAYERS`` it sits in), None for a loose one."""
+    return max((la for la in LAYERS if _in(mod, (la,))), key=len, default=None)
+
+
+def _layer_breaches(scans: dict[str, _Scan]) -> list[str]:
+    bad = []
+    for m, s in scans.items():
+        own = _layer(m)
+        if own is None:
+            continue
+        for t in s.edges:
+            while t not in MODULES and "." in t:
+                t = t.rsplit(".", 1)[0]
+            other = _layer(t)
+            if t == "gateway" or other in (None, own) or other in LAYERS[own] or (m, t) in LAYER_EXCEPTIONS:
+                continue
+            bad.append(f"{m} ({own}) → {t} ({other})")
+    return sorted(bad)
+
+
+def test_each_layer_imports_only_the_layers_below_it():
+    """The folders are the layers: a module imports of the project only its own layer folder and
+    those ``LAYERS`` names for it (drivers sit on the pure core and the plumbing; the station on
+    those and the offline readers; the outputs on the station; …)."""
+    assert _layer_breaches(SCANS) == []
+    used = {(m, t) for m, s in SCANS.items() for t in s.edges}
+    assert set(LAYER_EXCEPTIONS) <= used, "an exception no longer needed: drop it from LAYER_EXCEPTIONS"
+
+
+def test_no_module_sits_outside_a_layer_folder():
+    """Issue 35: nothing loose at gateway/ beyond the composition root, the CLI (a package) and the
+    package faces; nothing at gateway/outputs/ outside a subpackage but ``LOOSE_ALLOWED``; the old
+    gateway/northbound/ is gone."""
+    loose = sorted(m for m in MODULES if _layer(m) is None and m not in LOOSE_ALLOWED)
+    assert loose == []
+    assert set(LOOSE_ALLOWED) <= set(MODULES), "a listed loose module is gone: drop it from LOOSE_ALLOWED"
+    assert not os.path.exists(os.path.join(ROOT, "gateway", "northbound"))
+    assert [m for m in MODULES if m.startswith("gateway.outputs.") and m.count(".") == 2
+            and not _is_pkg(m)] == ["gateway.outputs.wiring"]
 
 
 def test_the_pure_core_imports_nothing_else_of_the_project():
     bad = [f"{m} → {t}" for m, s in SCANS.items() if _in(m, PURE_CORE)
-           for t in s.edges if not _in(t, PURE_CORE) and t != "gateway"]
+           for t in s.edges if not _in(t, PURE_CORE) and t != "gateway" and (m, t) not in LAYER_EXCEPTIONS]
     assert bad == []
+
+
+def _std_imports(tree: ast.Module) -> set[str]:
+    """The top-level names of the absolute imports of a module (``os``, ``numpy``, ``threading``)."""
+    out = set()
+    for n in ast.walk(tree):
+        if isinstance(n, ast.Import):
+            out |= {a.name.split(".")[0] for a in n.names}
+        elif isinstance(n, ast.ImportFrom) and not n.level and n.module:
+            out.add(n.module.split(".")[0])
+    return out
+
+
+def test_the_pure_core_has_no_io_and_no_clock():
+    """The pure core is a folder: none of its modules imports the standard library's I/O, time,
+    threads or processes (nor a serial port, a broker client, a web stack, a YAML reader)."""
+    bad = {m: sorted(_std_imports(t) & set(IMPURE)) for m, t in TREES.items() if _in(m, PURE_CORE)}
+    assert {m: i for m, i in bad.items() if i} == {}
+    assert len(bad) >= 15
+    assert _std_imports(ast.parse("import os.path\nfrom time import monotonic\nfrom . import x\n")) == {"os", "time"}
+
+
+def test_the_layer_check_flags_what_it_should():
+    fake = {m: _Scan(m) for m in ("gateway.core.records", "drivers.meter.driver", "gateway.station.station")}
+    fake["gateway.core.records"].edges = {"gateway.station.station", "gateway.core.ports"}
+    fake["drivers.meter.driver"].edges = {"gateway.plumbing.ratelog", "gateway.outputs.mqtt.schema"}
+    fake["gateway.station.station"].edges = {"drivers.meter.driver", "gateway", "gateway.offline.history"}
+    assert _layer_breaches(fake) == [
+        "drivers.meter.driver (drivers) → gateway.outputs.mqtt.schema (gateway.outputs)",
+        "gateway.core.records (gateway.core) → gateway.station.station (gateway.station)",
+        "gateway.station.station (gateway.station) → drivers.meter.driver (drivers)"]
+    assert _layer("gateway.outputs.plc.modbus_tcp.framer") == "gateway.outputs" and _layer("gateway.compose") \
+        == "gateway.compose" and _layer("gateway.outputs.wiring") == "gateway.outputs"
 
 
 def test_the_scanner_flags_what_it_should(tmp_path):
     """The rules themselves, on a small synthetic module."""
-    src = ("import os\nfrom gateway import records\n"
-           "try:\n    from gateway.northbound import wiring\nexcept ImportError:\n    wiring = None\n"
+    src = ("import os\nfrom gateway.core import records\n"
+           "try:\n    from gateway.outputs import wiring\nexcept ImportError:\n    wiring = None\n"
            "def f():\n    from .station import build\n    import json\n    return build, json\n")
     s = _Scan("gateway.fake")
     s.visit(ast.parse(src))
-    assert "gateway.records" in s.edges and "gateway.northbound.wiring" in s.edges
+    assert "gateway.core.records" in s.edges and "gateway.outputs.wiring" in s.edges
     assert s.hidden == ["gateway.fake:8 imports gateway.station, gateway.station.build inside a function"]
     assert s.guarded == ["gateway.fake:4"]
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
@@ -299,26 +414,26 @@ def test_no_class_in_the_console_is_over_300_lines():
     """Issue 30.3: the console in small rooms (``ConsoleServer`` was 717 lines, an exception):
     the app and its lifecycle, the shared context, a route module per subject, every class
     within the bound and none of the console named as an exception."""
-    sizes = _class_sizes({m: t for m, t in TREES.items() if _in(m, ("gateway.console",))})
-    assert "gateway.console.app.ConsoleServer" in sizes and len(sizes) > 10
+    sizes = _class_sizes({m: t for m, t in TREES.items() if _in(m, ("gateway.outputs.console",))})
+    assert "gateway.outputs.console.app.ConsoleServer" in sizes and len(sizes) > 10
     assert {c: n for c, n in sizes.items() if n > CLASS_MAX} == {}
-    assert [c for c in CLASS_EXCEPTIONS if c.startswith("gateway.console.")] == []
+    assert [c for c in CLASS_EXCEPTIONS if c.startswith("gateway.outputs.console.")] == []
 
 
 def test_the_console_route_modules_never_import_the_app():
     """The route modules (and the context they share) see the console only through
-    ``ConsoleContext``: none imports the app (``app.py``, or its old path ``server.py``), so the
-    rooms of the console form no cycle among themselves (the package graph cannot see this)."""
-    rooms = [m for m in MODULES if m.startswith("gateway.console.routes_")]
+    ``ConsoleContext``: none imports the app (``app.py``), so the rooms of the console form no
+    cycle among themselves (the package graph cannot see this)."""
+    rooms = [m for m in MODULES if m.startswith("gateway.outputs.console.routes_")]
     assert len(rooms) >= 3
-    app = {"gateway.console.app", "gateway.console.server"}
-    back = [f"{m} → {t}" for m in (*rooms, "gateway.console.context") for t in SCANS[m].edges if t in app]
+    app = {"gateway.outputs.console.app"}
+    back = [f"{m} → {t}" for m in (*rooms, "gateway.outputs.console.context") for t in SCANS[m].edges if t in app]
     assert back == []
-    assert all("gateway.console.context" in SCANS[m].edges for m in rooms)
+    assert all("gateway.outputs.console.context" in SCANS[m].edges for m in rooms)
 
 
 #: where outputs (and the station proxy they share) live
-OUTPUT_PACKAGES = ("gateway.northbound", "gateway.console", "gateway.supervisor.remote", "gateway.compose")
+OUTPUT_PACKAGES = ("gateway.outputs", "gateway.outputs.console", "gateway.supervisor.remote", "gateway.compose")
 #: what a ``station`` parameter may be typed as: the contract (or the station itself, in the
 #: composition root), a station id, or a station's configuration mapping (docs renderers)
 VIEW_TYPES = ("StationView", "StationLinks", "Station", "str", "dict")
@@ -341,7 +456,7 @@ def _names(node: ast.expr | None) -> set[str]:
 
 
 def test_outputs_take_their_station_as_a_station_view():
-    """A ``station`` parameter in an output module is typed with the contract (gateway/ports.py:
+    """A ``station`` parameter in an output module is typed with the contract (gateway/core/ports.py:
     ``StationView``, or ``StationLinks`` in the station's own process), so mypy checks what an
     output reads and calls; a station id is a ``str``. Never ``Any``, never untyped."""
     bad = []
@@ -361,7 +476,7 @@ def test_the_station_and_its_proxy_are_station_views():
     def members(mod: str, cls: str) -> set[str]:
         node = next(n for n in TREES[mod].body if isinstance(n, ast.ClassDef) and n.name == cls)
         return {n.name for n in node.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
-    view = members("gateway.ports", "StationView") | members("gateway.ports", "CommandSink")
+    view = members("gateway.core.ports", "StationView") | members("gateway.core.ports", "CommandSink")
     assert view >= {"id", "ts", "limits", "default_plan", "state", "alarms", "outputs", "submit",
                     "refused"}
     assert {"submit", "refused"} <= members("gateway.station.station", "Station")
@@ -378,12 +493,12 @@ def test_the_station_and_its_proxy_are_station_views():
 
 #: where asyncio.run_coroutine_threadsafe may be called (a module added here says why)
 HANDOVER_ALLOWED = {
-    "gateway.threadloop": "the one hand-over",
+    "gateway.plumbing.threadloop": "the one hand-over",
 }
 
 
 def test_one_thread_to_loop_hand_over():
-    """``asyncio.run_coroutine_threadsafe`` only in gateway/threadloop.py (``submit_to``,
+    """``asyncio.run_coroutine_threadsafe`` only in gateway/plumbing/threadloop.py (``submit_to``,
     ``ThreadLoop.submit``): every other module hands over through it."""
     stray = [f"{m}:{n.lineno}" for m, t in TREES.items() if m not in HANDOVER_ALLOWED
              for n in ast.walk(t)
@@ -391,14 +506,14 @@ def test_one_thread_to_loop_hand_over():
     assert stray == []
 
 
-#: besides gateway/threadloop.py (Mailbox, the one bounded hand-over of work between threads), the
+#: besides gateway/plumbing/threadloop.py (Mailbox, the one bounded hand-over of work between threads), the
 #: modules that may build a queue or a condition of their own, each with why
 WORK_HANDOVER_ALLOWED = {
     "drivers.sim.meter": "the simulated meter's ReplyWriter: a heap of replies due at set times (a "
                          "timer), not a first-in first-out hand-over",
 }
 #: the modules that hand work to another thread through a Mailbox (issue 30.2)
-MAILBOX_USERS = ("gateway.logcols",)
+MAILBOX_USERS = ("gateway.offline.logcols",)
 #: what a hand-over written by hand is built from: a thread-safe queue, or a condition to wait on
 _QUEUE_MODULES = ("queue", "multiprocessing.queues")
 _HANDOVER_CALLS = ("Queue", "SimpleQueue", "LifoQueue", "PriorityQueue", "JoinableQueue", "Condition")
@@ -423,15 +538,15 @@ def _work_handovers(tree: ast.Module) -> list[str]:
 
 
 def test_one_bounded_hand_over_of_work_between_threads():
-    """Issue 30.2: a thread passes work to another through ``gateway.threadloop.Mailbox`` (bounded,
+    """Issue 30.2: a thread passes work to another through ``gateway.plumbing.threadloop.Mailbox`` (bounded,
     a drop policy, never blocking the producer); no other module builds a queue or a condition of
     its own (the log companion's writer had a ``queue.Queue`` and a ``Condition`` beside it)."""
     stray = {m: hs for m, t in TREES.items()
-             if m != "gateway.threadloop" and m not in WORK_HANDOVER_ALLOWED and (hs := _work_handovers(t))}
+             if m != "gateway.plumbing.threadloop" and m not in WORK_HANDOVER_ALLOWED and (hs := _work_handovers(t))}
     assert stray == {}
     assert all(_work_handovers(TREES[m]) for m in WORK_HANDOVER_ALLOWED), "an allowed module no longer needs it"
     for m in MAILBOX_USERS:
-        assert "gateway.threadloop" in SCANS[m].edges, m
+        assert "gateway.plumbing.threadloop" in SCANS[m].edges, m
 
 
 def test_the_hand_over_check_flags_what_it_should():
@@ -480,9 +595,9 @@ def test_the_station_state_changes_in_one_place():
 #: functions of the modules ``hookwatch run`` loads that may still import when first called (each
 #: says why it is never called on a station's thread)
 LATE_IMPORTS_ALLOWED = {
-    ("gateway.logio", "_decompress"): "reading a log (analyze, report), never `hookwatch run`",
-    ("gateway.logio", "_parse_forked"): "reading a log (analyze, report), never `hookwatch run`",
-    ("gateway.logio", "_parse_arrow"): "reading a log (analyze, report): pyarrow only there",
+    ("gateway.offline.logio", "_decompress"): "reading a log (analyze, report), never `hookwatch run`",
+    ("gateway.offline.logio", "_parse_forked"): "reading a log (analyze, report), never `hookwatch run`",
+    ("gateway.offline.logio", "_parse_arrow"): "reading a log (analyze, report): pyarrow only there",
 }
 
 
@@ -499,14 +614,14 @@ def test_what_the_runtime_loads_imports_at_start_up():
     quiet, up to 0.85 s loaded: slots MISSING, the STM32 watchdog tripped, a protection stop). The
     runtime set is read from a fresh interpreter that loads the run command and the composition
     root; scipy, pyarrow and matplotlib are not in it."""
-    code = ("import sys, json, gateway.commands.run, gateway.compose; "
+    code = ("import sys, json, gateway.cli.run, gateway.compose; "
             "print(json.dumps(sorted(sys.modules)))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                          check=True).stdout
     loaded = set(json.loads(out))
     assert not {"scipy", "pyarrow", "matplotlib"} & loaded
     runtime = sorted(m for m in loaded if m in TREES)
-    assert "gateway.station.station" in runtime and "gateway.method.forecast" in runtime
+    assert "gateway.station.station" in runtime and "gateway.core.method.forecast" in runtime
     late = [f"{m}.{fn}:{line}" for m in runtime for fn, line in _late_imports(TREES[m])
             if (m, fn) not in LATE_IMPORTS_ALLOWED]
     assert late == []
@@ -520,9 +635,9 @@ def test_a_station_thread_imports_nothing_while_it_runs_a_life(tmp_path):
     no module may be imported from the first slot on."""
     import dataclasses
 
-    from gateway.analysis import params_for
-    from gateway.logio import read_log
-    from gateway.method import to_slots
+    from gateway.core.method import to_slots
+    from gateway.offline.analysis import params_for
+    from gateway.offline.logio import read_log
 
     vectors = os.path.join(ROOT, "tests", "vectors")
     lives = []
@@ -536,8 +651,8 @@ def test_a_station_thread_imports_nothing_while_it_runs_a_life(tmp_path):
     path = tmp_path / "lives.json"
     path.write_text(json.dumps(lives))
     code = (
-        "import sys, json, gateway.commands.run, gateway.compose\n"
-        "from gateway.method import MethodParams, StreamingMonitor\n"
+        "import sys, json, gateway.cli.run, gateway.compose\n"
+        "from gateway.core.method import MethodParams, StreamingMonitor\n"
         f"lives = json.load(open({str(path)!r}))\n"
         "before, events = set(sys.modules), set()\n"
         "for life in lives:\n"
@@ -554,21 +669,21 @@ def test_a_station_thread_imports_nothing_while_it_runs_a_life(tmp_path):
 
 
 #: the command path behind every door: the pure command types, the station's desk, its handlers
-COMMAND_PATH = ("gateway.commandtypes", "gateway.station.commands", "gateway.station.dispatch")
+COMMAND_PATH = ("gateway.core.command_rules", "gateway.station.command_desk", "gateway.station.dispatch")
 #: the doors (and the pure tables they print) that reach the command path
-COMMAND_DOORS = ("gateway.northbound.mqtt", "gateway.northbound.modbus_server",
-                 "gateway.northbound.sparkplug.client", "gateway.northbound.sparkplug.node",
-                 "gateway.console.routes_station", "gateway.supervisor.worker", "gateway.supervisor.remote",
-                 "gateway.northbound.cmdparse", "gateway.northbound.registers",
-                 "gateway.northbound.mqtt_schema", "gateway.northbound.schema_gen",
-                 "gateway.northbound.mqtt_messages")
+COMMAND_DOORS = ("gateway.outputs.mqtt.output", "gateway.outputs.plc.server",
+                 "gateway.outputs.sparkplug.runtime", "gateway.outputs.sparkplug.node",
+                 "gateway.outputs.console.routes_station", "gateway.supervisor.worker", "gateway.supervisor.remote",
+                 "gateway.core.command_intake", "gateway.outputs.plc.registers",
+                 "gateway.outputs.mqtt.schema", "gateway.outputs.mqtt.schema_gen",
+                 "gateway.outputs.mqtt.messages")
 
 
 def test_the_command_path_is_typed_and_holds_no_module_state():
     """Issue 30.1: no ``Any``, no ``getattr``/``hasattr`` in the command path, no module-level
     mutable state (the refusal gate is a member of the station's desk); the doors and the pure
-    register/schema tables take the command types from the pure gateway.commandtypes, never from
-    the runtime gateway.station.commands, and hand commands to their CommandSink."""
+    register/schema tables take the command types from the pure gateway.core.command_rules, never from
+    the runtime gateway.station.command_desk, and hand commands to their CommandSink."""
     bad = []
     for m in COMMAND_PATH:
         tree = TREES[m]
@@ -584,10 +699,10 @@ def test_the_command_path_is_typed_and_holds_no_module_state():
                                            "defaultdict", "OrderedDict"):
                     bad.append(f"{m}:{n.lineno} module state {ast.unparse(n)[:60]}")
     assert bad == []
-    via_runtime = [m for m in COMMAND_DOORS if "gateway.station.commands" in SCANS[m].edges]
+    via_runtime = [m for m in COMMAND_DOORS if "gateway.station.command_desk" in SCANS[m].edges]
     assert via_runtime == []
-    assert all("gateway.commandtypes" in SCANS[m].edges for m in ("gateway.northbound.registers",
-                                                                  "gateway.northbound.mqtt_schema"))
+    assert all("gateway.core.command_rules" in SCANS[m].edges for m in ("gateway.outputs.plc.registers",
+                                                                  "gateway.outputs.mqtt.schema"))
 
 
 def _class_members(mod: str, cls: str) -> set[str]:
@@ -603,11 +718,11 @@ def _class_members(mod: str, cls: str) -> set[str]:
 
 
 #: what outputs are given by contract: what they may read of a station, its state, its records
-CONTRACTS = {"gateway.ports": ("StationView", "StationLinks", "AlarmExpiries", "AlarmStoreView", "PortLink",
+CONTRACTS = {"gateway.core.ports": ("StationView", "StationLinks", "AlarmExpiries", "AlarmStoreView", "PortLink",
                                "PlanView", "Output", "WorkerHooks"),
-             "gateway.records": ("StationState", "SlotRecord", "Event")}
+             "gateway.core.records": ("StationState", "SlotRecord", "Event")}
 #: where the outputs live (and the console's feed)
-CONTRACT_USERS = ("gateway.northbound", "gateway.console")
+CONTRACT_USERS = ("gateway.outputs", "gateway.outputs.console")
 
 
 def _by_name_reads(tree: ast.Module, members: set[str]) -> list[str]:
@@ -651,44 +766,45 @@ def test_the_by_name_check_flags_what_it_should():
 def test_the_station_contracts_hold_no_any():
     """The Protocols an output is given (StationView, StationLinks and what they return, the
     optional hooks) name their types: no ``Any`` anywhere in them."""
-    tree = TREES["gateway.ports"]
+    tree = TREES["gateway.core.ports"]
     bad = []
     for n in tree.body:
-        if isinstance(n, ast.ClassDef) and n.name in CONTRACTS["gateway.ports"]:
+        if isinstance(n, ast.ClassDef) and n.name in CONTRACTS["gateway.core.ports"]:
             bad += [f"{n.name}:{x.lineno}" for x in ast.walk(n) if isinstance(x, ast.Name) and x.id == "Any"]
     assert bad == []
 
 
 #: the outputs that report slots by the window, each through the one accumulator
-WINDOW_USERS = ("gateway.northbound.mqtt", "gateway.northbound.mqtt_messages", "gateway.northbound.sparkplug.output",
-                "gateway.supervisor.worker", "gateway.northbound.modbus_server",
-                "gateway.northbound.metrics.figures")
+WINDOW_USERS = ("gateway.outputs.mqtt.output", "gateway.outputs.mqtt.messages", "gateway.outputs.sparkplug.output",
+                "gateway.supervisor.worker", "gateway.outputs.plc.server",
+                "gateway.outputs.prometheus.figures")
 
 
 def test_one_slot_window_accumulator():
-    """The per-window aggregation of slot records is written once (gateway/slotwindow.py): the
+    """The per-window aggregation of slot records is written once (gateway/core/slotwindow.py): the
     outputs that aggregate slots import ``SlotWindow``, and no other module counts slots per
     reason (``enumerate(REASONS)`` outside the method core and the accumulator)."""
     for m in WINDOW_USERS:
-        assert "gateway.slotwindow" in SCANS[m].edges, m
-    counting = [m for m, t in TREES.items() if m != "gateway.slotwindow" and not _in(m, ("gateway.method",))
+        assert "gateway.core.slotwindow" in SCANS[m].edges, m
+    counting = [m for m, t in TREES.items() if m != "gateway.core.slotwindow" and not _in(m, ("gateway.core.method",))
                 for n in ast.walk(t) if isinstance(n, ast.Call) and ast.unparse(n) == "enumerate(REASONS)"]
     assert counting == []
     # the accumulator itself sits on the pure core
-    assert set(SCANS["gateway.slotwindow"].edges) <= {"gateway.records", "gateway.method", "gateway.method.rules"}
+    assert set(SCANS["gateway.core.slotwindow"].edges) <= {"gateway.core.records", "gateway.core.method",
+                                                           "gateway.core.method.rules"}
 
 
-#: the restarts and retries of stations and workers (their waits come from gateway/backoff.py)
-BACKOFF_USERS = ("gateway.station.fleet", "gateway.supervisor.supervisor", "gateway.northbound.paho_session",
-                 "gateway.northbound.sparkplug.client")
+#: the restarts and retries of stations and workers (their waits come from gateway/plumbing/backoff.py)
+BACKOFF_USERS = ("gateway.station.fleet", "gateway.supervisor.supervisor", "gateway.outputs.broker.paho_session",
+                 "gateway.outputs.sparkplug.runtime")
 
 
 def test_one_restart_back_off():
-    """The restart back-off is written once (gateway/backoff.py): the station runner, the
+    """The restart back-off is written once (gateway/plumbing/backoff.py): the station runner, the
     supervisor and the MQTT/Sparkplug session engines use it, and no module of the station or the
     supervisor computes a doubling wait of its own (``… * 2 ** n``)."""
     for m in BACKOFF_USERS:
-        assert "gateway.backoff" in SCANS[m].edges, m
+        assert "gateway.plumbing.backoff" in SCANS[m].edges, m
     doubling = [f"{m}:{n.lineno}" for m, t in TREES.items() if _in(m, ("gateway.station", "gateway.supervisor"))
                 for n in ast.walk(t) if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Pow)
                 and isinstance(n.left, ast.Constant) and n.left.value in (2, 2.0)]
@@ -725,7 +841,7 @@ def test_the_demo_runs_its_station_through_drive():
     composition root, in run's one main loop (``drive``: signals, systemd, the end of the test) —
     with no event loop, signal handler or end watcher of its own; and no command builds a
     station, its runtime or the console itself (that is gateway/compose.py's)."""
-    demo = "gateway.commands.demo"
+    demo = "gateway.cli.demo"
     calls = _calls(TREES[demo])
     own = sorted(c for c in calls if c.startswith("asyncio.") or c.endswith("add_signal_handler")
                  or c in ("signal.signal", "signal.set_wakeup_fd"))
@@ -733,7 +849,7 @@ def test_the_demo_runs_its_station_through_drive():
     imported = {a.name for n in ast.walk(TREES[demo]) if isinstance(n, ast.Import) for a in n.names}
     assert "asyncio" not in imported
     assert {"drive", "build_station", "in_process_runtime", "build_console"} <= calls
-    built = sorted(f"{m}: {c}" for m in TREES if m.startswith("gateway.commands.")
+    built = sorted(f"{m}: {c}" for m in TREES if m.startswith("gateway.cli.")
                    for c in _calls(TREES[m]) if c.split(".")[-1] in WIRED_IN_COMPOSE)
     assert built == []
     # the scan sees what it looks for
@@ -744,6 +860,9 @@ def test_the_demo_runs_its_station_through_drive():
 #: module file names still shared, each with why (a new shared name fails the test below)
 SHARED_NAMES = {
     "docs.py": "each renders its own package's document (config, method, Sparkplug) from its one definition",
+    "output.py": "each door's station output in its own package (outputs/mqtt/, outputs/sparkplug/)",
+    "settings.py": "each output's settings in its own package (outputs/broker/, outputs/mqtt/, outputs/console/)",
+    "driver.py": "each device's driver, the port the station uses, in its own package (drivers/meter/, drivers/stm32/)",
 }
 
 

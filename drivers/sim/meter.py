@@ -44,7 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ..zns_map import DEFAULT_MAP_PATH, MapError, MeterMap, crc_ok, load_map, with_crc
+from ..meter.meter_map import DEFAULT_MAP_PATH, MapError, MeterMap, crc_ok, load_map, with_crc
 from .pty import PtyLink
 
 log = logging.getLogger("hookwatch.sim.meter")

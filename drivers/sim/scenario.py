@@ -20,16 +20,16 @@ import os
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-import gateway.safeyaml as safeyaml
+import gateway.plumbing.safeyaml as safeyaml
 
 # the scenario's method and control sections are checked by gateway's pure core (the layer under
 # the drivers: numbers in, numbers out, no I/O)
-from gateway.control import ControlParams, NotchParams
-from gateway.method.params import ParamError, build_params
-from gateway.validation import Problem, ValidationError, did_you_mean, suggestion_text
+from gateway.core.control import ControlParams, NotchParams
+from gateway.core.method.params import ParamError, build_params
+from gateway.core.validation import Problem, ValidationError, did_you_mean, suggestion_text
 
-from ..stm32_protocol import WATCHDOG_MS_MAX, WATCHDOG_MS_MIN
-from ..zns_map import BAUDS, DEFAULT_MAP_PATH, MapError, load_map
+from ..meter.meter_map import BAUDS, DEFAULT_MAP_PATH, MapError, load_map
+from ..stm32.protocol import WATCHDOG_MS_MAX, WATCHDOG_MS_MIN
 from .plant import GRADES, SECTIONS, PlantParams, params_from_dict
 
 #: fault kind -> (extra keys allowed, extra keys required)

@@ -1,6 +1,6 @@
 """One virtual station in one process: the plant stepped in real time on the monotonic clock, a
 virtual ZN-S meter sampling its tensions, a virtual STM32 driving its take-up motor, and the
-scenario's fault timeline. Used by `hookwatch sim` (gateway/commands/sim.py).
+scenario's fault timeline. Used by `hookwatch sim` (gateway/cli/sim.py).
 
 Clock: plant time = ``time.monotonic() − t0`` (t0 = start of the station). The meter samples the
 plant at the moment a request completes on the simulated wire, the STM32 commands it at the moment

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ..stm32_protocol import (
+from ..stm32.protocol import (
     DEFAULT_BAUD,
     DEFAULT_MAX_RPM,
     RUNNING_RPM,

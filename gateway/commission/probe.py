@@ -5,12 +5,12 @@
   station file or fleet folder on its command line), sends nothing and changes no setting;
 - the meter: its port opened with the station's settings and both channels read once through
   pymodbus' client (an independent Modbus master: a meter this client reads is no artefact of our
-  own driver), then through the station's own driver (drivers/zns.py): "meter answered" means
+  own driver), then through the station's own driver (drivers/meter/driver.py): "meter answered" means
   both read it; ``scan`` tries the usual bauds and unit IDs and says where the meter answered
   (the port's settings as found are put back after it); the latency timer of a USB serial
   adapter (FTDI) against the slot; the kernel's RS-485 mode
   when ``meter.rs485`` asks for it;
-- the STM32: a PING through the project's own link driver (drivers/stm32.py);
+- the STM32: a PING through the project's own link driver (drivers/stm32/driver.py);
 - each configured broker (``mqtt:``, ``sparkplug:`` and every member of its server set): TCP
   connect, CONNECT with the station's user, password and TLS, and the broker's CONNACK;
 - the Modbus TCP, console and metrics ports: free to listen on.
@@ -36,9 +36,9 @@ import serial
 from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 
-from drivers.stm32 import Stm32Link
-from drivers.stm32_protocol import Cmd, exchange_time_s
-from drivers.ttyio import (
+from drivers.meter.driver import FAST_RUN, Reading, ZnsMeter
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
+from drivers.serial.ttyio import (
     describe_holders,
     keep_settings,
     latency_timer_ms,
@@ -48,13 +48,14 @@ from drivers.ttyio import (
     process_args,
     set_rs485,
 )
-from drivers.zns import FAST_RUN, Reading, ZnsMeter
-from drivers.zns_map import DEFAULT_MAP_PATH, DecodeError, MapError, MeterMap, load_map
+from drivers.stm32.driver import Stm32Link
+from drivers.stm32.protocol import Cmd, exchange_time_s
 
 from ..config import validate_fleet, validate_station
 from ..config.sections import parse_server
-from ..northbound.broker_settings import BrokerSettings, SecretError, broker_kwargs
-from ..ratelog import safe
+from ..outputs.broker.settings import BrokerSettings, SecretError, broker_kwargs
+from ..outputs.wiring import broker_sections, listen_doors
+from ..plumbing.ratelog import safe
 
 log = logging.getLogger("hookwatch.probe")
 
@@ -252,7 +253,7 @@ def _in_use(what: str, port: str, holder: str) -> Finding:
 
 # ----------------------------------------------------------------------------------- the meter
 async def _driver_reads(meter_cfg: Any) -> tuple[Reading | None, str | None]:
-    """The station's own driver (drivers/zns.py, the station's settings and timeout) reads the
+    """The station's own driver (drivers/meter/driver.py, the station's settings and timeout) reads the
     meter: the first good reading of up to FAST_RUN + 1 polls one slot apart, or why none."""
     d = ZnsMeter.from_config(meter_cfg)
     await d.open()
@@ -534,18 +535,8 @@ def probe_listen(key: str, host: str, port: int) -> Finding:
 
 
 def listen_ports(cfg: Any) -> list[tuple[str, str, int]]:
-    """(key, host, port) the station's services listen on."""
-    out = []
-    if cfg.modbus_tcp.enabled:
-        out.append(("modbus_tcp", cfg.modbus_tcp.host, int(cfg.modbus_tcp.port)))
-    if cfg.console.enabled:
-        for addr in cfg.console.listen:
-            host, _, p = str(addr).rpartition(":")
-            if p.isdigit():
-                out.append(("console.listen", host.strip("[]") or "0.0.0.0", int(p)))
-    if cfg.metrics.enabled:
-        out.append(("metrics", cfg.metrics.host, int(cfg.metrics.port)))
-    return out
+    """(key, host, port) the station's services listen on (the doors of the output registry)."""
+    return listen_doors(cfg)
 
 
 # ----------------------------------------------------------------------------------- stations
@@ -559,10 +550,8 @@ def probe_station(cfg: Any, *, scan: bool = False, sysfs: str = "/sys",
     lat = stm32_latency_finding(cfg.stm32, sysfs)
     if lat is not None:
         out.append(lat)
-    for name in ("mqtt", "sparkplug"):
+    for name in broker_sections(cfg):
         sec = getattr(cfg, name)
-        if not sec.enabled:
-            continue
         for host, port in broker_addresses(name, sec):
             kb = (name, host, port, sec.username)
             if kb not in seen:

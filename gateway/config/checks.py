@@ -12,7 +12,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from drivers import stm32_protocol as P
+from drivers.stm32 import protocol as P
 
 from . import sections as S
 from .loader import Loaded, load_meter_map

@@ -1,8 +1,8 @@
 """Generate docs/configuration.md from the schema: `python -m gateway.config.docs > docs/configuration.md`."""
 from __future__ import annotations
 
-from .. import safeyaml
-from ..method.params import PARAMS
+from ..core.method.params import PARAMS
+from ..plumbing import safeyaml
 from . import sections as S
 from .checks import CHECKS
 from .loader import FLEET_KEYS
@@ -90,7 +90,7 @@ def render() -> str:
         if isinstance(sec, S.MethodSection):
             out += ["### `method:`", "",
                     "The method's parameters (METHOD.md §10; the one definition is "
-                    "`gateway/method/params.py`, which also checks their ranges — see "
+                    "`gateway/core/method/params.py`, which also checks their ranges — see "
                     "docs/method.md). `t_set` and `t_end` are not set here: they are "
                     "`test.t_set_n` and `test.t_end_s`.", "",
                     "| key | default | unit | meaning |", "|---|---|---|---|"]
@@ -110,7 +110,7 @@ def render() -> str:
     out += [f"- {c}" for c in CROSS]
     out += ["", "## Limits of a YAML file", "",
             "Every YAML file the gateway reads (station, fleet, meter map, scenario, log sidecar) is "
-            "read by one bounded reader (`gateway/safeyaml.py`), safe schema only (no `!!python` "
+            "read by one bounded reader (`gateway/plumbing/safeyaml.py`), safe schema only (no `!!python` "
             "tags). A file beyond a limit is refused with one line that names the file, the line "
             "where known, the limit and what is allowed — by `hookwatch check` (exit 1), at start, "
             "and on a reload (the running configuration stays).", "",

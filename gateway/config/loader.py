@@ -19,17 +19,17 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
-from drivers.zns_map import DEFAULT_MAP_PATH, load_map
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, load_map
 
-from ..method.params import PRIOR_NAMES, ParamError, build_params
-from ..ratelog import clip
-from ..validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
+from ..core.method.params import PRIOR_NAMES, ParamError, build_params
+from ..core.validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
+from ..plumbing.ratelog import clip
 from . import sections as S
 from .yamlpos import Pos, YamlError
 from .yamlpos import load as load_yaml
 
 #: longest piece of a bad value quoted in a message (a 1 MB station id is shown by its start and
-#: length: gateway/ratelog.py clip)
+#: length: gateway/plumbing/ratelog.py clip)
 ECHO = 64
 
 
@@ -623,7 +623,7 @@ def cross_issues(loaded: list[Loaded]) -> list[tuple[int, Issue]]:
             out.append((i, loaded[i].issue("error", ("modbus_tcp", "host"),
                                            f"port {port} is also served on every interface (0.0.0.0) "
                                            f"by another station; stations sharing a port need the same host")))
-    # the gateway's default client ID is hookwatch-<station id> (gateway/northbound/mqtt.py)
+    # the gateway's default client ID is hookwatch-<station id> (gateway/outputs/mqtt/output.py)
     clash("MQTT client IDs must be unique on the broker",
           [(i, ("mqtt", "client_id"), (c.mqtt.host, c.mqtt.port, c.mqtt.client_id or f"hookwatch-{c.station.id}"),
             repr(c.mqtt.client_id or f"hookwatch-{c.station.id}"))

@@ -6,10 +6,10 @@ kind, default, unit, allowed values and one line of documentation. The loader
 ``docs/configuration.md`` is generated from them (:mod:`gateway.config.docs`). Two sections come
 from definitions that live elsewhere and are not repeated here:
 
-- ``method:`` — the method's parameters, :data:`gateway.method.params.PARAMS` (names, defaults,
+- ``method:`` — the method's parameters, :data:`gateway.core.method.params.PARAMS` (names, defaults,
   units, ranges, checked by ``build_params``), except ``t_set``/``t_end`` which come from ``test:``;
-- ``control:`` — the fields of :class:`gateway.control.ControlParams` (except ``ts``, which is the
-  method's) and ``control.notch:`` those of :class:`gateway.control.NotchParams`; their types
+- ``control:`` — the fields of :class:`gateway.core.control.ControlParams` (except ``ts``, which is the
+  method's) and ``control.notch:`` those of :class:`gateway.core.control.NotchParams`; their types
   come from the dataclass defaults, their units, ranges and docs from :data:`CONTROL_KEYS`.
 
 Rules that relate several keys are :data:`RULES` (each with the sentence the docs print).
@@ -24,13 +24,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-from drivers.stm32_protocol import watchdog_for
+from drivers.stm32.protocol import watchdog_for
 
-from ..control import ControlParams, NotchParams
-from ..method.params import MAX_TENSION, TEN_YEARS
-from ..method.params import PARAMS as METHOD_PARAMS
-from ..method.prior import PriorEntry, same_t_set
-from ..validation import show_yaml
+from ..core.command_rules import COMMAND_DOORS_MAX, door_problem
+from ..core.control import ControlParams, NotchParams
+from ..core.method.params import MAX_TENSION, TEN_YEARS
+from ..core.method.params import PARAMS as METHOD_PARAMS
+from ..core.method.prior import PriorEntry, same_t_set
+from ..core.validation import show_yaml
 
 # ---------------------------------------------------------------------------------------------
 # key kinds
@@ -45,7 +46,7 @@ REQUIRED: Any = _Required()
 
 #: serial line rates a USB–RS-485 adapter and the ZN-S / STM32 accept
 BAUDS: tuple[int, ...] = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
-#: the ZN-S meter's rates (drivers/zns_map.py accepts these)
+#: the ZN-S meter's rates (drivers/meter/meter_map.py accepts these)
 METER_BAUDS: tuple[int, ...] = BAUDS[:9]
 
 IDENT_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
@@ -101,10 +102,10 @@ class Key:
         elif k == "ip_list":
             s = "a list of IP addresses or networks, e.g. [10.10.4.20, 10.10.5.0/24]"
         elif k == "prior_list":
-            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n, n_censored]}, e.g. [{grade: I, "
-                 "t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (0 < t_set_n ≤ "
+            s = ("a list of {grade, t_set_n, mean_s, sd_s[, n, n_censored, n_early]}, e.g. "
+                 "[{grade: I, t_set_n: 0.5, mean_s: 32306.9, sd_s: 951.7}] (0 < t_set_n ≤ "
                  f"{MAX_TENSION:g} N; 0 < mean_s, sd_s ≤ {TEN_YEARS:.0f} s, 10 years; "
-                 f"1 ≤ n ≤ {MAX_PRIOR_N}; 0 ≤ n_censored ≤ {MAX_PRIOR_N})")
+                 f"1 ≤ n ≤ {MAX_PRIOR_N}; 0 ≤ n_censored, n_early ≤ {MAX_PRIOR_N})")
         else:
             s = "a string"
         if self.nullable:
@@ -128,7 +129,7 @@ def _num(x: float) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-#: a value as written in YAML, and a bad value in a message: one definition (gateway.validation)
+#: a value as written in YAML, and a bad value in a message: one definition (gateway.core.validation)
 _show = show_yaml
 
 
@@ -243,7 +244,7 @@ class TestConfig:
 
 #: the keys of one `forecast.priors` entry (METHOD.md §7a): required, then optional
 PRIOR_ENTRY_KEYS = ("grade", "t_set_n", "mean_s", "sd_s")
-PRIOR_ENTRY_OPTIONAL = ("n", "n_censored")
+PRIOR_ENTRY_OPTIONAL = ("n", "n_censored", "n_early")
 #: entries a `forecast.priors` list may hold (grades × setpoints of one station)
 MAX_PRIOR_ENTRIES = 256
 #: the largest test count `n` of a prior entry
@@ -290,11 +291,15 @@ def parse_prior_entries(v: Any) -> tuple[bool, Any]:
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_PRIOR_N):
             return False, (f"entry {i}: n {show_yaml(n)} is not a count of tests (an integer from 1 "
                            f"to {MAX_PRIOR_N})")
-        nc = item.get("n_censored")
-        if nc is not None and (isinstance(nc, bool) or not isinstance(nc, int) or not 0 <= nc <= MAX_PRIOR_N):
-            return False, (f"entry {i}: n_censored {show_yaml(nc)} is not a count of tests (an "
-                           f"integer from 0 to {MAX_PRIOR_N})")
-        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n, nc))
+        counts: dict[str, int | None] = {}
+        for k in ("n_censored", "n_early"):
+            c = item.get(k)
+            if c is not None and (isinstance(c, bool) or not isinstance(c, int) or not 0 <= c <= MAX_PRIOR_N):
+                return False, (f"entry {i}: {k} {show_yaml(c)} is not a count of tests (an "
+                               f"integer from 0 to {MAX_PRIOR_N})")
+            counts[k] = c
+        out.append(PriorEntry(g.strip(), nums["t_set_n"], nums["mean_s"], nums["sd_s"], n,
+                              counts["n_censored"], counts["n_early"]))
     return True, tuple(out)
 
 
@@ -303,8 +308,9 @@ class ForecastConfig:
     priors: tuple = key((), "the life of earlier hooks per grade and T_set: the prior of a new "
                         "test's forecast (METHOD.md §5b, §7a); without an entry for its grade and "
                         "T_set (±0.001 N) the prior comes from the completed tests of that grade "
-                        "and T_set (at least 3 `failure`s; right-censored lives count too: "
-                        "METHOD.md §7a), else there is none. "
+                        "and T_set (at least 3 wear-out `failure`s; right-censored lives count "
+                        "too, and early failures as censored ones: METHOD.md §7a), else there "
+                        "is none. "
                         "`method.prior_mean`/`prior_sd` fix one prior that wins over both. "
                         "`hookwatch report … --priors FILE` writes this list", kind="prior_list")
 
@@ -362,7 +368,7 @@ class MqttOutboxConfig:
 @dataclass(frozen=True, kw_only=True)
 class BrokerConfig:
     """The broker connection keys both MQTT sections share (`mqtt:` and `sparkplug:`); one
-    definition, read by gateway.northbound.broker_settings.broker_kwargs. A section redeclares a
+    definition, read by gateway.outputs.broker.settings.broker_kwargs. A section redeclares a
     key only to say something of its own about it (the key keeps its place)."""
     enabled: bool = key(False, "connect to the broker", kind="bool")
     host: str = key("127.0.0.1", "broker host", kind="str")
@@ -410,6 +416,14 @@ class MqttConfig(BrokerConfig):
                             "`station.site` on the broker, and pool theirs into the life prior's "
                             "history (METHOD.md §7a; a retained `<base>/lives` per station, "
                             "docs/mqtt.md); false: neither share nor receive", kind="bool")
+    command_doors: tuple[str, ...] = key((), "named command doors besides the default "
+                                         "`<base>/cmd/<command>` (the MES's): each "
+                                         "`<base>/cmd/<door>/<command>` for another writer (an "
+                                         "operator's panel, a second MES), with its own command "
+                                         "budget (source `mqtt:<door>`, docs/limits.md); the "
+                                         "broker's ACL confines each writer to its door "
+                                         "(`hookwatch config acl`)", kind="str_list",
+                                         example=["operator"])
     outbox: MqttOutboxConfig = section(MqttOutboxConfig, "durable delivery")
 
 
@@ -475,7 +489,7 @@ class SparkplugConfig(BrokerConfig):
 
 def _door_keys(cap: int, request_s: float, idle_s: float, what: str, accepts: float = 100.0,
                per_address: int = 16) -> dict[str, Any]:
-    """The keys of a listening door (gateway/doors.py: one mechanism for every TCP port)."""
+    """The keys of a listening door (gateway/plumbing/doors.py: one mechanism for every TCP port)."""
     return {
         "max_connections": key(cap, f"connections open at once on {what}; one more is closed at "
                                "once (counted). Granted within the process's descriptor budget "
@@ -645,7 +659,7 @@ class LoggingConfig:
 
 
 # ---------------------------------------------------------------------------------------------
-# control: names and types from gateway.control; units, ranges and docs here
+# control: names and types from gateway.core.control; units, ranges and docs here
 
 #: per ControlParams / NotchParams field: the Key arguments other than name, kind and default
 CONTROL_KEYS: dict[str, dict[str, Any]] = {
@@ -714,7 +728,7 @@ def _control_field(f: dataclasses.Field) -> tuple[str, Any, Any]:
 NotchConfig = dataclasses.make_dataclass(
     "NotchConfig", [_control_field(f) for f in fields(NotchParams)],
     frozen=True, kw_only=True)
-NotchConfig.__doc__ = "control.notch: the fields of gateway.control.NotchParams"
+NotchConfig.__doc__ = "control.notch: the fields of gateway.core.control.NotchParams"
 NotchConfig.__module__ = __name__
 
 ControlConfig = dataclasses.make_dataclass(
@@ -722,7 +736,7 @@ ControlConfig = dataclasses.make_dataclass(
     [_control_field(f) for f in fields(ControlParams) if f.name not in CONTROL_EXCLUDED + ("notch",)]
     + [("notch", NotchConfig, section(NotchConfig, "speed-adaptive notch filter (METHOD.md §8.1)"))],
     frozen=True, kw_only=True)
-ControlConfig.__doc__ = "control: the fields of gateway.control.ControlParams except ts"
+ControlConfig.__doc__ = "control: the fields of gateway.core.control.ControlParams except ts"
 ControlConfig.__module__ = __name__
 
 #: method parameters a station file may set in `method:` (t_set/t_end come from `test:`)
@@ -950,6 +964,18 @@ def _control(cfg, r):
                         f"{nyq:g} Hz of ts = {ts:g} s; allowed: < {nyq:g}")
 
 
+def _doors(cfg, r):
+    doors = cfg.mqtt.command_doors
+    if len(doors) > COMMAND_DOORS_MAX:
+        r.error(("mqtt", "command_doors"), f"{len(doors)} doors; allowed: at most {COMMAND_DOORS_MAX}")
+    for i, d in enumerate(doors):
+        why = door_problem(d)
+        if why is not None:
+            r.error(("mqtt", "command_doors"), f"item {i + 1} ({d!r}): {why}")
+        elif d in doors[:i]:
+            r.error(("mqtt", "command_doors"), f"item {i + 1} ({d!r}) is listed twice")
+
+
 RULES: tuple[Rule, ...] = (
     Rule("`modbus_tcp.writes.enabled: true` needs a non-empty `allowed_clients`.", _writes),
     Rule("`mqtt.password` is never accepted inline: use `password_env` or `password_file` (one of them).",
@@ -964,6 +990,8 @@ RULES: tuple[Rule, ...] = (
     Rule("`control.open_loop_rpm` ≤ `n_max_rpm`; `control.notch.q_min` ≤ `q_max`; "
          "`prefilter_fc_hz` and `deriv_fc_hz` below the Nyquist frequency 1/(2·`method.ts`).",
          _control),
+    Rule(f"`mqtt.command_doors`: at most {COMMAND_DOORS_MAX}, each 1–32 letters, digits, '-' and '_' "
+         "(no command's name), none twice.", _doors),
 )
 
 

@@ -2,12 +2,12 @@
 validation error can say ``config/stations/loom-02.yaml:14: meter.baud: …``.
 
 The reading itself — size, encoding, nesting, alias and integer limits, the safe schema — is
-:mod:`gateway.safeyaml`, the one reader of every YAML file the gateway reads; this module names
+:mod:`gateway.plumbing.safeyaml`, the one reader of every YAML file the gateway reads; this module names
 what the configuration loader uses of it.
 """
 from __future__ import annotations
 
-from ..safeyaml import CONFIG, Doc, KeyPath, Limits, Pos, YamlError, YamlLimitError, kind, load
+from ..plumbing.safeyaml import CONFIG, Doc, KeyPath, Limits, Pos, YamlError, YamlLimitError, kind, load
 
 Path = KeyPath
 

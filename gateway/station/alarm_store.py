@@ -1,8 +1,8 @@
 """The one alarm store: the alarms of a station as ISA-18.2 knows them, kept on disk across restarts.
 
-Two alarms of the same model (:mod:`gateway.alarms`): ``end_of_life`` (priority 1, the most
+Two alarms of the same model (:mod:`gateway.core.alarms`): ``end_of_life`` (priority 1, the most
 urgent: t_life was found) and ``warning`` (priority 2: the §5a early warning — informative, it
-never changes the test's result). States (:class:`gateway.records.AlarmState`, the one enum the
+never changes the test's result). States (:class:`gateway.core.records.AlarmState`, the one enum the
 PLC register, MQTT and Sparkplug show): normal → unacknowledged (raised) → acknowledged → normal
 (closed: the hook was replaced / a new test started), unacknowledged → rtn_unacknowledged, shelved
 with an expiry, out_of_service while a needle is being changed.
@@ -23,15 +23,15 @@ import os
 from dataclasses import replace
 from typing import Any
 
-from .. import safeout
-from ..alarms import Alarm, AlarmError, Transition
-from ..records import ALARM_END_OF_LIFE, ALARM_PRIORITY, ALARM_WARNING, AlarmRecord, AlarmState, Event, EventType
+from ..core.alarms import Alarm, AlarmError, Transition
+from ..core.records import ALARM_END_OF_LIFE, ALARM_PRIORITY, ALARM_WARNING, AlarmRecord, AlarmState, Event, EventType
+from ..plumbing import safeout
 
 log = logging.getLogger("hookwatch.alarms")
 
 END_OF_LIFE = ALARM_END_OF_LIFE
 WARNING = ALARM_WARNING
-#: the store's alarm kinds → the model's alarm names (gateway.alarms.ALARMS)
+#: the store's alarm kinds → the model's alarm names (gateway.core.alarms.ALARMS)
 MODEL_NAME = {END_OF_LIFE: "end_of_life", WARNING: "wear_warning"}
 KIND_OF = {v: k for k, v in MODEL_NAME.items()}
 PRIORITY = ALARM_PRIORITY
@@ -71,7 +71,7 @@ class AlarmStore:
         return next((r for r in self.records() if r.active), None)
 
     def shelved_until(self, name: str) -> float | None:
-        """When the shelving of alarm ``name`` (a model name, gateway.alarms.ALARMS) expires, s since
+        """When the shelving of alarm ``name`` (a model name, gateway.core.alarms.ALARMS) expires, s since
         the epoch; None unless it is shelved."""
         a = self.models.get(KIND_OF.get(name, name))
         return a.shelved_until if a is not None and a.state == AlarmState.SHELVED else None

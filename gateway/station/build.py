@@ -9,8 +9,8 @@ import os
 from dataclasses import fields
 from typing import Any
 
-from ..control import ControlParams, NotchParams
-from ..ports import StationLimits
+from ..core.control import ControlParams, NotchParams
+from ..core.ports import StationLimits
 from .session import TestPlan
 
 log = logging.getLogger("hookwatch.build")

@@ -74,7 +74,7 @@ class SlotStats:
 
 class LateStarts:
     """The log of late slot starts (overruns), bounded like every refusal log
-    (:mod:`gateway.ratelog`): the first overrun of a window is one line at once; the rest of the
+    (:mod:`gateway.plumbing.ratelog`): the first overrun of a window is one line at once; the rest of the
     window is counted and said in one line when the window ends (how many, the slots recorded as
     MISSING, the worst lateness), so a loaded box writes two lines a minute, not one per slot.
     The caller passes the time; each line goes to ``say`` (the station's log) and is returned."""

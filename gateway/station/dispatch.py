@@ -1,8 +1,8 @@
 """What a station does with a command it accepted: a table from command kind to handler.
 
-``Station.submit`` validates a command once (``gateway.station.commands.validate``, the same for
+``Station.submit`` validates a command once (``gateway.station.command_desk.validate``, the same for
 CLI, MQTT, PLC, console and Sparkplug), then calls ``HANDLERS[cmd.kind]``. A new command is a
-new row here (and its rules in ``commands.py``); nothing else branches on the kind.
+new row here (and its rules in ``command_desk.py``); nothing else branches on the kind.
 """
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from typing import Protocol
 
-from ..commandtypes import ALARM_COMMAND_EVENTS, text_arg
-from ..ports import StationLimits
-from ..records import Command, CommandArgs, CommandKind, EventType
+from ..core.command_rules import ALARM_COMMAND_EVENTS, text_arg
+from ..core.ports import StationLimits
+from ..core.records import Command, CommandArgs, CommandKind, EventType
 from .lifecycle import TestLifecycle
 from .session import TestPlan
 from .status import StatusBoard
@@ -30,7 +30,7 @@ class CommandTarget(Protocol):
     tests: TestLifecycle
 
     def start_test(self, plan: TestPlan, source: str = "station") -> None: ...
-    async def stop_test(self, source: str) -> None: ...
+    async def stop_test(self, source: str, test_id: str | None = None) -> None: ...
 
 
 Handler = Callable[[CommandTarget, Command], Awaitable[None]]
@@ -49,7 +49,7 @@ async def _start(st: CommandTarget, cmd: Command) -> None:
 
 
 async def _stop(st: CommandTarget, cmd: Command) -> None:
-    await st.stop_test(cmd.source)
+    await st.stop_test(cmd.source, text_arg(cmd.args, "test_id"))
 
 
 async def _ack(st: CommandTarget, cmd: Command) -> None:

@@ -1,7 +1,7 @@
 """The station's fan-out: every slot record, event and state change goes to every output, in order.
 
 Like python-can's ``Notifier`` with its ``Listener`` objects: the slot loop hands each item to
-:class:`Fanout` once, and the fan-out calls each output (:class:`gateway.ports.Output`). One
+:class:`Fanout` once, and the fan-out calls each output (:class:`gateway.core.ports.Output`). One
 failing output never stops the station or the other outputs: its first failure is logged with
 its traceback, later ones are only counted (:attr:`Fanout.failures`), and the count is logged
 when the station stops.
@@ -12,8 +12,8 @@ import logging
 from collections import Counter
 from collections.abc import Sequence
 
-from ..ports import JsonObject, Output, WorkerHooks
-from ..records import Event, SlotRecord, StationState
+from ..core.ports import JsonObject, Output, WorkerHooks
+from ..core.records import Event, SlotRecord, StationState
 
 log = logging.getLogger("hookwatch.station")
 
@@ -62,7 +62,7 @@ class Fanout:
                 self._failed(o, "state")
 
     def _hooked(self) -> list[WorkerHooks]:
-        """The outputs that take a fleet proxy's hooks (:class:`gateway.ports.WorkerHooks`)."""
+        """The outputs that take a fleet proxy's hooks (:class:`gateway.core.ports.WorkerHooks`)."""
         return [o for o in (*self.head, *self.outputs) if isinstance(o, WorkerHooks)]
 
     def worker(self, up: bool, restarts: int = 0) -> None:

@@ -14,14 +14,17 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
-from ..backoff import Backoff
-from ..osprio import freeze_heap, realtime_thread
-from ..threadloop import ThreadLoop
+from ..plumbing.backoff import Backoff
+from ..plumbing.osprio import freeze_heap, realtime_thread
+from ..plumbing.threadloop import ThreadLoop
 from .station import Station
 
 T = TypeVar("T")
 
 log = logging.getLogger("hookwatch.fleet")
+
+#: how often a configuration deferred by a running test looks whether the test has ended (s)
+DEFERRED_POLL_S = 0.2
 
 
 class StationRunner:
@@ -32,7 +35,7 @@ class StationRunner:
                  restart_backoff_max_s: float = 60.0, stable_after_s: float = 60.0,
                  rt_priority: int = 0, rt_optional: bool = False):
         self.name = name
-        #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/osprio.py)
+        #: SCHED_FIFO priority of the slot-loop thread (0: normal scheduling; gateway/plumbing/osprio.py)
         self.rt_priority = rt_priority
         #: SCHED_FIFO only where permitted, a refusal logged at info level (``hookwatch demo``);
         #: False: a refusal is a warning (``hookwatch run --realtime`` asked for it)
@@ -40,7 +43,7 @@ class StationRunner:
         self.factory = factory
         #: the first restart comes after ``restart_backoff_s``; each further crash in a row
         #: doubles it, up to ``restart_backoff_max_s``; an instance that ran ``stable_after_s``
-        #: starts a new row (gateway/backoff.py)
+        #: starts a new row (gateway/plumbing/backoff.py)
         self.restart = Backoff(restart_backoff_s, restart_backoff_max_s, stable_after_s)
         self.max_slots = max_slots
         self.on_started = on_started
@@ -52,6 +55,11 @@ class StationRunner:
         self.restart_requested = False
         self.last_error: str | None = None
         self.finished = threading.Event()
+        #: a new configuration that came during a test: applied when the test ends, never sooner
+        self.deferred: Callable[[], None] | None = None
+        #: a new configuration came before the loop ran: the first station is built from it
+        self.reloaded_before_start = False
+        self._deferred_task: asyncio.Task[None] | None = None
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop | None:
@@ -85,7 +93,7 @@ class StationRunner:
                         self.rt_priority, why)
         if self._stopping.is_set():
             return
-        reloaded = False
+        reloaded = self.reloaded_before_start
         while not self._stopping.is_set():
             t_start = time.monotonic()
             try:
@@ -139,20 +147,56 @@ class StationRunner:
     def request_reload(self, factory: Callable[[], Station]) -> None:
         """A new configuration (any thread). The decision is taken on the station's own loop, so
         a test start cannot slip in between the check and the restart: an idle station restarts
-        with ``factory`` (and emits ``config_reloaded``), one in a test keeps its parameters."""
+        with ``factory`` (and emits ``config_reloaded``); one in a test keeps its parameters and
+        restarts with ``factory`` when the test ends (:meth:`_after_test`) — never before."""
+        def apply() -> None:
+            self.factory = factory
+            self.restart_requested = True
+            log.info("%s: configuration reloaded; station restarts", self.name)
+        self._when_idle(apply, factory)
+
+    def request_stop_when_idle(self, on_idle: Callable[[], None]) -> None:
+        """Stop the station once it is idle — now, or when its running test ends, never before —
+        and call ``on_idle`` (on its loop) just before (a worker restarted for new software)."""
+        def apply() -> None:
+            log.info("%s: idle: the station stops for its restart", self.name)
+            on_idle()
+            self._stopping.set()
+        self._when_idle(apply, None)
+
+    def _when_idle(self, apply: Callable[[], None], factory: Callable[[], Station] | None) -> None:
         def on_loop() -> None:
             st = self.station
-
-            def apply() -> None:
-                self.factory = factory
-                self.restart_requested = True
-                log.info("%s: configuration reloaded; station restarts", self.name)
+            self.deferred = None
             if st is None:
-                self.factory = factory
-            else:
-                st.reload_requested(apply)
+                if factory is not None:
+                    self.factory = factory
+                else:
+                    apply()
+                    if self._stop is not None:
+                        self._stop.set()
+            elif not st.reload_requested(apply):
+                self.deferred = apply
+                if self._deferred_task is None or self._deferred_task.done():
+                    self._deferred_task = asyncio.ensure_future(self._after_test())
         if self.tl.running:
             self.tl.call_soon(on_loop)
+        elif factory is not None:       # not started yet (a fleet's start barrier): it starts with it
+            self.factory = factory
+            self.reloaded_before_start = True   # and says so (``config_reloaded``)
+        else:
+            apply()
+
+    async def _after_test(self) -> None:
+        """The configuration deferred by a test applies once the station is idle (checked and
+        applied in one step on its loop: no test start can come between)."""
+        while self.deferred is not None and not self._stopping.is_set():
+            await asyncio.sleep(DEFERRED_POLL_S)
+            st, apply = self.station, self.deferred
+            if st is not None and apply is not None and not st.busy:
+                log.info("%s: the test ended: the deferred configuration applies", self.name)
+                self.deferred = None
+                st.reload_requested(apply)
 
     def request_stop(self) -> None:
         self._stopping.set()
@@ -174,7 +218,7 @@ class StationRunner:
 
 
 class Fleet:
-    """The stations of one process, each on its own thread: a :class:`gateway.ports.Runtime`
+    """The stations of one process, each on its own thread: a :class:`gateway.core.ports.Runtime`
     (``hookwatch run STATION.yaml``, or a fleet folder with ``--in-process``). ``reloader`` gives,
     on SIGHUP, the new factory of each station by name (raising ValueError: configuration kept)."""
 

@@ -3,7 +3,7 @@
 Each reaches the outputs through the station's state (``meter_ok``, ``stm32_ok``, ``mqtt_ok``,
 ``disk_ok``, written through the :class:`~.status.StatusBoard`) and, for a port or a disk, as a
 pair of events per transition (``port_lost``/``port_back``, ``disk_full``/``disk_ok``). Called on
-the station's own loop (others hand over through ``gateway.threadloop``).
+the station's own loop (others hand over through ``gateway.plumbing.threadloop``).
 """
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ import asyncio
 import logging
 from typing import Any
 
-from ..ports import MeterDiagnosis, MeterPort, Stm32Port
-from ..ratelog import RateLog
-from ..records import EventType
-from ..threadloop import call_soon_on
+from ..core.ports import MeterDiagnosis, MeterPort, Stm32Port
+from ..core.records import EventType
+from ..plumbing.ratelog import RateLog
+from ..plumbing.threadloop import call_soon_on
 from .recorder import TestRecorder
 from .status import StatusBoard
 

@@ -19,13 +19,13 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from ..control import ControlParams
-from ..method.core import StreamingMonitor
-from ..ports import MeterPort
-from ..records import EventType
+from ..core.control import ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.ports import MeterPort
+from ..core.records import EventType
 from .health import Health
 from .hook_log import append_hook, next_sample_id
-from .priors import PriorBook
+from .priors import PriorBook, life_kind
 from .recorder import disk_thread, utc_iso
 from .session import RecorderOutput, TestPlan, TestSession
 from .starting import StartAttempt, StartStep
@@ -128,8 +128,20 @@ class TestLifecycle:
         return SlotResult(kt=kt, q=out.q, mask=out.mask, ratio=out.ratio, mu=out.mu, y=c.y,
                           saturated=c.saturated)
 
+    def note_drive_stop(self) -> None:
+        """A stop of the drive on its own the STM32 reported (its watchdog, a trip): the event
+        at once, and the running test keeps it (the first) as why it ends."""
+        ds = self.link.take_drive_stop()
+        if ds is None:
+            return
+        self.board.drive_stopped(ds)
+        sess = self.session
+        if sess is not None and sess.drive_stop is None:
+            sess.drive_stop = ds
+
     async def after_slot(self) -> None:
         """Lifecycle decisions after a slot: the start sequence's, protection stop, planned end."""
+        self.note_drive_stop()
         att = self.starting
         if att is not None:
             step, reason = att.next_step()
@@ -140,7 +152,7 @@ class TestLifecycle:
                 if refused is not None:
                     await self.start_failed(refused)
             elif step is StartStep.FAILED:
-                # a silent meter is named with its port and settings (drivers/zns.py diagnosis)
+                # a silent meter is named with its port and settings (drivers/meter/driver.py diagnosis)
                 note = getattr(self.meter, "diagnosis", lambda: None)()
                 await self.start_failed((reason or "start failed") + (f": {note}" if note else ""))
             return
@@ -169,8 +181,14 @@ class TestLifecycle:
         if att.next_step()[0] is StartStep.ENABLE_MOTOR:     # no zero check: spin up at once
             self._enable_motor(att)
 
-    async def stop_test(self, source: str) -> None:
-        """A stop command: cancels a start in progress, else ends the running test (aborted)."""
+    async def stop_test(self, source: str, test_id: str | None = None) -> None:
+        """A stop command: cancels a start in progress, else ends the running test (aborted). A
+        stop naming ``test_id`` ends that test only (the desk refused it already otherwise)."""
+        if test_id is not None:
+            sess = self.session
+            if sess is not None and sess.test_id == test_id:
+                await self.end_test("stopped by command", source=source)
+            return
         if self.starting is not None:
             await self.start_failed(f"start cancelled by command ({source})")
         else:
@@ -235,6 +253,9 @@ class TestLifecycle:
         self.motor_off_k = self.k
         self.speed_cmd = 0.0
         await self.link.stop(reason)         # a speed command not yet sent is withdrawn
+        # the STOP's answer may be the first to tell that the drive had stopped on its own (a
+        # stall of the gateway longer than the STM32's watchdog): the end says why
+        self.note_drive_stop()
         if reason in ("completed", "protection stop"):
             res = mon.close()          # slots up to the planned end that never came: MISSING
         else:                          # ended on purpose (§3): end_slot into the sidecar
@@ -244,7 +265,10 @@ class TestLifecycle:
                "end_reason": reason, "closed_utc": utc_iso(), "method": res.as_dict(),
                "sample_id": sess.plan.sample_id, "grade": sess.plan.grade, "t_set": sess.plan.t_set,
                "ts": sess.params.ts, "t_end": sess.params.t_end}
-        self.board.test_ended(mon.k - 1, reason, source, test_status, res)
+        ds = sess.drive_stop
+        if ds is not None:
+            out["why"], out["drive_stop"] = ds.words(), ds.as_data()
+        self.board.test_ended(mon.k - 1, reason, source, test_status, res, ds)
         sess.recorder.close(out)
         self.results.append(out)
         self.priors.add_result(out)          # what §7a learns from (this station's and the box's)
@@ -284,13 +308,16 @@ class TestLifecycle:
         rec: dict[str, Any] = {
             "station": self.setup.station_id, "old_sample_id": old_sid, "new_sample_id": new_sid,
             "grade": new_grade, "by": source, "utc": utc_iso(),
-            "test_id": last.get("test_id") if last is not None else None, "life_s": life}
+            "test_id": last.get("test_id") if last is not None else None, "life_s": life,
+            "life_kind": None}
+        loop = asyncio.get_running_loop()
+        if last is not None:     # §7a v3: an early failure is named as such (a scan: off the loop)
+            rec["life_kind"] = await loop.run_in_executor(None, life_kind, last, self.priors.known())
         if self.board.alarms.highest() is not None:
             self.board.emit(EventType.ALARM_CLEARED, source=source, reason="hook_replaced")
         # written and synced by the disk thread (never on the slot loop: a flood of replacements
         # once cost 42 slots of 100), in order; the command's answer waits for it
-        err = await asyncio.get_running_loop().run_in_executor(
-            disk_thread(), append_hook, self.setup.station_dir, rec)
+        err = await loop.run_in_executor(disk_thread(), append_hook, self.setup.station_dir, rec)
         if err is not None:
             log.error("%s: hooks.jsonl cannot be written (%s); the replacement is in the event only",
                       self.setup.station_id, err)

@@ -4,11 +4,12 @@ In this order: a fixed ``prior_mean``/``prior_sd`` in the station's ``method:`` 
 source ``method``); else its ``forecast.priors`` entry for the test's grade and T_set (``config``);
 else the recorded history — every completed test under the records root (``recorder.dir``: in a
 fleet, every station of the box) and every one the site's other stations shared (MQTT,
-gateway/northbound/sitelives.py), each test once by test id, with the same grade and T_set: its
-failures (at least 3) and its right-censored lives (a test that found its baseline and ended on
-purpose or at t_end), the maximum-likelihood normal of both (``history:N``, N failures); else
-none. The sidecar records the
-§7a source (``config`` or ``history``) with ``prior_n`` and ``prior_n_censored``.
+gateway/outputs/mqtt/sitelives.py), each test once by test id, with the same grade and T_set: its
+wear-out failures (at least 3), its right-censored lives (a test that found its baseline and ended
+on purpose or at t_end) and its early failures (§7a v3: censored at their life), the
+maximum-likelihood normal of them (``history:N``, N wear-out failures); else none. The sidecar
+records the §7a source (``config`` or ``history``) with ``prior_n``, ``prior_n_censored`` and
+``prior_n_early``; the state carries the same counts for the planner.
 
 The history is read off the slot loop (a worker thread of the loop's default executor) when the
 station opens, again when a test starts and after each test ends; the same worker fits the prior of
@@ -18,7 +19,7 @@ slot loop's time) with the results of this station's tests ended since: a group'
 by its lives; a group the worker has not fitted (a test just ended) is fitted at the start when it
 holds at most :data:`SYNC_FIT_MAX` lives (≈ 2 ms), else the last read's fit of the group is used
 (one log line); a start while the site's lives are being fitted again scans a history of at most
-:data:`SCAN_MAX` tests, else uses the last fit. Bounded by :mod:`gateway.history` (the newest
+:data:`SCAN_MAX` tests, else uses the last fit. Bounded by :mod:`gateway.offline.history` (the newest
 20,000 result files, 1 MiB each); a damaged result is skipped there with one log line.
 """
 from __future__ import annotations
@@ -29,8 +30,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from ..history import past_test, read_history
-from ..method.prior import (
+from ..core.method.prior import (
     NO_PRIOR,
     OBSERVED,
     SOURCE_CONFIG,
@@ -39,13 +39,15 @@ from ..method.prior import (
     Prior,
     PriorEntry,
     group_tests,
+    kind_in_history,
     prior_of_lives,
     resolve_prior,
     same_t_set,
 )
-from ..ratelog import safe
+from ..offline.history import past_test, read_history
+from ..plumbing.ratelog import safe
 
-__all__ = ["PriorBook", "SOURCE_METHOD"]
+__all__ = ["PriorBook", "SOURCE_METHOD", "life_kind"]
 
 log = logging.getLogger("hookwatch.station")
 
@@ -106,8 +108,16 @@ def _labelled(pr: Prior, station_id: str, group: list[tuple[PastTest, str, float
         return NO_PRIOR
     k, words, names = origin(station_id, [t for t, _, _ in group])
     label = f"history:{pr.n}" if k == 1 else f"history:{pr.n} ({words})"
-    return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, label=label, n_stations=k, origin=words,
-                 station_ids=names)
+    return Prior(pr.mean, pr.sd, pr.source, pr.n, pr.n_censored, pr.n_early, label=label,
+                 n_stations=k, origin=words, station_ids=names)
+
+
+def life_kind(result: dict[str, Any], history: list[PastTest]) -> str | None:
+    """What a test's result is in this §7a history (v3; the result with it, once by its test id):
+    ``wear_out`` or ``early`` (a failure), ``censored``, or None (no life for the history). A scan
+    of the history: off the slot loop."""
+    t = past_test(result)
+    return None if t is None else kind_in_history(t, history)
 
 
 def _read_and_fit(root: str, site: tuple[PastTest, ...] = (), station_id: str = "",
@@ -158,7 +168,7 @@ class PriorBook:
         #: results of this station's tests ended since the last read began (kept until a read
         #: that began after them has finished)
         self._recent: list[PastTest] = []
-        #: the other stations' lives that the site shared (gateway/northbound/sitelives.py)
+        #: the other stations' lives that the site shared (gateway/outputs/mqtt/sitelives.py)
         self.site: tuple[PastTest, ...] = ()
         self._again = False
         self._again_read = False

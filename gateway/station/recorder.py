@@ -3,7 +3,7 @@ the events file (JSON Lines) and the result.
 
 Flushed at least once a second, each flush one complete gzip member written in one call (a failed
 write is truncated back): `kill -9` at any moment loses at most the last second, and what reached
-the disk always reads back (``gateway.logio`` reads every member; a full or read-only disk is a
+the disk always reads back (``gateway.offline.logio`` reads every member; a full or read-only disk is a
 state, see :class:`TestRecorder`). A test folder without ``result.json`` is a test that was cut off; on
 restart :func:`recover_incomplete` closes it as ``aborted`` (reason: gateway restart).
 """
@@ -25,10 +25,11 @@ from typing import Any
 
 import yaml
 
-from .. import logio, safeout
-from ..analysis import AnalysisError, analyze_file
-from ..method.rules import LOST
-from ..records import Event, SlotRecord
+from ..core.method.rules import LOST
+from ..core.records import Event, SlotRecord
+from ..offline import logio
+from ..offline.analysis import AnalysisError, analyze_file
+from ..plumbing import safeout
 
 log = logging.getLogger("hookwatch.recorder")
 
@@ -163,7 +164,7 @@ def _fsync_in_background(fd: int) -> None:
 
 #: rows kept in memory while the disk refuses writes (5 minutes at 50 Hz, about 1 MB): the
 #: recorder's reserve. Once it is full the recorder refuses further slots (:meth:`TestRecorder.accepts`
-#: is False): the station feeds them to the method as LOST (``gateway.method.rules.LOST``) and the
+#: is False): the station feeds them to the method as LOST (``gateway.core.method.rules.LOST``) and the
 #: recorder notes them as ``lost_spans`` in the sidecar, which the offline analysis reads the same
 #: way (online == offline after any disk outage)
 MAX_PENDING_ROWS = 15_000
@@ -251,7 +252,7 @@ class TestRecorder:
     ``disk_ok`` turns False, ``on_disk_state(False, info)`` is called once, one error line is
     logged (then at most one a minute, with a count); rows are kept in memory up to the reserve
     (:func:`reserve_rows`). Once it is full :meth:`accepts` is False: the station asks before it
-    feeds a slot to the method and feeds a refused slot as LOST (``gateway.method.rules.LOST``);
+    feeds a slot to the method and feeds a refused slot as LOST (``gateway.core.method.rules.LOST``);
     its record (mask LOST) is not written but counted in ``lost_rows``/``lost_spans`` ([first,
     last] slot). No row the method analysed is ever dropped. When a write succeeds again
     ``disk_ok`` turns True, ``on_disk_state(True, info)`` is called, the events ``disk_full`` and

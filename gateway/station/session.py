@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .. import __version__
-from ..control import Controller, ControlParams
-from ..method.core import StreamingMonitor
-from ..method.params import MethodParams, build_params
-from ..method.prior import Prior
-from ..records import Event, SlotRecord, StationState
+from ..core.control import Controller, ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.method.params import MethodParams, build_params
+from ..core.method.prior import Prior
+from ..core.ports import DriveStop
+from ..core.records import Event, SlotRecord, StationState
 from .recorder import TestRecorder, new_test_dir, utc_iso
 
 
@@ -59,6 +60,8 @@ class TestSession:
     ending: bool = False
     #: set once the test's result is written (what a second ender waits for)
     ended: asyncio.Event = field(default_factory=asyncio.Event)
+    #: the STM32 stopped the drive on its own during the test (the first time): why it ended
+    drive_stop: DriveStop | None = None
 
     @classmethod
     def begin(cls, *, station_id: str, station_dir: str, plan: TestPlan,
@@ -71,7 +74,7 @@ class TestSession:
         the spin-up (a new one without), ``start_info`` the §3a figures for the sidecar, ``prior``
         the test's life prior (§7a): its mean and SD go into the method (and so into the sidecar's
         ``method:`` section, for `hookwatch analyze` to give the same forecast), its source and
-        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``)."""
+        counts beside it (``prior_source``, ``prior_n``, ``prior_n_censored``, ``prior_n_early``)."""
         values = dict(method_values)
         if prior is not None and prior.mean is not None and prior.sd is not None:
             values["prior_mean"], values["prior_sd"] = prior.mean, prior.sd
@@ -91,8 +94,8 @@ class TestSession:
             meta["start"] = dict(start_info)
         if prior is not None:
             side = prior.sidecar()
-            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_stations", "prior_from",
-                      "prior_station_ids"):
+            for k in ("prior_source", "prior_n", "prior_n_censored", "prior_n_early", "prior_stations",
+                      "prior_from", "prior_station_ids"):
                 if k in side:
                     meta[k] = side[k]
         try:

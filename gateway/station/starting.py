@@ -1,7 +1,7 @@
 """The start of a test on a station (METHOD.md §3a), beside its session: a state machine.
 
 A :class:`StartAttempt` runs before slot 0 and records nothing. It wraps the method's pure
-§3a sequence (:class:`gateway.method.start.StartSequence`) with what only a station knows: the
+§3a sequence (:class:`gateway.core.method.start.StartSequence`) with what only a station knows: the
 zero check judges the yarn at rest through an open port, so it first waits (at most
 ``start_timeout``) for the meter's port and for the take-up to have run down; then the spin-up
 runs with the loop closed (its controller goes on into the :class:`~.session.TestSession`).
@@ -21,9 +21,9 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from ..control import Controller, ControlParams
-from ..method.params import MethodParams
-from ..method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK, StartSequence
+from ..core.control import Controller, ControlParams
+from ..core.method.params import MethodParams
+from ..core.method.start import FAILED, SETTLED, SPIN_UP, ZERO_CHECK, StartSequence
 from .session import TestPlan, plan_params
 
 __all__ = ["REST_RPM", "REST_S", "StartAttempt", "StartStep"]

@@ -13,7 +13,7 @@ Beside it, each in its own module: the start sequence (:mod:`.starting`, a pure 
 the test's transitions (:mod:`.lifecycle`), the one place the state changes and events leave
 (:mod:`.status`), ports/uplinks/disks (:mod:`.health`), the command table (:mod:`.dispatch`).
 The end-of-life alarm lives in the station's :class:`~.alarm_store.AlarmStore`. Everything here runs on
-the station's own loop; other threads reach it only through ``gateway.threadloop`` (commands:
+the station's own loop; other threads reach it only through ``gateway.plumbing.threadloop`` (commands:
 :meth:`Station.submit`; uplink changes: :meth:`Station.set_uplink`; reloads:
 :meth:`Station.reload_requested`).
 """
@@ -27,16 +27,16 @@ import time
 from collections.abc import Callable, Coroutine, Iterable
 from typing import Any
 
-from .. import ratelog
-from ..control import Controller, ControlParams
-from ..method.core import StreamingMonitor
-from ..method.params import MethodParams
-from ..method.prior import PastTest, PriorEntry
-from ..ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
-from ..records import Command, CommandReply, EventType, SlotRecord, StationState
+from ..core.control import Controller, ControlParams
+from ..core.method.core import StreamingMonitor
+from ..core.method.params import MethodParams
+from ..core.method.prior import PastTest, PriorEntry
+from ..core.ports import MeterPort, MeterReading, Output, StationLimits, Stm32Port
+from ..core.records import Command, CommandReply, EventType, SlotRecord, StationState
+from ..plumbing import ratelog
 from .alarm_store import AlarmStore
 from .clock import LateStarts, SlotClock, SlotStats
-from .commands import CommandDesk, validate
+from .command_desk import CommandDesk, validate
 from .dispatch import HANDLERS
 from .fanout import Fanout
 from .health import Health
@@ -218,8 +218,8 @@ class Station:
     def start_test(self, plan: TestPlan, source: str = "station") -> None:
         self.tests.start_test(plan, source)
 
-    async def stop_test(self, source: str) -> None:
-        await self.tests.stop_test(source)
+    async def stop_test(self, source: str, test_id: str | None = None) -> None:
+        await self.tests.stop_test(source, test_id)
 
     async def end_test(self, reason: str, source: str = "station") -> dict[str, Any] | None:
         return await self.tests.end_test(reason, source)

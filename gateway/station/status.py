@@ -1,4 +1,4 @@
-"""The one place a station's state changes: its :class:`~gateway.records.StationState`, its events
+"""The one place a station's state changes: its :class:`~gateway.core.records.StationState`, its events
 and their hand-over to the outputs.
 
 A :class:`StatusBoard` owns the state. Every change goes through :meth:`StatusBoard.update` (the
@@ -16,9 +16,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import fields, replace
 from typing import Any
 
-from ..method.core import SlotOut
-from ..method.prior import Prior
-from ..records import Event, EventType, StationState, TestState
+from ..core.method.core import SlotOut
+from ..core.method.prior import Prior
+from ..core.ports import DriveStop
+from ..core.records import Event, EventType, StationState, TestState
 from .alarm_store import AlarmStore
 from .fanout import Fanout
 from .session import TestPlan, TestSession
@@ -33,6 +34,7 @@ NO_PROJECTION: dict[str, Any] = {"end_p10": None, "end_p50": None, "end_p90": No
                                  "t_cross": None, "due": False}
 #: … and the rest of the §5b/§7a figures, none outside a test (the contract of issue 20)
 NO_FORECAST: dict[str, Any] = {"prior_mean": None, "prior_sd": None, "prior_source": None,
+                               "prior_n": None, "prior_n_censored": None, "prior_n_early": None,
                                "lead_s": None, "p_due": None, "warn_reasons": [],
                                "test_started_utc": None}
 
@@ -111,18 +113,21 @@ class StatusBoard:
         life prior (§7a) and the §5b parameters in the state."""
         plan, p = sess.plan, sess.params
         src = (prior.label or prior.source) if prior is not None and p.prior_mean is not None else None
+        # how many lives it came from (§7a v3: wear-out failures, censored lives, early failures)
+        counts = ({"prior_n": prior.n, "prior_n_censored": prior.n_censored,
+                   "prior_n_early": prior.n_early} if prior is not None and src is not None
+                  else {"prior_n": None, "prior_n_censored": None, "prior_n_early": None})
         self.update(state=TestState.BASELINE_SEARCH, test_id=sess.test_id, sample_id=plan.sample_id,
                     grade=plan.grade, t_set=plan.t_set, t_end=plan.t_end, mu_ss=None, mu_th=None,
                     t_life=None, k_b=None, status=None, end_reason=None, protection_stop=False,
                     stopped=False, wear_warning=False, elapsed_s=0.0,
-                    prior_mean=p.prior_mean, prior_sd=p.prior_sd, prior_source=src,
+                    prior_mean=p.prior_mean, prior_sd=p.prior_sd, prior_source=src, **counts,
                     lead_s=p.lead, p_due=p.p_due, warn_reasons=[],
                     test_started_utc=sess.recorder.meta.get("start_time"), headroom=None,
                     **NO_PROJECTION)
         self.emit(EventType.TEST_STARTED, k=0, sample_id=plan.sample_id, grade=plan.grade,
                   t_set=plan.t_set, t_end=plan.t_end, source=source, prior_mean=p.prior_mean,
-                  prior_sd=p.prior_sd, prior_source=src,
-                  prior_n=prior.n if prior is not None and src is not None else None, **info)
+                  prior_sd=p.prior_sd, prior_source=src, **counts, **info)
         self.push()
 
     def start_failed(self, reason: str, **data: Any) -> None:
@@ -131,13 +136,21 @@ class StatusBoard:
         self.emit(EventType.START_FAILED, reason=reason, **data)
         self.push()
 
-    def test_ended(self, k: int, reason: str, source: str, test_status: str, result: Any) -> None:
-        """The test is closed (completed or aborted) with the method's ``result``."""
+    def test_ended(self, k: int, reason: str, source: str, test_status: str, result: Any,
+                   drive_stop: DriveStop | None = None) -> None:
+        """The test is closed (completed or aborted) with the method's ``result``; ``drive_stop``:
+        the drive stopped on its own during it (its sentence is the end's ``why``)."""
         self.update(state=TestState.COMPLETED if test_status == "completed" else TestState.ABORTED,
                     status=result.status, end_reason=reason,
                     stopped=result.stop_reasons == ["STOPPED"], **NO_PROJECTION, **NO_FORECAST)
         self.emit(EventType.TEST_ENDED, k=k, reason=reason, source=source, test_status=test_status,
-                  result=result.as_dict())
+                  result=result.as_dict(), why=drive_stop.words() if drive_stop is not None else None,
+                  drive_stop=drive_stop.as_data() if drive_stop is not None else None)
+
+    def drive_stopped(self, ds: DriveStop) -> None:
+        """The STM32 stopped the drive on its own (its watchdog, a trip): ``drive_stopped``, the
+        sentence in ``why`` (and in the station's log with the event)."""
+        self.emit_data(EventType.DRIVE_STOPPED, ds.as_data())
 
     def method_events(self, sess: TestSession, out: SlotOut, kt: int, ts: float) -> None:
         """The method's events of test slot ``kt`` (baseline, end of life, a §5a window, the wear

@@ -1,8 +1,8 @@
 """The station's side of its STM32 port: how the per-slot speed command reaches the take-up.
 
-An STM32 port that can post the command (:class:`~gateway.ports.Stm32PostingPort`, the real
+An STM32 port that can post the command (:class:`~gateway.core.ports.Stm32PostingPort`, the real
 driver) gets it written at once, and its reply is collected after the next slot's poll, when the
-process is awake anyway (no wake-up of its own). Any other :class:`~gateway.ports.Stm32Port`
+process is awake anyway (no wake-up of its own). Any other :class:`~gateway.core.ports.Stm32Port`
 gets it through one sender task and a one-slot "latest value" box (:class:`LatestValue`). Either
 way the slot loop never waits for the STM32, and a command that cannot go out (the link busy with
 another exchange, or replaced in the box by a newer one: never queued) is reported to the caller,
@@ -19,7 +19,7 @@ import time
 from collections.abc import Coroutine
 from typing import Any
 
-from ..ports import Stm32Port, Stm32PostingPort, Stm32Status
+from ..core.ports import DriveStop, Stm32DriveStops, Stm32Port, Stm32PostingPort, Stm32Status
 
 __all__ = ["LatestValue", "Stm32Drive"]
 
@@ -82,6 +82,8 @@ class Stm32Drive:
         self.port = port
         #: the port posts the speed command without waiting (the real driver)
         self.posting = isinstance(port, Stm32PostingPort)
+        #: the port says when the drive stopped on its own (the real driver)
+        self.tells_stops = isinstance(port, Stm32DriveStops)
         #: the sender's box: a speed (rpm) or the status read
         self.box = LatestValue()
         self.busy = False               # the sender has a job on the link
@@ -131,6 +133,16 @@ class Stm32Drive:
             return
         if st is not None:
             self.speed_act = float(st.actual_rpm)
+
+    def take_drive_stop(self) -> DriveStop | None:
+        """A stop of the drive on its own the port saw and nobody took yet (once), or None."""
+        if not self.tells_stops:
+            return None
+        try:
+            return self.port.take_drive_stop()                # type: ignore[attr-defined]
+        except Exception as e:
+            log.error("%s: STM32 take_drive_stop failed: %s", self.id, e)
+            return None
 
     @property
     def idle(self) -> bool:

@@ -1,12 +1,12 @@
 """A human-readable output for a terminal: one progress line every few seconds and a line per event
-(`hookwatch demo`; not the web console, which is `gateway/console/`)."""
+(`hookwatch demo`; not the web console, which is `gateway/outputs/console/`)."""
 from __future__ import annotations
 
 import math
 import sys
 import time
 
-from ..records import Event, EventType, SlotRecord, StationState
+from ..core.records import Event, EventType, SlotRecord, StationState
 
 
 def fmt(v: object) -> str:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..config import Issue, cross_issues, validate_fleet
-from ..ratelog import safe
+from ..plumbing.ratelog import safe
 
 __all__ = ["FleetPlan", "Refused", "RunOptions", "apply_overrides", "fingerprint", "plan_fleet"]
 

@@ -16,11 +16,12 @@ Worker → supervisor (the stream; see :class:`FrameChannel` for how it is bound
 ====  ===========  ============================================================================
 type  name         body
 ====  ===========  ============================================================================
-1     HELLO        ``{station, pid, proto}`` once the worker has loaded (imports, configuration);
+1     HELLO        ``{station, pid, proto, software}`` once the worker has loaded (imports,
+                   configuration; ``software``: the hookwatch version it runs);
                    it then waits for GO
 2     HEARTBEAT    ``{slots, filled, in_test, results, dropped, crashes}`` every 0.5 s, produced
                    *on the station's loop* (a stuck loop sends none: the supervisor's watchdog)
-3     STATE        the :class:`~gateway.records.StationState` as a mapping (enum → value)
+3     STATE        the :class:`~gateway.core.records.StationState` as a mapping (enum → value)
 4     SLOTS        a summary of the last ``n`` slots: ``{k, n, filled, valid, mu_mean, t_mean,
                    lateness_ms_max, rtt_ms_max, last: <the last SlotRecord as a mapping>}``;
                    when the supervisor serves outputs for the station (Modbus TCP, console) also
@@ -29,14 +30,14 @@ type  name         body
                    frames means frames were dropped); then a frame is also sent before each EVENT
                    and STATE with the slots so far (``n`` < 10), so records, events and states
                    arrive in the order the station produced them
-8     METRICS      the station's metrics snapshot (``gateway/northbound/metrics.py``, shape
+8     METRICS      the station's metrics snapshot (``gateway/outputs/metrics.py``, shape
                    ``SNAPSHOT_VERSION``) once a second, when the fleet has a metrics endpoint
-5     EVENT        :meth:`~gateway.records.Event.as_dict`
+5     EVENT        :meth:`~gateway.core.records.Event.as_dict`
 6     REPLY        ``{id, ok, reason, code, request_id}`` to a COMMAND (``code``: the rejection
-                   code of gateway/commandtypes.py, 0 when accepted)
+                   code of gateway/core/command_rules.py, 0 when accepted)
 7     FINAL        ``{stats, results}`` when the worker stops cleanly
 9     SITE         ``{topic, payload}``: a retained state/status of a station of the site, for the
-                   supervisor's console (its site view, gateway/console/site.py), from the one
+                   supervisor's console (its site view, gateway/outputs/console/site.py), from the one
                    worker that carries it (``site`` in ``--served-by-supervisor``); ``payload``
                    is the message's text, cut to the site view's bound + 1 byte (the console
                    refuses it, counted)
@@ -46,7 +47,9 @@ Supervisor → worker (commands flow back):
 
 ====  ===========  ============================================================================
 16    COMMAND      ``{id, kind, source, args, request_id}`` → ``station.submit`` → REPLY ``id``
-17    RELOAD       ``{}``: re-read the station file; the station decides on its own loop
+17    RELOAD       ``{}``: re-read the station file; the station decides on its own loop;
+                   ``{restart: true}``: stop once idle (now, or when its test ends) and exit with
+                   75 for a new worker process (new software installed: ``hookwatch config restart``)
 18    GO           ``{}``: run the station (at start, once every worker of the fleet has loaded,
                    so no station's slots compete with another worker's start-up)
 ====  ===========  ============================================================================
@@ -63,16 +66,20 @@ import threading
 from dataclasses import fields
 from typing import Any
 
-from .. import safeout
-from ..records import Event, EventType, SlotRecord, StationState, TestState
-from ..threadloop import Mailbox
+from ..core.records import Event, EventType, SlotRecord, StationState, TestState
+from ..plumbing import safeout
+from ..plumbing.threadloop import Mailbox
 
 PROTO = 2
-#: the columns of a SLOTS frame's ``rows``: the fields of :class:`~gateway.records.SlotRecord`
+#: the columns of a SLOTS frame's ``rows``: the fields of :class:`~gateway.core.records.SlotRecord`
 SLOT_COLUMNS = tuple(f.name for f in fields(SlotRecord))
 HEADER = struct.Struct(">IB")
 MAX_BODY = 1 << 20
 
+
+#: the exit code of a worker that ended for the restart the supervisor asked for (new software,
+#: RELOAD ``{restart: true}``): started again at once, not counted as a crash (EX_TEMPFAIL)
+RESTART_EXIT = 75
 
 class FrameType(enum.IntEnum):
     HELLO = 1
@@ -186,7 +193,7 @@ class FrameChannel:
     """The sending side of one socket: a bounded queue and a writer thread.
 
     :meth:`send` never blocks and never fails (it is called on a station's slot loop): frames wait
-    in a :class:`~gateway.threadloop.Mailbox` of ``maxlen`` frames; when the peer does not read
+    in a :class:`~gateway.plumbing.threadloop.Mailbox` of ``maxlen`` frames; when the peer does not read
     (a stalled supervisor, a full socket buffer) the oldest frames are dropped and counted in
     :attr:`dropped`. The writer thread sends them in order with blocking ``sendall``."""
 

@@ -6,8 +6,8 @@ edge nodes with a device per station, the operator console, the metrics endpoint
 :class:`RemoteStation` per station stands in for the
 :class:`~gateway.station.station.Station` those outputs were written for. It rebuilds the
 station's stream from its worker's IPC frames (:mod:`.ipc`: every
-:class:`~gateway.records.SlotRecord` from the SLOTS frames' ``rows``, every
-:class:`~gateway.records.Event`, every :class:`~gateway.records.StationState`, the METRICS
+:class:`~gateway.core.records.SlotRecord` from the SLOTS frames' ``rows``, every
+:class:`~gateway.core.records.Event`, every :class:`~gateway.core.records.StationState`, the METRICS
 snapshots) and calls the SAME output classes the in-process runtime uses (``ModbusOutput``,
 ``SparkplugOutput`` as :class:`SparkplugDevice`, ``ConsoleOutput``, ``MetricsRelay``), so register
 map, Sparkplug metric set, console and metrics have one definition in both modes.
@@ -16,7 +16,7 @@ Threads: frames arrive on the hub's reader thread (one per worker, as a station 
 and the outputs' ``on_record``/``on_event``/``on_state`` run there (they are O(1), never
 blocking). The outputs' coroutines — ``start``/``stop`` and :meth:`RemoteStation.submit`, where
 their commands go (a PLC write, a console button, a Sparkplug DCMD from its node's thread) — run
-on one supervisor loop (:class:`~gateway.threadloop.ThreadLoop`
+on one supervisor loop (:class:`~gateway.plumbing.threadloop.ThreadLoop`
 ``fleet-outputs``); :meth:`submit` waits for the worker's REPLY in an executor thread
 (``StationHub.command`` blocks up to its timeout), so neither a server's loop nor a reader thread
 ever waits for a worker.
@@ -37,16 +37,17 @@ import threading
 import time
 from typing import Any
 
-from ..commandtypes import CODE, Rejection
 from ..compose import shared_outputs, station_facts
-from ..console.app import ConsoleServer
-from ..northbound.sparkplug import client as sparkplug_client
-from ..northbound.sparkplug.output import SparkplugOutput, state_values
-from ..ports import Output, PlanView, StationLimits, StationView
-from ..records import Command, CommandReply, Event, EventType, SlotRecord, StationState
+from ..core.command_rules import CODE, Rejection
+from ..core.ports import Output, PlanView, StationLimits, StationView
+from ..core.records import Command, CommandReply, Event, EventType, SlotRecord, StationState
+from ..outputs.console.app import ConsoleServer
+from ..outputs.sparkplug import runtime as sparkplug_client
+from ..outputs.sparkplug.output import SparkplugOutput, state_values
+from ..outputs.wiring import reload_key
+from ..plumbing.threadloop import ThreadLoop
 from ..station.alarm_store import KIND_OF, MODEL_NAME
 from ..station.fanout import Fanout
-from ..threadloop import ThreadLoop
 from .fleetcfg import apply_overrides
 from .ipc import FrameType, event_from_dict, slot_from_row, state_from_dict
 
@@ -83,7 +84,7 @@ class RemoteAlarms:
 
 class RemoteStation:
     """The supervisor's stand-in of one station for the outputs it serves (see the module doc):
-    a :class:`~gateway.ports.StationView` like the station itself (``id``, ``ts``, ``limits``,
+    a :class:`~gateway.core.ports.StationView` like the station itself (``id``, ``ts``, ``limits``,
     ``default_plan``, ``state``: the latest :class:`StationState`, ``alarms``:
     :class:`RemoteAlarms`, ``outputs``; ``submit(cmd)`` is the command sink). Its outputs are fed
     through the station's own :class:`~gateway.station.fanout.Fanout`."""
@@ -216,7 +217,7 @@ class SparkplugDevice(SparkplugOutput):
 
     The same output as in one process (metric set, aggregation, commands through the station's
     ``submit``), with one difference: the device lives while its WORKER does. ``start`` attaches
-    the station to its node (one :class:`~gateway.northbound.sparkplug.client.NodeRuntime` per
+    the station to its node (one :class:`~gateway.outputs.sparkplug.runtime.NodeRuntime` per
     broker, group and edge node in the supervisor: stations sharing a node share its session,
     its bdSeq and its Will) without a device; ``on_worker(True)`` (HELLO) brings the device up —
     a DBIRTH with the station's current values once the node is born — and ``on_worker(False)``
@@ -297,7 +298,7 @@ class RemoteFleet:
                 if name in self.stations and (hub.worker is None or hub.worker.path not in sup.workers):
                     self.remove(name)
                 continue
-            key = repr((cfg.modbus_tcp, cfg.sparkplug, cfg.metrics, with_nb))
+            key = repr((reload_key(cfg), with_nb))     # the registry's rows (gateway/outputs/wiring.py)
             if self.keys.get(name) == key:
                 continue
             if console is not None and name not in console.feeds:

@@ -41,17 +41,18 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from .. import safeout
-from ..backoff import Backoff
-from ..commandtypes import CODE, Rejection
 from ..compose import process_budget
 from ..config import Issue
-from ..doors import RateLog, budget
-from ..records import CommandReply
+from ..core.command_rules import CODE, Rejection
+from ..core.records import CommandReply
+from ..plumbing import safeout
+from ..plumbing.backoff import Backoff
+from ..plumbing.doors import RateLog, budget
+from ..plumbing.threadloop import Mailbox
 from ..station.build import records_dir_ok
-from ..threadloop import Mailbox
+from .boxagent import BoxAgent, HubInfo
 from .fleetcfg import FleetPlan, Refused, RunOptions, apply_overrides, fingerprint, plan_fleet
-from .ipc import FrameDecoder, FrameType, ProtocolError, encode, read_frames
+from .ipc import RESTART_EXIT, FrameDecoder, FrameType, ProtocolError, encode, read_frames
 
 __all__ = ["StationHub", "Supervisor", "WorkerHandle", "WorkerWatch"]
 
@@ -90,11 +91,11 @@ class SharedOutputs(Protocol):
 class StationHub:
     """Everything the supervisor process knows of one station: the hook point for shared outputs.
 
-    - :attr:`state` — the latest STATE frame (a :class:`~gateway.records.StationState` mapping);
+    - :attr:`state` — the latest STATE frame (a :class:`~gateway.core.records.StationState` mapping);
     - :attr:`last_slots` — the latest SLOTS frame (with ``last``: the latest slot record);
     - :attr:`stream` — the last :data:`STREAM_LEN` items ``(kind, body)``, kind ``"slots"``,
       ``"event"`` (station events) or ``"supervisor"`` (refused, exited, restarted, held back);
-    - :meth:`subscribe` — a :class:`~gateway.threadloop.Mailbox` fed with every new item, bounded
+    - :meth:`subscribe` — a :class:`~gateway.plumbing.threadloop.Mailbox` fed with every new item, bounded
       (a slow consumer loses its oldest items, counted; it never delays the station or the hub);
     - :meth:`command` — a command to the station (``station.submit`` in its worker) with a timeout.
 
@@ -108,6 +109,8 @@ class StationHub:
         self.last_slots: dict[str, Any] | None = None
         self.heartbeat: dict[str, Any] | None = None
         self.heartbeat_t = 0.0
+        #: the hookwatch version its worker runs (its HELLO)
+        self.software: str | None = None
         self.refused: str | None = None
         self.stream: collections.deque[tuple[str, dict[str, Any]]] = collections.deque(maxlen=STREAM_LEN)
         self.results: list[dict[str, Any]] = []
@@ -176,6 +179,12 @@ class StationHub:
     def in_test(self) -> bool:
         hb = self.heartbeat
         return bool(hb and hb.get("in_test"))
+
+    @property
+    def busy(self) -> bool:
+        """A test is starting or running (a new configuration waits for its end)."""
+        hb = self.heartbeat
+        return bool(hb and (hb.get("busy") or hb.get("in_test")))
 
 
 class WorkerHandle:
@@ -251,6 +260,8 @@ class WorkerHandle:
                                        name=f"ipc-{self.hub.name}")
         self.reader.start()
         log.info("%s: worker started (pid %d)", self.hub.name, self.proc.pid)
+        if sup.agent is not None:
+            sup.agent.spawned(self.hub.name)
 
     def _read(self, sock: socket.socket) -> None:
         dec = FrameDecoder()
@@ -265,11 +276,15 @@ class WorkerHandle:
                     if ftype == FrameType.HEARTBEAT:
                         hub.heartbeat = body
                         hub.heartbeat_t = time.monotonic()
+                        if self.sup.agent is not None:
+                            self.sup.agent.heartbeat(hub.name, body)
                     elif ftype == FrameType.SLOTS:
                         hub.last_slots = body
                         hub.publish("slots", body)
                     elif ftype == FrameType.EVENT:
                         hub.publish("event", body)
+                        if body.get("type") == "config_reloaded" and self.sup.agent is not None:
+                            self.sup.agent.config_reloaded(hub.name)
                     elif ftype == FrameType.STATE:
                         hub.state = body
                     elif ftype == FrameType.REPLY:
@@ -279,6 +294,8 @@ class WorkerHandle:
                             p[0].set()
                     elif ftype == FrameType.HELLO:
                         self.hello = True
+                        sw = body.get("software")
+                        hub.software = sw if isinstance(sw, str) else None
                         hub._worker(True)
                         if not self.sup.barrier:
                             self.go()
@@ -374,7 +391,7 @@ class WorkerWatch:
         self._grace_until = 0.0
 
     def restart_backoff(self) -> Backoff:
-        """A worker's restart back-off (gateway/backoff.py): ``backoff_s`` doubling to
+        """A worker's restart back-off (gateway/plumbing/backoff.py): ``backoff_s`` doubling to
         ``backoff_max_s``, a run of ``stable_s`` starting a new row."""
         return Backoff(self.backoff_s, self.backoff_max_s, self.stable_s)
 
@@ -443,6 +460,10 @@ class WorkerWatch:
         name = w.hub.name
         if w.stopping:
             return
+        if rc == RESTART_EXIT:          # asked for (new software), once idle: not a crash
+            log.info("%s: worker ended for its restart (new software); starting it again", name)
+            w.next_start = now
+            return
         why = f"signal {-rc}" if rc < 0 else f"exit code {rc}"
         delay = w.restart.failed(now - w.started_at)
         n = w.restart.in_row
@@ -468,6 +489,10 @@ class Supervisor:
                  shared: SharedOutputs | None = None,
                  on_site: Callable[[str, bytes], object] | None = None) -> None:
         self.folder = folder
+        #: a site-managed box (``hookwatch run STATE/config/current``): versions, deferral, report
+        self.agent = BoxAgent.for_folder(folder)
+        #: removed stations whose test still runs: stopped when it ends
+        self._retire_after_test: list[WorkerHandle] = []
         #: the console's site view (SITE frames of the worker that carries it), or None
         self.on_site = on_site
         #: the shared outputs (Modbus TCP units, Sparkplug devices, console, metrics), or None
@@ -509,9 +534,11 @@ class Supervisor:
         with ``spawn`` False the first :meth:`tick` starts them (the caller attaches its shared
         outputs to the hubs in between, so they see every frame from the first HELLO on)."""
         self.t_start = time.monotonic()
+        if self.agent is not None:
+            self.agent.at_start()
         self.plan = plan = plan_fleet(self.folder)
         # the descriptor budget first: the soft limit raised, the reserve for the socketpairs of
-        # worker (re)starts kept from the console, metrics and Modbus ports (gateway/doors.py)
+        # worker (re)starts kept from the console, metrics and Modbus ports (gateway/plumbing/doors.py)
         if plan.accepted:
             process_budget(plan.accepted[0][1])
         else:
@@ -549,7 +576,7 @@ class Supervisor:
         """Every worker runs its station (READY for systemd)."""
         return all(w.stopping or (w.running and w.go_t > 0) for w in self.workers.values())
 
-    # ------------------------------------------------------------ the runtime (gateway.ports.Runtime)
+    # ------------------------------------------------------------ the runtime (gateway.core.ports.Runtime)
     def alive(self) -> bool:
         """A station can run (not every station file was refused); workers are restarted."""
         return bool(self.workers)
@@ -595,6 +622,21 @@ class Supervisor:
                 if w.running and w.hello and not w.go_t:
                     w.go()
         self.watch.tick(list(self.workers.values()), now)
+        for w in [w for w in self._retire_after_test if not w.hub.busy]:
+            self._retire_after_test.remove(w)
+            log.info("%s: its test ended: the removed station stops", w.hub.name)
+            self._retire(w)
+        if self.agent is not None and self.agent.tick(
+                [HubInfo(h.name, h.busy, bool(h.worker and h.worker.running), h.refused, h.software,
+                         h.worker.proc.pid if h.worker and h.worker.proc else None)
+                 for h in self._current_hubs()], now):
+            self.reload()
+
+    def _current_hubs(self) -> list[StationHub]:
+        """The stations of the folder as read last (refused ones too) and the removed ones whose
+        test still runs — not the stations retired earlier."""
+        live = {id(w) for w in self.workers.values()} | {id(w) for w in self._retire_after_test}
+        return [h for h in self.hubs.values() if h.refused or (h.worker is not None and id(h.worker) in live)]
 
     @property
     def spawn_failures(self) -> int:
@@ -622,12 +664,15 @@ class Supervisor:
 
     # ------------------------------------------------------------ reload
     def reload(self) -> None:
+        if self.agent is not None:
+            self.agent.folder_read()
         try:
             plan = plan_fleet(self.folder)
         except OSError as e:
             log.error("reload refused, configuration kept: %s: %s", self.folder, e)
             return
         seen = set()
+        changed: list[StationHub] = []
         for r in plan.refused:
             seen.add(r.path)
             if r.path in self.workers:
@@ -649,12 +694,34 @@ class Supervisor:
             elif fp != w.fingerprint:
                 w.fingerprint = fp
                 log.info("%s: %s changed: reload sent to its worker", w.hub.name, os.path.basename(path))
+                changed.append(w.hub)
+                if self.agent is not None:
+                    self.agent.reload_sent(w.hub.name, w.hub.busy)
                 if not w.send(FrameType.RELOAD, {}):
                     log.warning("%s: worker not running; it starts with the new file", w.hub.name)
+            elif self.agent is not None:
+                self.agent.unchanged(w.hub.name)
         for path, w in list(self.workers.items()):
             if path not in seen:
+                if w.hub.busy and self.agent is not None:
+                    log.info("%s: station file removed: its worker stops when its test ends", w.hub.name)
+                    self.workers.pop(path, None)
+                    self._retire_after_test.append(w)
+                    continue
                 log.info("%s: station file removed: its worker stops", w.hub.name)
                 self._retire(w)
+        req = self.agent.restart_requested() if self.agent is not None else None
+        if req is not None:                      # new software: each worker restarts once idle
+            for w in self.workers.values():
+                if req[1] or w.hub.software != req[0]:
+                    w.send(FrameType.RELOAD, {"restart": True})
+        by = self.agent.interrupt_by() if self.agent is not None else None
+        if by is not None:
+            stopping = [h for h in changed if h.busy]
+            self.agent.interrupted(by, [h.name for h in stopping])      # type: ignore[union-attr]
+            for h in stopping:      # the test ends as aborted; its deferred configuration applies
+                threading.Thread(target=h.command, args=("stop",), kwargs={"source": f"config:{by}"},
+                                 daemon=True, name=f"interrupt-{h.name}").start()
         self.plan = plan
         if self.shared is not None:
             self.shared.attach(self)
@@ -666,7 +733,7 @@ class Supervisor:
 
     # ------------------------------------------------------------ stop
     def stop(self, timeout: float = 40.0) -> None:
-        ws = list(self.workers.values()) + list(self._retired)
+        ws = list(self.workers.values()) + list(self._retired) + list(self._retire_after_test)
         for w in ws:
             w.terminate()
         t_end = time.monotonic() + timeout
@@ -682,4 +749,6 @@ class Supervisor:
             w.reap()
         if self.shared is not None:
             self.shared.stop()
+        if self.agent is not None:
+            self.agent.stop()
         self.rlog.close()               # the counts of the last window, and no timer after

@@ -23,22 +23,24 @@ from concurrent.futures import Future
 from dataclasses import asdict
 from typing import Any
 
-from ..commandtypes import Rejection, reply_code
+from .. import __version__
 from ..compose import build_station
 from ..config import ConfigError, load_station
-from ..console.site import MAX_MESSAGE_BYTES
-from ..console.site import filters as site_filters
-from ..northbound.cmdparse import intake
-from ..northbound.metrics import MetricsOutput
-from ..northbound.mqtt import MqttOutput
-from ..ratelog import safe
-from ..records import CommandReply, Event, SlotRecord, StationState
-from ..slotwindow import SlotWindow
+from ..core.command_intake import intake
+from ..core.command_rules import Rejection, reply_code
+from ..core.records import CommandReply, Event, SlotRecord, StationState
+from ..core.slotwindow import SlotWindow
+from ..outputs.console.site import MAX_MESSAGE_BYTES
+from ..outputs.console.site import filters as site_filters
+from ..outputs.mqtt.output import MqttOutput
+from ..outputs.prometheus import MetricsOutput
+from ..outputs.wiring import BOX_SERVED, ROW_SERVED
+from ..plumbing.ratelog import safe
+from ..plumbing.threadloop import submit_to
 from ..station.fleet import StationRunner
 from ..station.station import Station
-from ..threadloop import submit_to
 from .fleetcfg import RunOptions, apply_overrides
-from .ipc import PROTO, FrameChannel, FrameDecoder, FrameType, ProtocolError, read_frames, slot_row
+from .ipc import PROTO, RESTART_EXIT, FrameChannel, FrameDecoder, FrameType, ProtocolError, read_frames, slot_row
 
 log = logging.getLogger("hookwatch.worker")
 
@@ -47,14 +49,13 @@ SUMMARY_EVERY = 10
 HEARTBEAT_S = 0.5
 #: one METRICS frame per this many heartbeats (1 s)
 METRICS_EVERY = 2
-#: what a supervisor may serve for its workers' stations (``--served-by-supervisor``)
-SERVED = ("modbus", "console", "metrics", "sparkplug", "site")
-#: served things that need every slot record (the others live on the summaries and snapshots)
-ROW_SERVED = frozenset({"modbus", "console", "sparkplug"})
+#: what a supervisor may serve for its workers' stations (``--served-by-supervisor``): the outputs
+#: of the registry it serves (gateway/outputs/wiring.py OUTPUTS), and the site view
+SERVED = (*BOX_SERVED, "site")
 
 
 class IpcOutput:
-    """An :class:`~gateway.ports.Output` that sends a station's stream to the supervisor.
+    """An :class:`~gateway.core.ports.Output` that sends a station's stream to the supervisor.
     O(1) per slot, never blocks: frames go to a bounded :class:`FrameChannel`. With ``rows``
     (the supervisor serves the station's Modbus TCP unit, the console or its Sparkplug device)
     every SLOTS frame also carries the slot records it summarises, as lists of values
@@ -124,6 +125,8 @@ class Worker:
         self.chan = FrameChannel(sock, name="ipc-writer")
         self.out = IpcOutput(self.chan, summary_every, rows=bool(self.served & ROW_SERVED))
         self.stop = threading.Event()
+        #: the exit code asked for (RESTART_EXIT), else None: 0 on a clean stop
+        self.exit_code: int | None = None
         self.go = threading.Event()
         self.station: Station | None = None
         #: results of the station's earlier incarnations (before a reload or an in-process restart)
@@ -166,6 +169,8 @@ class Worker:
                 for ftype, body in frames:
                     if ftype == FrameType.COMMAND:
                         self._command(body)
+                    elif ftype == FrameType.RELOAD and body.get("restart"):
+                        self._restart_when_idle()
                     elif ftype == FrameType.RELOAD:
                         self._reload()
                     elif ftype == FrameType.GO:
@@ -188,7 +193,7 @@ class Worker:
         args = body.get("args") or {}
         if isinstance(args, dict) and body.get("request_id") is not None:
             args = {**args, "request_id": body.get("request_id")}
-        # the one bounded intake of every door (gateway/northbound/cmdparse.py)
+        # the one bounded intake of every door (gateway/core/command_intake.py)
         cmd = intake(body.get("kind"), args, safe(str(body.get("source") or "supervisor"), 80))
         if isinstance(cmd, Rejection):
             self._reply(fid, False, cmd.reason, None, int(cmd.code))
@@ -215,6 +220,16 @@ class Worker:
         if self.runner is not None:
             self.runner.request_reload(self.factory(cfg))
 
+    def _restart_when_idle(self) -> None:
+        """The supervisor asks for a new worker process (new software installed): the station
+        stops once idle — at once, or when its test ends — and the worker exits with
+        :data:`RESTART_EXIT`, which the supervisor answers with a new worker at once."""
+        def on_idle() -> None:
+            self.exit_code = RESTART_EXIT
+            self.stop.set()
+        if self.runner is not None:
+            self.runner.request_stop_when_idle(on_idle)
+
     def results(self) -> list[dict[str, Any]]:
         return self.earlier_results + (self.station.results if self.station is not None else [])
 
@@ -225,6 +240,8 @@ class Worker:
         self.chan.send(FrameType.HEARTBEAT, {
             "slots": st.stats.slots if st else 0, "filled": st.stats.filled if st else 0,
             "in_test": bool(st is not None and st.session is not None),
+            # a test starting or running: a new configuration waits for its end (issue 37)
+            "busy": bool(st is not None and st.busy),
             "results": len(self.results()),
             "dropped": self.chan.dropped, "crashes": r.crashes if r else 0})
 
@@ -248,7 +265,8 @@ class Worker:
         self.runner = r = StationRunner(cfg.station.id, self.factory(cfg), on_started=self._started,
                                            rt_priority=self.opts.realtime or 0)
         threading.Thread(target=self._reader, name="ipc-reader", daemon=True).start()
-        self.chan.send(FrameType.HELLO, {"station": cfg.station.id, "pid": os.getpid(), "proto": PROTO})
+        self.chan.send(FrameType.HELLO, {"station": cfg.station.id, "pid": os.getpid(), "proto": PROTO,
+                                         "software": __version__})
         self.go.wait()
         if self.stop.is_set():
             self.chan.flush()
@@ -279,6 +297,8 @@ class Worker:
         except OSError:
             pass
         self.sock.close()
+        if self.exit_code is not None:
+            return self.exit_code
         return 0 if clean else 1
 
 

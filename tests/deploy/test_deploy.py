@@ -104,7 +104,7 @@ def test_unit_contract(unit):
                        ("ProtectSystem", "strict"), ("PrivateTmp", "yes"), ("ProtectHome", "yes")):
         assert s[key] == [value], key
     assert s["WatchdogSec"] and s["StateDirectory"] and s["ExecReload"] == ["/bin/kill -HUP $MAINPID"]
-    # the gateway notifies the watchdog every 2 s (gateway/commands/run.py): keep a margin
+    # the gateway notifies the watchdog every 2 s (gateway/cli/run.py): keep a margin
     assert float(s["WatchdogSec"][0].rstrip("s")) >= 6
 
 
@@ -457,7 +457,7 @@ def test_edge_broker_bridges_to_central_and_queues_through_an_outage(tmp_path):
         tg = LineReader([sub, "-h", "127.0.0.1", "-p", str(central_plain), "-u", "telegraf", "-P", "tg-pw",
                          "-i", "telegraf-test", "-c", "-q", "1", "-v", "-t", "hookwatch/#"])
         readers.append(tg)
-        state = "hookwatch/_bridge/box01/state"
+        state = "hookwatch/_bridge/edge-box01/state"
         tg.until(lambda ls: f"{state} 1" in ls, 30)
 
         def publish(topic, msg):
@@ -539,7 +539,7 @@ def test_telegraf_pipeline_covers_telemetry_events_results():
             assert len(tp["tags"].split("/")) == len(tp["topic"].split("/"))
     assert data["outputs"]["influxdb_v2"][0]["token"].startswith("${")
     # the topics exist in the gateway's MQTT topic tree
-    schema = pytest.importorskip("gateway.northbound.mqtt_schema")
+    schema = pytest.importorskip("gateway.outputs.mqtt.schema")
     paths = {t.path for t in schema.TOPICS if t.direction == "publish"}
     for c in consumers:
         for t in c["topics"]:
@@ -716,7 +716,7 @@ def test_gateway_speaks_the_units_notify_protocol(tmp_path):
                 except TimeoutError:
                     pass
             # the beats keep coming while the station runs (the gateway sends one every 2 s,
-            # gateway/commands/run.py; how regular they are on this machine is its own, not asserted)
+            # gateway/cli/run.py; how regular they are on this machine is its own, not asserted)
             beats = [t for t, m in got[n0:] if m == "WATCHDOG=1"]
             assert len(beats) >= 2, got
             gw.p.send_signal(signal.SIGTERM)

@@ -4,9 +4,9 @@ import os
 import re
 
 from conftest import ROOT
-from gateway.northbound.cmdparse import MAX_DEPTH, MAX_PAYLOAD_BYTES
-from gateway.northbound.modbus_tcp import tcp_server as S
-from gateway.northbound.outbox_reserve import RESERVE_MAX_ROWS
+from gateway.core.command_intake import MAX_DEPTH, MAX_PAYLOAD_BYTES
+from gateway.outputs.broker.outbox_reserve import RESERVE_MAX_ROWS
+from gateway.outputs.plc.modbus_tcp import tcp_server as S
 from gateway.station.recorder import MAX_PENDING_ROWS
 
 #: descriptors one station holds at most: 2 serial ports, outbox (db, wal, shm), recorder (log,

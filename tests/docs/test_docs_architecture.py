@@ -1,5 +1,5 @@
 """docs/architecture.md quotes the contracts from their source: every quoted block is still the
-source's text, and every contract of gateway/ports.py is quoted."""
+source's text, and every contract of gateway/core/ports.py is quoted."""
 import ast
 import os
 import re
@@ -26,10 +26,10 @@ def test_quoted_blocks_match_their_source():
 
 
 def test_every_contract_is_quoted():
-    with open(os.path.join(ROOT, "gateway", "ports.py"), encoding="utf-8") as f:
+    with open(os.path.join(ROOT, "gateway", "core", "ports.py"), encoding="utf-8") as f:
         tree = ast.parse(f.read())
     contracts = {n.name for n in tree.body if isinstance(n, ast.ClassDef)}
-    quoted = "\n".join(t for p, t in _quotes() if p == "gateway/ports.py")
+    quoted = "\n".join(t for p, t in _quotes() if p == "gateway/core/ports.py")
     assert contracts and all(f"class {c}(" in quoted or f"class {c}:" in quoted for c in contracts), (
         sorted(c for c in contracts if f"class {c}" not in quoted))
 
@@ -64,3 +64,22 @@ def test_the_tree_names_every_package_and_module():
                 continue
             missing += [f"{rel}/{m}" for m in mods if f"`{m}`" not in row]
     assert missing == [], f"docs/architecture.md's tree leaves out {missing}"
+
+
+def test_the_tree_names_nothing_that_is_not_there():
+    """The other way round (issue 35): every folder and module a row of the tree names exists —
+    a row's first cell is a package (``gateway/outputs/mqtt/``) or a module directly in gateway/,
+    and every bare module name in a package's row (`` `pump.py` ``) is a module of that package."""
+    extra = []
+    for cell, row in _tree_rows():
+        where = cell.strip().strip("`")
+        if where.endswith("/"):
+            if not os.path.isfile(os.path.join(ROOT, where, "__init__.py")):
+                extra.append(where)
+                continue
+            have = set(os.listdir(os.path.join(ROOT, where)))
+            named = set(re.findall(r"`(\w+\.py)`", row.split("|", 2)[2]))
+            extra += [f"{where}{m}" for m in sorted(named - have)]
+        elif not os.path.isfile(os.path.join(ROOT, where)):
+            extra.append(where)
+    assert extra == [], f"docs/architecture.md's tree names what is not in the code: {extra}"

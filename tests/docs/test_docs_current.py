@@ -6,7 +6,7 @@ import pytest
 
 from conftest import ROOT
 
-GENERATED = [("gateway.method.docs", "docs/method.md")]
+GENERATED = [("gateway.core.method.docs", "docs/method.md")]
 
 
 @pytest.mark.parametrize("module,path", GENERATED)

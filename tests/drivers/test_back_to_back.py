@@ -7,14 +7,14 @@ import asyncio
 
 import pytest
 
-from drivers import stm32_protocol as p
+from drivers.meter.driver import ZnsMeter
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, load_map
 from drivers.sim.loopback import LoopbackLink
 from drivers.sim.meter import VirtualMeter
 from drivers.sim.pty import PtyLink
 from drivers.sim.twin_stm32 import SimpleMotor, Stm32Firmware, VirtualStm32
-from drivers.stm32 import Stm32Link
-from drivers.zns import ZnsMeter
-from drivers.zns_map import DEFAULT_MAP_PATH, load_map
+from drivers.stm32 import protocol as p
+from drivers.stm32.driver import Stm32Link
 
 TRANSPORTS = ("pty", "loopback")
 

@@ -1,7 +1,7 @@
 """A real Mosquitto on a free loopback port, mosquitto_sub as a subscriber, mosquitto_pub.
 
 Every JSON message a :class:`Sub` receives on a topic of hookwatch's tree is validated against the
-shipped JSON Schema of its topic (docs/schemas/, generated from gateway/northbound/mqtt_schema.py) with
+shipped JSON Schema of its topic (docs/schemas/, generated from gateway/outputs/mqtt/schema.py) with
 ``jsonschema``: a violation fails the test (``messages()`` and ``stop()`` raise it, naming the
 topic, the payload and the schema path). Commands (``cmd/…``, which the tests publish themselves,
 some malformed on purpose), Sparkplug (protobuf, ``spBv1.0/…``) and a test's own messages on topics
@@ -28,16 +28,32 @@ from kit.tools import free_port, require_tool, wait_for, wait_port
 
 
 class Broker:
-    """Mosquitto on a free loopback port; ``persistent`` keeps sessions across restarts."""
+    """Mosquitto on a free loopback port; ``persistent`` keeps sessions across restarts. With
+    ``users`` (name → password) it takes only them (a ``password_file`` made by
+    ``mosquitto_passwd``), and with ``acl`` (the text of an ``acl_file``) it gives each what the
+    file says, as a site's broker does (docs/deploy.md, "Broker permissions")."""
 
-    def __init__(self, tmp_path, persistent: bool = False, port: int | None = None):
+    def __init__(self, tmp_path, persistent: bool = False, port: int | None = None,
+                 users: dict[str, str] | None = None, acl: str | None = None):
         self.exe = require_tool("mosquitto")
         self.port = port or free_port()
         self.dir = tmp_path / f"broker-{self.port}"
         self.dir.mkdir(exist_ok=True)
         self.conf = self.dir / "mosquitto.conf"
+        access = ["allow_anonymous true"]
+        if users is not None:
+            passwd = self.dir / "passwd"
+            tool = require_tool("mosquitto_passwd")
+            for i, (name, pw) in enumerate(users.items()):
+                subprocess.run([tool, *(["-c"] if i == 0 else []), "-b", str(passwd), name, pw],
+                               check=True, capture_output=True, timeout=20)
+            os.chmod(passwd, 0o600)
+            access = ["allow_anonymous false", f"password_file {passwd}"]
+        if acl is not None:
+            (self.dir / "acl").write_text(acl)
+            access.append(f"acl_file {self.dir / 'acl'}")
         # as root, mosquitto would drop to user `mosquitto`, who may not write to the test folder
-        lines = [f"user {getpass.getuser()}", f"listener {self.port} 127.0.0.1", "allow_anonymous true",
+        lines = [f"user {getpass.getuser()}", f"listener {self.port} 127.0.0.1", *access,
                  f"persistence {'true' if persistent else 'false'}",
                  f"persistence_location {self.dir}/", "autosave_interval 1",
                  "max_queued_messages 100000", "log_type error", "log_type warning",
@@ -68,7 +84,7 @@ SCHEMA_DIR = os.path.join(ROOT, "docs", "schemas")
 @functools.cache
 def _schemas() -> tuple[tuple[re.Pattern, str | None], ...]:
     """(topic pattern, schema key or None for a command) for every topic of the tree."""
-    from gateway.northbound import mqtt_schema as S
+    from gateway.outputs.mqtt import schema as S
     out = []
     for t in S.TOPICS:
         path = re.escape(t.path).replace(re.escape("{type}"), "[^/]+")
@@ -128,9 +144,11 @@ class Sub:
     """mosquitto_sub printing `retain<TAB>topic<TAB>payload` lines, collected by a thread."""
 
     def __init__(self, port: int, topic: str, *, qos: int = 1, client_id: str | None = None,
-                 clean: bool = True, extra: list[str] | None = None, schema: str | None = None):
+                 clean: bool = True, extra: list[str] | None = None, schema: str | None = None,
+                 checked: bool = True):
         """``schema``: the schema key for a topic outside hookwatch's tree (e.g. "reply" for an
-        MQTT 5 response topic); messages on the tree's topics are checked by their topic."""
+        MQTT 5 response topic); messages on the tree's topics are checked by their topic, unless
+        ``checked`` is False (a test's own probes on the tree's topics: the broker's ACL tests)."""
         exe = require_tool("mosquitto_sub")
         argv = [exe, "-h", "127.0.0.1", "-p", str(port), "-t", topic, "-q", str(qos),
                 "-F", "%r\t%t\t%p", "-k", "5"]
@@ -142,6 +160,7 @@ class Sub:
         self.p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[tuple[bool, str, str, float]] = []
         self.schema = schema
+        self.checked = checked
         self.violations: list[str] = []
         self._reported = 0
         self._lock = threading.Lock()
@@ -153,7 +172,7 @@ class Sub:
             line = line.rstrip("\n")
             parts = line.split("\t", 2)
             if len(parts) == 3:
-                bad = check_message(parts[1], parts[2], self.schema)
+                bad = check_message(parts[1], parts[2], self.schema) if self.checked else None
                 with self._lock:
                     self.lines.append((parts[0] == "1", parts[1], parts[2], time.time()))
                     if bad:
@@ -195,12 +214,73 @@ class Sub:
         self.check()
 
 
-def pub(port: int, topic: str, payload: str, *, retain: bool = False, qos: int = 1) -> None:
+def pub_lines(port: int, topic: str, payloads: list[str]) -> None:
+    """One mosquitto_pub sending each payload as a message, back to back (``-l``): a flood."""
+    exe = require_tool("mosquitto_pub")
+    p = subprocess.run([exe, "-h", "127.0.0.1", "-p", str(port), "-t", topic, "-q", "1", "-l"],
+                       input="\n".join(payloads) + "\n", text=True, capture_output=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+
+
+def pub(port: int, topic: str, payload: str, *, retain: bool = False, qos: int = 1,
+        auth: tuple[str, str] | None = None) -> None:
     exe = require_tool("mosquitto_pub")
     argv = [exe, "-h", "127.0.0.1", "-p", str(port), "-t", topic, "-m", payload, "-q", str(qos)]
     if retain:
         argv.append("-r")
+    if auth is not None:
+        argv += ["-u", auth[0], "-P", auth[1]]
     subprocess.run(argv, check=True, timeout=20)
+
+
+class Publisher:
+    """One MQTT client (paho) logged in as ``user``: ``publish`` waits for the broker's answer
+    and gives the PUBACK reason code (MQTT 5: 0 success, 0x87 not authorized; MQTT 3.1.1: always
+    0 — a broker that denies it drops it silently, or closes the connection: RabbitMQ, then None).
+    Messages of one client reach a subscriber in the order they were published."""
+
+    def __init__(self, port: int, user: str | None, password: str | None = None, *, v5: bool = True,
+                 host: str = "127.0.0.1"):
+        import paho.mqtt.client as paho
+        from paho.mqtt.enums import CallbackAPIVersion
+
+        self._paho = paho
+        self.c = paho.Client(CallbackAPIVersion.VERSION2, protocol=paho.MQTTv5 if v5 else paho.MQTTv311,
+                             reconnect_on_failure=False)
+        if user is not None:
+            self.c.username_pw_set(user, password)
+        self._codes: dict[int, int] = {}
+        self._cv = threading.Condition()
+        self.c.on_publish = self._on_publish
+        self.c.connect(host, port, keepalive=10)
+        self.c.loop_start()
+        wait_for(self.c.is_connected, 20, what=f"{user} connected")
+
+    def _on_publish(self, client, userdata, mid, reason_code, properties) -> None:
+        with self._cv:
+            self._codes[mid] = int(reason_code.value if hasattr(reason_code, "value") else reason_code)
+            self._cv.notify_all()
+
+    def publish(self, topic: str, payload: str | bytes, *, retain: bool = False, timeout: float = 20.0) -> int | None:
+        info = self.c.publish(topic, payload, qos=1, retain=retain)
+        t_end = time.monotonic() + timeout
+        with self._cv:
+            while info.mid not in self._codes:
+                if not self.c.is_connected() or time.monotonic() > t_end:
+                    return None
+                self._cv.wait(0.1)
+            return self._codes.pop(info.mid)
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.c.disconnect()
+        self.c.loop_stop()
+
+
+#: the MQTT 5 reason code of a publish the broker's ACL denies, and those of one it took
+#: (success; success with no subscriber to hand it to)
+NOT_AUTHORIZED = 0x87
+ACCEPTED = frozenset({0x00, 0x10})
 
 
 @contextlib.contextmanager
@@ -209,8 +289,8 @@ def station_on_broker(tmp_path, base: str, station_id: str, *, modbus_port: int 
     """A station running on its own loop with its MQTT output on a fresh Mosquitto (the MES is a
     :class:`Sub` on ``base/#``) and, with ``modbus_port``, its Modbus TCP server (unit 1, writes
     from loopback: the PLC is mbpoll). Yields (broker, sub, station, loop thread) once both answer."""
-    from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
-    from gateway.northbound.mqtt import MqttOutput, MqttSettings
+    from gateway.outputs.mqtt.output import MqttOutput, MqttSettings
+    from gateway.outputs.plc.server import ModbusOutput, ModbusSettings, shutdown_all
     from kit.northbound import LoopThread, RunningStation, make_station, mbpoll
 
     lt = LoopThread()

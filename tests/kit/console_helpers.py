@@ -14,12 +14,12 @@ import urllib.request
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from gateway import records as R
-from gateway.console import auth
-from gateway.console.app import ConsoleServer
-from gateway.console.feed import ConsoleOutput
-from gateway.console.settings import ConsoleSettings
-from gateway.records import StationState
+from gateway.core import records as R
+from gateway.core.records import StationState
+from gateway.outputs.console import auth
+from gateway.outputs.console.app import ConsoleServer
+from gateway.outputs.console.feed import ConsoleOutput
+from gateway.outputs.console.settings import ConsoleSettings
 from kit.e2e import QUICK_END, QUICK_METHOD, fleet_dir, quick_scenario, run_gateway, virtual_station
 
 QUICK = "config/scenarios/quick.yaml"
@@ -127,7 +127,8 @@ def fleet_states() -> dict[str, StationState]:
                      sample_id=INJECT, grade="+G1", test_started_utc=START, headroom=0.6,
                      end_p10=3600.0, end_p50=5400.0, end_p90=7200.0, p_end=0.12, t_cross=5400.0,
                      elapsed_s=1200.0, prior_mean=5400.0, prior_sd=600.0,
-                     prior_source="history:3 (the site: 5 tests from 2 stations (0 of this station; b 3, c 2))")
+                     prior_source="history:3 (the site: 6 tests from 2 stations (0 of this station; b 4, c 2))",
+                     prior_n=3, prior_n_censored=2, prior_n_early=1)
     b = StationState(station="loom-b", state=R.TestState.MONITORING, test_id="20261126T060000Z-B",
                      sample_id="S-B", grade="@G2", test_started_utc=START, headroom=0.2,
                      end_p10=1500.0, end_p50=1800.0, end_p90=2400.0, p_end=0.71, due=True,

@@ -13,8 +13,8 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
-from gateway.northbound.mqtt import MqttOutput, MqttSettings  # noqa: E402
-from gateway.records import Event, EventType, SlotRecord, StationState, TestState  # noqa: E402
+from gateway.core.records import Event, EventType, SlotRecord, StationState, TestState  # noqa: E402
+from gateway.outputs.mqtt.output import MqttOutput, MqttSettings  # noqa: E402
 
 
 async def main(a) -> None:

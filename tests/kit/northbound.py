@@ -56,7 +56,7 @@ FAKE_PLANT_START = {"zero_check": False, "settle_band": 0.5, "settle_time": 0.2}
 
 
 def make_station(tmp_path, outputs, station_id="st1", stm32=None, **kw):
-    from gateway.control import ControlParams
+    from gateway.core.control import ControlParams
     from gateway.station.station import Station, TestPlan
 
     return Station(station_id=station_id, method=dict(FAKE_PLANT_START), control=ControlParams(),

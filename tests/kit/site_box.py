@@ -1,5 +1,5 @@
 """A box of a site for the site-view tests: a process that runs one real MQTT output per station
-(gateway.northbound.mqtt.MqttOutput: its own session, retained state, the `offline` Last Will)
+(gateway.outputs.mqtt.output.MqttOutput: its own session, retained state, the `offline` Last Will)
 and hands each a constructed station state once a second, as a station's loop would. No slot
 loop: the site view reads only what the outputs publish. Killed with SIGKILL, the broker publishes
 the stations' Wills.
@@ -17,9 +17,9 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path[:0] = [os.path.dirname(os.path.dirname(HERE))]
 
-from gateway import records as R  # noqa: E402
-from gateway.northbound import mqtt_schema  # noqa: E402
-from gateway.northbound.mqtt import MqttOutput, MqttSettings  # noqa: E402
+from gateway.core import records as R  # noqa: E402
+from gateway.outputs.mqtt import schema as mqtt_schema  # noqa: E402
+from gateway.outputs.mqtt.output import MqttOutput, MqttSettings  # noqa: E402
 
 
 def state_of(sid: str, fields: dict) -> R.StationState:

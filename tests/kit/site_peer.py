@@ -1,5 +1,5 @@
 """Another station of the site on a real broker: a paho client that publishes retained ``lives``
-snapshots as a gateway of the site does (gateway/northbound/sitelives.py), as fast as asked —
+snapshots as a gateway of the site does (gateway/outputs/mqtt/sitelives.py), as fast as asked —
 the careless or hostile site member of issue 34."""
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import urllib.request
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
-from gateway.method.prior import STOPPED, PastTest
-from gateway.northbound.mqtt_schema import SCHEMA_VERSION
-from gateway.northbound.sitelives import record_of
+from gateway.core.method.prior import STOPPED, PastTest
+from gateway.outputs.mqtt.schema import SCHEMA_VERSION
+from gateway.outputs.mqtt.sitelives import record_of
 
 SITE_BASE = "hookwatch/lab/test/l1"
 

@@ -18,7 +18,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from conftest import ROOT
 
-PROTO = os.path.join(ROOT, "gateway", "northbound", "sparkplug", "sparkplug_b.proto")
+PROTO = os.path.join(ROOT, "gateway", "outputs", "sparkplug", "sparkplug_b.proto")
 
 
 def payload_class(tmp_dir):

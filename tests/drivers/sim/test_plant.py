@@ -17,9 +17,9 @@ from drivers.sim.plant import (
     resolve_wear,
     table_life,
 )
-from gateway.control import Controller, ControlParams
-from gateway.method.core import analyze_readings
-from gateway.method.params import MethodParams
+from gateway.core.control import Controller, ControlParams
+from gateway.core.method.core import analyze_readings
+from gateway.core.method.params import MethodParams
 
 THETA = math.radians(105.0)
 

@@ -9,9 +9,9 @@ import pytest
 from conftest import ROOT
 from drivers.sim.plant import Plant
 from drivers.sim.scenario import ScenarioError, load_scenario, scenario_from_dict
-from gateway.control import Controller, ControlParams
-from gateway.method import MethodParams, StreamingMonitor
-from gateway.method.start import FAILED, SETTLED, StartSequence
+from gateway.core.control import Controller, ControlParams
+from gateway.core.method import MethodParams, StreamingMonitor
+from gateway.core.method.start import FAILED, SETTLED, StartSequence
 
 SCEN = os.path.join(ROOT, "config", "scenarios")
 TS = 0.02

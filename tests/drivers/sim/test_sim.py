@@ -15,9 +15,9 @@ import pytest
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from drivers import stm32_protocol as sp
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, crc_ok, load_map, with_crc
 from drivers.sim.scenario import FAULT_KINDS, ScenarioError, load_scenario, scenario_from_dict
-from drivers.zns_map import DEFAULT_MAP_PATH, crc_ok, load_map, with_crc
+from drivers.stm32 import protocol as sp
 from kit.proc import stop_process
 
 SCENARIOS = os.path.join(ROOT, "config", "scenarios")

@@ -14,8 +14,8 @@ import serial
 import yaml
 
 from conftest import ROOT, hookwatch_cmd
-from drivers import stm32_protocol as sp
-from drivers.zns_map import DEFAULT_MAP_PATH, crc_ok, load_map, with_crc
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, crc_ok, load_map, with_crc
+from drivers.stm32 import protocol as sp
 
 REQ = with_crc(bytes([1, 3, 0, 0, 0, 4]))      # the map's read block: 4 holding registers
 REPLY_LEN = 13

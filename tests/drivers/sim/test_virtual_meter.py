@@ -10,7 +10,7 @@ import pytest
 import serial
 
 from conftest import ROOT
-from drivers.zns_map import DEFAULT_MAP_PATH, load_map, with_crc
+from drivers.meter.meter_map import DEFAULT_MAP_PATH, load_map, with_crc
 from kit.meter import MeterProcess
 from kit.tools import require_tool
 

@@ -12,8 +12,8 @@ import pytest
 from conftest import ROOT, hookwatch_cmd
 from gateway.config import ConfigError, load_fleet, load_station, validate_station
 from gateway.config import sections as S
-from gateway.control import ControlParams, NotchParams
-from gateway.method.params import PARAMS
+from gateway.core.control import ControlParams, NotchParams
+from gateway.core.method.params import PARAMS, MethodParams, build_params
 
 MINIMAL = "station: {id: s1}\nmeter: {port: /dev/a-meter}\nstm32: {port: /dev/a-stm32}\n"
 
@@ -58,6 +58,25 @@ def test_control_keys_come_from_the_control_dataclasses():
 
 def test_method_keys_come_from_the_method_params():
     assert set(S.METHOD_KEYS) == {p.name for p in PARAMS} - {"t_set", "t_end", "end_slot"}
+
+
+def test_method_params_come_from_the_method_dataclass():
+    """As the control keys above (issue 35 item 5): a row of PARAMS per MethodParams field and no
+    other, each default the field's (written once, in the dataclass), the required parameter the
+    one without a default, the parse kind and "may be none" those of the field's type."""
+    fld = {f.name: f for f in dataclasses.fields(MethodParams)}
+    assert set(fld) == {p.name for p in PARAMS} and len(PARAMS) == len(fld)
+    for p in PARAMS:
+        f = fld[p.name]
+        has_default = f.default is not dataclasses.MISSING
+        assert p.required == (not has_default) and p.default == (f.default if has_default else None), p.name
+        kind, *rest = str(f.type).split(" | ")
+        assert (p.kind, p.optional) == (kind, rest == ["None"]), f"{p.name}: {f.type}"
+        assert p.default is None or type(p.default).__name__ == p.kind, p.name
+        assert p.doc and p.unit, p.name
+    assert [p.name for p in PARAMS if p.required] == ["t_set"]
+    assert build_params({"t_set": 0.5}) == MethodParams(t_set=0.5)
+    assert MethodParams(t_set=0.5).as_dict() == {**{p.name: p.default for p in PARAMS}, "t_set": 0.5}
 
 
 def test_every_key_is_documented():
@@ -287,7 +306,7 @@ def _receiver(addr):
 
 @pytest.mark.parametrize("abstract", [False, True])
 def test_sdnotify_real_socket(tmp_path, monkeypatch, abstract):
-    from gateway import sdnotify
+    from gateway.plumbing import sdnotify
 
     name = f"hookwatch-test-{os.getpid()}-{id(tmp_path)}"
     if abstract:
@@ -309,7 +328,7 @@ def test_sdnotify_real_socket(tmp_path, monkeypatch, abstract):
 
 
 def test_sdnotify_without_socket_is_a_no_op(monkeypatch, tmp_path):
-    from gateway import sdnotify
+    from gateway.plumbing import sdnotify
 
     monkeypatch.delenv("NOTIFY_SOCKET", raising=False)
     assert not sdnotify.enabled()
@@ -320,7 +339,7 @@ def test_sdnotify_without_socket_is_a_no_op(monkeypatch, tmp_path):
 
 
 def test_sdnotify_watchdog_interval(monkeypatch):
-    from gateway import sdnotify
+    from gateway.plumbing import sdnotify
 
     monkeypatch.setenv("WATCHDOG_USEC", "10000000")
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid()))

@@ -1,18 +1,18 @@
 """One validation style (issue 11 item 5): station configuration, meter maps, scenarios and the
 method's parameters report a bad field as data — key path, value, allowed, did-you-mean, file and
 line — not as text to be parsed back. The messages themselves are the broken-config corpus'
-(tests/gateway/commands/test_check.py); this file checks the data behind them."""
+(tests/gateway/cli/test_check.py); this file checks the data behind them."""
 import os
 
 import pytest
 import yaml
 
 from conftest import ROOT
+from drivers.meter.meter_map import MapError, map_from_dict
 from drivers.sim.scenario import ScenarioError, scenario_from_dict
-from drivers.zns_map import MapError, map_from_dict
 from gateway.config import validate_station
-from gateway.method.params import ParamError, build_params
-from gateway.validation import MISSING, Problem, ValidationError
+from gateway.core.method.params import ParamError, build_params
+from gateway.core.validation import MISSING, Problem, ValidationError
 
 BROKEN = os.path.join(ROOT, "tests", "configs", "broken")
 

@@ -137,7 +137,7 @@ def test_meter_map_bomb_and_secret_file(tmp_path):
 
 def test_scenario_and_sidecar_readers_are_bounded(tmp_path):
     from drivers.sim.scenario import ScenarioError, load_scenario
-    from gateway.logio import LogError, read_meta
+    from gateway.offline.logio import LogError, read_meta
 
     p = tmp_path / "scen.yaml"
     p.write_text(LAUGHS)

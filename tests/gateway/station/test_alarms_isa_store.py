@@ -6,10 +6,10 @@ import asyncio
 import json
 import time
 
-from gateway.northbound.cmdparse import intake
-from gateway.records import Command, CommandKind, EventType
+from gateway.core.command_intake import intake
+from gateway.core.records import Command, CommandKind, EventType
 from gateway.station.alarm_store import AlarmStore
-from gateway.station.commands import CODE
+from gateway.station.command_desk import CODE
 from kit.fakes import Capture
 from kit.northbound import LoopThread, RunningStation, make_station
 from kit.tools import wait_for

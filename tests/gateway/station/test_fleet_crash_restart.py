@@ -8,8 +8,8 @@ import re
 import time
 
 from conftest import ROOT, hookwatch_cmd
-from gateway.northbound import mqtt_schema as S
-from gateway.northbound import registers as R
+from gateway.outputs.mqtt import schema as S
+from gateway.outputs.plc import registers as R
 from kit.broker import Broker, Sub
 from kit.e2e import station_yaml, virtual_station, wait_log
 from kit.northbound import mbpoll

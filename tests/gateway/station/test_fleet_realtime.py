@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from gateway.osprio import MAX_PRIORITY
+from gateway.plumbing.osprio import MAX_PRIORITY
 from gateway.station.fleet import StationRunner
 
 
@@ -18,7 +18,7 @@ def test_a_refused_realtime_priority_is_said_at_its_level(caplog, optional, leve
         built.set()
         raise RuntimeError("no station here")
 
-    # a priority beyond the maximum: refused by gateway.osprio.realtime_thread on every box
+    # a priority beyond the maximum: refused by gateway.plumbing.osprio.realtime_thread on every box
     r = StationRunner("rt", factory, rt_priority=MAX_PRIORITY + 1, rt_optional=optional,
                       restart_backoff_s=30.0)
     with caplog.at_level(logging.INFO, logger="hookwatch.fleet"):

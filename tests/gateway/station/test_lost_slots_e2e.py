@@ -11,7 +11,7 @@ import time
 import pytest
 import yaml
 
-from gateway.logio import read_log
+from gateway.offline.logio import read_log
 from gateway.station.recorder import LOG_NAME, RESERVE_ENV, RESULT_NAME
 from kit.e2e import (
     QUICK_END,
@@ -93,7 +93,7 @@ def test_disk_full_longer_than_the_reserve_offline_equals_online(tmp_path, monke
 
 @pytest.mark.parametrize("spans", [[[5]], [[7, 3]], [[-1, 2]], "0-3", [[1.5, 2]], [[True, 3]]])
 def test_a_malformed_lost_span_is_a_clear_error(tmp_path, spans):
-    from gateway.analysis import AnalysisError, analyze_log
+    from gateway.offline.analysis import AnalysisError, analyze_log
 
     log = tmp_path / "x.csv"
     log.write_text("t,T1,T2\n" + "".join(f"{k * 0.02:.2f},0.3,0.6\n" for k in range(300)))
@@ -103,7 +103,7 @@ def test_a_malformed_lost_span_is_a_clear_error(tmp_path, spans):
 
 
 def test_lost_spans_read_from_the_sidecar_are_lost_slots(tmp_path):
-    from gateway.analysis import analyze_log
+    from gateway.offline.analysis import analyze_log
 
     log = tmp_path / "x.csv"
     log.write_text("t,T1,T2\n" + "".join(f"{k * 0.02:.2f},0.3,0.6\n" for k in range(300)))

@@ -8,8 +8,8 @@ import textwrap
 
 import numpy as np
 
-from gateway.logio import read_log
-from gateway.records import SlotRecord
+from gateway.core.records import SlotRecord
+from gateway.offline.logio import read_log
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, incomplete_tests, recover_incomplete
 
 META = {"station": "t", "sample_id": "S", "method": {"t_set": 0.5, "t_end": 100.0}}
@@ -39,7 +39,7 @@ def test_values_round_trip_exactly(tmp_path):
 
 WRITER = textwrap.dedent("""
     import sys, time
-    from gateway.records import SlotRecord
+    from gateway.core.records import SlotRecord
     from gateway.station.recorder import TestRecorder
     last = 0.0
     def clock():                    # the recorder's clock; its last reading is printed per record
@@ -107,7 +107,7 @@ def test_a_test_start_never_waits_for_the_disk_on_the_slot_loop(tmp_path, monkey
     import threading
     import time
 
-    from gateway.logio import read_meta
+    from gateway.offline.logio import read_meta
     from gateway.station import recorder as R
 
     calls: list[str] = []

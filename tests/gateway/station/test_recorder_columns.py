@@ -1,16 +1,16 @@
 """The recorder keeps the rows of a flush interval as columns and formats them once per flush
 (issue 16): the log file is byte for byte what the per-row formatting wrote before, for a fixed
 record sequence with every awkward value (NaN, None, ±inf, negative zero, integers where floats
-belong, bools, large masks), and it reads back through gateway.logio."""
+belong, bools, large masks), and it reads back through gateway.offline.logio."""
 import gzip
 import math
 import random
 
 import numpy as np
 
-from gateway.logio import read_log
-from gateway.method.rules import LOST  # a LOST slot has no row (its span is in lost_spans)
-from gateway.records import SlotRecord
+from gateway.core.method.rules import LOST  # a LOST slot has no row (its span is in lost_spans)
+from gateway.core.records import SlotRecord
+from gateway.offline.logio import read_log
 from gateway.station.recorder import LOG_COLUMNS, LOG_NAME, TestRecorder
 
 META = {"station": "t", "sample_id": "S", "method": {"t_set": 0.5, "t_end": 100.0}}

@@ -8,9 +8,9 @@ import random
 import subprocess
 import time
 
-from gateway.logio import read_log
-from gateway.method.rules import LOST
-from gateway.records import Command, CommandKind, SlotRecord
+from gateway.core.method.rules import LOST
+from gateway.core.records import Command, CommandKind, SlotRecord
+from gateway.offline.logio import read_log
 from gateway.station import recorder as recmod
 from gateway.station.recorder import LOG_NAME, RESULT_NAME, TestRecorder, floor_ms, new_test_dir, utc_iso
 from kit.e2e import (

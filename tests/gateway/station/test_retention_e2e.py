@@ -13,9 +13,9 @@ import urllib.request
 
 import yaml
 
-from gateway.records import Event, EventType
-from gateway.retention import Policy, RetentionOutput
+from gateway.core.records import Event, EventType
 from gateway.station.recorder import RESULT_NAME
+from gateway.station.retention import Policy, RetentionOutput
 from kit.broker import Broker, Sub, pub
 from kit.e2e import run_gateway, scenario_file, station_yaml, test_dirs, virtual_station
 from kit.smallfs import small_tmpfs
@@ -193,13 +193,13 @@ def test_one_pass_at_a_time_and_a_request_during_a_pass_runs_once_more(tmp_path)
 
 def test_metrics_count_the_records_pruned_events():
     """The two counters follow the events (a snapshot of an older worker without them reads 0)."""
-    from gateway.northbound.metrics import MetricsOutput, families
+    from gateway.outputs.prometheus import MetricsOutput, families
 
-    class Port:             # a southbound port's health (gateway.ports.PortLink)
+    class Port:             # a southbound port's health (gateway.core.ports.PortLink)
         connected = True
         counters: dict = {}
 
-    class View:             # what the metrics read of their station (gateway.ports.StationLinks)
+    class View:             # what the metrics read of their station (gateway.core.ports.StationLinks)
         id = "mx-ret"
         ts = 0.02
         meter = stm32 = Port()

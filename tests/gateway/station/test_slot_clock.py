@@ -7,8 +7,8 @@ import logging
 import math
 import re
 
-from gateway import ratelog
-from gateway.control import ControlParams
+from gateway.core.control import ControlParams
+from gateway.plumbing import ratelog
 from gateway.station.clock import LateStarts, SlotClock
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, QuietStm32, TimedMeter

@@ -1,4 +1,5 @@
-"""Issue 27 item 1: a hiccup never ends a test, and a dead gateway still stops the motor.
+"""Issue 27 item 1: a hiccup never ends a test, and a dead gateway still stops the motor; issue 34
+item 5: a stall longer than the STM32's watchdog ends the test and says why.
 
 Real processes: ``hookwatch sim`` (the virtual station: the STM32 twin with its firmware
 watchdog, the meter) and ``hookwatch run`` over pseudo-terminals.
@@ -9,6 +10,14 @@ watchdog, the meter) and ``hookwatch run`` over pseudo-terminals.
   planned end, and ``hookwatch analyze`` of the recorded log gives the live result. With the old
   0.2 s watchdog the twin stopped the drive, LOW_TENSION followed and a protection stop aborted
   the test.
+- The station's whole process is stopped for 2.5 s, longer than the watchdog (1.5 s): the twin's
+  firmware stops the drive (WATCHDOG), the resumed station finds 2.5 s of MISSING slots and ends
+  the test with a protection stop — and says why, with the stall measured by its STM32 link (the
+  longest time between two frames it sent): the ``drive_stopped`` event, the ``test_ended`` event
+  and result.json carry ``the drive stopped on its own (STM32 watchdog, 1.5 s without the
+  gateway): the gateway stalled N ms``, and so does the gateway's log. N is at least 1,500 and at
+  least the pause the test caused (a lower bound: the frames before and after the pause are on
+  either side of it).
 - The gateway is killed (SIGKILL) mid-test: nothing feeds the watchdog any more and the twin's
   firmware stops the motor by itself (its log and event say so, with the period the gateway set).
   The bound (docs/protocols/stm32.md, "Safety argument": stop_after + 0.5 s + one firmware tick)
@@ -16,6 +25,7 @@ watchdog, the meter) and ``hookwatch run`` over pseudo-terminals.
 """
 import json
 import os
+import re
 import signal
 import time
 
@@ -104,6 +114,72 @@ def test_a_station_stopped_for_0_6_s_mid_test_completes_the_test(tmp_path):
     assert_no_slot_lost(d, live)
     # the watchdog the gateway set: the protection stop + 0.5 s
     assert enabled[0]["watchdog_ms"] == 1500, enabled
+
+
+LONG_STALL_S = 2.5
+WHY = re.compile(r"the drive stopped on its own \(STM32 watchdog, 1\.5 s without the gateway\): "
+                 r"the gateway stalled (\d+) ms")
+
+
+def test_a_stall_longer_than_the_watchdog_ends_the_test_and_says_why(tmp_path):
+    sc = quick_scenario(tmp_path, "quick.yaml")
+    ev_path = str(tmp_path / "sim-events.jsonl")
+    with virtual_station(tmp_path, sc, extra=SIM_ARGS + ["--events", ev_path]) as (sim, links):
+        st = station_yaml(tmp_path, links, name="wd", control=TUNED, method=METHOD,
+                          test={"t_end_s": QUICK_END})
+        gw = run_gateway(tmp_path, st, "--start", "--duration", str(QUICK_END + 60))
+        try:
+            d = first_test_dir(tmp_path, "wd", timeout=60.0)
+            t_wait = time.monotonic() + 60
+            while time.monotonic() < t_wait and not any(r["enabled"] for r in _drive_records(ev_path)):
+                time.sleep(0.2)
+            assert any(r["enabled"] for r in _drive_records(ev_path)), sim.log()
+            time.sleep(3)
+            os.kill(gw.p.pid, signal.SIGSTOP)
+            try:
+                t_stopped = time.monotonic()
+                time.sleep(LONG_STALL_S)
+            finally:
+                t_cont = time.monotonic()
+                os.kill(gw.p.pid, signal.SIGCONT)
+            pause_ms = (t_cont - t_stopped) * 1000.0
+            t_wait = time.monotonic() + 60
+            while time.monotonic() < t_wait and not os.path.exists(os.path.join(d, RESULT_NAME)):
+                time.sleep(0.3)
+            wait_log(gw, "the gateway stalled", timeout=30)
+        finally:
+            gw.stop()
+        glog = gw.log_all()
+        drive = _drive_records(ev_path)
+    assert "Traceback" not in glog, glog
+    # the twin's firmware stopped the drive by its watchdog, after the 1.5 s the gateway set
+    stops = [r for r in drive if not r["enabled"]]
+    assert stops and stops[0]["reason"] == "WATCHDOG" and stops[0]["watchdog_ms"] == 1500, drive
+    res = read_json(os.path.join(d, RESULT_NAME))
+    # the test ended by the protection stop the missing slots called for …
+    assert res["test_status"] == "aborted" and res["end_reason"] == "protection stop", res
+    assert res["method"]["stop_reasons"] == ["MISSING"], res["method"]
+    # … and says why: the drive stopped on its own, the stall measured
+    m = WHY.fullmatch(res.get("why") or "")
+    assert m, res
+    stall_ms = int(m.group(1))
+    assert stall_ms >= 1500 and stall_ms >= pause_ms - 10, (stall_ms, pause_ms)
+    ds = res["drive_stop"]
+    assert (ds["reason"], ds["watchdog_s"], ds["silence_ms"], ds["gateway_stalled"]) == (
+        "WATCHDOG", 1.5, stall_ms, True), ds
+    assert "WATCHDOG" in ds["flags"] and ds["why"] == res["why"]
+    # the events: drive_stopped and test_ended say it, in the test's own record
+    evs = events(d)
+    stopped = [e for e in evs if e["type"] == "drive_stopped"]
+    assert len(stopped) == 1 and stopped[0]["why"] == res["why"], stopped
+    ended = [e for e in evs if e["type"] == "test_ended"]
+    assert len(ended) == 1 and ended[0]["why"] == res["why"] and ended[0]["drive_stop"] == ds, ended
+    # the log: the STM32 link's warning with the same sentence, and the station's events
+    assert f"the drive stopped on its own (STM32 watchdog, 1.5 s without the gateway): the gateway " \
+           f"stalled {stall_ms} ms (stop reason WATCHDOG" in glog, glog[-3000:]
+    assert "drive_stopped" in glog
+    # every slot accounted for (the stall's slots MISSING, each once)
+    assert_no_slot_lost(d, res["method"])
 
 
 def test_a_killed_gateway_leaves_the_motor_stopped_by_the_twin_watchdog(tmp_path):

@@ -4,8 +4,8 @@ import asyncio
 import json
 import time
 
-from gateway.control import ControlParams
-from gateway.records import Command, CommandKind, Event, EventType
+from gateway.core.control import ControlParams
+from gateway.core.records import Command, CommandKind, Event, EventType
 from gateway.station.station import Station, TestPlan
 from kit.fakes import QuietStm32, TimedMeter
 

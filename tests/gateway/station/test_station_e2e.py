@@ -9,7 +9,7 @@ import time
 import numpy as np
 import yaml
 
-from gateway.logio import read_log
+from gateway.offline.logio import read_log
 from kit.e2e import (
     QUICK_END,
     QUICK_METHOD,

@@ -4,8 +4,8 @@ and events, and a reload is decided on the station's own loop."""
 import asyncio
 import logging
 
-from gateway.control import ControlParams
-from gateway.records import EventType
+from gateway.core.control import ControlParams
+from gateway.core.records import EventType
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, QuietStm32, TimedMeter
 

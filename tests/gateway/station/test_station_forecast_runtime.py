@@ -17,11 +17,11 @@ import os
 
 import yaml
 
-from gateway.control import ControlParams
-from gateway.method.prior import PriorEntry
-from gateway.records import Command, CommandKind, EventType
-from gateway.records import TestState as TS
-from gateway.station.commands import CODE
+from gateway.core.control import ControlParams
+from gateway.core.method.prior import PriorEntry
+from gateway.core.records import Command, CommandKind, EventType
+from gateway.core.records import TestState as TS
+from gateway.station.command_desk import CODE
 from gateway.station.hook_log import MAX_LINE, append_hook, next_sample_id, read_hooks
 from gateway.station.priors import PriorBook
 from gateway.station.station import Station, TestPlan
@@ -114,15 +114,20 @@ def test_a_test_starts_with_its_prior_in_the_sidecar_and_the_state(tmp_path):
 
     state, meta = _run(st, during)
     assert state["prior_mean"] == 110.0 and state["prior_source"] == "history:3"
+    # the planner's counts (§7a v3): 3 wear-out failures, no censored life, no early failure
+    assert (state["prior_n"], state["prior_n_censored"], state["prior_n_early"]) == (3, 0, 0)
     assert state["lead_s"] == 20.0 and state["p_due"] == 0.2 and state["test_started_utc"]
     assert state["end_p50"] is None and state["due"] is False and state["warn_reasons"] == []
     assert meta["method"]["prior_mean"] == 110.0 and meta["method"]["lead"] == 20.0
     # the sidecar: §7a's source and counts; the state and the event: the published label
     assert meta["prior_source"] == "history" and meta["prior_n"] == 3 and meta["prior_n_censored"] == 0
+    assert meta["prior_n_early"] == 0
     started = [e for e in out.events if e.type == EventType.TEST_STARTED][0]
     assert started.data["prior_source"] == "history:3" and started.data["prior_n"] == 3
+    assert (started.data["prior_n_censored"], started.data["prior_n_early"]) == (0, 0)
     # the test ended (gateway shutdown): no forecast outside a test
     assert st.state.prior_mean is None and st.state.prior_source is None and st.state.lead_s is None
+    assert st.state.prior_n is None and st.state.prior_n_early is None
     with open(meta_path(root / "fc")) as f:
         on_disk = yaml.safe_load(f)
     assert on_disk["method"]["prior_mean"] == 110.0 and on_disk["method"]["prior_sd"] == 10.0
@@ -171,6 +176,9 @@ def test_hook_replaced_ends_the_test_logs_it_and_restarts_with_the_new_hook(tmp_
         ("S-1", "S-2", "sparkplug"), ("S-2", "S-2-R1", "cli")]
     assert hooks[0]["test_id"] == first_test and hooks[0]["grade"] == "I"
     assert hooks[0]["life_s"] > 0 and hooks[0]["station"] == "fc" and hooks[0]["utc"].endswith("Z")
+    # the old hook's life in the §7a history: replaced before its end (censored) once its test had a
+    # baseline, else none (§7a v3's kinds, gateway/station/hook_log.py)
+    assert hooks[0]["life_kind"] == ("censored" if ends[0]["method"]["k_b"] is not None else None)
     ev = [e for e in out.events if e.type == EventType.HOOK_REPLACED]
     assert [e.data["new_sample_id"] for e in ev] == ["S-2", "S-2-R1"] and ev[0].data["logged"]
     refused = [e for e in out.events if e.type == EventType.COMMAND_REJECTED]
@@ -265,7 +273,7 @@ def test_censored_lives_enter_the_prior_fitted_off_the_loop(tmp_path, caplog, mo
 def test_site_lives_that_change_are_refitted_off_the_loop_and_a_start_meanwhile_never_scans_a_large_history(
         tmp_path, caplog, monkeypatch):
     import gateway.station.priors as P
-    from gateway.method.prior import PastTest
+    from gateway.core.method.prior import PastTest
     root = tmp_path / "records"
     for i, life in enumerate((100.0, 120.0, 110.0)):
         _result(root / "a", f"T{i}", "I", 0.5, "failure", life)
@@ -294,3 +302,47 @@ def test_site_lives_that_change_are_refitted_off_the_loop_and_a_start_meanwhile_
         stale = book.resolve("I", 0.5, {})
     assert stale == after
     assert sum("being fitted off the loop" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_an_early_failure_is_classed_in_the_pooled_history_of_the_box_and_the_site(tmp_path):
+    """§7a v3 on the history as the start sees it: this box's records hold 3 failures near 100 s
+    and one at 40 s (4 lives: no early failure, the short one widens the prior); the site shares
+    2 censored lives — 6 lives, M = 100, and 40 s is an early failure, censored for the wear-out
+    prior. The hook log's kind of a test is the same rule on the same history."""
+    from gateway.core.method.prior import PastTest, history_prior, wear_out_prior
+    from gateway.station.priors import life_kind
+    root = tmp_path / "records"
+    for i, life in enumerate((96.0, 100.0, 104.0, 40.0)):
+        _result(root / "a", f"T{i}", "I", 0.5, "failure", life)
+    book = PriorBook("a", str(root))
+    site = tuple(PastTest("I", 0.5, "aborted", None, k_b=100, stop_reasons=("STOPPED",), n_slots=n,
+                          ts=0.02, test_id=f"S{i}", station="s2", t_end=600.0)
+                 for i, n in enumerate((5000, 5500)))           # 100 s and 110 s
+
+    async def go():
+        book.refresh()
+        await _until(lambda: book.history is not None)
+        alone = book.resolve("I", 0.5, {})
+        book.set_site(site)
+        await _until(lambda: book._fitted_site is site)
+        return alone, book.resolve("I", 0.5, {})
+    alone, pooled = asyncio.run(go())
+    assert (alone.n, alone.n_censored, alone.n_early) == (4, 0, 0)
+    assert (alone.mean, alone.sd) == wear_out_prior([96.0, 100.0, 104.0, 40.0])
+    assert (pooled.n, pooled.n_censored, pooled.n_early) == (3, 2, 1)
+    expected = history_prior([96.0, 100.0, 104.0, 40.0], [100.0, 110.0])
+    assert abs(pooled.mean - expected[0]) <= 1e-12 * expected[0]
+    assert abs(pooled.sd - expected[1]) <= 1e-12 * expected[1]
+    assert pooled.sd < alone.sd / 3                     # the defect no longer widens the prior
+    assert pooled.sidecar()["prior_n_early"] == 1 and pooled.lives_words() == (
+        "3 wear-out failures, 2 censored, 1 early failure")
+    # the kind of a test's life in that history, as the hook log names it
+    short = {"test_id": "T3", "grade": "I", "t_set": 0.5, "method": {"status": "failure", "t_life": 40.0}}
+    assert life_kind(short, book.known()) == "early"
+    assert life_kind({**short, "test_id": "T1", "method": {"status": "failure", "t_life": 100.0}},
+                     book.known()) == "wear_out"
+    # … this box's alone: with the short one 4 lives (the records carry no test id: the short one
+    # is left out of them, else it would count twice)
+    box = [t for t in book.known() if t.station != "s2" and t.t_life != 40.0]
+    assert life_kind(short, box) == "wear_out" and life_kind(short, box + list(site)) == "early"
+    assert life_kind({**short, "method": {"status": "no_baseline"}}, book.known()) is None

@@ -3,9 +3,9 @@ replaced hook through the one command path; without an alarm it is refused with 
 import asyncio
 import json
 
-from gateway.control import ControlParams
-from gateway.records import Command, CommandKind, EventType
-from gateway.station.commands import CODE
+from gateway.core.control import ControlParams
+from gateway.core.records import Command, CommandKind, EventType
+from gateway.station.command_desk import CODE
 from gateway.station.station import Station
 from kit.fakes import Capture, QuietStm32, TimedMeter
 

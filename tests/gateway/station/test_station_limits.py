@@ -7,14 +7,14 @@ import struct
 import pytest
 
 from gateway.config import load_station
-from gateway.control import ControlParams
-from gateway.northbound import registers as R
-from gateway.northbound.modbus_server import ModbusOutput, ModbusSettings, shutdown_all
-from gateway.ports import StationLimits
-from gateway.records import Command, CommandKind, StationState
-from gateway.records import TestState as TState
+from gateway.core.control import ControlParams
+from gateway.core.ports import StationLimits
+from gateway.core.records import Command, CommandKind, StationState
+from gateway.core.records import TestState as TState
+from gateway.outputs.plc import registers as R
+from gateway.outputs.plc.server import ModbusOutput, ModbusSettings, shutdown_all
 from gateway.station.build import method_values, station_limits
-from gateway.station.commands import validate
+from gateway.station.command_desk import validate
 from gateway.station.station import Station, TestPlan
 from kit.fakes import FakeMeter, FakeStm32
 from kit.northbound import LoopThread, RunningStation, mbpoll

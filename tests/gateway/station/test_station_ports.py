@@ -4,8 +4,8 @@ that stays lost gives port_lost once and port_back when it returns."""
 import asyncio
 import json
 
-from gateway.control import ControlParams
-from gateway.records import EventType
+from gateway.core.control import ControlParams
+from gateway.core.records import EventType
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, FakeMeter, FakeStm32
 from kit.northbound import FAKE_PLANT_START

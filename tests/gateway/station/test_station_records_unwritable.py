@@ -6,9 +6,9 @@ import asyncio
 import os
 import subprocess
 
-from gateway.control import ControlParams
-from gateway.records import Command, CommandKind, EventType
-from gateway.records import TestState as TState
+from gateway.core.control import ControlParams
+from gateway.core.records import Command, CommandKind, EventType
+from gateway.core.records import TestState as TState
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, FakeMeter, FakeStm32
 from kit.northbound import FAKE_PLANT_START

@@ -8,7 +8,7 @@ import time
 import yaml
 
 from conftest import ROOT
-from gateway.northbound import registers as R
+from gateway.outputs.plc import registers as R
 from kit.e2e import (
     QUICK_END,
     QUICK_METHOD,

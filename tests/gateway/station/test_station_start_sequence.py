@@ -8,10 +8,10 @@ import os
 
 import yaml
 
-from gateway.analysis import analyze_file
-from gateway.control import ControlParams
-from gateway.records import Command, CommandKind, EventType
-from gateway.records import TestState as TState
+from gateway.core.control import ControlParams
+from gateway.core.records import Command, CommandKind, EventType
+from gateway.core.records import TestState as TState
+from gateway.offline.analysis import analyze_file
 from gateway.station.station import Station, TestPlan
 from kit.fakes import Capture, Reading
 from kit.vclock import VirtualClock

@@ -2,7 +2,7 @@
 :class:`StartAttempt` state machine fed slot by slot with numbers (no ports, no clock, no loop)."""
 import math
 
-from gateway.control import ControlParams
+from gateway.core.control import ControlParams
 from gateway.station.session import TestPlan
 from gateway.station.starting import REST_S, StartAttempt, StartStep
 

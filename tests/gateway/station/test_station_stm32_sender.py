@@ -5,7 +5,7 @@ command not yet sent. The station runs on a virtual clock flat out; the STM32 po
 wire by the test."""
 import asyncio
 
-from gateway.control import ControlParams
+from gateway.core.control import ControlParams
 from gateway.station.station import Station, TestPlan
 from gateway.station.stm32link import LatestValue
 from kit.fakes import FakeMeter

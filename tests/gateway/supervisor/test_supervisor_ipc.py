@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from conftest import ROOT
-from gateway.records import Event, EventType, SlotRecord, StationState
+from gateway.core.records import Event, EventType, SlotRecord, StationState
 from gateway.supervisor.fleetcfg import plan_fleet
 from gateway.supervisor.ipc import HEADER, MAX_BODY, FrameChannel, FrameDecoder, FrameType, ProtocolError, encode
 from gateway.supervisor.supervisor import StationHub

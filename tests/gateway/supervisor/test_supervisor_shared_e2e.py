@@ -15,7 +15,7 @@ import urllib.request
 import yaml
 from prometheus_client.parser import text_string_to_metric_families
 
-from gateway.northbound import registers as R
+from gateway.outputs.plc import registers as R
 from kit.e2e import assert_no_slot_lost, fleet_dir, run_gateway, test_dirs, wait_log
 from kit.e2e import sim_fleet as _sim
 from kit.e2e import worker_pids as _pids

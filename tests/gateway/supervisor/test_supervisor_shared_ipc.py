@@ -16,9 +16,9 @@ import yaml
 
 from gateway.compose import shared_sparkplug_nodes
 from gateway.config import load_fleet
-from gateway.northbound.sparkplug.output import state_values
-from gateway.records import Event, EventType, SlotRecord, StationState
-from gateway.records import TestState as TS
+from gateway.core.records import Event, EventType, SlotRecord, StationState
+from gateway.core.records import TestState as TS
+from gateway.outputs.sparkplug.output import state_values
 from gateway.supervisor import ipc
 from gateway.supervisor.remote import RemoteStation
 from gateway.supervisor.worker import IpcOutput

@@ -11,9 +11,9 @@ import threading
 import time
 from dataclasses import asdict
 
-from gateway.northbound.sparkplug.node_settings import SparkplugSettings
-from gateway.records import CommandReply, SlotRecord, StationState
-from gateway.records import TestState as TS
+from gateway.core.records import CommandReply, SlotRecord, StationState
+from gateway.core.records import TestState as TS
+from gateway.outputs.sparkplug.node_settings import SparkplugSettings
 from gateway.supervisor import ipc
 from gateway.supervisor.remote import RemoteFleet, RemoteStation, SparkplugDevice
 from kit.broker import Broker

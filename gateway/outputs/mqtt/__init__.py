@@ -1,0 +1,1 @@
+"""The MQTT output: schema, messages, the pump and its rooms, the site's lives."""

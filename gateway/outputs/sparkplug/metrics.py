@@ -1,0 +1,231 @@
+"""The ONE definition of the Sparkplug metrics of an edge node and of a station (device).
+
+Names, Sparkplug datatypes, engineering units and descriptions; the aliases are derived from it
+(stable across restarts, so that data stored before a restart still means the same after it).
+Values come from the station's records, events and state (see :mod:`.output`).
+"""
+from __future__ import annotations
+
+import enum
+import zlib
+from dataclasses import dataclass
+
+
+class DataType(enum.IntEnum):
+    """Sparkplug B datatypes (the index table of sparkplug_b.proto)."""
+    Int8 = 1
+    Int16 = 2
+    Int32 = 3
+    Int64 = 4
+    UInt8 = 5
+    UInt16 = 6
+    UInt32 = 7
+    UInt64 = 8
+    Float = 9
+    Double = 10
+    Boolean = 11
+    String = 12
+    DateTime = 13
+    Text = 14
+
+
+@dataclass(frozen=True)
+class MetricDef:
+    name: str
+    datatype: DataType
+    units: str = ""
+    description: str = ""
+    writable: bool = False        # a command the host may write (DCMD / NCMD)
+    telemetry: bool = False       # a periodic measurement (its history may be trimmed over budget)
+
+
+# ------------------------------------------------------------------------------ node (NBIRTH)
+BDSEQ = "bdSeq"
+REBIRTH = "Node Control/Rebirth"
+NEXT_SERVER = "Node Control/Next Server"
+REBOOT = "Node Control/Reboot"
+
+NODE_METRICS: tuple[MetricDef, ...] = (
+    MetricDef(BDSEQ, DataType.Int64, description="birth/death sequence of this MQTT session"),
+    MetricDef(REBIRTH, DataType.Boolean, description="write true: publish NBIRTH and every DBIRTH again",
+              writable=True),
+    MetricDef(NEXT_SERVER, DataType.Boolean, description="write true: NDEATH, disconnect, connect to the "
+              "next configured server (the same one when only one is configured)", writable=True),
+    MetricDef(REBOOT, DataType.Boolean, description="write true: restart the Sparkplug session (NDEATH, "
+              "new connection, new bdSeq, births); the box, the stations and their tests are NOT "
+              "restarted", writable=True),
+    MetricDef("Properties/Software", DataType.String, description="gateway software and version"),
+    MetricDef("Properties/Devices", DataType.Int32, description="stations (devices) hosted by this node"),
+)
+
+# ------------------------------------------------------------------------------ device (DBIRTH)
+START = "Device Control/Start Test"
+STOP = "Device Control/Stop Test"
+ACK = "Device Control/Acknowledge Alarm"
+HOOK_REPLACED = "Device Control/Hook Replaced"
+OUT_OF_SERVICE = "Device Control/Alarms Out Of Service"
+IN_SERVICE = "Device Control/Alarms In Service"
+SHELVE = "Device Control/Shelve Alarm"
+UNSHELVE = "Device Control/Unshelve Alarm"
+ARG_SAMPLE_ID = "Device Control/Sample ID"
+ARG_GRADE = "Device Control/Grade"
+ARG_T_SET = "Device Control/Setpoint"
+ARG_T_END = "Device Control/Planned End"
+ARG_ALARM = "Device Control/Alarm"
+ARG_DURATION = "Device Control/Shelve Duration"
+ARG_REQUEST_ID = "Device Control/Request ID"
+ARG_TEST_ID = "Device Control/Test ID"
+
+#: the forecast's metrics (METHOD.md §5a, §5b, §7a)
+FC_STARTED = "Test/Started"
+FC_P10 = "Forecast/End P10"
+FC_P50 = "Forecast/End P50"
+FC_P90 = "Forecast/End P90"
+FC_P_END = "Forecast/P End"
+FC_DUE = "Forecast/Due"
+FC_HEADROOM = "Forecast/Headroom"
+FC_T_CROSS = "Forecast/t_cross"
+FC_WARNING = "Forecast/Warning"
+FC_REASONS = "Forecast/Warning Reasons"
+FC_PRIOR_MEAN = "Forecast/Prior Mean"
+FC_PRIOR_SD = "Forecast/Prior SD"
+FC_PRIOR_SOURCE = "Forecast/Prior Source"
+FC_LEAD = "Forecast/Lead"
+
+#: the station's alarms as Sparkplug metric folders: ISA-18.2 name (gateway.core.alarms.ALARMS) → folder
+ALARM_FOLDERS = {"end_of_life": "Alarm/End Of Life", "wear_warning": "Alarm/Wear Warning"}
+
+#: DCMD metric → command kind (gateway.core.records.CommandKind value)
+COMMANDS = {START: "start", STOP: "stop", ACK: "ack", HOOK_REPLACED: "hook_replaced",
+            OUT_OF_SERVICE: "out_of_service", IN_SERVICE: "in_service", SHELVE: "shelve",
+            UNSHELVE: "unshelve"}
+#: DCMD argument metric → key of the command's arguments (gateway.station.command_desk.COMMAND_KEYS)
+COMMAND_ARGS = {ARG_SAMPLE_ID: "sample_id", ARG_GRADE: "grade", ARG_T_SET: "t_set", ARG_T_END: "t_end",
+                ARG_ALARM: "alarm", ARG_DURATION: "duration_s", ARG_REQUEST_ID: "request_id",
+                ARG_TEST_ID: "test_id"}
+
+
+def _alarm_metrics(name: str, what: str) -> tuple[MetricDef, ...]:
+    """State, Active, Priority of one alarm (the same for each; Shelved Until is appended later)."""
+    folder = ALARM_FOLDERS[name]
+    return (
+        MetricDef(f"{folder}/State", DataType.String, description=f"{what} alarm, ISA-18.2: normal | "
+                  "unacknowledged | acknowledged | rtn_unacknowledged | shelved | out_of_service "
+                  "(gateway/core/alarms.py)"),
+        MetricDef(f"{folder}/Active", DataType.Boolean, description="the alarm is standing (annunciated)"),
+        MetricDef(f"{folder}/Priority", DataType.Int32, description="ISA-18.2 priority, 1 critical … 4 low"),
+    )
+
+
+def _shelved_metric(name: str) -> MetricDef:
+    return MetricDef(f"{ALARM_FOLDERS[name]}/Shelved Until", DataType.DateTime, "ms",
+                     "UTC time (ms since the epoch) the shelving expires; null unless shelved")
+
+DEVICE_METRICS: tuple[MetricDef, ...] = (
+    MetricDef("Test/State", DataType.String, description="idle | starting | baseline_search | monitoring | "
+              "end_of_life | completed | aborted"),
+    MetricDef("Test/ID", DataType.String),
+    MetricDef("Test/Sample ID", DataType.String),
+    MetricDef("Test/Grade", DataType.String),
+    MetricDef("Test/Setpoint", DataType.Float, "N", "mean tension setpoint t_set"),
+    MetricDef("Test/Planned End", DataType.Double, "s", "planned test duration t_end"),
+    MetricDef("Test/Elapsed", DataType.Double, "s", "time since the test started"),
+    MetricDef("Test/Status", DataType.String, description="the method's status once the test ended: "
+              "failure | no_failure | no_baseline | aborted"),
+    MetricDef("Test/End Reason", DataType.String),
+    MetricDef("Method/mu_ss", DataType.Double, "", "steady-state friction coefficient μ_ss"),
+    MetricDef("Method/mu_th", DataType.Double, "", "end-of-life threshold (1+δ)·μ_ss"),
+    MetricDef("Method/t_life", DataType.Double, "s", "wear life: start of the persistent exceedance"),
+    *_alarm_metrics("end_of_life", "end-of-life"),
+    MetricDef("Status/Protection Stop", DataType.Boolean),
+    MetricDef("Status/Meter OK", DataType.Boolean, description="Modbus RTU link to the tension meter"),
+    MetricDef("Status/STM32 OK", DataType.Boolean, description="serial link to the motor controller"),
+    MetricDef("Tension/T1", DataType.Float, "N", "inlet tension, interval mean", telemetry=True),
+    MetricDef("Tension/T2", DataType.Float, "N", "outlet tension, interval mean", telemetry=True),
+    MetricDef("Tension/Mean", DataType.Float, "N", "(T1+T2)/2, interval mean", telemetry=True),
+    MetricDef("Friction/mu", DataType.Double, "", "capstan μ = ln(T2/T1)/θ over valid slots, interval mean",
+              telemetry=True),
+    MetricDef("Quality/Valid Ratio", DataType.Double, "", "valid slots / slots in the interval",
+              telemetry=True),
+    MetricDef("Control/Speed Command", DataType.Float, "rpm", telemetry=True),
+    MetricDef("Control/Speed Actual", DataType.Float, "rpm", telemetry=True),
+    MetricDef("Control/Saturation", DataType.Boolean, description="control output clamped in the interval",
+              telemetry=True),
+    MetricDef("Device Control/Last Command", DataType.String,
+              description="the last command received over DCMD and its outcome"),
+    MetricDef("Device Control/Last Result Code", DataType.Int32,
+              description="0 accepted, else the rejection code (docs/mqtt.md)"),
+    MetricDef(START, DataType.Boolean, description="write true (with the argument metrics) to start a test",
+              writable=True),
+    MetricDef(STOP, DataType.Boolean, description="write true to stop the running test (with `Device "
+              "Control/Test ID`: that test only)", writable=True),
+    MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the unacknowledged alarms (end "
+              "of life and wear warning)", writable=True),
+    MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced "
+              "(optional `Device Control/Sample ID` / `Grade`: the new hook's; the running test ends, "
+              "the replacement is logged)", writable=True),
+    MetricDef(ARG_SAMPLE_ID, DataType.String, description="start and hook-replaced argument: sample ID",
+              writable=True),
+    MetricDef(ARG_GRADE, DataType.String, description="start and hook-replaced argument: needle grade",
+              writable=True),
+    MetricDef(ARG_T_SET, DataType.Float, "N", "start argument: setpoint", writable=True),
+    MetricDef(ARG_T_END, DataType.Double, "s", "start argument: planned duration", writable=True),
+    MetricDef(OUT_OF_SERVICE, DataType.Boolean, description="write true to take the alarms out of service "
+              "(ISA-18.2) while a needle is being changed", writable=True),
+    MetricDef(IN_SERVICE, DataType.Boolean, description="write true to return the alarms to service",
+              writable=True),
+    # appended after the metrics above so that their aliases (base + index) stay what they were
+    *_alarm_metrics("wear_warning", "wear-warning (§5a early warning)"),
+    _shelved_metric("end_of_life"),
+    _shelved_metric("wear_warning"),
+    MetricDef(SHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm` and `Device "
+              "Control/Shelve Duration`) to shelve one annunciated alarm (ISA-18.2)", writable=True),
+    MetricDef(UNSHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm`) to end the "
+              "shelving of one alarm", writable=True),
+    MetricDef(ARG_ALARM, DataType.String, description="shelve / unshelve argument: `end_of_life` or "
+              "`wear_warning`", writable=True),
+    MetricDef(ARG_DURATION, DataType.Double, "s", "shelve argument: how long, (0, 43200] s", writable=True),
+    # the §5a/§5b/§7a forecast (METHOD.md), appended so that the aliases above stay what they were;
+    # the projections are null outside a test and once the end of life was detected
+    MetricDef(FC_STARTED, DataType.DateTime, "ms", "UTC time of the test's slot 0 (ms since the "
+              "epoch): the forecast's times are seconds from it"),
+    MetricDef(FC_P10, DataType.Double, "s", "end of life, 10 % quantile of the forecast from the "
+              "life prior at the last forecast time (§5b), s from slot 0"),
+    MetricDef(FC_P50, DataType.Double, "s", "end of life, median of that forecast, s from slot 0"),
+    MetricDef(FC_P90, DataType.Double, "s", "end of life, 90 % quantile, s from slot 0"),
+    MetricDef(FC_P_END, DataType.Double, "", "chance that the end comes within the lead (§5b P)"),
+    MetricDef(FC_DUE, DataType.Boolean, description="the last forecast window is due (§5b)"),
+    MetricDef(FC_HEADROOM, DataType.Double, "", "wear headroom h of the last window with a value (§5a)"),
+    MetricDef(FC_T_CROSS, DataType.Double, "s", "projected crossing of μ_th, s from slot 0 (§5a)"),
+    MetricDef(FC_WARNING, DataType.Boolean, description="the early warning (the first due window) "
+              "fired in this test"),
+    MetricDef(FC_REASONS, DataType.String, description="its reasons, sorted, comma-separated "
+              "(headroom, prior, trend); empty before"),
+    MetricDef(FC_PRIOR_MEAN, DataType.Double, "s", "the test's life prior, mean (§7a)"),
+    MetricDef(FC_PRIOR_SD, DataType.Double, "s", "the test's life prior, SD"),
+    MetricDef(FC_PRIOR_SOURCE, DataType.String, description="method | config | history:N (empty: "
+              "no prior)"),
+    MetricDef(FC_LEAD, DataType.Double, "s", "the planner's lead the hook is judged against (§5b)"),
+    # appended so that the aliases above stay what they were
+    MetricDef(ARG_REQUEST_ID, DataType.String, description="any command's argument: the host's id "
+              "of the request (1–64 printable ASCII); a DCMD repeated with the same id within 600 s "
+              "is answered again and not carried out again (docs/limits.md)", writable=True),
+    MetricDef(ARG_TEST_ID, DataType.String, description="stop argument: the test to stop (its "
+              "`Test/ID`); a stop naming a test that is not the running one is refused (15 "
+              "WRONG_TEST) and stops nothing", writable=True),
+)
+
+NODE_BY_NAME = {m.name: m for m in NODE_METRICS}
+DEVICE_BY_NAME = {m.name: m for m in DEVICE_METRICS}
+
+
+def node_aliases() -> dict[str, int]:
+    """Node metrics: aliases 1 … n, except bdSeq (the Will carries it by name) and
+    Node Control/Rebirth (tck-id-operational-behavior-data-commands-rebirth-name-aliases)."""
+    return {m.name: i for i, m in enumerate(NODE_METRICS) if m.name not in (BDSEQ, REBIRTH)}
+
+
+def device_alias_base(device_id: str) -> int:
+    """Aliases of a device's metrics are base + index: base from the device ID (stable across
+    restarts and start orders), above every node alias; unique in the node (checked there)."""
+    return (zlib.crc32(device_id.encode("utf-8")) + 1) << 12
