@@ -205,8 +205,8 @@ def test_hookwatch_run_feeds_its_console_the_site_from_its_own_session(tmp_path)
             gw = run_gateway(tmp_path, st, name="gw-a")
             procs.append(gw)
             url = gw.readline_until("console:", timeout=60).strip().rstrip("/")
-            wait_log(gw, "the site view reads hookwatch/lab/+/+/+/state, hookwatch/lab/+/+/+/status "
-                         "(on the MQTT session of a)", 60)
+            wait_log(gw, "the site view reads hookwatch/lab/+/+/+/state, hookwatch/lab/+/+/+/status, "
+                         "hookwatch/lab/box/+/config (on the MQTT session of a)", 60)
             c = HttpClient(url)
 
             def site_cards():
