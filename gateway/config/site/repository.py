@@ -248,7 +248,7 @@ def write_tree(files: dict[str, bytes], dest: str) -> None:
         _fsync_dir(d)
 
 
-def _git(root: str, *args: str, binary: bool = False) -> Any:
+def _git_bytes(root: str, *args: str) -> bytes:
     try:
         p = subprocess.run(["git", "-C", root, *args], capture_output=True, timeout=60,
                            stdin=subprocess.DEVNULL)
@@ -257,14 +257,18 @@ def _git(root: str, *args: str, binary: bool = False) -> Any:
     if p.returncode != 0:
         raise GitError(p.stderr.decode("utf-8", "replace").strip().splitlines()[-1:][0]
                        if p.stderr.strip() else f"git {args[0]} failed ({p.returncode})")
-    return p.stdout if binary else p.stdout.decode("utf-8", "replace")
+    return p.stdout
+
+
+def _git(root: str, *args: str) -> str:
+    return _git_bytes(root, *args).decode("utf-8", "replace")
 
 
 def commit_of(root: str, version: str) -> str:
     """The full sha of the commit ``version`` names in the repository at ``root`` (GitError)."""
     if not version or version.startswith("-") or len(version) > 200:
         raise GitError(f"{version!r}: not a version")
-    return str(_git(root, "rev-parse", "--verify", "--quiet", f"{version}^{{commit}}").strip())
+    return _git(root, "rev-parse", "--verify", "--quiet", f"{version}^{{commit}}").strip()
 
 
 @contextlib.contextmanager
@@ -275,11 +279,39 @@ def checkout(root: str, version: str | None) -> Iterator[str]:
         yield root
         return
     sha = commit_of(root, version)
-    data = _git(root, "archive", "--format=tar", sha, binary=True)
+    data = _git_bytes(root, "archive", "--format=tar", sha)
     with tempfile.TemporaryDirectory(prefix="hookwatch-site-") as tmp:
         try:
             with tarfile.open(fileobj=io.BytesIO(data)) as tf:
-                tf.extractall(tmp, filter="data")
-        except (tarfile.TarError, OSError) as e:      # a link out of the tree, a device …
+                _extract_plain(tf, tmp)
+        except (tarfile.TarError, OSError, ValueError) as e:      # a link, a device, a path out …
             raise GitError(f"{sha[:12]}: its tree cannot be read safely: {e}") from None
         yield tmp
+
+
+def _extract_plain(tf: tarfile.TarFile, dest: str) -> None:
+    """Write a commit's tree (``git archive``) under ``dest``: folders and regular files only, each
+    inside ``dest``, files 0644. A site repository holds YAML; a link, a device or a path that
+    leaves the folder is refused (ValueError), never followed. This is what ``extractall(filter=
+    "data")`` does, written out because Debian 12's Python (3.11.2) predates that filter (3.11.4)."""
+    top = os.path.realpath(dest)
+    for m in tf.getmembers():
+        if m.type == tarfile.XGLTYPE or m.name == "pax_global_header":
+            continue                                  # git archive's commit id header
+        path = os.path.realpath(os.path.join(top, m.name))
+        if os.path.isabs(m.name) or not (path == top or path.startswith(top + os.sep)):
+            raise ValueError(f"{m.name}: a path out of the repository")
+        if m.isdir():
+            os.makedirs(path, mode=0o755, exist_ok=True)
+        elif m.isfile():
+            src = tf.extractfile(m)
+            if src is None:
+                raise ValueError(f"{m.name}: not readable")
+            os.makedirs(os.path.dirname(path), mode=0o755, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644)
+            with os.fdopen(fd, "wb") as out, src:
+                while chunk := src.read(1 << 16):
+                    out.write(chunk)
+        else:
+            kind = "a symbolic link" if m.issym() else "a hard link" if m.islnk() else "not a file"
+            raise ValueError(f"{m.name}: {kind}")
