@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from ..plumbing.safeout import write_atomic
 from ..plumbing.threadloop import Mailbox
 
 _inflater: Any = zlib
@@ -268,27 +269,13 @@ def room_for(folder: str, nbytes: int) -> bool:
 
 
 def store(log_path: str, data: bytes) -> bool:
-    """Write the companion of ``log_path`` atomically (temporary file, fsync, rename). False if the
+    """Write the companion of ``log_path`` atomically (:func:`safeout.write_atomic`). False if the
     disk is short of space; an I/O error is raised (the temporary file is removed)."""
     cp = companion_path(log_path)
     folder = os.path.dirname(cp) or "."
     if not room_for(folder, len(data)):
         return False
-    tmp = cp + f".{os.getpid()}.tmp"
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view):]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, cp)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    write_atomic(cp, data, make_dir=False, tmp_suffix=f".{os.getpid()}.tmp")
     return True
 
 

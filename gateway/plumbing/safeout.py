@@ -89,13 +89,15 @@ def dump(v: Any, f: IO[str], *, indent: int | None = None, sort_keys: bool = Fal
 TMP_SUFFIX = ".tmp"
 
 
-def write_atomic(path: str, data: bytes, *, mode: int = 0o644, make_dir: bool = True) -> None:
+def write_atomic(path: str, data: bytes, *, mode: int = 0o644, make_dir: bool = True,
+                 tmp_suffix: str = TMP_SUFFIX) -> None:
     """Replace ``path`` with ``data`` atomically (module docstring); raises :class:`OSError` (the
-    file is then unchanged; the temporary file is removed)."""
+    file is then unchanged; the temporary file is removed). Writers in several processes give
+    each its own ``tmp_suffix`` (e.g. with the pid)."""
     folder = os.path.dirname(path) or "."
     if make_dir:
         os.makedirs(folder, exist_ok=True)
-    tmp = path + TMP_SUFFIX
+    tmp = path + tmp_suffix
     try:
         os.unlink(tmp)                     # a leftover or a planted link: the link goes, not its target
     except FileNotFoundError:
