@@ -37,9 +37,6 @@ JOURNAL_MAX = 1024 * 1024
 KEEP_VERSIONS = 5
 
 
-
-
-
 def write_atomic(path: str, data: bytes) -> None:
     """``path`` replaced by ``data`` whole or not at all (:func:`safeout.write_atomic`)."""
     safeout.write_atomic(path, data, make_dir=False, tmp_suffix=f".tmp-{os.getpid()}")
