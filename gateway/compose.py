@@ -16,7 +16,7 @@ from collections.abc import Callable
 from drivers.meter.driver import ZnsMeter
 from drivers.stm32.driver import Stm32Link
 
-from .core.ports import MeterPort, Output, StationView, Stm32Port
+from .core.ports import MeterPort, Output, StationLinks, StationView, Stm32Port
 from .core.records import EventType
 from .outputs.console.app import ConsoleServer
 from .outputs.console.settings import ConsoleSettings
@@ -30,7 +30,7 @@ from .station.station import Station
 
 __all__ = ["build_console", "build_meter", "build_stm32", "build_station", "in_process_runtime",
            "records_dir_ok", "served_by_supervisor", "shared_outputs", "shared_sparkplug_nodes",
-           "station_facts"]
+           "station_facts", "station_outputs"]
 
 
 def build_meter(cfg) -> MeterPort:
@@ -71,15 +71,22 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     # first of the outputs: a pass still running at the station's stop finishes (and its event
     # leaves) before MQTT and the metrics stop
     st.outputs.insert(0, retention_output(cfg, st))
-    # then the registry's rows, in its order (the metrics, which read the others, near the end)
-    host = Host(console, with_northbound)
-    b = StationBuild(cfg, st, st.outputs, host)
+    station_outputs(cfg, st, st.outputs, Host(console, with_northbound), served_by_supervisor)
+    st.slot_phase = slot_phase
+    return st
+
+
+def station_outputs(cfg, station: StationLinks, outputs: list[Output], host: Host,
+                    served_by_supervisor: frozenset[str] = frozenset()) -> list[Output]:
+    """The outputs of the registry's rows the station of ``cfg`` has in a process offering
+    ``host``, added to ``outputs`` (the station's list: the metrics read those before them) in the
+    registry's order; a row the supervisor serves gets its ``feed`` instead of its ``build``."""
+    b = StationBuild(cfg, station, outputs, host)
     for row in rows():
         make = row.feed if row.name in served_by_supervisor else row.build
         if make is not None and wanted(cfg, row, host):
-            st.outputs.extend(make(b))
-    st.slot_phase = slot_phase
-    return st
+            outputs.extend(make(b))
+    return outputs
 
 
 def in_process_runtime(factories: dict[str, Callable[[], Station]], *, rt_priority: int = 0,

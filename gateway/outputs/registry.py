@@ -220,11 +220,13 @@ def _metrics_box(b: BoxBuild) -> list[Output]:
                          limits=DoorLimits.from_config(m.connections))]
 
 
-def _no_doors(cfg: StationConfig) -> list[Door]:
+def no_doors(cfg: StationConfig) -> list[Door]:
+    """A row's ``doors`` when its output listens on none."""
     return []
 
 
-def _no_broker(cfg: StationConfig) -> BrokerConfig | None:
+def no_broker(cfg: StationConfig) -> BrokerConfig | None:
+    """A row's ``broker`` when its output connects to none."""
     return None
 
 
@@ -252,26 +254,26 @@ def _metrics_doors(cfg: StationConfig) -> list[Door]:
 BUILTIN: tuple[OutputRow, ...] = (
     OutputRow("mqtt", "mqtt", schema=None, config=lambda c: c.mqtt, wanted=lambda c, h: c.mqtt.enabled,
               northbound=True, box=False, slot_rows=False, reload=False, build=_mqtt, feed=None, serve=None,
-              broker=lambda c: c.mqtt if c.mqtt.enabled else None, doors=_no_doors,
+              broker=lambda c: c.mqtt if c.mqtt.enabled else None, doors=no_doors,
               metrics="the MQTT link, the outbox and what waits in it"),
     OutputRow("modbus", "modbus_tcp", schema=None, config=lambda c: c.modbus_tcp,
               wanted=lambda c, h: c.modbus_tcp.enabled, northbound=True, box=True, slot_rows=True,
-              reload=True, build=_modbus, feed=None, serve=_modbus_box, broker=_no_broker,
+              reload=True, build=_modbus, feed=None, serve=_modbus_box, broker=no_broker,
               doors=_modbus_doors, metrics="the PLC server's requests, refusals and connections"),
     OutputRow("sparkplug", "sparkplug", schema=None, config=lambda c: c.sparkplug,
               wanted=lambda c, h: c.sparkplug.enabled, northbound=True, box=True, slot_rows=True,
               reload=True, build=_sparkplug, feed=None, serve=_sparkplug_box,
-              broker=lambda c: c.sparkplug if c.sparkplug.enabled else None, doors=_no_doors,
+              broker=lambda c: c.sparkplug if c.sparkplug.enabled else None, doors=no_doors,
               metrics="none of its own (its edge node logs its link)"),
     # the metrics read the outputs built before them (MQTT link, outbox, PLC server) at scrape time
     OutputRow("metrics", "metrics", schema=None, config=lambda c: c.metrics,
               wanted=lambda c, h: c.metrics.enabled, northbound=False, box=True, slot_rows=False,
-              reload=True, build=_metrics, feed=_metrics_feed, serve=_metrics_box, broker=_no_broker,
+              reload=True, build=_metrics, feed=_metrics_feed, serve=_metrics_box, broker=no_broker,
               doors=_metrics_doors, metrics="itself: the station's figures on its endpoint"),
     # one console per process (the first station's `console:`), fed by every station of it
     OutputRow("console", "console", schema=None, config=lambda c: c.console,
               wanted=lambda c, h: h.console is not None, northbound=False, box=True, slot_rows=True,
-              reload=False, build=_console, feed=None, serve=_console_box, broker=_no_broker,
+              reload=False, build=_console, feed=None, serve=_console_box, broker=no_broker,
               doors=_console_doors, metrics="none of its own"),
 )
 #: the built-in rows built before the plug-in outputs (the others read them, or come last)
@@ -291,12 +293,24 @@ def register(row: OutputRow) -> None:
     a fleet. A name or section already taken is refused (ValueError)."""
     if row.schema is None:
         raise ValueError(f"output {row.name!r}: a plug-in output's row names its section's schema")
-    taken = [r for r in (*BUILTIN, *_PLUGINS) if r.name == row.name or r.section == row.section]
-    if taken and taken != [row]:
+    if any(r.name == row.name or r.section == row.section for r in (*BUILTIN, *_PLUGINS)):
         raise ValueError(f"output {row.name!r} (section {row.section!r}) is registered already")
-    if not taken:
-        P.add_section(row.section, row.schema, f"the plug-in output {row.name}", row.doors, shared=row.box)
-        _PLUGINS.append(row)
+    P.add_section(row.section, row.schema, f"the plug-in output {row.name}", row.doors, shared=row.box)
+    _PLUGINS.append(row)
+
+
+def plugin_row(name: str, schema: type[Switch], *, northbound: bool, box: bool, slot_rows: bool, reload: bool,
+               build: Build | None, feed: Build | None, serve: Serve | None,
+               broker: Callable[[StationConfig], BrokerConfig | None],
+               doors: Callable[[StationConfig], list[Door]], metrics: str) -> OutputRow:
+    """The row of a plug-in output whose section ``name:`` is ``schema`` (switched by its
+    ``enabled`` key): every other fact as :class:`OutputRow` says it (no defaults)."""
+    def config(cfg: StationConfig) -> Switch:
+        return P.plugin_config(cfg, name, schema)
+
+    return OutputRow(name, name, schema=schema, config=config, wanted=lambda c, h: config(c).enabled,
+                     northbound=northbound, box=box, slot_rows=slot_rows, reload=reload, build=build,
+                     feed=feed, serve=serve, broker=broker, doors=doors, metrics=metrics)
 
 
 def rows() -> tuple[OutputRow, ...]:
