@@ -161,8 +161,8 @@ def test_a_per_station_plugin_door_clashes_between_stations(tmp_path, clean_regi
         (fleet / "stations" / f"s{i}.yaml").write_text(yaml.safe_dump({
             "station": {"id": f"s{i}"}, "meter": {"port": f"/dev/m{i}"}, "stm32": {"port": f"/dev/s{i}"},
             "recorder": {"dir": str(tmp_path / "rec")}, "toy": {"enabled": True, "port": port}}))
-    with pytest.raises(ConfigError, match=r"s1.yaml:\d+: toy.port: 127.0.0.1:7100 is also the toy.port of station s0 .*; "
-                       "toy listens on a port of its own per station"):
+    with pytest.raises(ConfigError, match=r"s1.yaml:\d+: toy.port: 127.0.0.1:7100 is also the toy.port "
+                       r"of station s0 .*; toy listens on a port of its own per station"):
         load_fleet(str(fleet))
     (fleet / "stations" / "s1.yaml").write_text((fleet / "stations" / "s1.yaml").read_text()
                                                  .replace("7100", "7101"))

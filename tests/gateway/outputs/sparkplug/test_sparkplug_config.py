@@ -3,10 +3,10 @@ import textwrap
 
 import pytest
 
-from gateway.config import ConfigError, load_station
-from gateway.outputs.sparkplug.output import settings_from_config
 from gateway.compose import station_outputs
+from gateway.config import ConfigError, load_station
 from gateway.outputs.registry import Host
+from gateway.outputs.sparkplug.output import settings_from_config
 
 BASE = """\
 station: {id: loom-01, site: plant-a, area: hall-2, line: line-3}
