@@ -261,7 +261,7 @@ def _read_fleet(file: str) -> tuple[dict | None, dict, list[Issue]]:
         if k in FLEET_KEYS:
             continue
         p = doc.pos[(k,)]
-        if S.lookup((k,)) is not None:
+        if S.lookup((k,)) is not None or any(k == p.spec.name for p in P.sections()):
             msg = f"station settings in fleet.yaml go under `defaults:` (defaults:\\n  {k}: …)"
         else:
             msg = ("unknown key" + suggestion_text(did_you_mean(k, FLEET_KEYS))

@@ -153,20 +153,25 @@ def test_a_plugin_row_brings_its_section_its_door_to_the_probe_and_its_reload_ke
 
 def test_a_per_station_plugin_door_clashes_between_stations(tmp_path, clean_registry):
     """The loader's clash checks read the rows: a plug-in output that listens per station (not
-    served by the box) may not share its door with another station of the box."""
+    served by the box) may not share its door with another station of the box. Its section is a
+    fleet default like any other (deep-merged), and only there."""
     W.register(_toy_row(box=False))
     fleet = tmp_path / "fleet"
     (fleet / "stations").mkdir(parents=True)
-    for i, port in enumerate((7100, 7100)):
+    (fleet / "fleet.yaml").write_text(yaml.safe_dump({"defaults": {"toy": {"enabled": True, "port": 7100}}}))
+    for i in range(2):
         (fleet / "stations" / f"s{i}.yaml").write_text(yaml.safe_dump({
             "station": {"id": f"s{i}"}, "meter": {"port": f"/dev/m{i}"}, "stm32": {"port": f"/dev/s{i}"},
-            "recorder": {"dir": str(tmp_path / "rec")}, "toy": {"enabled": True, "port": port}}))
-    with pytest.raises(ConfigError, match=r"s1.yaml:\d+: toy.port: 127.0.0.1:7100 is also the toy.port "
+            "recorder": {"dir": str(tmp_path / "rec")}}))
+    with pytest.raises(ConfigError, match=r"fleet.yaml:\d+: toy.port: 127.0.0.1:7100 is also the toy.port "
                        r"of station s0 .*; toy listens on a port of its own per station"):
         load_fleet(str(fleet))
-    (fleet / "stations" / "s1.yaml").write_text((fleet / "stations" / "s1.yaml").read_text()
-                                                 .replace("7100", "7101"))
-    assert [c.plugins["toy"].port for c in load_fleet(str(fleet))] == [7100, 7101]
+    (fleet / "stations" / "s1.yaml").write_text((fleet / "stations" / "s1.yaml").read_text() + "toy: {port: 7101}\n")
+    assert [c.plugins["toy"] for c in load_fleet(str(fleet))] == [ToyConfig(enabled=True, port=7100),
+                                                                 ToyConfig(enabled=True, port=7101)]
+    (fleet / "fleet.yaml").write_text(yaml.safe_dump({"toy": {"enabled": True}}))
+    with pytest.raises(ConfigError, match="station settings in fleet.yaml go under `defaults:`"):
+        load_fleet(str(fleet))
 
 
 def test_a_row_missing_a_field_or_a_factory_fails_at_import(clean_registry):
