@@ -110,8 +110,9 @@ class OutputRow:
     def __post_init__(self) -> None:
         if self.box and self.serve is None:
             raise TypeError(f"output {self.name!r}: served by the box (box=True) but no `serve` factory")
-        if self.build is None and self.serve is None:
-            raise TypeError(f"output {self.name!r}: neither a `build` nor a `serve` factory")
+        if not self.box and self.build is None:
+            raise TypeError(f"output {self.name!r}: runs in the station's process (box=False) but no "
+                            "`build` factory")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -183,6 +183,10 @@ def test_a_row_missing_a_field_or_a_factory_fails_at_import(clean_registry):
         W.OutputRow("toy", "toy", schema=None, config=lambda c: c.mqtt, wanted=lambda c, h: True,
                     northbound=False, box=True, slot_rows=True, reload=True, build=lambda b: [],
                     feed=None, serve=None, broker=W.no_broker, doors=W.no_doors, metrics="none")
+    with pytest.raises(TypeError, match="no `build` factory"):
+        W.OutputRow("toy", "toy", schema=None, config=lambda c: c.mqtt, wanted=lambda c, h: True,
+                    northbound=False, box=False, slot_rows=False, reload=False, build=None,
+                    feed=None, serve=lambda b: [], broker=W.no_broker, doors=W.no_doors, metrics="none")
 
 
 def test_a_plugin_takes_no_name_or_section_already_taken(monkeypatch, clean_registry):
