@@ -79,6 +79,44 @@ def test_an_outbox_that_cannot_be_opened_is_reported_and_the_station_runs_on(tmp
 
 
 # ----------------------------------------------------------------------------- the output registry
+def test_a_station_gets_its_outputs_in_the_registry_order_in_one_process_and_as_a_worker(tmp_path):
+    """``build_station`` builds from the rows: the retention first, then MQTT, Modbus TCP,
+    Sparkplug, the metrics last (they read the others); as a fleet's worker whose supervisor
+    serves the PLC unit, the Sparkplug device and the metrics, only MQTT and the metrics' feed
+    (counting, no endpoint of its own) are built there."""
+    from gateway.compose import build_station
+
+    cfg = _cfg(tmp_path, mqtt={"enabled": True}, modbus_tcp={"enabled": True}, sparkplug={"enabled": True},
+               metrics={"enabled": True})
+    for served, names in ((frozenset(), ["RetentionOutput", "MqttOutput", "ModbusOutput", "SparkplugOutput",
+                                         "MetricsOutput"]),
+                          (frozenset({"modbus", "sparkplug", "metrics"}),
+                           ["RetentionOutput", "MqttOutput", "MetricsOutput"])):
+        st = build_station(cfg, served_by_supervisor=served)
+        try:
+            assert [type(o).__name__ for o in st.outputs] == names
+            assert st.outputs[-1].serve is not bool(served)
+        finally:
+            for o in st.outputs:
+                if isinstance(o, MqttOutput):
+                    o.outbox.close()
+
+
+def test_the_docs_table_of_the_outputs_is_the_registry():
+    """docs/architecture.md's table of the outputs says what each row says (its docs entry)."""
+    import os
+
+    from conftest import ROOT
+
+    with open(os.path.join(ROOT, "docs", "architecture.md"), encoding="utf-8") as f:
+        text = f.read().split("## Adding an output", 1)[1].split("\n## ", 1)[0]
+    yn = {"yes": True, "no": False}
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in text.splitlines()
+            if line.startswith("| `")]
+    assert [(r[0].strip("`"), r[1].strip("`"), yn[r[2]], yn[r[3]], yn[r[4]], yn[r[5]], r[6]) for r in rows] == [
+        (r.name, r.section, r.box, r.slot_rows, r.reload, r.northbound, r.metrics) for r in W.BUILTIN]
+
+
 def test_the_registry_rows_drive_the_worker_the_reload_key_and_the_probe(tmp_path):
     """What a fleet worker may leave to its supervisor, which of those need every slot record,
     the supervisor's reload key and the probe's doors and brokers all come from the rows."""
