@@ -26,6 +26,11 @@ __all__ = ["PLUGINS_ENV", "Door", "PluginSection", "add_section", "load_plugins"
 
 #: the modules that register plug-in outputs, ``module[,module]`` (each imported once per process)
 PLUGINS_ENV = "HOOKWATCH_OUTPUTS"
+#: the outputs shipped with hookwatch as registered rows (python-can's ``BACKENDS``): a new output
+#: of the product is its module under gateway/outputs/ (the output, its section's schema and its
+#: :func:`~gateway.outputs.registry.register` call), one line here and its docs entry. Named, not
+#: imported: the configuration layer never imports an output; they load with the plug-ins.
+IN_TREE: tuple[str, ...] = ()
 _MODULE_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 
 #: (configuration key, host, port) an output listens on
@@ -66,10 +71,11 @@ def sections() -> tuple[PluginSection, ...]:
 
 
 def load_plugins() -> None:
-    """Import the modules ``$HOOKWATCH_OUTPUTS`` names (each once): their rows register their
-    outputs and sections. A name that does not import is an error at start-up (ImportError,
-    ValueError), not a silently missing output."""
-    for mod in filter(None, (x.strip() for x in os.environ.get(PLUGINS_ENV, "").split(","))):
+    """Import the modules of :data:`IN_TREE`, then those ``$HOOKWATCH_OUTPUTS`` names (each once):
+    their rows register their outputs and sections. A name that does not import is an error at
+    start-up (ImportError, ValueError), not a silently missing output."""
+    named = (x.strip() for x in os.environ.get(PLUGINS_ENV, "").split(","))
+    for mod in filter(None, (*IN_TREE, *named)):
         if mod in _LOADED:
             continue
         if not _MODULE_RE.match(mod):

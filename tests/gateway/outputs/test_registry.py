@@ -248,3 +248,22 @@ def test_a_plugin_takes_no_name_or_section_already_taken(monkeypatch, clean_regi
     monkeypatch.setenv(P.PLUGINS_ENV, "kit.crashy:outputs")
     with pytest.raises(ValueError, match="not a module name"):
         P.load_plugins()
+
+
+def test_an_output_shipped_in_tree_is_its_module_and_one_line(tmp_path, monkeypatch, clean_registry):
+    """A new output of the product (an OPC UA server, say) is three places: its module (the
+    output, its section's schema and its row: here the toy's), ONE line of ``plugins.IN_TREE``
+    and its docs entry. Nothing else names it: without ``$HOOKWATCH_OUTPUTS`` the loader accepts
+    its section, the registry builds it, the supervisor serves it, the probe checks its door."""
+    import sys
+    monkeypatch.delenv(P.PLUGINS_ENV, raising=False)
+    monkeypatch.delitem(sys.modules, "kit.toy_output", raising=False)
+    assert "toy" not in {r.name for r in W.rows()}
+    monkeypatch.setattr(P, "IN_TREE", (*P.IN_TREE, "kit.toy_output"))      # the one line
+    P.load_plugins()
+    toy = next(r for r in W.rows() if r.name == "toy")
+    assert toy.box and toy.slot_rows and toy.reload
+    assert "toy" in worker.served_words() and "toy" in W.row_served()
+    assert "toy" in {s.spec.name for s in P.sections()}
+    cfg = _cfg(tmp_path, toy={"enabled": True, "port": 7101})
+    assert W.wanted(cfg, toy, W.Host(None, True)) and probe.listen_ports(cfg) == [("toy.port", "127.0.0.1", 7101)]
