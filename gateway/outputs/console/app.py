@@ -22,6 +22,7 @@ JSON API (reading: open from the loopback address, else a login — ``console.re
                                             site=1: the stations of the site's other boxes too)
     GET  /api/due.csv[?line=&area=&site=1]  the same as CSV (cells defused against formulas)
     GET  /api/boxes                         the site's boxes by their config reports
+    GET  /api/values                        the station values the page shows, with their labels
     GET  /api/station/<id>/tests/<test>/fig7.png        the report's Fig. 7 of a test
     GET  /api/station/<id>/tests/<test>/files/<name>    log.csv.gz, log.meta.yaml, events.jsonl, result.json
     GET  /api/session                       who is logged in (+ CSRF token)

@@ -25,6 +25,7 @@ import zlib
 from dataclasses import asdict
 from typing import Any
 
+from ...core import catalog
 from ...core.ports import StationView
 from ...core.records import Event, EventType, SlotRecord, StationState
 from ...offline.logio import tail_jsonl
@@ -44,6 +45,8 @@ MAX_JOURNAL = 500
 MAX_TRANSITIONS_PER_EVENT = 8
 #: recorded tests (newest first) whose events.jsonl seed the journal when the console starts
 JOURNAL_TESTS = 5
+#: the catalog's values the console shows, each with its label (GET /api/values)
+VALUES = tuple(v for v in catalog.CATALOG if v.label)
 #: states of a running test (TestState values): baseline search, monitoring, end of life
 _RUNNING = (1, 2, 3)
 
@@ -352,6 +355,8 @@ class StationFeed:
             # known, or there is no test): a stale "projected crossing" is never shown
             s.update(t_cross=None, end_p10=None, end_p50=None, end_p90=None, p_end=None, due=False)
         s["past_threshold"] = bool(st is not None and (st.t_life is not None or st.state.value == 3))
+        # every labelled value of the catalog (gateway/core/catalog.py), for the page's "all values"
+        s["values"] = catalog.read(VALUES, st) if st is not None else {}
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
         # else the station's state says it (StationState.mqtt_ok, from the MQTT output's uplink

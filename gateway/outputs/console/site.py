@@ -27,9 +27,11 @@ import threading
 import time
 from typing import Any
 
+from ...core import catalog
 from ...core.command_intake import Refused, bounded_pairs, read_bounded_json
 from ...plumbing.ratelog import RateLog, clip, safe
 from .boxes import BoxReports, box_filter
+from .feed import VALUES
 
 log = logging.getLogger("hookwatch.console")
 
@@ -45,17 +47,18 @@ MAX_TEXT = 64
 STALE_S = 35.0
 
 _pairs = bounded_pairs(64, 32, 256)
-_TEXT = ("test_state", "test_id", "sample_id", "grade", "alarm", "warning_alarm",
-         "test_started_utc", "status", "end_reason", "prior_source", "time")
-_NUM = ("t_set", "t_end", "mu_ss", "mu_th", "t_life", "elapsed_s", "headroom", "t_cross",
-        "end_p10", "end_p50", "end_p90", "p_end", "prior_mean", "prior_sd")
-_BOOL = ("due", "wear_warning", "meter_ok", "stm32_ok", "disk_ok")
-#: the counts of lives a history prior came from (§7a v3)
-_COUNT = ("prior_n", "prior_n_censored", "prior_n_early")
-#: the largest count shown (more than any site holds: 20,000 lives)
-_MAX_COUNT = 10_000_000
+#: the keys of a remote `state` kept, by their type: the catalog's rows with an MQTT key
+#: (gateway/core/catalog.py), and the envelope's time
+_STATE = tuple(v for v in catalog.CATALOG if v.mqtt)
+_TEXT = tuple(v.name for v in _STATE if v.base_type == "str") + ("time",)
+_NUM = tuple(v.name for v in _STATE if v.base_type == "float")
+_BOOL = tuple(v.name for v in _STATE if v.base_type == "bool")
+#: counts (the lives a history prior came from, §7a v3) and slots
+_COUNT = tuple(v.name for v in _STATE if v.base_type == "int")
+#: the largest count or slot shown (more than any site holds: 20,000 lives; 30 days of slots)
+_MAX_COUNT = 1 << 32
+_LISTS = tuple(v for v in _STATE if v.base_type == "list")
 _RUNNING = ("baseline_search", "monitoring", "end_of_life")
-_REASONS = ("headroom", "prior", "trend")
 
 
 def filters(base: str) -> tuple[str, ...]:
@@ -117,10 +120,11 @@ def parse_state(obj: Any, station: str) -> dict[str, Any]:
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= _MAX_COUNT):
             raise Refused(f"{k}: {clip(v, 20)} is not a count")
         out[k] = v
-    r = obj.get("warn_reasons") or []
-    if not isinstance(r, list) or len(r) > len(_REASONS) or any(x not in _REASONS for x in r):
-        raise Refused(f"warn_reasons {clip(r, 40)} are not reasons")
-    out["warn_reasons"] = list(r)
+    for row in _LISTS:
+        r = obj.get(row.name) or []
+        if not isinstance(r, list) or len(r) > len(row.choices) or any(x not in row.choices for x in r):
+            raise Refused(f"{row.name} {clip(r, 40)} are not {row.label or row.name}")
+        out[row.name] = list(r)
     return out
 
 
@@ -199,6 +203,7 @@ class SiteView:
         out = []
         for sid, v in items:
             s: dict[str, Any] = dict(v.get("state") or {})
+            values = {row.name: s.get(row.name) for row in VALUES if row.mqtt}
             st_name = s.pop("test_state", None)
             heard = max(v.get("state_at") or 0.0, v.get("status_at") or 0.0)
             offline = v.get("status") == "offline"
@@ -211,6 +216,7 @@ class SiteView:
             if st_name not in _RUNNING or card.get("t_life") is not None:
                 card.update(t_cross=None, end_p10=None, end_p50=None, end_p90=None, p_end=None,
                             due=False)
+            card["values"] = values
             card["past_threshold"] = card.get("t_life") is not None or st_name == "end_of_life"
             out.append(card)
         return out
