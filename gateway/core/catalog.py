@@ -23,7 +23,7 @@ label in the web console. Every door derives its set from these rows (issue 35 i
 function of the existing ones) and one row appended here: a new Sparkplug alias (the next free
 index), a register in a block with reserved space (then ``MAP_MINOR`` bumped and the golden map
 frozen: ``python -m gateway.outputs.plc.registers --freeze tests/golden/plc_register_map.txt``),
-and the generated docs regenerated. ``tests/gateway/core/test_catalog.py`` proves both: every
+and the generated docs regenerated. ``tests/gateway/outputs/test_catalog.py`` proves both: every
 door publishes exactly these rows, and a row added in-process shows at every door.
 
 Pure: data and functions of the state; no I/O, no clock, nothing of the doors.

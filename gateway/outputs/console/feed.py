@@ -47,6 +47,14 @@ MAX_TRANSITIONS_PER_EVENT = 8
 JOURNAL_TESTS = 5
 #: the catalog's values the console shows, each with its label (GET /api/values)
 VALUES = tuple(v for v in catalog.CATALOG if v.label)
+
+
+def values_json(values: tuple[catalog.Value, ...] = VALUES) -> list[dict[str, str]]:
+    """The rows the page shows under "all values" (GET /api/values): the key of a card's
+    ``values``, its label, unit and type."""
+    return [{"name": v.name, "label": v.label, "unit": v.unit, "type": v.base_type} for v in values]
+
+
 #: states of a running test (TestState values): baseline search, monitoring, end of life
 _RUNNING = (1, 2, 3)
 

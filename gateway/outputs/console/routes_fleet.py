@@ -21,7 +21,7 @@ from aiohttp import web
 from ...plumbing import safeout
 from .common import FILTER_MAX, STATIC, HttpError, err, json_reply
 from .context import ConsoleContext
-from .feed import DUE_COLUMNS, VALUES, due_list
+from .feed import DUE_COLUMNS, due_list, values_json
 
 
 class FleetRoutes:
@@ -60,8 +60,7 @@ class FleetRoutes:
     async def h_values(self, request):
         """The catalog's rows the console shows: name (the key of a card's ``values``), label,
         unit, type (docs/console.md)."""
-        return json_reply({"values": [{"name": v.name, "label": v.label, "unit": v.unit, "type": v.base_type}
-                                      for v in VALUES]})
+        return json_reply({"values": values_json()})
 
     async def h_boxes(self, request):
         """Every box of the site as its retained config report says (docs/console.md, Boxes)."""
