@@ -10,6 +10,8 @@ import json
 import math
 import urllib.request
 
+from prometheus_client.parser import text_string_to_metric_families
+
 from gateway.core import catalog
 from gateway.outputs.console.feed import values_json
 from gateway.outputs.mqtt import schema as S
@@ -20,7 +22,6 @@ from kit.e2e import run_gateway, station_yaml, virtual_station, wait_log
 from kit.northbound import mbpoll
 from kit.sparkplug_host import PrimaryHost, metric_value
 from kit.tools import free_port, require_tool, wait_for
-from prometheus_client.parser import text_string_to_metric_families
 
 
 def _get(port: int, path: str):
