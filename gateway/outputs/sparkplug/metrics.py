@@ -78,21 +78,28 @@ ARG_DURATION = "Device Control/Shelve Duration"
 ARG_REQUEST_ID = "Device Control/Request ID"
 ARG_TEST_ID = "Device Control/Test ID"
 
-#: the forecast's metrics (METHOD.md §5a, §5b, §7a)
-FC_STARTED = "Test/Started"
-FC_P10 = "Forecast/End P10"
-FC_P50 = "Forecast/End P50"
-FC_P90 = "Forecast/End P90"
-FC_P_END = "Forecast/P End"
-FC_DUE = "Forecast/Due"
-FC_HEADROOM = "Forecast/Headroom"
-FC_T_CROSS = "Forecast/t_cross"
-FC_WARNING = "Forecast/Warning"
-FC_REASONS = "Forecast/Warning Reasons"
-FC_PRIOR_MEAN = "Forecast/Prior Mean"
-FC_PRIOR_SD = "Forecast/Prior SD"
-FC_PRIOR_SOURCE = "Forecast/Prior Source"
-FC_LEAD = "Forecast/Lead"
+def _metric_of(value: str) -> str:
+    """The Sparkplug name of the catalog's row ``value`` (gateway/core/catalog.py)."""
+    sp = catalog.BY_NAME[value].sparkplug
+    assert sp is not None
+    return sp.name
+
+
+#: the forecast's metrics (METHOD.md §5a, §5b, §7a): the catalog's rows, by their Sparkplug names
+FC_STARTED = _metric_of("test_started_utc")
+FC_P10 = _metric_of("end_p10")
+FC_P50 = _metric_of("end_p50")
+FC_P90 = _metric_of("end_p90")
+FC_P_END = _metric_of("p_end")
+FC_DUE = _metric_of("due")
+FC_HEADROOM = _metric_of("headroom")
+FC_T_CROSS = _metric_of("t_cross")
+FC_WARNING = _metric_of("wear_warning")
+FC_REASONS = _metric_of("warn_reasons")
+FC_PRIOR_MEAN = _metric_of("prior_mean")
+FC_PRIOR_SD = _metric_of("prior_sd")
+FC_PRIOR_SOURCE = _metric_of("prior_source")
+FC_LEAD = _metric_of("lead_s")
 
 #: the station's alarms as Sparkplug metric folders: ISA-18.2 name (gateway.core.alarms.ALARMS) → folder
 ALARM_FOLDERS = {"end_of_life": "Alarm/End Of Life", "wear_warning": "Alarm/Wear Warning"}
