@@ -846,11 +846,11 @@ _RULE = ("addresses never move within a major map version: add a value at the en
          "engineers, with a new golden file")
 
 
-def golden_lines(input_regs: tuple[Reg, ...] = INPUT_REGS) -> list[str]:
+def golden_lines(input_regs: tuple[Reg, ...] | None = None) -> list[str]:
     """The current map as the lines of the golden file: one per register (table, block, address,
     count, type, unit, name), per bit (``bit``, register, bit, name), per command code."""
     out = ["\t".join((r.table, r.block, str(r.address), str(r.count), r.type, r.unit or "-", r.name))
-           for r in input_regs + HOLDING_REGS]
+           for r in (INPUT_REGS if input_regs is None else input_regs) + HOLDING_REGS]
     out += [f"bit\t{reg}\t{b}\t{n}" for reg, table in (("status", STATUS_BITS), ("warn_reasons", WARN_REASON_BITS))
             for b, n, _ in table]
     out += [f"code\tcommand\t{c}\t{n}" for c, n, _ in COMMAND_CODES]
@@ -870,7 +870,7 @@ def _parse(lines: list[str]) -> tuple[dict[tuple[str, str], list[str]], dict[tup
     return regs, marks
 
 
-def _compare(golden: str, input_regs: tuple[Reg, ...] = INPUT_REGS
+def _compare(golden: str, input_regs: tuple[Reg, ...] | None = None
              ) -> tuple[list[str], list[str], list[tuple[int, int]]]:
     """(problems with the frozen entries, current lines not frozen yet, the frozen versions)."""
     versions = [(int(v.partition(".")[0]), int(v.partition(".")[2] or 0))
@@ -921,7 +921,7 @@ def _compare(golden: str, input_regs: tuple[Reg, ...] = INPUT_REGS
     return problems, new, versions
 
 
-def frozen_problems(golden: str, input_regs: tuple[Reg, ...] = INPUT_REGS) -> list[str]:
+def frozen_problems(golden: str, input_regs: tuple[Reg, ...] | None = None) -> list[str]:
     """What keeps the current map (or one with ``input_regs``) from the frozen one (the golden
     file's text): moved, re-typed, vanished or reused registers, bits and codes; additions not
     frozen yet; a minor version that does not match. Empty when the map keeps every frozen address."""
