@@ -270,17 +270,23 @@ INPUT_SPECS: dict[str, list[tuple[Any, ...]]] = {
 }
 
 
-def input_layout(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[Reg, ...]:
-    """The input registers: :data:`INPUT_SPECS` in their blocks, then each catalog row's register
-    that they do not place, appended at the end of its block in the catalog's order (in the block's
-    reserved space: no existing address moves; a block without room fails here, at import)."""
+def input_specs(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> dict[str, list[tuple[Any, ...]]]:
+    """The registers of each input block in address order: :data:`INPUT_SPECS`, then each catalog
+    row's register that they do not place, appended at the end of its block in the catalog's order
+    (in the block's reserved space: no existing address moves)."""
     specs = {b: list(rows) for b, rows in INPUT_SPECS.items()}
     placed = {row[0] for rows in specs.values() for row in rows}
     for v in values:
         p = v.plc
         if p is not None and p.name not in placed:
             specs.setdefault(p.block, []).append((p.name, p.type, p.unit, p.doc))
-    return _layout(INPUT_BLOCKS, specs)
+    return specs
+
+
+def input_layout(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[Reg, ...]:
+    """The input registers of :func:`input_specs` at their addresses (a block without room for
+    them fails here, at import)."""
+    return _layout(INPUT_BLOCKS, input_specs(values))
 
 
 INPUT_REGS = input_layout()
