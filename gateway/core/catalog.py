@@ -23,8 +23,10 @@ label in the web console. Every door derives its set from these rows (issue 35 i
 function of the existing ones) and one row appended here: a new Sparkplug alias (the next free
 index), a register in a block with reserved space (then ``MAP_MINOR`` bumped and the golden map
 frozen: ``python -m gateway.outputs.plc.registers --freeze tests/golden/plc_register_map.txt``),
-and the generated docs regenerated. ``tests/gateway/outputs/test_catalog.py`` proves both: every
-door publishes exactly these rows, and a row added in-process shows at every door.
+and the generated docs regenerated (docs/mqtt.md and the JSON schemas, docs/sparkplug.md,
+docs/registers.md, docs/metrics.md's table: each with the command its "docs current" test
+names). ``tests/gateway/outputs/test_catalog.py`` proves both: every door publishes exactly these
+rows, and a row added in-process shows at every door.
 
 Pure: data and functions of the state; no I/O, no clock, nothing of the doors.
 """
@@ -79,6 +81,8 @@ class PromGauge:
     name: str
     help: str
     label: str = ""
+    #: its meaning in docs/metrics.md ("": the help)
+    doc: str = ""
 
 
 @dataclass(frozen=True)
@@ -127,7 +131,11 @@ def _end_left(q: int, read: Callable[[StationState], float | None]) -> Value:
                         "of life was detected"),
         prometheus=PromGauge(f"end_p{q}_seconds", f"remaining time to the {q} % end quantile of the "
                              "hook's life forecast at its last forecast time (METHOD.md §5b); absent "
-                             "without a prior, outside a test and once the end of life was detected"),
+                             "without a prior, outside a test and once the end of life was detected",
+                             doc=f"remaining time to the {q} % end quantile of the hook's life forecast "
+                             f"at its last forecast time (METHOD.md §5b: e{q} − elapsed, at least 0); no "
+                             "series without a life prior, outside a test and once the end of life was "
+                             "detected"),
         label=f"end P{q} in")
 
 
@@ -146,7 +154,8 @@ CATALOG: tuple[Value, ...] = (
           plc=PlcRegister("test_state", "status", "enum", "", "test state: "
                           + ", ".join(f"{s.value} {s.name.lower()}" for s in TestState)),
           prometheus=PromGauge("station_state", "the station's test state (1 for the current one)",
-                               "state"),
+                               "state", "the test state, one series per state (" + ", ".join(
+                                   f"`{c}`" for c in TEST_STATES) + "), 1 for the current one"),
           label="test state"),
     Value("test_id", "str|null", "", "id of the current (or last) test", lambda st: st.test_id,
           sparkplug=_sp("Test/ID", 1, "String"),
@@ -175,13 +184,15 @@ CATALOG: tuple[Value, ...] = (
           sparkplug=_sp("Method/mu_ss", 9, "Double", "", "steady-state friction coefficient μ_ss"),
           plc=PlcRegister("mu_ss", "live", "float32", "", "baseline μ_ss of the current / last test "
                           "(NaN before the baseline)"),
-          prometheus=PromGauge("mu_ss", "steady baseline μ_ss of the running test"),
+          prometheus=PromGauge("mu_ss", "steady baseline μ_ss of the running test",
+                               doc="the test's steady baseline μ_ss, once found"),
           label="μ_ss"),
     Value("mu_th", "float|null", "", "end-of-life threshold μ_th = (1+δ)·μ_ss", lambda st: st.mu_th,
           sparkplug=_sp("Method/mu_th", 10, "Double", "", "end-of-life threshold (1+δ)·μ_ss"),
           plc=PlcRegister("mu_th", "live", "float32", "", "end-of-life threshold μ_th (NaN before the "
                           "baseline)"),
-          prometheus=PromGauge("mu_threshold", "end-of-life threshold (1+δ)·μ_ss"),
+          prometheus=PromGauge("mu_threshold", "end-of-life threshold (1+δ)·μ_ss",
+                               doc="its end-of-life threshold (1+δ)·μ_ss"),
           label="μ_th"),
     Value("k_b", "int|null", "slots", "slot at which the baseline was established", lambda st: st.k_b,
           label="baseline slot"),
@@ -204,7 +215,9 @@ CATALOG: tuple[Value, ...] = (
     Value("alarm", "str", "", "end-of-life alarm, ISA-18.2 state: " + ", ".join(ALARM_STATES),
           lambda st: st.alarm, choices=ALARM_STATES,
           plc=PlcRegister("alarm", "status", "enum", "", "end-of-life alarm: " + _ALARM_ENUM),
-          prometheus=PromGauge("alarm", "end-of-life alarm state (1 for the current one)", "alarm"),
+          prometheus=PromGauge("alarm", "end-of-life alarm state (1 for the current one)", "alarm",
+                               "end-of-life alarm, ISA-18.2 state, one series per state (" + ", ".join(
+                                   f"`{c}`" for c in ALARM_STATES) + "), 1 for the current one"),
           label="end-of-life alarm"),
     Value("protection_stop", "bool", "", "the test was stopped by the protection rule (§3)",
           lambda st: bool(st.protection_stop), sparkplug=_sp("Status/Protection Stop", 15, "Boolean"),
@@ -221,7 +234,9 @@ CATALOG: tuple[Value, ...] = (
                           "μ_th, negative above; NaN before the first window after the baseline. "
                           "Informative: never changes the result"),
           prometheus=PromGauge("wear_headroom", "wear headroom h of the last window (METHOD.md §5a): "
-                               "1 at the baseline, 0 at the threshold"),
+                               "1 at the baseline, 0 at the threshold",
+                               doc="wear headroom h of the last window (METHOD.md §5a: 1 at the baseline, "
+                               "0 at the threshold, negative above), when the station state carries it"),
           label="headroom"),
     Value("t_cross", "float|null", "s", "projected time (s from test start) at which the recent trend "
           "of μ reaches μ_th (§5a), from the last window with a value; null: no projection",
@@ -232,14 +247,17 @@ CATALOG: tuple[Value, ...] = (
                           "the recent trend of μ reaches μ_th (§5a), rounded; 0 = no projection. It "
                           "assumes the trend goes on; the accelerated stage usually comes sooner"),
           prometheus=PromGauge("wear_projected_end_seconds", "test time at which the recent μ trend "
-                               "reaches the threshold (METHOD.md §5a projection)"),
+                               "reaches the threshold (METHOD.md §5a projection)",
+                               doc="test time at which the recent μ trend reaches the threshold (§5a "
+                               "projection), when known"),
           label="projected crossing"),
     Value("wear_warning", "bool", "", "the §5b early warning (the first due window) fired in this test",
           lambda st: bool(st.wear_warning),
           sparkplug=_sp("Forecast/Warning", 55, "Boolean", description="the early warning (the first "
                         "due window) fired in this test"),
           prometheus=PromGauge("wear_warning", "1 once the test's early wear warning fired "
-                               "(METHOD.md §5a)"),
+                               "(METHOD.md §5a)", doc="1 once the test's early warning fired (METHOD.md "
+                               "§5b: the first due window; once per test)"),
           label="wear warning"),
     Value("end_p10", "float|null", "s", "end of life, 10 % quantile of the forecast from the prior at "
           "the last forecast time (§5b), s from the test's slot 0 (`test_started_utc` + this = wall "
@@ -265,14 +283,18 @@ CATALOG: tuple[Value, ...] = (
                           "lead (§5b P) at the last forecast time; NaN without a prior, outside a "
                           "test, after the end-of-life detection"),
           prometheus=PromGauge("end_within_lead_probability", "chance that the hook's end comes "
-                               "within the lead (METHOD.md §5b P)"),
+                               "within the lead (METHOD.md §5b P)", doc="the chance that the end comes "
+                               "within the lead (§5b P), at the last forecast time"),
           label="P end within the lead"),
     Value("due", "bool", "", "the last forecast window is due (§5b: P ≥ p_due, a headroom run or a "
           "projected crossing within the lead)", lambda st: bool(st.due),
           sparkplug=_sp("Forecast/Due", 52, "Boolean", description="the last forecast window is due (§5b)"),
           prometheus=PromGauge("hook_due", "1 while the last forecast window of the running test is "
                                "due (METHOD.md §5b: P ≥ p_due, a headroom run or a projected crossing "
-                               "within the lead)"),
+                               "within the lead)", doc="1 while the last forecast window of the running "
+                               "test is due (§5b: P ≥ `p_due`, a headroom run or a projected crossing "
+                               "within the lead); the alert `HookwatchHookDue` in "
+                               "deploy/prometheus/hookwatch-rules.yml fires on it"),
           label="due"),
     Value("warn_reasons", "list", "", "the early warning's reasons once it fired (sorted: headroom, "
           "prior, trend), else []", lambda st: list(st.warn_reasons or []), choices=WARN_REASONS,
@@ -312,7 +334,8 @@ CATALOG: tuple[Value, ...] = (
                           "(§5b `lead`), s; 0 outside a test",
                           lambda st: st.lead_s if st.lead_s is not None and st.state in RUNNING else 0),
           prometheus=PromGauge("lead_seconds", "the planner's lead the hook is judged against "
-                               "(METHOD.md §5b)"),
+                               "(METHOD.md §5b)", doc="the planner's lead the running test's hook is "
+                               "judged against (§5b `lead`)"),
           label="lead"),
     Value("p_due", "float|null", "", "the bound P is held against (§5b `p_due`)", lambda st: st.p_due,
           label="p_due"),
@@ -335,12 +358,18 @@ CATALOG: tuple[Value, ...] = (
     Value("disk_ok", "bool", "", "the test records and the MQTT outbox can be written (false: a full "
           "or read-only disk; see the disk_full event)", lambda st: bool(st.disk_ok),
           prometheus=PromGauge("disk_ok", "1 when the test records and the MQTT outbox can be written "
-                               "(0: a full or read-only disk)"),
+                               "(0: a full or read-only disk)", doc="1 when the test records and the MQTT "
+                               "outbox can be written; 0 on a full or read-only disk (the station runs "
+                               "on; `disk_full`/`disk_ok` events, PLC status bit `disk_ok`; "
+                               "docs/limits.md)"),
           label="disk writable"),
     # values of the state that are not keys of the MQTT `state` (derived for the other doors)
     Value("test_running", "bool", "", "a test is running (baseline search, monitoring or end of life)",
           lambda st: st.state in RUNNING, mqtt=False,
-          prometheus=PromGauge("test_running", "1 while a test runs")),
+          prometheus=PromGauge("test_running", "1 while a test runs", doc="1 while a test runs "
+                               "(baseline search, monitoring, end of life); 0 during `starting` (METHOD.md "
+                               "§3a: zero check and spin-up before slot 0, no test id yet, nothing "
+                               "recorded, may still end in `start_failed`)")),
     _end_left(10, lambda st: st.end_p10),
     _end_left(50, lambda st: st.end_p50),
     _end_left(90, lambda st: st.end_p90),
