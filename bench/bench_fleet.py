@@ -23,7 +23,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 sys.path.insert(0, HERE)
 
-from bench_station import EXE, proc_cpu_rss  # noqa: E402
+from bench_station import EXE, child_pids, proc_cpu_rss  # noqa: E402
 
 #: the virtual twins' program (``--sim-exe``) and whether one process hosts them all (``--one-sim``)
 SIM_EXE: str | None = None
@@ -33,23 +33,10 @@ REALTIME: int | None = None
 ONE_SIM = True
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as f:
-                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
-                        out.append(int(d))
-            except (OSError, IndexError, ValueError):
-                pass
-    return out
-
-
 def _tree(pid: int) -> dict[int, tuple[float, float]]:
     """{pid: (CPU s, RSS MB)} of the gateway and its worker processes."""
     out = {}
-    for p in [pid, *_children(pid)]:
+    for p in [pid, *child_pids(pid)]:
         try:
             out[p] = proc_cpu_rss(p)
         except (OSError, IndexError):

@@ -40,6 +40,20 @@ TICK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
+def child_pids(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (read off /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
+                        out.append(int(d))
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+
 def proc_cpu_rss(pid: int) -> tuple[float, float]:
     """(CPU seconds, RSS MB) of a process from /proc."""
     with open(f"/proc/{pid}/stat") as f:

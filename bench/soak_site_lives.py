@@ -43,7 +43,7 @@ sys.path.insert(0, HERE)
 
 import paho.mqtt.client as paho  # noqa: E402
 import yaml  # noqa: E402
-from bench_station import EXE  # noqa: E402
+from bench_station import EXE, child_pids  # noqa: E402
 
 from gateway.core.method.prior import PastTest  # noqa: E402
 from gateway.outputs.mqtt.schema import SCHEMA_VERSION  # noqa: E402
@@ -131,19 +131,6 @@ class Peer(threading.Thread):
         self.c.disconnect()
 
 
-def children(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                with open(f"/proc/{d}/stat") as f:
-                    if int(f.read().rsplit(")", 1)[1].split()[1]) == pid:
-                        out.append(int(d))
-            except (OSError, IndexError, ValueError):
-                pass
-    return out
-
-
 def proc(pid: int) -> dict | None:
     try:
         with open(f"/proc/{pid}/stat") as f:
@@ -170,7 +157,7 @@ def du(path: pathlib.Path, pattern: str = "**/*") -> int:
 
 def sample(gw: subprocess.Popen, broker_pid: int | None, work: pathlib.Path, t0: float,
            peers: list[Peer]) -> dict:
-    procs = [p for p in (proc(x) for x in [gw.pid, *children(gw.pid)]) if p is not None]
+    procs = [p for p in (proc(x) for x in [gw.pid, *child_pids(gw.pid)]) if p is not None]
     mosq = proc(broker_pid) if broker_pid else None
     records = work / "records"
     return {"kind": "sample", "t_s": round(time.monotonic() - t0, 1), "time": time.time(),

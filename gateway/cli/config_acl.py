@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 from typing import Any
 
 from ..cli import CliError
@@ -30,6 +29,7 @@ from ..config import ConfigError, load_fleet, load_station
 from ..outputs.acl import broker_acl as A
 from ..outputs.sparkplug.output import settings_from_config
 from ..outputs.wiring import mqtt_settings
+from ..plumbing.safeout import write_atomic
 from ..plumbing.safeyaml import YamlError, kind, load
 
 HELP = "write the broker's permissions (Mosquitto ACL, RabbitMQ topic permissions) from the station files"
@@ -238,18 +238,7 @@ def render(args: argparse.Namespace) -> str:
 
 
 def _write(path: str, text: str) -> None:
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".acl-", dir=folder)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    write_atomic(os.path.abspath(path), text.encode("utf-8"), make_dir=False)
 
 
 def run(args: argparse.Namespace) -> int:

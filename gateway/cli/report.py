@@ -9,6 +9,7 @@ from ..cli import CliError
 from ..offline.analysis import AnalysisError, parse_overrides
 from ..offline.report.pipeline import build_report
 from ..offline.report.tables import campaign_priors, priors_document
+from ..plumbing.safeout import write_atomic
 
 HELP = "tables (CSV), figures (PNG) and a Markdown/HTML report for a campaign of recorded tests"
 DESCRIPTION = (
@@ -97,12 +98,8 @@ def _write_priors(path: str, samples, campaign: str) -> None:
             "least 5 lives, censored at their life), SD ≥ 2 % of the mean)\n"
             "# paste into a station file (or fleet.yaml) as its forecast: section\n")
     try:
-        d = os.path.dirname(os.path.abspath(path))
-        os.makedirs(d, exist_ok=True)
-        tmp = path + ".tmp"
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None))
-        os.replace(tmp, path)
+        text = head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+        write_atomic(os.path.abspath(path), text.encode("utf-8"))
     except OSError as e:
         raise CliError(f"--priors {path}: cannot write: {e.strerror or e}") from None
     print(f"priors: {path} ({len(entries)} grade/T_set group(s) with at least 3 wear-out failures)")

@@ -36,6 +36,7 @@ This module imports nothing of the project.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import json
@@ -119,16 +120,17 @@ def write_atomic(path: str, data: bytes, *, mode: int = 0o644, make_dir: bool = 
         except OSError:
             pass
         raise
+    with contextlib.suppress(OSError):      # the file is whole; the rename's durability is best effort
+        fsync_dir(folder)
+
+
+def fsync_dir(path: str) -> None:
+    """Make the entries of the folder ``path`` durable (a rename, a new file); raises OSError."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     try:
-        dfd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
-    except OSError:
-        return
-    try:
-        os.fsync(dfd)
-    except OSError:
-        pass
+        os.fsync(fd)
     finally:
-        os.close(dfd)
+        os.close(fd)
 
 
 def loads_strict(text: str | bytes) -> Any:

@@ -108,6 +108,25 @@ def read_json(path):
 test_dirs.__test__ = False  # a helper, not a test (pytest collects it where it is imported)
 
 
+def seed_lives(root, station: str, failures, stopped_slots, t_end: float) -> None:
+    """A box's records of ``station``: a completed test per wear-out failure (t_life in s) and a
+    test ended on purpose after its baseline per entry of ``stopped_slots`` (its slot count: a hook
+    replaced early, a censored life), each a ``result.json`` as the station writes it."""
+    tests = [("failure", x, None, round(x / 0.02) + 100, None) for x in failures]
+    tests += [("aborted", None, ["STOPPED"], n, "hook_replaced") for n in stopped_slots]
+    tag = station.upper()
+    for i, (status, t_life, reasons, n_slots, why) in enumerate(tests):
+        tid = f"2026030{i}T080000Z-{tag}-{i}"
+        d = root / station / tid
+        d.mkdir(parents=True)
+        (d / "result.json").write_text(json.dumps({
+            "test_id": tid, "station": station, "test_status": "aborted" if why else "completed",
+            "end_reason": why or "completed", "sample_id": f"{tag}-{i}", "grade": "I", "t_set": 0.5,
+            "ts": 0.02, "t_end": t_end,
+            "method": {"status": status, "t_life": t_life, "k_b": 400, "n_slots": n_slots,
+                       "stop_reasons": reasons}}))
+
+
 def analyze_cli(log_path) -> dict:
     """`hookwatch analyze LOG --json` as a user runs it: the result keys (without `log`)."""
     p = subprocess.run(hookwatch_cmd() + ["analyze", str(log_path), "--json"], capture_output=True,

@@ -51,3 +51,35 @@ def wait_for(cond, timeout: float = 20.0, interval: float = 0.05, what: str = "c
         if time.monotonic() > t_end:
             raise AssertionError(f"timed out after {timeout} s waiting for {what}")
         time.sleep(interval)
+
+
+def connect_many(port: int, n: int, src: str | None = None, within_s: float = 30.0) -> list[socket.socket]:
+    """Up to ``n`` idle connections to a loopback ``port`` (from ``src``.2, ``src``.3, … when
+    given), for at most ``within_s`` (a server that stopped accepting makes each connect wait for
+    its timeout). The caller closes them."""
+    out = []
+    t_end = time.monotonic() + within_s
+    for i in range(n):
+        if time.monotonic() > t_end:
+            break
+        try:
+            kw = {"source_address": (f"{src}.{2 + i % 250}", 0)} if src else {}
+            out.append(socket.create_connection(("127.0.0.1", port), timeout=1, **kw))
+        except OSError:
+            pass
+    return out
+
+
+def http_status(url: str) -> int:
+    """The HTTP status of a GET of ``url`` (0: no answer)."""
+    import urllib.error
+    import urllib.request
+    try:
+        with urllib.request.urlopen(url, timeout=5) as r:
+            r.read()
+            return int(r.status)
+    except urllib.error.HTTPError as e:
+        return int(e.code)
+    except OSError:
+        return 0
+

@@ -29,6 +29,7 @@ from typing import Any
 
 import yaml
 
+from ...plumbing.safeout import fsync_dir
 from ...plumbing.safeyaml import YamlError, load
 from ..loader import FLEET_KEYS, _merge
 
@@ -225,14 +226,6 @@ def read_tree(folder: str) -> dict[str, bytes]:
     return out
 
 
-def _fsync_dir(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_tree(files: dict[str, bytes], dest: str) -> None:
     """Write a tree into the new folder ``dest``, every file and folder fsynced."""
     dirs = {dest}
@@ -245,7 +238,7 @@ def write_tree(files: dict[str, bytes], dest: str) -> None:
             f.flush()
             os.fsync(f.fileno())
     for d in sorted(dirs, key=len, reverse=True):
-        _fsync_dir(d)
+        fsync_dir(d)
 
 
 def _git_bytes(root: str, *args: str) -> bytes:

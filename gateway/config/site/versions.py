@@ -37,23 +37,9 @@ JOURNAL_MAX = 1024 * 1024
 KEEP_VERSIONS = 5
 
 
-def _fsync_dir(path: str) -> None:
-    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def write_atomic(path: str, data: bytes) -> None:
-    """``path`` replaced by ``data`` whole or not at all (tmp, fsync, rename, fsync the folder)."""
-    tmp = f"{path}.tmp-{os.getpid()}"
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(os.path.dirname(path) or ".")
+    """``path`` replaced by ``data`` whole or not at all (:func:`safeout.write_atomic`)."""
+    safeout.write_atomic(path, data, make_dir=False, tmp_suffix=f".tmp-{os.getpid()}")
 
 
 def read_json(path: str) -> dict[str, Any] | None:
@@ -211,7 +197,7 @@ class StateDir:
             os.replace(dest, old)
             shutil.rmtree(old, ignore_errors=True)
         os.replace(tmp, dest)
-        _fsync_dir(self.versions)
+        safeout.fsync_dir(self.versions)
         return dest
 
     def switch(self, sha: str) -> None:
@@ -221,7 +207,7 @@ class StateDir:
             os.unlink(tmp)
         os.symlink(os.path.join("versions", sha), tmp)
         os.replace(tmp, self.current_link)
-        _fsync_dir(self.root)
+        safeout.fsync_dir(self.root)
 
     def mark_verified(self, sha: str) -> None:
         write_atomic(self.path("verified"), (sha + "\n").encode("ascii"))
@@ -234,7 +220,7 @@ class StateDir:
     def end_apply(self) -> None:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(self.path("applying.json"))
-        _fsync_dir(self.root)
+        safeout.fsync_dir(self.root)
 
     def record_rollback(self, frm: str | None, to: str | None, why: str) -> dict[str, Any]:
         rb = {"from": frm, "to": to, "why": why, "time": time.time()}

@@ -97,10 +97,7 @@ def write_csvs(tables: list[Table], out_dir: str) -> list[str]:
 
 
 def _write(path: str, text: str) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8", newline="") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    safeout.write_atomic(path, text.encode("utf-8"), make_dir=False)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -46,6 +46,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+from ...plumbing.safeout import write_atomic
 from .guard import RateBound
 
 SCRYPT_N = 2 ** 14
@@ -130,14 +131,8 @@ def remove_user(path: str, name: str) -> bool:
 
 
 def _write(path: str, users: dict) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    tmp = path + ".tmp"
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        json.dump({"version": 1, "users": users}, f, indent=1, sort_keys=True)
-        f.write("\n")
-    os.replace(tmp, path)
+    text = json.dumps({"version": 1, "users": users}, indent=1, sort_keys=True) + "\n"
+    write_atomic(os.path.abspath(path), text.encode("utf-8"), mode=0o600)
 
 
 @dataclass

@@ -68,25 +68,25 @@ def test_full_disk_reaches_plc_mqtt_and_metrics_once_per_transition(tmp_path):
 
             filler = fill(fs)
             full = wait_for(lambda: len(disk_events(sub, "disk_full")) >= 2 and disk_events(sub, "disk_full"),
-                            30, what="disk_full of the records and the outbox")
+                            90, what="disk_full of the records and the outbox")
             assert sorted(e["data"]["store"] for e in full) == ["outbox", "records"], full
             assert all(e["data"]["reason"] for e in full), full
             assert full[0]["test_id"] == st.test_id
-            assert plc_disk_bit(mport) == 0
-            assert disk_metric(met.endpoint) == 0.0
-            states = [m[2] for m in sub.messages("state")]
-            assert states[-1]["disk_ok"] is False, states[-1]
+            # each door shows it as it next refreshes (a loaded machine may take a moment)
+            wait_for(lambda: plc_disk_bit(mport) == 0, 30, what="the PLC's disk_ok bit cleared")
+            wait_for(lambda: disk_metric(met.endpoint) == 0.0, 30, what="the metric's disk_ok 0")
+            wait_for(lambda: sub.messages("state")[-1][2]["disk_ok"] is False, 30, what="state disk_ok false")
             time.sleep(3)          # still full: no further event, the station runs on
             assert len(disk_events(sub, "disk_full")) == 2
             assert st.stats.slots > slots0 + 100 and st.session is not None
 
             os.unlink(filler)
             ok = wait_for(lambda: len(disk_events(sub, "disk_ok")) >= 2 and disk_events(sub, "disk_ok"),
-                          30, what="disk_ok of the records and the outbox")
+                          90, what="disk_ok of the records and the outbox")
             assert sorted(e["data"]["store"] for e in ok) == ["outbox", "records"], ok
-            wait_for(lambda: plc_disk_bit(mport) == 1, 10, what="the PLC's disk_ok bit back")
-            assert disk_metric(met.endpoint) == 1.0
-            wait_for(lambda: sub.messages("state")[-1][2]["disk_ok"] is True, 15, what="state disk_ok")
+            wait_for(lambda: plc_disk_bit(mport) == 1, 30, what="the PLC's disk_ok bit back")
+            wait_for(lambda: disk_metric(met.endpoint) == 1.0, 30, what="the metric's disk_ok 1")
+            wait_for(lambda: sub.messages("state")[-1][2]["disk_ok"] is True, 30, what="state disk_ok")
             time.sleep(2)
             assert len(disk_events(sub, "disk_full")) == 2 and len(disk_events(sub, "disk_ok")) == 2
         finally:

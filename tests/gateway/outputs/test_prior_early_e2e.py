@@ -12,7 +12,6 @@ failure, and the next test starts with the v3 prior of the site's history of 3 w
 2 censored lives and 1 early failure — the sidecar says `prior_source: history`, `prior_n_early: 1`
 and its mean and SD are §7a v3's (not v2's, which would count the defect as wear); the state on
 the broker (what the planner's due list and station page read) carries the same counts."""
-import json
 import os
 import subprocess
 
@@ -23,7 +22,16 @@ from conftest import hookwatch_cmd
 from gateway.core.method.prior import history_prior, wear_out_prior
 from gateway.station.hook_log import read_hooks
 from kit.broker import Broker, Sub, pub
-from kit.e2e import QUICK_END, QUICK_METHOD, quick_scenario, run_gateway, station_yaml, virtual_station, wait_log
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    quick_scenario,
+    run_gateway,
+    seed_lives,
+    station_yaml,
+    virtual_station,
+    wait_log,
+)
 
 WEAR_OUT = (40.0, 44.0, 48.0)
 CENSORED = (2250, 2500)         # slots (ts 0.02): 45 s and 50 s, hooks replaced after their baseline
@@ -33,18 +41,7 @@ BASE_B = "hookwatch/lab/test/l1/b"
 
 def seed_box_a(root):
     """A's records: 3 failures and 2 tests ended on purpose after their baseline."""
-    tests = [("failure", x, None, round(x / 0.02) + 100, None) for x in WEAR_OUT]
-    tests += [("aborted", None, ["STOPPED"], n, "hook_replaced") for n in CENSORED]
-    for i, (status, t_life, reasons, n_slots, why) in enumerate(tests):
-        tid = f"2026030{i}T080000Z-A-{i}"
-        d = root / "a" / tid
-        d.mkdir(parents=True)
-        (d / "result.json").write_text(json.dumps({
-            "test_id": tid, "station": "a", "test_status": "aborted" if why else "completed",
-            "end_reason": why or "completed", "sample_id": f"A-{i}", "grade": "I", "t_set": 0.5,
-            "ts": 0.02, "t_end": A_T_END,
-            "method": {"status": status, "t_life": t_life, "k_b": 400, "n_slots": n_slots,
-                       "stop_reasons": reasons}}))
+    seed_lives(root, "a", WEAR_OUT, CENSORED, A_T_END)
 
 
 def sidecars(station_dir):

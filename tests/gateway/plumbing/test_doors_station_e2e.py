@@ -7,8 +7,6 @@ console and the metrics endpoint answer again; no traceback in the log. On today
 console takes every descriptor."""
 import os
 import socket
-import time
-import urllib.request
 
 import pytest
 import yaml
@@ -17,31 +15,9 @@ from conftest import hookwatch_cmd
 from kit.e2e import METER_MAP, SHORT_METHOD, test_dirs, virtual_station
 from kit.northbound import mbpoll
 from kit.proc import Proc
-from kit.tools import free_port, require_tool, wait_for, wait_port
+from kit.tools import connect_many, free_port, http_status, require_tool, wait_for, wait_port
 
 NOFILE = 512
-
-
-def _flood(port: int, n: int, within_s: float = 30.0) -> list[socket.socket]:
-    out = []
-    t_end = time.monotonic() + within_s
-    for _ in range(n):
-        if time.monotonic() > t_end:
-            break
-        try:
-            out.append(socket.create_connection(("127.0.0.1", port), timeout=1))
-        except OSError:
-            pass
-    return out
-
-
-def _get(url: str) -> int:
-    try:
-        with urllib.request.urlopen(url, timeout=5) as r:
-            r.read()
-            return r.status
-    except OSError:
-        return 0
 
 
 @pytest.mark.timeout(400)
@@ -71,8 +47,8 @@ def test_idle_floods_leave_a_station_process_its_reserve(tmp_path):
             wait_for(lambda: len(test_dirs(tmp_path, "st")) == 1, 60, what="the test")
             (d,) = test_dirs(tmp_path, "st")
             log_gz = os.path.join(d, "log.csv.gz")
-            flood += _flood(cport, 2500)
-            flood += _flood(mport, 800, within_s=10)
+            flood += connect_many(cport, 2500)
+            flood += connect_many(mport, 800, within_s=10)
             assert len(flood) > NOFILE
             assert gw.p.poll() is None, gw.log()
             size = os.path.getsize(log_gz)
@@ -82,8 +58,8 @@ def test_idle_floods_leave_a_station_process_its_reserve(tmp_path):
             # the test ends: its result is written although the flood still holds its sockets
             wait_for(lambda: os.path.exists(os.path.join(d, "result.json")), 120,
                      what=f"result.json; log:\n{gw.log()}")
-            wait_for(lambda: _get(f"http://127.0.0.1:{cport}/api/fleet") == 200, 30, what="the console answers")
-            wait_for(lambda: _get(f"http://127.0.0.1:{mport}/metrics") == 200, 30, what="metrics answer")
+            wait_for(lambda: http_status(f"http://127.0.0.1:{cport}/api/fleet") == 200, 30, what="the console answers")
+            wait_for(lambda: http_status(f"http://127.0.0.1:{mport}/metrics") == 200, 30, what="metrics answer")
             assert gw.p.poll() is None
             log = gw.log_all()
             assert "Traceback" not in log, log[-4000:]

@@ -9,8 +9,6 @@ takes every descriptor and the supervisor dies at the worker's restart (``socket
 import os
 import signal
 import socket
-import time
-import urllib.request
 
 import pytest
 import yaml
@@ -19,34 +17,9 @@ from conftest import hookwatch_cmd
 from kit.e2e import fleet_dir, test_dirs, virtual_station, worker_pids
 from kit.northbound import mbpoll
 from kit.proc import Proc
-from kit.tools import free_port, require_tool, wait_for, wait_port
+from kit.tools import connect_many, free_port, http_status, require_tool, wait_for, wait_port
 
 NOFILE = 512
-
-
-def _flood(port: int, n: int, src: str | None = None, within_s: float = 30.0) -> list[socket.socket]:
-    """Up to ``n`` connections, for at most ``within_s`` (a server that stopped accepting makes
-    each connect wait for its timeout)."""
-    out = []
-    t_end = time.monotonic() + within_s
-    for i in range(n):
-        if time.monotonic() > t_end:
-            break
-        try:
-            kw = {"source_address": (f"{src}.{2 + i % 250}", 0)} if src else {}
-            out.append(socket.create_connection(("127.0.0.1", port), timeout=1, **kw))
-        except OSError:
-            pass
-    return out
-
-
-def _get(url: str) -> int:
-    try:
-        with urllib.request.urlopen(url, timeout=5) as r:
-            r.read()
-            return r.status
-    except OSError:
-        return 0
 
 
 @pytest.mark.timeout(400)
@@ -77,9 +50,9 @@ def test_idle_floods_leave_the_supervisor_its_reserve(tmp_path):
             (pid,) = worker_pids(gw, "fl")
             cport = int(url.rsplit(":", 1)[1])
 
-            flood += _flood(cport, 2500)
-            flood += _flood(mport, 800, within_s=10)
-            flood += _flood(pport, 100, src="127.0.3", within_s=10)
+            flood += connect_many(cport, 2500)
+            flood += connect_many(mport, 800, within_s=10)
+            flood += connect_many(pport, 100, src="127.0.3", within_s=10)
             assert len(flood) > NOFILE                 # more than the process could ever hold
             assert gw.p.poll() is None, gw.log()
 
@@ -102,8 +75,8 @@ def test_idle_floods_leave_the_supervisor_its_reserve(tmp_path):
                 assert rc == 0, err
 
             # the flood's idle connections reach their deadline: console and metrics answer again
-            wait_for(lambda: _get(url + "/api/fleet") == 200, 30, what="the console answers")
-            wait_for(lambda: _get(f"http://127.0.0.1:{mport}/metrics") == 200, 30, what="metrics answer")
+            wait_for(lambda: http_status(url + "/api/fleet") == 200, 30, what="the console answers")
+            wait_for(lambda: http_status(f"http://127.0.0.1:{mport}/metrics") == 200, 30, what="metrics answer")
             log = gw.log_all()
             assert "Traceback" not in log
             assert log.count("refused") < 40, log[-4000:]          # rate-limited lines, not one per socket

@@ -20,7 +20,16 @@ from gateway.offline.history import read_history
 from gateway.outputs.mqtt import schema as S
 from gateway.outputs.mqtt.sitelives import STORE_NAME
 from kit.broker import Broker, Sub, pub
-from kit.e2e import QUICK_END, QUICK_METHOD, quick_scenario, run_gateway, station_yaml, virtual_station, wait_log
+from kit.e2e import (
+    QUICK_END,
+    QUICK_METHOD,
+    quick_scenario,
+    run_gateway,
+    seed_lives,
+    station_yaml,
+    virtual_station,
+    wait_log,
+)
 from kit.rabbitmq import Mes
 from kit.tools import wait_for
 
@@ -30,18 +39,7 @@ STOPPED = (1100, 1250)          # slots (ts 0.02): 22 s and 25 s, hooks replaced
 
 def seed_box_a(root):
     """A's records: 3 failures and 2 tests ended on purpose after their baseline."""
-    tests = [("failure", x, None, round(x / 0.02) + 100, None) for x in FAILURES]
-    tests += [("aborted", None, ["STOPPED"], n, "hook_replaced") for n in STOPPED]
-    for i, (status, t_life, reasons, n_slots, why) in enumerate(tests):
-        tid = f"2026030{i}T080000Z-A-{i}"
-        d = root / "a" / tid
-        d.mkdir(parents=True)
-        (d / "result.json").write_text(json.dumps({
-            "test_id": tid, "station": "a", "test_status": "aborted" if why else "completed",
-            "end_reason": why or "completed", "sample_id": f"A-{i}", "grade": "I", "t_set": 0.5,
-            "ts": 0.02, "t_end": QUICK_END,
-            "method": {"status": status, "t_life": t_life, "k_b": 400, "n_slots": n_slots,
-                       "stop_reasons": reasons}}))
+    seed_lives(root, "a", FAILURES, STOPPED, QUICK_END)
 
 
 def test_box_b_starts_with_the_site_prior_of_box_a(tmp_path):
