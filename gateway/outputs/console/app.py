@@ -260,7 +260,7 @@ class ConsoleServer:
                 ch = feed.series.take_changes()
                 msg = {"type": "update", "gen": feed.series.gen, "from": ch[0] if ch else None,
                        "rows": ch[1] if ch else [], "markers": feed.markers,
-                       "summary": feed.summary(), "events": list(feed.events)[-20:]}
+                       "summary": feed.summary(values=True), "events": list(feed.events)[-20:]}
             data = ("data: " + safeout.dumps(msg) + "\n\n").encode()
             for c in list(clients):
                 try:

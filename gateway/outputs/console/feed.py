@@ -343,8 +343,9 @@ class StationFeed:
         self.journal_seeded = True
         self.journal = merge_journal(entries, list(self.journal))
 
-    def summary(self) -> dict[str, Any]:
-        """The fleet card."""
+    def summary(self, values: bool = False) -> dict[str, Any]:
+        """The fleet card; with ``values`` (the station page's) every labelled value of the
+        catalog (gateway/core/catalog.py) under ``values``, for the page's "all values"."""
         st = self.state
         s: dict[str, Any] = asdict(st) if st is not None else {"station": self.name}
         if st is not None:
@@ -363,8 +364,8 @@ class StationFeed:
             # known, or there is no test): a stale "projected crossing" is never shown
             s.update(t_cross=None, end_p10=None, end_p50=None, end_p90=None, p_end=None, due=False)
         s["past_threshold"] = bool(st is not None and (st.t_life is not None or st.state.value == 3))
-        # every labelled value of the catalog (gateway/core/catalog.py), for the page's "all values"
-        s["values"] = catalog.read(VALUES, st) if st is not None else {}
+        if values:
+            s["values"] = catalog.read(VALUES, st) if st is not None else {}
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
         # else the station's state says it (StationState.mqtt_ok, from the MQTT output's uplink
@@ -374,7 +375,7 @@ class StationFeed:
     def snapshot(self) -> dict[str, Any]:
         s = self.series
         return {"type": "snapshot", "station": self.name, "gen": s.gen, "width_s": s.width * s.ts,
-                "rows": s.rows(), "markers": self.markers, "summary": self.summary(),
+                "rows": s.rows(), "markers": self.markers, "summary": self.summary(values=True),
                 "events": list(self.events)}
 
 

@@ -31,7 +31,6 @@ from ...core import catalog
 from ...core.command_intake import Refused, bounded_pairs, read_bounded_json
 from ...plumbing.ratelog import RateLog, clip, safe
 from .boxes import BoxReports, box_filter
-from .feed import VALUES
 
 log = logging.getLogger("hookwatch.console")
 
@@ -203,7 +202,6 @@ class SiteView:
         out = []
         for sid, v in items:
             s: dict[str, Any] = dict(v.get("state") or {})
-            values = {row.name: s.get(row.name) for row in VALUES if row.mqtt}
             st_name = s.pop("test_state", None)
             heard = max(v.get("state_at") or 0.0, v.get("status_at") or 0.0)
             offline = v.get("status") == "offline"
@@ -216,7 +214,6 @@ class SiteView:
             if st_name not in _RUNNING or card.get("t_life") is not None:
                 card.update(t_cross=None, end_p10=None, end_p50=None, end_p90=None, p_end=None,
                             due=False)
-            card["values"] = values
             card["past_threshold"] = card.get("t_life") is not None or st_name == "end_of_life"
             out.append(card)
         return out

@@ -227,8 +227,9 @@ def device_metrics(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple
     return tuple(by_index[i] for i in range(len(by_index)))
 
 
-#: the catalog's rows a device publishes (its state's metrics)
+#: the catalog's rows a device publishes (its state's metrics), and their metrics by the rows' names
 STATE_VALUES = tuple(v for v in catalog.CATALOG if v.sparkplug is not None)
+STATE_METRIC = {v.name: _metric_of(v.name) for v in STATE_VALUES}
 DEVICE_METRICS: tuple[MetricDef, ...] = device_metrics()
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}
 DEVICE_BY_NAME = {m.name: m for m in DEVICE_METRICS}

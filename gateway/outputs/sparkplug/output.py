@@ -151,9 +151,8 @@ class SparkplugOutput:
         vals = _alarm_values(name, next((tr["to"] for tr in reversed(d.get("transitions") or [])
                                          if tr.get("alarm") == name), "unacknowledged"),
                              _shelved_until(self.station, name))
-        vals.update({"Method/mu_ss": d.get("mu_ss"), "Method/mu_th": d.get("mu_th")})
-        if name == "end_of_life":
-            vals["Method/t_life"] = d.get("t_life")
+        for key in ("mu_ss", "mu_th", "t_life") if name == "end_of_life" else ("mu_ss", "mu_th"):
+            vals[M.STATE_METRIC[key]] = d.get(key)
         self.rt.post(("update", self.s.device_id, vals, False))
 
 

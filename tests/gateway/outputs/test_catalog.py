@@ -272,12 +272,18 @@ def test_console_shows_exactly_the_catalog():
     feed = StationFeed("st1")
     ConsoleOutput(feed).on_state(FULL)
     feed.drain()
-    assert feed.summary()["values"] == {v.name: v.source(FULL) for v in labelled}
-    # a station of another box, from its retained state
+    assert feed.snapshot()["summary"]["values"] == {v.name: v.source(FULL) for v in labelled}
+    assert "values" not in feed.summary()          # a fleet card (polled every second) goes without
+    # a station of another box: its retained state read by the rows' types, every row kept
+    # (a running test without an end of life: the site view clears no projection)
+    running = dataclasses.replace(FULL, t_life=None)
     site = SiteView(set())
-    assert site.receive("hookwatch/plant/a/l/st1/state", S.encode(S.state_payload(1, 0.0, FULL)))
+    assert site.receive("hookwatch/plant/a/l/st1/state", S.encode(S.state_payload(1, 0.0, running)))
     (card,) = site.cards()
-    assert card["values"] == {v.name: v.source(FULL) for v in labelled if v.mqtt}
+    assert card["state"] == "monitoring"
+    for v in catalog.CATALOG:
+        if v.mqtt and v.name != "test_state":
+            assert card[v.name] == v.source(running), v.name
 
 
 # ----------------------------------------------------------------------------- a new value

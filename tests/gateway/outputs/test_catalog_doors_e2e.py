@@ -106,10 +106,9 @@ def test_every_door_publishes_the_catalog(tmp_path):
 
             # the console: the catalog's labels, and a card's values
             assert _get(cport, "/api/values")["values"] == values_json()
-            (card,) = _get(cport, "/api/fleet")["stations"]
-            assert set(card["values"]) == {v.name for v in catalog.CATALOG if v.label}
-            assert (card["values"]["test_id"], card["values"]["sample_id"], card["values"]["t_set"]) == \
-                (test_id, sample_id, t_set)
+            values = _get(cport, "/api/station/cat")["summary"]["values"]
+            assert set(values) == {v.name for v in catalog.CATALOG if v.label}
+            assert (values["test_id"], values["sample_id"], values["t_set"]) == (test_id, sample_id, t_set)
         finally:
             gw.stop()
             sub.stop()
