@@ -50,8 +50,8 @@ VALUES = tuple(v for v in catalog.CATALOG if v.label)
 
 
 def values_json(values: tuple[catalog.Value, ...] = VALUES) -> list[dict[str, str]]:
-    """The rows the page shows under "all values" (GET /api/values): the key of a card's
-    ``values``, its label, unit and type."""
+    """The rows the page shows under "all values" (GET /api/values): the key of its value in the
+    station summary's ``values``, its label, unit and type."""
     return [{"name": v.name, "label": v.label, "unit": v.unit, "type": v.base_type} for v in values]
 
 
