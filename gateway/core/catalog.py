@@ -3,8 +3,8 @@
 A row says what the value is (name, type, unit, meaning), where it comes from (``source``: a pure
 function of the station's :class:`~gateway.core.records.StationState`) and how each door publishes
 it: its key in the retained MQTT ``state``, its Sparkplug device metric (name, alias index,
-datatype), its PLC input register (block, name, type), its Prometheus gauge (name, help) and its
-label in the web console. Every door derives its set from these rows (issue 35 item 2):
+datatype), its PLC input register (block, name, type) or status bit, its Prometheus gauge (name,
+help) and its label in the web console. Every door derives its set from these rows (issue 35 item 2):
 
 - MQTT: the ``state`` payload, its fields in docs/mqtt.md and the JSON schemas, and what makes a
   new retained ``state`` worth sending (``gateway/outputs/mqtt/schema.py``, ``messages.py``);
@@ -12,7 +12,7 @@ label in the web console. Every door derives its set from these rows (issue 35 i
   ``device base + alias`` (``gateway/outputs/sparkplug/metrics.py``, ``output.py``);
 - PLC: the input registers the state fills, each in its block (``gateway/outputs/plc/registers.py``:
   a row whose register the block's layout does not place is appended at the end of its block, in
-  the block's reserved space: no existing address moves);
+  the block's reserved space: no existing address moves), and the flags' bits of ``status``;
 - Prometheus: a gauge per row (an enumeration: one gauge per choice, labelled), from the station's
   snapshot (``gateway/outputs/prometheus/``);
 - the console: the page asks ``/api/values`` for the rows with a label and shows every one of
@@ -75,6 +75,15 @@ class PlcRegister:
 
 
 @dataclass(frozen=True)
+class PlcBit:
+    """A flag as a bit of the PLC's input register ``status`` (a free bit: never reused, never
+    moved; gateway/outputs/plc/registers.py STATUS_BITS)."""
+    bit: int
+    name: str
+    doc: str
+
+
+@dataclass(frozen=True)
 class PromGauge:
     """The value as a Prometheus gauge ``hookwatch_<name>`` labelled by station; an enumeration
     is one gauge per choice with ``label`` (1 for the current one)."""
@@ -98,6 +107,7 @@ class Value:
     choices: tuple[str, ...] = ()  # an enumeration's (or a list's) values, in their number's order
     sparkplug: SparkplugMetric | None = None
     plc: PlcRegister | None = None
+    plc_bit: PlcBit | None = None  # a flag's bit in the PLC's status register
     prometheus: PromGauge | None = None
     label: str = ""            # the console's label ("": not shown)
 
@@ -221,9 +231,13 @@ CATALOG: tuple[Value, ...] = (
           label="end-of-life alarm"),
     Value("protection_stop", "bool", "", "the test was stopped by the protection rule (§3)",
           lambda st: bool(st.protection_stop), sparkplug=_sp("Status/Protection Stop", 15, "Boolean"),
+          plc_bit=PlcBit(4, "protection_stop", "the last test was stopped by the protection rule"),
           label="protection stop"),
     Value("stopped", "bool", "", "the test was ended on purpose (STOPPED, §3: a command or a clean "
-          "shutdown), not by a dead meter", lambda st: bool(st.stopped), label="stopped on purpose"),
+          "shutdown), not by a dead meter", lambda st: bool(st.stopped),
+          plc_bit=PlcBit(11, "stopped", "the last test was ended on purpose (operator, PLC, MES stop or "
+                         "a clean shutdown): STOPPED, not a dead meter"),
+          label="stopped on purpose"),
     Value("headroom", "float|null", "", "wear headroom h of the last complete window with a value "
           "(§5a): 1 at the baseline, 0 at the threshold, negative above; informative",
           lambda st: st.headroom,
@@ -255,6 +269,8 @@ CATALOG: tuple[Value, ...] = (
           lambda st: bool(st.wear_warning),
           sparkplug=_sp("Forecast/Warning", 55, "Boolean", description="the early warning (the first "
                         "due window) fired in this test"),
+          plc_bit=PlcBit(10, "wear_warning", "the §5a early warning fired in the current / last test "
+                         "(informative; until a new test starts)"),
           prometheus=PromGauge("wear_warning", "1 once the test's early wear warning fired "
                                "(METHOD.md §5a)", doc="1 once the test's early warning fired (METHOD.md "
                                "§5b: the first due window; once per test)"),
@@ -289,6 +305,10 @@ CATALOG: tuple[Value, ...] = (
     Value("due", "bool", "", "the last forecast window is due (§5b: P ≥ p_due, a headroom run or a "
           "projected crossing within the lead)", lambda st: bool(st.due),
           sparkplug=_sp("Forecast/Due", 52, "Boolean", description="the last forecast window is due (§5b)"),
+          plc_bit=PlcBit(14, "hook_due", "the hook is due (METHOD.md §5b): the last forecast window of the "
+                         "running test is due (P ≥ p_due, a headroom run or a projected crossing "
+                         "within the lead); 0 outside a test and once the end of life was detected "
+                         "(the end-of-life alarm speaks then)"),
           prometheus=PromGauge("hook_due", "1 while the last forecast window of the running test is "
                                "due (METHOD.md §5b: P ≥ p_due, a headroom run or a projected crossing "
                                "within the lead)", doc="1 while the last forecast window of the running "
@@ -351,12 +371,16 @@ CATALOG: tuple[Value, ...] = (
           label="wear-warning alarm"),
     Value("meter_ok", "bool", "", "the tension meter answers", lambda st: bool(st.meter_ok),
           sparkplug=_sp("Status/Meter OK", 16, "Boolean", description="Modbus RTU link to the tension meter"),
+          plc_bit=PlcBit(5, "meter_ok", "the tension meter answers"),
           label="meter answers"),
     Value("stm32_ok", "bool", "", "the motor controller answers", lambda st: bool(st.stm32_ok),
           sparkplug=_sp("Status/STM32 OK", 17, "Boolean", description="serial link to the motor controller"),
+          plc_bit=PlcBit(6, "stm32_ok", "the motor controller answers"),
           label="STM32 answers"),
     Value("disk_ok", "bool", "", "the test records and the MQTT outbox can be written (false: a full "
           "or read-only disk; see the disk_full event)", lambda st: bool(st.disk_ok),
+          plc_bit=PlcBit(13, "disk_ok", "the test records and the MQTT outbox can be written (0: a full "
+                         "or read-only disk; the station runs on, see docs/limits.md)"),
           prometheus=PromGauge("disk_ok", "1 when the test records and the MQTT outbox can be written "
                                "(0: a full or read-only disk)", doc="1 when the test records and the MQTT "
                                "outbox can be written; 0 on a full or read-only disk (the station runs "
@@ -394,6 +418,7 @@ def problems(values: tuple[Value, ...]) -> list[str]:
     once("Sparkplug alias", [v.sparkplug.alias for v in values if v.sparkplug])
     once("PLC register", [v.plc.name for v in values if v.plc])
     once("Prometheus gauge", [v.prometheus.name for v in values if v.prometheus])
+    once("PLC status bit", [v.plc_bit.bit for v in values if v.plc_bit])
     for v in values:
         if v.base_type not in TYPES:
             out.append(f"{v.name}: type {v.type!r} is not one of {TYPES}")
@@ -403,6 +428,8 @@ def problems(values: tuple[Value, ...]) -> list[str]:
             out.append(f"{v.name}: PLC type {v.plc.type!r}")
         if v.plc and v.plc.type in ("enum", "bits") and not v.choices:
             out.append(f"{v.name}: a PLC {v.plc.type} register needs the value's choices")
+        if v.plc_bit and (v.base_type != "bool" or not 0 <= v.plc_bit.bit <= 15):
+            out.append(f"{v.name}: a PLC status bit is a flag's, bit 0 … 15")
         if v.prometheus and v.prometheus.label and not v.choices:
             out.append(f"{v.name}: a labelled Prometheus gauge needs the value's choices")
     return out

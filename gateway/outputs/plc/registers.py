@@ -129,29 +129,35 @@ def reserved(blocks: tuple[Block, ...], regs: tuple[Reg, ...]) -> list[tuple[Blo
     return out
 
 
-#: status bits (input register `status`)
-STATUS_BITS: tuple[tuple[int, str, str], ...] = (
+#: the status bits (input register `status`) of the door's own: composites of the state, the slot
+#: records and the client; the flags of the state are the catalog's rows with a bit
+_OWN_STATUS_BITS: tuple[tuple[int, str, str], ...] = (
     (0, "running", "a test is running (baseline search, monitoring or end of life)"),
     (1, "baseline_found", "the baseline μ_ss of the current test is established"),
     (2, "end_of_life", "end of life latched for the current / last test (until a new test starts)"),
     (3, "alarm_unacknowledged", "the end-of-life alarm is unacknowledged or rtn_unacknowledged (ISA-18.2)"),
-    (4, "protection_stop", "the last test was stopped by the protection rule"),
-    (5, "meter_ok", "the tension meter answers"),
-    (6, "stm32_ok", "the motor controller answers"),
     (7, "mqtt_connected", "the gateway is connected to the MQTT broker"),
     (8, "saturation", "the control output was clamped during the last second"),
     (9, "writes_enabled", "this client may write the holding registers"),
-    (10, "wear_warning", "the §5a early warning fired in the current / last test (informative; "
-     "until a new test starts)"),
-    (11, "stopped", "the last test was ended on purpose (operator, PLC, MES stop or a clean "
-     "shutdown): STOPPED, not a dead meter"),
     (12, "starting", "a start is in progress: zero check or spin-up before slot 0 (METHOD.md §3a)"),
-    (13, "disk_ok", "the test records and the MQTT outbox can be written (0: a full or read-only "
-     "disk; the station runs on, see docs/limits.md)"),
-    (14, "hook_due", "the hook is due (METHOD.md §5b): the last forecast window of the running test "
-     "is due (P ≥ p_due, a headroom run or a projected crossing within the lead); 0 outside a test "
-     "and once the end of life was detected (the end-of-life alarm speaks then)"),
 )
+
+
+def status_bits(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[tuple[int, str, str], ...]:
+    """The status bits in bit order: the door's own and each catalog row's (a bit taken twice
+    fails here, at import)."""
+    bits = list(_OWN_STATUS_BITS) + [(v.plc_bit.bit, v.plc_bit.name, v.plc_bit.doc)
+                                     for v in values if v.plc_bit is not None]
+    taken = [b for b, _, _ in bits]
+    if len(set(taken)) != len(taken):
+        raise ValueError(f"register map: a status bit taken twice in {sorted(taken)}")
+    return tuple(sorted(bits))
+
+
+#: status bits (input register `status`)
+STATUS_BITS = status_bits()
+#: the catalog's flags by their status bit's name
+STATUS_FLAGS = {v.plc_bit.name: v for v in catalog.CATALOG if v.plc_bit is not None}
 #: bits of the input register `warn_reasons`: the early warning's reasons (§5b) once it fired
 WARN_REASON_BITS: tuple[tuple[int, str, str], ...] = (
     (0, "headroom", "the headroom stayed under `h_warn` for `n_warn` windows (§5a)"),

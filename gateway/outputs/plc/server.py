@@ -373,13 +373,10 @@ class ModbusOutput:
             "running": running, "baseline_found": st.mu_ss is not None,
             "end_of_life": st.t_life is not None,
             "alarm_unacknowledged": st.alarm in ("unacknowledged", "rtn_unacknowledged"),
-            "protection_stop": bool(st.protection_stop), "meter_ok": bool(st.meter_ok),
-            "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(st.mqtt_ok),
-            "saturation": now - self._sat_t <= 1.0,
-            "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
+            "mqtt_connected": bool(st.mqtt_ok), "saturation": now - self._sat_t <= 1.0,
             "starting": st.state == TestState.STARTING,
-            "disk_ok": bool(st.disk_ok),
-            "hook_due": bool(st.due),
+            # the flags of the state: the catalog's rows with a status bit (gateway/core/catalog.py)
+            **{name: bool(row.source(st)) for name, row in R.STATUS_FLAGS.items()},
         }
         v: dict[str, Any] = {
             "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION, "map_minor": R.MAP_MINOR,

@@ -225,6 +225,31 @@ def test_plc_registers_of_the_state_are_exactly_the_catalog():
     assert _changed(_plc_image) == {v.plc.name for v in rows} | {"status", "elapsed"}
 
 
+#: the status bits of the PLC door's own: composites of the state (a test running, the baseline
+#: found, the end of life latched, the alarm unacknowledged, a start in progress), the MQTT link, the
+#: last second's slots and the client's right to write
+PLC_OWN_BITS = {"running", "baseline_found", "end_of_life", "alarm_unacknowledged", "mqtt_connected",
+                "saturation", "writes_enabled", "starting"}
+
+
+def _status_bits(st: StationState) -> dict[str, bool]:
+    word = _plc_image(st)["status"]
+    return {name: bool(word >> bit & 1) for bit, name, _ in R.STATUS_BITS}
+
+
+def test_plc_status_bits_of_the_state_flags_are_exactly_the_catalog():
+    flags = [v for v in catalog.CATALOG if v.plc_bit is not None]
+    for v in flags:
+        assert (v.plc_bit.bit, v.plc_bit.name, v.plc_bit.doc) in R.STATUS_BITS
+        assert _status_bits(FULL)[v.plc_bit.name] == v.source(FULL) and v.base_type == "bool"
+    assert {n for _, n, _ in R.STATUS_BITS} == PLC_OWN_BITS | {v.plc_bit.name for v in flags}
+    # each flag of the state moves its own bit; what else the state moves is the door's composites
+    for name, st in _variants():
+        moved = {k for k, on in _status_bits(st).items() if on != _status_bits(FULL)[k]}
+        assert moved - PLC_OWN_BITS == {v.plc_bit.name for v in flags
+                                        if v.source(st) != v.source(FULL)}, name
+
+
 # ----------------------------------------------------------------------------- Prometheus
 def _samples(st: StationState, gauges=GAUGES) -> dict:
     out = MetricsOutput(_Station(), serve=False)
@@ -284,6 +309,17 @@ def test_console_shows_exactly_the_catalog():
     for v in catalog.CATALOG:
         if v.mqtt and v.name != "test_state":
             assert card[v.name] == v.source(running), v.name
+
+
+def test_a_new_flag_takes_a_free_status_bit():
+    long_test = catalog.Value("long_test", "bool", "", "the test is planned longer than an hour",
+                              lambda st: (st.t_end or 0.0) > 3600.0, mqtt=False,
+                              plc_bit=catalog.PlcBit(15, "long_test", "the test is planned longer than an hour"))
+    bits = R.status_bits(catalog.CATALOG + (long_test,))
+    assert bits[:-1] == R.STATUS_BITS and bits[-1] == (15, "long_test", "the test is planned longer than an hour")
+    with pytest.raises(ValueError, match="status bit taken twice"):
+        R.status_bits(catalog.CATALOG + (dataclasses.replace(
+            long_test, plc_bit=catalog.PlcBit(5, "long_test", "")),))
 
 
 # ----------------------------------------------------------------------------- a new value
