@@ -101,7 +101,8 @@ def test_a_16_ms_latency_timer_loses_every_reply_and_1_ms_keeps_50_hz(tmp_path):
         # them — issue 30.5; how soon the replies come is bench/bench_station.py's figure)
         failures = sum(c[k] for k in ("timeouts", "crc_errors", "garbage", "stale_replies", "errors"))
         assert good == c["reads_ok"] == c["reads"] - failures and good > 0, c
-        assert c["garbage"] == c["crc_errors"] == c["stale_replies"] == 0, c
+        # a stale reply is only ever the late answer of a read that timed out (a loaded machine)
+        assert c["garbage"] == c["crc_errors"] == 0 and c["stale_replies"] <= c["timeouts"], c
 
 
 def test_echo_and_latency_together_with_local_echo(tmp_path):
