@@ -128,6 +128,14 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
             # the running test ends; then, and only then, busy applies v2
             wait_log(gw, "busy: test_ended", timeout=120)
             _station_on(box, "busy", v2, timeout=60)
+            # that test ran to its planned end (t_end, not a stop) with the parameters it
+            # started with, its result as the offline analysis finds it
+            first = test_dirs(box.dir, "busy")[0]
+            with open(os.path.join(first, "log.meta.yaml")) as f:
+                assert yaml.safe_load(f)["method"]["delta"] == 0.25
+            res = read_json(os.path.join(first, "result.json"))
+            assert res["end_reason"] == "completed" and res["t_end"] == QUICK_END, res
+            assert analyze_cli(os.path.join(first, "log.csv.gz")) == res["method"]     # online == offline
             # the same ID again: nothing to do
             rc, out, p = _apply(box, repo, v2)
             assert rc == 0 and out["why"] == "already applied", out
