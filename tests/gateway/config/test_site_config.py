@@ -190,3 +190,39 @@ def test_a_link_out_of_the_repository_is_refused(tmp_path):
     sha = repo.commit("a link")
     p = box.config("plan", str(repo.path), "--version", sha)
     assert p.returncode == 1 and "hunter2" not in p.stdout + p.stderr, p.stdout + p.stderr
+
+
+def test_the_start_gate_of_a_version_applied_while_no_supervisor_ran(tmp_path):
+    """gateway/supervisor/startgate.py, on a real state folder: unverified until every station
+    runs the version with its meter read; a station that never reads it within the bound and no
+    verified version to go back to: still unverified, saying why; a refused station fails it at
+    once; healthy at a later start: verified, and the report says so."""
+    from gateway.config.site.boxreport import build_report
+    from gateway.supervisor.startgate import StartGate
+    a, old = "a" * 40, "b" * 40
+    st = StateDir(str(tmp_path / "state"))
+    st.ensure()
+    st.switch(a)
+    st.mark_unverified(a, "no supervisor running", 5)
+    assert build_report(st)["unverified"] == {"version": a, "why": "no supervisor running"}
+    s1 = {"version": a, "running": True, "meter_ok": False, "in_test": False, "refused": None}
+    gate = StartGate(st)
+    assert not gate.check(a, {"s1": s1}, 100.0) and st.verified() is None        # within its bound
+    assert not gate.check(a, {"s1": s1}, 105.5) and st.verified() is None and st.current() == a
+    why = build_report(st)["unverified"]["why"]
+    assert why == "health gate at the supervisor's start (5 s): s1: no meter reading", why
+    assert [e["event"] for e in st.read_journal()][-1] == "unverified"
+    assert not gate.check(a, {"s1": s1}, 200.0)                     # decided once per start
+    # a refused station fails the gate at once, without waiting for the bound
+    gate = StartGate(st)
+    assert not gate.check(a, {"s1": dict(s1, refused="meter.port: no such device")}, 0.0)
+    assert "s1: refused: meter.port" in build_report(st)["unverified"]["why"]
+    # the next start, every station healthy (one deferred in its test): verified
+    gate = StartGate(st)
+    s2 = {"version": old, "pending": a, "in_test": True, "running": True, "meter_ok": True, "refused": None}
+    assert not gate.check(a, {"s1": dict(s1, meter_ok=True), "s2": s2}, 0.0)
+    assert st.verified() == a and build_report(st)["unverified"] is None
+    assert st.read_journal()[-1]["event"] == "verified"
+    # an unverified.json of another version than current is stale: nothing to gate
+    st.mark_unverified(old, "no supervisor running", 5)
+    assert st.unverified() is None and not StartGate(st).check(a, {}, 0.0)
