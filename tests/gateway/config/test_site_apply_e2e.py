@@ -148,14 +148,28 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
             # test (autostart), only when that test ends
             wait_for(lambda: gw.log_all().count("busy: test_started") >= 2, 60, 0.2, what="busy's 2nd test")
             pids = {n: s["pid"] for n, s in box.status()["stations"].items()}
-            r = box.config("restart", "--all", "--wait", "2", "--json")
+            r = box.config("restart", "--all", "--wait", "2", "--request", "rel-1", "--json")
             rs = json.loads(r.stdout)
             assert r.returncode == 6 and rs["deferred"] == ["busy"], r.stdout + r.stderr
             wait_for(lambda: (box.status()["stations"]["idle"].get("pid") not in (None, pids["idle"])
                               and box.status()["stations"]["idle"].get("running")), 60, 0.2,
                      what="idle restarted")
+            idle_pid = box.status()["stations"]["idle"]["pid"]
+            # asked again (Ansible's retry, the same request): awaited, not made again — idle is
+            # not restarted a second time, busy still waits for its test
+            r = box.config("restart", "--all", "--wait", "0", "--request", "rel-1", "--json")
+            assert r.returncode == 6 and json.loads(r.stdout)["deferred"] == ["busy"], r.stdout + r.stderr
             assert box.status()["stations"]["busy"]["pid"] == pids["busy"]
             wait_log(gw, "busy: worker ended for its restart", timeout=120)
+            # busy's new worker begins another test at once (autostart): the request is done all
+            # the same (its worker is new), and a retry says so rather than waiting for that test
+            wait_for(lambda: gw.log_all().count("busy: test_started") >= 3, 60, 0.2, what="busy's 3rd test")
+            r = box.config("restart", "--all", "--wait", "30", "--request", "rel-1", "--json")
+            assert r.returncode == 0, r.stdout + r.stderr
+            st = box.status()["stations"]
+            assert st["idle"]["pid"] == idle_pid and st["busy"]["in_test"], st
+            assert gw.log_all().count("idle: worker ended for its restart") == 1
+            assert gw.log_all().count("busy: worker ended for its restart") == 1
             wait_for(lambda: (box.status()["stations"]["busy"].get("pid") not in (None, pids["busy"])
                               and box.status()["stations"]["busy"].get("running")), 60, 0.2,
                      what="busy restarted after its test")
