@@ -3,12 +3,13 @@
 Nothing else in hookwatch wires parts together: the station knows its ports and outputs only by
 their contracts (``gateway/core/ports.py``), the drivers know nothing of the station, the northbound
 outputs know the station only as a command sink and a state source. ``hookwatch run`` and
-``hookwatch demo`` call :func:`build_station` and run it in :func:`in_process_runtime`; a new
-output or meter type is added here.
+``hookwatch demo`` call :func:`build_station` and run it in :func:`in_process_runtime`; a fleet's
+supervisor calls :func:`shared_outputs` per station. The outputs are built from the rows of the
+output registry (``gateway/outputs/registry.py``): a new output is a row there (or a plug-in's),
+not a change here; a new meter type is added here.
 """
 from __future__ import annotations
 
-import importlib
 import os
 from collections.abc import Callable
 
@@ -19,21 +20,17 @@ from .core.ports import MeterPort, Output, StationLinks, StationView, Stm32Port
 from .core.records import EventType
 from .outputs.console.app import ConsoleServer
 from .outputs.console.settings import ConsoleSettings
-from .outputs.mqtt.output import MqttOutput
-from .outputs.plc.server import ModbusOutput
-from .outputs.prometheus import MetricsRelay
-from .outputs.sparkplug.output import SparkplugOutput
+from .outputs.registry import BoxBuild, Host, StationBuild, outbox_path, rows, served_by_box, wanted
 from .outputs.sparkplug.output import settings_from_config as sparkplug_settings
-from .outputs.wiring import metrics_outputs, modbus_settings, outbox_path, outputs_for
-from .plumbing.doors import Budget, DoorLimits, budget
+from .plumbing.doors import Budget, budget
 from .station.build import control_params, default_plan, method_values, records_dir_ok, station_limits
 from .station.fleet import Fleet, StationRunner
 from .station.retention import Policy, Pruned, RetentionOutput
 from .station.station import Station
 
 __all__ = ["build_console", "build_meter", "build_stm32", "build_station", "in_process_runtime",
-           "northbound_outputs", "records_dir_ok", "served_by_supervisor", "shared_outputs",
-           "shared_sparkplug_nodes", "station_facts"]
+           "records_dir_ok", "served_by_supervisor", "shared_outputs", "shared_sparkplug_nodes",
+           "station_facts", "station_outputs"]
 
 
 def build_meter(cfg) -> MeterPort:
@@ -46,13 +43,6 @@ def build_stm32(cfg) -> Stm32Port:
     return Stm32Link.from_config(cfg.stm32, watchdog_s=cfg.stm32_watchdog_s())
 
 
-def northbound_outputs(cfg, station: StationLinks, *, modbus: bool = True, sparkplug: bool = True) -> list[Output]:
-    """MQTT, Modbus TCP and Sparkplug, as the ``mqtt:``, ``modbus_tcp:`` and ``sparkplug:``
-    sections enable them (Modbus TCP not when ``modbus`` is False, the Sparkplug device not when
-    ``sparkplug`` is False: a fleet's supervisor serves them)."""
-    return list(outputs_for(cfg, station, modbus=modbus, sparkplug=sparkplug))
-
-
 def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: bool = True,
                   served_by_supervisor: frozenset[str] = frozenset(),
                   console: ConsoleServer | None = None, slot_phase: float = 0.0) -> Station:
@@ -62,10 +52,10 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
     station's feed; ``slot_phase``: where in the slot this station's deadlines fall (stations of
     one process are spread over it).
 
-    ``served_by_supervisor`` (a worker of ``hookwatch run FLEET_DIR``): ``"modbus"`` — no Modbus
-    TCP output here (the supervisor serves the station's unit from the IPC stream); ``"sparkplug"``
-    — no Sparkplug device here (the supervisor hosts the edge node); ``"metrics"`` — the metrics
-    output counts here but opens no endpoint (its snapshot goes over IPC)."""
+    ``served_by_supervisor`` (a worker of ``hookwatch run FLEET_DIR``): the rows a fleet's
+    supervisor serves for this station from the IPC stream; here each gets its row's ``feed``
+    instead of its ``build`` (``"modbus"``, ``"sparkplug"``: nothing here; ``"metrics"``: the
+    metrics output counts here but opens no endpoint, its snapshot goes over IPC)."""
     process_budget(cfg)
     mv = method_values(cfg)
     ts = float(mv.get("ts", 0.02))
@@ -78,23 +68,25 @@ def build_station(cfg, *, outputs: list[Output] | None = None, with_northbound: 
         identity={"site": cfg.station.site, "area": cfg.station.area, "line": cfg.station.line},
         priors=cfg.forecast.priors, restart_on_replace=bool(cfg.test.restart_on_replace),
     )
-    if with_northbound:
-        st.outputs.extend(northbound_outputs(cfg, st, modbus="modbus" not in served_by_supervisor,
-                                             sparkplug="sparkplug" not in served_by_supervisor))
-    st.outputs.extend(plugin_outputs(cfg, st))
     # first of the outputs: a pass still running at the station's stop finishes (and its event
     # leaves) before MQTT and the metrics stop
     st.outputs.insert(0, retention_output(cfg, st))
-    # last: the metrics read the other outputs' figures (MQTT link, outbox, PLC server) at scrape time
-    st.outputs.extend(metrics_outputs(cfg, st, st.outputs, serve="metrics" not in served_by_supervisor))
-    if console is not None and st.id in console.feeds:
-        st.outputs.append(console.output_for(st))
-        # the console's site view rides on this station's MQTT session (the first that has one)
-        mq = next((o for o in st.outputs if isinstance(o, MqttOutput)), None)
-        if mq is not None:
-            console.attach_site(st.id, mq.s.base_topic, mq.pump.add_site_feed)
+    station_outputs(cfg, st, st.outputs, Host(console, with_northbound), served_by_supervisor)
     st.slot_phase = slot_phase
     return st
+
+
+def station_outputs(cfg, station: StationLinks, outputs: list[Output], host: Host,
+                    served_by_supervisor: frozenset[str] = frozenset()) -> list[Output]:
+    """The outputs of the registry's rows the station of ``cfg`` has in a process offering
+    ``host``, added to ``outputs`` (the station's list: the metrics read those before them) in the
+    registry's order; a row the supervisor serves gets its ``feed`` instead of its ``build``."""
+    b = StationBuild(cfg, station, outputs, host)
+    for row in rows():
+        make = row.feed if row.name in served_by_supervisor else row.build
+        if make is not None and wanted(cfg, row, host):
+            outputs.extend(make(b))
+    return outputs
 
 
 def in_process_runtime(factories: dict[str, Callable[[], Station]], *, rt_priority: int = 0,
@@ -130,24 +122,6 @@ def retention_output(cfg, st: Station) -> RetentionOutput:
                            lambda: st.test_id, outbox_path(cfg), pruned)
 
 
-#: extra outputs of a site (a historian, a test fixture): ``module:callable[,module:callable]``;
-#: each callable gets (cfg, station) and returns the outputs to add (``gateway.core.ports.Output``)
-PLUGINS_ENV = "HOOKWATCH_OUTPUTS"
-
-
-def plugin_outputs(cfg, station: StationLinks) -> list[Output]:
-    """The outputs named in ``$HOOKWATCH_OUTPUTS`` (none when it is unset). A name that does not
-    import is an error at start-up, not a silently missing output."""
-    out: list[Output] = []
-    for spec in filter(None, (x.strip() for x in os.environ.get(PLUGINS_ENV, "").split(","))):
-        mod, _, attr = spec.partition(":")
-        if not mod or not attr:
-            raise ValueError(f"{PLUGINS_ENV}: {spec!r} is not module:callable")
-        factory = getattr(importlib.import_module(mod), attr)
-        out.extend(factory(cfg, station))
-    return out
-
-
 def build_console(cfgs: list) -> ConsoleServer | None:
     """The operator console of one process (the ``console:`` section of its first station; put it
     in the fleet defaults), serving every station of ``cfgs``; None when it is not enabled."""
@@ -164,21 +138,13 @@ def build_console(cfgs: list) -> ConsoleServer | None:
 # a fleet's supervisor (``hookwatch run FLEET_DIR``): the shared outputs, fed over IPC
 
 
-def served_by_supervisor(cfg, *, console: bool, with_northbound: bool = True) -> frozenset[str]:
-    """What a fleet's supervisor serves for the station of ``cfg`` (its worker then streams what
-    those outputs need and serves none of them): its Modbus TCP unit, its Sparkplug device (every
-    edge node lives in the supervisor, shared by several stations or not), the console, its
-    metrics."""
-    out = set()
-    if with_northbound and cfg.modbus_tcp.enabled:
-        out.add("modbus")
-    if with_northbound and getattr(cfg, "sparkplug", None) is not None and cfg.sparkplug.enabled:
-        out.add("sparkplug")
-    if console:
-        out.add("console")
-    if cfg.metrics.enabled:
-        out.add("metrics")
-    return frozenset(out)
+def served_by_supervisor(cfg, console: ConsoleServer | None, *, with_northbound: bool = True) -> frozenset[str]:
+    """What a fleet's supervisor (its ``console``, its ``--no-northbound``) serves for the station
+    of ``cfg`` (its worker then streams what those outputs need and serves none of them): the
+    registry's rows served by the box that the station has — its Modbus TCP unit, its Sparkplug
+    device (every edge node lives in the supervisor, shared by several stations or not), the
+    console, its metrics, a plug-in's."""
+    return served_by_box(cfg, Host(console, with_northbound))
 
 
 def station_facts(cfg) -> dict:
@@ -190,28 +156,21 @@ def station_facts(cfg) -> dict:
 
 
 def shared_outputs(cfg, station: StationView, console: ConsoleServer | None = None, *,
-                   with_northbound: bool = True, sparkplug_device=None) -> list[Output]:
+                   with_northbound: bool = True) -> list[Output]:
     """The outputs a fleet's supervisor runs for one station proxy (``station``: a
-    ``gateway.supervisor.remote.RemoteStation``): the same classes as in one process — the
-    station's unit on its Modbus TCP port (shared by every station that names it), its Sparkplug
-    device on its edge node (shared by every station that names the same broker, group and node;
-    ``sparkplug_device``: the ``SparkplugOutput`` class to build, the supervisor's own whose device
-    follows its worker), its console feed, and its metrics (the worker's snapshots on the
-    supervisor's endpoint)."""
+    ``gateway.supervisor.remote.RemoteStation``): the registry's rows it serves
+    (:func:`served_by_supervisor`), each built by its row's ``serve`` — the same classes as in one
+    process: the station's unit on its Modbus TCP port (shared by every station that names it),
+    its Sparkplug device on its edge node (shared by every station that names the same broker,
+    group and node; the device follows its worker), its metrics (the worker's snapshots on the
+    supervisor's endpoint), its console feed, a plug-in's output."""
     process_budget(cfg)
     outs: list[Output] = []
-    modbus = None
-    if with_northbound and cfg.modbus_tcp.enabled:
-        modbus = ModbusOutput(modbus_settings(cfg), station)
-        outs.append(modbus)
-    if with_northbound and cfg.sparkplug.enabled:
-        outs.append((sparkplug_device or SparkplugOutput)(sparkplug_settings(cfg), station))
-    if console is not None and station.id in console.feeds:
-        outs.append(console.output_for(station))
-    m = cfg.metrics
-    if m.enabled:
-        outs.append(MetricsRelay(station.id, m.host, int(m.port), ts=station.ts, modbus=modbus,
-                                 limits=DoorLimits.from_config(m.connections)))
+    host = Host(console, with_northbound)
+    b = BoxBuild(cfg, station, outs, host)
+    for row in rows():
+        if row.box and row.serve is not None and wanted(cfg, row, host):
+            outs.extend(row.serve(b))
     return outs
 
 

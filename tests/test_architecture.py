@@ -12,7 +12,7 @@ package cycles, no hidden imports.
 - No ``try: import … except ImportError`` around the project's own modules.
 - The packages form no cycle. A node is a layer folder (``gateway.station``, ``drivers.sim``), an
   output's subpackage (``gateway.outputs.mqtt``) or a module directly in ``gateway/`` or
-  ``gateway/outputs/`` (``gateway.compose``, ``gateway.outputs.wiring``).
+  ``gateway/outputs/`` (``gateway.compose``, ``gateway.outputs.registry``).
 """
 from __future__ import annotations
 
@@ -56,13 +56,13 @@ LAYER_EXCEPTIONS: dict[tuple[str, str], str] = {
         "``clip``, ``safe``, ``ECHO_CHARS``: the one bound on client text echoed back (pure text)",
 }
 #: the modules that may sit outside a layer folder: the package faces, the composition root,
-#: and the one module left loose in gateway/outputs/ (with why)
+#: and the one module loose in gateway/outputs/ (with why)
 LOOSE_ALLOWED = {
     "gateway": "the package face (``__version__``)",
     "gateway.compose": "the composition root",
     "gateway.outputs": "the outputs' package face",
-    "gateway.outputs.wiring": "settings of the outputs from configuration: folds into the output registry "
-                              "(issue 35 item 1)",
+    "gateway.outputs.registry": "the output registry: a row per output, read by the composition root, "
+                                "the supervisor, the probe and the loader (issue 35 item 1)",
 }
 #: the standard library modules of I/O, time, threads and processes: none in the pure core
 IMPURE = ("os", "io", "sys", "time", "socket", "select", "selectors", "threading", "multiprocessing",
@@ -283,7 +283,7 @@ def test_no_module_sits_outside_a_layer_folder():
     assert set(LOOSE_ALLOWED) <= set(MODULES), "a listed loose module is gone: drop it from LOOSE_ALLOWED"
     assert not os.path.exists(os.path.join(ROOT, "gateway", "northbound"))
     assert [m for m in MODULES if m.startswith("gateway.outputs.") and m.count(".") == 2
-            and not _is_pkg(m)] == ["gateway.outputs.wiring"]
+            and not _is_pkg(m)] == ["gateway.outputs.registry"]
 
 
 def test_the_pure_core_imports_nothing_else_of_the_project():
@@ -322,17 +322,17 @@ def test_the_layer_check_flags_what_it_should():
         "gateway.core.records (gateway.core) → gateway.station.station (gateway.station)",
         "gateway.station.station (gateway.station) → drivers.meter.driver (drivers)"]
     assert _layer("gateway.outputs.plc.modbus_tcp.framer") == "gateway.outputs" and _layer("gateway.compose") \
-        == "gateway.compose" and _layer("gateway.outputs.wiring") == "gateway.outputs"
+        == "gateway.compose" and _layer("gateway.outputs.registry") == "gateway.outputs"
 
 
 def test_the_scanner_flags_what_it_should(tmp_path):
     """The rules themselves, on a small synthetic module."""
     src = ("import os\nfrom gateway.core import records\n"
-           "try:\n    from gateway.outputs import wiring\nexcept ImportError:\n    wiring = None\n"
+           "try:\n    from gateway.outputs import registry\nexcept ImportError:\n    registry = None\n"
            "def f():\n    from .station import build\n    import json\n    return build, json\n")
     s = _Scan("gateway.fake")
     s.visit(ast.parse(src))
-    assert "gateway.core.records" in s.edges and "gateway.outputs.wiring" in s.edges
+    assert "gateway.core.records" in s.edges and "gateway.outputs.registry" in s.edges
     assert s.hidden == ["gateway.fake:8 imports gateway.station, gateway.station.build inside a function"]
     assert s.guarded == ["gateway.fake:4"]
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]

@@ -27,8 +27,8 @@ from typing import Any
 from ..cli import CliError
 from ..config import ConfigError, load_fleet, load_station
 from ..outputs.acl import broker_acl as A
+from ..outputs.registry import mqtt_settings
 from ..outputs.sparkplug.output import settings_from_config
-from ..outputs.wiring import mqtt_settings
 from ..plumbing.safeout import write_atomic
 from ..plumbing.safeyaml import YamlError, kind, load
 

@@ -25,7 +25,7 @@ from ..compose import (
 )
 from ..config import ConfigError, load_fleet, load_station
 from ..core.ports import Runtime
-from ..outputs.wiring import mqtt_settings
+from ..outputs.registry import mqtt_settings
 from ..plumbing import safeout, sdnotify
 from ..plumbing.osprio import DEPLOYED_NICE, MAX_PRIORITY, deployed_nice
 from ..supervisor.fleetcfg import RunOptions, apply_overrides, plan_fleet
@@ -207,7 +207,7 @@ def _supervised(args) -> tuple[Runtime, Any] | None:
         console.attach_site(carrier.station.id, mqtt_settings(carrier).base_topic, lambda f, cb: None)
 
     def served(cfg) -> frozenset[str]:
-        out = served_by_supervisor(cfg, console=console is not None, with_northbound=with_nb)
+        out = served_by_supervisor(cfg, console, with_northbound=with_nb)
         if site is not None and carrier is not None and cfg.station.id == carrier.station.id:
             out |= {"site"}
         return out

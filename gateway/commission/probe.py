@@ -54,7 +54,7 @@ from drivers.stm32.protocol import Cmd, exchange_time_s
 from ..config import validate_fleet, validate_station
 from ..config.sections import parse_server
 from ..outputs.broker.settings import BrokerSettings, SecretError, broker_kwargs
-from ..outputs.wiring import broker_sections, listen_doors
+from ..outputs.registry import brokers, listen_doors
 from ..plumbing.ratelog import safe
 
 log = logging.getLogger("hookwatch.probe")
@@ -550,8 +550,7 @@ def probe_station(cfg: Any, *, scan: bool = False, sysfs: str = "/sys",
     lat = stm32_latency_finding(cfg.stm32, sysfs)
     if lat is not None:
         out.append(lat)
-    for name in broker_sections(cfg):
-        sec = getattr(cfg, name)
+    for name, sec in brokers(cfg):
         for host, port in broker_addresses(name, sec):
             kb = (name, host, port, sec.username)
             if kb not in seen:

@@ -13,6 +13,8 @@ CROSS = (
     "Stations with `modbus_tcp.enabled` may share a port (one server, one unit per station) but not "
     "a `unit_id` on it; stations on one port listen on the same `host`.",
     "No two stations with `mqtt.enabled` share an explicit `mqtt.client_id` or an outbox file.",
+    "A plug-in output (`HOOKWATCH_OUTPUTS`: its own section, checked like these; docs/architecture.md, "
+    "\"Adding an output\") that listens per station does not share its port with another station.",
 )
 
 

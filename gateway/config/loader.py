@@ -24,6 +24,7 @@ from drivers.meter.meter_map import DEFAULT_MAP_PATH, load_map
 from ..core.method.params import PRIOR_NAMES, ParamError, build_params
 from ..core.validation import MISSING, Problem, did_you_mean, show_value, show_yaml, suggestion_text
 from ..plumbing.ratelog import clip
+from . import plugins as P
 from . import sections as S
 from .yamlpos import Pos, YamlError
 from .yamlpos import load as load_yaml
@@ -169,6 +170,7 @@ def validate_station(path: str, fleet_file: Any = AUTO) -> Loaded:
     A missing station file raises FileNotFoundError."""
     if not os.path.isfile(path):
         raise FileNotFoundError(path)
+    P.load_plugins()            # the sections of plug-in outputs ($HOOKWATCH_OUTPUTS)
     if fleet_file is AUTO:
         fleet_file = fleet_file_for(path)
     loaded = Loaded(path=path, cfg=None, fleet_file=fleet_file)
@@ -259,7 +261,7 @@ def _read_fleet(file: str) -> tuple[dict | None, dict, list[Issue]]:
         if k in FLEET_KEYS:
             continue
         p = doc.pos[(k,)]
-        if S.lookup((k,)) is not None:
+        if S.lookup((k,)) is not None or any(k == p.spec.name for p in P.sections()):
             msg = f"station settings in fleet.yaml go under `defaults:` (defaults:\\n  {k}: …)"
         else:
             msg = ("unknown key" + suggestion_text(did_you_mean(k, FLEET_KEYS))
@@ -530,8 +532,11 @@ def load_meter_map(cfg):
 
 def _build(tree: dict, loaded: Loaded):
     rep = _Report(loaded)
-    cfg = _section(S.ROOT, tree, (), rep, {})
-    if cfg is None:
+    plugged = {p.spec.name: p.spec for p in P.sections()}
+    cfg = _section(S.ROOT, {k: v for k, v in tree.items() if k not in plugged}, (), rep, {})
+    # the sections of plug-in outputs: checked like the others, handed over on cfg.plugins
+    extra = {name: _section(spec, tree.get(name), (name,), rep, {}) for name, spec in plugged.items()}
+    if cfg is None or any(v is None for v in extra.values()):
         return None
     # defaults that depend on other keys
     meter = cfg.meter
@@ -542,7 +547,7 @@ def _build(tree: dict, loaded: Loaded):
         outbox = dataclasses.replace(outbox, path=os.path.join(cfg.recorder.dir, cfg.station.id,
                                                                "outbox.sqlite"))
     cfg = dataclasses.replace(cfg, meter=meter, mqtt=dataclasses.replace(cfg.mqtt, outbox=outbox),
-                              source=os.path.abspath(loaded.path), fleet_file=(
+                              plugins=extra, source=os.path.abspath(loaded.path), fleet_file=(
                                   os.path.abspath(loaded.fleet_file) if loaded.fleet_file else None))
     for rule in S.RULES:
         rule.fn(cfg, rep)
@@ -631,4 +636,10 @@ def cross_issues(loaded: list[Loaded]) -> list[tuple[int, Issue]]:
     clash("each station needs its own outbox file",
           [(i, ("mqtt", "outbox", "path"), os.path.normpath(c.mqtt.outbox.path), repr(c.mqtt.outbox.path))
            for i, c in ok if c.mqtt.enabled])
+    # the doors of plug-in outputs that listen per station (the output registry's rows)
+    for p in P.sections():
+        if not p.shared:
+            clash(f"{p.spec.name} listens on a port of its own per station",
+                  [(i, tuple(key.split(".")), (host, port), f"{host}:{port}")
+                   for i, c in ok for key, host, port in p.doors(c)])
     return out

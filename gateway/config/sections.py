@@ -775,6 +775,8 @@ class StationConfig:
     #: not a key: the station file this configuration was read from, and its fleet file
     source: str = field(default="", metadata={"internal": True})
     fleet_file: str | None = field(default=None, metadata={"internal": True})
+    #: not a key of its own: the sections of plug-in outputs by name (gateway/config/plugins.py)
+    plugins: dict[str, object] = field(default_factory=dict, metadata={"internal": True})
 
     def stm32_watchdog_s(self) -> float:
         """The STM32 watchdog period the gateway sets at enable: ``stm32.watchdog_s``, or when
@@ -816,6 +818,8 @@ def _section(name: str, cls: type, doc: str) -> Section:
 
 
 ROOT = _section("", StationConfig, "a station")
+#: the spec of a section class (a plug-in output's section: gateway/config/plugins.py)
+section_spec = _section
 
 
 def walk(sec: Section = ROOT, prefix: tuple = ()):

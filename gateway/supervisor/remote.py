@@ -8,9 +8,10 @@ edge nodes with a device per station, the operator console, the metrics endpoint
 station's stream from its worker's IPC frames (:mod:`.ipc`: every
 :class:`~gateway.core.records.SlotRecord` from the SLOTS frames' ``rows``, every
 :class:`~gateway.core.records.Event`, every :class:`~gateway.core.records.StationState`, the METRICS
-snapshots) and calls the SAME output classes the in-process runtime uses (``ModbusOutput``,
-``SparkplugOutput`` as :class:`SparkplugDevice`, ``ConsoleOutput``, ``MetricsRelay``), so register
-map, Sparkplug metric set, console and metrics have one definition in both modes.
+snapshots) and calls the SAME output classes the in-process runtime uses, built by the rows of
+the output registry (gateway/outputs/registry.py: ``ModbusOutput``, ``SparkplugOutput`` as
+``SparkplugDevice``, ``ConsoleOutput``, ``MetricsRelay``, a plug-in's), so register map, Sparkplug
+metric set, console and metrics have one definition in both modes.
 
 Threads: frames arrive on the hub's reader thread (one per worker, as a station has one loop)
 and the outputs' ``on_record``/``on_event``/``on_state`` run there (they are O(1), never
@@ -33,25 +34,21 @@ import asyncio
 import dataclasses
 import logging
 import os
-import threading
-import time
 from typing import Any
 
 from ..compose import shared_outputs, station_facts
 from ..core.command_rules import CODE, Rejection
-from ..core.ports import Output, PlanView, StationLimits, StationView
+from ..core.ports import Output, PlanView, StationLimits
 from ..core.records import Command, CommandReply, Event, EventType, SlotRecord, StationState
 from ..outputs.console.app import ConsoleServer
-from ..outputs.sparkplug import runtime as sparkplug_client
-from ..outputs.sparkplug.output import SparkplugOutput, state_values
-from ..outputs.wiring import reload_key
+from ..outputs.registry import reload_key
 from ..plumbing.threadloop import ThreadLoop
 from ..station.alarm_store import KIND_OF, MODEL_NAME
 from ..station.fanout import Fanout
 from .fleetcfg import apply_overrides
 from .ipc import FrameType, event_from_dict, slot_from_row, state_from_dict
 
-__all__ = ["COMMAND_TIMEOUT_S", "RemoteFleet", "RemoteStation", "SparkplugDevice"]
+__all__ = ["COMMAND_TIMEOUT_S", "RemoteFleet", "RemoteStation"]
 
 log = logging.getLogger("hookwatch.supervisor")
 
@@ -212,65 +209,6 @@ class RemoteStation:
             log.error("%s: a %s from the worker could not be read: %s", self.id, what, e)
 
 
-class SparkplugDevice(SparkplugOutput):
-    """A station proxy's Sparkplug device on an edge node of the supervisor (see the module doc).
-
-    The same output as in one process (metric set, aggregation, commands through the station's
-    ``submit``), with one difference: the device lives while its WORKER does. ``start`` attaches
-    the station to its node (one :class:`~gateway.outputs.sparkplug.runtime.NodeRuntime` per
-    broker, group and edge node in the supervisor: stations sharing a node share its session,
-    its bdSeq and its Will) without a device; ``on_worker(True)`` (HELLO) brings the device up —
-    a DBIRTH with the station's current values once the node is born — and ``on_worker(False)``
-    (its worker crashed, was killed or is restarting) takes it down: a DDEATH, the node and the
-    other stations' devices going on. Nothing of a down worker is published (no stale values)."""
-
-    def __init__(self, settings: Any, station: StationView | None = None) -> None:
-        super().__init__(settings, station)
-        self.up = False
-        self._up_lock = threading.Lock()
-
-    async def start(self) -> None:
-        self.loop = asyncio.get_running_loop()
-        self.rt = sparkplug_client.attach(self.s, self)     # the device is born with its worker
-
-    async def stop(self) -> None:
-        with self._up_lock:
-            self.up = False
-        await super().stop()
-
-    def on_worker(self, up: bool, restarts: int = 0) -> None:
-        with self._up_lock:
-            if bool(up) == self.up or self.rt is None:
-                return
-            self.up = bool(up)
-            if up:
-                self._agg = None
-                self._last = state_values(self.station.state) if self.station is not None else {}
-                self.rt.post(("up", self.s.device_id, dict(self._last)))
-            else:
-                self._flush(time.monotonic())
-                self._agg = None
-                self.rt.post(("down", self.s.device_id))
-
-    def on_lost(self, n: int) -> None:
-        pass        # a device reports the slots it is given; a lost span is not published
-
-    def on_metrics(self, snap: dict[str, Any]) -> None:
-        pass        # the worker's figures go to the metrics endpoint, not to the device
-
-    def on_record(self, rec: SlotRecord) -> None:
-        if self.up:
-            super().on_record(rec)
-
-    def on_state(self, st: StationState) -> None:
-        if self.up:
-            super().on_state(st)
-
-    def on_event(self, ev: Any) -> None:
-        if self.up:
-            super().on_event(ev)
-
-
 class RemoteFleet:
     """The station proxies of one supervisor and the loop their outputs' coroutines run on: the
     supervisor's shared outputs (``Supervisor.shared``), attached at its start and after each
@@ -288,8 +226,9 @@ class RemoteFleet:
     def attach(self, sup: Any) -> None:
         """A station proxy with its shared outputs per running station of ``sup`` (a
         :class:`~gateway.supervisor.supervisor.Supervisor`; at start, and after a SIGHUP: new
-        stations get one, a station whose Modbus TCP, Sparkplug or metrics settings changed gets
-        a new one, a removed station's is stopped)."""
+        stations get one, a station whose reload key changed — the sections of the registry's
+        rows served here with ``reload`` (Modbus TCP, Sparkplug, metrics, a plug-in's) — gets a
+        new one, a removed station's is stopped)."""
         with_nb, console = self.with_northbound, self.console
         cfgs = {c.station.id: c for c in (apply_overrides(c, sup.opts) for _, c in sup.plan.accepted)}
         for name, hub in sup.hubs.items():
@@ -298,15 +237,14 @@ class RemoteFleet:
                 if name in self.stations and (hub.worker is None or hub.worker.path not in sup.workers):
                     self.remove(name)
                 continue
-            key = repr((reload_key(cfg), with_nb))     # the registry's rows (gateway/outputs/wiring.py)
+            key = repr((reload_key(cfg), with_nb))     # the registry's rows (gateway/outputs/registry.py)
             if self.keys.get(name) == key:
                 continue
             if console is not None and name not in console.feeds:
                 console.add_station(name, os.path.join(cfg.recorder.dir, name), bool(cfg.mqtt.enabled),
                                     line=cfg.station.line, area=cfg.station.area)
             st = RemoteStation(hub, **station_facts(cfg))
-            st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb,
-                                        sparkplug_device=SparkplugDevice)
+            st.outputs = shared_outputs(cfg, st, console, with_northbound=with_nb)
             self.add(st, key)
 
     def add(self, st: RemoteStation, key: str = "", timeout: float = 15.0) -> None:

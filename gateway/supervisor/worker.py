@@ -34,7 +34,7 @@ from ..outputs.console.site import MAX_MESSAGE_BYTES
 from ..outputs.console.site import filters as site_filters
 from ..outputs.mqtt.output import MqttOutput
 from ..outputs.prometheus import MetricsOutput
-from ..outputs.wiring import BOX_SERVED, ROW_SERVED
+from ..outputs.registry import box_served, row_served
 from ..plumbing.ratelog import safe
 from ..plumbing.threadloop import submit_to
 from ..station.fleet import StationRunner
@@ -49,9 +49,13 @@ SUMMARY_EVERY = 10
 HEARTBEAT_S = 0.5
 #: one METRICS frame per this many heartbeats (1 s)
 METRICS_EVERY = 2
-#: what a supervisor may serve for its workers' stations (``--served-by-supervisor``): the outputs
-#: of the registry it serves (gateway/outputs/wiring.py OUTPUTS), and the site view
-SERVED = (*BOX_SERVED, "site")
+
+
+def served_words() -> tuple[str, ...]:
+    """What a supervisor may serve for its workers' stations (``--served-by-supervisor``): the
+    outputs of the registry it serves (gateway/outputs/registry.py, plug-in outputs included),
+    and the site view."""
+    return (*box_served(), "site")
 
 
 class IpcOutput:
@@ -123,7 +127,7 @@ class Worker:
         #: what the supervisor serves for this station: Modbus TCP unit, console, metrics, Sparkplug device
         self.served = frozenset(served)
         self.chan = FrameChannel(sock, name="ipc-writer")
-        self.out = IpcOutput(self.chan, summary_every, rows=bool(self.served & ROW_SERVED))
+        self.out = IpcOutput(self.chan, summary_every, rows=bool(self.served & row_served()))
         self.stop = threading.Event()
         #: the exit code asked for (RESTART_EXIT), else None: 0 on a clean stop
         self.exit_code: int | None = None
@@ -311,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--options", default="{}", help="hookwatch run's options as JSON")
     ap.add_argument("--summary-every", type=int, default=SUMMARY_EVERY)
     ap.add_argument("--served-by-supervisor", default="", metavar="LIST",
-                    help="comma-separated: " + ", ".join(SERVED) + " — served by the supervisor "
+                    help="comma-separated: " + ", ".join(served_words()) + " — served by the supervisor "
                          "from this worker's IPC stream, not in this process")
     args = ap.parse_args(argv)
     opts = RunOptions(**json.loads(args.options))
@@ -320,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     sys.setswitchinterval(0.0005)
     sock = socket.socket(fileno=args.fd)
-    served = frozenset(x for x in args.served_by_supervisor.split(",") if x in SERVED)
+    served = frozenset(x for x in args.served_by_supervisor.split(",") if x in served_words())
     w = Worker(sock, args.station_file, args.fleet_file or None, opts, args.phase, args.summary_every,
                served)
     signal.signal(signal.SIGTERM, lambda s, f: w.stop.set())

@@ -1,4 +1,5 @@
-"""A test-only plugin output (``HOOKWATCH_OUTPUTS=kit.crashy:outputs``) that makes a station crash
+"""A test-only plug-in output (``HOOKWATCH_OUTPUTS=kit.crashy``: one row of the output registry,
+its section ``crashy:``, on unless switched off) that makes a station crash
 in a real ``hookwatch run``: its first instance crashes while starting its outputs (the MQTT and
 Modbus TCP outputs have started: a leaked client or unit id would show), its second in the slot
 loop after ``CRASH_AT_SLOT`` slots (its serial ports are open), the third and later run normally.
@@ -6,7 +7,10 @@ The instances are counted in ``$HW_CRASH_DIR/builds``."""
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
+from gateway.config.sections import key
+from gateway.outputs.registry import no_broker, no_doors, plugin_row, register
 from gateway.station.clock import SlotClock
 
 CRASH_AT_SLOT = 50
@@ -54,3 +58,13 @@ def outputs(cfg, station):
     if n == 2:
         station.clock_factory = CrashingClock
     return []
+
+
+@dataclass(frozen=True, kw_only=True)
+class CrashyConfig:
+    enabled: bool = key(True, "crash the station's first two instances", kind="bool")
+
+
+register(plugin_row("crashy", CrashyConfig, northbound=False, box=False, slot_rows=False, reload=False,
+                    build=lambda b: outputs(b.cfg, b.station), feed=None, serve=None,
+                    broker=no_broker, doors=no_doors, metrics="none"))

@@ -22,6 +22,7 @@ JSON API (reading: open from the loopback address, else a login — ``console.re
                                             site=1: the stations of the site's other boxes too)
     GET  /api/due.csv[?line=&area=&site=1]  the same as CSV (cells defused against formulas)
     GET  /api/boxes                         the site's boxes by their config reports
+    GET  /api/values                        the station values the page shows, with their labels
     GET  /api/station/<id>/tests/<test>/fig7.png        the report's Fig. 7 of a test
     GET  /api/station/<id>/tests/<test>/files/<name>    log.csv.gz, log.meta.yaml, events.jsonl, result.json
     GET  /api/session                       who is logged in (+ CSRF token)
@@ -259,7 +260,7 @@ class ConsoleServer:
                 ch = feed.series.take_changes()
                 msg = {"type": "update", "gen": feed.series.gen, "from": ch[0] if ch else None,
                        "rows": ch[1] if ch else [], "markers": feed.markers,
-                       "summary": feed.summary(), "events": list(feed.events)[-20:]}
+                       "summary": feed.summary(values=True), "events": list(feed.events)[-20:]}
             data = ("data: " + safeout.dumps(msg) + "\n\n").encode()
             for c in list(clients):
                 try:

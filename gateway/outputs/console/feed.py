@@ -25,6 +25,7 @@ import zlib
 from dataclasses import asdict
 from typing import Any
 
+from ...core import catalog
 from ...core.ports import StationView
 from ...core.records import Event, EventType, SlotRecord, StationState
 from ...offline.logio import tail_jsonl
@@ -44,6 +45,16 @@ MAX_JOURNAL = 500
 MAX_TRANSITIONS_PER_EVENT = 8
 #: recorded tests (newest first) whose events.jsonl seed the journal when the console starts
 JOURNAL_TESTS = 5
+#: the catalog's values the console shows, each with its label (GET /api/values)
+VALUES = tuple(v for v in catalog.CATALOG if v.label)
+
+
+def values_json(values: tuple[catalog.Value, ...] = VALUES) -> list[dict[str, str]]:
+    """The rows the page shows under "all values" (GET /api/values): the key of its value in the
+    station summary's ``values``, its label, unit and type."""
+    return [{"name": v.name, "label": v.label, "unit": v.unit, "type": v.base_type} for v in values]
+
+
 #: states of a running test (TestState values): baseline search, monitoring, end of life
 _RUNNING = (1, 2, 3)
 
@@ -332,8 +343,9 @@ class StationFeed:
         self.journal_seeded = True
         self.journal = merge_journal(entries, list(self.journal))
 
-    def summary(self) -> dict[str, Any]:
-        """The fleet card."""
+    def summary(self, values: bool = False) -> dict[str, Any]:
+        """The fleet card; with ``values`` (the station page's) every labelled value of the
+        catalog (gateway/core/catalog.py) under ``values``, for the page's "all values"."""
         st = self.state
         s: dict[str, Any] = asdict(st) if st is not None else {"station": self.name}
         if st is not None:
@@ -352,6 +364,8 @@ class StationFeed:
             # known, or there is no test): a stale "projected crossing" is never shown
             s.update(t_cross=None, end_p10=None, end_p50=None, end_p90=None, p_end=None, due=False)
         s["past_threshold"] = bool(st is not None and (st.t_life is not None or st.state.value == 3))
+        if values:
+            s["values"] = catalog.read(VALUES, st) if st is not None else {}
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
         # else the station's state says it (StationState.mqtt_ok, from the MQTT output's uplink
@@ -361,7 +375,7 @@ class StationFeed:
     def snapshot(self) -> dict[str, Any]:
         s = self.series
         return {"type": "snapshot", "station": self.name, "gen": s.gen, "width_s": s.width * s.ts,
-                "rows": s.rows(), "markers": self.markers, "summary": self.summary(),
+                "rows": s.rows(), "markers": self.markers, "summary": self.summary(values=True),
                 "events": list(self.events)}
 
 

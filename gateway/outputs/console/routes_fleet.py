@@ -7,6 +7,8 @@ other boxes on ``?site=1``).
                                             site=1: the stations of the site's other boxes too)
     GET  /api/due.csv[?line=&area=&site=1]  the same as CSV (cells defused against formulas)
     GET  /api/boxes                         the site's boxes by their config reports (the Boxes page)
+    GET  /api/values                        the station values the page shows, with their labels
+                                            (the catalog's rows: gateway/core/catalog.py)
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ from aiohttp import web
 from ...plumbing import safeout
 from .common import FILTER_MAX, STATIC, HttpError, err, json_reply
 from .context import ConsoleContext
-from .feed import DUE_COLUMNS, due_list
+from .feed import DUE_COLUMNS, due_list, values_json
 
 
 class FleetRoutes:
@@ -32,6 +34,7 @@ class FleetRoutes:
         r.add_get("/api/due", self.h_due)
         r.add_get("/api/due.csv", self.h_due_csv)
         r.add_get("/api/boxes", self.h_boxes)
+        r.add_get("/api/values", self.h_values)
 
     async def h_index(self, request):
         return web.FileResponse(os.path.join(STATIC, "index.html"))
@@ -53,6 +56,11 @@ class FleetRoutes:
         return {"enabled": site is not None, "fed": site is not None and site.filters is not None,
                 "stations": site.stations() if site is not None else 0,
                 "refused": site.counters["refused"] if site is not None else 0}
+
+    async def h_values(self, request):
+        """The catalog's rows the console shows: name (the key of a card's ``values``), label,
+        unit, type (docs/console.md)."""
+        return json_reply({"values": values_json()})
 
     async def h_boxes(self, request):
         """Every box of the site as its retained config report says (docs/console.md, Boxes)."""

@@ -27,6 +27,7 @@ import threading
 import time
 from typing import Any
 
+from ...core import catalog
 from ...core.command_intake import Refused, bounded_pairs, read_bounded_json
 from ...plumbing.ratelog import RateLog, clip, safe
 from .boxes import BoxReports, box_filter
@@ -45,17 +46,18 @@ MAX_TEXT = 64
 STALE_S = 35.0
 
 _pairs = bounded_pairs(64, 32, 256)
-_TEXT = ("test_state", "test_id", "sample_id", "grade", "alarm", "warning_alarm",
-         "test_started_utc", "status", "end_reason", "prior_source", "time")
-_NUM = ("t_set", "t_end", "mu_ss", "mu_th", "t_life", "elapsed_s", "headroom", "t_cross",
-        "end_p10", "end_p50", "end_p90", "p_end", "prior_mean", "prior_sd")
-_BOOL = ("due", "wear_warning", "meter_ok", "stm32_ok", "disk_ok")
-#: the counts of lives a history prior came from (§7a v3)
-_COUNT = ("prior_n", "prior_n_censored", "prior_n_early")
-#: the largest count shown (more than any site holds: 20,000 lives)
-_MAX_COUNT = 10_000_000
+#: the keys of a remote `state` kept, by their type: the catalog's rows with an MQTT key
+#: (gateway/core/catalog.py), and the envelope's time
+_STATE = tuple(v for v in catalog.CATALOG if v.mqtt)
+_TEXT = tuple(v.name for v in _STATE if v.base_type == "str") + ("time",)
+_NUM = tuple(v.name for v in _STATE if v.base_type == "float")
+_BOOL = tuple(v.name for v in _STATE if v.base_type == "bool")
+#: counts (the lives a history prior came from, §7a v3) and slots
+_COUNT = tuple(v.name for v in _STATE if v.base_type == "int")
+#: the largest count or slot shown (more than any site holds: 20,000 lives; 30 days of slots)
+_MAX_COUNT = 1 << 32
+_LISTS = tuple(v for v in _STATE if v.base_type == "list")
 _RUNNING = ("baseline_search", "monitoring", "end_of_life")
-_REASONS = ("headroom", "prior", "trend")
 
 
 def filters(base: str) -> tuple[str, ...]:
@@ -117,10 +119,11 @@ def parse_state(obj: Any, station: str) -> dict[str, Any]:
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= _MAX_COUNT):
             raise Refused(f"{k}: {clip(v, 20)} is not a count")
         out[k] = v
-    r = obj.get("warn_reasons") or []
-    if not isinstance(r, list) or len(r) > len(_REASONS) or any(x not in _REASONS for x in r):
-        raise Refused(f"warn_reasons {clip(r, 40)} are not reasons")
-    out["warn_reasons"] = list(r)
+    for row in _LISTS:
+        r = obj.get(row.name) or []
+        if not isinstance(r, list) or len(r) > len(row.choices) or any(x not in row.choices for x in r):
+            raise Refused(f"{row.name} {clip(r, 40)} are not {row.label or row.name}")
+        out[row.name] = list(r)
     return out
 
 

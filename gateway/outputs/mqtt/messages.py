@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ... import __version__
+from ...core import catalog
 from ...core.command_rules import reply_code
 from ...core.records import CommandReply, Event, EventType, StationState
 from ...core.slotwindow import SlotWindow
@@ -59,7 +60,7 @@ def telemetry_summary(w: SlotWindow, now: float, test_id: str | None, headroom: 
         "saturated_slots": w.n_sat, "saturation": w.n_sat > 0,
         "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
         # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
-        **mqtt_schema.forecast_fields(None, state=False),
+        **mqtt_schema.forecast_fields(None),
     }
 
 
@@ -122,14 +123,12 @@ def event_messages(base: str, ev: Event, last_state: StationState | None,
     return out
 
 
-def state_key(st: StationState) -> tuple[Any, ...]:
-    """What makes a new retained ``state`` message worth sending (not the elapsed time)."""
-    return (st.state, st.test_id, st.sample_id, st.grade, st.t_set, st.t_end, st.mu_ss, st.mu_th,
-            st.k_b, st.t_life, st.status, st.end_reason, st.alarm, st.protection_stop,
-            st.meter_ok, st.stm32_ok, st.stopped, st.headroom, st.t_cross, st.wear_warning,
-            st.warning_alarm, st.disk_ok, st.end_p10, st.end_p50, st.end_p90,
-            st.p_end, st.due, tuple(st.warn_reasons), st.prior_mean, st.prior_sd, st.prior_source,
-            st.prior_n, st.prior_n_censored, st.prior_n_early, st.lead_s, st.p_due, st.test_started_utc)
+def state_key(st: StationState,
+              values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[catalog.Reading | tuple[str, ...], ...]:
+    """What makes a new retained ``state`` message worth sending: every value of the `state`
+    (gateway/core/catalog.py) but those that change with time alone (the elapsed time)."""
+    return tuple(tuple(x) if isinstance(x, list) else x
+                 for x in (v.source(st) for v in values if v.mqtt and not v.ticks))
 
 
 def state_message(base: str, t: float, st: StationState) -> Message:

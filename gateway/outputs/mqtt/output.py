@@ -177,7 +177,7 @@ class MqttOutput:
         st = self._last_state           # §5a: the headroom of the last window, as in `state`
         summary = telemetry_summary(agg, now, self._test_id, st.headroom if st is not None else None,
                                     st.t_cross if st is not None else None)
-        summary.update(mqtt_schema.forecast_fields(st if self._test_id else None, state=False))
+        summary.update(mqtt_schema.forecast_fields(st if self._test_id else None))
         self.pump.put(M.telemetry_message(self._base, self.s.station_id, time.time(), summary))
 
     def on_event(self, ev: Event) -> None:

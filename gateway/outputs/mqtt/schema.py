@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
+from ...core import catalog
 from ...core.command_rules import REJECT_CODES
 from ...core.method.rules import REASON_NAMES
 from ...core.records import AlarmState, CommandKind, Event, EventType, StationState, TestState
@@ -75,87 +76,37 @@ STATUS_FIELDS = (
     Field("map_version", "int", "version of the PLC register map served alongside"),
 )
 
-#: the §5b/§7a remaining-life figures (METHOD.md), in `state` and in `telemetry`: the forecast as
-#: found at the last forecast time (a window's end) of the running test; none outside a test,
-#: none of the projection (end_p*, p_end, due) from the end-of-life detection on
-FORECAST_FIELDS = (
-    Field("end_p10", "float|null", "end of life, 10 % quantile of the forecast from the prior at the "
-          "last forecast time (§5b), s from the test's slot 0 (`test_started_utc` + this = wall "
-          "time); null without a prior, outside a test or once the end of life was detected"),
-    Field("end_p50", "float|null", "end of life, median of that forecast, s from slot 0"),
-    Field("end_p90", "float|null", "end of life, 90 % quantile of that forecast, s from slot 0"),
-    Field("p_end", "float|null", "chance that the end comes within the lead `lead_s` (§5b P)"),
-    Field("due", "bool", "the last forecast window is due (§5b: P ≥ p_due, a headroom run or a "
-          "projected crossing within the lead)"),
-)
-FORECAST_STATE_FIELDS = FORECAST_FIELDS + (
-    Field("warn_reasons", "list", "the early warning's reasons once it fired (sorted: headroom, "
-          "prior, trend), else []"),
-    Field("prior_mean", "float|null", "the test's life prior, mean, s (§7a)"),
-    Field("prior_sd", "float|null", "the test's life prior, SD, s"),
-    Field("prior_source", "str|null", "where the prior came from: `method` (fixed in the station's "
-          "method section), `config` (forecast.priors), `history:N` (N recorded wear-out failures; from other "
-          "stations too: `history:N (the site: T tests from K stations (M of this station; a 30, "
-          "b 12))`, the other stations named with their tests, at most 3 and `and J more`), "
-          "METHOD.md §7a), null: none"),
-    Field("prior_n", "int|null", "the count of wear-out failures the prior came from (§7a; a "
-          "configured prior: the count its entry gives, or null)"),
-    Field("prior_n_censored", "int|null", "… of right-censored lives (hooks replaced or tests "
-          "ended before their end of life)"),
-    Field("prior_n_early", "int|null", "… of early failures (§7a v3: a failure below 0.75 × the "
-          "median of all lives, counted as a censored life, not as wear)"),
-    Field("lead_s", "float|null", "the planner's lead (§5b `lead`), s"),
-    Field("p_due", "float|null", "the bound P is held against (§5b `p_due`)"),
-    Field("test_started_utc", "str|null", "UTC time of the test's slot 0, ISO 8601"),
-)
+#: the §5b remaining-life figures (METHOD.md) of the station's state that `telemetry` carries too:
+#: the forecast as found at the last forecast time (a window's end) of the running test; none
+#: outside a test, none of the projection (end_p*, p_end, due) from the end-of-life detection on
+TELEMETRY_FORECAST = ("end_p10", "end_p50", "end_p90", "p_end", "due")
 
 
-def forecast_fields(st: StationState | None, *, state: bool = True) -> dict[str, Any]:
-    """The forecast figures of ``st`` (all of FORECAST_STATE_FIELDS, or FORECAST_FIELDS only)."""
-    names = FORECAST_STATE_FIELDS if state else FORECAST_FIELDS
+def _field(v: catalog.Value) -> Field:
+    return Field(v.name, v.type, v.doc)
+
+
+FORECAST_FIELDS = tuple(_field(catalog.BY_NAME[n]) for n in TELEMETRY_FORECAST)
+
+
+def _empty(f: Field) -> Any:
+    return [] if f.type == "list" else False if f.type == "bool" else None
+
+
+def forecast_fields(st: StationState | None) -> dict[str, Any]:
+    """The forecast figures of ``st`` that `telemetry` carries (FORECAST_FIELDS; none without a state)."""
     if st is None:
-        return {f.name: ([] if f.type == "list" else False if f.type == "bool" else None)
-                for f in names}
-    out = {f.name: getattr(st, f.name, None) for f in names}
-    out["due"] = bool(out["due"])
-    if state:
-        out["warn_reasons"] = list(out["warn_reasons"] or [])
-    return out
+        return {f.name: _empty(f) for f in FORECAST_FIELDS}
+    return {n: catalog.BY_NAME[n].source(st) for n in TELEMETRY_FORECAST}
 
 
-STATE_FIELDS = ENVELOPE + (
-    Field("test_state", "str", "idle, starting (zero check and spin-up before slot 0, METHOD.md "
-          "§3a), baseline_search, monitoring, end_of_life, completed, aborted"),
-    Field("test_id", "str|null", "id of the current (or last) test"),
-    Field("sample_id", "str|null", "sample under test"),
-    Field("grade", "str|null", "needle grade of the sample"),
-    Field("t_set", "float|null", "tension setpoint of the test, N"),
-    Field("t_end", "float|null", "planned test duration, s"),
-    Field("mu_ss", "float|null", "baseline friction coefficient μ_ss (null before the baseline)"),
-    Field("mu_th", "float|null", "end-of-life threshold μ_th = (1+δ)·μ_ss"),
-    Field("k_b", "int|null", "slot at which the baseline was established"),
-    Field("t_life", "float|null", "wear life found, s from test start (null until end of life)"),
-    Field("elapsed_s", "float", "time since test start, s"),
-    Field("status", "str|null", "the method's status once the test has ended"),
-    Field("end_reason", "str|null", "why the test ended (completed, protection stop, stopped by "
-          "command, gateway shutdown, …) or the start failed (§3a)"),
-    Field("alarm", "str", "end-of-life alarm, ISA-18.2 state: " + ", ".join(a.value for a in AlarmState)),
-    Field("protection_stop", "bool", "the test was stopped by the protection rule (§3)"),
-    Field("stopped", "bool", "the test was ended on purpose (STOPPED, §3: a command or a clean "
-          "shutdown), not by a dead meter"),
-    Field("headroom", "float|null", "wear headroom h of the last complete window with a value "
-          "(§5a): 1 at the baseline, 0 at the threshold, negative above; informative"),
-    Field("t_cross", "float|null", "projected time (s from test start) at which the recent trend "
-          "of μ reaches μ_th (§5a), from the last window with a value; null: no projection"),
-    Field("wear_warning", "bool", "the §5b early warning (the first due window) fired in this test"),
-    *FORECAST_STATE_FIELDS,
-    Field("warning_alarm", "str", "wear-warning alarm (priority 2), ISA-18.2 state: "
-          + ", ".join(a.value for a in AlarmState)),
-    Field("meter_ok", "bool", "the tension meter answers"),
-    Field("stm32_ok", "bool", "the motor controller answers"),
-    Field("disk_ok", "bool", "the test records and the MQTT outbox can be written (false: a full "
-          "or read-only disk; see the disk_full event)"),
-)
+def state_fields(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[Field, ...]:
+    """The fields of the retained `state`: the envelope, then every catalog row with an MQTT key
+    (gateway/core/catalog.py), in its order."""
+    return ENVELOPE + tuple(_field(v) for v in values if v.mqtt)
+
+
+STATE_FIELDS = state_fields()
 
 TELEMETRY_FIELDS = ENVELOPE + (
     Field("test_id", "str|null", "test running during this interval"),
@@ -599,18 +550,11 @@ def status_payload(session: int, t: float, station: str, status: str, software: 
             "status": status, "software": software, "map_version": map_version}
 
 
-def state_payload(seq: int, t: float, st: StationState) -> dict[str, Any]:
-    ts = st.state.name.lower() if isinstance(st.state, TestState) else str(st.state)
-    return {**_env(seq, t, st.station), "test_state": ts, "test_id": st.test_id,
-            "sample_id": st.sample_id, "grade": st.grade, "t_set": st.t_set, "t_end": st.t_end,
-            "mu_ss": st.mu_ss, "mu_th": st.mu_th, "k_b": st.k_b, "t_life": st.t_life,
-            "elapsed_s": round(float(st.elapsed_s), 3), "status": st.status,
-            "end_reason": st.end_reason, "alarm": st.alarm, "protection_stop": bool(st.protection_stop),
-            "stopped": bool(st.stopped), "headroom": st.headroom, "t_cross": st.t_cross,
-            "wear_warning": bool(st.wear_warning), **forecast_fields(st),
-            "warning_alarm": st.warning_alarm,
-            "meter_ok": bool(st.meter_ok), "stm32_ok": bool(st.stm32_ok),
-            "disk_ok": bool(st.disk_ok)}
+def state_payload(seq: int, t: float, st: StationState,
+                  values: tuple[catalog.Value, ...] = catalog.CATALOG) -> dict[str, Any]:
+    """The retained `state`: the envelope and every catalog row with an MQTT key, as its source
+    reads ``st``."""
+    return {**_env(seq, t, st.station), **{v.name: v.source(st) for v in values if v.mqtt}}
 
 
 def telemetry_payload(seq: int, t: float, station: str, agg: dict[str, Any]) -> dict[str, Any]:

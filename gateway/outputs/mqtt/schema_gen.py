@@ -13,10 +13,11 @@ import os
 import sys
 from typing import Any
 
+from ...core import catalog
 from ...core.command_intake import MAX_STRING_CHARS, REQUEST_ID_MAX, SAMPLE_ID_MAX
 from ...core.command_rules import REJECT_CODES
 from ...core.method.rules import REASON_NAMES
-from ...core.records import AlarmState, TestState
+from ...core.records import AlarmState
 from . import schema as S
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -31,9 +32,8 @@ TIME_OR_NULL = {"anyOf": [TIME, {"type": "null"}]}
 #: fields whose values are a closed set, per topic key (None: every topic)
 ENUMS: dict[tuple[str | None, str], list[Any]] = {
     ("status", "status"): ["online", "offline"],
-    ("state", "test_state"): [s.name.lower() for s in TestState],
-    ("state", "alarm"): [a.value for a in AlarmState],
-    ("state", "warning_alarm"): [a.value for a in AlarmState],
+    # the state's enumerations: the catalog's rows with their choices (gateway/core/catalog.py)
+    **{("state", v.name): list(v.choices) for v in catalog.CATALOG if v.mqtt and v.choices and v.type == "str"},
     ("alarm", "alarm"): ["end_of_life"],
     ("alarm", "state"): [a.value for a in AlarmState],
     ("alarm_warning", "state"): [a.value for a in AlarmState],

@@ -1,4 +1,4 @@
-"""What a station's MQTT output needs, built from its ``mqtt:`` section (gateway/outputs/wiring.py).
+"""What a station's MQTT output needs, built from its ``mqtt:`` section (gateway/outputs/registry.py).
 
 One definition read by the output (:mod:`.output`) and by each room of its transport: the pump
 (:mod:`.pump`), its delivery side (:mod:`.delivery`), what it receives
@@ -18,7 +18,7 @@ PROTOCOLS = ("auto", "5", "3.1.1")
 
 @dataclass
 class MqttSettings(BrokerSettings):
-    """What the MQTT output needs (built from a station's `mqtt:` section by wiring.py); the broker
+    """What the MQTT output needs (built from a station's `mqtt:` section by gateway/outputs/registry.py); the broker
     connection (host, port, credentials, TLS, back-off) is the shared :class:`BrokerSettings`."""
     station_id: str
     base_topic: str

@@ -25,11 +25,12 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
+from ...core import catalog
 from ...core.alarms import ALARMS, SHELVE_MAX_S
 from ...core.command_rules import REJECT_CODES, SAMPLE_ID_MAX, check_sample_id, check_t_end, check_t_set
 from ...core.method.rules import REASONS
 from ...core.ports import StationLimits
-from ...core.records import AlarmState, CommandKind, TestState
+from ...core.records import CommandKind
 from ...plumbing import safeout
 from .modbus_tcp.pdu import MAX_READ
 
@@ -128,29 +129,35 @@ def reserved(blocks: tuple[Block, ...], regs: tuple[Reg, ...]) -> list[tuple[Blo
     return out
 
 
-#: status bits (input register `status`)
-STATUS_BITS: tuple[tuple[int, str, str], ...] = (
+#: the status bits (input register `status`) of the door's own: composites of the state, the slot
+#: records and the client; the flags of the state are the catalog's rows with a bit
+_OWN_STATUS_BITS: tuple[tuple[int, str, str], ...] = (
     (0, "running", "a test is running (baseline search, monitoring or end of life)"),
     (1, "baseline_found", "the baseline μ_ss of the current test is established"),
     (2, "end_of_life", "end of life latched for the current / last test (until a new test starts)"),
     (3, "alarm_unacknowledged", "the end-of-life alarm is unacknowledged or rtn_unacknowledged (ISA-18.2)"),
-    (4, "protection_stop", "the last test was stopped by the protection rule"),
-    (5, "meter_ok", "the tension meter answers"),
-    (6, "stm32_ok", "the motor controller answers"),
     (7, "mqtt_connected", "the gateway is connected to the MQTT broker"),
     (8, "saturation", "the control output was clamped during the last second"),
     (9, "writes_enabled", "this client may write the holding registers"),
-    (10, "wear_warning", "the §5a early warning fired in the current / last test (informative; "
-     "until a new test starts)"),
-    (11, "stopped", "the last test was ended on purpose (operator, PLC, MES stop or a clean "
-     "shutdown): STOPPED, not a dead meter"),
     (12, "starting", "a start is in progress: zero check or spin-up before slot 0 (METHOD.md §3a)"),
-    (13, "disk_ok", "the test records and the MQTT outbox can be written (0: a full or read-only "
-     "disk; the station runs on, see docs/limits.md)"),
-    (14, "hook_due", "the hook is due (METHOD.md §5b): the last forecast window of the running test "
-     "is due (P ≥ p_due, a headroom run or a projected crossing within the lead); 0 outside a test "
-     "and once the end of life was detected (the end-of-life alarm speaks then)"),
 )
+
+
+def status_bits(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[tuple[int, str, str], ...]:
+    """The status bits in bit order: the door's own and each catalog row's (a bit taken twice
+    fails here, at import)."""
+    bits = list(_OWN_STATUS_BITS) + [(v.plc_bit.bit, v.plc_bit.name, v.plc_bit.doc)
+                                     for v in values if v.plc_bit is not None]
+    taken = [b for b, _, _ in bits]
+    if len(set(taken)) != len(taken):
+        raise ValueError(f"register map: a status bit taken twice in {sorted(taken)}")
+    return tuple(sorted(bits))
+
+
+#: status bits (input register `status`)
+STATUS_BITS = status_bits()
+#: the catalog's flags by their status bit's name
+STATUS_FLAGS = {v.plc_bit.name: v for v in catalog.CATALOG if v.plc_bit is not None}
 #: bits of the input register `warn_reasons`: the early warning's reasons (§5b) once it fired
 WARN_REASON_BITS: tuple[tuple[int, str, str], ...] = (
     (0, "headroom", "the headroom stayed under `h_warn` for `n_warn` windows (§5a)"),
@@ -158,9 +165,11 @@ WARN_REASON_BITS: tuple[tuple[int, str, str], ...] = (
     (2, "trend", "the recent trend reaches μ_th within the lead (§5a t_cross)"),
 )
 WARN_REASON_BIT = {name: bit for bit, name, _ in WARN_REASON_BITS}
+if tuple(n for _, n, _ in WARN_REASON_BITS) != catalog.WARN_REASONS:
+    raise ValueError("register map: the warn_reasons bits are not the catalog's reasons in their order")
 STATUS_BIT = {name: bit for bit, name, _ in STATUS_BITS}
 
-ALARM_STATES = tuple(a.value for a in AlarmState)
+ALARM_STATES = catalog.ALARM_STATES
 
 #: command codes (holding register `command`, input register `last_command`)
 COMMAND_CODES: tuple[tuple[int, str, str], ...] = (
@@ -185,6 +194,19 @@ ALARM_SELECT: tuple[str, ...] = tuple(ALARMS)
 #: the method reasons counted in block `reasons` (map 4.0), in their address order; a reason the
 #: method adds later is counted in block `reasons_more`, appended in the method's order (REASONS)
 REASONS_MAP4 = ("MISSING", "SATURATED", "LOW_TENSION", "JUMP", "RATIO_LOW", "RATIO_HIGH")
+
+
+#: the catalog's rows by their input register (gateway/core/catalog.py): the values the station's
+#: state fills
+CATALOG_REGS = {v.plc.name: v for v in catalog.CATALOG if v.plc is not None}
+
+
+def _cat(name: str) -> tuple[str, str, str, str]:
+    """The input register of the catalog's row whose register is ``name``, placed here among
+    the registers of its block (its address frozen)."""
+    p = CATALOG_REGS[name].plc
+    assert p is not None
+    return (p.name, p.type, p.unit, p.doc)
 
 
 def _reason_reg(name: str) -> tuple[str, str, str, str]:
@@ -215,67 +237,65 @@ INPUT_SPECS: dict[str, list[tuple[Any, ...]]] = {
         ("sw_major", "uint16", "", "gateway software version, major"),
         ("sw_minor", "uint16", "", "gateway software version, minor"),
         ("sw_patch", "uint16", "", "gateway software version, patch"),
-        ("test_state", "enum", "", "test state: " + ", ".join(f"{s.value} {s.name.lower()}" for s in TestState)),
+        _cat("test_state"),
         ("status", "bits", "", "status bits, see the table below"),
-        ("alarm", "enum", "", "end-of-life alarm: " + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
+        _cat("alarm"),
     ],
     "live": [
         ("t1", "float32", "N", "inlet tension T1 of the latest slot (NaN without a reading)"),
         ("t2", "float32", "N", "outlet tension T2 of the latest slot"),
         ("tension", "float32", "N", "mean tension (T1+T2)/2 of the latest slot"),
         ("mu", "float32", "", "μ of the latest valid slot within the last second (NaN if none)"),
-        ("mu_ss", "float32", "", "baseline μ_ss of the current / last test (NaN before the baseline)"),
-        ("mu_th", "float32", "", "end-of-life threshold μ_th (NaN before the baseline)"),
-        ("t_set", "float32", "N", "setpoint of the current / last test (NaN before the first test)"),
+        _cat("mu_ss"),
+        _cat("mu_th"),
+        _cat("t_set"),
         ("valid_ratio", "float32", "", "valid slots / slots of the current / last test (NaN outside)"),
         ("speed_cmd", "float32", "rpm", "speed command of the latest slot"),
         ("speed_act", "float32", "rpm", "actual speed reported by the STM32 (NaN if unknown)"),
-        ("t_life", "uint32", "s", "wear life found, s from test start, rounded (0 until end of life)"),
+        _cat("t_life"),
         ("elapsed", "uint32", "s", "time since the start of the current / last test"),
         ("slots", "uint32", "slots", "slots of the current / last test"),
         ("valid_slots", "uint32", "slots", "valid slots of the current / last test"),
     ],
     "reasons": [_reason_reg(n) for n in REASONS_MAP4],
-    "wear": [
-        ("headroom", "float32", "", "wear headroom h of the last complete window with a value "
-         "(METHOD.md §5a): 1 at the baseline, 0 at the threshold μ_th, negative above; NaN before the "
-         "first window after the baseline. Informative: never changes the result"),
-        ("t_cross", "uint32", "s", "projected time from test start at which the recent trend of μ "
-         "reaches μ_th (§5a), rounded; 0 = no projection. It assumes the trend goes on; the "
-         "accelerated stage usually comes sooner"),
-        ("warning_alarm", "enum", "", "wear-warning alarm (priority 2, below the end of life): "
-         + ", ".join(f"{i} {n}" for i, n in enumerate(ALARM_STATES))),
-    ],
+    "wear": [_cat("headroom"), _cat("t_cross"), _cat("warning_alarm")],
     "command": [
         ("last_command", "enum", "", "last command carried out or refused: "
          + ", ".join(f"{c} {n}" for c, n, _ in COMMAND_CODES)),
         ("last_result", "uint16", "", "result of the last command: 0 ok, else the rejection code (table below)"),
         ("command_count", "uint16", "", "commands processed (accepted or refused), wrapping at 65535"),
     ],
-    "run": [
-        ("run_sample_id", "string", "", f"sample ID of the current / last test, up to {SAMPLE_ID_MAX} ASCII "
-         "characters, two per register (first character in the high byte), padded with 0; empty "
-         "before the first test"),
-        ("run_test_id", "string80", "", f"test ID of the current / last test (its records folder, the "
-         f"`test_id` of its MQTT messages), up to {TEST_ID_REG_CHARS} ASCII characters as `run_sample_id`"),
-    ],
-    "forecast": [
-        *[(f"end_p{q}_left", "float32", "s", f"remaining time to the {q} % end quantile of the forecast "
-           "at the last forecast time (METHOD.md §5b): e_p − elapsed, at least 0; NaN without a prior, "
-           "outside a test and once the end of life was detected") for q in (10, 50, 90)],
-        ("p_end", "float32", "", "chance that the end comes within the lead (§5b P) at the last "
-         "forecast time; NaN without a prior, outside a test, after the end-of-life detection"),
-        ("warn_reasons", "bits", "", "the early warning's reasons once it fired in the running test "
-         "(status bit 10), see the table below; 0 before and outside a test"),
-        ("lead", "uint32", "s", "the lead the hook is judged against (§5b `lead`), s; 0 outside a test"),
-    ],
+    "run": [_cat("run_sample_id"), _cat("run_test_id")],
+    "forecast": [_cat("end_p10_left"), _cat("end_p50_left"), _cat("end_p90_left"), _cat("p_end"),
+                 _cat("warn_reasons"), _cat("lead")],
     "map": [
         ("map_minor", "uint16", "", f"minor version of this register map within the major `map_version` "
          f"({MAP_MINOR}): counts the registers added in reserved space; addresses never move within a major"),
     ],
     "reasons_more": [_reason_reg(n) for _, n in REASONS if n not in REASONS_MAP4],
 }
-INPUT_REGS = _layout(INPUT_BLOCKS, INPUT_SPECS)
+
+
+def input_specs(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> dict[str, list[tuple[Any, ...]]]:
+    """The registers of each input block in address order: :data:`INPUT_SPECS`, then each catalog
+    row's register that they do not place, appended at the end of its block in the catalog's order
+    (in the block's reserved space: no existing address moves)."""
+    specs = {b: list(rows) for b, rows in INPUT_SPECS.items()}
+    placed = {row[0] for rows in specs.values() for row in rows}
+    for v in values:
+        p = v.plc
+        if p is not None and p.name not in placed:
+            specs.setdefault(p.block, []).append((p.name, p.type, p.unit, p.doc))
+    return specs
+
+
+def input_layout(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[Reg, ...]:
+    """The input registers of :func:`input_specs` at their addresses (a block without room for
+    them fails here, at import)."""
+    return _layout(INPUT_BLOCKS, input_specs(values))
+
+
+INPUT_REGS = input_layout()
 
 #: command codes a PLC may write (all but 0 none and 4 setpoint, which is a write of `t_set`)
 _WRITABLE_CODES = [(c, n) for c, n, _ in COMMAND_CODES if n not in ("none", "setpoint")]
@@ -838,11 +858,11 @@ _RULE = ("addresses never move within a major map version: add a value at the en
          "engineers, with a new golden file")
 
 
-def golden_lines() -> list[str]:
+def golden_lines(input_regs: tuple[Reg, ...] | None = None) -> list[str]:
     """The current map as the lines of the golden file: one per register (table, block, address,
     count, type, unit, name), per bit (``bit``, register, bit, name), per command code."""
     out = ["\t".join((r.table, r.block, str(r.address), str(r.count), r.type, r.unit or "-", r.name))
-           for r in INPUT_REGS + HOLDING_REGS]
+           for r in (INPUT_REGS if input_regs is None else input_regs) + HOLDING_REGS]
     out += [f"bit\t{reg}\t{b}\t{n}" for reg, table in (("status", STATUS_BITS), ("warn_reasons", WARN_REASON_BITS))
             for b, n, _ in table]
     out += [f"code\tcommand\t{c}\t{n}" for c, n, _ in COMMAND_CODES]
@@ -862,12 +882,13 @@ def _parse(lines: list[str]) -> tuple[dict[tuple[str, str], list[str]], dict[tup
     return regs, marks
 
 
-def _compare(golden: str) -> tuple[list[str], list[str], list[tuple[int, int]]]:
+def _compare(golden: str, input_regs: tuple[Reg, ...] | None = None
+             ) -> tuple[list[str], list[str], list[tuple[int, int]]]:
     """(problems with the frozen entries, current lines not frozen yet, the frozen versions)."""
     versions = [(int(v.partition(".")[0]), int(v.partition(".")[2] or 0))
                 for v in (ln.split()[2] for ln in golden.splitlines() if ln.startswith("# map_version "))]
     regs, marks = _parse(golden.splitlines())
-    lines = golden_lines()
+    lines = golden_lines(input_regs)
     cur, cur_marks = _parse(lines)
     problems = []
     for key, g in regs.items():
@@ -912,11 +933,11 @@ def _compare(golden: str) -> tuple[list[str], list[str], list[tuple[int, int]]]:
     return problems, new, versions
 
 
-def frozen_problems(golden: str) -> list[str]:
-    """What keeps the current map from the frozen one (the golden file's text): moved, re-typed,
-    vanished or reused registers, bits and codes; additions not frozen yet; a minor version that
-    does not match. Empty when the map keeps every frozen address."""
-    problems, new, versions = _compare(golden)
+def frozen_problems(golden: str, input_regs: tuple[Reg, ...] | None = None) -> list[str]:
+    """What keeps the current map (or one with ``input_regs``) from the frozen one (the golden
+    file's text): moved, re-typed, vanished or reused registers, bits and codes; additions not
+    frozen yet; a minor version that does not match. Empty when the map keeps every frozen address."""
+    problems, new, versions = _compare(golden, input_regs)
     out = [f"PLC register map: {p}. {_RULE}" for p in problems]
     last = max((n for _, n in versions), default=0)
     if new:

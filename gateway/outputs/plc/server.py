@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ... import __version__
+from ...core import catalog
 from ...core.command_intake import intake, rejected_event_data
 from ...core.command_rules import CODE, Rejection, check_sample_id, reply_code
 from ...core.ports import CommandSink, StationLimits, StationView
@@ -287,6 +288,8 @@ class ModbusOutput:
         self._test = SlotWindow()
         #: refused writes and commands: one log line per kind per minute, with the count
         self.refusal_log = RateLog(log)
+        #: the state's values this output serves, by register (the catalog's rows with one)
+        self.catalog_regs = R.CATALOG_REGS
 
     source = "plc"
 
@@ -370,40 +373,26 @@ class ModbusOutput:
             "running": running, "baseline_found": st.mu_ss is not None,
             "end_of_life": st.t_life is not None,
             "alarm_unacknowledged": st.alarm in ("unacknowledged", "rtn_unacknowledged"),
-            "protection_stop": bool(st.protection_stop), "meter_ok": bool(st.meter_ok),
-            "stm32_ok": bool(st.stm32_ok), "mqtt_connected": bool(st.mqtt_ok),
-            "saturation": now - self._sat_t <= 1.0,
-            "wear_warning": bool(st.wear_warning), "stopped": bool(st.stopped),
+            "mqtt_connected": bool(st.mqtt_ok), "saturation": now - self._sat_t <= 1.0,
             "starting": st.state == TestState.STARTING,
-            "disk_ok": bool(st.disk_ok),
-            "hook_due": bool(st.due),
+            # the flags of the state: the catalog's rows with a status bit (gateway/core/catalog.py)
+            **{name: bool(row.source(st)) for name, row in R.STATUS_FLAGS.items()},
         }
-        v = {
+        v: dict[str, Any] = {
             "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION, "map_minor": R.MAP_MINOR,
             "sw_major": self._sw[0], "sw_minor": self._sw[1], "sw_patch": self._sw[2],
-            "test_state": int(st.state), "status": R.status_word(flags),
-            "alarm": R.ALARM_STATES.index(st.alarm) if st.alarm in R.ALARM_STATES else 0,
+            "status": R.status_word(flags),
             "t1": self._t1, "t2": self._t2, "tension": self._tension,
             "mu": self._mu if now - self._mu_t <= 1.0 else math.nan,
-            "mu_ss": st.mu_ss, "mu_th": st.mu_th, "t_set": st.t_set,
             "valid_ratio": w.n_valid / w.n if w.n else math.nan,
             "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
-            "t_life": st.t_life, "elapsed": self._elapsed, "slots": w.n,
-            "valid_slots": w.n_valid, "headroom": st.headroom, "t_cross": st.t_cross,
-            "run_sample_id": st.sample_id or "", "run_test_id": st.test_id or "",
-            "warning_alarm": (R.ALARM_STATES.index(st.warning_alarm)
-                              if st.warning_alarm in R.ALARM_STATES else 0),
+            "elapsed": self._elapsed, "slots": w.n, "valid_slots": w.n_valid,
         }
         for name, c in w.reason_counts().items():
             v[f"count_{name.lower()}"] = c
-        # §5b: the remaining time to each end quantile, as the forecast stood at its last window
-        el = float(st.elapsed_s)
-        for q, e in ((10, st.end_p10), (50, st.end_p50), (90, st.end_p90)):
-            v[f"end_p{q}_left"] = max(0.0, e - el) if e is not None else math.nan
-        v["p_end"] = st.p_end
-        v["warn_reasons"] = sum(1 << R.WARN_REASON_BIT[r] for r in st.warn_reasons
-                                if r in R.WARN_REASON_BIT)
-        v["lead"] = st.lead_s if st.lead_s is not None and running else 0
+        # the values of the station's state: the catalog's rows (gateway/core/catalog.py)
+        for name, row in self.catalog_regs.items():
+            v[name] = catalog.plc_number(row, st)
         return v
 
     def _update(self, now: float | None = None, force: bool = False) -> None:

@@ -18,8 +18,9 @@ Four modules, one job each (docs/metrics.md lists every metric):
   ``metrics.connections``). A port in use is a state (one log line, retried every
   :data:`RETRY_S`), never a crash; the slot loop never waits for a scrape.
 
-Snapshot shape (``SNAPSHOT_VERSION`` 1; every value a JSON number, string, bool, null, list or
-object)::
+Snapshot shape (``SNAPSHOT_VERSION`` 2; every value a JSON number, string, bool, null, list or
+object; the values of the station's state are the catalog's rows with a gauge, by their names:
+gateway/core/catalog.py)::
 
     {"v": 1, "station": "loom-01", "time": 1764000000.0,         # wall clock of the snapshot
      "ts": 0.02,                                                 # the slot period, s
@@ -33,10 +34,12 @@ object)::
      "outbox": {"messages": 12 | null, "oldest_age_s": 3.5 | null,   # null: file unreadable
                 "dropped_telemetry": 0} | null,
      "plc": {"listen": "127.0.0.1:5020", "listening": true, "counters": {"reads": 9, ...}} | null,
-     "state": "monitoring", "test_running": true, "alarm": "normal",
-     "mu": 0.21 | null, "mu_ss": 0.2 | null, "mu_th": 0.25 | null,
-     "headroom": 0.4 | null, "t_cross": 5400.0 | null, "warning": false,    # METHOD.md §5a
-     "events": {"port_lost": 1, ...}}
+     "mu": 0.21 | null,                                          # the last valid slot's μ
+     "events": {"port_lost": 1, ...}, "records_pruned": {"tests": 0, "bytes": 0},
+     "test_state": "monitoring", "test_running": true, "alarm": "normal",   # the catalog's rows
+     "mu_ss": 0.2 | null, "mu_th": 0.25 | null, "headroom": 0.4 | null,
+     "t_cross": 5400.0 | null, "wear_warning": false, "p_end": 0.2 | null, "due": false,
+     "lead_s": 600.0 | null, "disk_ok": true, "end_p10_left": 120.0 | null, ...}
 
 Process-wide figures (not per station): :func:`set_console_clients` (the console sets it) and
 the PLC server counters (a Modbus TCP server may serve several stations; labelled by ``listen``).

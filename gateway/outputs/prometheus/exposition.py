@@ -12,9 +12,9 @@ from prometheus_client.exposition import generate_latest
 from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily, Metric
 
 from ... import __version__
-from ...core.records import AlarmState, TestState
+from ...core import catalog
 from ..sparkplug.runtime import node_figures
-from .figures import _PROCESS, OPERATION_KINDS
+from .figures import _PROCESS, GAUGES, OPERATION_KINDS
 
 log = logging.getLogger("hookwatch.metrics")
 
@@ -107,27 +107,11 @@ def families(snapshots: list[dict], *, console_clients: int | None = None,
             plc_req.add_metric([pl["listen"], kind], float(v))
     out += [plc_req, plc_up]
 
-    state = GaugeMetricFamily(f"{p}_station_state", "the station's test state (1 for the current "
-                              "one)", labels=["station", "state"])
-    running = GaugeMetricFamily(f"{p}_test_running", "1 while a test runs", labels=["station"])
-    warning = GaugeMetricFamily(f"{p}_wear_warning", "1 once the test's early wear warning fired "
-                                "(METHOD.md §5a)", labels=["station"])
-    alarm = GaugeMetricFamily(f"{p}_alarm", "end-of-life alarm state (1 for the current one)",
-                              labels=["station", "alarm"])
     events = CounterMetricFamily(f"{p}_events", "station events by type", labels=["station", "type"])
-    disk = GaugeMetricFamily(f"{p}_disk_ok", "1 when the test records and the MQTT outbox can be "
-                             "written (0: a full or read-only disk)", labels=["station"])
     for s in snapshots:
-        for ts_ in TestState:
-            state.add_metric([s["station"], ts_.name.lower()], 1.0 if s["state"] == ts_.name.lower() else 0.0)
-        running.add_metric([s["station"]], 1.0 if s["test_running"] else 0.0)
-        warning.add_metric([s["station"]], 1.0 if s.get("warning") else 0.0)
-        for a in (x.value for x in AlarmState):
-            alarm.add_metric([s["station"], a], 1.0 if s["alarm"] == a else 0.0)
         for t, v in sorted(s["events"].items()):
             events.add_metric([s["station"], t], float(v))
-        disk.add_metric([s["station"]], 1.0 if s.get("disk_ok", True) else 0.0)
-    out += [state, running, warning, alarm, events, disk]
+    out.append(events)
 
     pr_tests = CounterMetricFamily(f"{p}_records_pruned_tests", "completed tests removed by record "
                                    "retention (recorder.retention)", labels=["station"])
@@ -149,21 +133,14 @@ def families(snapshots: list[dict], *, console_clients: int | None = None,
             restarts.add_metric([s["station"]], float(s["restarts"]))
     out += [sup, restarts]
 
-    for key, name, doc in (("mu", "mu", "last valid friction coefficient μ of the running test"),
-                           ("mu_ss", "mu_ss", "steady baseline μ_ss of the running test"),
-                           ("mu_th", "mu_threshold", "end-of-life threshold (1+δ)·μ_ss"),
-                           ("headroom", "wear_headroom", "wear headroom h of the last window "
-                            "(METHOD.md §5a): 1 at the baseline, 0 at the threshold"),
-                           ("t_cross", "wear_projected_end_seconds", "test time at which the recent "
-                            "μ trend reaches the threshold (METHOD.md §5a projection)")):
-        g = GaugeMetricFamily(f"{p}_{name}", doc, labels=["station"])
-        for s in snapshots:
-            v = s.get(key)
-            if v is not None and math.isfinite(v):
-                g.add_metric([s["station"]], float(v))
-        out.append(g)
-
-    out += forecast_families(p, snapshots)
+    mu = GaugeMetricFamily(f"{p}_mu", "last valid friction coefficient μ of the running test",
+                           labels=["station"])
+    for s in snapshots:
+        v = s.get("mu")
+        if v is not None and math.isfinite(v):
+            mu.add_metric([s["station"]], float(v))
+    out.append(mu)
+    out += state_families(p, snapshots)
 
     if console_clients is not None:
         out.append(GaugeMetricFamily(f"{p}_console_clients", "clients connected to the web console",
@@ -222,34 +199,27 @@ def render(registry: CollectorRegistry) -> bytes:
     return generate_latest(registry)
 
 
-def forecast_families(p: str, snapshots: list[dict[str, Any]]) -> list[Any]:
-    """The §5b remaining-life metrics (METHOD.md): remaining seconds to each end quantile, P, the
-    lead and a due gauge (the alerting rule in deploy/prometheus/ fires on it)."""
-    out: list[Any] = []
-    for q in (10, 50, 90):
-        g = GaugeMetricFamily(f"{p}_end_p{q}_seconds", f"remaining time to the {q} % end quantile "
-                              "of the hook's life forecast at its last forecast time (METHOD.md "
-                              "§5b); absent without a prior, outside a test and once the end of "
-                              "life was detected", labels=["station"])
+def state_families(p: str, snapshots: list[dict[str, Any]],
+                   values: tuple[catalog.Value, ...] = GAUGES) -> list[Metric]:
+    """A gauge per catalog row with one (gateway/core/catalog.py), from the snapshots' values: a
+    flag 1 or 0; a number when there is one (absent while it is null or not finite); an
+    enumeration one gauge per choice, labelled, 1 for the current one."""
+    out: list[Metric] = []
+    for v in values:
+        g = v.prometheus
+        assert g is not None
+        fam = GaugeMetricFamily(f"{p}_{g.name}", g.help, labels=["station", g.label] if g.label else ["station"])
         for s in snapshots:
-            v = s.get(f"end_p{q}_left")
-            if v is not None and math.isfinite(v):
-                g.add_metric([s["station"]], float(v))
-        out.append(g)
-    pe = GaugeMetricFamily(f"{p}_end_within_lead_probability", "chance that the hook's end comes "
-                           "within the lead (METHOD.md §5b P)", labels=["station"])
-    lead = GaugeMetricFamily(f"{p}_lead_seconds", "the planner's lead the hook is judged against "
-                             "(METHOD.md §5b)", labels=["station"])
-    due = GaugeMetricFamily(f"{p}_hook_due", "1 while the last forecast window of the running test "
-                            "is due (METHOD.md §5b: P ≥ p_due, a headroom run or a projected "
-                            "crossing within the lead)", labels=["station"])
-    for s in snapshots:
-        if s.get("p_end") is not None and math.isfinite(s["p_end"]):
-            pe.add_metric([s["station"]], float(s["p_end"]))
-        if s.get("lead_s") is not None:
-            lead.add_metric([s["station"]], float(s["lead_s"]))
-        due.add_metric([s["station"]], 1.0 if s.get("due") else 0.0)
-    return out + [pe, lead, due]
+            x = s.get(v.name)
+            if g.label:
+                for c in v.choices:
+                    fam.add_metric([s["station"], c], 1.0 if x == c else 0.0)
+            elif v.base_type == "bool":
+                fam.add_metric([s["station"]], 1.0 if x else 0.0)
+            elif isinstance(x, (int, float)) and math.isfinite(x):
+                fam.add_metric([s["station"]], float(x))
+        out.append(fam)
+    return out
 
 
 def sparkplug_families(p: str, nodes: list[dict[str, Any]]) -> list[Any]:

@@ -17,11 +17,14 @@ from bisect import bisect_left
 from collections.abc import Callable
 from typing import Any
 
+from ...core import catalog
 from ...core.records import StationState, TestState
 from ...core.slotwindow import SlotWindow
 from ..plc.server import ModbusOutput
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2     # 2: the state's values under their catalog names (test_state, wear_warning, …)
+#: the catalog's rows a station's snapshot carries and the exposition shows (a gauge each)
+GAUGES = tuple(v for v in catalog.CATALOG if v.prometheus is not None)
 
 #: slot lateness buckets, s: a poll that starts > 10 ms (ts/2 at 50 Hz) late is an overrun
 LATENESS_BUCKETS_S = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.010)
@@ -61,9 +64,8 @@ class Histogram:
 
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
-    __slots__ = ("station", "life", "overruns", "lateness", "rtt", "mu", "mu_ss",
-                 "mu_th", "headroom", "t_cross", "warning", "state", "alarm", "events", "disk_ok",
-                 "pruned_tests", "pruned_bytes", "forecast")
+    __slots__ = ("station", "life", "overruns", "lateness", "rtt", "mu", "events",
+                 "pruned_tests", "pruned_bytes", "values")
 
     def __init__(self, station: str):
         self.station = station
@@ -73,18 +75,10 @@ class StationFigures:
         self.lateness = Histogram(LATENESS_BUCKETS_S)
         self.rtt = Histogram(RTT_BUCKETS_S)
         self.mu: float | None = None
-        self.mu_ss: float | None = None
-        self.mu_th: float | None = None
-        self.headroom: float | None = None
-        self.t_cross: float | None = None
-        self.warning = False
-        self.disk_ok = True
-        self.state = TestState.IDLE
-        self.alarm = "normal"
         self.events: dict[str, int] = {}
         self.pruned_tests = self.pruned_bytes = 0     # record retention (records_pruned events)
-        #: the §5b forecast as the state last had it (forecast_figures)
-        self.forecast: dict[str, Any] = {}
+        #: the catalog's values with a gauge as the station's state last had them
+        self.values: dict[str, catalog.Reading] = state_figures(StationState(station=station))
 
 
 _FIGURES: dict[str, StationFigures] = {}
@@ -159,17 +153,13 @@ def plc_figures(modbus: ModbusOutput | None) -> dict[str, Any] | None:
 def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: dict[str, Any],
                      outbox: dict[str, Any] | None, plc: dict[str, Any] | None) -> dict[str, Any]:
     """A snapshot (the shape in the module docstring) of ``f`` and the given link figures."""
-    state = f.state
     return {
         "v": SNAPSHOT_VERSION, "station": station_id, "time": time.time(), "ts": ts,
         "slots": f.life.n, "filled": f.life.n_present, "overruns": f.overruns,
         "lateness_s": f.lateness.snapshot(), "rtt_s": f.rtt.snapshot(),
         "links": links, "outbox": outbox, "plc": plc,
-        "state": state.name.lower(), "test_running": state in _RUNNING, "alarm": f.alarm,
-        "mu": f.mu, "mu_ss": f.mu_ss, "mu_th": f.mu_th, "headroom": f.headroom,
-        "t_cross": f.t_cross, "warning": f.warning,
-        "events": dict(f.events), "disk_ok": f.disk_ok,
-        "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes}, **f.forecast,
+        "mu": f.mu, "events": dict(f.events),
+        "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes}, **f.values,
     }
 
 
@@ -193,11 +183,7 @@ def set_config_source(fn: Callable[[], dict[str, Any]] | None) -> None:
     _PROCESS.config = fn
 
 
-def forecast_figures(st: StationState) -> dict[str, Any]:
-    """The §5b figures of a snapshot (METHOD.md): the remaining time to each end quantile of the
-    last forecast time (s, at least 0; null without one), P, the due flag and the lead."""
-    el = float(st.elapsed_s)
-    out: dict[str, Any] = {f"end_p{q}_left": (max(0.0, e - el) if e is not None else None)
-                           for q, e in ((10, st.end_p10), (50, st.end_p50), (90, st.end_p90))}
-    out.update(p_end=st.p_end, due=bool(st.due), lead_s=st.lead_s)
-    return out
+def state_figures(st: StationState, values: tuple[catalog.Value, ...] = GAUGES) -> dict[str, catalog.Reading]:
+    """The snapshot's values of the station's state: every catalog row with a gauge
+    (gateway/core/catalog.py), as its source reads ``st``."""
+    return catalog.read(values, st)

@@ -17,8 +17,8 @@ from .figures import (
     _counters,
     figures_for,
     figures_snapshot,
-    forecast_figures,
     plc_figures,
+    state_figures,
 )
 from .http import Endpoint, EndpointSource
 
@@ -84,14 +84,7 @@ class MetricsOutput(EndpointSource):
 
     def on_state(self, st: StationState) -> None:
         f = self.f
-        f.state, f.alarm = st.state, st.alarm
-        f.mu_ss, f.mu_th = st.mu_ss, st.mu_th
-        # METHOD.md §5a figures, once the station state carries them
-        f.headroom = st.headroom
-        f.t_cross = st.t_cross
-        f.warning = bool(st.wear_warning)
-        f.forecast = forecast_figures(st)
-        f.disk_ok = bool(st.disk_ok)
+        f.values = state_figures(st)
         if st.state not in _RUNNING:
             f.mu = None
 

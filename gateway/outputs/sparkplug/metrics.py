@@ -10,6 +10,8 @@ import enum
 import zlib
 from dataclasses import dataclass
 
+from ...core import catalog
+
 
 class DataType(enum.IntEnum):
     """Sparkplug B datatypes (the index table of sparkplug_b.proto)."""
@@ -76,21 +78,28 @@ ARG_DURATION = "Device Control/Shelve Duration"
 ARG_REQUEST_ID = "Device Control/Request ID"
 ARG_TEST_ID = "Device Control/Test ID"
 
-#: the forecast's metrics (METHOD.md §5a, §5b, §7a)
-FC_STARTED = "Test/Started"
-FC_P10 = "Forecast/End P10"
-FC_P50 = "Forecast/End P50"
-FC_P90 = "Forecast/End P90"
-FC_P_END = "Forecast/P End"
-FC_DUE = "Forecast/Due"
-FC_HEADROOM = "Forecast/Headroom"
-FC_T_CROSS = "Forecast/t_cross"
-FC_WARNING = "Forecast/Warning"
-FC_REASONS = "Forecast/Warning Reasons"
-FC_PRIOR_MEAN = "Forecast/Prior Mean"
-FC_PRIOR_SD = "Forecast/Prior SD"
-FC_PRIOR_SOURCE = "Forecast/Prior Source"
-FC_LEAD = "Forecast/Lead"
+def _metric_of(value: str) -> str:
+    """The Sparkplug name of the catalog's row ``value`` (gateway/core/catalog.py)."""
+    sp = catalog.BY_NAME[value].sparkplug
+    assert sp is not None
+    return sp.name
+
+
+#: the forecast's metrics (METHOD.md §5a, §5b, §7a): the catalog's rows, by their Sparkplug names
+FC_STARTED = _metric_of("test_started_utc")
+FC_P10 = _metric_of("end_p10")
+FC_P50 = _metric_of("end_p50")
+FC_P90 = _metric_of("end_p90")
+FC_P_END = _metric_of("p_end")
+FC_DUE = _metric_of("due")
+FC_HEADROOM = _metric_of("headroom")
+FC_T_CROSS = _metric_of("t_cross")
+FC_WARNING = _metric_of("wear_warning")
+FC_REASONS = _metric_of("warn_reasons")
+FC_PRIOR_MEAN = _metric_of("prior_mean")
+FC_PRIOR_SD = _metric_of("prior_sd")
+FC_PRIOR_SOURCE = _metric_of("prior_source")
+FC_LEAD = _metric_of("lead_s")
 
 #: the station's alarms as Sparkplug metric folders: ISA-18.2 name (gateway.core.alarms.ALARMS) → folder
 ALARM_FOLDERS = {"end_of_life": "Alarm/End Of Life", "wear_warning": "Alarm/Wear Warning"}
@@ -121,100 +130,107 @@ def _shelved_metric(name: str) -> MetricDef:
     return MetricDef(f"{ALARM_FOLDERS[name]}/Shelved Until", DataType.DateTime, "ms",
                      "UTC time (ms since the epoch) the shelving expires; null unless shelved")
 
-DEVICE_METRICS: tuple[MetricDef, ...] = (
-    MetricDef("Test/State", DataType.String, description="idle | starting | baseline_search | monitoring | "
-              "end_of_life | completed | aborted"),
-    MetricDef("Test/ID", DataType.String),
-    MetricDef("Test/Sample ID", DataType.String),
-    MetricDef("Test/Grade", DataType.String),
-    MetricDef("Test/Setpoint", DataType.Float, "N", "mean tension setpoint t_set"),
-    MetricDef("Test/Planned End", DataType.Double, "s", "planned test duration t_end"),
-    MetricDef("Test/Elapsed", DataType.Double, "s", "time since the test started"),
-    MetricDef("Test/Status", DataType.String, description="the method's status once the test ended: "
-              "failure | no_failure | no_baseline | aborted"),
-    MetricDef("Test/End Reason", DataType.String),
-    MetricDef("Method/mu_ss", DataType.Double, "", "steady-state friction coefficient μ_ss"),
-    MetricDef("Method/mu_th", DataType.Double, "", "end-of-life threshold (1+δ)·μ_ss"),
-    MetricDef("Method/t_life", DataType.Double, "s", "wear life: start of the persistent exceedance"),
-    *_alarm_metrics("end_of_life", "end-of-life"),
-    MetricDef("Status/Protection Stop", DataType.Boolean),
-    MetricDef("Status/Meter OK", DataType.Boolean, description="Modbus RTU link to the tension meter"),
-    MetricDef("Status/STM32 OK", DataType.Boolean, description="serial link to the motor controller"),
-    MetricDef("Tension/T1", DataType.Float, "N", "inlet tension, interval mean", telemetry=True),
-    MetricDef("Tension/T2", DataType.Float, "N", "outlet tension, interval mean", telemetry=True),
-    MetricDef("Tension/Mean", DataType.Float, "N", "(T1+T2)/2, interval mean", telemetry=True),
-    MetricDef("Friction/mu", DataType.Double, "", "capstan μ = ln(T2/T1)/θ over valid slots, interval mean",
-              telemetry=True),
-    MetricDef("Quality/Valid Ratio", DataType.Double, "", "valid slots / slots in the interval",
-              telemetry=True),
-    MetricDef("Control/Speed Command", DataType.Float, "rpm", telemetry=True),
-    MetricDef("Control/Speed Actual", DataType.Float, "rpm", telemetry=True),
-    MetricDef("Control/Saturation", DataType.Boolean, description="control output clamped in the interval",
-              telemetry=True),
-    MetricDef("Device Control/Last Command", DataType.String,
-              description="the last command received over DCMD and its outcome"),
-    MetricDef("Device Control/Last Result Code", DataType.Int32,
-              description="0 accepted, else the rejection code (docs/mqtt.md)"),
-    MetricDef(START, DataType.Boolean, description="write true (with the argument metrics) to start a test",
-              writable=True),
-    MetricDef(STOP, DataType.Boolean, description="write true to stop the running test (with `Device "
-              "Control/Test ID`: that test only)", writable=True),
-    MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the unacknowledged alarms (end "
-              "of life and wear warning)", writable=True),
-    MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is replaced "
-              "(optional `Device Control/Sample ID` / `Grade`: the new hook's; the running test ends, "
-              "the replacement is logged)", writable=True),
-    MetricDef(ARG_SAMPLE_ID, DataType.String, description="start and hook-replaced argument: sample ID",
-              writable=True),
-    MetricDef(ARG_GRADE, DataType.String, description="start and hook-replaced argument: needle grade",
-              writable=True),
-    MetricDef(ARG_T_SET, DataType.Float, "N", "start argument: setpoint", writable=True),
-    MetricDef(ARG_T_END, DataType.Double, "s", "start argument: planned duration", writable=True),
-    MetricDef(OUT_OF_SERVICE, DataType.Boolean, description="write true to take the alarms out of service "
-              "(ISA-18.2) while a needle is being changed", writable=True),
-    MetricDef(IN_SERVICE, DataType.Boolean, description="write true to return the alarms to service",
-              writable=True),
-    # appended after the metrics above so that their aliases (base + index) stay what they were
-    *_alarm_metrics("wear_warning", "wear-warning (§5a early warning)"),
-    _shelved_metric("end_of_life"),
-    _shelved_metric("wear_warning"),
-    MetricDef(SHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm` and `Device "
-              "Control/Shelve Duration`) to shelve one annunciated alarm (ISA-18.2)", writable=True),
-    MetricDef(UNSHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm`) to end the "
-              "shelving of one alarm", writable=True),
-    MetricDef(ARG_ALARM, DataType.String, description="shelve / unshelve argument: `end_of_life` or "
-              "`wear_warning`", writable=True),
-    MetricDef(ARG_DURATION, DataType.Double, "s", "shelve argument: how long, (0, 43200] s", writable=True),
-    # the §5a/§5b/§7a forecast (METHOD.md), appended so that the aliases above stay what they were;
-    # the projections are null outside a test and once the end of life was detected
-    MetricDef(FC_STARTED, DataType.DateTime, "ms", "UTC time of the test's slot 0 (ms since the "
-              "epoch): the forecast's times are seconds from it"),
-    MetricDef(FC_P10, DataType.Double, "s", "end of life, 10 % quantile of the forecast from the "
-              "life prior at the last forecast time (§5b), s from slot 0"),
-    MetricDef(FC_P50, DataType.Double, "s", "end of life, median of that forecast, s from slot 0"),
-    MetricDef(FC_P90, DataType.Double, "s", "end of life, 90 % quantile, s from slot 0"),
-    MetricDef(FC_P_END, DataType.Double, "", "chance that the end comes within the lead (§5b P)"),
-    MetricDef(FC_DUE, DataType.Boolean, description="the last forecast window is due (§5b)"),
-    MetricDef(FC_HEADROOM, DataType.Double, "", "wear headroom h of the last window with a value (§5a)"),
-    MetricDef(FC_T_CROSS, DataType.Double, "s", "projected crossing of μ_th, s from slot 0 (§5a)"),
-    MetricDef(FC_WARNING, DataType.Boolean, description="the early warning (the first due window) "
-              "fired in this test"),
-    MetricDef(FC_REASONS, DataType.String, description="its reasons, sorted, comma-separated "
-              "(headroom, prior, trend); empty before"),
-    MetricDef(FC_PRIOR_MEAN, DataType.Double, "s", "the test's life prior, mean (§7a)"),
-    MetricDef(FC_PRIOR_SD, DataType.Double, "s", "the test's life prior, SD"),
-    MetricDef(FC_PRIOR_SOURCE, DataType.String, description="method | config | history:N (empty: "
-              "no prior)"),
-    MetricDef(FC_LEAD, DataType.Double, "s", "the planner's lead the hook is judged against (§5b)"),
-    # appended so that the aliases above stay what they were
-    MetricDef(ARG_REQUEST_ID, DataType.String, description="any command's argument: the host's id "
-              "of the request (1–64 printable ASCII); a DCMD repeated with the same id within 600 s "
-              "is answered again and not carried out again (docs/limits.md)", writable=True),
-    MetricDef(ARG_TEST_ID, DataType.String, description="stop argument: the test to stop (its "
-              "`Test/ID`); a stop naming a test that is not the running one is refused (15 "
-              "WRONG_TEST) and stops nothing", writable=True),
-)
+def _at(index: int, defs: tuple[MetricDef, ...]) -> dict[int, MetricDef]:
+    return {index + i: d for i, d in enumerate(defs)}
 
+
+#: the device's own metrics, each at its fixed alias index: the alarms' folders (from the station's
+#: alarm store), the data interval's figures (from the slot records) and the controls; the metrics
+#: that follow the station's state are the catalog's rows (gateway/core/catalog.py), each at the
+#: alias index its row names. Aliases are base + index: an index is never reused or changed (data
+#: stored before a restart keeps its meaning), a new metric takes the next free one.
+DEVICE_OWN: dict[int, MetricDef] = {
+    **_at(12, _alarm_metrics("end_of_life", "end-of-life")),
+    **_at(18, (
+        MetricDef("Tension/T1", DataType.Float, "N", "inlet tension, interval mean", telemetry=True),
+        MetricDef("Tension/T2", DataType.Float, "N", "outlet tension, interval mean", telemetry=True),
+        MetricDef("Tension/Mean", DataType.Float, "N", "(T1+T2)/2, interval mean", telemetry=True),
+        MetricDef("Friction/mu", DataType.Double, "", "capstan μ = ln(T2/T1)/θ over valid slots, "
+                  "interval mean", telemetry=True),
+        MetricDef("Quality/Valid Ratio", DataType.Double, "", "valid slots / slots in the interval",
+                  telemetry=True),
+        MetricDef("Control/Speed Command", DataType.Float, "rpm", telemetry=True),
+        MetricDef("Control/Speed Actual", DataType.Float, "rpm", telemetry=True),
+        MetricDef("Control/Saturation", DataType.Boolean, description="control output clamped in "
+                  "the interval", telemetry=True),
+        MetricDef("Device Control/Last Command", DataType.String,
+                  description="the last command received over DCMD and its outcome"),
+        MetricDef("Device Control/Last Result Code", DataType.Int32,
+                  description="0 accepted, else the rejection code (docs/mqtt.md)"),
+        MetricDef(START, DataType.Boolean, description="write true (with the argument metrics) to "
+                  "start a test", writable=True),
+        MetricDef(STOP, DataType.Boolean, description="write true to stop the running test (with "
+                  "`Device Control/Test ID`: that test only)", writable=True),
+        MetricDef(ACK, DataType.Boolean, description="write true to acknowledge the unacknowledged "
+                  "alarms (end of life and wear warning)", writable=True),
+        MetricDef(HOOK_REPLACED, DataType.Boolean, description="write true once the worn hook is "
+                  "replaced (optional `Device Control/Sample ID` / `Grade`: the new hook's; the "
+                  "running test ends, the replacement is logged)", writable=True),
+        MetricDef(ARG_SAMPLE_ID, DataType.String, description="start and hook-replaced argument: "
+                  "sample ID", writable=True),
+        MetricDef(ARG_GRADE, DataType.String, description="start and hook-replaced argument: needle "
+                  "grade", writable=True),
+        MetricDef(ARG_T_SET, DataType.Float, "N", "start argument: setpoint", writable=True),
+        MetricDef(ARG_T_END, DataType.Double, "s", "start argument: planned duration", writable=True),
+        MetricDef(OUT_OF_SERVICE, DataType.Boolean, description="write true to take the alarms out of "
+                  "service (ISA-18.2) while a needle is being changed", writable=True),
+        MetricDef(IN_SERVICE, DataType.Boolean, description="write true to return the alarms to "
+                  "service", writable=True),
+    )),
+    **_at(38, (
+        *_alarm_metrics("wear_warning", "wear-warning (§5a early warning)"),
+        _shelved_metric("end_of_life"),
+        _shelved_metric("wear_warning"),
+        MetricDef(SHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm` and "
+                  "`Device Control/Shelve Duration`) to shelve one annunciated alarm (ISA-18.2)",
+                  writable=True),
+        MetricDef(UNSHELVE, DataType.Boolean, description="write true (with `Device Control/Alarm`) "
+                  "to end the shelving of one alarm", writable=True),
+        MetricDef(ARG_ALARM, DataType.String, description="shelve / unshelve argument: `end_of_life` "
+                  "or `wear_warning`", writable=True),
+        MetricDef(ARG_DURATION, DataType.Double, "s", "shelve argument: how long, (0, 43200] s",
+                  writable=True),
+    )),
+    **_at(61, (
+        MetricDef(ARG_REQUEST_ID, DataType.String, description="any command's argument: the host's "
+                  "id of the request (1–64 printable ASCII); a DCMD repeated with the same id within "
+                  "600 s is answered again and not carried out again (docs/limits.md)", writable=True),
+        MetricDef(ARG_TEST_ID, DataType.String, description="stop argument: the test to stop (its "
+                  "`Test/ID`); a stop naming a test that is not the running one is refused (15 "
+                  "WRONG_TEST) and stops nothing", writable=True),
+    )),
+}
+
+
+def state_metric(v: catalog.Value) -> MetricDef:
+    """The device metric of a catalog row (its Sparkplug name, datatype, units, description)."""
+    sp = v.sparkplug
+    assert sp is not None
+    return MetricDef(sp.name, DataType[sp.datatype], sp.units, sp.description)
+
+
+def device_metrics(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[MetricDef, ...]:
+    """A device's metrics in alias order: :data:`DEVICE_OWN` and the catalog's rows, each at its
+    index. A row on an index already taken, or a gap, fails here (at import)."""
+    by_index = dict(DEVICE_OWN)
+    for v in values:
+        if v.sparkplug is None:
+            continue
+        if v.sparkplug.alias in by_index:
+            raise ValueError(f"Sparkplug alias index {v.sparkplug.alias} of {v.name} is taken by "
+                             f"{by_index[v.sparkplug.alias].name}: a new metric takes the next free one "
+                             f"({max(by_index) + 1})")
+        by_index[v.sparkplug.alias] = state_metric(v)
+    if sorted(by_index) != list(range(len(by_index))):
+        missing = sorted(set(range(max(by_index) + 1)) - set(by_index))
+        raise ValueError(f"Sparkplug device metrics: no metric at alias index {missing}")
+    return tuple(by_index[i] for i in range(len(by_index)))
+
+
+#: the catalog's rows a device publishes (its state's metrics), and their metrics by the rows' names
+STATE_VALUES = tuple(v for v in catalog.CATALOG if v.sparkplug is not None)
+STATE_METRIC = {v.name: _metric_of(v.name) for v in STATE_VALUES}
+DEVICE_METRICS: tuple[MetricDef, ...] = device_metrics()
 NODE_BY_NAME = {m.name: m for m in NODE_METRICS}
 DEVICE_BY_NAME = {m.name: m for m in DEVICE_METRICS}
 

@@ -13,6 +13,7 @@ import logging
 import time
 from typing import Any
 
+from ...core import catalog
 from ...core.alarms import ALARMS, ANNUNCIATED, AlarmState, from_station
 from ...core.ports import StationView
 from ...core.records import Event, EventType, SlotRecord, StationState
@@ -42,37 +43,41 @@ def _shelved_until(station: StationView | None, name: str) -> float | None:
     return station.alarms.shelved_until(name) if station is not None else None
 
 
-def state_values(st: StationState, station: StationView | None = None) -> dict[str, Any]:
-    """The device metrics that follow the station's state (the shelving expiries from ``station``'s
-    alarm store, when given)."""
-    return {
-        "Test/State": st.state.name.lower(), "Test/ID": st.test_id, "Test/Sample ID": st.sample_id,
-        "Test/Grade": st.grade, "Test/Setpoint": st.t_set, "Test/Planned End": st.t_end,
-        "Test/Status": st.status, "Test/End Reason": st.end_reason,
-        "Method/mu_ss": st.mu_ss, "Method/mu_th": st.mu_th, "Method/t_life": st.t_life,
-        **_alarm_values("end_of_life", st.alarm, _shelved_until(station, "end_of_life")),
-        **_alarm_values("wear_warning", st.warning_alarm, _shelved_until(station, "wear_warning")),
-        "Status/Protection Stop": st.protection_stop, "Status/Meter OK": st.meter_ok,
-        "Status/STM32 OK": st.stm32_ok,
-        **forecast_values(st),
-    }
-
-
-def forecast_values(st: StationState) -> dict[str, Any]:
-    """The §5a/§5b/§7a forecast metrics of the state (null outside a test, as the state has them)."""
-    started = None
-    if st.test_started_utc:
+def metric_value(v: catalog.Value, x: catalog.Reading) -> Any:
+    """A catalog row's reading as its metric carries it: a list comma-separated, an ISO 8601 time
+    as a DateTime (ms since the epoch), nothing as the row's ``empty`` (None: null)."""
+    sp = v.sparkplug
+    assert sp is not None
+    if x is None:
+        return sp.empty
+    if isinstance(x, list):
+        return ",".join(x)
+    if sp.datatype == "DateTime" and isinstance(x, str):
         try:
-            started = int(round(_dt.datetime.fromisoformat(
-                st.test_started_utc.replace("Z", "+00:00")).timestamp() * 1000))
+            return int(round(_dt.datetime.fromisoformat(x.replace("Z", "+00:00")).timestamp() * 1000))
         except ValueError:
-            started = None
-    return {M.FC_STARTED: started, M.FC_P10: st.end_p10, M.FC_P50: st.end_p50,
-            M.FC_P90: st.end_p90, M.FC_P_END: st.p_end, M.FC_DUE: bool(st.due),
-            M.FC_HEADROOM: st.headroom, M.FC_T_CROSS: st.t_cross, M.FC_WARNING: bool(st.wear_warning),
-            M.FC_REASONS: ",".join(st.warn_reasons), M.FC_PRIOR_MEAN: st.prior_mean,
-            M.FC_PRIOR_SD: st.prior_sd, M.FC_PRIOR_SOURCE: st.prior_source or "",
-            M.FC_LEAD: st.lead_s}
+            return None
+    return x
+
+
+def state_values(st: StationState, station: StationView | None = None,
+                 values: tuple[catalog.Value, ...] = M.STATE_VALUES) -> dict[str, Any]:
+    """The device metrics that follow the station's state: the catalog's rows (but those that
+    change with time alone, sent with every state: :func:`ticking_values`) and the alarms'
+    folders (the shelving expiries from ``station``'s alarm store, when given)."""
+    out = {v.sparkplug.name: metric_value(v, v.source(st))
+           for v in values if v.sparkplug is not None and not v.ticks}
+    out.update(_alarm_values("end_of_life", st.alarm, _shelved_until(station, "end_of_life")))
+    out.update(_alarm_values("wear_warning", st.warning_alarm, _shelved_until(station, "wear_warning")))
+    return out
+
+
+def ticking_values(st: StationState, values: tuple[catalog.Value, ...] = M.STATE_VALUES) -> dict[str, Any]:
+    """The rows that change with time alone (the elapsed time), sent with every state of a test."""
+    if not st.test_id:
+        return {}
+    return {v.sparkplug.name: metric_value(v, x) for v in values
+            if v.sparkplug is not None and v.ticks and (x := v.source(st))}
 
 
 def window_values(w: SlotWindow) -> dict[str, Any]:
@@ -131,8 +136,7 @@ class SparkplugOutput:
     def on_state(self, st: StationState) -> None:
         vals = state_values(st, self.station)
         changed = {k: v for k, v in vals.items() if self._last.get(k, _NONE) != v}
-        if st.elapsed_s and st.test_id:
-            changed["Test/Elapsed"] = round(st.elapsed_s, 3)
+        changed.update(ticking_values(st))
         self._last = vals
         if changed and self.rt is not None:
             self.rt.post(("update", self.s.device_id, changed, False))
@@ -147,9 +151,8 @@ class SparkplugOutput:
         vals = _alarm_values(name, next((tr["to"] for tr in reversed(d.get("transitions") or [])
                                          if tr.get("alarm") == name), "unacknowledged"),
                              _shelved_until(self.station, name))
-        vals.update({"Method/mu_ss": d.get("mu_ss"), "Method/mu_th": d.get("mu_th")})
-        if name == "end_of_life":
-            vals["Method/t_life"] = d.get("t_life")
+        for key in ("mu_ss", "mu_th", "t_life") if name == "end_of_life" else ("mu_ss", "mu_th"):
+            vals[M.STATE_METRIC[key]] = d.get(key)
         self.rt.post(("update", self.s.device_id, vals, False))
 
 

@@ -24,7 +24,7 @@ def test_crashed_station_is_closed_before_its_restart_with_backoff(tmp_path):
     mport = free_port()
     crash_dir = tmp_path / "crash"
     crash_dir.mkdir()
-    env = {**os.environ, "HOOKWATCH_OUTPUTS": "kit.crashy:outputs", "HW_CRASH_DIR": str(crash_dir),
+    env = {**os.environ, "HOOKWATCH_OUTPUTS": "kit.crashy", "HW_CRASH_DIR": str(crash_dir),
            "PYTHONPATH": os.pathsep.join([os.path.join(ROOT, "tests"), os.environ.get("PYTHONPATH", "")])}
     with Broker(tmp_path) as b:
         sub = Sub(b.port, "hookwatch/#")

@@ -13,9 +13,10 @@ from dataclasses import asdict
 
 from gateway.core.records import CommandReply, SlotRecord, StationState
 from gateway.core.records import TestState as TS
+from gateway.outputs.sparkplug.device import SparkplugDevice
 from gateway.outputs.sparkplug.node_settings import SparkplugSettings
 from gateway.supervisor import ipc
-from gateway.supervisor.remote import RemoteFleet, RemoteStation, SparkplugDevice
+from gateway.supervisor.remote import RemoteFleet, RemoteStation
 from kit.broker import Broker
 from kit.sparkplug_host import PrimaryHost
 

@@ -301,9 +301,34 @@
     }] } };
   }
 
+  // every value of the station the catalog labels (gateway/core/catalog.py, GET /api/values): the
+  // labels come from the server, never a list of their own here
+  let catalogRows = null;
+  async function valueRows() {
+    if (catalogRows === null) {
+      const r = await api("/api/values");
+      if (r.status === 200) catalogRows = r.values;
+    }
+    return catalogRows || [];
+  }
+  function valueText(row, x) {
+    if (x == null) return "–";
+    if (row.type === "bool") return x ? "yes" : "no";
+    if (row.type === "list") return x.length ? x.map(esc).join(", ") : "–";
+    if (row.type === "float") return fmt(x, Math.abs(x) >= 100 ? 1 : 4) + (row.unit ? " " + esc(row.unit) : "");
+    return esc(x) + (row.unit ? " " + esc(row.unit) : "");
+  }
+  async function allValues(s) {
+    const rows = await valueRows(), vals = s.values || {}, box = $("#values-kv");
+    if (!box) return;
+    box.innerHTML = rows.map(row => `<span>${esc(row.label)}</span><span data-value="${esc(row.name)}">${valueText(row, vals[row.name])}</span>`).join("");
+    hw.values = rows.length;
+  }
+
   function stationPage(sid) {
     main.innerHTML = `<h2 style="margin:0 0 .5em">Station ${esc(sid)} <small><a href="#/history/${encodeURIComponent(sid)}">history</a></small></h2>
       <div class="panel kv" id="st-info"></div>
+      <details class="panel" id="all-values"><summary>all values</summary><div class="kv" id="values-kv"></div></details>
       <div class="panel controls" id="ctl">
         <label>sample <input id="c-sample" maxlength="32"></label>
         <label>grade <input id="c-grade" maxlength="16"></label>
@@ -373,6 +398,7 @@
         <span>alarm</span><span id="alarm">${alarmBadge(s.alarm)}</span>
         <span>links</span><span>meter ${link(s.meter_ok)} · STM32 ${link(s.stm32_ok)} · MQTT ${link(s.mqtt_ok)}</span>
         <span>slots</span><span>${slotsText(s)}</span>`;
+      allValues(s);
       if (events) renderEvents(events);
     }
     // the events in plain words, newest first; each one's raw JSON one click away (kept open

@@ -10,9 +10,9 @@ from gateway.config import load_station
 from gateway.config.sections import BrokerConfig, MqttConfig, SparkplugConfig
 from gateway.outputs.broker.settings import BrokerSettings, SecretError
 from gateway.outputs.mqtt.settings import MqttSettings
+from gateway.outputs.registry import mqtt_settings
 from gateway.outputs.sparkplug.node_settings import SparkplugSettings
 from gateway.outputs.sparkplug.output import settings_from_config
-from gateway.outputs.wiring import mqtt_settings
 
 BASE = """\
 station: {id: loom-01, site: plant-a, area: hall-2, line: line-3}

@@ -2,7 +2,8 @@
 `hookwatch sim` + `hookwatch run` as processes: the fleet page lists the stations, the station page's
 μ curve grows through a virtual life (the kit's twice-compressed one: the end of life ≈ 23 s
 after slot 0) until the end-of-life alarm, a page opened mid-test
-shows the curve from slot 0, and acknowledge needs a login and the CSRF token.
+shows the curve from slot 0, the station's "all values" shows every value the catalog labels, and
+acknowledge needs a login and the CSRF token.
 
 Screenshots are written to the test's tmp folder (fleet.png, station-mid.png, station-alarm.png,
 station-acked.png, history.png)."""
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import time
 
+from gateway.outputs.console.feed import VALUES
 from kit.browser import wait_js
 from kit.console_helpers import console_fleet
 from kit.e2e import wait_log
@@ -42,6 +44,16 @@ def test_console_in_a_browser(tmp_path, browser):
         time.sleep(3)
         wait_js(page, f"window.hw.lastT > {t1} + 1", 20)
         assert page.evaluate("window.hw.points") > n1
+
+        # --- every value of the station the catalog labels, under its label (GET /api/values:
+        # the page keeps no list of its own; gateway/core/catalog.py)
+        page.click("#all-values summary")
+        wait_js(page, "window.hw.values > 0", 10)
+        assert page.locator("#values-kv > span:nth-child(odd)").all_inner_texts() == [v.label for v in VALUES]
+        shown = page.locator("#values-kv [data-value]").evaluate_all("els => els.map(e => e.dataset.value)")
+        assert shown == [v.name for v in VALUES]
+        assert page.locator('#values-kv [data-value="test_state"]').inner_text() in ("baseline_search",
+                                                                                     "monitoring")
 
         # --- a page opened mid-test shows the curve from slot 0
         while time.monotonic() - t0 < 15:      # the station's §3a start, then ~10 s of its test

@@ -155,7 +155,7 @@ def test_the_store_counts_refusals_in_one_line_keeps_bounds_and_persists(tmp_pat
 def test_on_by_default_for_mqtt_stations_and_one_key_turns_it_off(tmp_path):
     from gateway.config import load_station
     from gateway.outputs.mqtt.output import MqttOutput
-    from gateway.outputs.wiring import mqtt_settings
+    from gateway.outputs.registry import mqtt_settings
 
     base = ("station: {id: s1, site: plant}\nmeter: {port: /dev/a-meter}\nstm32: {port: /dev/a-stm32}\n"
             f"recorder: {{dir: {tmp_path / 'rec'}}}\n")

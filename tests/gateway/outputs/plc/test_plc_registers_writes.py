@@ -70,7 +70,7 @@ def test_the_map_keeps_every_frozen_address():
 
 
 def test_a_moved_register_fails_with_the_rule_for_the_developer(monkeypatch):
-    specs = {k: list(v) for k, v in R.INPUT_SPECS.items()}
+    specs = R.input_specs()
     specs["live"][0], specs["live"][1] = specs["live"][1], specs["live"][0]     # t2 before t1
     monkeypatch.setattr(R, "INPUT_REGS", R._layout(R.INPUT_BLOCKS, specs))
     problems = R.frozen_problems(_golden())
@@ -81,7 +81,7 @@ def test_a_moved_register_fails_with_the_rule_for_the_developer(monkeypatch):
 
 
 def test_a_reused_or_vanished_address_fails(monkeypatch):
-    specs = {k: list(v) for k, v in R.INPUT_SPECS.items()}
+    specs = R.input_specs()
     specs["reasons"] = [R._reason_reg(n) for n in ("MISSING", "SATURATED", "LOW_TENSION", "WOBBLE",
                                                    "RATIO_LOW", "RATIO_HIGH")]
     monkeypatch.setattr(R, "INPUT_REGS", R._layout(R.INPUT_BLOCKS, specs))
@@ -98,7 +98,7 @@ def test_a_reused_or_vanished_address_fails(monkeypatch):
 def test_a_full_block_refuses_an_insertion_at_import():
     """A new method reason inserted among the map 4 counters would shift every later address: the
     block `reasons` has no room, so the map fails to build (at import) and says where values go."""
-    specs = {k: list(v) for k, v in R.INPUT_SPECS.items()}
+    specs = R.input_specs()
     specs["reasons"].insert(3, R._reason_reg("WOBBLE"))
     with pytest.raises(ValueError, match="block reasons needs 14 registers, it has 12.*new block"):
         R._layout(R.INPUT_BLOCKS, specs)
@@ -112,14 +112,17 @@ def test_a_new_method_reason_and_a_new_value_are_added_without_moving_anything(m
     """A reason the method adds after map 4.0 is counted in block `reasons_more`, a new value
     goes to block `more`: nothing frozen moves; the additions must be frozen under a new minor
     (freezing refuses until MAP_MINOR is bumped), then the map matches the golden file again."""
-    specs = {k: list(v) for k, v in R.INPUT_SPECS.items()}
-    specs["reasons_more"] = [R._reason_reg("WOBBLE")]
-    specs["more"] = [("t3", "float32", "N", "a third tension")]
+    free = {b.name: max((r.address + r.count for r in R.INPUT_REGS if r.block == b.name), default=b.base)
+            for b in R.INPUT_BLOCKS}          # the first reserved address of each block
+    specs = R.input_specs()
+    specs["reasons_more"] = specs.get("reasons_more", []) + [R._reason_reg("WOBBLE")]
+    specs["more"] = specs.get("more", []) + [("t3", "float32", "N", "a third tension")]
     monkeypatch.setattr(R, "INPUT_REGS", R._layout(R.INPUT_BLOCKS, specs))
     regs = {r.name: r for r in R.INPUT_REGS}
-    assert (regs["count_wobble"].address, regs["t3"].address) == (128, 200)
+    wobble, t3 = free["reasons_more"], free["more"]
+    assert (regs["count_wobble"].address, regs["t3"].address) == (wobble, t3) and (wobble, t3) >= (128, 200)
     problems = R.frozen_problems(_golden())
-    assert len(problems) == 1 and "not frozen yet: input reasons_more 128 2 uint32 slots count_wobble" \
+    assert len(problems) == 1 and f"not frozen yet: input reasons_more {wobble} 2 uint32 slots count_wobble" \
         in problems[0] and "--freeze tests/golden/plc_register_map.txt" in problems[0]
     with pytest.raises(ValueError, match=f"bump MAP_MINOR past {R.MAP_MINOR}"):
         R.freeze(_golden())
@@ -136,7 +139,10 @@ def test_blocks_fit_one_read_and_hold_their_registers():
             assert b.size <= 125 and all(b.base <= r.address and r.address + r.count <= b.end for r in mine)
             assert [r.address for r in mine] == sorted(r.address for r in mine)
     # the map as shipped (0–122) and the minor version still fit the first read of 125 registers
-    assert R.IR["map_minor"].address == 123 and R.INPUT_SIZE <= 125 and R.HOLDING_SIZE <= 125
+    # (what is added later goes to the blocks above: `reasons_more`, `more`)
+    assert R.IR["map_minor"].address == 123 and R.HOLDING_SIZE <= 125
+    assert all(b.end <= 125 for b in R.INPUT_BLOCKS if b.base < 125)
+    assert {r.block for r in R.INPUT_REGS if r.address + r.count > 125} <= {"reasons_more", "more"}
 
 
 def test_freeze_appends_only(tmp_path):

@@ -3,9 +3,10 @@ import textwrap
 
 import pytest
 
+from gateway.compose import station_outputs
 from gateway.config import ConfigError, load_station
+from gateway.outputs.registry import Host
 from gateway.outputs.sparkplug.output import settings_from_config
-from gateway.outputs.wiring import outputs_for
 
 BASE = """\
 station: {id: loom-01, site: plant-a, area: hall-2, line: line-3}
@@ -13,6 +14,10 @@ meter: {port: /dev/a-meter}
 stm32: {port: /dev/a-stm32}
 recorder: {dir: REC}
 """
+
+
+def outputs_for(cfg, station):
+    return station_outputs(cfg, station, [], Host(None, True))
 
 
 def station(tmp_path, extra=""):
