@@ -201,6 +201,9 @@ def _restart_args(ap: argparse.ArgumentParser) -> None:
                     help="wait up to S s for every station to run this software (default 0: ask and report)")
     ap.add_argument("--all", action="store_true",
                     help="restart every station's worker, also those already on this version")
+    ap.add_argument("--request", metavar="NAME",
+                    help="name the request: asked again with the same NAME (a retry), the request "
+                         "made first is awaited, not made again (Ansible: the release's fingerprint)")
     ap.add_argument("--json", action="store_true", help="the outcome as one JSON line")
     _common(ap)
 
@@ -208,8 +211,10 @@ def _restart_args(ap: argparse.ArgumentParser) -> None:
 def _restart(args: argparse.Namespace) -> int:
     if not 0 <= args.wait <= 86400:
         raise CliError("--wait: 0 … 86400 s", 2)
+    if args.request is not None and not (0 < len(args.request) <= 128 and args.request.isprintable()):
+        raise CliError("--request: 1 … 128 printable characters", 2)
     s = _settings(args)
-    out = restart(_state(args, s), __version__, every=args.all, wait=args.wait)
+    out = restart(_state(args, s), __version__, every=args.all, wait=args.wait, request=args.request)
     if args.json:
         _print_json(out.as_dict())
     else:

@@ -36,6 +36,7 @@ from ..outputs.prometheus.figures import set_config_source
 from ..plumbing import safeout
 from ..plumbing.safeyaml import YamlError, load
 from .boxpublish import ReportPublisher
+from .startgate import StartGate
 
 __all__ = ["BoxAgent", "HubInfo"]
 
@@ -86,6 +87,9 @@ class BoxAgent:
         self._reporter: ReportPublisher | None = None
         self._reporter_key: tuple[Any, ...] = ()
         self.report: dict[str, Any] = {}
+        self._start_gate = StartGate(state)
+        self._started = time.time()
+        self._verified_seen: str | None = None
 
     @classmethod
     def for_folder(cls, folder: str) -> BoxAgent | None:
@@ -103,6 +107,10 @@ class BoxAgent:
         self.state.ensure()
         write_atomic(self.state.path("supervisor.pid"), f"{os.getpid()}\n".encode("ascii"))
         set_config_source(self.figures)
+        # a restart asked of the supervisor before this one: its workers all start now, on the
+        # software installed (never restarted once more for it)
+        req = read_json(self.state.path("restart.json"))
+        self._restart_done = req.get("id") if req and isinstance(req.get("id"), str) else None
         with self.state.try_lock() as held:
             if held:
                 why = self.state.repair()
@@ -217,7 +225,12 @@ class BoxAgent:
             else:
                 self.state.journal("drift_cleared", version=self.version)
             self._drift = drift
-        self._status(hubs, now)
+        stations = self._status(hubs, now)
+        if self._start_gate.check(self.version, stations, now):
+            repaired = True
+        elif self.state.verified() == self.version and self._verified_seen != self.version:
+            self._last_status = 0.0          # verified now: the report says so at the next look
+        self._verified_seen = self.state.verified()
         return repaired
 
     def _dead_apply(self) -> bool:
@@ -230,7 +243,7 @@ class BoxAgent:
         log.error("configuration repaired: %s; back to %s", why, (self.state.current() or "none")[:12])
         return True
 
-    def _status(self, hubs: list[HubInfo], now: float) -> None:
+    def _status(self, hubs: list[HubInfo], now: float) -> dict[str, dict[str, Any]]:
         with self._lock:
             stations = {h.name: {"version": self._tracks[h.name].version if h.name in self._tracks else None,
                                  "pending": self._tracks[h.name].pending if h.name in self._tracks else None,
@@ -239,13 +252,14 @@ class BoxAgent:
                                  "software": h.software, "pid": h.pid}
                         for h in hubs}
         man = self.state.manifest(self.version) if self.version else None
-        status = {"pid": os.getpid(), "software": __version__, "box": (man or {}).get("box"),
+        status = {"pid": os.getpid(), "software": __version__, "started": self._started,
+                  "box": (man or {}).get("box"),
                   "site": (man or {}).get("site"),
                   "version": self.version, "stations": stations, "drift_files": self._drift[:50],
                   "last_interrupt": self._interrupt}
         key = safeout.dumps(status)
         if key == self._status_key and now - self._last_status < STATUS_REFRESH_S:
-            return
+            return stations
         self._status_key, self._last_status = key, now
         try:
             write_atomic(self.state.path("supervisor.json"),
@@ -255,6 +269,7 @@ class BoxAgent:
         self.report = build_report(self.state, status, online=True)
         if self._reporter is not None:
             self._reporter.update(self.report)
+        return stations
 
     # ------------------------------------------------------------------ the report's session
     def _reporter_for_version(self) -> None:

@@ -27,7 +27,6 @@ import signal
 import subprocess
 import tarfile
 import threading
-import time
 
 import pytest
 import yaml
@@ -40,7 +39,7 @@ from kit.browser import wait_js
 from kit.console_helpers import start_console
 from kit.e2e import analyze_cli, read_json, test_dirs, wait_log
 from kit.northbound import LoopThread
-from kit.site_lab import SiteLab, ansible_playbook, recap
+from kit.site_lab import SiteLab, ansible_playbook, recap, restart_command
 from kit.tools import wait_for
 
 #: a bound against a hang: a run of ansible-playbook over three boxes took 100–260 s at load 15–20
@@ -73,6 +72,10 @@ def _bootstrap(lab: SiteLab) -> str:
         lab.start_box(b)
     for b in lab.boxes:
         wait_for(lambda b=b: _runs(b, v1), timeout=90, interval=0.5, what=f"{b.name} running {v1[:12]}")
+    # applied while no supervisor ran: verified only once its first start has passed the gate
+    for b in lab.boxes:
+        wait_for(lambda b=b: b.status()["verified"] == v1, timeout=90, interval=0.5,
+                 what=f"{b.name}: {v1[:12]} verified at the supervisor's start")
     return v1
 
 
@@ -112,6 +115,8 @@ def test_a_fleet_default_reaches_every_box_and_box_2_applies_it_when_its_test_en
     assert r.returncode == 0, r.stdout + r.stderr
     for b in lab.boxes:
         assert b.current() == v1
+        st = b.status()          # no supervisor runs yet: applied, not verified (no health gate ran)
+        assert st["verified"] is None and st["unverified"]["version"] == v1, st
         assert (b.dir / "mqtt.pass").read_text() == "s3cret-of-the-site\n"
         assert oct((b.dir / "mqtt.pass").stat().st_mode & 0o777) == "0o600"
         lab.start_box(b)
@@ -318,38 +323,66 @@ def _boxes_page(browser, tmp_path, port: int, version: str, deferred: dict[str, 
             srv.stop()
 
 
-def test_g_a_release_in_waves_restarts_each_station_only_when_its_test_has_ended(lab, broker, tmp_path,
+@pytest.fixture
+def lab_g(tmp_path, broker):
+    """The lab of (g): box 2's test is started by the MES (no autostart: a station whose worker
+    restarts on the new software would otherwise begin another test at once, and the service's
+    own restart waits for no test)."""
+    box2 = {"test": {"t_end_s": 1800}, "mqtt": {"enabled": True, "port": broker.port, "telemetry_interval_s": 5}}
+    lab = SiteLab(tmp_path, broker.port, stations={"box-2": box2}, health_timeout_s=60)
+    try:
+        yield lab.make()
+    finally:
+        lab.stop()
+
+
+def test_g_a_release_in_waves_restarts_each_station_only_when_its_test_has_ended(lab_g, broker, tmp_path,
                                                                                   tmp_path_factory):
     if os.geteuid() != 0:
         pytest.skip("install.sh --root applies sysusers/tmpfiles to the box's root as root")
     from deploy.test_release import _built_once  # the run's one release build
+    lab = lab_g
     tarball = _built_once(tmp_path_factory)
     with tarfile.open(tarball) as t:
         sums = next(m for m in t.getmembers() if m.name.endswith("/SHA256SUMS"))
         fingerprint = hashlib.sha256(t.extractfile(sums).read()).hexdigest()
-    v1 = _bootstrap(lab)
+    v1 = lab.head()
+    r = lab.playbook()
+    assert r.returncode == 0, r.stdout + r.stderr
+    for b in lab.boxes:                 # each box's supervisor under its service manager
+        lab.start_box(b, service=True)
+    for b in lab.boxes:
+        wait_for(lambda b=b: _runs(b, v1), timeout=90, interval=0.5, what=f"{b.name} running {v1[:12]}")
     box1, box2, box3 = lab.boxes
+    pub(broker.port, BOX2_CMD.replace("/cmd/stop", "/cmd/start"),
+        '{"sample_id": "S-box-2", "t_set": 0.5, "request_id": "g-start"}')
     wait_log(box2.proc, f"{box2.station}: test_started", timeout=90)
     pids = {b.name: _station(b)["pid"] for b in lab.boxes}
+    sups = {b.name: b.status()["supervisor"]["pid"] for b in lab.boxes}
     release = {"hookwatch_release_tarball": tarball, "hookwatch_release_fingerprint": fingerprint,
                # the new release's own hookwatch asks for the restarts (the software it runs)
                "hookwatch_cmd": "{{ hookwatch_root }}/usr/local/bin/hookwatch",
                # the lab's supervisors are this checkout's; a rebuilt release of the same version:
                # every worker restarts on it
-               "hookwatch_restart_all": True, "hookwatch_restart_service": False}
+               "hookwatch_restart_all": True,
+               # then the service itself, as systemctl restart does (the lab's service manager)
+               "hookwatch_restart_service": True, "hookwatch_restart_command": restart_command()}
     done: list[subprocess.CompletedProcess] = []
     runner = threading.Thread(target=lambda: done.append(lab.playbook("release.yml", **release)))
     runner.start()
+    journal2 = box2.state / "config" / "journal.jsonl"
     try:
         # box 1 (the canary) restarted at once; box 2's restart waits for its running test
         wait_for(lambda: _station(box1).get("pid") not in (None, pids["box-1"]), timeout=600, interval=1,
                  what="box-1's worker on the release")
-        wait_for(lambda: (box2.state / "config" / "restart.json").exists(), timeout=600, interval=1,
-                 what="box-2's restart asked for")
-        # a few of the role's asks (`config restart --wait 2`, exit 6: still in a test) go by
-        time.sleep(8)
+        # box 2's supervisor has taken the release's request (its journal: `restart`, the id the
+        # role gives: the fingerprint), and the role has asked again since (`restart_requested`
+        # is written once, the retries await it): its test goes on, its worker too
+        wait_for(lambda: journal2.exists() and f'"event":"restart","id":"{fingerprint}"'
+                 in journal2.read_text().replace(" ", ""), timeout=600, interval=0.5,
+                 what="box-2's supervisor took the restart request")
         s2 = _station(box2)
-        assert s2["in_test"] and s2["pid"] == pids["box-2"], s2          # its test goes on
+        assert s2["in_test"] and s2["pid"] == pids["box-2"], s2
         assert runner.is_alive()                                        # the wave waits for it
         pub(broker.port, BOX2_CMD, '{"request_id": "end-of-test"}')
     finally:
@@ -358,12 +391,20 @@ def test_g_a_release_in_waves_restarts_each_station_only_when_its_test_has_ended
     assert r.returncode == 0, r.stdout + r.stderr
     waited = r.stdout.split("TASK [hookwatch_site : Each station's worker on the new software")[2]
     assert "FAILED - RETRYING: [box-2]" in waited.split("TASK [", 1)[0], waited
+    # as the play ends, each box runs a NEW supervisor process (the role waited for it, not for
+    # the old one still answering), on the release, with its station's worker running on it
     for b in lab.boxes:
+        st = b.status()
+        assert st["online"] and st["supervisor"]["pid"] != sups[b.name], (b.name, st)
+        s = st["stations"][b.station]
+        assert s["running"] and s["software"] == st["supervisor"]["software"], (b.name, st)
         assert _station(b)["pid"] != pids[b.name], b.name
         assert (b.dir / "release" / "installed").read_text().strip() == fingerprint
         hw = b.dir / "root" / "usr" / "local" / "bin" / "hookwatch"
         assert subprocess.run([str(hw), "--version"], capture_output=True, text=True).stdout.startswith("hookwatch ")
         assert b.current() == v1
+        # each worker restarted once for the release (the role's retries asked for it once)
+        assert b.proc.log_all().count("worker ended for its restart") == 1, b.name
     # box 2's test ended by its operator, not by the release; nothing of it lost
     first = test_dirs(box2.dir, box2.station)[0]
     res = read_json(os.path.join(first, "result.json"))

@@ -222,10 +222,13 @@ class SiteLab:
         return r
 
     # ------------------------------------------------------------------ the boxes' processes
-    def start_box(self, b: Box) -> Proc:
-        """The box's supervisor on its current version, as the fleet unit runs it."""
+    def start_box(self, b: Box, *, service: bool = False) -> Proc:
+        """The box's supervisor on its current version, as the fleet unit runs it; ``service``:
+        under :data:`SERVICE`, which starts it again whenever it ends (``Restart=always``), so
+        that :func:`restart_command` restarts it as ``systemctl restart`` does."""
         n = sum(1 for p in self.tmp.glob(f"{b.name}-run*.log"))
-        b.proc = Proc(hookwatch_cmd() + ["run", str(b.state / "config" / "current"), "--realtime", "20"],
+        argv = hookwatch_cmd() + ["run", str(b.state / "config" / "current"), "--realtime", "20"]
+        b.proc = Proc(["sh", "-c", SERVICE, "service", *argv] if service else argv,
                       str(self.tmp / f"{b.name}-run{n + 1}.log"),
                       env=dict(os.environ, HOOKWATCH_BOX_FILE=str(b.box_file)))
         return b.proc
@@ -236,6 +239,20 @@ class SiteLab:
                 b.proc.stop()
         if self.sim is not None:
             self.sim.stop()
+
+
+#: the box's service manager in the lab (systemd's ``Restart=always``): the supervisor started
+#: again whenever it ends; SIGTERM to the manager stops it and its supervisor
+SERVICE = ('trap \'kill -TERM "$child" 2>/dev/null; wait "$child"; exit 0\' TERM INT; '
+           'while :; do "$@" & child=$!; wait "$child"; sleep 0.2; done')
+
+
+def restart_command() -> list[str]:
+    """``hookwatch_restart_command`` of a lab box run under :data:`SERVICE` (an inventory template:
+    the box's own state folder): its supervisor ended by SIGTERM, as ``systemctl restart`` does,
+    and started again by the lab's service manager."""
+    return ["sh", "-c", 'kill -TERM "$(cat "$1"/config/supervisor.pid)"', "restart",
+            "{{ hookwatch_state_dir }}"]
 
 
 def recap(run: subprocess.CompletedProcess) -> dict[str, dict[str, int]]:

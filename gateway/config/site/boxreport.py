@@ -56,6 +56,7 @@ def build_report(state: StateDir, status: dict[str, Any] | None = None,
         except OSError:
             pass
     ap = state.applying()
+    uv = state.unverified()
     rb = state.last_rollback()
     drift = [str(x) for x in st.get("drift_files") or []][:MAX_DRIFT_FILES]
     pending = sorted(n for n, s in stations.items() if isinstance(s, dict) and s.get("pending"))
@@ -68,6 +69,9 @@ def build_report(state: StateDir, status: dict[str, Any] | None = None,
         "time": iso_ms(time.time()), "version": cur, "sha256": (man or {}).get("sha256"),
         "verified": ver, "applied_at": applied_at,
         "applying": ap.get("version") if ap else None,
+        "unverified": ({"version": uv.get("version"), "why": uv.get("why")} if uv else None),
+        "supervisor": ({"pid": st.get("pid"), "software": st.get("software"),
+                        "started": _iso(st.get("started"))} if st.get("pid") else None),
         "deferred": deferred, "pending": pending, "stations": stations,
         "last_rollback": (dict(rb, time=_iso(rb.get("time"))) if rb else None),
         "last_interrupt": (dict(interrupt, time=_iso(interrupt.get("time")))

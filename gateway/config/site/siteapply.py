@@ -12,7 +12,9 @@ Apply, under the state folder's lock (one at a time; released by the kernel if t
    keeps its test running with the new version deferred — within the bound; the supervisor's
    ``supervisor.json`` says so (gateway/supervisor/boxagent.py);
 7. passed: ``verified`` = the version, ``applying.json`` removed (exit 3). Failed: ``current``
-   back to the verified version, SIGHUP, ``rollback.json`` says why (exit 5).
+   back to the verified version, SIGHUP, ``rollback.json`` says why (exit 5). No supervisor
+   running: no gate can run; the version is ``unverified.json`` (exit 3) until the supervisor's
+   first start on it has passed the gate (gateway/supervisor/startgate.py).
 
 Killed anywhere in between, the box is consistent: before the switch ``current`` is untouched;
 after it ``applying.json`` is there, and the supervisor (while it runs, seeing the lock free) or
@@ -150,14 +152,15 @@ def apply_version(root: str, version: str, box: str, settings: BoxSettings, stat
         state.switch(sha)
         state.journal("switched", version=sha, previous=cur, by=interrupt_by)
         stations = {s.station: s.status for s in plan.stations}
-        if not reload_supervisor(state):
-            state.mark_verified(sha)
-            state.end_apply()
-            state.journal("applied", version=sha, checked=False, why="no supervisor running: it "
-                          "starts on this version")
-            return Outcome(EXIT["changed"], sha, True, stations, why="no supervisor running",
-                           plan=plan)
         timeout = health_timeout if health_timeout is not None else settings.health_timeout_s
+        if not reload_supervisor(state):
+            # no health gate can run: unverified until the supervisor's first start has passed
+            # it (gateway/supervisor/startgate.py), never marked verified unchecked
+            why = "no supervisor running: unverified until its first start passes the health gate"
+            state.mark_unverified(sha, why, timeout)
+            state.end_apply()
+            state.journal("applied", version=sha, checked=False, why=why)
+            return Outcome(EXIT["changed"], sha, True, stations, why=why, plan=plan)
         ok, why, deferred = _gate(state, sha, plan, timeout)
         if ok:
             state.mark_verified(sha)
@@ -191,24 +194,35 @@ def rollback(state: StateDir, to: str | None = None) -> Outcome:
         return Outcome(EXIT["nothing"], target, True, rolled_back=True, why="by hand")
 
 
-def restart(state: StateDir, software: str, *, every: bool = False, wait: float = 0.0) -> Outcome:
+def restart(state: StateDir, software: str, *, every: bool = False, wait: float = 0.0,
+            request: str | None = None) -> Outcome:
     """New software installed: ask the box's supervisor for a new worker process per station
     (every one, or those not on ``software``), each once its station is idle — at once, or when
     its test ends, never before. Waits up to ``wait`` s for every station to run ``software`` in a
     new worker: exit 0 done, 6 still waiting (``deferred``: the stations in a test), 1 no
-    supervisor."""
+    supervisor.
+
+    ``request`` names the request: asked again with the same name (a retry of Ansible's
+    ``until`` loop), the request already made is awaited, never made again — with ``every``, a
+    second request would restart the workers again, and a station that began a new test on the
+    new worker (autostart) would hold the retry until that test ends too. A worker counts as
+    restarted when its process is not one of those running when the request was first made."""
     if supervisor_alive(state) is None:
         return Outcome(EXIT["error"], why="the supervisor is not running")
-    before = read_json(state.path("supervisor.json")) or {}
-    raw = before.get("stations")
-    old_pids = {n: s.get("pid") for n, s in (raw if isinstance(raw, dict) else {}).items()
+    req = read_json(state.path("restart.json")) if request else None
+    if not (req and req.get("id") == request and req.get("software") == software
+            and bool(req.get("all")) == every and isinstance(req.get("pids"), dict)):
+        before = read_json(state.path("supervisor.json")) or {}
+        raw = before.get("stations")
+        pids = {n: s.get("pid") for n, s in (raw if isinstance(raw, dict) else {}).items()
                 if isinstance(s, dict)}
-    rid = f"{time.time():.6f}-{os.getpid()}"
-    t0 = time.time()
-    write_atomic(state.path("restart.json"), safeout.dumps(
-        {"id": rid, "software": software, "all": every, "time": t0}).encode("utf-8"))
-    state.journal("restart_requested", id=rid, software=software, all=every)
-    reload_supervisor(state)
+        rid = request or f"{time.time():.6f}-{os.getpid()}"
+        req = {"id": rid, "software": software, "all": every, "time": time.time(), "pids": pids}
+        write_atomic(state.path("restart.json"), safeout.dumps(req).encode("utf-8"))
+        state.journal("restart_requested", id=rid, software=software, all=every)
+        reload_supervisor(state)
+    old_pids = req["pids"]
+    t0 = float(req.get("time") or 0.0)
     t_end = time.monotonic() + max(0.0, wait)
     while True:
         st = read_json(state.path("supervisor.json")) or {}

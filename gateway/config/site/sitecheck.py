@@ -3,9 +3,10 @@
 There is one validation: the effective tree is written to a temporary fleet folder and read by
 the loader every station file goes through (:func:`gateway.config.validate_fleet`), with the
 machine-independent feasibility checks (:func:`gateway.config.checks.feasibility`, as
-``hookwatch check --skip-local``) and the clashes between the stations of one box
+``hookwatch check --skip-local``), the clashes between the stations of one box
 (:func:`gateway.config.cross_issues`: ids, serial ports, Modbus TCP units, MQTT client ids,
-outboxes). Each message is then located in the repository (``FILE:LINE: message``): a station
+outboxes) and the site's one name (:func:`site_issues`: ``station.site`` and the MQTT topic
+prefix are site.yaml's). Each message is then located in the repository (``FILE:LINE: message``): a station
 file's lines are its own, a line of the merged fleet.yaml is the line of the box.yaml or
 defaults/fleet.yaml it came from. ``--site`` adds the rule across boxes: station ids are unique
 in the site.
@@ -21,7 +22,7 @@ from ..checks import feasibility
 from ..loader import Issue, Loaded, cross_issues, validate_fleet
 from .repository import Effective, boxes, build, write_tree
 
-__all__ = ["BoxCheck", "check_box", "check_site", "located"]
+__all__ = ["BoxCheck", "check_box", "check_site", "located", "site_issues"]
 
 
 @dataclass
@@ -65,6 +66,8 @@ def _validate(eff: Effective, out: BoxCheck) -> None:
                 per[i].extend(feasibility(ld, local=False))
         for i, issue in cross_issues(loaded):
             per[i].append(issue)
+        for i, ld in enumerate(loaded):
+            per[i].extend(site_issues(ld, eff.site))
         seen: set[str] = set()
         for i, ld in enumerate(loaded):
             for issue in per[i]:
@@ -80,6 +83,31 @@ def _validate(eff: Effective, out: BoxCheck) -> None:
                 out.ids.setdefault(ld.name, where)
             if ld.cfg is not None and not any(x.severity == "error" for x in per[i]):
                 out.stations[ld.cfg.station.id] = (ld.cfg, where)
+
+
+def site_issues(ld: Loaded, site: dict[str, Any]) -> list[Issue]:
+    """One name for the site: a station's ``station.site`` is the ``site:`` of site.yaml (its
+    results, lives and commands are the site's: ``<prefix>/<site>/…``), and a station that
+    publishes over MQTT does so under the site's topic prefix (site.yaml ``broker.prefix``, where
+    the box's config report goes): the site's stations, lives and boxes under one
+    ``<prefix>/<site>/``. The key is located where its value comes from (the station file, the
+    box's box.yaml or defaults/fleet.yaml)."""
+    cfg, name = ld.cfg, site.get("site")
+    if cfg is None or not isinstance(name, str):
+        return []
+    out = []
+    if cfg.station.site != name:
+        out.append(ld.issue("error", ("station", "site"),
+                            f"{cfg.station.site!r} is not the site {name!r} (site.yaml site:); every "
+                            "station of the site names it (its topics <prefix>/<site>/…)"))
+    broker = site.get("broker") if isinstance(site.get("broker"), dict) else {}
+    prefix = str((broker or {}).get("prefix") or "hookwatch").strip("/")
+    if cfg.mqtt.enabled and cfg.mqtt.prefix.strip("/") != prefix:
+        out.append(ld.issue("error", ("mqtt", "prefix"),
+                            f"{cfg.mqtt.prefix!r}: the station would publish under "
+                            f"{cfg.mqtt.prefix}/{name}/…, the site is {prefix}/{name}/… "
+                            "(site.yaml broker.prefix)"))
+    return out
 
 
 def check_box(root: str, box: str) -> BoxCheck:

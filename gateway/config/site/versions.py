@@ -211,6 +211,20 @@ class StateDir:
 
     def mark_verified(self, sha: str) -> None:
         write_atomic(self.path("verified"), (sha + "\n").encode("ascii"))
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path("unverified.json"))
+
+    def mark_unverified(self, sha: str, why: str, health_timeout_s: float) -> None:
+        """``current`` switched to ``sha`` with no supervisor running: not verified until the
+        supervisor's first start has passed its health gate (:mod:`gateway.supervisor.startgate`)."""
+        write_atomic(self.path("unverified.json"), safeout.dumps(
+            {"version": sha, "why": why, "health_timeout_s": health_timeout_s,
+             "time": time.time()}).encode("utf-8"))
+
+    def unverified(self) -> dict[str, Any] | None:
+        """``unverified.json`` if it names the current version (a later switch made it stale)."""
+        uv = read_json(self.path("unverified.json"))
+        return uv if uv and uv.get("version") == self.current() else None
 
     def begin_apply(self, sha: str, previous: str | None, **data: Any) -> None:
         write_atomic(self.path("applying.json"), safeout.dumps(

@@ -500,6 +500,11 @@ BOX_CONFIG_FIELDS = (
     Field("verified", "str", "the last version that passed its health gate"),
     Field("applied_at", "str", "when the current version passed its health gate (null: not yet)"),
     Field("applying", "str", "a version being applied (switched to, its health gate running), or null"),
+    Field("unverified", "dict", "`{version, why}`: the current version was applied while no "
+          "supervisor ran: not yet verified; the supervisor's first start runs its health gate "
+          "(passed: `verified`; failed: back to the last verified version), or null"),
+    Field("supervisor", "dict", "`{pid, software, started}`: the box's supervisor process, the "
+          "hookwatch version it runs and when it started (null: none has run)"),
     Field("deferred", "list", "stations still on an older version because a test runs: each "
           "applies when its test ends"),
     Field("pending", "list", "stations not yet on `version` (deferred ones included)"),

@@ -73,13 +73,23 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
         v1 = repo.commit("two stations", key)
         rc, out, p = _apply(box, repo, v1)
         assert rc == 3 and out["version"] == v1 and not out["rolled_back"], p.stderr
-        assert box.current() == v1 == box.verified()          # no supervisor yet: it starts on it
+        # no supervisor yet: it starts on v1, which no health gate has passed — not verified
+        assert box.current() == v1 and box.verified() is None, out
+        assert "no supervisor running" in out["why"], out
+        uv = json.loads(box.config("status", "--json").stdout)["unverified"]
+        assert uv["version"] == v1 and "first start" in uv["why"], uv
         sub = Sub(broker.port, "hookwatch/lab/box/+/config")
         stack.callback(sub.stop)
         gw = box.start()
         try:
             _station_on(box, "idle", v1)
             _station_on(box, "busy", v1)
+            # … verified once the supervisor's first start has passed the health gate
+            wait_for(lambda: box.verified() == v1, 30, 0.2, what="v1 verified at the first start")
+            ver = [e for e in box.journal() if e["event"] == "verified"]
+            assert ver and ver[-1]["version"] == v1 and "health gate passed" in ver[-1]["why"], box.journal()
+            st0 = json.loads(box.config("status", "--json").stdout)
+            assert st0["unverified"] is None and st0["supervisor"]["pid"] == gw.p.pid, st0
             wait_log(gw, "busy: test_started")
             # (a) a fleet default changes
             repo.edit("defaults/fleet.yaml", lambda d: d["defaults"]["method"].update(delta=0.3))
@@ -118,6 +128,14 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
             # the running test ends; then, and only then, busy applies v2
             wait_log(gw, "busy: test_ended", timeout=120)
             _station_on(box, "busy", v2, timeout=60)
+            # that test ran to its planned end (t_end, not a stop) with the parameters it
+            # started with, its result as the offline analysis finds it
+            first = test_dirs(box.dir, "busy")[0]
+            with open(os.path.join(first, "log.meta.yaml")) as f:
+                assert yaml.safe_load(f)["method"]["delta"] == 0.25
+            res = read_json(os.path.join(first, "result.json"))
+            assert res["end_reason"] == "completed" and res["t_end"] == QUICK_END, res
+            assert analyze_cli(os.path.join(first, "log.csv.gz")) == res["method"]     # online == offline
             # the same ID again: nothing to do
             rc, out, p = _apply(box, repo, v2)
             assert rc == 0 and out["why"] == "already applied", out
@@ -130,14 +148,28 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
             # test (autostart), only when that test ends
             wait_for(lambda: gw.log_all().count("busy: test_started") >= 2, 60, 0.2, what="busy's 2nd test")
             pids = {n: s["pid"] for n, s in box.status()["stations"].items()}
-            r = box.config("restart", "--all", "--wait", "2", "--json")
+            r = box.config("restart", "--all", "--wait", "2", "--request", "rel-1", "--json")
             rs = json.loads(r.stdout)
             assert r.returncode == 6 and rs["deferred"] == ["busy"], r.stdout + r.stderr
             wait_for(lambda: (box.status()["stations"]["idle"].get("pid") not in (None, pids["idle"])
                               and box.status()["stations"]["idle"].get("running")), 60, 0.2,
                      what="idle restarted")
+            idle_pid = box.status()["stations"]["idle"]["pid"]
+            # asked again (Ansible's retry, the same request): awaited, not made again — idle is
+            # not restarted a second time, busy still waits for its test
+            r = box.config("restart", "--all", "--wait", "0", "--request", "rel-1", "--json")
+            assert r.returncode == 6 and json.loads(r.stdout)["deferred"] == ["busy"], r.stdout + r.stderr
             assert box.status()["stations"]["busy"]["pid"] == pids["busy"]
             wait_log(gw, "busy: worker ended for its restart", timeout=120)
+            # busy's new worker begins another test at once (autostart): the request is done all
+            # the same (its worker is new), and a retry says so rather than waiting for that test
+            wait_for(lambda: gw.log_all().count("busy: test_started") >= 3, 60, 0.2, what="busy's 3rd test")
+            r = box.config("restart", "--all", "--wait", "30", "--request", "rel-1", "--json")
+            assert r.returncode == 0, r.stdout + r.stderr
+            st = box.status()["stations"]
+            assert st["idle"]["pid"] == idle_pid and st["busy"]["in_test"], st
+            assert gw.log_all().count("idle: worker ended for its restart") == 1
+            assert gw.log_all().count("busy: worker ended for its restart") == 1
             wait_for(lambda: (box.status()["stations"]["busy"].get("pid") not in (None, pids["busy"])
                               and box.status()["stations"]["busy"].get("running")), 60, 0.2,
                      what="busy restarted after its test")
@@ -246,6 +278,20 @@ def test_health_gate_rollback_kill_mid_apply_drift_and_interrupted_tests(tmp_pat
             _station_on(box, "s1", v1)
             _station_on(box, "long", v1)
             wait_log(gw, "long: test_started")
+            # a version applied while no supervisor runs, whose gate fails at the supervisor's
+            # start (s1's meter port is not there): never verified, back to v1 by itself
+            gw.stop()
+            rc, out, p = _apply(box, repo, bad, "--health-timeout", "15")
+            assert rc == 3 and box.current() == bad and box.verified() == v1, p.stdout + p.stderr
+            gw = box.start()
+            wait_for(lambda: box.current() == v1, 90, 0.2, what="back to v1 after the start's gate")
+            rb = json.loads(box.config("status", "--json").stdout)
+            assert rb["last_rollback"]["from"] == bad and rb["last_rollback"]["to"] == v1, rb
+            assert "health gate at the supervisor's start" in rb["last_rollback"]["why"], rb
+            assert "s1" in rb["last_rollback"]["why"] and rb["verified"] == v1, rb
+            _station_on(box, "s1", v1)
+            _station_on(box, "long", v1)
+            wait_for(lambda: gw.log_all().count("long: test_started") >= 1, 60, 0.2, what="long's test")
             # (e) drift: a hand edit of the effective tree
             with open(box.current_dir / "stations" / "s1.yaml", "a") as f:
                 f.write("# edited by hand\n")

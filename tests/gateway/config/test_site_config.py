@@ -63,6 +63,41 @@ def test_check_names_file_and_line_in_the_repository_and_ids_across_the_site(tmp
     assert b1.config("check", str(repo.path), "--box", "nope").returncode == 1
 
 
+def _line(repo, rel, needle):
+    return next(i for i, t in enumerate((repo.path / rel).read_text().splitlines(), 1) if needle in t)
+
+
+def test_check_site_one_site_name_across_site_yaml_box_yaml_stations_and_topics(tmp_path):
+    """The site's name: site.yaml's, every station's station.site (wherever it is set: the
+    defaults, a box's box.yaml, a station file) and the MQTT topic prefix of site.yaml's broker
+    (a station publishing elsewhere is not on the site's topics) — each error FILE:LINE."""
+    repo = _site(tmp_path)
+    b1 = Box(tmp_path, "b1-box", None)
+    repo.write("site.yaml", {"site": "lab", "broker": {"host": "127.0.0.1", "prefix": "plant"}})
+    repo.edit("defaults/fleet.yaml", lambda d: d["defaults"].update(mqtt={"enabled": True, "prefix": "plant"}))
+    p = b1.config("check", str(repo.path), "--site")
+    assert p.returncode == 0, p.stdout + p.stderr
+    # box b2's box.yaml names another site; st-2's own file another; st-1 publishes under the
+    # default prefix `hookwatch`, not the site's `plant`
+    repo.edit("boxes/b2/box.yaml", lambda d: d["defaults"].update(station={"site": "lab-old"}))
+    repo.edit("boxes/b1/stations/st-2.yaml", lambda d: d["station"].update(site="plant-b"))
+    repo.edit("boxes/b1/stations/st-1.yaml", lambda d: d.update(mqtt={"prefix": "hookwatch"}))
+    p = b1.config("check", str(repo.path), "--site")
+    assert p.returncode == 1, p.stdout + p.stderr
+    out = p.stdout
+    assert (f"boxes/b2/box.yaml:{_line(repo, 'boxes/b2/box.yaml', 'lab-old')}: station.site: "
+            "'lab-old' is not the site 'lab'") in out, out
+    assert (f"boxes/b1/stations/st-2.yaml:{_line(repo, 'boxes/b1/stations/st-2.yaml', 'plant-b')}: "
+            "station.site: 'plant-b' is not the site 'lab'") in out, out
+    assert (f"boxes/b1/stations/st-1.yaml:{_line(repo, 'boxes/b1/stations/st-1.yaml', 'prefix')}: "
+            "mqtt.prefix: 'hookwatch': the station would publish under hookwatch/lab/") in out, out
+    assert "st-3" not in out.replace("boxes/b2/box.yaml", ""), out      # b2's one error, once
+    # a station without MQTT may keep any prefix; the site's name is still its own
+    repo.edit("boxes/b1/stations/st-1.yaml", lambda d: d["mqtt"].update(enabled=False))
+    p = b1.config("check", str(repo.path), "--box", "b1")
+    assert "mqtt.prefix" not in p.stdout and "plant-b" in p.stdout, p.stdout
+
+
 def test_check_and_plan_of_a_commit_and_exit_codes(tmp_path):
     repo = _site(tmp_path)
     sha = repo.commit("first")
@@ -155,3 +190,39 @@ def test_a_link_out_of_the_repository_is_refused(tmp_path):
     sha = repo.commit("a link")
     p = box.config("plan", str(repo.path), "--version", sha)
     assert p.returncode == 1 and "hunter2" not in p.stdout + p.stderr, p.stdout + p.stderr
+
+
+def test_the_start_gate_of_a_version_applied_while_no_supervisor_ran(tmp_path):
+    """gateway/supervisor/startgate.py, on a real state folder: unverified until every station
+    runs the version with its meter read; a station that never reads it within the bound and no
+    verified version to go back to: still unverified, saying why; a refused station fails it at
+    once; healthy at a later start: verified, and the report says so."""
+    from gateway.config.site.boxreport import build_report
+    from gateway.supervisor.startgate import StartGate
+    a, old = "a" * 40, "b" * 40
+    st = StateDir(str(tmp_path / "state"))
+    st.ensure()
+    st.switch(a)
+    st.mark_unverified(a, "no supervisor running", 5)
+    assert build_report(st)["unverified"] == {"version": a, "why": "no supervisor running"}
+    s1 = {"version": a, "running": True, "meter_ok": False, "in_test": False, "refused": None}
+    gate = StartGate(st)
+    assert not gate.check(a, {"s1": s1}, 100.0) and st.verified() is None        # within its bound
+    assert not gate.check(a, {"s1": s1}, 105.5) and st.verified() is None and st.current() == a
+    why = build_report(st)["unverified"]["why"]
+    assert why == "health gate at the supervisor's start (5 s): s1: no meter reading", why
+    assert [e["event"] for e in st.read_journal()][-1] == "unverified"
+    assert not gate.check(a, {"s1": s1}, 200.0)                     # decided once per start
+    # a refused station fails the gate at once, without waiting for the bound
+    gate = StartGate(st)
+    assert not gate.check(a, {"s1": dict(s1, refused="meter.port: no such device")}, 0.0)
+    assert "s1: refused: meter.port" in build_report(st)["unverified"]["why"]
+    # the next start, every station healthy (one deferred in its test): verified
+    gate = StartGate(st)
+    s2 = {"version": old, "pending": a, "in_test": True, "running": True, "meter_ok": True, "refused": None}
+    assert not gate.check(a, {"s1": dict(s1, meter_ok=True), "s2": s2}, 0.0)
+    assert st.verified() == a and build_report(st)["unverified"] is None
+    assert st.read_journal()[-1]["event"] == "verified"
+    # an unverified.json of another version than current is stale: nothing to gate
+    st.mark_unverified(old, "no supervisor running", 5)
+    assert st.unverified() is None and not StartGate(st).check(a, {}, 0.0)
