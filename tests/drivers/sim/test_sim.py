@@ -347,7 +347,7 @@ def test_sim_process_prints_paths_and_each_fault_fires_on_the_wire(tmp_path):
         assert at + dur <= off[kind]["t"] < at + dur + 1.0, (kind, off[kind])
     assert any(e["event"] == "yarn_running" for e in ev)
 
-    def window(kind, margin=0.15):
+    def window(kind, margin=0.25):      # a loaded machine logs a toggle late: the edges are left out
         return t0 + on[kind]["t"] + margin, t0 + off[kind]["t"] - margin
 
     # the wire works before the first fault
