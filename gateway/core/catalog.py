@@ -436,6 +436,9 @@ class SlotValue:
     plc: PlcRegister | None = None
     plc_latest: SlotSource | None = None
     plc_test: WindowSource | None = None
+    #: the window keeps the mean of this reading over its slots (gateway/core/slotwindow.py
+    #: ``SlotWindow.means``): a channel's row (:func:`channel`)
+    mean: SlotSource | None = None
 
     @property
     def base_type(self) -> str:
@@ -526,6 +529,25 @@ SLOT_CATALOG: tuple[SlotValue, ...] = (
          plc=PlcRegister("valid_slots", "live", "uint32", "slots", "valid slots of the current / last "
                          "test"), test=lambda w: w.n_valid),
 )
+
+
+def channel(name: str, unit: str, doc: str, read: SlotSource, sparkplug: SparkplugMetric | None = None,
+            plc: PlcRegister | None = None) -> SlotValue:
+    """The row of a value read from each slot record (a meter channel, a figure of the slot):
+    MQTT telemetry and Sparkplug carry its interval mean over the slots where it is a number (the
+    window keeps it: ``mean``), the PLC register its latest slot's reading. A third meter channel
+    is its record field and one such row, appended to :data:`SLOT_CATALOG`."""
+    return SlotValue(name, "float|null", unit, doc, lambda w: _r(w.mean(read)), sparkplug=sparkplug,
+                     sparkplug_window=lambda w: w.mean(read), plc=plc, plc_latest=read, mean=read)
+
+
+def means(slots: tuple[SlotValue, ...]) -> tuple[SlotSource, ...]:
+    """The readings whose mean a window of slots keeps for ``slots`` (their rows with a ``mean``)."""
+    return tuple(s.mean for s in slots if s.mean is not None)
+
+
+#: the readings every window keeps the mean of (none of the rows above: their windows' own sums)
+MEANS = means(SLOT_CATALOG)
 
 
 def problems(values: tuple[Value, ...], slots: tuple[SlotValue, ...] = ()) -> list[str]:
