@@ -28,7 +28,20 @@ docs/registers.md, docs/metrics.md's table: each with the command its "docs curr
 names). ``tests/gateway/outputs/test_catalog.py`` proves both: every door publishes exactly these
 rows, and a row added in-process shows at every door.
 
-Pure: data and functions of the state; no I/O, no clock, nothing of the doors.
+**The values of the slot records** (per 20 ms slot, per telemetry interval) are the rows of
+:data:`SLOT_CATALOG` (:class:`SlotValue`): a figure of a window of slot records
+(``gateway/core/slotwindow.py``: its MQTT telemetry key and source), its Sparkplug data-interval
+metric (name, alias index, datatype: a periodic measurement) and its PLC live register (read from
+the latest slot record or from the running test's window). MQTT telemetry
+(``mqtt/schema.py: telemetry_fields``, ``mqtt/messages.py: telemetry_summary``), the Sparkplug data
+interval (``sparkplug/output.py: window_values``, ``sparkplug/metrics.py: device_metrics``) and
+the PLC's live registers (``plc/registers.py: input_layout``, ``plc/server.py``) derive their sets
+from them. A value read from each slot record (a third meter channel: a new ``SlotRecord`` field)
+is one :func:`channel` row: the window keeps its mean (``SlotWindow.means``), the PLC the latest
+slot's. ``tests/gateway/outputs/test_catalog_slots.py`` proves both, as above. Not rows yet: the
+console's live series and the Prometheus slot counters.
+
+Pure: data and functions of the state and the slot records; no I/O, no clock, nothing of the doors.
 """
 from __future__ import annotations
 
