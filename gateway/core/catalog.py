@@ -436,7 +436,7 @@ class SlotValue:
 
     ``window`` is the figure MQTT telemetry carries under ``name`` (None: not in telemetry);
     ``sparkplug_window`` Sparkplug's own reading of the interval (None: ``window``'s). The PLC
-    register reads ``plc_latest`` of the latest slot record, or ``plc_test`` of the test's window
+    register reads ``latest`` of the latest slot record, or ``plc_test`` of the test's window
     (neither: the PLC output fills it itself, e.g. μ of the latest valid slot within a second)."""
     name: str                  # its key in MQTT telemetry (and its name in the catalog)
     type: str                  # the MQTT schema's type (TYPES or "object")
@@ -447,11 +447,15 @@ class SlotValue:
     sparkplug: SparkplugMetric | None = None
     sparkplug_window: WindowSource | None = None
     plc: PlcRegister | None = None
-    plc_latest: SlotSource | None = None
+    latest: SlotSource | None = None
     plc_test: WindowSource | None = None
     #: the window keeps the mean of this reading over its slots (gateway/core/slotwindow.py
     #: ``SlotWindow.means``): a channel's row (:func:`channel`)
     mean: SlotSource | None = None
+    #: a Prometheus gauge of the latest slot's reading (``latest``)
+    prometheus: PromGauge | None = None
+    #: the console's label of the latest slot's reading (``latest``; "": not shown)
+    label: str = ""
 
     @property
     def base_type(self) -> str:
@@ -545,13 +549,16 @@ SLOT_CATALOG: tuple[SlotValue, ...] = (
 
 
 def channel(name: str, unit: str, doc: str, read: SlotSource, sparkplug: SparkplugMetric | None = None,
-            plc: PlcRegister | None = None) -> SlotValue:
+            plc: PlcRegister | None = None, prometheus: PromGauge | None = None,
+            label: str = "") -> SlotValue:
     """The row of a value read from each slot record (a meter channel, a figure of the slot):
     MQTT telemetry and Sparkplug carry its interval mean over the slots where it is a number (the
-    window keeps it: ``mean``), the PLC register its latest slot's reading. A third meter channel
-    is its record field and one such row, appended to :data:`SLOT_CATALOG`."""
+    window keeps it: ``mean``); the PLC register, the Prometheus gauge and the console its latest
+    slot's reading. A third meter channel is its record field and one such row, appended to
+    :data:`SLOT_CATALOG`."""
     return SlotValue(name, "float|null", unit, doc, lambda w: _r(w.mean(read)), sparkplug=sparkplug,
-                     sparkplug_window=lambda w: w.mean(read), plc=plc, plc_latest=read, mean=read)
+                     sparkplug_window=lambda w: w.mean(read), plc=plc, latest=read, mean=read,
+                     prometheus=prometheus, label=label)
 
 
 def means(slots: tuple[SlotValue, ...]) -> tuple[SlotSource, ...]:
@@ -576,14 +583,14 @@ def problems(values: tuple[Value, ...], slots: tuple[SlotValue, ...] = ()) -> li
                 out.append(f"{what} {k!r} twice")
             seen.add(k)
 
-    once("name", [v.name for v in values])
-    once("slot value", [v.name for v in slots])
+    once("name", [v.name for v in values] + [v.name for v in slots])
     sps: list[SparkplugMetric] = [v.sparkplug for v in values if v.sparkplug]
     sps += [s.sparkplug for s in slots if s.sparkplug]
     once("Sparkplug metric", [sp.name for sp in sps])
     once("Sparkplug alias", [sp.alias for sp in sps])
     once("PLC register", [v.plc.name for v in values if v.plc] + [v.plc.name for v in slots if v.plc])
-    once("Prometheus gauge", [v.prometheus.name for v in values if v.prometheus])
+    once("Prometheus gauge", [v.prometheus.name for v in values if v.prometheus]
+         + [v.prometheus.name for v in slots if v.prometheus])
     once("PLC status bit", [v.plc_bit.bit for v in values if v.plc_bit])
     for v in values:
         if v.base_type not in TYPES:
@@ -607,8 +614,12 @@ def problems(values: tuple[Value, ...], slots: tuple[SlotValue, ...] = ()) -> li
             out.append(f"{s.name}: a Sparkplug metric needs a window source")
         if s.plc and s.plc.type not in ("uint16", "uint32", "float32"):
             out.append(f"{s.name}: PLC type {s.plc.type!r} (a slot value is a number)")
-        if s.plc_latest and s.plc_test:
+        if s.latest and s.plc_test:
             out.append(f"{s.name}: a PLC register reads the latest slot or the test's window, not both")
+        if (s.prometheus or s.label) and s.latest is None:
+            out.append(f"{s.name}: a Prometheus gauge or a console label reads the latest slot (``latest``)")
+        if s.prometheus and s.prometheus.label:
+            out.append(f"{s.name}: a slot value's Prometheus gauge is a number, not labelled")
     return out
 
 
@@ -631,6 +642,11 @@ def read_window(slots: tuple[SlotValue, ...], w: SlotWindow, in_test: bool = Tru
     null outside a test: None when not ``in_test``)."""
     return {s.name: (s.window(w) if in_test or not s.in_test else None)
             for s in slots if s.window is not None}
+
+
+def read_latest(slots: tuple[SlotValue, ...], rec: SlotRecord | None) -> dict[str, Reading]:
+    """The latest slot's reading of every row of ``slots`` with one (None before a slot)."""
+    return {s.name: (s.latest(rec) if rec is not None else None) for s in slots if s.latest is not None}
 
 
 def read_sparkplug(slots: tuple[SlotValue, ...], w: SlotWindow) -> dict[str, Figure]:

@@ -388,8 +388,8 @@ class ModbusOutput:
         # the values of the slot records: the catalog's slot rows (the latest slot, the test's window)
         rec = self._rec
         for name, srow in self.slot_regs.items():
-            if srow.plc_latest is not None:
-                v[name] = srow.plc_latest(rec)
+            if srow.latest is not None:
+                v[name] = srow.latest(rec)
             elif srow.plc_test is not None:
                 v[name] = srow.plc_test(w)
         for name, c in w.reason_counts().items():

@@ -21,11 +21,16 @@ from conftest import ROOT
 from gateway.core import catalog
 from gateway.core.records import Event, EventType, SlotRecord
 from gateway.core.slotwindow import SlotWindow
+from gateway.outputs.console.feed import SLOT_VALUES, VALUES, ConsoleOutput, StationFeed, values_json
 from gateway.outputs.mqtt import messages as MM
 from gateway.outputs.mqtt import schema as S
 from gateway.outputs.mqtt import schema_gen as SG
 from gateway.outputs.plc import registers as R
 from gateway.outputs.plc.server import ModbusOutput, ModbusSettings
+from gateway.outputs.prometheus import docs as PD
+from gateway.outputs.prometheus import exposition as PE
+from gateway.outputs.prometheus.figures import GAUGES, SLOT_GAUGES
+from gateway.outputs.prometheus.outputs import MetricsOutput
 from gateway.outputs.sparkplug import metrics as M
 from gateway.outputs.sparkplug.output import window_values
 
@@ -188,18 +193,36 @@ def test_plc_live_registers_are_exactly_the_slot_rows():
     img = _plc(RECS)
     w = _window(RECS)
     for s in rows:
-        if s.plc_latest is None and s.plc_test is None:
+        if s.latest is None and s.plc_test is None:
             continue            # the output's own reading (μ of the latest valid slot within 1 s)
-        want = s.plc_latest(RECS[-1]) if s.plc_latest is not None else s.plc_test(w)
+        want = s.latest(RECS[-1]) if s.latest is not None else s.plc_test(w)
         if s.plc.type == "float32":
             assert _same(img[s.plc.name], _f32(want)), s.name
         else:
             assert img[s.plc.name] == want, s.name
-    assert {s.name for s in rows if s.plc_latest is None and s.plc_test is None} == {"mu"}
+    assert {s.name for s in rows if s.latest is None and s.plc_test is None} == {"mu"}
     # what the slot records change: the rows' registers, the reason counts, the saturation bit
     # (status) and the elapsed time, nothing else
     own = {"status", "elapsed", *(f"count_{n.lower()}" for _, n in R.REASONS)}
     assert _changed(_plc) - own == {s.plc.name for s in rows}
+
+
+# ----------------------------------------------------------------------------- Prometheus, console
+class _Station:
+    id, ts = "st-slots", 0.02
+
+    class _Port:
+        connected, counters = True, {"reads": 1}
+
+    meter = stm32 = _Port()
+
+
+def test_prometheus_and_console_show_exactly_the_slot_rows_with_a_gauge_or_a_label():
+    # none today: the Prometheus slot counters and the console's live series are the doors' own
+    assert SLOT_GAUGES == tuple(s for s in catalog.SLOT_CATALOG if s.prometheus is not None) == ()
+    assert SLOT_VALUES == tuple(s for s in catalog.SLOT_CATALOG if s.label) == ()
+    assert values_json() == values_json(VALUES, ())
+    assert PD.table() == PD.table(GAUGES)
 
 
 # ----------------------------------------------------------------------------- a new value
@@ -220,11 +243,14 @@ DIFF = catalog.SlotValue(
     lambda w: None if w.n_read == 0 else round((w.s2 - w.s1) / w.n_read, 6),
     sparkplug=catalog.SparkplugMetric("Tension/Difference", NEXT, "Float", "N", "T2 − T1, interval mean"),
     plc=catalog.PlcRegister("t_diff", "more", "float32", "N", "T2 − T1 of the latest slot"),
-    plc_latest=lambda rec: rec.t2 - rec.t1 if rec.present else math.nan)
+    latest=lambda rec: rec.t2 - rec.t1 if rec.present else math.nan,
+    prometheus=catalog.PromGauge("tension_difference_newtons", "T2 − T1 of the latest slot"),
+    label="T2 − T1")
 #: a third meter channel: its record field (T3Record.t3) and one row
 T3 = catalog.channel("t3", "N", "mean T3 (third channel), N, over slots with a reading", _t3,
                      catalog.SparkplugMetric("Tension/T3", NEXT + 1, "Float", "N", "third channel, interval mean"),
-                     catalog.PlcRegister("t3", "more", "float32", "N", "third channel T3 of the latest slot"))
+                     catalog.PlcRegister("t3", "more", "float32", "N", "third channel T3 of the latest slot"),
+                     catalog.PromGauge("tension_t3_newtons", "third channel T3 of the latest slot"), "T3")
 EXTENDED = catalog.SLOT_CATALOG + (DIFF, T3)
 T3RECS = [T3Record(**{f.name: getattr(r, f.name) for f in dataclasses.fields(SlotRecord)},
                    t3=0.9 + 0.01 * r.k) for r in RECS]
@@ -277,3 +303,30 @@ def test_a_new_slot_value_is_one_row_and_shows_at_every_door():
     before = _plc(RECS)
     assert all(_same(v, before[k]) for k, v in img.items() if k not in ("t_diff", "t3"))
     assert set(img) - set(before) == {"t_diff", "t3"}
+
+    # Prometheus: a gauge each, of the latest slot; in docs/metrics.md's table
+    gauges = tuple(s for s in EXTENDED if s.prometheus is not None)
+    got = {}
+    out = MetricsOutput(_Station(), serve=False)
+    for r in T3RECS:
+        out.on_record(r)
+    snap = {**out.snapshot(), **catalog.read_latest(gauges, out.f.latest)}
+    for fam in PE.state_families(PE.PREFIX, [snap], gauges):
+        (sample,) = fam.samples
+        got[fam.name] = sample.value
+    assert got == {"hookwatch_tension_difference_newtons": last.t2 - last.t1, "hookwatch_tension_t3_newtons": last.t3}
+    rows = PD.table(GAUGES + gauges)
+    assert rows[:-2] == PD.table() and "`hookwatch_tension_t3_newtons` | gauge | station | N |" in rows[-1]
+
+    # the console: its label under "all values", the latest slot's reading in the station's values
+    assert values_json(VALUES, (DIFF, T3))[-2:] == [
+        {"name": "t_diff", "label": "T2 − T1", "unit": "N", "type": "float"},
+        {"name": "t3", "label": "T3", "unit": "N", "type": "float"}]
+    feed = StationFeed("st1")
+    feed.slot_values = (DIFF, T3)
+    console = ConsoleOutput(feed)
+    for r in T3RECS:
+        console.on_record(r)
+    feed.drain()
+    values = feed.snapshot()["summary"]["values"]
+    assert values == {"t_diff": last.t2 - last.t1, "t3": last.t3}
