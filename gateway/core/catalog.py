@@ -35,11 +35,13 @@ metric (name, alias index, datatype: a periodic measurement) and its PLC live re
 the latest slot record or from the running test's window). MQTT telemetry
 (``mqtt/schema.py: telemetry_fields``, ``mqtt/messages.py: telemetry_summary``), the Sparkplug data
 interval (``sparkplug/output.py: window_values``, ``sparkplug/metrics.py: device_metrics``) and
-the PLC's live registers (``plc/registers.py: input_layout``, ``plc/server.py``) derive their sets
-from them. A value read from each slot record (a third meter channel: a new ``SlotRecord`` field)
-is one :func:`channel` row: the window keeps its mean (``SlotWindow.means``), the PLC the latest
-slot's. ``tests/gateway/outputs/test_catalog_slots.py`` proves both, as above. Not rows yet: the
-console's live series and the Prometheus slot counters.
+the PLC's live registers (``plc/registers.py: input_layout``, ``plc/server.py``), and a row's
+Prometheus gauge and console label of the latest slot's reading (none today:
+``prometheus/figures.py: SLOT_GAUGES``, ``console/feed.py: SLOT_VALUES``) derive their sets from
+them. A value read from each slot record (a third meter channel: a new ``SlotRecord`` field) is
+one :func:`channel` row: the window keeps its mean (``SlotWindow.means``), the PLC, Prometheus and
+the console the latest slot's. ``tests/gateway/outputs/test_catalog_slots.py`` proves both, as
+above. Not rows: the console's live series (the chart) and the Prometheus slot counters.
 
 Pure: data and functions of the state and the slot records; no I/O, no clock, nothing of the doors.
 """
