@@ -789,9 +789,9 @@ def test_one_slot_window_accumulator():
     counting = [m for m, t in TREES.items() if m != "gateway.core.slotwindow" and not _in(m, ("gateway.core.method",))
                 for n in ast.walk(t) if isinstance(n, ast.Call) and ast.unparse(n) == "enumerate(REASONS)"]
     assert counting == []
-    # the accumulator itself sits on the pure core
+    # the accumulator itself sits on the pure core (the catalog: the readings whose mean it keeps)
     assert set(SCANS["gateway.core.slotwindow"].edges) <= {"gateway.core.records", "gateway.core.method",
-                                                           "gateway.core.method.rules"}
+                                                           "gateway.core.method.rules", "gateway.core.catalog"}
 
 
 #: the restarts and retries of stations and workers (their waits come from gateway/plumbing/backoff.py)

@@ -28,14 +28,35 @@ docs/registers.md, docs/metrics.md's table: each with the command its "docs curr
 names). ``tests/gateway/outputs/test_catalog.py`` proves both: every door publishes exactly these
 rows, and a row added in-process shows at every door.
 
-Pure: data and functions of the state; no I/O, no clock, nothing of the doors.
+**The values of the slot records** (per 20 ms slot, per telemetry interval) are the rows of
+:data:`SLOT_CATALOG` (:class:`SlotValue`): a figure of a window of slot records
+(``gateway/core/slotwindow.py``: its MQTT telemetry key and source), its Sparkplug data-interval
+metric (name, alias index, datatype: a periodic measurement) and its PLC live register (read from
+the latest slot record or from the running test's window). MQTT telemetry
+(``mqtt/schema.py: telemetry_fields``, ``mqtt/messages.py: telemetry_summary``), the Sparkplug data
+interval (``sparkplug/output.py: window_values``, ``sparkplug/metrics.py: device_metrics``) and
+the PLC's live registers (``plc/registers.py: input_layout``, ``plc/server.py``), and a row's
+Prometheus gauge and console label of the latest slot's reading (none today:
+``prometheus/figures.py: SLOT_GAUGES``, ``console/feed.py: SLOT_VALUES``) derive their sets from
+them. A value read from each slot record (a third meter channel: a new ``SlotRecord`` field) is
+one :func:`channel` row: the window keeps its mean (``SlotWindow.means``), the PLC, Prometheus and
+the console the latest slot's. ``tests/gateway/outputs/test_catalog_slots.py`` proves both, as
+above. Not rows: the console's live series (the chart) and the Prometheus slot counters.
+
+Pure: data and functions of the state and the slot records; no I/O, no clock, nothing of the doors.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from .records import AlarmState, StationState, TestState
+from .method.rules import REASON_NAMES
+from .records import AlarmState, SlotRecord, StationState, TestState
+
+if TYPE_CHECKING:
+    from .slotwindow import SlotWindow
 
 #: a published value as its source reads it
 Reading = str | int | float | bool | list[str] | None
@@ -400,24 +421,178 @@ CATALOG: tuple[Value, ...] = (
 )
 
 
-def problems(values: tuple[Value, ...]) -> list[str]:
+# ------------------------------------------------------------------ the values of the slot records
+#: a window's figure: a reading, or an object of readings (MQTT telemetry's `tension`, `counts`)
+Figure = Reading | dict[str, Reading]
+#: a figure of a window of slot records (gateway/core/slotwindow.py)
+WindowSource = Callable[["SlotWindow"], Figure]
+#: a figure of one slot record (the latest)
+SlotSource = Callable[[SlotRecord], Reading]
+
+
+@dataclass(frozen=True)
+class SlotValue:
+    """One published value of the slot records (a row of :data:`SLOT_CATALOG`): a figure of a
+    window of slots (an MQTT telemetry interval, a Sparkplug data interval) and, for the PLC, of
+    the latest slot or of the running test's window.
+
+    ``window`` is the figure MQTT telemetry carries under ``name`` (None: not in telemetry);
+    ``sparkplug_window`` Sparkplug's own reading of the interval (None: ``window``'s). The PLC
+    register reads ``latest`` of the latest slot record, or ``plc_test`` of the test's window
+    (neither: the PLC output fills it itself, e.g. μ of the latest valid slot within a second)."""
+    name: str                  # its key in MQTT telemetry (and its name in the catalog)
+    type: str                  # the MQTT schema's type (TYPES or "object")
+    unit: str
+    doc: str                   # docs/mqtt.md's telemetry table
+    window: WindowSource | None
+    in_test: bool = False      # telemetry: null outside a test
+    sparkplug: SparkplugMetric | None = None
+    sparkplug_window: WindowSource | None = None
+    plc: PlcRegister | None = None
+    latest: SlotSource | None = None
+    plc_test: WindowSource | None = None
+    #: the window keeps the mean of this reading over its slots (gateway/core/slotwindow.py
+    #: ``SlotWindow.means``): a channel's row (:func:`channel`)
+    mean: SlotSource | None = None
+    #: a Prometheus gauge of the latest slot's reading (``latest``)
+    prometheus: PromGauge | None = None
+    #: the console's label of the latest slot's reading (``latest``; "": not shown)
+    label: str = ""
+
+    @property
+    def base_type(self) -> str:
+        return self.type.split("|")[0]
+
+
+def _r(x: float | None) -> float | None:
+    """Telemetry's rounding (6 decimals)."""
+    return None if x is None else round(x, 6)
+
+
+def _tension(w: SlotWindow) -> Figure:
+    nr = w.n_read
+    return {"mean": _r(w.sm / nr) if nr else None, "min": _r(w.mn) if nr else None,
+            "max": _r(w.mx) if nr else None}
+
+
+def _latest(read: Callable[[SlotRecord], float]) -> SlotSource:
+    """A reading of the latest slot record: NaN when the slot has no meter reading."""
+    return lambda rec: read(rec) if rec.present else math.nan
+
+
+def _slot_sp(name: str, alias: int, datatype: str, units: str = "", description: str = "",
+             window: WindowSource | None = None) -> tuple[SparkplugMetric, WindowSource | None]:
+    return SparkplugMetric(name, alias, datatype, units, description), window
+
+
+def _row(name: str, type_: str, unit: str, doc: str, window: WindowSource | None, *,
+         in_test: bool = False, sp: tuple[SparkplugMetric, WindowSource | None] | None = None,
+         plc: PlcRegister | None = None, latest: SlotSource | None = None,
+         test: WindowSource | None = None) -> SlotValue:
+    return SlotValue(name, type_, unit, doc, window, in_test, sp[0] if sp else None,
+                     sp[1] if sp else None, plc, latest, test)
+
+
+#: every published value of the slot records, in the order of MQTT telemetry (append new rows at
+#: the end: a new Sparkplug alias takes the next free index, a new PLC register goes to a block
+#: with reserved space, e.g. "more")
+SLOT_CATALOG: tuple[SlotValue, ...] = (
+    _row("slots", "int", "slots", "slots in the interval", lambda w: w.n,
+         plc=PlcRegister("slots", "live", "uint32", "slots", "slots of the current / last test"),
+         test=lambda w: w.n),
+    _row("t1", "float|null", "N", "mean T1 (inlet tension), N, over slots with a reading",
+         lambda w: _r(w.t1_mean),
+         sp=_slot_sp("Tension/T1", 18, "Float", "N", "inlet tension, interval mean", lambda w: w.t1_mean),
+         plc=PlcRegister("t1", "live", "float32", "N", "inlet tension T1 of the latest slot (NaN "
+                         "without a reading)"), latest=_latest(lambda rec: rec.t1)),
+    _row("t2", "float|null", "N", "mean T2 (outlet tension), N", lambda w: _r(w.t2_mean),
+         sp=_slot_sp("Tension/T2", 19, "Float", "N", "outlet tension, interval mean", lambda w: w.t2_mean),
+         plc=PlcRegister("t2", "live", "float32", "N", "outlet tension T2 of the latest slot"),
+         latest=_latest(lambda rec: rec.t2)),
+    _row("tension", "object", "N", "mean tension (T1+T2)/2 per slot: {mean, min, max}, N (null "
+         "without readings)", _tension,
+         sp=_slot_sp("Tension/Mean", 20, "Float", "N", "(T1+T2)/2, interval mean",
+                     lambda w: (w.s1 + w.s2) / (2 * w.n_read) if w.n_read else None),
+         plc=PlcRegister("tension", "live", "float32", "N", "mean tension (T1+T2)/2 of the latest slot"),
+         latest=_latest(lambda rec: (rec.t1 + rec.t2) * 0.5)),
+    _row("mu", "float|null", "", "mean μ of the valid slots of the interval (null if none)",
+         lambda w: _r(w.mu_mean),
+         sp=_slot_sp("Friction/mu", 21, "Double", "", "capstan μ = ln(T2/T1)/θ over valid slots, "
+                     "interval mean", lambda w: w.mu_mean),
+         plc=PlcRegister("mu", "live", "float32", "", "μ of the latest valid slot within the last "
+                         "second (NaN if none)")),
+    _row("valid_ratio", "float|null", "", "valid slots / slots in the interval (null outside a test)",
+         lambda w: w.valid_ratio, in_test=True,
+         sp=_slot_sp("Quality/Valid Ratio", 22, "Double", "", "valid slots / slots in the interval",
+                     lambda w: w.valid_ratio),
+         plc=PlcRegister("valid_ratio", "live", "float32", "", "valid slots / slots of the current / "
+                         "last test (NaN outside)"),
+         test=lambda w: w.n_valid / w.n if w.n else math.nan),
+    _row("counts", "object", "slots", "slots per reason in the interval: {"
+         + ", ".join(REASON_NAMES) + "}", lambda w: dict(w.reason_counts())),
+    _row("speed_cmd", "float", "rpm", "speed command at the end of the interval, rpm",
+         lambda w: w.speed_cmd, sp=_slot_sp("Control/Speed Command", 23, "Float", "rpm"),
+         plc=PlcRegister("speed_cmd", "live", "float32", "rpm", "speed command of the latest slot"),
+         latest=lambda rec: rec.speed_cmd),
+    _row("speed_act", "float|null", "rpm", "actual speed reported by the STM32, rpm",
+         lambda w: w.speed_act, sp=_slot_sp("Control/Speed Actual", 24, "Float", "rpm"),
+         plc=PlcRegister("speed_act", "live", "float32", "rpm", "actual speed reported by the STM32 "
+                         "(NaN if unknown)"), latest=lambda rec: rec.speed_act),
+    _row("saturated_slots", "int", "slots", "slots in which the control output was clamped",
+         lambda w: w.n_sat),
+    _row("saturation", "bool", "", "the control output was clamped at least once in the interval",
+         lambda w: w.n_sat > 0,
+         sp=_slot_sp("Control/Saturation", 25, "Boolean", description="control output clamped in "
+                     "the interval")),
+    _row("valid_slots", "int", "slots", "valid slots of the current / last test", None,
+         plc=PlcRegister("valid_slots", "live", "uint32", "slots", "valid slots of the current / last "
+                         "test"), test=lambda w: w.n_valid),
+)
+
+
+def channel(name: str, unit: str, doc: str, read: SlotSource, sparkplug: SparkplugMetric | None = None,
+            plc: PlcRegister | None = None, prometheus: PromGauge | None = None,
+            label: str = "") -> SlotValue:
+    """The row of a value read from each slot record (a meter channel, a figure of the slot):
+    MQTT telemetry and Sparkplug carry its interval mean over the slots where it is a number (the
+    window keeps it: ``mean``); the PLC register, the Prometheus gauge and the console its latest
+    slot's reading. A third meter channel is its record field and one such row, appended to
+    :data:`SLOT_CATALOG`."""
+    return SlotValue(name, "float|null", unit, doc, lambda w: _r(w.mean(read)), sparkplug=sparkplug,
+                     sparkplug_window=lambda w: w.mean(read), plc=plc, latest=read, mean=read,
+                     prometheus=prometheus, label=label)
+
+
+def means(slots: tuple[SlotValue, ...]) -> tuple[SlotSource, ...]:
+    """The readings whose mean a window of slots keeps for ``slots`` (their rows with a ``mean``)."""
+    return tuple(s.mean for s in slots if s.mean is not None)
+
+
+#: the readings every window keeps the mean of (none of the rows above: their windows' own sums)
+MEANS = means(SLOT_CATALOG)
+
+
+def problems(values: tuple[Value, ...], slots: tuple[SlotValue, ...] = ()) -> list[str]:
     """What breaks the catalog's rules (empty: none): a name, an MQTT key, a Sparkplug name or
-    alias, a PLC register or a Prometheus name used twice; an unknown type; an enumeration
-    without its choices."""
+    alias, a PLC register or a Prometheus name used twice (among the state's rows and the slot
+    records' rows together); an unknown type; an enumeration without its choices."""
     out: list[str] = []
 
-    def once(what: str, keys: list[object]) -> None:
+    def once(what: str, keys: Sequence[object]) -> None:
         seen: set[object] = set()
         for k in keys:
             if k in seen:
                 out.append(f"{what} {k!r} twice")
             seen.add(k)
 
-    once("name", [v.name for v in values])
-    once("Sparkplug metric", [v.sparkplug.name for v in values if v.sparkplug])
-    once("Sparkplug alias", [v.sparkplug.alias for v in values if v.sparkplug])
-    once("PLC register", [v.plc.name for v in values if v.plc])
-    once("Prometheus gauge", [v.prometheus.name for v in values if v.prometheus])
+    once("name", [v.name for v in values] + [v.name for v in slots])
+    sps: list[SparkplugMetric] = [v.sparkplug for v in values if v.sparkplug]
+    sps += [s.sparkplug for s in slots if s.sparkplug]
+    once("Sparkplug metric", [sp.name for sp in sps])
+    once("Sparkplug alias", [sp.alias for sp in sps])
+    once("PLC register", [v.plc.name for v in values if v.plc] + [v.plc.name for v in slots if v.plc])
+    once("Prometheus gauge", [v.prometheus.name for v in values if v.prometheus]
+         + [v.prometheus.name for v in slots if v.prometheus])
     once("PLC status bit", [v.plc_bit.bit for v in values if v.plc_bit])
     for v in values:
         if v.base_type not in TYPES:
@@ -432,20 +607,59 @@ def problems(values: tuple[Value, ...]) -> list[str]:
             out.append(f"{v.name}: a PLC status bit is a flag's, bit 0 … 15")
         if v.prometheus and v.prometheus.label and not v.choices:
             out.append(f"{v.name}: a labelled Prometheus gauge needs the value's choices")
+    for s in slots:
+        if s.base_type not in TYPES + ("object",):
+            out.append(f"{s.name}: type {s.type!r} is not one of {TYPES + ('object',)}")
+        if s.sparkplug and s.sparkplug.datatype not in SPARKPLUG_TYPES:
+            out.append(f"{s.name}: Sparkplug datatype {s.sparkplug.datatype!r}")
+        if s.sparkplug and s.window is None and s.sparkplug_window is None:
+            out.append(f"{s.name}: a Sparkplug metric needs a window source")
+        if s.plc and s.plc.type not in ("uint16", "uint32", "float32"):
+            out.append(f"{s.name}: PLC type {s.plc.type!r} (a slot value is a number)")
+        if s.latest and s.plc_test:
+            out.append(f"{s.name}: a PLC register reads the latest slot or the test's window, not both")
+        if (s.prometheus or s.label) and s.latest is None:
+            out.append(f"{s.name}: a Prometheus gauge or a console label reads the latest slot (``latest``)")
+        if s.prometheus and s.prometheus.label:
+            out.append(f"{s.name}: a slot value's Prometheus gauge is a number, not labelled")
     return out
 
 
-def check(values: tuple[Value, ...]) -> tuple[Value, ...]:
-    """``values`` when they keep the catalog's rules, else ValueError (at import: a broken row
-    never reaches a door)."""
-    bad = problems(values)
+def check(values: tuple[Value, ...], slots: tuple[SlotValue, ...] = ()) -> tuple[Value, ...]:
+    """``values`` when they (with the slot records' rows ``slots``) keep the catalog's rules, else
+    ValueError (at import: a broken row never reaches a door)."""
+    bad = problems(values, slots)
     if bad:
         raise ValueError("catalog of published values: " + "; ".join(bad))
     return values
 
 
-check(CATALOG)
+check(CATALOG, SLOT_CATALOG)
 BY_NAME = {v.name: v for v in CATALOG}
+SLOT_BY_NAME = {v.name: v for v in SLOT_CATALOG}
+
+
+def read_window(slots: tuple[SlotValue, ...], w: SlotWindow, in_test: bool = True) -> dict[str, Figure]:
+    """MQTT telemetry's figures of the window ``w``: every row with a window source (a row that is
+    null outside a test: None when not ``in_test``)."""
+    return {s.name: (s.window(w) if in_test or not s.in_test else None)
+            for s in slots if s.window is not None}
+
+
+def read_latest(slots: tuple[SlotValue, ...], rec: SlotRecord | None) -> dict[str, Reading]:
+    """The latest slot's reading of every row of ``slots`` with one (None before a slot)."""
+    return {s.name: (s.latest(rec) if rec is not None else None) for s in slots if s.latest is not None}
+
+
+def read_sparkplug(slots: tuple[SlotValue, ...], w: SlotWindow) -> dict[str, Figure]:
+    """A Sparkplug data interval's metrics of the window ``w``, by metric name."""
+    out: dict[str, Figure] = {}
+    for s in slots:
+        if s.sparkplug is not None:
+            f = s.sparkplug_window or s.window
+            assert f is not None
+            out[s.sparkplug.name] = f(w)
+    return out
 
 
 def read(values: tuple[Value, ...], st: StationState) -> dict[str, Reading]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+from .catalog import MEANS, SlotSource
 from .method.rules import REASONS
 from .records import SlotRecord
 
@@ -30,13 +31,41 @@ class SlotWindow:
     - ``n_sat``: slots whose control output was clamped; ``speed_cmd``/``speed_act``: of the
       last slot;
     - ``late_max``: the latest poll start, s (0 when none was late); ``rtt_max``: the longest meter
-      round trip of a present slot, s (0 when none was measured).
+      round trip of a present slot, s (0 when none was measured);
+    - ``means``: the readings of the slot records whose mean the window keeps (the catalog's slot
+      rows with a ``mean``: a new channel's row, gateway/core/catalog.py), ``m_sum``/``m_n``:
+      their sums and counts over the slots where each is a number (:meth:`mean`).
     """
     __slots__ = ("t0", "n", "n_present", "n_read", "s1", "s2", "sm", "mn", "mx", "n_valid", "n_mu",
-                 "s_mu", "counts", "n_sat", "speed_cmd", "speed_act", "late_max", "rtt_max")
+                 "s_mu", "counts", "n_sat", "speed_cmd", "speed_act", "late_max", "rtt_max",
+                 "means", "m_sum", "m_n")
+    t0: float
+    n: int
+    n_present: int
+    n_read: int
+    n_valid: int
+    n_mu: int
+    n_sat: int
+    s1: float
+    s2: float
+    sm: float
+    s_mu: float
+    mn: float
+    mx: float
+    counts: list[int]
+    speed_cmd: float
+    speed_act: float
+    late_max: float
+    rtt_max: float
+    means: tuple[SlotSource, ...]
+    m_sum: list[float]
+    m_n: list[int]
 
-    def __init__(self, t0: float = 0.0) -> None:
+    def __init__(self, t0: float = 0.0, means: tuple[SlotSource, ...] = MEANS) -> None:
         self.t0 = t0
+        self.means = means
+        self.m_sum = [0.0] * len(means)
+        self.m_n = [0] * len(means)
         self.n = self.n_present = self.n_read = self.n_valid = self.n_mu = self.n_sat = 0
         self.s1 = self.s2 = self.sm = self.s_mu = 0.0
         self.mn = math.inf
@@ -81,6 +110,15 @@ class SlotWindow:
             self.late_max = rec.lateness_s
         self.speed_cmd = rec.speed_cmd
         self.speed_act = rec.speed_act
+        if self.means:
+            self._add_means(rec)
+
+    def _add_means(self, rec: SlotRecord) -> None:
+        for i, read in enumerate(self.means):
+            x = read(rec)
+            if isinstance(x, (int, float)) and x == x:
+                self.m_sum[i] += x
+                self.m_n[i] += 1
 
     # -- the derived figures (None when the window has nothing to average)
     @property
@@ -103,6 +141,11 @@ class SlotWindow:
     @property
     def valid_ratio(self) -> float | None:
         return self.n_valid / self.n if self.n else None
+
+    def mean(self, read: SlotSource) -> float | None:
+        """The mean of the reading ``read`` (one of ``means``) over the slots where it is a number."""
+        i = self.means.index(read)
+        return self.m_sum[i] / self.m_n[i] if self.m_n[i] else None
 
     def reason_counts(self) -> dict[str, int]:
         """Slots per reason name, in the order of ``REASONS``."""

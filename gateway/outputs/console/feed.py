@@ -47,12 +47,21 @@ MAX_TRANSITIONS_PER_EVENT = 8
 JOURNAL_TESTS = 5
 #: the catalog's values the console shows, each with its label (GET /api/values)
 VALUES = tuple(v for v in catalog.CATALOG if v.label)
+#: the catalog's slot records' values the console shows (the latest slot's reading): none today
+SLOT_VALUES = tuple(s for s in catalog.SLOT_CATALOG if s.label)
 
 
-def values_json(values: tuple[catalog.Value, ...] = VALUES) -> list[dict[str, str]]:
+def values_json(values: tuple[catalog.Value, ...] = VALUES,
+                slots: tuple[catalog.SlotValue, ...] = SLOT_VALUES) -> list[dict[str, str]]:
     """The rows the page shows under "all values" (GET /api/values): the key of its value in the
-    station summary's ``values``, its label, unit and type."""
-    return [{"name": v.name, "label": v.label, "unit": v.unit, "type": v.base_type} for v in values]
+    station summary's ``values``, its label, unit and type (the state's, then the slot records')."""
+    return [{"name": v.name, "label": v.label, "unit": v.unit, "type": v.base_type} for v in values + slots]
+
+
+def slot_values(rec: SlotRecord | None, slots: tuple[catalog.SlotValue, ...] = SLOT_VALUES) -> dict[str, Any]:
+    """The latest slot's readings of the labelled slot rows (a number that is not finite: None)."""
+    return {k: (x if not isinstance(x, float) or math.isfinite(x) else None)
+            for k, x in catalog.read_latest(slots, rec).items()}
 
 
 #: states of a running test (TestState values): baseline search, monitoring, end of life
@@ -259,6 +268,10 @@ class StationFeed:
         #: the ISA-18.2 transitions of the station's alarms, oldest first (bounded)
         self.journal: collections.deque = collections.deque(maxlen=MAX_JOURNAL)
         self.journal_seeded = False
+        #: the latest slot record handed over (the labelled slot rows' readings: SLOT_VALUES)
+        self.latest: SlotRecord | None = None
+        #: the slot rows this feed shows (the catalog's labelled ones)
+        self.slot_values = SLOT_VALUES
 
     # ----------------------------------------------------------------- console thread
     @property
@@ -273,6 +286,7 @@ class StationFeed:
         changed = n > 0
         for item in items:
             if isinstance(item, SlotRecord):
+                self.latest = item
                 if self.pending is not None:
                     if len(self.pending) < HANDOVER_SLOTS * 8:
                         self.pending.append(item)
@@ -366,6 +380,8 @@ class StationFeed:
         s["past_threshold"] = bool(st is not None and (st.t_life is not None or st.state.value == 3))
         if values:
             s["values"] = catalog.read(VALUES, st) if st is not None else {}
+            if self.slot_values:
+                s["values"].update(slot_values(self.latest, self.slot_values))
         if not self.mqtt_enabled:
             s["mqtt_ok"] = None         # no MQTT link configured: nothing to show
         # else the station's state says it (StationState.mqtt_ok, from the MQTT output's uplink

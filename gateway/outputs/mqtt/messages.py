@@ -43,21 +43,15 @@ def _r(x: float) -> float:
 
 
 def telemetry_summary(w: SlotWindow, now: float, test_id: str | None, headroom: float | None = None,
-                      t_cross: float | None = None) -> dict[str, Any]:
+                      t_cross: float | None = None,
+                      slots: tuple[catalog.SlotValue, ...] = catalog.SLOT_CATALOG) -> dict[str, Any]:
     """A telemetry interval's figures from its window of slots (``gateway/core/slotwindow.py``, opened
-    at ``w.t0`` on the output's monotonic clock); ``headroom`` and ``t_cross`` are the §5a figures
-    of the last complete window of the running test (the station's state)."""
-    nr = w.n_read
+    at ``w.t0`` on the output's monotonic clock): the slot records' rows of the catalog
+    (gateway/core/catalog.py); ``headroom`` and ``t_cross`` are the §5a figures of the last
+    complete window of the running test (the station's state)."""
     return {
-        "test_id": test_id, "interval_s": round(now - w.t0, 3), "slots": w.n,
-        "t1": _r(w.s1 / nr) if nr else None, "t2": _r(w.s2 / nr) if nr else None,
-        "tension": {"mean": _r(w.sm / nr) if nr else None, "min": _r(w.mn) if nr else None,
-                    "max": _r(w.mx) if nr else None},
-        "mu": _r(w.s_mu / w.n_mu) if w.n_mu else None,
-        "valid_ratio": w.valid_ratio if test_id else None,
-        "counts": w.reason_counts(),
-        "speed_cmd": w.speed_cmd, "speed_act": w.speed_act,
-        "saturated_slots": w.n_sat, "saturation": w.n_sat > 0,
+        "test_id": test_id, "interval_s": round(now - w.t0, 3),
+        **catalog.read_window(slots, w, bool(test_id)),
         "headroom": headroom if test_id else None, "t_cross": t_cross if test_id else None,
         # §5b: the forecast of the last forecast time (the MQTT output fills it from the state)
         **mqtt_schema.forecast_fields(None),

@@ -108,24 +108,21 @@ def state_fields(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[F
 
 STATE_FIELDS = state_fields()
 
-TELEMETRY_FIELDS = ENVELOPE + (
-    Field("test_id", "str|null", "test running during this interval"),
-    Field("interval_s", "float", "length of the interval the figures cover, s"),
-    Field("slots", "int", "slots in the interval"),
-    Field("t1", "float|null", "mean T1 (inlet tension), N, over slots with a reading"),
-    Field("t2", "float|null", "mean T2 (outlet tension), N"),
-    Field("tension", "object", "mean tension (T1+T2)/2 per slot: {mean, min, max}, N (null without readings)"),
-    Field("mu", "float|null", "mean μ of the valid slots of the interval (null if none)"),
-    Field("valid_ratio", "float|null", "valid slots / slots in the interval (null outside a test)"),
-    Field("counts", "object", "slots per reason in the interval: {" + ", ".join(REASON_NAMES) + "}"),
-    Field("speed_cmd", "float", "speed command at the end of the interval, rpm"),
-    Field("speed_act", "float|null", "actual speed reported by the STM32, rpm"),
-    Field("saturated_slots", "int", "slots in which the control output was clamped"),
-    Field("saturation", "bool", "the control output was clamped at least once in the interval"),
-    Field("headroom", "float|null", "wear headroom of the last complete window (§5a), as in `state`"),
-    Field("t_cross", "float|null", "projected crossing of μ_th, s from test start (§5a), as in `state`"),
-    *FORECAST_FIELDS,
-)
+def telemetry_fields(slots: tuple[catalog.SlotValue, ...] = catalog.SLOT_CATALOG) -> tuple[Field, ...]:
+    """The fields of `telemetry`: the envelope, the test and the interval, every slot records' row
+    of the catalog with a window source (gateway/core/catalog.py), in its order, then the §5a/§5b
+    figures of the station's state."""
+    return ENVELOPE + (
+        Field("test_id", "str|null", "test running during this interval"),
+        Field("interval_s", "float", "length of the interval the figures cover, s"),
+        *(Field(s.name, s.type, s.doc) for s in slots if s.window is not None),
+        Field("headroom", "float|null", "wear headroom of the last complete window (§5a), as in `state`"),
+        Field("t_cross", "float|null", "projected crossing of μ_th, s from test start (§5a), as in `state`"),
+        *FORECAST_FIELDS,
+    )
+
+
+TELEMETRY_FIELDS = telemetry_fields()
 
 EVENT_FIELDS = ENVELOPE + (
     Field("type", "str", "event type (the last topic level)"),
@@ -557,8 +554,9 @@ def state_payload(seq: int, t: float, st: StationState,
     return {**_env(seq, t, st.station), **{v.name: v.source(st) for v in values if v.mqtt}}
 
 
-def telemetry_payload(seq: int, t: float, station: str, agg: dict[str, Any]) -> dict[str, Any]:
-    return {**_env(seq, t, station), **{f.name: agg.get(f.name) for f in TELEMETRY_FIELDS[len(ENVELOPE):]}}
+def telemetry_payload(seq: int, t: float, station: str, agg: dict[str, Any],
+                      fields: tuple[Field, ...] = TELEMETRY_FIELDS) -> dict[str, Any]:
+    return {**_env(seq, t, station), **{f.name: agg.get(f.name) for f in fields[len(ENVELOPE):]}}
 
 
 def event_payload(seq: int, ev: Event) -> dict[str, Any]:

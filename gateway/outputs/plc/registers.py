@@ -209,6 +209,18 @@ def _cat(name: str) -> tuple[str, str, str, str]:
     return (p.name, p.type, p.unit, p.doc)
 
 
+#: the slot records' values this map serves, by register: the catalog's slot rows with one
+SLOT_REGS = {v.plc.name: v for v in catalog.SLOT_CATALOG if v.plc is not None}
+
+
+def _slot(name: str) -> tuple[str, str, str, str]:
+    """The input register of the catalog's slot records' row whose register is ``name``, placed
+    here among the registers of its block (its address frozen)."""
+    p = SLOT_REGS[name].plc
+    assert p is not None
+    return (p.name, p.type, p.unit, p.doc)
+
+
 def _reason_reg(name: str) -> tuple[str, str, str, str]:
     return (f"count_{name.lower()}", "uint32", "slots", f"slots of the current / last test with reason {name}")
 
@@ -242,20 +254,14 @@ INPUT_SPECS: dict[str, list[tuple[Any, ...]]] = {
         _cat("alarm"),
     ],
     "live": [
-        ("t1", "float32", "N", "inlet tension T1 of the latest slot (NaN without a reading)"),
-        ("t2", "float32", "N", "outlet tension T2 of the latest slot"),
-        ("tension", "float32", "N", "mean tension (T1+T2)/2 of the latest slot"),
-        ("mu", "float32", "", "μ of the latest valid slot within the last second (NaN if none)"),
+        _slot("t1"), _slot("t2"), _slot("tension"), _slot("mu"),
         _cat("mu_ss"),
         _cat("mu_th"),
         _cat("t_set"),
-        ("valid_ratio", "float32", "", "valid slots / slots of the current / last test (NaN outside)"),
-        ("speed_cmd", "float32", "rpm", "speed command of the latest slot"),
-        ("speed_act", "float32", "rpm", "actual speed reported by the STM32 (NaN if unknown)"),
+        _slot("valid_ratio"), _slot("speed_cmd"), _slot("speed_act"),
         _cat("t_life"),
         ("elapsed", "uint32", "s", "time since the start of the current / last test"),
-        ("slots", "uint32", "slots", "slots of the current / last test"),
-        ("valid_slots", "uint32", "slots", "valid slots of the current / last test"),
+        _slot("slots"), _slot("valid_slots"),
     ],
     "reasons": [_reason_reg(n) for n in REASONS_MAP4],
     "wear": [_cat("headroom"), _cat("t_cross"), _cat("warning_alarm")],
@@ -276,23 +282,25 @@ INPUT_SPECS: dict[str, list[tuple[Any, ...]]] = {
 }
 
 
-def input_specs(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> dict[str, list[tuple[Any, ...]]]:
+def input_specs(values: tuple[catalog.Value, ...] = catalog.CATALOG,
+                slots: tuple[catalog.SlotValue, ...] = catalog.SLOT_CATALOG) -> dict[str, list[tuple[Any, ...]]]:
     """The registers of each input block in address order: :data:`INPUT_SPECS`, then each catalog
-    row's register that they do not place, appended at the end of its block in the catalog's order
-    (in the block's reserved space: no existing address moves)."""
+    row's register that they do not place (the state's rows, then the slot records'), appended at
+    the end of its block in the catalog's order (in the block's reserved space: no existing
+    address moves)."""
     specs = {b: list(rows) for b, rows in INPUT_SPECS.items()}
     placed = {row[0] for rows in specs.values() for row in rows}
-    for v in values:
-        p = v.plc
+    for p in [v.plc for v in values] + [s.plc for s in slots]:
         if p is not None and p.name not in placed:
             specs.setdefault(p.block, []).append((p.name, p.type, p.unit, p.doc))
     return specs
 
 
-def input_layout(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[Reg, ...]:
+def input_layout(values: tuple[catalog.Value, ...] = catalog.CATALOG,
+                 slots: tuple[catalog.SlotValue, ...] = catalog.SLOT_CATALOG) -> tuple[Reg, ...]:
     """The input registers of :func:`input_specs` at their addresses (a block without room for
     them fails here, at import)."""
-    return _layout(INPUT_BLOCKS, input_specs(values))
+    return _layout(INPUT_BLOCKS, input_specs(values, slots))
 
 
 INPUT_REGS = input_layout()

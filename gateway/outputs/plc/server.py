@@ -252,6 +252,10 @@ class ModbusSettings:
     door: DoorLimits | None = None
 
 
+#: the latest slot before the first: no reading, speed command 0
+_NO_SLOT = SlotRecord(-1, 0.0, False, math.nan, math.nan, 0, 0, None, None, math.nan, 0.0, math.nan, False)
+
+
 class ModbusOutput:
     """Station output serving one station on a shared Modbus TCP server."""
 
@@ -275,13 +279,11 @@ class ModbusOutput:
         self._last_update = 0.0
         self._state = StationState(station=settings.station_id)
         self._sw = R.software_version(__version__)
-        # live values (station loop)
-        self._t1 = self._t2 = self._tension = math.nan
+        # live values (station loop): the latest slot record (none yet: no reading, speed 0)
+        self._rec = _NO_SLOT
         self._mu = math.nan
         self._mu_t = -1e9
         self._sat_t = -1e9
-        self._speed_cmd = 0.0
-        self._speed_act = math.nan
         self._in_test = False
         self._elapsed = 0.0
         #: the running test's slots (its valid ratio and reason counts), opened at each test start
@@ -290,6 +292,9 @@ class ModbusOutput:
         self.refusal_log = RateLog(log)
         #: the state's values this output serves, by register (the catalog's rows with one)
         self.catalog_regs = R.CATALOG_REGS
+        #: the slot records' values it serves, by register (the catalog's slot rows with one; a
+        #: row with neither a latest-slot nor a test-window source is filled here: `mu`)
+        self.slot_regs = R.SLOT_REGS
 
     source = "plc"
 
@@ -333,16 +338,11 @@ class ModbusOutput:
 
     def on_record(self, rec: SlotRecord) -> None:
         now = time.monotonic()
-        if rec.present:
-            self._t1, self._t2 = rec.t1, rec.t2
-            self._tension = (rec.t1 + rec.t2) * 0.5
-        else:
-            self._t1 = self._t2 = self._tension = math.nan
+        self._rec = rec
         if rec.q and rec.mu is not None:
             self._mu, self._mu_t = rec.mu, now
         if rec.saturated:
             self._sat_t = now
-        self._speed_cmd, self._speed_act = rec.speed_cmd, rec.speed_act
         if self._in_test:
             self._test.add(rec)
             self._elapsed = rec.t
@@ -382,12 +382,16 @@ class ModbusOutput:
             "heartbeat": int(now - self._t0) & 0xFFFF, "map_version": R.MAP_VERSION, "map_minor": R.MAP_MINOR,
             "sw_major": self._sw[0], "sw_minor": self._sw[1], "sw_patch": self._sw[2],
             "status": R.status_word(flags),
-            "t1": self._t1, "t2": self._t2, "tension": self._tension,
             "mu": self._mu if now - self._mu_t <= 1.0 else math.nan,
-            "valid_ratio": w.n_valid / w.n if w.n else math.nan,
-            "speed_cmd": self._speed_cmd, "speed_act": self._speed_act,
-            "elapsed": self._elapsed, "slots": w.n, "valid_slots": w.n_valid,
+            "elapsed": self._elapsed,
         }
+        # the values of the slot records: the catalog's slot rows (the latest slot, the test's window)
+        rec = self._rec
+        for name, srow in self.slot_regs.items():
+            if srow.latest is not None:
+                v[name] = srow.latest(rec)
+            elif srow.plc_test is not None:
+                v[name] = srow.plc_test(w)
         for name, c in w.reason_counts().items():
             v[f"count_{name.lower()}"] = c
         # the values of the station's state: the catalog's rows (gateway/core/catalog.py)

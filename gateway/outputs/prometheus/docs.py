@@ -8,20 +8,20 @@ import sys
 
 from ...core import catalog
 from .exposition import PREFIX
-from .figures import GAUGES
+from .figures import GAUGES, SLOT_GAUGES
 
 BEGIN = "<!-- generated from gateway/core/catalog.py: python -m gateway.outputs.prometheus.docs docs/metrics.md -->"
 END = "<!-- end of the generated table -->"
 
 
-def _unit(v: catalog.Value) -> str:
+def _unit(v: catalog.Value | catalog.SlotValue) -> str:
     if v.base_type == "bool" or (v.prometheus is not None and v.prometheus.label):
         return "0/1"
     return v.unit or "1"
 
 
-def table(values: tuple[catalog.Value, ...] = GAUGES) -> list[str]:
-    """The table of the catalog's gauges, one row each."""
+def table(values: tuple[catalog.Value | catalog.SlotValue, ...] = GAUGES + SLOT_GAUGES) -> list[str]:
+    """The table of the catalog's gauges (the state's, then the latest slot's), one row each."""
     out = ["| metric | type | labels | unit | meaning |", "|---|---|---|---|---|"]
     for v in values:
         g = v.prometheus

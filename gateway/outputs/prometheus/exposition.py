@@ -14,7 +14,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from ... import __version__
 from ...core import catalog
 from ..sparkplug.runtime import node_figures
-from .figures import _PROCESS, GAUGES, OPERATION_KINDS
+from .figures import _PROCESS, GAUGES, OPERATION_KINDS, SLOT_GAUGES
 
 log = logging.getLogger("hookwatch.metrics")
 
@@ -141,6 +141,8 @@ def families(snapshots: list[dict], *, console_clients: int | None = None,
             mu.add_metric([s["station"]], float(v))
     out.append(mu)
     out += state_families(p, snapshots)
+    if SLOT_GAUGES:
+        out += state_families(p, snapshots, SLOT_GAUGES)
 
     if console_clients is not None:
         out.append(GaugeMetricFamily(f"{p}_console_clients", "clients connected to the web console",
@@ -200,10 +202,11 @@ def render(registry: CollectorRegistry) -> bytes:
 
 
 def state_families(p: str, snapshots: list[dict[str, Any]],
-                   values: tuple[catalog.Value, ...] = GAUGES) -> list[Metric]:
-    """A gauge per catalog row with one (gateway/core/catalog.py), from the snapshots' values: a
-    flag 1 or 0; a number when there is one (absent while it is null or not finite); an
-    enumeration one gauge per choice, labelled, 1 for the current one."""
+                   values: tuple[catalog.Value | catalog.SlotValue, ...] = GAUGES) -> list[Metric]:
+    """A gauge per catalog row with one (gateway/core/catalog.py: a value of the state, or the
+    latest slot's reading of a slot records' row), from the snapshots' values: a flag 1 or 0; a
+    number when there is one (absent while it is null or not finite); an enumeration one gauge
+    per choice, labelled, 1 for the current one."""
     out: list[Metric] = []
     for v in values:
         g = v.prometheus
@@ -211,7 +214,7 @@ def state_families(p: str, snapshots: list[dict[str, Any]],
         fam = GaugeMetricFamily(f"{p}_{g.name}", g.help, labels=["station", g.label] if g.label else ["station"])
         for s in snapshots:
             x = s.get(v.name)
-            if g.label:
+            if g.label and isinstance(v, catalog.Value):
                 for c in v.choices:
                     fam.add_metric([s["station"], c], 1.0 if x == c else 0.0)
             elif v.base_type == "bool":

@@ -18,13 +18,15 @@ from collections.abc import Callable
 from typing import Any
 
 from ...core import catalog
-from ...core.records import StationState, TestState
+from ...core.records import SlotRecord, StationState, TestState
 from ...core.slotwindow import SlotWindow
 from ..plc.server import ModbusOutput
 
 SNAPSHOT_VERSION = 2     # 2: the state's values under their catalog names (test_state, wear_warning, …)
 #: the catalog's rows a station's snapshot carries and the exposition shows (a gauge each)
 GAUGES = tuple(v for v in catalog.CATALOG if v.prometheus is not None)
+#: the catalog's slot records' rows with a gauge (of the latest slot's reading): none today
+SLOT_GAUGES = tuple(s for s in catalog.SLOT_CATALOG if s.prometheus is not None)
 
 #: slot lateness buckets, s: a poll that starts > 10 ms (ts/2 at 50 Hz) late is an overrun
 LATENESS_BUCKETS_S = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.010)
@@ -65,7 +67,7 @@ class Histogram:
 class StationFigures:
     """What a station's loop counts, as plain attributes (written by one thread only)."""
     __slots__ = ("station", "life", "overruns", "lateness", "rtt", "mu", "events",
-                 "pruned_tests", "pruned_bytes", "values")
+                 "pruned_tests", "pruned_bytes", "values", "latest")
 
     def __init__(self, station: str):
         self.station = station
@@ -79,6 +81,8 @@ class StationFigures:
         self.pruned_tests = self.pruned_bytes = 0     # record retention (records_pruned events)
         #: the catalog's values with a gauge as the station's state last had them
         self.values: dict[str, catalog.Reading] = state_figures(StationState(station=station))
+        #: the latest slot record (its readings: the gauges of SLOT_GAUGES, read at scrape time)
+        self.latest: SlotRecord | None = None
 
 
 _FIGURES: dict[str, StationFigures] = {}
@@ -160,6 +164,7 @@ def figures_snapshot(f: StationFigures, station_id: str, ts: float, *, links: di
         "links": links, "outbox": outbox, "plc": plc,
         "mu": f.mu, "events": dict(f.events),
         "records_pruned": {"tests": f.pruned_tests, "bytes": f.pruned_bytes}, **f.values,
+        **catalog.read_latest(SLOT_GAUGES, f.latest),
     }
 
 

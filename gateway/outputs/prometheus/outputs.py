@@ -58,6 +58,7 @@ class MetricsOutput(EndpointSource):
         # O(1), under a microsecond: the slot window's attribute updates and C bisects, nothing else
         f = self.f
         f.life.add(rec)                 # slots, and those with a reading
+        f.latest = rec                  # the catalog's gauges of the latest slot (SLOT_GAUGES)
         lat = rec.lateness_s
         if lat > self._late_max:        # a slot lost to an overrun (recorded as MISSING)
             f.overruns += 1

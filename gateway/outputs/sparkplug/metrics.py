@@ -135,24 +135,14 @@ def _at(index: int, defs: tuple[MetricDef, ...]) -> dict[int, MetricDef]:
 
 
 #: the device's own metrics, each at its fixed alias index: the alarms' folders (from the station's
-#: alarm store), the data interval's figures (from the slot records) and the controls; the metrics
-#: that follow the station's state are the catalog's rows (gateway/core/catalog.py), each at the
-#: alias index its row names. Aliases are base + index: an index is never reused or changed (data
-#: stored before a restart keeps its meaning), a new metric takes the next free one.
+#: alarm store) and the controls; the metrics that follow the station's state and the data
+#: interval's figures (from the slot records) are the catalog's rows (gateway/core/catalog.py
+#: CATALOG and SLOT_CATALOG), each at the alias index its row names. Aliases are base + index: an
+#: index is never reused or changed (data stored before a restart keeps its meaning), a new metric
+#: takes the next free one.
 DEVICE_OWN: dict[int, MetricDef] = {
     **_at(12, _alarm_metrics("end_of_life", "end-of-life")),
-    **_at(18, (
-        MetricDef("Tension/T1", DataType.Float, "N", "inlet tension, interval mean", telemetry=True),
-        MetricDef("Tension/T2", DataType.Float, "N", "outlet tension, interval mean", telemetry=True),
-        MetricDef("Tension/Mean", DataType.Float, "N", "(T1+T2)/2, interval mean", telemetry=True),
-        MetricDef("Friction/mu", DataType.Double, "", "capstan μ = ln(T2/T1)/θ over valid slots, "
-                  "interval mean", telemetry=True),
-        MetricDef("Quality/Valid Ratio", DataType.Double, "", "valid slots / slots in the interval",
-                  telemetry=True),
-        MetricDef("Control/Speed Command", DataType.Float, "rpm", telemetry=True),
-        MetricDef("Control/Speed Actual", DataType.Float, "rpm", telemetry=True),
-        MetricDef("Control/Saturation", DataType.Boolean, description="control output clamped in "
-                  "the interval", telemetry=True),
+    **_at(26, (
         MetricDef("Device Control/Last Command", DataType.String,
                   description="the last command received over DCMD and its outcome"),
         MetricDef("Device Control/Last Result Code", DataType.Int32,
@@ -209,18 +199,27 @@ def state_metric(v: catalog.Value) -> MetricDef:
     return MetricDef(sp.name, DataType[sp.datatype], sp.units, sp.description)
 
 
-def device_metrics(values: tuple[catalog.Value, ...] = catalog.CATALOG) -> tuple[MetricDef, ...]:
-    """A device's metrics in alias order: :data:`DEVICE_OWN` and the catalog's rows, each at its
-    index. A row on an index already taken, or a gap, fails here (at import)."""
+def slot_metric(v: catalog.SlotValue) -> MetricDef:
+    """The device metric of a slot records' row: a periodic measurement (``telemetry``)."""
+    sp = v.sparkplug
+    assert sp is not None
+    return MetricDef(sp.name, DataType[sp.datatype], sp.units, sp.description, telemetry=True)
+
+
+def device_metrics(values: tuple[catalog.Value, ...] = catalog.CATALOG,
+                   slots: tuple[catalog.SlotValue, ...] = catalog.SLOT_CATALOG) -> tuple[MetricDef, ...]:
+    """A device's metrics in alias order: :data:`DEVICE_OWN` and the catalog's rows (the state's
+    and the slot records'), each at its index. A row on an index already taken, or a gap, fails
+    here (at import)."""
     by_index = dict(DEVICE_OWN)
-    for v in values:
-        if v.sparkplug is None:
-            continue
-        if v.sparkplug.alias in by_index:
-            raise ValueError(f"Sparkplug alias index {v.sparkplug.alias} of {v.name} is taken by "
-                             f"{by_index[v.sparkplug.alias].name}: a new metric takes the next free one "
+    rows = [(v.name, v.sparkplug, state_metric(v)) for v in values if v.sparkplug is not None]
+    rows += [(s.name, s.sparkplug, slot_metric(s)) for s in slots if s.sparkplug is not None]
+    for name, sp, metric in rows:
+        if sp.alias in by_index:
+            raise ValueError(f"Sparkplug alias index {sp.alias} of {name} is taken by "
+                             f"{by_index[sp.alias].name}: a new metric takes the next free one "
                              f"({max(by_index) + 1})")
-        by_index[v.sparkplug.alias] = state_metric(v)
+        by_index[sp.alias] = metric
     if sorted(by_index) != list(range(len(by_index))):
         missing = sorted(set(range(max(by_index) + 1)) - set(by_index))
         raise ValueError(f"Sparkplug device metrics: no metric at alias index {missing}")

@@ -80,14 +80,10 @@ def ticking_values(st: StationState, values: tuple[catalog.Value, ...] = M.STATE
             if v.sparkplug is not None and v.ticks and (x := v.source(st))}
 
 
-def window_values(w: SlotWindow) -> dict[str, Any]:
-    """A data interval's device metrics from its window of slots (``gateway/core/slotwindow.py``)."""
-    nr = w.n_read
-    return {"Tension/T1": w.s1 / nr if nr else None, "Tension/T2": w.s2 / nr if nr else None,
-            "Tension/Mean": (w.s1 + w.s2) / (2 * nr) if nr else None,
-            "Friction/mu": w.mu_mean, "Quality/Valid Ratio": w.valid_ratio,
-            "Control/Speed Command": w.speed_cmd, "Control/Speed Actual": w.speed_act,
-            "Control/Saturation": w.n_sat > 0}
+def window_values(w: SlotWindow, slots: tuple[catalog.SlotValue, ...] = catalog.SLOT_CATALOG) -> dict[str, Any]:
+    """A data interval's device metrics from its window of slots (``gateway/core/slotwindow.py``):
+    the catalog's slot records' rows with a Sparkplug metric (gateway/core/catalog.py)."""
+    return catalog.read_sparkplug(slots, w)
 
 
 class SparkplugOutput:

@@ -189,12 +189,13 @@ def test_sparkplug_state_metrics_are_exactly_the_catalog():
 
 # ----------------------------------------------------------------------------- PLC
 #: the registers of the PLC door's own (not values of the state): versions, the liveness, the
-#: status bits, the latest slot's live values, the test's counters and elapsed time (from the
-#: slot records), the command status
-PLC_OWN = {"heartbeat", "map_version", "sw_major", "sw_minor", "sw_patch", "status", "t1", "t2", "tension",
-           "mu", "valid_ratio", "speed_cmd", "speed_act", "elapsed", "slots", "valid_slots",
+#: status bits, the latest slot's live values and the test's counters (the slot records' rows of
+#: the catalog: tests/gateway/outputs/test_catalog_slots.py), the elapsed time and the reason
+#: counts of the test (from the slot records), the command status
+PLC_OWN = {"heartbeat", "map_version", "sw_major", "sw_minor", "sw_patch", "status", "elapsed",
            "last_command", "last_result", "command_count", "map_minor",
-           *(f"count_{n.lower()}" for _, n in R.REASONS)}
+           *(f"count_{n.lower()}" for _, n in R.REASONS),
+           *(s.plc.name for s in catalog.SLOT_CATALOG if s.plc is not None)}
 
 
 def _plc_image(st: StationState, regs=R.INPUT_REGS) -> dict:
