@@ -238,6 +238,7 @@ CPU: dict[str, tuple[str, ...]] = {
 ANSIBLE_LAB = "tests/deploy/test_ansible_site.py"
 #: module-scoped fixtures outside the CPU group, and the Ansible lab: the module's own worker
 MODULE_GROUPS = ("tests/gateway/outputs/plc/test_modbus_tcp.py", ANSIBLE_LAB)
+SITE_PAIRS = "site-pairs"
 #: tests of several modules that share one worker's costly fixture: group → module → test functions
 SHARED_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
     # one 3-node RabbitMQ cluster per worker (~1 min to start: tests/kit/rabbitmq_pool.py)
@@ -247,6 +248,15 @@ SHARED_GROUPS: dict[str, dict[str, tuple[str, ...]]] = {
             "test_box_b_joining_through_another_rabbitmq_node_gets_the_site_prior_of_box_a",),
         "tests/deploy/test_deploy_acl.py": (
             "test_rabbitmq_topic_permissions_refuse_a_forging_box_and_hold_a_gateway",),
+    },
+    # two stations each, one after another on one worker beside the fleets (in the fleet group
+    # they made it, and so the run, 200 s longer: ci 897 s): two stations at 50 Hz under a flood
+    # of 600 lives snapshots of 115 KB (their assertions hold beside others: every command
+    # answered once and in order, every slot and snapshot accounted), and a site-managed box — a
+    # supervisor with two workers and their twins (issue 37)
+    SITE_PAIRS: {
+        "tests/gateway/outputs/test_site_lives_churn_e2e.py": ("*",),
+        "tests/gateway/config/test_site_apply_e2e.py": ("*",),
     },
 }
 #: fleets of virtual stations (several `hookwatch sim` + a gateway carrying 3–4 stations at 50 Hz):
@@ -263,11 +273,6 @@ FLEETS = (
     # as heavy as a fleet; beside one, its compressed life ended in protection stops (ci runs 4, 5)
     "tests/gateway/outputs/test_forecast_doors_e2e.py",
     "tests/gateway/cli/test_console_demo.py",
-    # two stations at 50 Hz under a flood of 600 lives snapshots of 115 KB through the broker,
-    # compared with each other: beside another fleet both would only measure that fleet
-    "tests/gateway/outputs/test_site_lives_churn_e2e.py",
-    # a site-managed box: a supervisor with two workers and their twins (issue 37)
-    "tests/gateway/config/test_site_apply_e2e.py",
 )
 
 
@@ -279,8 +284,9 @@ FLEETS = (
 #: number of tests, and the 3-minute broker outage life began 6 minutes in, on the critical path
 LONGEST_FIRST: dict[str, int] = {
     ANSIBLE_LAB: 430,           # alone at load 3, 2026-11-29 (its release build included)
-    FLEET_GROUP: 580,
+    FLEET_GROUP: 400,           # 580 with the site pairs (ci 2026-11-29)
     "rabbitmq": 230,
+    SITE_PAIRS: 200,
     "tests/gateway/outputs/test_outputs_e2e.py": 215,
     "tests/gateway/station/test_station_e2e.py": 185,
     "tests/deploy/test_release.py": 165,

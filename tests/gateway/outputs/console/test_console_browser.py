@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import time
 
+from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
 from gateway.outputs.console.feed import VALUES
 from kit.browser import wait_js
 from kit.console_helpers import console_fleet
@@ -68,7 +70,11 @@ def test_console_in_a_browser(tmp_path, browser):
         late.close()
 
         # --- the end-of-life alarm appears (t_life ≈ 23 s, known ≈ 25 s into the life)
-        page.wait_for_selector("#alarm .alarm-active", timeout=90000)
+        try:
+            page.wait_for_selector("#alarm .alarm-active", timeout=120000)
+        except PlaywrightTimeout:
+            raise AssertionError("no end-of-life alarm on the page; the gateway said:\n"
+                                 + gw.log()[-6000:]) from None
         assert page.locator("#t-life").inner_text().endswith(" s")
         page.screenshot(path=str(tmp_path / "station-alarm.png"), full_page=True)
 
