@@ -68,8 +68,12 @@ def test_apply_idle_defer_a_running_test_refusals_and_the_report(tmp_path):
         repo.box("b1", box.records)
         links = _sims(stack, tmp_path, ("idle", "busy"))
         repo.station("b1", "idle", links["idle"])
+        # its next test autostarts a moment after this one (and after its worker's restart): the
+        # twin's yarn may still hold 0.02 N then (a CI run: 0.022 N, the zero check failed and no
+        # 2nd test ran), so its zero check allows 0.05 N; what is tested is the apply, not §3a
         repo.station("b1", "busy", links["busy"], test={"sample_id": "S-busy", "autostart": True,
-                                                         "t_end_s": QUICK_END})
+                                                         "t_end_s": QUICK_END},
+                     method={"zero_tol": 0.05})
         v1 = repo.commit("two stations", key)
         rc, out, p = _apply(box, repo, v1)
         assert rc == 3 and out["version"] == v1 and not out["rolled_back"], p.stderr
