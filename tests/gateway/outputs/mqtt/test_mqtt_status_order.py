@@ -101,10 +101,10 @@ def test_status_session_keeps_increasing_across_restarts(tmp_path):
                 out = MqttOutput(MqttSettings(station_id="st1", base_topic=BASE, port=b.port,
                                               outbox_path=str(tmp_path / "outbox.sqlite")))
                 lt.call(out.start())
-                wait_for(lambda out=out: out.connected, 20, what="connected")
+                wait_for(lambda out=out: out.connected, 60, what="connected")
                 lt.call(out.stop())
                 lt.close()
-                sub.wait(lambda s, k=k: len([m for m in s.messages() if not m[0]]) >= 2 * k, 20)
+                sub.wait(lambda s, k=k: len([m for m in s.messages() if not m[0]]) >= 2 * k, 60)
             got = sub.messages()
             live = [(m[2]["status"], m[2]["session"]) for m in got if not m[0]]
             assert live == [("online", 1), ("offline", 1), ("online", 2), ("offline", 2)]
